@@ -1,0 +1,324 @@
+"""The data model every part of placerec shares: scans, sensors, sequences, candidates, recognizers.
+
+Conventions
+-----------
+* Points are in the sensor frame: x forward, y left, z up (metres).
+* A pose is a 4x4 float64 homogeneous matrix ``T_world_sensor`` that maps sensor-frame points into the world
+  frame (KITTI's convention for ``poses.txt``).
+* A ``Candidate.relative_pose`` is ``T_match_query``: it maps points of the *query* scan into the frame of the
+  *matched* scan, so that ``T_world_query ~= T_world_match @ relative_pose``.
+* Ids are the integers the caller gives to ``PlaceRecognizer.add``; placerec never renumbers them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence as _Seq
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from placerec.errors import ScanDataError
+
+__all__ = [
+    "SensorInfo",
+    "Scan",
+    "Sequence",
+    "ListSequence",
+    "Candidate",
+    "PlaceRecognizer",
+    "as_pose",
+    "relative_pose",
+]
+
+
+@dataclass(frozen=True)
+class SensorInfo:
+    """What is known about the sensor that produced a scan.
+
+    ``beam_elevations_deg`` lists one elevation per beam (ring), indexed by ring id; ``columns`` is the number of
+    azimuth steps per revolution; ``intensity_max`` is the saturation value of the raw intensity channel (e.g. 255
+    for 8-bit Velodyne, 65535 for 16-bit Ouster reflectivity, 1.0 for KITTI's float reflectance).
+    """
+
+    name: str = "unknown"
+    beam_elevations_deg: tuple[float, ...] | None = None
+    columns: int | None = None
+    intensity_max: float | None = None
+    min_range: float | None = None
+    max_range: float | None = None
+
+    @property
+    def n_beams(self) -> int | None:
+        return None if self.beam_elevations_deg is None else len(self.beam_elevations_deg)
+
+    @property
+    def vertical_fov_deg(self) -> tuple[float, float] | None:
+        """(up, down) field of view in degrees, both positive for a sensor that sees above and below."""
+        if not self.beam_elevations_deg:
+            return None
+        e = np.asarray(self.beam_elevations_deg)
+        return float(e.max()), float(-e.min())
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {
+            "name": self.name,
+            "beam_elevations_deg": None if self.beam_elevations_deg is None else [float(v) for v in self.beam_elevations_deg],
+            "columns": self.columns,
+            "intensity_max": self.intensity_max,
+            "min_range": self.min_range,
+            "max_range": self.max_range,
+        }
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SensorInfo:
+        allowed = {"name", "beam_elevations_deg", "columns", "intensity_max", "min_range", "max_range"}
+        unknown = set(d) - allowed
+        if unknown:
+            raise ScanDataError(f"sensor description has unknown keys {sorted(unknown)}; allowed: {sorted(allowed)}")
+        elev = d.get("beam_elevations_deg")
+        return cls(
+            name=str(d.get("name", "unknown")),
+            beam_elevations_deg=None if elev is None else tuple(float(v) for v in elev),
+            columns=None if d.get("columns") is None else int(d["columns"]),
+            intensity_max=None if d.get("intensity_max") is None else float(d["intensity_max"]),
+            min_range=None if d.get("min_range") is None else float(d["min_range"]),
+            max_range=None if d.get("max_range") is None else float(d["max_range"]),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """One LiDAR sweep.
+
+    ``xyz`` (N, 3) float32 and ``intensity`` (N,) float32 are always present. ``ring`` (N,) int16 is the beam
+    index (0 = the beam listed first in ``sensor.beam_elevations_deg``), ``time`` (N,) float32 the per-point time
+    offset in seconds. ``shape`` = (rows, cols) marks an *organised* scan: then N == rows * cols, points are stored
+    row-major (row = beam, top beam first) and invalid returns are rows of zeros.
+    """
+
+    xyz: np.ndarray
+    intensity: np.ndarray
+    ring: np.ndarray | None = None
+    time: np.ndarray | None = None
+    shape: tuple[int, int] | None = None
+    sensor: SensorInfo = field(default_factory=SensorInfo)
+    timestamp: float | None = None
+    source: str | None = None
+
+    def __post_init__(self) -> None:
+        xyz = np.ascontiguousarray(self.xyz, dtype=np.float32)
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            raise ScanDataError(f"{self._where()}xyz must have shape (N, 3), got {xyz.shape}")
+        n = xyz.shape[0]
+        inten = np.ascontiguousarray(self.intensity, dtype=np.float32).reshape(-1)
+        if inten.shape[0] != n:
+            raise ScanDataError(f"{self._where()}intensity has {inten.shape[0]} values for {n} points")
+        object.__setattr__(self, "xyz", xyz)
+        object.__setattr__(self, "intensity", inten)
+        if self.ring is not None:
+            ring = np.ascontiguousarray(self.ring, dtype=np.int16).reshape(-1)
+            if ring.shape[0] != n:
+                raise ScanDataError(f"{self._where()}ring has {ring.shape[0]} values for {n} points")
+            object.__setattr__(self, "ring", ring)
+        if self.time is not None:
+            t = np.ascontiguousarray(self.time, dtype=np.float32).reshape(-1)
+            if t.shape[0] != n:
+                raise ScanDataError(f"{self._where()}time has {t.shape[0]} values for {n} points")
+            object.__setattr__(self, "time", t)
+        if self.shape is not None:
+            rows, cols = (int(v) for v in self.shape)
+            if rows * cols != n:
+                raise ScanDataError(f"{self._where()}organised shape {rows}x{cols} does not match {n} points")
+            object.__setattr__(self, "shape", (rows, cols))
+
+    def _where(self) -> str:
+        return f"{self.source}: " if self.source else ""
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+    @property
+    def is_organized(self) -> bool:
+        return self.shape is not None
+
+    @property
+    def ranges(self) -> np.ndarray:
+        """Euclidean range of every point (float32)."""
+        return np.sqrt(np.einsum("ij,ij->i", self.xyz, self.xyz, dtype=np.float32))
+
+    @property
+    def fields(self) -> list[str]:
+        names = ["x", "y", "z", "intensity"]
+        if self.ring is not None:
+            names.append("ring")
+        if self.time is not None:
+            names.append("time")
+        return names
+
+    def select(self, mask_or_index: np.ndarray) -> Scan:
+        """A new unorganised scan with the selected points (boolean mask or integer index)."""
+        sel = np.asarray(mask_or_index)
+        return replace(
+            self,
+            xyz=self.xyz[sel],
+            intensity=self.intensity[sel],
+            ring=None if self.ring is None else self.ring[sel],
+            time=None if self.time is None else self.time[sel],
+            shape=None,
+        )
+
+    def with_intensity(self, intensity: np.ndarray) -> Scan:
+        return replace(self, intensity=intensity)
+
+    def transformed(self, pose: np.ndarray) -> Scan:
+        """The scan with its points mapped by the 4x4 ``pose`` (e.g. into the world frame)."""
+        T = as_pose(pose)
+        xyz = (self.xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+        return replace(self, xyz=xyz)
+
+    def organized(self, name: str) -> np.ndarray:
+        """A per-point array reshaped to (rows, cols[, ...]); only for organised scans."""
+        if self.shape is None:
+            raise ScanDataError(f"{self._where()}scan is not organised")
+        arr = getattr(self, name)
+        if arr is None:
+            raise ScanDataError(f"{self._where()}scan has no field {name!r}")
+        return arr.reshape(self.shape + arr.shape[1:])
+
+
+@runtime_checkable
+class Sequence(Protocol):
+    """A dataset of scans in acquisition order. Every loader and the simulator implement it.
+
+    ``poses`` is an (N, 4, 4) float64 array of ``T_world_sensor`` or None when unknown; ``timestamps`` an (N,)
+    float64 array of seconds (monotonic) or None.
+    """
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, index: int) -> Scan: ...
+
+    @property
+    def poses(self) -> np.ndarray | None: ...
+
+    @property
+    def timestamps(self) -> np.ndarray | None: ...
+
+    @property
+    def name(self) -> str: ...
+
+
+def iter_scans(seq: Sequence) -> Iterator[Scan]:
+    for i in range(len(seq)):
+        yield seq[i]
+
+
+class ListSequence:
+    """A `Sequence` over scans already in memory (handy for tests and small experiments)."""
+
+    def __init__(
+        self,
+        scans: _Seq[Scan],
+        poses: np.ndarray | None = None,
+        timestamps: np.ndarray | None = None,
+        name: str = "in-memory",
+    ) -> None:
+        self._scans = list(scans)
+        self._poses = None if poses is None else check_poses(poses, len(self._scans), name)
+        self._timestamps = None if timestamps is None else np.asarray(timestamps, dtype=np.float64).reshape(-1)
+        if self._timestamps is not None and self._timestamps.shape[0] != len(self._scans):
+            raise ScanDataError(f"{name}: {self._timestamps.shape[0]} timestamps for {len(self._scans)} scans")
+        self._name = name
+
+    def __len__(self) -> int:
+        return len(self._scans)
+
+    def __getitem__(self, index: int) -> Scan:
+        return self._scans[index]
+
+    @property
+    def poses(self) -> np.ndarray | None:
+        return self._poses
+
+    @property
+    def timestamps(self) -> np.ndarray | None:
+        return self._timestamps
+
+    @property
+    def name(self) -> str:
+        return self._name
+
+
+def as_pose(pose: np.ndarray) -> np.ndarray:
+    """Validate and return a 4x4 float64 pose (accepts 3x4)."""
+    T = np.asarray(pose, dtype=np.float64)
+    if T.shape == (3, 4):
+        T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
+    if T.shape != (4, 4):
+        raise ScanDataError(f"a pose must be 4x4 (or 3x4), got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ScanDataError("a pose contains NaN or inf")
+    return T
+
+
+def check_poses(poses: np.ndarray, n: int | None, where: str) -> np.ndarray:
+    P = np.asarray(poses, dtype=np.float64)
+    if P.ndim != 3 or P.shape[1:] != (4, 4):
+        raise ScanDataError(f"{where}: poses must have shape (N, 4, 4), got {P.shape}")
+    if n is not None and P.shape[0] != n:
+        raise ScanDataError(f"{where}: {P.shape[0]} poses for {n} scans")
+    if not np.all(np.isfinite(P)):
+        raise ScanDataError(f"{where}: poses contain NaN or inf")
+    return P
+
+
+def relative_pose(T_world_match: np.ndarray, T_world_query: np.ndarray) -> np.ndarray:
+    """``T_match_query``: maps query-frame points into the match frame (see module docstring)."""
+    return np.linalg.inv(as_pose(T_world_match)) @ as_pose(T_world_query)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One answer of a place recognizer to a query.
+
+    ``query_id`` is the id of the query scan, ``match_id`` the id under which the matched scan (or place) was
+    added. ``score``: higher is more confident; its scale is the recognizer's own (documented per recognizer) and
+    thresholds are applied on it. ``relative_pose`` is ``T_match_query`` (4x4) when the recognizer estimates one
+    (Scan Context gives a yaw-only rotation), else None. ``inliers`` counts the supporting correspondences when the
+    recognizer verifies geometrically; ``extra`` holds recognizer-specific diagnostics.
+    """
+
+    query_id: int
+    match_id: int
+    score: float
+    relative_pose: np.ndarray | None = None
+    inliers: int | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@runtime_checkable
+class PlaceRecognizer(Protocol):
+    """The one interface every pipeline, baseline and peer adapter implements.
+
+    * ``add(scan_id, scan, pose=None)`` inserts a scan into the database under ``scan_id`` (unique, caller-chosen).
+    * ``query(scan, k=1, max_id=None, query_id=-1)`` returns up to ``k`` candidates, best first, among database
+      entries with ``id <= max_id`` (all entries when None). Loop-closure callers number scans in acquisition
+      order, so the exclusion window of recent frames becomes one bound. It never modifies the database;
+      ``query_id`` is only copied into the returned candidates.
+    * ``save(path)`` / ``load(path)`` persist the database (atomic, versioned).
+    """
+
+    name: str
+
+    def add(self, scan_id: int, scan: Scan, pose: np.ndarray | None = None) -> None: ...
+
+    def query(
+        self, scan: Scan, k: int = 1, max_id: int | None = None, query_id: int = -1
+    ) -> list[Candidate]: ...
+
+    def save(self, path: str | Path) -> None: ...
+
+    def load(self, path: str | Path) -> None: ...
