@@ -12,7 +12,8 @@ Conventions
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence as _Seq
+from collections.abc import Iterator
+from collections.abc import Sequence as _Seq
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -64,7 +65,9 @@ class SensorInfo:
     def to_dict(self) -> dict[str, Any]:
         d = {
             "name": self.name,
-            "beam_elevations_deg": None if self.beam_elevations_deg is None else [float(v) for v in self.beam_elevations_deg],
+            "beam_elevations_deg": None
+            if self.beam_elevations_deg is None
+            else [float(v) for v in self.beam_elevations_deg],
             "columns": self.columns,
             "intensity_max": self.intensity_max,
             "min_range": self.min_range,
@@ -77,7 +80,9 @@ class SensorInfo:
         allowed = {"name", "beam_elevations_deg", "columns", "intensity_max", "min_range", "max_range"}
         unknown = set(d) - allowed
         if unknown:
-            raise ScanDataError(f"sensor description has unknown keys {sorted(unknown)}; allowed: {sorted(allowed)}")
+            raise ScanDataError(
+                f"sensor description has unknown keys {sorted(unknown)}; allowed: {sorted(allowed)}"
+            )
         elev = d.get("beam_elevations_deg")
         return cls(
             name=str(d.get("name", "unknown")),
@@ -228,9 +233,13 @@ class ListSequence:
     ) -> None:
         self._scans = list(scans)
         self._poses = None if poses is None else check_poses(poses, len(self._scans), name)
-        self._timestamps = None if timestamps is None else np.asarray(timestamps, dtype=np.float64).reshape(-1)
+        self._timestamps = (
+            None if timestamps is None else np.asarray(timestamps, dtype=np.float64).reshape(-1)
+        )
         if self._timestamps is not None and self._timestamps.shape[0] != len(self._scans):
-            raise ScanDataError(f"{name}: {self._timestamps.shape[0]} timestamps for {len(self._scans)} scans")
+            raise ScanDataError(
+                f"{name}: {self._timestamps.shape[0]} timestamps for {len(self._scans)} scans"
+            )
         self._name = name
 
     def __len__(self) -> int:

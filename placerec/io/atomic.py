@@ -45,7 +45,11 @@ def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[BinaryIO]:
 
 
 def save_artifact(
-    path: str | Path, kind: str, format_version: int, arrays: dict[str, np.ndarray], meta: dict[str, Any] | None = None
+    path: str | Path,
+    kind: str,
+    format_version: int,
+    arrays: dict[str, np.ndarray],
+    meta: dict[str, Any] | None = None,
 ) -> None:
     """Write ``arrays`` and a JSON header atomically as an uncompressed ``.npz``."""
     header = {"kind": kind, "format_version": int(format_version), "meta": meta or {}}

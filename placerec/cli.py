@@ -1,0 +1,159 @@
+"""The ``placerec`` command line. Heavy modules (open3d, torch, the pipelines) are imported inside commands so
+``placerec --help`` stays instant."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from placerec._version import __version__
+
+app = typer.Typer(
+    name="placerec",
+    help="LiDAR place recognition and loop-closure detection with intensity.\n\n"
+    "Examples:\n\n"
+    "  placerec info ../shared/data/real/kitti00_frames/000094.bin\n\n"
+    "  placerec dump-config --out my.yaml",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def _native_versions() -> dict[str, str]:
+    """Versions of the native dependencies; raises DependencyError naming the one that fails to import."""
+    from placerec.errors import DependencyError
+
+    versions = {}
+    for module, label in (("numpy", "numpy"), ("cv2", "OpenCV"), ("open3d", "Open3D")):
+        try:
+            mod = __import__(module)
+        except Exception as exc:  # ImportError, OSError from a missing shared library
+            hint = (
+                " (open3d needs the system library libusb-1.0-0: apt-get install libusb-1.0-0)"
+                if module == "open3d"
+                else ""
+            )
+            raise DependencyError(f"cannot import {label}: {exc}{hint}") from exc
+        versions[label] = getattr(mod, "__version__", "unknown")
+    return versions
+
+
+def _version_callback(value: bool) -> None:
+    if not value:
+        return
+    from placerec.errors import DependencyError
+
+    typer.echo(f"placerec {__version__}")
+    try:
+        for label, ver in _native_versions().items():
+            typer.echo(f"  {label} {ver}")
+    except DependencyError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from None
+    raise typer.Exit(0)
+
+
+@app.callback()
+def _main(
+    version: Annotated[
+        Optional[bool],  # noqa: UP045 - typer needs Optional here on Python 3.10
+        typer.Option("--version", callback=_version_callback, is_eager=True, help="Print versions and exit."),
+    ] = None,
+    verbose: Annotated[
+        int, typer.Option("--verbose", "-v", count=True, help="More log output (-v, -vv).")
+    ] = 0,
+) -> None:
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+
+
+def _fail(exc: Exception) -> None:
+    typer.echo(f"error: {exc}", err=True)
+    raise typer.Exit(2)
+
+
+@app.command("dump-config")
+def dump_config(
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Write here instead of stdout.")] = None,  # noqa: UP045
+) -> None:
+    """Print (or write) the default experiment configuration as YAML."""
+    from placerec.config import dump_default_config
+
+    text = dump_default_config(out)
+    if out is None:
+        typer.echo(text, nl=False)
+    else:
+        typer.echo(f"wrote {out}")
+
+
+@app.command()
+def info(
+    path: Annotated[
+        Path, typer.Argument(help="A scan file (.bin .pcd .ply .npy .npz) or a sequence folder/bag.")
+    ],
+    format: Annotated[
+        Optional[str], typer.Option(help="Force a reader, e.g. 'nclt' for NCLT .bin files.")
+    ] = None,  # noqa: UP045
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
+) -> None:
+    """Summarise a scan or a sequence: points, fields, intensity and range percentiles, beams, poses."""
+    from placerec.errors import PlacerecError
+
+    try:
+        summary = _summarise(path, format)
+    except PlacerecError as exc:
+        _fail(exc)
+        return
+    if as_json:
+        typer.echo(json.dumps(summary, indent=2, default=str))
+    else:
+        _print_summary(summary)
+
+
+def _summarise(path: Path, format: str | None) -> dict:
+    from placerec.io import open_sequence, read_scan
+    from placerec.summary import scan_summary, sequence_summary
+
+    if path.is_dir() or path.suffix.lower() in {".bag", ".db3", ".mcap", ".pcap"}:
+        kwargs = {"format": format} if format else {}
+        return sequence_summary(open_sequence(path, **kwargs))
+    return scan_summary(read_scan(path, format=format))
+
+
+def _print_summary(summary: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(show_header=False, box=None)
+    table.add_column(style="bold cyan")
+    table.add_column()
+
+    def add(prefix: str, value: object) -> None:
+        if isinstance(value, dict):
+            if all(isinstance(v, float) for v in value.values()) and value:
+                table.add_row(prefix, "  ".join(f"{k}={v:.3g}" for k, v in value.items()))
+            else:
+                for k, v in value.items():
+                    add(f"{prefix}.{k}" if prefix else k, v)
+        else:
+            table.add_row(prefix, str(value))
+
+    add("", summary)
+    Console().print(table)
+
+
+def main() -> None:
+    try:
+        app()
+    except KeyboardInterrupt:
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,194 @@
+"""Experiment configuration: pydantic models with ``extra="forbid"`` on every section, loaded from YAML.
+
+`load_config` is the one entry point: YAML file (or none) + ``key.path=value`` overrides -> validated
+`ExperimentConfig`. Any unknown key or bad value raises `ConfigError` naming the key path, what was wrong and
+the allowed keys. `dump_default_config` writes the defaults as YAML.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from placerec.errors import ConfigError
+
+__all__ = [
+    "Section",
+    "SimulatorConfig",
+    "DatasetConfig",
+    "IntensityConfig",
+    "PreprocessConfig",
+    "ExperimentConfig",
+    "load_config",
+    "parse_config",
+    "apply_overrides",
+    "dump_default_config",
+]
+
+
+class Section(BaseModel):
+    """Base of every config section: unknown keys are errors, values are validated on assignment too."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class SimulatorConfig(Section):
+    """The built-in LiDAR simulator used as dataset (see `placerec.sim`)."""
+
+    world: str = "town"
+    sensor: str = "os1-64"
+    n_scans: int = Field(400, ge=1)
+    seed: int = 0
+
+
+class DatasetConfig(Section):
+    """Where scans and poses come from: the simulator (default) or a path readable by `placerec.io.open_sequence`."""
+
+    source: Literal["simulator", "path"] = "simulator"
+    path: str | None = None
+    format: str | None = None
+    poses: str | None = None
+    simulator: SimulatorConfig = Field(default_factory=SimulatorConfig)
+    first: int = Field(0, ge=0, description="index of the first scan used")
+    last: int | None = Field(None, description="index past the last scan used (None = to the end)")
+    step: int = Field(1, ge=1, description="use every step-th scan")
+
+    @model_validator(mode="after")
+    def _path_needed(self) -> DatasetConfig:
+        if self.source == "path" and not self.path:
+            raise ValueError("dataset.source 'path' needs dataset.path")
+        return self
+
+
+class IntensityConfig(Section):
+    """Intensity normalisation (`placerec.preprocess.INTENSITY_NORMALIZERS`); ``auto`` = per-sensor default."""
+
+    mode: Literal["auto", "raw", "linear", "percentile"] = "auto"
+    saturation: float | None = Field(None, gt=0)
+    percentile: float = Field(99.0, gt=0, le=100)
+
+
+class PreprocessConfig(Section):
+    """Point filtering applied to every scan before any pipeline sees it (None = no limit)."""
+
+    min_range: float | None = Field(0.5, ge=0)
+    max_range: float | None = Field(None, gt=0)
+    min_z: float | None = None
+    max_z: float | None = None
+    voxel_size: float | None = Field(None, gt=0)
+    intensity: IntensityConfig = Field(default_factory=IntensityConfig)
+
+
+class ExperimentConfig(Section):
+    """The root of a placerec experiment config."""
+
+    name: str = "experiment"
+    dataset: DatasetConfig = Field(default_factory=DatasetConfig)
+    preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
+
+
+def _allowed_keys(model: type[BaseModel], loc: tuple[Any, ...]) -> list[str]:
+    """Field names of the section that ``loc`` (a pydantic error location, minus the bad key) points into."""
+    current: Any = model
+    for part in loc:
+        if not (isinstance(current, type) and issubclass(current, BaseModel)):
+            return []
+        field = current.model_fields.get(str(part))
+        if field is None:
+            return []
+        current = field.annotation
+    if isinstance(current, type) and issubclass(current, BaseModel):
+        return sorted(current.model_fields)
+    return []
+
+
+def _format_errors(exc: ValidationError, model: type[BaseModel], origin: str) -> str:
+    lines = []
+    for err in exc.errors():
+        loc = tuple(err["loc"])
+        key = ".".join(str(p) for p in loc) or "<root>"
+        if err["type"] == "extra_forbidden":
+            allowed = _allowed_keys(model, loc[:-1])
+            section = ".".join(str(p) for p in loc[:-1]) or "the top level"
+            lines.append(f"unknown key '{key}'; allowed keys in {section}: {', '.join(allowed)}")
+        else:
+            lines.append(f"'{key}': {err['msg']} (got {err.get('input')!r})")
+    return f"{origin}: invalid configuration:\n  " + "\n  ".join(lines)
+
+
+def parse_config(data: dict[str, Any] | None, origin: str = "<config>") -> ExperimentConfig:
+    """Validate a plain dict as an `ExperimentConfig`; raises `ConfigError`."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{origin}: the top level of a config must be a mapping, got {type(data).__name__}")
+    try:
+        return ExperimentConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(exc, ExperimentConfig, origin)) from None
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """Apply ``a.b.c=value`` overrides (value parsed as YAML) to a nested dict, in place; returns it."""
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} must look like key.path=value")
+        key, raw = item.split("=", 1)
+        parts = [p for p in key.strip().split(".") if p]
+        if not parts:
+            raise ConfigError(f"override {item!r} has an empty key")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"override {item!r}: value is not valid YAML ({exc})") from None
+        node = data
+        for i, part in enumerate(parts[:-1]):
+            child = node.get(part)
+            if child is None:
+                child = node[part] = {}
+            if not isinstance(child, dict):
+                raise ConfigError(f"override {item!r}: '{'.'.join(parts[: i + 1])}' is not a section")
+            node = child
+        node[parts[-1]] = value
+    return data
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> ExperimentConfig:
+    """Load a YAML config (None = all defaults), apply overrides, validate. Raises `ConfigError`."""
+    data: dict[str, Any] = {}
+    origin = "<defaults>"
+    if path is not None:
+        path = Path(path)
+        origin = str(path)
+        if not path.is_file():
+            raise ConfigError(f"{path}: config file not found")
+        try:
+            loaded = yaml.safe_load(path.read_text(encoding="utf-8"))
+        except (yaml.YAMLError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{path}: not valid YAML ({exc})") from None
+        if loaded is not None and not isinstance(loaded, dict):
+            raise ConfigError(
+                f"{path}: the top level of a config must be a mapping, got {type(loaded).__name__}"
+            )
+        data = loaded or {}
+    if overrides:
+        apply_overrides(data, overrides)
+    return parse_config(data, origin)
+
+
+def config_to_yaml(config: BaseModel) -> str:
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)
+
+
+def dump_default_config(path: str | Path | None = None) -> str:
+    """The default config as YAML; also written (atomically) to ``path`` when given."""
+    text = "# placerec default configuration (placerec dump-config)\n" + config_to_yaml(ExperimentConfig())
+    if path is not None:
+        from placerec.io.atomic import atomic_write
+
+        with atomic_write(path, "w") as fh:
+            fh.write(text)
+    return text

@@ -1,0 +1,99 @@
+import numpy as np
+import pytest
+
+from placerec.config import PreprocessConfig
+from placerec.errors import ConfigError, ScanDataError
+from placerec.preprocess import (
+    IntensitySpec,
+    crop,
+    default_intensity_spec,
+    normalize_intensity,
+    preprocess_scan,
+    remove_invalid,
+    voxel_downsample,
+)
+from placerec.types import Scan, SensorInfo
+
+
+def test_remove_invalid_counts_nan_inf_and_zero():
+    xyz = np.array([[1, 2, 3], [np.nan, 0, 0], [0, 0, 0], [np.inf, 1, 1], [4, 5, 6]], dtype=np.float32)
+    s = Scan(xyz, [1, 2, 3, 4, np.nan])
+    out, counts = remove_invalid(s)
+    assert counts == {"nonfinite": 3, "zero": 1}
+    assert out.xyz.tolist() == [[1, 2, 3]]
+
+
+def test_remove_invalid_keeps_organised_grid_when_asked():
+    xyz = np.array([[1, 0, 0], [np.nan, 0, 0], [0, 1, 0], [0, 0, 2]], dtype=np.float32)
+    s = Scan(xyz, [1, 2, 3, 4], shape=(2, 2))
+    out, _ = remove_invalid(s, keep_organized=True)
+    assert out.shape == (2, 2) and out.xyz[1].tolist() == [0, 0, 0] and out.intensity[1] == 0
+    assert remove_invalid(s)[0].shape is None
+
+
+def test_crop_range_and_height():
+    s = Scan([[1, 0, 0], [10, 0, 0], [50, 0, 0], [3, 0, -5]], [0, 0, 0, 0])
+    assert len(crop(s, min_range=2, max_range=20)) == 2
+    assert crop(s, min_z=-1).xyz[:, 2].min() >= -1
+
+
+def test_voxel_downsample_hand_computed():
+    # two points in voxel (0,0,0), one in voxel (1,0,0) at voxel size 1
+    xyz = [[0.1, 0.1, 0.1], [0.5, 0.5, 0.3], [1.5, 0.2, 0.2]]
+    s = Scan(xyz, [1.0, 3.0, 10.0], ring=[4, 7, 2])
+    v = voxel_downsample(s, 1.0)
+    order = np.argsort(v.xyz[:, 0])
+    assert np.allclose(v.xyz[order], [[0.3, 0.3, 0.2], [1.5, 0.2, 0.2]])
+    assert np.allclose(v.intensity[order], [2.0, 10.0])
+    # both points are equally far from the centroid (0.3,0.3,0.2)? no: distances differ -> nearest is point 0
+    d0 = np.linalg.norm(np.array(xyz[0]) - [0.3, 0.3, 0.2])
+    d1 = np.linalg.norm(np.array(xyz[1]) - [0.3, 0.3, 0.2])
+    assert v.ring[order].tolist() == [4 if d0 < d1 else 7, 2]
+
+
+def test_voxel_downsample_negative_coordinates_and_count():
+    rng = np.random.default_rng(1)
+    xyz = rng.uniform(-10, 10, size=(20000, 3))
+    s = Scan(xyz, rng.random(20000))
+    v = voxel_downsample(s, 0.5)
+    cells = {tuple(c) for c in np.floor(xyz.astype(np.float32) / np.float32(0.5)).astype(int)}
+    assert len(v) == len(cells)
+    assert np.isclose(v.intensity.mean(), s.intensity.mean(), atol=0.02)
+    with pytest.raises(ScanDataError):
+        voxel_downsample(s, 0.0)
+    with pytest.raises(ScanDataError, match="finite"):
+        voxel_downsample(Scan([[np.nan, 0, 0]], [0]), 1.0)
+    assert len(voxel_downsample(Scan(np.zeros((0, 3)), np.zeros(0)), 1.0)) == 0
+
+
+def test_intensity_normalisers():
+    s = Scan(np.ones((4, 3)), [0, 50, 100, 200], sensor=SensorInfo("vlp16"))
+    assert normalize_intensity(s).intensity.tolist() == [0, 0.5, 1, 1]  # VLP-16: raw >= 100 -> 1
+    p = normalize_intensity(s, IntensitySpec("percentile", percentile=50))
+    assert p.intensity.max() == 1.0 and np.isclose(p.intensity[1], 50 / 75)
+    assert normalize_intensity(s, IntensitySpec("raw")).intensity.tolist() == [0, 50, 100, 200]
+    with pytest.raises(ConfigError, match="allowed"):
+        normalize_intensity(s, IntensitySpec("bogus"))
+    with pytest.raises(ConfigError, match="saturation"):
+        normalize_intensity(s, IntensitySpec("linear"))
+    assert default_intensity_spec("OS1-64").mode == "percentile"
+
+
+def test_preprocess_scan_applies_config():
+    rng = np.random.default_rng(2)
+    xyz = rng.uniform(-30, 30, size=(5000, 3))
+    xyz[:10] = np.nan
+    s = Scan(xyz, rng.uniform(0, 255, 5000), sensor=SensorInfo("vlp16"))
+    cfg = PreprocessConfig(min_range=1.0, max_range=20.0, voxel_size=1.0)
+    out = preprocess_scan(s, cfg)
+    assert np.isfinite(out.xyz).all() and out.intensity.max() <= 1.0
+    assert np.linalg.norm(out.xyz, axis=1).max() <= 20.0 + 1e-3
+    assert len(out) < len(s)
+
+
+def test_voxel_speed_is_reasonable_on_a_kitti_sized_scan():
+    """Not a timing assertion, only a sanity check that the vectorised path handles 120k points."""
+    rng = np.random.default_rng(3)
+    s = Scan(rng.uniform(-80, 80, size=(120_000, 3)), rng.random(120_000), ring=rng.integers(0, 64, 120_000))
+    v = voxel_downsample(s, 0.4)
+    assert len(v) > 1000 and v.ring is not None
