@@ -1,0 +1,338 @@
+"""Evaluation metrics: loop-closure precision/recall (VPR paper protocol), localisation success (ISHOT paper),
+timing summaries.
+
+Loop mode definitions
+---------------------
+Each evaluated query contributes its top candidate ``(query_id, match_id, score)``; ``match_id = -1`` means no
+candidate. Ids are indices into the poses (see `placerec.eval.ground_truth`). At a score threshold ``t``:
+
+* the candidate is **accepted** when ``match_id >= 0`` and ``score >= t``;
+* **TP**: accepted and a true match (eligible and within ``gt_distance`` of the query, optionally within the yaw
+  limit — the distance is that between the query's and the match's own poses);
+* **FP**: accepted and not a true match (whether or not the query is a revisit);
+* **FN**: a revisit query without an accepted true match. A revisit query whose accepted candidate is wrong is
+  therefore counted **both** as FP and as FN — it reported a wrong loop and missed the right one;
+* TN: a non-revisit query with nothing accepted (not used by P/R).
+
+``P = TP / (TP + FP)``, ``R = TP / (TP + FN) = TP / n_revisits``, ``F1 = 2PR / (P + R)``. The PR curve has one point
+per distinct candidate score, thresholds descending (recall non-decreasing); no artificial ``(R=0, P=1)`` point is
+added. ``average_precision`` is the step-wise area ``sum_k (R_k - R_{k-1}) P_k`` with ``R_{-1} = 0`` (as
+scikit-learn's ``average_precision_score``); it is below 1 when some revisits are never found. ``recall_at_1`` is
+the fraction of revisit queries whose top candidate is a true match at any threshold; ``recall_at_n[n-1]`` the
+fraction with a true match among their first ``n`` candidates. With no revisit query, recalls are reported as 0 and
+``no_revisits`` is set.
+
+The same functions serve live runs and recomputation from a ``query_id,match_id,score`` CSV plus the poses.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from placerec.errors import ScanDataError
+from placerec.eval.ground_truth import LoopGroundTruth, loop_ground_truth
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "LoopMetrics",
+    "loop_metrics",
+    "evaluate_loop",
+    "LocalizationMetrics",
+    "localization_metrics",
+    "timing_summary",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class LoopMetrics:
+    """Loop-closure metrics (definitions in the module docstring). Arrays of the PR curve are aligned with
+    ``thresholds`` (distinct candidate scores, descending); per-query arrays with ``query_ids``."""
+
+    n_queries: int
+    n_revisits: int
+    n_candidates: int
+    thresholds: np.ndarray
+    precision: np.ndarray
+    recall: np.ndarray
+    tp: np.ndarray
+    fp: np.ndarray
+    fn: np.ndarray
+    max_f1: float
+    precision_at_max_f1: float
+    recall_at_max_f1: float
+    threshold_at_max_f1: float
+    average_precision: float
+    recall_at_1: float
+    recall_at_n: np.ndarray | None
+    no_revisits: bool
+    query_ids: np.ndarray
+    match_ids: np.ndarray
+    scores: np.ndarray
+    correct: np.ndarray
+    revisit: np.ndarray
+
+    @property
+    def f1(self) -> np.ndarray:
+        """F1 at every point of the PR curve (0 where P + R = 0)."""
+        return _f1(self.precision, self.recall)
+
+    def outcomes_at(self, threshold: float) -> dict[str, np.ndarray]:
+        """Per-query boolean masks ``accepted``, ``tp``, ``fp``, ``fn``, ``tn`` at ``threshold``."""
+        accepted = (self.match_ids >= 0) & (self.scores >= threshold)
+        tp = accepted & self.correct
+        return {
+            "accepted": accepted,
+            "tp": tp,
+            "fp": accepted & ~self.correct,
+            "fn": self.revisit & ~tp,
+            "tn": ~self.revisit & ~accepted,
+        }
+
+    def confusion_at(self, threshold: float) -> dict[str, int]:
+        """Counts ``tp``, ``fp``, ``fn``, ``tn`` at ``threshold``."""
+        out = self.outcomes_at(threshold)
+        return {k: int(out[k].sum()) for k in ("tp", "fp", "fn", "tn")}
+
+    def summary(self) -> dict[str, Any]:
+        """The scalar metrics as a JSON-friendly dict."""
+        return {
+            "n_queries": self.n_queries,
+            "n_revisits": self.n_revisits,
+            "n_candidates": self.n_candidates,
+            "max_f1": self.max_f1,
+            "precision_at_max_f1": self.precision_at_max_f1,
+            "recall_at_max_f1": self.recall_at_max_f1,
+            "threshold_at_max_f1": self.threshold_at_max_f1,
+            "average_precision": self.average_precision,
+            "recall_at_1": self.recall_at_1,
+            "recall_at_n": None if self.recall_at_n is None else [float(v) for v in self.recall_at_n],
+            "no_revisits": self.no_revisits,
+        }
+
+
+def _f1(p: np.ndarray, r: np.ndarray) -> np.ndarray:
+    s = p + r
+    return np.divide(2 * p * r, s, out=np.zeros_like(s, dtype=np.float64), where=s > 0)
+
+
+def _as_ids(values: Any, name: str) -> np.ndarray:
+    a = np.asarray(values)
+    if a.size == 0:
+        return np.zeros(a.shape, dtype=np.int64)
+    if not np.issubdtype(a.dtype, np.integer):
+        if not np.issubdtype(a.dtype, np.floating) or not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
+            raise ScanDataError(f"{name} must be integers")
+    return a.astype(np.int64)
+
+
+def loop_metrics(
+    query_ids: Sequence[int] | np.ndarray,
+    match_ids: Sequence[int] | np.ndarray,
+    scores: Sequence[float] | np.ndarray,
+    gt: LoopGroundTruth,
+    topn_match_ids: np.ndarray | None = None,
+) -> LoopMetrics:
+    """Loop-mode metrics from the top candidate of every evaluated query.
+
+    ``query_ids``, ``match_ids`` (``-1`` = no candidate) and ``scores`` are aligned 1-D arrays; each query id must
+    appear once (the evaluated set is exactly these queries). Scores of rows without a candidate are ignored and
+    may be NaN; a NaN score of a real candidate raises `ScanDataError`. ``topn_match_ids`` (Q, N), ``-1`` padded,
+    aligned with ``query_ids``, gives ``recall_at_n``.
+    """
+    q = _as_ids(query_ids, "query_ids").reshape(-1)
+    m = _as_ids(match_ids, "match_ids").reshape(-1)
+    s = np.asarray(scores, dtype=np.float64).reshape(-1)
+    if not (q.shape == m.shape == s.shape):
+        raise ScanDataError(f"query_ids, match_ids, scores differ in length: {q.size}, {m.size}, {s.size}")
+    n = len(gt)
+    if q.size and (q.min() < 0 or q.max() >= n):
+        raise ScanDataError(f"query ids must lie in [0, {n}) (indices into the poses)")
+    if np.unique(q).size != q.size:
+        raise ScanDataError("each query id may appear only once")
+    has = m >= 0
+    if np.any(m >= n):
+        raise ScanDataError(f"match ids must be < {n} (indices into the poses), got {int(m.max())}")
+    if np.any(np.isnan(s[has])):
+        raise ScanDataError(f"{int(np.isnan(s[has]).sum())} candidate scores are NaN")
+    correct = gt.is_true_match(q, m)
+    late = has & (m > gt.max_eligible[q])
+    if np.any(late):
+        log.warning(
+            "%d candidates are inside the exclusion window; counted as false positives", int(late.sum())
+        )
+    revisit = gt.is_revisit[q]
+    n_rev = int(revisit.sum())
+
+    # PR sweep: sort candidates by score (descending), cumulative TP/FP, keep the last row of each distinct score.
+    cs, cc = s[has], correct[has]
+    order = np.argsort(-cs, kind="stable")
+    cs, cc = cs[order], cc[order]
+    tp_cum = np.cumsum(cc).astype(np.int64)
+    fp_cum = np.cumsum(~cc).astype(np.int64)
+    last = np.flatnonzero(np.r_[cs[1:] != cs[:-1], True]) if cs.size else np.zeros(0, dtype=np.int64)
+    thresholds, tp, fp = cs[last], tp_cum[last], fp_cum[last]
+    fn = n_rev - tp
+    precision = tp / np.maximum(tp + fp, 1)
+    recall = tp / n_rev if n_rev else np.zeros(tp.shape, dtype=np.float64)
+    f1 = _f1(precision, recall)
+    if f1.size:
+        b = int(np.argmax(f1))  # first maximum = highest threshold reaching it
+        max_f1, p_best, r_best, t_best = (float(v[b]) for v in (f1, precision, recall, thresholds))
+    else:
+        max_f1, p_best, r_best, t_best = 0.0, 0.0, 0.0, float("nan")
+    ap = float(np.sum(np.diff(np.r_[0.0, recall]) * precision))
+    r1 = float(correct.sum() / n_rev) if n_rev else 0.0
+
+    r_at_n = None
+    if topn_match_ids is not None:
+        top = _as_ids(topn_match_ids, "topn_match_ids")
+        if top.ndim != 2 or top.shape[0] != q.size:
+            raise ScanDataError(f"topn_match_ids must have shape ({q.size}, N), got {top.shape}")
+        if np.any(top >= n):
+            raise ScanDataError(f"topn_match_ids must be < {n} (indices into the poses)")
+        found = np.logical_or.accumulate(gt.is_true_match(q[:, None], top), axis=1)
+        r_at_n = found.sum(axis=0) / n_rev if n_rev else np.zeros(top.shape[1])
+    if n_rev == 0:
+        log.warning(
+            "no revisit among the %d evaluated queries: recall is undefined and reported as 0", q.size
+        )
+    return LoopMetrics(
+        n_queries=int(q.size),
+        n_revisits=n_rev,
+        n_candidates=int(has.sum()),
+        thresholds=thresholds,
+        precision=precision,
+        recall=recall,
+        tp=tp,
+        fp=fp,
+        fn=fn,
+        max_f1=max_f1,
+        precision_at_max_f1=p_best,
+        recall_at_max_f1=r_best,
+        threshold_at_max_f1=t_best,
+        average_precision=ap,
+        recall_at_1=r1,
+        recall_at_n=None if r_at_n is None else np.asarray(r_at_n, dtype=np.float64),
+        no_revisits=n_rev == 0,
+        query_ids=q,
+        match_ids=m,
+        scores=s,
+        correct=correct,
+        revisit=revisit,
+    )
+
+
+def evaluate_loop(
+    query_ids: Sequence[int] | np.ndarray,
+    match_ids: Sequence[int] | np.ndarray,
+    scores: Sequence[float] | np.ndarray,
+    poses: np.ndarray,
+    topn_match_ids: np.ndarray | None = None,
+    **gt_options: Any,
+) -> tuple[LoopMetrics, LoopGroundTruth]:
+    """`loop_ground_truth` (``gt_options``: gt_distance, gt_yaw_deg, planar, frames, seconds, metres, timestamps)
+    followed by `loop_metrics`; e.g. to recompute metrics from a candidates CSV and the poses."""
+    gt = loop_ground_truth(poses, **gt_options)
+    return loop_metrics(query_ids, match_ids, scores, gt, topn_match_ids), gt
+
+
+@dataclass(frozen=True, eq=False)
+class LocalizationMetrics:
+    """Localize-mode metrics (ISHOT paper): a query succeeds when its position error is <= ``success_distance``.
+
+    ``errors`` (Q,) metres (inf where no estimate was given), ``success`` (Q,) bool. ``mean_error`` and
+    ``median_error`` are over queries with an estimate (NaN if none).
+    """
+
+    errors: np.ndarray
+    success: np.ndarray
+    success_rate: float
+    n_queries: int
+    n_success: int
+    n_no_estimate: int
+    mean_error: float
+    median_error: float
+    success_distance: float
+
+    def summary(self) -> dict[str, Any]:
+        """The scalar metrics as a JSON-friendly dict."""
+        return {
+            "n_queries": self.n_queries,
+            "n_success": self.n_success,
+            "n_no_estimate": self.n_no_estimate,
+            "success_rate": self.success_rate,
+            "mean_error": self.mean_error,
+            "median_error": self.median_error,
+            "success_distance": self.success_distance,
+        }
+
+
+def _as_positions(a: Any, name: str) -> np.ndarray:
+    p = np.asarray(a, dtype=np.float64)
+    if p.ndim == 3 and p.shape[1:] == (4, 4):
+        return p[:, :3, 3]
+    if p.ndim == 2 and p.shape[1] in (2, 3):
+        return p
+    raise ScanDataError(f"{name} must be positions (Q, 2|3) or poses (Q, 4, 4), got shape {p.shape}")
+
+
+def localization_metrics(
+    estimated: np.ndarray,
+    truth: np.ndarray,
+    success_distance: float = 3.0,
+    planar: bool = False,
+) -> LocalizationMetrics:
+    """Success rate of localisation: ``estimated`` and ``truth`` are (Q, 2|3) positions or (Q, 4, 4) poses
+    (e.g. the matched place's position as estimate). Rows of ``estimated`` with NaN mean "no answer" and fail.
+    The error is 3D Euclidean (xy with ``planar=True``)."""
+    est = _as_positions(estimated, "estimated")
+    gt = _as_positions(truth, "truth")
+    if est.shape[0] != gt.shape[0]:
+        raise ScanDataError(f"{est.shape[0]} estimates for {gt.shape[0]} ground-truth positions")
+    if est.shape[1] != gt.shape[1]:
+        raise ScanDataError(f"estimated and truth differ in dimension: {est.shape[1]} vs {gt.shape[1]}")
+    if not np.all(np.isfinite(gt)):
+        raise ScanDataError("ground-truth positions contain NaN or inf")
+    if not success_distance > 0:
+        raise ScanDataError(f"success_distance must be > 0, got {success_distance}")
+    dims = 2 if planar else est.shape[1]
+    answered = np.all(np.isfinite(est), axis=1)
+    errors = np.full(est.shape[0], np.inf)
+    errors[answered] = np.linalg.norm(est[answered, :dims] - gt[answered, :dims], axis=1)
+    success = errors <= success_distance
+    n = int(est.shape[0])
+    fin = errors[answered]
+    return LocalizationMetrics(
+        errors=errors,
+        success=success,
+        success_rate=float(success.mean()) if n else 0.0,
+        n_queries=n,
+        n_success=int(success.sum()),
+        n_no_estimate=int((~answered).sum()),
+        mean_error=float(fin.mean()) if fin.size else float("nan"),
+        median_error=float(np.median(fin)) if fin.size else float("nan"),
+        success_distance=float(success_distance),
+    )
+
+
+def timing_summary(times_ms: Sequence[float] | np.ndarray) -> dict[str, float]:
+    """``{"n", "mean", "median", "p95", "max"}`` of per-query times in milliseconds (NaN statistics when empty)."""
+    t = np.asarray(times_ms, dtype=np.float64).reshape(-1)
+    if np.any(~np.isfinite(t)):
+        raise ScanDataError("timings contain NaN or inf")
+    if t.size == 0:
+        nan = float("nan")
+        return {"n": 0, "mean": nan, "median": nan, "p95": nan, "max": nan}
+    return {
+        "n": int(t.size),
+        "mean": float(t.mean()),
+        "median": float(np.median(t)),
+        "p95": float(np.percentile(t, 95)),
+        "max": float(t.max()),
+    }
