@@ -1,0 +1,169 @@
+"""Helpers shared by the scan readers: file checks, error wrapping and named-column to `Scan` conversion."""
+
+from __future__ import annotations
+
+import functools
+import logging
+import re
+import struct
+import zipfile
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import TypeVar
+
+import numpy as np
+
+from placerec.errors import ConfigError, DependencyError, ScanDataError, ScanFormatError
+from placerec.types import Scan, SensorInfo
+
+log = logging.getLogger(__name__)
+
+#: Field names recognised as intensity, in order of preference.
+INTENSITY_NAMES = ("intensity", "reflectivity", "scalar_intensity", "i")
+#: Field names recognised as the beam index.
+RING_NAMES = ("ring",)
+#: Field names recognised as per-point time. Integer fields are taken as nanoseconds, floats as seconds.
+TIME_NAMES = ("t", "time")
+
+_F = TypeVar("_F", bound=Callable[..., Scan])
+
+# Exceptions that malformed bytes can provoke deep inside numpy / struct / zipfile; readers turn them into
+# ScanFormatError so that callers only ever see placerec's own error for a bad file.
+_DECODE_ERRORS = (
+    ValueError,
+    IndexError,
+    KeyError,
+    TypeError,
+    OverflowError,
+    EOFError,
+    struct.error,
+    UnicodeDecodeError,
+    zipfile.BadZipFile,
+    ScanDataError,
+)
+
+
+def check_file(path: str | Path, what: str) -> Path:
+    """The path as a `Path`; ScanFormatError if it is missing, not a file, or empty."""
+    p = Path(path)
+    if not p.exists():
+        raise ScanFormatError(f"{p}: no such {what} file")
+    if not p.is_file():
+        raise ScanFormatError(f"{p}: expected a {what} file, found a directory or special file")
+    if p.stat().st_size == 0:
+        raise ScanFormatError(f"{p}: empty file, expected {what} data")
+    return p
+
+
+def read_bytes(path: str | Path, what: str) -> tuple[Path, bytes]:
+    p = check_file(path, what)
+    try:
+        return p, p.read_bytes()
+    except OSError as exc:
+        raise ScanFormatError(f"{p}: cannot read {what} file ({exc})") from exc
+
+
+def guard(what: str) -> Callable[[_F], _F]:
+    """Decorator: convert low-level decoding errors of a reader into ScanFormatError naming file and format."""
+
+    def deco(fn: _F) -> _F:
+        @functools.wraps(fn)
+        def wrapper(path: str | Path, *args: object, **kwargs: object) -> Scan:
+            try:
+                return fn(path, *args, **kwargs)
+            except (ScanFormatError, ConfigError, DependencyError):
+                raise
+            except _DECODE_ERRORS as exc:
+                raise ScanFormatError(f"{path}: not a valid {what} file ({type(exc).__name__}: {exc})") from exc
+
+        return wrapper  # type: ignore[return-value]
+
+    return deco
+
+
+def pick(columns: Mapping[str, np.ndarray], names: tuple[str, ...]) -> tuple[str, np.ndarray] | None:
+    """The first column whose (case-insensitive) name is in ``names``."""
+    lower = {k.lower(): k for k in columns}
+    for n in names:
+        if n in lower:
+            key = lower[n]
+            return key, columns[key]
+    return None
+
+
+def intensity_max_of(dtype: np.dtype) -> float | None:
+    """Saturation value implied by an integer intensity type (255 for uint8, 65535 for uint16)."""
+    if dtype.kind == "u" and dtype.itemsize <= 2:
+        return float(np.iinfo(dtype).max)
+    return None
+
+
+def time_seconds(arr: np.ndarray) -> np.ndarray:
+    """Per-point time in seconds: integer fields (e.g. Ouster's uint32 ``t``) are nanoseconds."""
+    if arr.dtype.kind in "iu":
+        return (arr.astype(np.float64) * 1e-9).astype(np.float32)
+    return arr.astype(np.float32)
+
+
+def columns_to_scan(
+    columns: Mapping[str, np.ndarray],
+    where: str | Path,
+    *,
+    shape: tuple[int, int] | None = None,
+    sensor: SensorInfo | None = None,
+    timestamp: float | None = None,
+) -> Scan:
+    """Build a `Scan` from named 1-D columns (x, y, z required; intensity/ring/time looked up by name).
+
+    With ``shape`` the scan is organised and non-finite xyz (PCL's marker of an invalid return) become zeros,
+    placerec's convention for organised scans.
+    """
+    lower = {k.lower(): k for k in columns}
+    missing = [c for c in "xyz" if c not in lower]
+    if missing:
+        raise ScanFormatError(f"{where}: no field(s) {missing}; expected x, y, z (found {sorted(columns)})")
+    xyz = np.empty((len(columns[lower["x"]]), 3), dtype=np.float32)
+    for j, c in enumerate("xyz"):
+        xyz[:, j] = columns[lower[c]]
+    n = xyz.shape[0]
+    inten = pick(columns, INTENSITY_NAMES)
+    imax = None
+    if inten is None:
+        log.debug("%s: no intensity field, using zeros", where)
+        intensity = np.zeros(n, dtype=np.float32)
+    else:
+        imax = intensity_max_of(inten[1].dtype)
+        intensity = inten[1].astype(np.float32)
+    ring_col = pick(columns, RING_NAMES)
+    ring = None if ring_col is None else ring_col[1].astype(np.int16)
+    time_col = pick(columns, TIME_NAMES)
+    time = None if time_col is None else time_seconds(time_col[1])
+    if shape is not None:
+        bad = ~np.isfinite(xyz).all(axis=1)
+        if bad.any():
+            xyz[bad] = 0.0
+            intensity[bad] = 0.0
+    if sensor is None:
+        sensor = SensorInfo(intensity_max=imax, columns=None if shape is None else shape[1])
+    return Scan(
+        xyz=xyz, intensity=intensity, ring=ring, time=time, shape=shape, sensor=sensor, timestamp=timestamp,
+        source=str(where),
+    )
+
+
+def structured_columns(arr: np.ndarray) -> dict[str, np.ndarray]:
+    """Named 1-D columns of a structured array (fields with a sub-array shape are skipped)."""
+    out: dict[str, np.ndarray] = {}
+    for name in arr.dtype.names or ():
+        col = arr[name]
+        if col.ndim == arr.ndim:
+            out[name] = col.reshape(-1)
+    return out
+
+
+_NAT = re.compile(r"(\d+)")
+
+
+def natural_key(path: Path) -> tuple[object, ...]:
+    """Sort key ordering ``scan2`` before ``scan10``."""
+    return tuple(int(t) if t.isdigit() else t.lower() for t in _NAT.split(path.name))

@@ -1,0 +1,175 @@
+"""ROS1 (``.bag``) and ROS2 (rosbag2 folder) recordings of ``sensor_msgs/PointCloud2`` through rosbags.
+
+`pointcloud2_to_scan` decodes a message with one strided structured view of its data (fields by
+offset/datatype/count, ``point_step``, ``row_step``, ``is_bigendian``): intensity from intensity, reflectivity
+or i; ``ring``; ``t``/``time`` (integer times are nanoseconds, as the Ouster driver's ``t``).
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from placerec.errors import DependencyError, ScanFormatError
+from placerec.io._common import columns_to_scan, structured_columns
+from placerec.types import Scan
+
+__all__ = ["RosbagSequence", "pointcloud2_to_scan", "POINTCLOUD2"]
+
+log = logging.getLogger(__name__)
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+_DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+
+
+def pointcloud2_to_scan(msg: Any, where: str, *, organized: bool = False, timestamp: float | None = None) -> Scan:
+    """Decode a PointCloud2 message (any object with its fields) into a `Scan`, vectorised."""
+    order = ">" if msg.is_bigendian else "<"
+    step, row_step = int(msg.point_step), int(msg.row_step)
+    h, w = int(msg.height), int(msg.width)
+    names, formats, offsets = [], [], []
+    for f in msg.fields:
+        if f.datatype not in _DATATYPES:
+            raise ScanFormatError(f"{where}: PointCloud2 field {f.name!r} has unknown datatype {f.datatype}")
+        dt = np.dtype(order + _DATATYPES[f.datatype])
+        count = max(int(f.count), 1)
+        if f.offset < 0 or f.offset + dt.itemsize * count > step:
+            raise ScanFormatError(f"{where}: PointCloud2 field {f.name!r} (offset {f.offset}, {count} x "
+                                  f"{dt.itemsize} bytes) does not fit in point_step {step}")
+        names.append(f.name)
+        formats.append(dt if count == 1 else (dt, (count,)))
+        offsets.append(int(f.offset))
+    if h * w and row_step < w * step:
+        raise ScanFormatError(f"{where}: PointCloud2 row_step {row_step} < width {w} x point_step {step}")
+    data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
+    need = (h - 1) * row_step + w * step if h * w else 0
+    if data.size < need:
+        raise ScanFormatError(f"{where}: PointCloud2 data has {data.size} bytes, expected {need} "
+                              f"({h} x {w} points, point_step {step}, row_step {row_step})")
+    try:
+        dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": max(step, 1)})
+    except ValueError as exc:
+        raise ScanFormatError(f"{where}: PointCloud2 fields cannot be decoded ({exc})") from None
+    if h * w:
+        arr = np.ndarray((h, w), dtype=dtype, buffer=data, strides=(row_step, step))
+    else:
+        arr = np.empty((h, w), dtype=dtype)
+    shape = (h, w) if organized and h > 1 else None
+    return columns_to_scan(structured_columns(arr), where, shape=shape, timestamp=timestamp)
+
+
+def _rosbags() -> tuple[Any, Any, Any]:
+    try:
+        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError as exc:
+        raise DependencyError(f"reading rosbags needs the rosbags package ({exc}); install it with: "
+                              "pip install placerec[ros]") from exc
+    return AnyReader, AnyReaderError, get_typestore(Stores.LATEST)
+
+
+def _header_stamp(raw: bytes | memoryview, ros2: bool) -> float:
+    """Header stamp (s) read straight from the serialized message (the header is its first field)."""
+    if ros2:  # CDR: 4-byte encapsulation header (byte 1: 1 = little endian), then int32 sec, uint32 nanosec
+        endian = "<" if raw[1] == 1 else ">"
+        sec, nsec = struct.unpack_from(endian + "iI", raw, 4)
+    else:  # ROS1: uint32 seq, uint32 secs, uint32 nsecs
+        sec, nsec = struct.unpack_from("<II", raw, 4)
+    return sec + nsec * 1e-9
+
+
+class RosbagSequence:
+    """PointCloud2 messages of one topic of a ROS1 ``.bag`` or rosbag2 folder, as a lazy `Sequence`.
+
+    ``topic`` may be omitted when the bag has exactly one PointCloud2 topic. Timestamps are the messages'
+    header stamps; poses are None. Messages are indexed once on opening (their stamps are read from the raw
+    bytes) and decoded on access. Use as a context manager or call `close`.
+    """
+
+    def __init__(self, path: str | Path, topic: str | None = None, *, organized: bool = False) -> None:
+        AnyReader, AnyReaderError, typestore = _rosbags()
+        self._path = Path(path)
+        self._organized = organized
+        try:
+            self._reader = AnyReader([self._path], default_typestore=typestore)
+            self._reader.open()
+        except (AnyReaderError, OSError, ValueError, KeyError) as exc:
+            raise ScanFormatError(f"{self._path}: cannot open as a rosbag ({exc})") from exc
+        clouds = [c for c in self._reader.connections if c.msgtype == POINTCLOUD2]
+        topics = sorted({c.topic for c in clouds})
+        if topic is None:
+            if len(topics) != 1:
+                self.close()
+                raise ScanFormatError(f"{self._path}: {len(topics)} PointCloud2 topics {topics}; pass topic=")
+            topic = topics[0]
+        self._conns = [c for c in clouds if c.topic == topic]
+        if not self._conns:
+            self.close()
+            raise ScanFormatError(f"{self._path}: no PointCloud2 topic {topic!r} (PointCloud2 topics: {topics})")
+        self._topic = topic
+        log_times, stamps = [], []
+        try:
+            for _, t, raw in self._reader.messages(connections=self._conns):
+                log_times.append(t)
+                stamps.append(_header_stamp(raw, self._reader.is2))
+        except (AnyReaderError, struct.error, IndexError, OSError, ValueError) as exc:
+            self.close()
+            raise ScanFormatError(f"{self._path}: cannot index topic {topic} ({exc})") from exc
+        self._log_times = np.asarray(log_times, dtype=np.int64)
+        self._stamps = np.asarray(stamps, dtype=np.float64)
+        # rank of each message among those sharing its log time (to pick it out of a time-window query)
+        first = np.searchsorted(self._log_times, self._log_times, side="left")
+        self._rank = np.arange(len(log_times)) - first
+
+    def __len__(self) -> int:
+        return int(self._log_times.size)
+
+    def __getitem__(self, index: int) -> Scan:
+        n = len(self)
+        if index < 0:
+            index += n
+        if not 0 <= index < n:
+            raise IndexError(f"message {index} out of range ({n} messages on {self._topic})")
+        t = int(self._log_times[index])
+        where = f"{self._path}:{self._topic}#{index}"
+        if not self._reader.isopen:
+            self._reader.open()
+        for k, (conn, _, raw) in enumerate(self._reader.messages(connections=self._conns, start=t, stop=t + 1)):
+            if k == self._rank[index]:
+                try:
+                    msg = self._reader.deserialize(raw, conn.msgtype)
+                except (ValueError, IndexError, struct.error, KeyError) as exc:
+                    raise ScanFormatError(f"{where}: cannot deserialize PointCloud2 ({exc})") from exc
+                return pointcloud2_to_scan(msg, where, organized=self._organized,
+                                           timestamp=float(self._stamps[index]))
+        raise ScanFormatError(f"{where}: message not found again in the bag")  # pragma: no cover
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._stamps
+
+    @property
+    def poses(self) -> None:
+        return None
+
+    @property
+    def name(self) -> str:
+        return f"{self._path.stem}:{self._topic}"
+
+    @property
+    def topic(self) -> str:
+        return self._topic
+
+    def close(self) -> None:
+        if getattr(self, "_reader", None) is not None and self._reader.isopen:
+            self._reader.close()
+
+    def __enter__(self) -> RosbagSequence:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,86 @@
+"""KITTI and TUM trajectory readers and writers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from placerec.errors import ScanFormatError
+from placerec.io import read_poses, write_kitti_poses, write_tum_poses
+from placerec.io.poses import quat_to_matrix
+
+
+def random_poses(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    P = np.tile(np.eye(4), (n, 1, 1))
+    P[:, :3, :3] = Rotation.random(n, random_state=seed).as_matrix()
+    P[:, :3, 3] = rng.normal(0, 50, (n, 3))
+    return P
+
+
+def test_kitti_round_trip(tmp_path: Path) -> None:
+    P = random_poses(20)
+    write_kitti_poses(tmp_path / "p.txt", P)
+    back, t = read_poses(tmp_path / "p.txt")
+    assert t is None and back.shape == (20, 4, 4)
+    np.testing.assert_allclose(back, P, atol=1e-10)
+    assert read_poses(tmp_path / "p.txt", format="kitti")[0].shape == (20, 4, 4)
+
+
+def test_tum_round_trip(tmp_path: Path) -> None:
+    P = random_poses(15, seed=1)
+    ts = 1.7e9 + np.arange(15) * 0.1
+    write_tum_poses(tmp_path / "p.tum", P, ts)
+    back, t = read_poses(tmp_path / "p.tum")
+    np.testing.assert_allclose(back, P, atol=1e-9)
+    np.testing.assert_allclose(t, ts, atol=1e-6)
+
+
+def test_tum_quaternions_are_normalised_and_comments_skipped(tmp_path: Path) -> None:
+    path = tmp_path / "q.txt"
+    path.write_text("# timestamp tx ty tz qx qy qz qw\n\n0.0 1 2 3 0 0 0 2\n0.1 1 2 3 0 0 3 3\n")
+    P, t = read_poses(path)
+    np.testing.assert_allclose(P[0], [[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])
+    np.testing.assert_allclose(P[1, :3, :3], Rotation.from_euler("z", 90, degrees=True).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(t, [0.0, 0.1])
+    q = np.random.default_rng(2).normal(size=(50, 4))
+    np.testing.assert_allclose(quat_to_matrix(q), Rotation.from_quat(q).as_matrix(), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0 0 1 0 0 0 0 1\n", r":2: 11 columns, expected 12"),
+        ("0 1 2 3 0 0 0 1\n0 1 2 3 0 0 0\n", r":2: 7 columns, expected 8"),
+        ("1 2 3\n", r":1: 3 columns; expected 12"),
+        ("0 1 2 3 0 0 0 1\n0.1 1 2 x 0 0 0 1\n", r":2: 'x' is not a number"),
+        ("0 1 2 3 0 0 0 0\n", r":1: quaternion has zero norm"),
+        ("0 1 2 3 0 0 0 1\n0 1 nan 3 0 0 0 1\n", r":2: pose contains NaN"),
+        ("# only a comment\n\n", "no poses found"),
+    ],
+)
+def test_malformed_pose_files(tmp_path: Path, text: str, message: str) -> None:
+    path = tmp_path / "bad_poses.txt"
+    path.write_text(text)
+    with pytest.raises(ScanFormatError, match=message) as err:
+        read_poses(path)
+    assert "bad_poses.txt" in str(err.value)
+
+
+def test_missing_empty_and_binary_pose_files(tmp_path: Path) -> None:
+    with pytest.raises(ScanFormatError, match="no such"):
+        read_poses(tmp_path / "none.txt")
+    (tmp_path / "e.txt").write_text("")
+    with pytest.raises(ScanFormatError, match="empty"):
+        read_poses(tmp_path / "e.txt")
+    (tmp_path / "b.txt").write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(ScanFormatError, match="UTF-8"):
+        read_poses(tmp_path / "b.txt")
+    (tmp_path / "k.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(ScanFormatError, match="expected 8"):
+        read_poses(tmp_path / "k.txt", format="tum")
+    with pytest.raises(ScanFormatError, match="unknown pose format"):
+        read_poses(tmp_path / "k.txt", format="euroc")
