@@ -7,7 +7,7 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -62,7 +62,7 @@ def _version_callback(value: bool) -> None:
 @app.callback()
 def _main(
     version: Annotated[
-        Optional[bool],  # noqa: UP045 - typer needs Optional here on Python 3.10
+        bool | None,
         typer.Option("--version", callback=_version_callback, is_eager=True, help="Print versions and exit."),
     ] = None,
     verbose: Annotated[
@@ -80,7 +80,7 @@ def _fail(exc: Exception) -> None:
 
 @app.command("dump-config")
 def dump_config(
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Write here instead of stdout.")] = None,  # noqa: UP045
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Write here instead of stdout.")] = None,
 ) -> None:
     """Print (or write) the default experiment configuration as YAML."""
     from placerec.config import dump_default_config
@@ -98,8 +98,8 @@ def info(
         Path, typer.Argument(help="A scan file (.bin .pcd .ply .npy .npz) or a sequence folder/bag.")
     ],
     format: Annotated[
-        Optional[str], typer.Option(help="Force a reader, e.g. 'nclt' for NCLT .bin files.")
-    ] = None,  # noqa: UP045
+        str | None, typer.Option(help="Force a reader, e.g. 'nclt' for NCLT .bin files.")
+    ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
 ) -> None:
     """Summarise a scan or a sequence: points, fields, intensity and range percentiles, beams, poses."""
@@ -146,6 +146,38 @@ def _print_summary(summary: dict) -> None:
 
     add("", summary)
     Console().print(table)
+
+
+@app.command()
+def run(
+    config: Annotated[
+        Path, typer.Argument(help="Experiment YAML (see configs/ and `placerec dump-config`).")
+    ],
+    out: Annotated[
+        Path | None, typer.Option("--out", "-o", help="Results root (default: output.dir).")
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", "-s", help="Override a config value: key.path=value (repeatable)."),
+    ] = None,
+) -> None:
+    """Run an experiment: every pipeline of CONFIG on its dataset; metrics, figures and a report.
+
+    Example: placerec run configs/demo.yaml --set dataset.simulator.n_scans=200
+    """
+    from placerec.config import load_config
+    from placerec.errors import PlacerecError
+    from placerec.experiment import run_experiment
+    from placerec.experiment.report import print_table
+
+    try:
+        cfg = load_config(config, set_ or [])
+        run_dir, payload = run_experiment(cfg, out)
+    except PlacerecError as exc:
+        _fail(exc)
+        return
+    print_table(payload, f"{cfg.name} ({payload['mode']} mode)")
+    typer.echo(f"results: {run_dir}  (report: {run_dir / 'index.html'})")
 
 
 def main() -> None:

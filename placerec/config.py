@@ -8,7 +8,7 @@ the allowed keys. `dump_default_config` writes the defaults as YAML.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -21,6 +21,11 @@ __all__ = [
     "DatasetConfig",
     "IntensityConfig",
     "PreprocessConfig",
+    "PipelineSpec",
+    "ExclusionConfig",
+    "LocalizeConfig",
+    "EvaluationConfig",
+    "OutputConfig",
     "ExperimentConfig",
     "load_config",
     "parse_config",
@@ -82,24 +87,101 @@ class PreprocessConfig(Section):
     intensity: IntensityConfig = Field(default_factory=IntensityConfig)
 
 
+class PipelineSpec(Section):
+    """One pipeline to run: a registry name (see ``placerec.recognizer.PIPELINES``) or ``module:Class``,
+    a display label, and parameter overrides validated by the pipeline itself."""
+
+    name: str
+    label: str | None = None
+    params: dict[str, Any] = Field(default_factory=dict)
+
+    @property
+    def display_name(self) -> str:
+        return self.label or self.name
+
+
+class ExclusionConfig(Section):
+    """Loop mode ignores database scans newer than this window before the query (frames, seconds or metres
+    travelled; the first one set wins in that order of precedence: metres, seconds, frames)."""
+
+    frames: int = Field(120, ge=0)
+    seconds: float | None = Field(None, ge=0)
+    metres: float | None = Field(None, ge=0)
+
+
+class LocalizeConfig(Section):
+    """Localize mode: a map sequence and a query sequence. ``condition`` picks a simulated query set
+    (gator, pole, occlusion); ``map``/``queries`` give real sequences instead."""
+
+    condition: Literal["gator", "pole", "occlusion"] = "gator"
+    n_queries: int = Field(50, ge=1)
+    map: DatasetConfig | None = None
+    queries: DatasetConfig | None = None
+    success_distance: float = Field(3.0, gt=0)
+
+
+class EvaluationConfig(Section):
+    """How pipelines are evaluated (loop: VPR paper protocol; localize: ISHOT paper protocol)."""
+
+    mode: Literal["loop", "localize"] = "loop"
+    exclusion: ExclusionConfig = Field(default_factory=ExclusionConfig)
+    gt_distance: float = Field(5.0, gt=0, description="a revisit has an eligible scan within this distance (m)")
+    gt_yaw_deg: float | None = Field(None, gt=0, description="optional heading limit for a true match")
+    top_n: int = Field(5, ge=1, description="candidates requested per query (recall@N)")
+    localize: LocalizeConfig = Field(default_factory=LocalizeConfig)
+
+
+class OutputConfig(Section):
+    """Where results go: ``dir/<name>_<timestamp>/`` with a ``latest`` link."""
+
+    dir: str = "results"
+    figures: bool = True
+    cache_dir: str | None = Field(".cache/descriptions", description="per-scan description cache (None = off)")
+    progress: bool = True
+
+
 class ExperimentConfig(Section):
     """The root of a placerec experiment config."""
 
     name: str = "experiment"
     dataset: DatasetConfig = Field(default_factory=DatasetConfig)
     preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
+    pipelines: list[PipelineSpec] = Field(default_factory=lambda: [PipelineSpec(name="scan-context")])
+    evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
+    output: OutputConfig = Field(default_factory=OutputConfig)
+
+    @model_validator(mode="after")
+    def _unique_labels(self) -> ExperimentConfig:
+        labels = [p.display_name for p in self.pipelines]
+        dupes = sorted({x for x in labels if labels.count(x) > 1})
+        if dupes:
+            raise ValueError(f"pipeline labels must be unique; repeated: {dupes} (set 'label' to tell them apart)")
+        return self
+
+
+def _model_in(annotation: Any) -> Any:
+    """The pydantic model inside an annotation like ``X``, ``X | None`` or ``list[X]`` (else the annotation)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in get_args(annotation):
+        found = _model_in(arg)
+        if isinstance(found, type) and issubclass(found, BaseModel):
+            return found
+    return annotation
 
 
 def _allowed_keys(model: type[BaseModel], loc: tuple[Any, ...]) -> list[str]:
     """Field names of the section that ``loc`` (a pydantic error location, minus the bad key) points into."""
     current: Any = model
     for part in loc:
+        if isinstance(part, int):  # list index: stay on the list's item model
+            continue
         if not (isinstance(current, type) and issubclass(current, BaseModel)):
             return []
         field = current.model_fields.get(str(part))
         if field is None:
             return []
-        current = field.annotation
+        current = _model_in(field.annotation)
     if isinstance(current, type) and issubclass(current, BaseModel):
         return sorted(current.model_fields)
     return []

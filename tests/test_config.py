@@ -53,3 +53,14 @@ def test_missing_and_malformed_files(tmp_path):
 def test_path_source_needs_path():
     with pytest.raises(ConfigError, match="needs dataset.path"):
         load_config(None, ["dataset.source=path"])
+
+
+def test_errors_inside_lists_and_optional_sections(tmp_path):
+    path = tmp_path / "p.yaml"
+    path.write_text("pipelines:\n  - name: scan-context\n    lable: sc\n")
+    with pytest.raises(ConfigError, match=r"pipelines\.0\.lable.*label"):
+        load_config(path)
+    with pytest.raises(ConfigError, match=r"evaluation\.localize\.map\.pth.*path"):
+        load_config(None, ["evaluation.localize.map.pth=x"])
+    with pytest.raises(ConfigError, match="labels must be unique"):
+        load_config(None, ["pipelines=[{name: a}, {name: a}]"])

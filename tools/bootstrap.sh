@@ -54,5 +54,5 @@ if [ "$job" = test ]; then
   if [ "$rc" = 5 ]; then echo "[bootstrap] pytest collected no tests" >&2; exit 1; fi
   exit "$rc"
 else
-  .venv/bin/placerec demo "$@"
+  .venv/bin/placerec run configs/demo.yaml "$@"
 fi

@@ -1,0 +1,25 @@
+"""Config-driven experiments: `run_experiment` runs every pipeline of a config and writes the results folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from placerec.config import ExperimentConfig
+
+__all__ = ["run_experiment"]
+
+
+def run_experiment(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> tuple[Path, dict[str, Any]]:
+    """Run ``cfg`` (loop or localize mode) and write its results folder; returns (folder, metrics dict)."""
+    from placerec.experiment.report import make_run_dir, report_localize, report_loop
+    from placerec.experiment.runner import run_localize, run_loop
+
+    run = make_run_dir(cfg, out_dir)
+    if cfg.evaluation.mode == "loop":
+        seq, records = run_loop(cfg)
+        payload = report_loop(cfg, run, seq, records)
+    else:
+        map_seq, query_seq, records = run_localize(cfg)
+        payload = report_localize(cfg, run, map_seq, query_seq, records)
+    return run, payload

@@ -1,0 +1,153 @@
+"""Figures of an experiment: PR curves, trajectories with loop closures, stage timings (matplotlib, Agg)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["plot_pr_curves", "plot_trajectory_closures", "plot_timing", "plot_localization"]
+
+
+def _pyplot() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_pr_curves(curves: dict[str, dict[str, Any]], path: Path, title: str = "Precision-recall") -> Path:
+    """``curves``: label -> {"precision": array, "recall": array, "max_f1": float}."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=120)
+    for label, c in curves.items():
+        ax.plot(c["recall"], c["precision"], lw=1.8, label=f"{label} (max F1 {c['max_f1']:.3f})")
+        if c.get("best") is not None:
+            ax.plot([c["best"][0]], [c["best"][1]], "o", color=ax.lines[-1].get_color(), ms=5)
+    ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.02), ylim=(0, 1.02), title=title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def plot_trajectory_closures(
+    positions: np.ndarray,
+    query_ids: np.ndarray,
+    match_ids: np.ndarray,
+    correct: np.ndarray,
+    accepted: np.ndarray,
+    revisit: np.ndarray,
+    path: Path,
+    title: str,
+) -> Path:
+    """Trajectory (x, y) with accepted closures drawn: true in green, false in red; missed revisits in orange."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 6), dpi=120)
+    ax.plot(positions[:, 0], positions[:, 1], color="0.6", lw=1, zorder=1)
+    ok = accepted & correct
+    bad = accepted & ~correct
+    missed = revisit & ~ok
+    for mask, color, label in ((ok, "tab:green", "true closure"), (bad, "tab:red", "false closure")):
+        q, m = query_ids[mask], match_ids[mask]
+        if q.size:
+            segs = np.stack([positions[q, :2], positions[m, :2]], axis=1)
+            from matplotlib.collections import LineCollection
+
+            ax.add_collection(LineCollection(segs, colors=color, lw=1.2, alpha=0.8, zorder=3))
+            ax.plot(
+                positions[q, 0],
+                positions[q, 1],
+                ".",
+                color=color,
+                ms=4,
+                zorder=4,
+                label=f"{label} ({q.size})",
+            )
+    if missed.any():
+        q = query_ids[missed]
+        ax.plot(
+            positions[q, 0],
+            positions[q, 1],
+            "x",
+            color="tab:orange",
+            ms=3,
+            zorder=2,
+            label=f"missed revisit ({q.size})",
+        )
+    ax.plot(*positions[0, :2], "k^", ms=7, label="start")
+    ax.set(xlabel="x [m]", ylabel="y [m]", title=title)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def plot_timing(timing: dict[str, dict[str, float]], path: Path) -> Path:
+    """Stacked bars of mean ms per stage; ``timing``: label -> {stage: mean_ms}."""
+    plt = _pyplot()
+    labels = list(timing)
+    stages = [
+        s
+        for s in ("preprocess", "features", "query", "insert", "verify")
+        if any(timing[lab].get(s, 0) for lab in labels)
+    ]
+    fig, ax = plt.subplots(figsize=(max(4.5, 1.3 * len(labels) + 2), 4), dpi=120)
+    bottom = np.zeros(len(labels))
+    for stage in stages:
+        vals = np.array([timing[lab].get(stage, 0.0) for lab in labels])
+        ax.bar(labels, vals, bottom=bottom, label=stage)
+        bottom += vals
+    for x, total in enumerate(bottom):
+        ax.text(x, total, f"{total:.1f}", ha="center", va="bottom", fontsize=8)
+    ax.set(ylabel="mean time per scan [ms]", title="Time per stage")
+    ax.legend(fontsize=8)
+    plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def plot_localization(
+    map_positions: np.ndarray,
+    query_positions: np.ndarray,
+    estimates: np.ndarray,
+    success: np.ndarray,
+    path: Path,
+    title: str,
+) -> Path:
+    """Map trajectory, query positions and estimates (green: within the success distance, red: not)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 6), dpi=120)
+    ax.plot(map_positions[:, 0], map_positions[:, 1], color="0.6", lw=1, label="map route")
+    for mask, color, label in ((success, "tab:green", "success"), (~success, "tab:red", "failure")):
+        if mask.any():
+            segs = np.stack([query_positions[mask, :2], estimates[mask, :2]], axis=1)
+            from matplotlib.collections import LineCollection
+
+            ax.add_collection(LineCollection(segs, colors=color, lw=1))
+            ax.plot(
+                query_positions[mask, 0],
+                query_positions[mask, 1],
+                "o",
+                color=color,
+                ms=3,
+                label=f"{label} ({mask.sum()})",
+            )
+    ax.set(xlabel="x [m]", ylabel="y [m]", title=title)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -1,0 +1,332 @@
+"""Turn pipeline records into results: metrics, CSVs, poses, figures, a console table and ``index.html``.
+
+Output folder ``<output.dir>/<name>_<timestamp>/`` (and a ``latest`` link beside it):
+
+* ``config.yaml`` — the resolved config;
+* ``metrics.json`` — per pipeline: ``max_f1``, ``precision_at_max_f1``, ``recall_at_max_f1``, ``auc`` (average
+  precision, see `placerec.eval.metrics`), ``recall_at_1``, ``recall_at_n``, ``success_rate`` (localize mode),
+  ``time_ms`` {mean, median, p95} per scan and per stage, ``n_queries``, ``n_revisits``; plus peak memory;
+* ``candidates_<label>.csv`` — ``query_id,match_id,score`` per query (``-1`` and empty score when none);
+* ``poses.txt`` — the ground-truth poses (KITTI format) the ids index into (localize mode: ``map_poses.txt`` and
+  ``query_poses.txt``), so the metrics can be recomputed from the folder alone (`recompute_loop_metrics`);
+* ``pr_curves.png``, ``trajectory_<label>.png`` (or ``localization_<label>.png``), ``timing.png``, ``index.html``.
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import json
+import os
+import re
+import resource
+import sys
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from placerec.config import ExperimentConfig, config_to_yaml
+from placerec.eval import evaluate_loop, localization_metrics, timing_summary
+from placerec.experiment import figures
+from placerec.experiment.runner import STAGES, PipelineRecord
+from placerec.io import read_poses, write_kitti_poses
+from placerec.io.atomic import atomic_write
+from placerec.types import Sequence
+
+__all__ = ["make_run_dir", "report_loop", "report_localize", "recompute_loop_metrics", "print_table"]
+
+
+def _slug(label: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", label).strip("_") or "pipeline"
+
+
+def make_run_dir(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> Path:
+    """A new timestamped folder for this run, the config written into it, and ``latest`` pointing at it."""
+    root = Path(out_dir or cfg.output.dir)
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    run = root / f"{_slug(cfg.name)}_{stamp}"
+    n = 1
+    while run.exists():
+        n += 1
+        run = root / f"{_slug(cfg.name)}_{stamp}-{n}"
+    run.mkdir(parents=True)
+    with atomic_write(run / "config.yaml", "w") as fh:
+        fh.write(config_to_yaml(cfg))
+    latest = root / "latest"
+    tmp = root / f".latest-{os.getpid()}"
+    try:
+        if tmp.is_symlink():
+            tmp.unlink()
+        tmp.symlink_to(run.name, target_is_directory=True)
+        os.replace(tmp, latest)
+    except OSError:  # filesystems without symlinks: just skip the link
+        pass
+    return run
+
+
+def _write_candidates(path: Path, record: PipelineRecord) -> None:
+    q, m, s = record.top1()
+    with atomic_write(path, "w") as fh:
+        w = csv.writer(fh)
+        w.writerow(["query_id", "match_id", "score"])
+        for qi, mi, si in zip(q, m, s, strict=True):
+            w.writerow([int(qi), int(mi), "" if mi < 0 else repr(float(si))])
+
+
+def read_candidates(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a ``candidates_<label>.csv``: (query_ids, match_ids, scores with NaN where no candidate)."""
+    rows = list(csv.DictReader(Path(path).open(encoding="utf-8")))
+    q = np.array([int(r["query_id"]) for r in rows], dtype=np.int64)
+    m = np.array([int(r["match_id"]) for r in rows], dtype=np.int64)
+    s = np.array([float(r["score"]) if r["score"] else np.nan for r in rows])
+    return q, m, s
+
+
+def _timing(record: PipelineRecord) -> dict[str, Any]:
+    out = timing_summary(record.per_scan_ms())
+    out["stages"] = {s: timing_summary(record.timing_ms[s]) for s in STAGES if any(record.timing_ms[s])}
+    return out
+
+
+def _peak_memory_mb() -> float:
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024 * 1024) if sys.platform == "darwin" else peak / 1024
+
+
+def _gt_options(cfg: ExperimentConfig, timestamps: np.ndarray | None) -> dict[str, Any]:
+    ev = cfg.evaluation
+    return {
+        "gt_distance": ev.gt_distance,
+        "gt_yaw_deg": ev.gt_yaw_deg,
+        "frames": ev.exclusion.frames,
+        "seconds": ev.exclusion.seconds,
+        "metres": ev.exclusion.metres,
+        "timestamps": timestamps,
+    }
+
+
+def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
+    """Recompute a pipeline's loop metrics from the run folder alone (config, poses, candidates CSV)."""
+    from placerec.config import load_config
+
+    run_dir = Path(run_dir)
+    cfg = load_config(run_dir / "config.yaml")
+    poses, _ = read_poses(run_dir / "poses.txt")
+    stamps = np.loadtxt(run_dir / "times.txt", ndmin=1) if (run_dir / "times.txt").is_file() else None
+    q, m, s = read_candidates(run_dir / f"candidates_{_slug(label)}.csv")
+    metrics, _ = evaluate_loop(q, m, s, poses, **_gt_options(cfg, stamps))
+    return metrics.summary()
+
+
+def report_loop(
+    cfg: ExperimentConfig, run: Path, seq: Sequence, records: list[PipelineRecord]
+) -> dict[str, Any]:
+    """Loop-mode metrics and all outputs; returns the metrics dict written to ``metrics.json``."""
+    poses = seq.poses
+    if poses is None:
+        raise_no_poses(seq)
+    write_kitti_poses(run / "poses.txt", poses)
+    if seq.timestamps is not None:
+        with atomic_write(run / "times.txt", "w") as fh:
+            np.savetxt(fh, seq.timestamps, fmt="%.6f")
+    results: dict[str, Any] = {}
+    curves: dict[str, dict[str, Any]] = {}
+    for record in records:
+        _write_candidates(run / f"candidates_{_slug(record.label)}.csv", record)
+        q, m, s = record.top1()
+        metrics, gt = evaluate_loop(
+            q, m, s, poses, record.topn(cfg.evaluation.top_n), **_gt_options(cfg, seq.timestamps)
+        )
+        summary = metrics.summary()
+        summary["auc"] = summary.pop("average_precision")
+        summary["time_ms"] = _timing(record)
+        results[record.label] = summary
+        curves[record.label] = {
+            "precision": metrics.precision,
+            "recall": metrics.recall,
+            "max_f1": metrics.max_f1,
+            "best": (metrics.recall_at_max_f1, metrics.precision_at_max_f1),
+        }
+        if cfg.output.figures:
+            accepted = (
+                metrics.outcomes_at(metrics.threshold_at_max_f1)["accepted"]
+                if metrics.n_candidates
+                else np.zeros(q.size, bool)
+            )
+            figures.plot_trajectory_closures(
+                poses[:, :3, 3],
+                q,
+                m,
+                metrics.correct,
+                accepted,
+                metrics.revisit,
+                run / f"trajectory_{_slug(record.label)}.png",
+                f"{record.label}: closures at max F1 (threshold {metrics.threshold_at_max_f1:.3g})",
+            )
+    payload = {
+        "mode": "loop",
+        "dataset": seq.name,
+        "n_scans": len(seq),
+        "pipelines": results,
+        "peak_memory_mb": _peak_memory_mb(),
+    }
+    _finish(cfg, run, payload, curves, records)
+    return payload
+
+
+def report_localize(
+    cfg: ExperimentConfig, run: Path, map_seq: Sequence, query_seq: Sequence, records: list[PipelineRecord]
+) -> dict[str, Any]:
+    """Localize-mode metrics (success within ``success_distance``) and outputs."""
+    map_poses, query_poses = map_seq.poses, query_seq.poses
+    write_kitti_poses(run / "map_poses.txt", map_poses)
+    write_kitti_poses(run / "query_poses.txt", query_poses)
+    success_distance = cfg.evaluation.localize.success_distance
+    results: dict[str, Any] = {}
+    for record in records:
+        _write_candidates(run / f"candidates_{_slug(record.label)}.csv", record)
+        estimates = np.full((len(record.candidates), 3), np.nan)
+        for row, cands in enumerate(record.candidates):
+            if cands:
+                c = cands[0]
+                T = (
+                    map_poses[c.match_id]
+                    if c.relative_pose is None
+                    else map_poses[c.match_id] @ c.relative_pose
+                )
+                estimates[row] = T[:3, 3]
+        metrics = localization_metrics(estimates, query_poses[np.asarray(record.query_ids)], success_distance)
+        summary = metrics.summary()
+        summary["time_ms"] = _timing(record)
+        results[record.label] = summary
+        if cfg.output.figures:
+            figures.plot_localization(
+                map_poses[:, :3, 3],
+                query_poses[:, :3, 3],
+                np.where(np.isfinite(estimates), estimates, query_poses[:, :3, 3]),
+                metrics.success,
+                run / f"localization_{_slug(record.label)}.png",
+                f"{record.label}: success {metrics.success_rate:.1%} (<= {success_distance} m)",
+            )
+    payload = {
+        "mode": "localize",
+        "map": map_seq.name,
+        "queries": query_seq.name,
+        "n_map_scans": len(map_seq),
+        "n_queries": len(query_seq),
+        "pipelines": results,
+        "peak_memory_mb": _peak_memory_mb(),
+    }
+    _finish(cfg, run, payload, {}, records)
+    return payload
+
+
+def raise_no_poses(seq: Sequence) -> None:
+    from placerec.errors import ConfigError
+
+    raise ConfigError(f"dataset {seq.name} has no poses: loop-mode evaluation needs ground-truth poses")
+
+
+def _finish(
+    cfg: ExperimentConfig,
+    run: Path,
+    payload: dict[str, Any],
+    curves: dict[str, Any],
+    records: list[PipelineRecord],
+) -> None:
+    with atomic_write(run / "metrics.json", "w") as fh:
+        json.dump(payload, fh, indent=2, default=_json_default)
+    if cfg.output.figures:
+        if curves:
+            figures.plot_pr_curves(curves, run / "pr_curves.png", f"{cfg.name}: precision-recall")
+        means = {
+            r.label: {s: float(np.mean(r.timing_ms[s])) if r.timing_ms[s] else 0.0 for s in STAGES}
+            for r in records
+        }
+        figures.plot_timing(means, run / "timing.png")
+        write_index_html(run, cfg, payload)
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return "-" if np.isnan(value) else f"{value:.3f}"
+    return "-" if value is None else str(value)
+
+
+def table_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """Header and rows of the results table (shared by the console and the HTML report)."""
+    if payload["mode"] == "loop":
+        header = [
+            "pipeline",
+            "max F1",
+            "P@maxF1",
+            "R@maxF1",
+            "AUC",
+            "R@1",
+            "ms/scan mean",
+            "median",
+            "p95",
+            "revisits",
+        ]
+        keys = ["max_f1", "precision_at_max_f1", "recall_at_max_f1", "auc", "recall_at_1"]
+    else:
+        header = ["pipeline", "success", "median err [m]", "ms/query mean", "median", "p95", "queries"]
+        keys = ["success_rate", "median_error"]
+    rows = []
+    for label, m in payload["pipelines"].items():
+        t = m["time_ms"]
+        tail = [m.get("n_revisits")] if payload["mode"] == "loop" else [m.get("n_queries")]
+        rows.append(
+            [label]
+            + [_fmt(m[k]) for k in keys]
+            + [_fmt(t["mean"]), _fmt(t["median"]), _fmt(t["p95"])]
+            + [_fmt(v) for v in tail]
+        )
+    return header, rows
+
+
+def print_table(payload: dict[str, Any], title: str) -> None:
+    """The results as a rich console table."""
+    from rich.console import Console
+    from rich.table import Table
+
+    header, rows = table_rows(payload)
+    table = Table(title=title)
+    for i, h in enumerate(header):
+        table.add_column(h, justify="left" if i == 0 else "right", style="bold" if i == 0 else None)
+    for row in rows:
+        table.add_row(*row)
+    Console().print(table)
+
+
+def write_index_html(run: Path, cfg: ExperimentConfig, payload: dict[str, Any]) -> Path:
+    """A single page with the table and every figure of the run."""
+    header, rows = table_rows(payload)
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+    images = sorted(p.name for p in run.glob("*.png"))
+    order = {"pr_curves.png": 0, "timing.png": 2}
+    images.sort(key=lambda n: (order.get(n, 1), n))
+    figs = "".join(
+        f'<figure><img src="{html.escape(n)}"><figcaption>{html.escape(n)}</figcaption></figure>'
+        for n in images
+    )
+    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(cfg.name)}</title>
+<style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}
+td:first-child{{text-align:left;font-weight:bold}}figure{{display:inline-block;margin:1em}}img{{max-width:560px}}</style></head><body>
+<h1>{html.escape(cfg.name)}</h1><p>mode: {html.escape(payload["mode"])} &middot; files: <a href="metrics.json">metrics.json</a>,
+<a href="config.yaml">config.yaml</a></p><table><tr>{head}</tr>{body}</table>{figs}</body></html>"""
+    path = run / "index.html"
+    with atomic_write(path, "w") as fh:
+        fh.write(page)
+    return path

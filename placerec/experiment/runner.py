@@ -1,0 +1,245 @@
+"""Run an experiment config: dataset -> preprocessing -> every pipeline -> per-query records.
+
+Scans are read and preprocessed once and fed to all pipelines in lockstep; pipelines with the same front end
+(`DescribingRecognizer.frontend_key`) share one description per scan, in memory and in the on-disk cache.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from placerec.config import ExperimentConfig, PreprocessConfig
+from placerec.datasets import open_dataset
+from placerec.errors import ConfigError
+from placerec.experiment.cache import DescriptionCache, config_hash
+from placerec.loop_closure import LoopClosureDetector, split_verify_time
+from placerec.preprocess import preprocess_scan
+from placerec.recognizer import DescribingRecognizer, Description, make_pipeline
+from placerec.types import Candidate, Scan, Sequence
+
+log = logging.getLogger(__name__)
+
+__all__ = ["PipelineRecord", "run_loop", "run_localize", "progress_bars"]
+
+STAGES = ("preprocess", "features", "query", "insert", "verify")
+
+
+@dataclass
+class PipelineRecord:
+    """What one pipeline answered: top-N candidates per query and stage times (ms) per scan."""
+
+    label: str
+    name: str
+    query_ids: list[int] = field(default_factory=list)
+    candidates: list[list[Candidate]] = field(default_factory=list)
+    timing_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
+
+    def top1(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(query_ids, match_ids with -1 for none, scores with -inf for none)."""
+        match = np.array([c[0].match_id if c else -1 for c in self.candidates], dtype=np.int64)
+        score = np.array([c[0].score if c else -np.inf for c in self.candidates], dtype=np.float64)
+        return np.asarray(self.query_ids, dtype=np.int64), match, score
+
+    def topn(self, n: int) -> np.ndarray:
+        """(Q, n) match ids, -1 padded."""
+        out = np.full((len(self.candidates), n), -1, dtype=np.int64)
+        for row, cands in enumerate(self.candidates):
+            ids = [c.match_id for c in cands[:n]]
+            out[row, : len(ids)] = ids
+        return out
+
+    def per_scan_ms(self) -> np.ndarray:
+        """Total pipeline time per processed scan (features + query + insert + verify; preprocessing excluded)."""
+        parts = [
+            np.asarray(self.timing_ms[s])
+            for s in ("features", "query", "insert", "verify")
+            if self.timing_ms[s]
+        ]
+        if not parts:
+            return np.zeros(0)
+        n = max(p.size for p in parts)
+        return sum(np.pad(p, (0, n - p.size)) for p in parts)
+
+
+@contextmanager
+def progress_bars(enabled: bool) -> Iterator[Any]:
+    """A rich progress display (or a silent stand-in) with one task per pipeline."""
+    if not enabled:
+
+        class _Silent:
+            def add_task(self, *a: Any, **k: Any) -> int:
+                return 0
+
+            def advance(self, *a: Any, **k: Any) -> None:
+                pass
+
+        yield _Silent()
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with Progress(
+        TextColumn("{task.description:<22}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+        transient=False,
+    ) as progress:
+        yield progress
+
+
+def _preprocessed(seq: Sequence, index: int, cfg: PreprocessConfig) -> tuple[Scan, float]:
+    t0 = time.perf_counter()
+    scan = preprocess_scan(seq[index], cfg, keep_organized=True)
+    return scan, (time.perf_counter() - t0) * 1e3
+
+
+class _Frontends:
+    """Shares descriptions between pipelines with the same front end, for the current scan and on disk."""
+
+    def __init__(self, cache: DescriptionCache) -> None:
+        self.cache = cache
+        self._current: dict[str, Description] = {}
+        self._index = -1
+
+    def describe(self, rec: DescribingRecognizer, index: int, scan: Scan) -> tuple[Description, float]:
+        if index != self._index:
+            self._current.clear()
+            self._index = index
+        key = rec.frontend_key
+        if key in self._current:
+            return self._current[key], 0.0
+        t0 = time.perf_counter()
+        desc = self.cache.get(key, index)
+        if desc is None:
+            desc = rec.describe(scan)
+            self.cache.put(key, index, desc)
+        self._current[key] = desc
+        return desc, (time.perf_counter() - t0) * 1e3
+
+
+def _build_pipelines(cfg: ExperimentConfig) -> list[tuple[str, Any]]:
+    return [(spec.display_name, make_pipeline(spec.name, spec.params)) for spec in cfg.pipelines]
+
+
+def _data_key(cfg: ExperimentConfig, dataset_cfg: Any) -> str:
+    return config_hash(dataset_cfg.model_dump(mode="json"), cfg.preprocess.model_dump(mode="json"))
+
+
+def run_loop(cfg: ExperimentConfig, seq: Sequence | None = None) -> tuple[Sequence, list[PipelineRecord]]:
+    """Loop mode: every scan queries (exclusion window applied) and is then added, for every pipeline."""
+    seq = open_dataset(cfg.dataset) if seq is None else seq
+    pipelines = _build_pipelines(cfg)
+    ex = cfg.evaluation.exclusion
+    detectors = [
+        LoopClosureDetector(
+            rec,
+            threshold=-np.inf,
+            exclusion_frames=ex.frames,
+            exclusion_seconds=ex.seconds,
+            exclusion_metres=ex.metres,
+            k=cfg.evaluation.top_n,
+        )
+        for _, rec in pipelines
+    ]
+    records = [PipelineRecord(label, type(rec).__name__) for label, rec in pipelines]
+    poses, stamps = seq.poses, seq.timestamps
+    if ex.metres is not None and poses is None:
+        raise ConfigError("evaluation.exclusion.metres needs a dataset with poses")
+    if ex.seconds is not None and stamps is None:
+        raise ConfigError("evaluation.exclusion.seconds needs a dataset with timestamps")
+    frontends = _Frontends(DescriptionCache(cfg.output.cache_dir, _data_key(cfg, cfg.dataset)))
+    with progress_bars(cfg.output.progress) as progress:
+        tasks = [progress.add_task(label, total=len(seq)) for label, _ in pipelines]
+        for i in range(len(seq)):
+            scan, pre_ms = _preprocessed(seq, i, cfg.preprocess)
+            for (_, rec), det, record, task in zip(pipelines, detectors, records, tasks, strict=True):
+                desc, feat_ms = (None, None)
+                if isinstance(rec, DescribingRecognizer):
+                    desc, feat_ms = frontends.describe(rec, i, scan)
+                det.process(
+                    scan,
+                    pose=None if poses is None else poses[i],
+                    timestamp=None if stamps is None else float(stamps[i]),
+                    description=desc,
+                )
+                timing = dict(det.last_timing_ms)
+                if feat_ms is not None:
+                    timing["features"] = feat_ms
+                timing["preprocess"] = pre_ms
+                for stage in STAGES:
+                    record.timing_ms[stage].append(timing.get(stage, 0.0))
+                record.query_ids.append(i)
+                record.candidates.append(det.last_candidates)
+                progress.advance(task)
+    return seq, records
+
+
+def _localize_sequences(cfg: ExperimentConfig) -> tuple[Sequence, Sequence]:
+    loc = cfg.evaluation.localize
+    if loc.map is not None or loc.queries is not None:
+        if loc.map is None or loc.queries is None:
+            raise ConfigError("evaluation.localize needs both 'map' and 'queries' datasets (or neither)")
+        return open_dataset(loc.map), open_dataset(loc.queries)
+    if cfg.dataset.source != "simulator":
+        raise ConfigError("localize mode on a path dataset needs evaluation.localize.map and .queries")
+    from placerec.sim import localization_split
+
+    sim = cfg.dataset.simulator
+    return localization_split(
+        world=sim.world,
+        sensor=sim.sensor,
+        n_map_scans=sim.n_scans,
+        seed=sim.seed,
+        condition=loc.condition,
+        n_queries=loc.n_queries,
+    )
+
+
+def run_localize(cfg: ExperimentConfig) -> tuple[Sequence, Sequence, list[PipelineRecord]]:
+    """Localize mode: build each pipeline's database from the map sequence, then query every query scan."""
+    map_seq, query_seq = _localize_sequences(cfg)
+    if map_seq.poses is None or query_seq.poses is None:
+        raise ConfigError("localize mode needs poses for the map and the query sequences")
+    pipelines = _build_pipelines(cfg)
+    records = [PipelineRecord(label, type(rec).__name__) for label, rec in pipelines]
+    map_front = _Frontends(
+        DescriptionCache(cfg.output.cache_dir, _data_key(cfg, cfg.evaluation.localize.map or cfg.dataset))
+    )
+    query_front = _Frontends(DescriptionCache(None, "queries"))
+    with progress_bars(cfg.output.progress) as progress:
+        tasks = [progress.add_task(f"{label} (map)", total=len(map_seq)) for label, _ in pipelines]
+        for i in range(len(map_seq)):
+            scan, _ = _preprocessed(map_seq, i, cfg.preprocess)
+            for (_, rec), task in zip(pipelines, tasks, strict=True):
+                if isinstance(rec, DescribingRecognizer):
+                    rec.add_description(i, map_front.describe(rec, i, scan)[0], map_seq.poses[i])
+                else:
+                    rec.add(i, scan, map_seq.poses[i])
+                progress.advance(task)
+        tasks = [progress.add_task(f"{label} (queries)", total=len(query_seq)) for label, _ in pipelines]
+        for q in range(len(query_seq)):
+            scan, pre_ms = _preprocessed(query_seq, q, cfg.preprocess)
+            for (_, rec), record, task in zip(pipelines, records, tasks, strict=True):
+                timing = {"preprocess": pre_ms}
+                t0 = time.perf_counter()
+                if isinstance(rec, DescribingRecognizer):
+                    desc, timing["features"] = query_front.describe(rec, q, scan)
+                    t0 = time.perf_counter()
+                    cands = rec.query_description(desc, k=cfg.evaluation.top_n, query_id=q)
+                else:
+                    cands = rec.query(scan, k=cfg.evaluation.top_n, query_id=q)
+                timing["query"] = (time.perf_counter() - t0) * 1e3
+                split_verify_time(cands, timing)
+                for stage in STAGES:
+                    record.timing_ms[stage].append(timing.get(stage, 0.0))
+                record.query_ids.append(q)
+                record.candidates.append(cands)
+                progress.advance(task)
+    return map_seq, query_seq, records

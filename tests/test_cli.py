@@ -1,0 +1,79 @@
+import json
+import subprocess
+import sys
+
+import pytest
+from typer.testing import CliRunner
+
+from placerec.cli import app
+
+runner = CliRunner()
+
+
+def test_version_lists_native_dependencies():
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0, result.output
+    for name in ("placerec", "numpy", "OpenCV", "Open3D"):
+        assert name in result.output
+
+
+def test_help_does_not_import_heavy_modules():
+    code = (
+        "import sys\n"
+        "from typer.testing import CliRunner\n"
+        "from placerec.cli import app\n"
+        "r = CliRunner().invoke(app, ['--help'])\n"
+        "assert r.exit_code == 0, r.output\n"
+        "print([m for m in ('open3d', 'torch', 'cv2', 'placerec.sim') if m in sys.modules])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_dump_config_is_loadable(tmp_path):
+    out = tmp_path / "d.yaml"
+    result = runner.invoke(app, ["dump-config", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    from placerec.config import ExperimentConfig, load_config
+
+    assert load_config(out) == ExperimentConfig()
+
+
+def test_info_on_generated_scan(tmp_path):
+    import numpy as np
+
+    from placerec.io import write_scan
+    from placerec.types import Scan
+
+    rng = np.random.default_rng(0)
+    path = tmp_path / "s.pcd"
+    write_scan(path, Scan(rng.normal(size=(500, 3)) * 10, rng.random(500), ring=rng.integers(0, 16, 500)))
+    result = runner.invoke(app, ["info", str(path), "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output)
+    assert summary["points"] == 500 and summary["beams"] == 16 and "ring" in summary["fields"]
+
+
+def test_info_reports_bad_files_cleanly(tmp_path):
+    bad = tmp_path / "bad.bin"
+    bad.write_bytes(b"\x00" * 10)
+    result = runner.invoke(app, ["info", str(bad)])
+    assert result.exit_code == 2
+    assert "bad.bin" in result.output and "Traceback" not in result.output
+
+
+def test_run_rejects_unknown_config_keys(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("evaluation:\n  gt_distnace: 3\n")
+    result = runner.invoke(app, ["run", str(cfg)])
+    assert result.exit_code == 2
+    assert "gt_distnace" in result.output and "gt_distance" in result.output
+
+
+@pytest.mark.parametrize("name", ["000094.bin"])
+def test_info_on_real_kitti(real_data, name):
+    result = runner.invoke(app, ["info", str(real_data / "kitti00_frames" / name), "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output)
+    assert summary["points"] > 100_000
+    assert 50 <= summary["beams"] <= 70  # HDL-64 estimated from elevation peaks
