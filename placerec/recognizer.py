@@ -151,6 +151,7 @@ def coerce_params(cls: type, params: Any | None, overrides: dict[str, Any]) -> A
 #: Registered pipelines: short name -> "module:Class". Later modules add their entries here.
 PIPELINES: dict[str, str] = {
     "scan-context": "placerec.baselines.scan_context:ScanContext",
+    "map-closures": "placerec.baselines.map_closures_peer:MapClosuresPeer",
 }
 
 
