@@ -1,0 +1,305 @@
+"""Cylindrical intensity images from LiDAR scans (VPR paper, Sec. IV-A).
+
+Three ways to form the image, chosen by `ImageParams.mode`:
+
+* ``uniform`` — the paper's eq. 2 for any point cloud: ``u = 0.5 (1 - theta / pi) W`` with ``theta = atan2(y, x)``
+  and ``v = (1 - (phi + f_down) / f) H`` with ``phi = asin(z / rho)``, ``f = f_up + f_down`` (degrees of the
+  vertical field of view above and below the horizon, both positive). Eq. 2 as printed adds ``f_up``; like the
+  reference implementations (RangeNet++) we add the magnitude of the *lower* field of view, which puts the top of
+  the field of view in row 0 and the bottom in row ``H``. Sensors with uneven beams (HDL-64) leave empty rows,
+  which are detected and filled (`fill_empty_rows`).
+* ``per-beam`` — the row is the beam's rank by elevation (from ``Scan.ring`` and the sensor's beam elevations),
+  the column as above: no empty rows by construction.
+* ``organized`` — an organised scan (Ouster) is used as it is: row = beam, column = azimuth step.
+
+``auto`` picks ``organized`` for organised scans, ``per-beam`` when rings are known, else ``uniform``. When
+several points fall in one pixel the one with the smallest range is kept; the image stores its intensity (and,
+in separate channels, its range and its point index).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from placerec.errors import ConfigError, ScanDataError
+from placerec.types import Scan
+
+__all__ = [
+    "ImageParams",
+    "IntensityImage",
+    "make_image",
+    "project_uniform",
+    "project_per_beam",
+    "from_organized",
+    "detect_empty_rows",
+    "fill_empty_rows",
+    "fill_vertical_holes",
+    "to_uint8",
+]
+
+
+@dataclass(frozen=True)
+class ImageParams:
+    """How scans become intensity images.
+
+    ``width``/``height``: image size (default: the sensor's columns / beams, else 1024 x 64). ``fov_up_deg`` /
+    ``fov_down_deg``: vertical field of view above / below the horizon, both positive (default: from the sensor's
+    beam elevations, else from the scan's own elevation range). ``empty_row_threshold``: a row whose fraction of
+    valid pixels is below it counts as empty. ``fill_holes_max_gap`` > 0 also fills single empty pixels (partly
+    empty rows, as KITTI's HDL-64 leaves) by vertical interpolation when valid pixels lie within that many rows
+    above and below (an improvement over the paper's whole-row filling; 0 = off). ``clip``: ``percentile`` (of the image's valid intensities) or
+    ``saturation`` (a fixed value in the scan's units) is mapped to 255; ``equalize`` applies histogram
+    equalisation after that.
+    """
+
+    mode: Literal["auto", "uniform", "per-beam", "organized"] = "auto"
+    width: int | None = None
+    height: int | None = None
+    fov_up_deg: float | None = None
+    fov_down_deg: float | None = None
+    fill_empty_rows: bool = True
+    empty_row_threshold: float = 0.05
+    fill_holes_max_gap: int = 0
+    clip: Literal["percentile", "saturation"] = "percentile"
+    percentile: float = 99.0
+    saturation: float | None = None
+    equalize: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class IntensityImage:
+    """An image formed from a scan: float ``intensity``, ``range`` (0 where empty), ``valid`` mask,
+    ``point_index`` (index of the scan point in each pixel, -1 where empty or interpolated), the 8-bit
+    ``image`` used by feature extractors, and ``filled_rows`` (rows filled by interpolation)."""
+
+    intensity: np.ndarray
+    range: np.ndarray
+    valid: np.ndarray
+    point_index: np.ndarray
+    image: np.ndarray
+    filled_rows: np.ndarray
+    mode: str
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.intensity.shape  # type: ignore[return-value]
+
+
+def _columns(xyz: np.ndarray, width: int) -> np.ndarray:
+    theta = np.arctan2(xyz[:, 1], xyz[:, 0])
+    u = np.floor(0.5 * (1.0 - theta / np.pi) * width).astype(np.int64)
+    return np.mod(u, width)  # theta = -pi lands on u = W: wrap to column 0
+
+
+def _scatter_nearest(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    ranges: np.ndarray,
+    scan: Scan,
+    idx: np.ndarray,
+    shape: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel, the point with the smallest range: (intensity, range, point index) images."""
+    h, w = shape
+    pix = rows * w + cols
+    order = np.lexsort((ranges, pix))
+    pix_sorted = pix[order]
+    first = order[np.r_[True, pix_sorted[1:] != pix_sorted[:-1]]]
+    inten = np.zeros(h * w, np.float32)
+    rng = np.zeros(h * w, np.float32)
+    pidx = np.full(h * w, -1, np.int32)
+    inten[pix[first]] = scan.intensity[idx[first]]
+    rng[pix[first]] = ranges[first]
+    pidx[pix[first]] = idx[first]
+    return inten.reshape(shape), rng.reshape(shape), pidx.reshape(shape)
+
+
+def _valid_points(scan: Scan) -> tuple[np.ndarray, np.ndarray]:
+    r = scan.ranges
+    ok = np.isfinite(r) & (r > 1e-6) & np.isfinite(scan.intensity)
+    idx = np.flatnonzero(ok)
+    return idx, r[idx]
+
+
+def _fov(scan: Scan, params: ImageParams, xyz: np.ndarray, r: np.ndarray) -> tuple[float, float]:
+    up, down = params.fov_up_deg, params.fov_down_deg
+    sensor_fov = scan.sensor.vertical_fov_deg
+    if (up is None or down is None) and sensor_fov is not None:
+        # half a beam spacing of margin so the extreme beams fall inside the image
+        elev = np.sort(np.asarray(scan.sensor.beam_elevations_deg))
+        margin = 0.5 * float(np.median(np.diff(elev))) if elev.size > 1 else 0.5
+        up = sensor_fov[0] + margin if up is None else up
+        down = sensor_fov[1] + margin if down is None else down
+    if up is None or down is None:
+        phi = np.degrees(np.arcsin(np.clip(xyz[:, 2] / r, -1, 1)))
+        up = float(phi.max()) + 0.1 if up is None else up
+        down = float(-phi.min()) + 0.1 if down is None else down
+    if up + down <= 0:
+        raise ConfigError(f"vertical field of view must be positive, got up={up}, down={down}")
+    return float(up), float(down)
+
+
+def project_uniform(
+    scan: Scan, params: ImageParams = ImageParams()
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eq. 2 projection (uniform beams): (intensity, range, point index) images."""
+    h = params.height or scan.sensor.n_beams or 64
+    w = params.width or scan.sensor.columns or 1024
+    idx, r = _valid_points(scan)
+    xyz = scan.xyz[idx]
+    if idx.size == 0:
+        return np.zeros((h, w), np.float32), np.zeros((h, w), np.float32), np.full((h, w), -1, np.int32)
+    up, down = _fov(scan, params, xyz, r)
+    phi = np.degrees(np.arcsin(np.clip(xyz[:, 2] / r, -1.0, 1.0)))
+    v = np.floor((1.0 - (phi + down) / (up + down)) * h).astype(np.int64)
+    inside = (v >= 0) & (v < h)
+    cols = _columns(xyz, w)
+    return _scatter_nearest(v[inside], cols[inside], r[inside], scan, idx[inside], (h, w))
+
+
+def project_per_beam(
+    scan: Scan, params: ImageParams = ImageParams()
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One row per beam (rank of its elevation, top first), columns from eq. 2: no empty rows by construction."""
+    if scan.ring is None:
+        raise ScanDataError(f"{scan.source or 'scan'}: per-beam projection needs the ring index")
+    elev = scan.sensor.beam_elevations_deg
+    if elev is not None:
+        rank = np.empty(len(elev), np.int64)
+        rank[np.argsort(-np.asarray(elev), kind="stable")] = np.arange(len(elev))
+        n_rows = len(elev)
+    else:  # no layout: assume ring 0 is the top beam and rings are consecutive
+        n_rows = int(scan.ring.max()) + 1 if len(scan) else 1
+        rank = np.arange(n_rows)
+    w = params.width or scan.sensor.columns or 1024
+    idx, r = _valid_points(scan)
+    ring = scan.ring[idx].astype(np.int64)
+    ok = (ring >= 0) & (ring < rank.size)
+    idx, r, ring = idx[ok], r[ok], ring[ok]
+    cols = _columns(scan.xyz[idx], w)
+    return _scatter_nearest(rank[ring], cols, r, scan, idx, (n_rows, w))
+
+
+def from_organized(scan: Scan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An organised scan's own grid: (intensity, range, point index); zero points are empty."""
+    if scan.shape is None:
+        raise ScanDataError(f"{scan.source or 'scan'}: not an organised scan")
+    r = scan.ranges
+    ok = np.isfinite(r) & (r > 1e-6) & np.isfinite(scan.intensity)
+    inten = np.where(ok, scan.intensity, 0.0).astype(np.float32).reshape(scan.shape)
+    rng = np.where(ok, r, 0.0).astype(np.float32).reshape(scan.shape)
+    pidx = np.where(ok, np.arange(len(scan), dtype=np.int32), -1).reshape(scan.shape)
+    return inten, rng, pidx
+
+
+def detect_empty_rows(valid: np.ndarray, threshold: float = 0.05) -> np.ndarray:
+    """Rows whose fraction of valid pixels is below ``threshold``.
+
+    The paper's recipe: binarise the image (valid -> 255) and filter it with a horizontal kernel as wide as the
+    image; the filtered value at the centre column of a row is its fraction of valid pixels (the kernel covers
+    exactly the whole row there, so the border mode does not matter).
+    """
+    import cv2
+
+    binary = valid.astype(np.float32)
+    h, w = binary.shape
+    kernel = np.full((1, w), 1.0 / w, np.float32)
+    row_fill = cv2.filter2D(binary, -1, kernel, anchor=(w // 2, 0))[:, w // 2]
+    return row_fill < threshold
+
+
+def fill_empty_rows(image: np.ndarray, empty: np.ndarray) -> np.ndarray:
+    """Fill each empty row by linear interpolation between the nearest non-empty rows above and below (per
+    column); rows above the first / below the last non-empty row copy it."""
+    good = np.flatnonzero(~empty)
+    out = image.astype(np.float32, copy=True)
+    if good.size == 0 or not empty.any():
+        return out
+    rows = np.flatnonzero(empty)
+    pos = np.searchsorted(good, rows)
+    above = good[np.clip(pos - 1, 0, good.size - 1)]
+    below = good[np.clip(pos, 0, good.size - 1)]
+    span = (below - above).astype(np.float32)
+    t = np.divide(rows - above, span, out=np.zeros_like(span), where=span > 0)
+    out[rows] = (1.0 - t)[:, None] * out[above] + t[:, None] * out[below]
+    return out
+
+
+def fill_vertical_holes(image: np.ndarray, valid: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fill empty pixels from the nearest valid pixels above and below in the same column when both lie within
+    ``max_gap`` rows (linear interpolation). Returns (image, valid)."""
+    h = image.shape[0]
+    rows = np.arange(h)[:, None]
+    above = np.maximum.accumulate(np.where(valid, rows, -1), axis=0)
+    below = np.minimum.accumulate(np.where(valid, rows, h)[::-1], axis=0)[::-1]
+    hole = ~valid & (above >= 0) & (below < h) & (rows - above <= max_gap) & (below - rows <= max_gap)
+    if not hole.any():
+        return image, valid
+    cols = np.broadcast_to(np.arange(image.shape[1]), image.shape)
+    a, b, c = above[hole], below[hole], cols[hole]
+    t = (rows.repeat(image.shape[1], axis=1)[hole] - a) / (b - a)
+    out = image.astype(np.float32, copy=True)
+    out[hole] = (1 - t) * image[a, c] + t * image[b, c]
+    return out, valid | hole
+
+
+def to_uint8(intensity: np.ndarray, valid: np.ndarray, params: ImageParams = ImageParams()) -> np.ndarray:
+    """Map intensities to 0..255: clip at a percentile of the valid pixels or at a saturation value."""
+    if params.clip == "saturation":
+        if not params.saturation or params.saturation <= 0:
+            raise ConfigError("image clip 'saturation' needs a positive 'saturation' value")
+        top = float(params.saturation)
+    elif params.clip == "percentile":
+        vals = intensity[valid]
+        top = float(np.percentile(vals, params.percentile)) if vals.size else 1.0
+    else:
+        raise ConfigError(f"unknown image clip {params.clip!r}; allowed: percentile, saturation")
+    scale = 255.0 / top if top > 0 else 0.0
+    img = np.clip(intensity * scale, 0, 255).astype(np.uint8)
+    img[~valid] = 0
+    if params.equalize:
+        import cv2
+
+        img = cv2.equalizeHist(img)
+    return img
+
+
+def _resolve_mode(scan: Scan, mode: str) -> str:
+    if mode == "auto":
+        if scan.shape is not None:
+            return "organized"
+        return "per-beam" if scan.ring is not None else "uniform"
+    return mode
+
+
+def make_image(scan: Scan, params: ImageParams = ImageParams()) -> IntensityImage:
+    """Form the intensity image of ``scan`` (see the module docstring)."""
+    mode = _resolve_mode(scan, params.mode)
+    if mode == "organized":
+        inten, rng, pidx = from_organized(scan)
+    elif mode == "per-beam":
+        inten, rng, pidx = project_per_beam(scan, params)
+    elif mode == "uniform":
+        inten, rng, pidx = project_uniform(scan, params)
+    else:
+        raise ConfigError(f"unknown image mode {params.mode!r}; allowed: auto, uniform, per-beam, organized")
+    valid = pidx >= 0
+    filled = np.zeros(inten.shape[0], bool)
+    if params.fill_empty_rows:
+        filled = detect_empty_rows(valid, params.empty_row_threshold)
+        if filled.any() and (~filled).any():
+            inten = fill_empty_rows(inten, filled)
+            rng = fill_empty_rows(rng, filled)
+            valid = valid.copy()
+            valid[filled] = fill_empty_rows(valid.astype(np.float32), filled)[filled] > 0.5
+        else:
+            filled[:] = False
+    if params.fill_holes_max_gap > 0:
+        gap = params.fill_holes_max_gap
+        rng, _ = fill_vertical_holes(rng, valid, gap)
+        inten, valid = fill_vertical_holes(inten, valid, gap)
+    image = to_uint8(inten, valid, params)
+    return IntensityImage(inten, rng, valid, pidx, image, filled, mode)

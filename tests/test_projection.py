@@ -1,0 +1,117 @@
+import numpy as np
+import pytest
+
+from placerec.errors import ScanDataError
+from placerec.image import (
+    ImageParams,
+    detect_empty_rows,
+    fill_empty_rows,
+    make_image,
+    project_per_beam,
+    project_uniform,
+)
+from placerec.types import Scan, SensorInfo
+
+P = ImageParams(width=360, height=20, fov_up_deg=10.0, fov_down_deg=10.0)
+
+
+def _scan(points, intensity, **kw):
+    return Scan(np.asarray(points, np.float32), np.asarray(intensity, np.float32), **kw)
+
+
+def test_point_straight_ahead_lands_in_centre_column_and_middle_row():
+    inten, rng, idx = project_uniform(_scan([[10, 0, 0]], [7]), P)
+    v, u = np.argwhere(idx >= 0)[0]
+    assert u == 180 and v == 10 and inten[v, u] == 7 and rng[v, u] == pytest.approx(10)
+
+
+def test_columns_follow_eq2_left_is_smaller_u():
+    # theta = +90 deg (left) -> u = 0.5 * (1 - 0.5) * W = W/4; theta = -90 deg (right) -> 3W/4
+    _, _, idx = project_uniform(_scan([[0, 10, 0], [0, -10, 0]], [1, 2]), P)
+    cols = {int(idx[v, u]): u for v, u in np.argwhere(idx >= 0)}
+    assert cols == {0: 90, 1: 270}
+
+
+def test_top_of_fov_is_row_zero_and_bottom_last_row():
+    up = np.tan(np.radians(9.9)) * 10
+    _, _, idx = project_uniform(_scan([[10, 0, up], [10, 0, -up]], [1, 2]), P)
+    rows = {int(idx[v, u]): v for v, u in np.argwhere(idx >= 0)}
+    assert rows == {0: 0, 1: 19}
+
+
+def test_nearest_range_wins():
+    pts = [[20, 0, 0], [10, 0, 0], [30, 0, 0]]
+    inten, rng, idx = project_uniform(_scan(pts, [1, 2, 3]), P)
+    assert (idx >= 0).sum() == 1 and inten[idx >= 0][0] == 2 and rng[idx >= 0][0] == pytest.approx(10)
+
+
+def test_wrap_around_behind_the_sensor():
+    # just left of straight back -> u ~ 0, just right -> u ~ W-1: the seam is behind the sensor
+    eps = 1e-3
+    _, _, idx = project_uniform(_scan([[-10, eps, 0], [-10, -eps, 0], [-10, 0, 1.0]], [1, 2, 3]), P)
+    cols = {int(idx[v, u]): u for v, u in np.argwhere(idx >= 0)}
+    assert cols[0] == 0 and cols[1] == 359 and cols[2] in (0, 359)
+
+
+def test_per_beam_uses_ring_rank_by_elevation():
+    sensor = SensorInfo("x", beam_elevations_deg=(-5.0, 5.0, 0.0), columns=360)  # ring 1 is the top beam
+    scan = _scan([[10, 0, 0], [10, 0, 0.8], [10, 0, -0.8]], [1, 2, 3], ring=[2, 1, 0], sensor=sensor)
+    inten, _, _ = project_per_beam(scan)
+    assert inten.shape == (3, 360) and inten[:, 180].tolist() == [2, 1, 3]
+    with pytest.raises(ScanDataError, match="ring"):
+        project_per_beam(_scan([[1, 0, 0]], [1]))
+
+
+def test_empty_row_detection_and_interpolation():
+    img = np.zeros((6, 8), np.float32)
+    img[0], img[3], img[5] = 10, 40, 50
+    valid = img > 0
+    empty = detect_empty_rows(valid)
+    assert empty.tolist() == [False, True, True, False, True, False]
+    filled = fill_empty_rows(img, empty)
+    assert np.allclose(filled[:, 0], [10, 20, 30, 40, 45, 50])
+
+
+def test_uneven_beams_leave_empty_rows_that_get_filled():
+    # 16 beams, two blocks with different spacing, projected into 32 uniform rows
+    elev = np.r_[np.linspace(2, -8, 8), np.linspace(-9.5, -24, 8)]
+    az = np.radians(np.arange(0.5, 360, 1.0))
+    e, a = np.meshgrid(np.radians(elev), az, indexing="ij")
+    pts = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3) * 20
+    inten = np.repeat(np.arange(16.0), az.size) + 1
+    scan = _scan(pts, inten)
+    raw = make_image(
+        scan,
+        ImageParams(
+            mode="uniform", width=360, height=32, fov_up_deg=2.5, fov_down_deg=24.5, fill_empty_rows=False
+        ),
+    )
+    assert (~raw.valid).all(axis=1).sum() >= 10
+    filled = make_image(
+        scan, ImageParams(mode="uniform", width=360, height=32, fov_up_deg=2.5, fov_down_deg=24.5)
+    )
+    assert filled.filled_rows.sum() == (~raw.valid).all(axis=1).sum()
+    assert filled.valid.all(axis=1).sum() >= 30 and filled.image.dtype == np.uint8
+
+
+def test_organized_scan_used_as_is_and_auto_modes():
+    xyz = np.zeros((2 * 4, 3), np.float32)
+    xyz[:, 0] = 5
+    xyz[3] = 0  # no return
+    scan = _scan(xyz, np.arange(8), shape=(2, 4))
+    img = make_image(scan, ImageParams(fill_empty_rows=False))
+    assert img.mode == "organized" and img.valid.sum() == 7 and img.point_index[0, 3] == -1
+    assert make_image(_scan([[1, 0, 0]], [1], ring=[0])).mode == "per-beam"
+    assert make_image(_scan([[1, 0, 0]], [1])).mode == "uniform"
+
+
+def test_vertical_hole_filling_respects_max_gap():
+    from placerec.image.projection import fill_vertical_holes
+
+    img = np.array([[10, 10], [0, 0], [30, 0], [0, 0], [0, 0], [60, 60]], np.float32)
+    valid = img > 0
+    out, ok = fill_vertical_holes(img, valid, max_gap=1)
+    assert out[1, 0] == 20 and ok[1, 0]  # between rows 0 and 2
+    assert not ok[3, 0] and not ok[1, 1]  # gaps of 3 and 5 rows are left alone
+    out, ok = fill_vertical_holes(img, valid, max_gap=3)
+    assert ok[3, 0] and out[3, 0] == pytest.approx(40) and not ok[1, 1]
