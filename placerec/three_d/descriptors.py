@@ -1,0 +1,102 @@
+"""A registry of 3D local descriptors behind one call signature.
+
+Every entry is ``describe(points, normals, intensity, keypoint_indices, support_radius, **options)
+-> (descriptors (K, D) float32, valid (K,) bool)``; rows with ``valid=False`` are all zero.
+
+* ``"shot"``  — SHOT, 352-d (`placerec.three_d.shot`), intensity ignored.
+* ``"ishot"`` — ISHOT, 1344-d: SHOT + 31-bin intensity-difference signature (Guo et al. 2019).
+* ``"fpfh"``  — FPFH, 33-d, Open3D's ``compute_fpfh_feature`` on the keypoints (geometric reference);
+  option ``max_nn`` (default None: pure radius search, as the paper's 7 m support).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from placerec.errors import ConfigError, ScanDataError
+from placerec.three_d._neighbors import check_points
+from placerec.three_d.shot import ISHOT_DIM, SHAPE_DIM, SHOTParams, compute_shot
+
+__all__ = ["DESCRIPTORS", "DESCRIPTOR_DIMS", "describe", "get_descriptor"]
+
+Describer = Callable[..., tuple[np.ndarray, np.ndarray]]
+
+
+def _shot_params(support_radius: float, options: dict[str, Any]) -> SHOTParams:
+    try:
+        return SHOTParams(support_radius=support_radius, **options)
+    except TypeError as exc:
+        raise ConfigError(f"shot: invalid options {sorted(options)}: {exc}") from None
+
+
+def describe_shot(points, normals, intensity, keypoint_indices, support_radius=7.0, **options):
+    """SHOT (352-d); ``options``: fields of `SHOTParams` other than ``support_radius``."""
+    return compute_shot(points, normals, keypoint_indices, _shot_params(support_radius, options))
+
+
+def describe_ishot(points, normals, intensity, keypoint_indices, support_radius=7.0, **options):
+    """ISHOT (1344-d); needs ``intensity`` in [0, 1]."""
+    if intensity is None:
+        raise ScanDataError("ISHOT needs per-point intensity (calibrated, in [0, 1])")
+    return compute_shot(
+        points, normals, keypoint_indices, _shot_params(support_radius, options), intensity=intensity
+    )
+
+
+def describe_fpfh(points, normals, intensity, keypoint_indices, support_radius=7.0, max_nn=None):
+    """FPFH (33-d) of the keypoints with Open3D; invalid where a keypoint has no neighbour."""
+    import open3d as o3d
+
+    P = check_points(points)
+    Nrm = np.asarray(normals, dtype=np.float64)
+    if Nrm.shape != P.shape:
+        raise ScanDataError(f"normals must have shape {P.shape}, got {Nrm.shape}")
+    kp = np.asarray(keypoint_indices, dtype=np.int64).reshape(-1)
+    if kp.size == 0:
+        return np.zeros((0, 33), dtype=np.float32), np.zeros(0, dtype=bool)
+    if kp.min() < 0 or kp.max() >= P.shape[0]:
+        raise ScanDataError(f"keypoint indices out of range for {P.shape[0]} points")
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+    pcd.normals = o3d.utility.Vector3dVector(Nrm)
+    param = (
+        o3d.geometry.KDTreeSearchParamRadius(support_radius)
+        if max_nn is None
+        else o3d.geometry.KDTreeSearchParamHybrid(support_radius, int(max_nn))
+    )
+    feat = o3d.pipelines.registration.compute_fpfh_feature(pcd, param, kp.tolist())
+    desc = np.asarray(feat.data, dtype=np.float32).T.copy()
+    valid = np.isfinite(desc).all(axis=1) & (desc.sum(axis=1) > 0)
+    desc[~valid] = 0.0
+    return desc, valid
+
+
+DESCRIPTORS: dict[str, Describer] = {
+    "shot": describe_shot,
+    "ishot": describe_ishot,
+    "fpfh": describe_fpfh,
+}
+DESCRIPTOR_DIMS: dict[str, int] = {"shot": SHAPE_DIM, "ishot": ISHOT_DIM, "fpfh": 33}
+
+
+def get_descriptor(name: str) -> Describer:
+    """The describe function registered as ``name`` (`ConfigError` listing the names otherwise)."""
+    try:
+        return DESCRIPTORS[name]
+    except KeyError:
+        raise ConfigError(f"unknown 3D descriptor {name!r}; allowed: {sorted(DESCRIPTORS)}") from None
+
+
+def describe(
+    name: str,
+    points: np.ndarray,
+    normals: np.ndarray,
+    intensity: np.ndarray | None,
+    keypoint_indices: np.ndarray,
+    support_radius: float = 7.0,
+    **options: Any,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Describe the keypoints with the registered descriptor ``name``: ``(descriptors, valid)``."""
+    return get_descriptor(name)(points, normals, intensity, keypoint_indices, support_radius, **options)
