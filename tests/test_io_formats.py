@@ -346,3 +346,57 @@ def test_binary_compressed_header_checks(tmp_path: Path) -> None:
     path.write_bytes(buf[:-5])
     with pytest.raises(ScanFormatError, match="truncated"):
         read_scan(path)
+
+
+def _reference_lzf_decode(src: bytes) -> bytes:
+    """Byte-at-a-time decoder straight from the liblzf format description."""
+    out = bytearray()
+    ip = 0
+    while ip < len(src):
+        c = src[ip]
+        ip += 1
+        if c < 32:
+            out += src[ip : ip + c + 1]
+            ip += c + 1
+        else:
+            ln = c >> 5
+            if ln == 7:
+                ln += src[ip]
+                ip += 1
+            d = ((c & 31) << 8 | src[ip]) + 1
+            ip += 1
+            for _ in range(ln + 2):
+                out.append(out[-d])
+    return bytes(out)
+
+
+def test_lzf_decoder_matches_reference_on_random_streams() -> None:
+    """Streams with arbitrary distances, overlaps and chained references, unlike our own compressor's output."""
+    rng = np.random.default_rng(6)
+    for _ in range(300):
+        stream, size = bytearray(), 0
+        for _ in range(int(rng.integers(1, 300))):
+            if size == 0 or rng.random() < 0.4:
+                n = int(rng.integers(1, 33))
+                stream += bytes([n - 1]) + rng.bytes(n)
+                size += n
+            else:
+                d = int(rng.integers(1, min(size, 8192) + 1)) if rng.random() < 0.7 else int(rng.integers(1, 4))
+                d = min(d, size)
+                n = int(rng.choice([3, 8, 9, 264])) if rng.random() < 0.5 else int(rng.integers(3, 265))
+                off, code = d - 1, n - 2
+                stream += bytes([code << 5 | off >> 8, off & 255]) if code < 7 else bytes([224 | off >> 8, code - 7,
+                                                                                          off & 255])
+                size += n
+        assert lzf_decompress(bytes(stream), size) == _reference_lzf_decode(bytes(stream))
+
+
+def test_import_is_light() -> None:
+    """placerec.io must not import the optional or heavy packages at import time."""
+    import subprocess
+    import sys
+
+    code = ("import sys, placerec.io; heavy = [m for m in ('ouster', 'rosbags', 'open3d', 'scipy.spatial') "
+            "if m in sys.modules]; print(heavy)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"

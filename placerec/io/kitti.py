@@ -22,6 +22,7 @@ __all__ = ["read_kitti_bin", "write_kitti_bin", "KITTI_RECORD_SIZE", "Layout", "
 KITTI_RECORD_SIZE = 16
 KITTI_SENSOR = SensorInfo(name="velodyne-hdl64e (kitti)", intensity_max=1.0)
 _ORDERS = ("row-major", "column-major")
+_CHUNK = 4096  # records per read: 64 KiB, small enough to be recycled by the allocator
 
 Layout = tuple[int, int, str]
 
@@ -58,6 +59,26 @@ def organise(
     return np.ascontiguousarray(xyz), values, ring
 
 
+def _read_records(path: Path, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Stream the float32 records through a small reused buffer straight into contiguous xyz and intensity.
+
+    As fast as ``np.fromfile`` plus the two copies a `Scan` needs anyway, without a third large temporary
+    (large short-lived allocations cost more in page faults than the copies themselves).
+    """
+    xyz = np.empty((n, 3), dtype=np.float32)
+    intensity = np.empty(n, dtype=np.float32)
+    buf = np.empty((min(n, _CHUNK), 4), dtype="<f4")
+    with open(path, "rb") as fh:
+        for k in range(0, n, _CHUNK):
+            view = buf[: min(_CHUNK, n - k)]
+            got = fh.readinto(memoryview(view).cast("B"))
+            if got != view.nbytes:
+                raise ScanFormatError(f"{path}: file shrank while reading ({got} of {view.nbytes} bytes)")
+            xyz[k : k + len(view)] = view[:, :3]
+            intensity[k : k + len(view)] = view[:, 3]
+    return xyz, intensity
+
+
 @guard("KITTI .bin")
 def read_kitti_bin(
     path: str | Path,
@@ -79,10 +100,10 @@ def read_kitti_bin(
             f"{p}: size {size} bytes is not a multiple of the KITTI record size {KITTI_RECORD_SIZE} "
             "(4 x float32: x, y, z, reflectance)"
         )
-    data = np.fromfile(p, dtype="<f4").reshape(-1, 4)
+    xyz, intensity = _read_records(p, size // KITTI_RECORD_SIZE)
     if lay is None:
-        return Scan(xyz=data[:, :3], intensity=data[:, 3], sensor=KITTI_SENSOR, source=str(p))
-    xyz, vals, ring = organise(data[:, :3], {"i": data[:, 3]}, lay, p)
+        return Scan(xyz=xyz, intensity=intensity, sensor=KITTI_SENSOR, source=str(p))
+    xyz, vals, ring = organise(xyz, {"i": intensity}, lay, p)
     rows, cols, _ = lay
     sensor = SensorInfo(name="organised-bin", columns=cols)
     return Scan(
