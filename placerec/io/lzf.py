@@ -7,7 +7,7 @@ back-reference: length ``(c >> 5) + 2`` (when ``c >> 5 == 7`` one more byte is a
 Decompression is inherently sequential; `lzf_decompress` keeps the sequential part small (a hop from token to
 token, then the back-references in order) and copies all literal runs in one vectorised step.
 `lzf_compress` writes a valid LZF stream with a vectorised match search: for a fixed set of distances
-(1, 2, 4, ... 8192 bytes) numpy finds, at every position, the longest run that repeats the data that many bytes
+(1, 2, 4, ... 4096 bytes) numpy finds, at every position, the longest run that repeats the data that many bytes
 back, and a short greedy loop over the resulting tokens emits them. It does not search arbitrary distances like
 liblzf's hash table, so it compresses a little less, but it runs at numpy speed and any LZF decoder
 (PCL's included) reads its output.
@@ -24,7 +24,7 @@ __all__ = ["lzf_compress", "lzf_decompress", "LZFError"]
 _MAX_LIT = 32
 _MAX_REF = 264  # 7 + 255 + 2
 _MAX_OFF = 8192
-_DISTANCES = (1, 2, 3, 4, 8, 12, 16, 32, 64, 256, 1024, 4096, 8192)
+_DISTANCES = (1, 2, 4, 8, 12, 16, 32, 64, 256, 1024, 4096)
 
 
 _STEP = bytes(c + 2 if c < 32 else (3 if c >= 224 else 2) for c in range(256))  # token size by control byte
@@ -146,12 +146,10 @@ def _best_matches(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     for d in _DISTANCES:
         if d >= n:
             break
-        eq = np.empty(n - d + 2, dtype=np.int8)
-        eq[0] = eq[-1] = 0
-        np.equal(a[d:], a[:-d], out=eq[1:-1].view(bool))
-        edges = np.diff(eq)
-        s = np.flatnonzero(edges == 1)
-        e = np.flatnonzero(edges == -1)
+        eq = np.zeros(n - d + 2, dtype=bool)
+        np.equal(a[d:], a[:-d], out=eq[1:-1])
+        edges = np.flatnonzero(eq[1:] != eq[:-1])  # alternating run starts and ends
+        s, e = edges[0::2], edges[1::2]
         keep = (e - s) >= 3
         s, e = s[keep], e[keep]
         if s.size == 0:
