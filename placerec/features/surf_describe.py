@@ -25,7 +25,7 @@ __all__ = [
 
 _ORI_RADIUS = 6  # orientation samples within 6s, step s
 _ORI_SIGMA = 2.0  # Gaussian sigma 2s
-_ORI_WINDOW = np.pi / 3  # sliding window width
+_ORI_WINDOW = np.pi / 3  # sliding window width (60 one-degree bins)
 _DESC_SIGMA = 3.3  # Gaussian sigma 3.3s over the 20s window
 _DESC_SAMPLES = 20  # 4x4 sub-regions of 5x5 samples, spacing s
 
@@ -64,16 +64,24 @@ def haar_responses(
 
     The caller guarantees that the padding covers every wavelet (see :func:`descriptor_extent`).
     """
-    half = wsize // 2
-    wsz = 2 * half
-    corner = (
-        ii.pad - (wsz - 1) / 2.0
-    )  # top-left pixel of the wavelet, in padded coordinates, minus the centre
-    x0 = np.rint(px + corner).astype(np.intp)
-    y0 = np.rint(py + corner).astype(np.intp)
+    shift = _corner_shift(ii, wsize)
+    return _haar_from_corners(ii, px + shift, py + shift, wsize // 2)
+
+
+def _corner_shift(ii: PaddedIntegral, wsize: np.ndarray) -> np.ndarray:
+    """Add to a wavelet's centre to get its top-left pixel in the padded table (before rounding)."""
+    return ii.pad - (2 * (wsize // 2) - 1) / 2.0
+
+
+def _haar_from_corners(
+    ii: PaddedIntegral, x0: np.ndarray, y0: np.ndarray, half: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(dx, dy) float32 of wavelets of side ``2 * half`` whose top-left pixels are ``rint(x0), rint(y0)``."""
     c = ii.cols
-    base = y0 * c
-    base += x0
+    base = np.rint(y0).astype(np.intp)
+    base *= c
+    base += np.rint(x0).astype(np.intp)
+    wsz = 2 * half
     take = ii.flat.take
     # table corners: rows top / middle / bottom (0, half, wsz) x columns left / middle / right (0, half, wsz)
     tl, tm, tr = take(base), take(base + half), take(base + wsz)
@@ -83,46 +91,54 @@ def haar_responses(
     anti = tr - bl
     dx = (diag - anti) + 2 * (tm - bm)  # right half - left half
     dy = (diag + anti) + 2 * (ml - mr)  # bottom half - top half
-    return dx.astype(np.float64), dy.astype(np.float64)
+    return dx.astype(np.float32), dy.astype(np.float32)
 
 
 def dominant_orientation(ii: PaddedIntegral, xy: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """Dominant orientation (radians, in [0, 2 pi)) of each keypoint: longest sum of Gaussian-weighted Haar
-    responses (side 4s, samples within 6s) over a sliding angular window of pi/3 (windows start at every
-    response's angle, so the result is exactly covariant with image rotation)."""
+    """Dominant orientation (radians, in [0, 2 pi)) of each keypoint.
+
+    Gaussian-weighted (sigma 2s) Haar responses of side 4s at the samples within 6s are summed inside a window of
+    pi/3 that slides around the circle in 1 degree steps (responses binned per degree, window sums from a
+    circular cumulative sum); the orientation is that of the longest summed vector.
+    """
     n = len(scale)
     if n == 0:
         return np.zeros(0)
     s = scale[:, None]
-    px = xy[:, 0:1] + _ORI_OFFSETS[None, :, 0] * s
-    py = xy[:, 1:2] + _ORI_OFFSETS[None, :, 1] * s
-    wsize = (2 * np.maximum(np.rint(2 * scale), 1)).astype(np.intp)[:, None]
-    dx, dy = haar_responses(ii, px, py, wsize)
-    dx = dx * _ORI_WEIGHTS
-    dy = dy * _ORI_WEIGHTS
-    ang = np.mod(np.arctan2(dy, dx), 2 * np.pi)
-    order = np.argsort(ang, axis=1, kind="stable")
-    ang = np.take_along_axis(ang, order, 1)
-    dx = np.take_along_axis(dx, order, 1)
-    dy = np.take_along_axis(dy, order, 1)
-    m = ang.shape[1]
-    # unroll the circle once so that windows may run past 2 pi; cumulative sums give window sums in O(1)
-    ang2 = np.concatenate([ang, ang + 2 * np.pi], axis=1)
-    cx = np.concatenate([np.zeros((n, 1)), np.cumsum(np.concatenate([dx, dx], 1), 1)], 1)
-    cy = np.concatenate([np.zeros((n, 1)), np.cumsum(np.concatenate([dy, dy], 1), 1)], 1)
-    # one flat, globally sorted array: row r lives in [r * 8 pi, r * 8 pi + 4 pi)
-    base = (np.arange(n) * 8 * np.pi)[:, None]
-    flat = (ang2 + base).ravel()
-    starts = np.arange(m)[None, :] + np.arange(n)[:, None] * 2 * m
-    ends = np.searchsorted(flat, (ang + _ORI_WINDOW + base).ravel(), side="left").reshape(n, m)
-    ends -= np.arange(n)[:, None] * 2 * m
-    begin = starts - np.arange(n)[:, None] * 2 * m
-    sx = np.take_along_axis(cx, ends, 1) - np.take_along_axis(cx, begin, 1)
-    sy = np.take_along_axis(cy, ends, 1) - np.take_along_axis(cy, begin, 1)
-    best = np.argmax(sx * sx + sy * sy, axis=1)
-    bx = sx[np.arange(n), best]
-    by = sy[np.arange(n), best]
-    return np.mod(np.arctan2(by, bx), 2 * np.pi)
+    half = np.maximum(np.rint(2 * scale), 1).astype(np.intp)[:, None]  # wavelet side 4s, even
+    shift = _corner_shift(ii, 2 * half)
+    dx, dy = _haar_from_corners(
+        ii, (xy[:, 0:1] + shift) + _ORI_OFFSETS[:, 0] * s, (xy[:, 1:2] + shift) + _ORI_OFFSETS[:, 1] * s, half
+    )
+    dx *= _ORI_WEIGHTS.astype(np.float32)
+    dy *= _ORI_WEIGHTS.astype(np.float32)
+    nbins = 360
+    width = int(round(np.degrees(_ORI_WINDOW)))
+    bins = np.floor(np.degrees(np.arctan2(dy, dx))).astype(np.intp) % nbins
+    bins += (np.arange(n) * nbins)[:, None]
+    hx = np.bincount(bins.ravel(), dx.ravel(), n * nbins).reshape(n, nbins)
+    hy = np.bincount(bins.ravel(), dy.ravel(), n * nbins).reshape(n, nbins)
+    zero = np.zeros((n, 1))
+    cx = np.cumsum(np.concatenate([zero, hx, hx[:, : width - 1]], axis=1), axis=1)
+    cy = np.cumsum(np.concatenate([zero, hy, hy[:, : width - 1]], axis=1), axis=1)
+    wx = cx[:, width:] - cx[:, :nbins]  # window [b, b + width) degrees, b = 0 .. 359
+    wy = cy[:, width:] - cy[:, :nbins]
+    best = np.argmax(wx * wx + wy * wy, axis=1)
+    rows = np.arange(n)
+    return np.mod(np.arctan2(wy[rows, best], wx[rows, best]), 2 * np.pi)
+
+
+def _block_matrix() -> np.ndarray:
+    """(400, 16): Gaussian weight of each descriptor sample in the column of its 5x5 sub-region."""
+    q = _DESC_SAMPLES // 4
+    idx = np.arange(_DESC_SAMPLES * _DESC_SAMPLES)
+    block = (idx // _DESC_SAMPLES // q) * 4 + (idx % _DESC_SAMPLES) // q  # row-major over (v block, u block)
+    m = np.zeros((idx.size, 16))
+    m[idx, block] = _DESC_WEIGHTS
+    return m
+
+
+_BLOCKS32 = _block_matrix().astype(np.float32)
 
 
 def surf_descriptors(
@@ -131,8 +147,9 @@ def surf_descriptors(
     """SURF descriptors (K, 64) or (K, 128) float32, unit length.
 
     20s window along ``theta``, 20x20 samples at spacing s, Haar side 2s, Gaussian sigma 3.3s, responses rotated
-    into the keypoint frame and summed per 5x5-sample sub-region as (dx, dy, |dx|, |dy|); ``extended`` splits the
-    sums of dx, |dx| by the sign of dy and those of dy, |dy| by the sign of dx (SURF-128).
+    into the keypoint frame and summed per 5x5-sample sub-region (4x4 of them, row-major along v then u) as
+    (dx, dy, |dx|, |dy|); ``extended`` gives 8 sums per sub-region, (dx, |dx|) for dy < 0, (dx, |dx|) for
+    dy >= 0, (dy, |dy|) for dx < 0, (dy, |dy|) for dx >= 0 (SURF-128).
     """
     n = len(scale)
     dim = 128 if extended else 64
@@ -140,33 +157,38 @@ def surf_descriptors(
         return np.zeros((0, dim), np.float32)
     c = np.cos(theta)[:, None]
     sn = np.sin(theta)[:, None]
-    s = scale[:, None]
-    px = xy[:, 0:1] + s * (_DESC_A * c - _DESC_B * sn)
-    py = xy[:, 1:2] + s * (_DESC_A * sn + _DESC_B * c)
-    wsize = (2 * np.maximum(np.rint(scale), 1)).astype(np.intp)[:, None]
-    dx, dy = haar_responses(ii, px, py, wsize)
-    rx = (dx * c + dy * sn) * _DESC_WEIGHTS
-    ry = (-dx * sn + dy * c) * _DESC_WEIGHTS
-    q = _DESC_SAMPLES // 4
-
-    def block_sum(v: np.ndarray) -> np.ndarray:
-        return v.reshape(n, 4, q, 4, q).sum(axis=(2, 4))  # (n, 4 rows along v, 4 columns along u)
-
+    sc, ss = scale[:, None] * c, scale[:, None] * sn
+    half = np.maximum(np.rint(scale), 1).astype(np.intp)[:, None]  # wavelet side 2s, even
+    shift = _corner_shift(ii, 2 * half)
+    px = (xy[:, 0:1] + shift) + _DESC_A * sc
+    px -= _DESC_B * ss
+    py = (xy[:, 1:2] + shift) + _DESC_A * ss
+    py += _DESC_B * sc
+    dx, dy = _haar_from_corners(ii, px, py, half)
+    c32, s32 = c.astype(np.float32), sn.astype(np.float32)
+    rx = dx * c32
+    rx += dy * s32
+    ry = dy * c32
+    ry -= dx * s32
     if extended:
         neg_y, neg_x = ry < 0, rx < 0
+        ax, ay = np.abs(rx), np.abs(ry)
+        zero = np.float32(0)
         parts = [
-            block_sum(np.where(neg_y, rx, 0.0)),
-            block_sum(np.where(neg_y, np.abs(rx), 0.0)),
-            block_sum(np.where(neg_y, 0.0, rx)),
-            block_sum(np.where(neg_y, 0.0, np.abs(rx))),
-            block_sum(np.where(neg_x, ry, 0.0)),
-            block_sum(np.where(neg_x, np.abs(ry), 0.0)),
-            block_sum(np.where(neg_x, 0.0, ry)),
-            block_sum(np.where(neg_x, 0.0, np.abs(ry))),
+            np.where(neg_y, rx, zero),
+            np.where(neg_y, ax, zero),
+            np.where(neg_y, zero, rx),
+            np.where(neg_y, zero, ax),
+            np.where(neg_x, ry, zero),
+            np.where(neg_x, ay, zero),
+            np.where(neg_x, zero, ry),
+            np.where(neg_x, zero, ay),
         ]
     else:
-        parts = [block_sum(rx), block_sum(ry), block_sum(np.abs(rx)), block_sum(np.abs(ry))]
-    desc = np.stack(parts, axis=-1).reshape(n, dim)
+        parts = [rx, ry, np.abs(rx), np.abs(ry)]
+    # Gaussian weighting and the per-sub-region sums in one matrix product: (n, parts, 400) @ (400, 16)
+    sums = np.stack(parts, axis=1) @ _BLOCKS32
+    desc = sums.transpose(0, 2, 1).reshape(n, dim)  # per sub-region, its parts
     norm = np.linalg.norm(desc, axis=1, keepdims=True)
-    desc = desc / np.where(norm > 0, norm, 1.0)
-    return desc.astype(np.float32)
+    desc /= np.where(norm > 0, norm, np.float32(1))
+    return desc.astype(np.float32, copy=False)

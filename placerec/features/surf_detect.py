@@ -139,11 +139,16 @@ _NEIGHBOURS = np.array(
 )
 
 
-def _refine(det: np.ndarray, li: np.ndarray, ki: np.ndarray, ji: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Fit a 3D quadratic around each candidate (Brown & Lowe 2002): offsets (K, 3) in (x, y, layer), ok mask."""
+def _refine(flat: np.ndarray, idx: np.ndarray, strides: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Fit a 3D quadratic around each candidate (Brown & Lowe 2002): offsets (K, 3) in (x, y, layer), ok mask.
+
+    ``flat`` is the raveled (layer, row, column) response stack, ``idx`` the candidates' flat indices and
+    ``strides`` the flat steps of one layer and one row.
+    """
+    s_layer, s_row = strides
 
     def at(dl: int, dk: int, dj: int) -> np.ndarray:
-        return det[li + dl, ki + dk, ji + dj]
+        return flat.take(idx + (dl * s_layer + dk * s_row + dj))
 
     v = at(0, 0, 0)
     g = np.stack(
@@ -208,14 +213,19 @@ def detect_keypoints(
                 continue
             kk = kk + k0 + 1
             jj = jj + j0 + 1
-            ll = np.full_like(kk, layer)
-            val = det[ll, kk, jj]
-            is_max = np.ones(kk.shape, bool)
-            for dl, dk, dj in _NEIGHBOURS:
-                is_max &= val > det[ll + dl, kk + dk, jj + dj]
-            ll, kk, jj, val = ll[is_max], kk[is_max], jj[is_max], val[is_max]
-            off, ok = _refine(det, ll, kk, jj)
-            ll, kk, jj, val, off = ll[ok], kk[ok], jj[ok], val[ok], off[ok]
+            # strict maximum over the 26 neighbours (same layer first, then compact): flat lookups
+            flat = det.ravel()
+            strides = (grid[0] * grid[1], grid[1])
+            idx = (layer * grid[0] + kk) * grid[1] + jj
+            val = flat[idx]
+            for same_layer in (True, False):
+                is_max = np.ones(idx.shape, bool)
+                for dl, dk, dj in _NEIGHBOURS[(_NEIGHBOURS[:, 0] == 0) == same_layer]:
+                    is_max &= val > flat.take(idx + int(dl * strides[0] + dk * strides[1] + dj))
+                idx, val = idx[is_max], val[is_max]
+            off, ok = _refine(flat, idx, strides)
+            idx, val, off = idx[ok], val[ok], off[ok]
+            kk, jj = np.divmod(idx - layer * strides[0], grid[1])
             size_step = sizes[1] - sizes[0]
             out_xy.append(np.stack([(jj + off[:, 0]) * step, (kk + off[:, 1]) * step], axis=1))
             out_size.append(sizes[layer] + off[:, 2] * size_step)
