@@ -40,9 +40,10 @@ _DXY_WEIGHT = 0.9  # the paper's relative weight w that balances the box-filter 
 class Detections:
     """Detected interest points as plain arrays (one entry per point).
 
-    ``xy`` (K, 2) float32 sub-pixel positions (float32 as in ``cv2.KeyPoint``); ``size`` the interpolated filter side ``L`` (so ``s = 1.2 L / 9``);
-    ``response`` the determinant of the Hessian at the detected sample; ``octave`` 0-based octave index;
-    ``laplacian`` the sign (+1/-1) of the trace of the Hessian (bright blob on dark background: -1).
+    ``xy`` (K, 2) sub-pixel positions; ``size`` the interpolated filter side ``L`` (so ``s = 1.2 L / 9``);
+    ``response`` the determinant of the Hessian at the detected sample (all three float32, as ``cv2.KeyPoint``
+    stores them, so that describing from arrays or from keypoints gives the same descriptors); ``octave`` the
+    0-based octave; ``laplacian`` the sign (+1/-1) of the trace of the Hessian (bright blob on dark: -1).
     """
 
     xy: np.ndarray
@@ -81,10 +82,11 @@ def hessian_layer(
 ) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int]]:
     """Determinant and trace of the box-filter Hessian of side ``size`` on the grid of pixels ``(k*step, j*step)``.
 
-    Returns ``(det, trace, (k0, k1, j0, j1))``: arrays of ``grid_shape`` that are zero outside the index rectangle
-    ``[k0, k1) x [j0, j1)`` where the whole filter lies inside the image. Each box sum is four integral-image
-    lookups, done for the whole layer at once with shifted, strided views; boxes that share a row or column band
-    share the first difference.
+    Returns ``(det, trace, (k0, k1, j0, j1))``: ``det`` float64 (lobe-area normalised), ``trace`` the raw
+    ``Dxx + Dyy`` box sums in the table's dtype (only its sign is used), both of ``grid_shape`` and zero outside
+    the index rectangle ``[k0, k1) x [j0, j1)`` where the whole filter lies inside the image. Each box sum is four
+    integral-image lookups, done for the whole layer at once with shifted, strided views; boxes that share a row
+    or column band share the first difference.
     """
     h, w = s.shape[0] - 1, s.shape[1] - 1
     lobe = size // 3
