@@ -1,0 +1,202 @@
+"""Scan synthesis: cast one sweep of rays into the world (and the scan's clutter), shade the hits, measure them.
+
+Per scan: rotate the sensor's ray grid into the world, ray-cast the static scene and the clutter mesh with Open3D
+(``RaycastingScene.cast_rays``), keep the nearer hit, look up material and object of the hit triangle (ground
+hits: the ground raster), evaluate the material's texture in object coordinates, apply the intensity model
+(`placerec.sim.intensity`): detection / dropout, range noise, per-beam response, speckle and quantisation, and
+assemble a `placerec.types.Scan` in the sensor frame. Everything is vectorised; the per-material loop runs over
+the ~15 materials present, not over points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from placerec.sim.clutter import ClutterConfig, build_clutter
+from placerec.sim.intensity import BeamResponse, IntensityModel, surface_response
+from placerec.sim.materials import SPECULAR, Hits, M, shade
+from placerec.sim.sensors import RayGrid, SensorModel, ray_grid
+from placerec.sim.world import World, make_scene
+from placerec.types import Scan
+
+__all__ = ["Renderer", "RawHits"]
+
+
+@dataclass
+class RawHits:
+    """Ray-cast result of one sweep (before shading): per ray range (inf = no hit), material, object, normal."""
+
+    t: np.ndarray
+    material: np.ndarray
+    obj: np.ndarray
+    normal: np.ndarray
+    directions_world: np.ndarray
+
+
+def _cast(scene: object, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    import open3d as o3d
+
+    res = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
+    return res["t_hit"].numpy(), res["primitive_ids"].numpy(), res["primitive_normals"].numpy()
+
+
+class Renderer:
+    """Renders scans of one sensor in one world (holds the ray grid, beam response and intensity model)."""
+
+    def __init__(
+        self,
+        world: World,
+        sensor: SensorModel,
+        response: BeamResponse,
+        model: IntensityModel | None = None,
+        clutter: ClutterConfig | None = None,
+    ) -> None:
+        self.world = world
+        self.sensor = sensor
+        self.grid: RayGrid = ray_grid(sensor)
+        self.response = response
+        self.model = model or IntensityModel.for_sensor(sensor)
+        self.clutter = clutter
+        self._rays = np.empty((self.grid.directions.shape[0], 6), dtype=np.float32)
+
+    def cast(self, pose: np.ndarray, timestamp: float, seed: int, index: int, occluders: bool = False) -> RawHits:
+        """Ray-cast one sweep from ``pose`` (T_world_sensor) against the world and this scan's clutter."""
+        w = self.world
+        R = np.asarray(pose[:3, :3], dtype=np.float32)
+        g = self.grid.directions
+        dirs = g[:, 0:1] * R[:, 0] + g[:, 1:2] * R[:, 1] + g[:, 2:3] * R[:, 2]  # no BLAS threads for a 3x3
+        rays = self._rays
+        rays[:, :3] = np.asarray(pose[:3, 3], dtype=np.float32)
+        rays[:, 3:] = dirs
+        t, prim, nrm = _cast(w.scene, rays)
+        valid = np.isfinite(t)
+        primc = np.where(valid, prim, 0)
+        mat = np.where(valid, w.tri_material[primc], M.NONE).astype(np.uint8)
+        obj = np.where(valid, w.tri_object[primc], 0).astype(np.int32)
+        mesh = build_clutter(w, pose, timestamp, self.clutter, seed, index, occluders)
+        self._clutter_objects = mesh
+        if mesh is not None:
+            cand = self._clutter_candidates(mesh, pose, everything=occluders)
+            t2, prim2, nrm2 = _cast(make_scene(mesh.vertices, mesh.triangles), rays[cand])
+            closer = t2 < t[cand]
+            if closer.any():
+                idx = cand[closer]
+                p2 = prim2[closer]
+                t[idx] = t2[closer]
+                mat[idx] = mesh.tri_material[p2]
+                obj[idx] = mesh.tri_object[p2]
+                nrm[idx] = nrm2[closer]
+        return RawHits(t=t, material=mat, obj=obj, normal=nrm, directions_world=dirs)
+
+    def _clutter_candidates(self, mesh: object, pose: np.ndarray, everything: bool) -> np.ndarray:
+        """Indices of the rays that can hit the clutter: columns spanned by some clutter object, rows within the
+        clutter's elevation range (all rays when near-sensor occluders may surround the sensor)."""
+        n = self.grid.directions.shape[0]
+        if everything:
+            return np.arange(n)
+        v = (np.asarray(mesh.vertices, dtype=np.float64) - pose[:3, 3]) @ pose[:3, :3]  # sensor frame
+        az = np.arctan2(v[:, 1], v[:, 0])
+        el = np.arctan2(v[:, 2], np.hypot(v[:, 0], v[:, 1]))
+        cols = self.sensor.columns
+        col = np.floor((np.pi - az) / (2 * np.pi) * cols).astype(np.int64) % cols
+        tri_obj = mesh.tri_object
+        vobj = np.empty(len(v), np.int64)
+        vobj[mesh.triangles.reshape(-1)] = np.repeat(tri_obj, 3)
+        order = np.argsort(vobj, kind="stable")
+        starts = np.flatnonzero(np.r_[True, vobj[order][1:] != vobj[order][:-1]])
+        cmin = np.minimum.reduceat(col[order], starts)
+        cmax = np.maximum.reduceat(col[order], starts)
+        cover = np.zeros(cols + 1, np.int64)
+        wrap = cmax - cmin > cols // 2  # object straddles column 0 / cols-1: take the whole circle (rare)
+        np.add.at(cover, np.where(wrap, 0, cmin), 1)
+        np.add.at(cover, np.where(wrap, cols, cmax + 1), -1)
+        col_mask = np.cumsum(cover[:-1]) > 0
+        margin = np.radians(1.0)
+        elev = np.radians(np.asarray(self.sensor.beam_elevations_deg))
+        ring_mask = (elev >= el.min() - margin) & (elev <= el.max() + margin)
+        return np.flatnonzero(col_mask[self.grid.column] & ring_mask[self.grid.ring])
+
+    def _object_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        w = self.world
+        m = self._clutter_objects
+        if m is None or len(m.obj_seed) == 0:
+            return w.obj_rot, w.obj_origin, w.obj_params, w.obj_seed
+        return (
+            np.concatenate([w.obj_rot, m.obj_rot]),
+            np.concatenate([w.obj_origin, m.obj_origin]),
+            np.concatenate([w.obj_params, m.obj_params]),
+            np.concatenate([w.obj_seed, m.obj_seed]),
+        )
+
+    def render(self, pose: np.ndarray, timestamp: float, seed: int, index: int, occluders: bool = False, source: str | None = None) -> Scan:
+        """One simulated scan (deterministic in pose, timestamp, seed and index)."""
+        sensor = self.sensor
+        grid = self.grid
+        hits = self.cast(pose, timestamp, seed, index, occluders)
+        rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(index), 0x5CA7])
+        sel = np.flatnonzero((hits.t >= sensor.min_range) & (hits.t <= sensor.max_range))
+        t = hits.t[sel]
+        d = hits.directions_world[sel]
+        origin = np.asarray(pose[:3, 3], dtype=np.float32)
+        pw = origin + d * t[:, None]
+        mat = hits.material[sel]
+        ground = mat == M.GROUND
+        if ground.any():
+            mat[ground] = self.world.ground.lookup(pw[ground, 0], pw[ground, 1])
+        order = np.argsort(mat, kind="stable")
+        sel, mat, t, d, pw = sel[order], mat[order], t[order], d[order], pw[order]
+        obj = hits.obj[sel]
+        nrm = hits.normal[sel]
+        cos_inc = np.abs(np.einsum("ij,ij->i", nrm, d))
+        rot, org, prm, oseed = self._object_tables()
+        c = rot[obj, 0, 0]
+        s_ = rot[obj, 0, 1]
+        dp = pw - org[obj].astype(np.float32)
+        pl = np.stack([c * dp[:, 0] + s_ * dp[:, 1], c * dp[:, 1] - s_ * dp[:, 0], dp[:, 2]], axis=1)
+        nl = np.stack([c * nrm[:, 0] + s_ * nrm[:, 1], c * nrm[:, 1] - s_ * nrm[:, 0], nrm[:, 2]], axis=1)
+        params = prm[obj]
+        seeds = oseed[obj]
+        footprint = (t * np.float32(sensor.beam_divergence_mrad * 1e-3) + np.float32(0.004)).astype(np.float32)
+
+        n = len(sel)
+        rho = np.empty(n, np.float32)
+        drop = np.zeros(n, np.float32)
+        depth = np.zeros(n, np.float32)
+        bounds = np.searchsorted(mat, np.arange(len(M) + 1))
+        for m in range(len(M)):
+            a, b = bounds[m], bounds[m + 1]
+            if a == b:
+                continue
+            sh = shade(Hits(pw[a:b], pl[a:b], nl[a:b], params[a:b], seeds[a:b], footprint[a:b], m))
+            rho[a:b] = sh.reflectance
+            if sh.dropout is not None:
+                drop[a:b] = sh.dropout
+            if sh.depth is not None:
+                depth[a:b] = sh.depth
+
+        beta = surface_response(rho, cos_inc, SPECULAR[mat])
+        r_true = t + depth
+        p_det = self.model.detection_probability(beta, r_true) * (1.0 - drop)
+        keep = rng.random(n) < p_det
+        sigma = sensor.range_noise_std * (1.0 + r_true / 100.0)
+        r_meas = r_true + sigma * rng.standard_normal(n).astype(np.float32)
+        keep &= (r_meas >= sensor.min_range) & (r_meas <= sensor.max_range)
+        k_sel = sel[keep]
+        ring = grid.ring[k_sel]
+        raw = self.model.measure(beta[keep], r_true[keep], ring, self.response, rng)
+
+        N = grid.directions.shape[0]
+        xyz = np.zeros((N, 3), np.float32)
+        inten = np.zeros(N, np.float32)
+        xyz[k_sel] = grid.directions[k_sel] * r_meas[keep][:, None]
+        inten[k_sel] = raw
+        info = sensor.to_sensor_info()
+        if sensor.organized:
+            return Scan(xyz=xyz, intensity=inten, ring=grid.ring.copy(), time=grid.time.copy(), shape=(sensor.n_beams, sensor.columns),
+                        sensor=info, timestamp=float(timestamp), source=source)  # fmt: skip
+        mask = np.zeros(N, bool)
+        mask[k_sel] = True
+        return Scan(xyz=xyz[mask], intensity=inten[mask], ring=grid.ring[mask], time=grid.time[mask], shape=None,
+                    sensor=info, timestamp=float(timestamp), source=source)  # fmt: skip
