@@ -45,8 +45,13 @@ class SimulatorConfig(Section):
 
     world: str = "town"
     sensor: str = "os1-64"
-    n_scans: int = Field(400, ge=1)
+    n_scans: int | None = Field(None, ge=1, description="None = the whole route")
     seed: int = 0
+    route: str = "default"
+    spacing: float = Field(1.0, gt=0, description="metres between scans")
+    clutter: bool = True
+    occluders: bool = False
+    sensor_height: float | None = Field(None, gt=0)
 
 
 class DatasetConfig(Section):
@@ -125,7 +130,9 @@ class EvaluationConfig(Section):
 
     mode: Literal["loop", "localize"] = "loop"
     exclusion: ExclusionConfig = Field(default_factory=ExclusionConfig)
-    gt_distance: float = Field(5.0, gt=0, description="a revisit has an eligible scan within this distance (m)")
+    gt_distance: float = Field(
+        5.0, gt=0, description="a revisit has an eligible scan within this distance (m)"
+    )
     gt_yaw_deg: float | None = Field(None, gt=0, description="optional heading limit for a true match")
     top_n: int = Field(5, ge=1, description="candidates requested per query (recall@N)")
     localize: LocalizeConfig = Field(default_factory=LocalizeConfig)
@@ -136,7 +143,9 @@ class OutputConfig(Section):
 
     dir: str = "results"
     figures: bool = True
-    cache_dir: str | None = Field(".cache/descriptions", description="per-scan description cache (None = off)")
+    cache_dir: str | None = Field(
+        ".cache/descriptions", description="per-scan description cache (None = off)"
+    )
     progress: bool = True
 
 
@@ -155,7 +164,9 @@ class ExperimentConfig(Section):
         labels = [p.display_name for p in self.pipelines]
         dupes = sorted({x for x in labels if labels.count(x) > 1})
         if dupes:
-            raise ValueError(f"pipeline labels must be unique; repeated: {dupes} (set 'label' to tell them apart)")
+            raise ValueError(
+                f"pipeline labels must be unique; repeated: {dupes} (set 'label' to tell them apart)"
+            )
         return self
 
 

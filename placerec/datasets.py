@@ -58,7 +58,17 @@ def _simulator(cfg: DatasetConfig) -> Sequence:
     from placerec.sim import SimulatedSequence
 
     sim = cfg.simulator
-    return SimulatedSequence(world=sim.world, sensor=sim.sensor, n_scans=sim.n_scans, seed=sim.seed)
+    return SimulatedSequence(
+        world=sim.world,
+        sensor=sim.sensor,
+        n_scans=sim.n_scans,
+        seed=sim.seed,
+        route=sim.route,
+        spacing=sim.spacing,
+        clutter=sim.clutter,
+        occluders=sim.occluders,
+        sensor_height=sim.sensor_height,
+    )
 
 
 def _path(cfg: DatasetConfig) -> Sequence:

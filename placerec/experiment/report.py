@@ -306,7 +306,10 @@ def print_table(payload: dict[str, Any], title: str) -> None:
         table.add_column(h, justify="left" if i == 0 else "right", style="bold" if i == 0 else None)
     for row in rows:
         table.add_row(*row)
-    Console().print(table)
+    console = Console()
+    if not console.is_terminal:  # logs and pipes: wide enough that no column is cut
+        console = Console(width=140)
+    console.print(table)
 
 
 def write_index_html(run: Path, cfg: ExperimentConfig, payload: dict[str, Any]) -> Path:

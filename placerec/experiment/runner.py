@@ -189,17 +189,18 @@ def _localize_sequences(cfg: ExperimentConfig) -> tuple[Sequence, Sequence]:
         return open_dataset(loc.map), open_dataset(loc.queries)
     if cfg.dataset.source != "simulator":
         raise ConfigError("localize mode on a path dataset needs evaluation.localize.map and .queries")
-    from placerec.sim import localization_split
+    from placerec.sim import make_localization_split
 
     sim = cfg.dataset.simulator
-    return localization_split(
-        world=sim.world,
+    split = make_localization_split(
+        preset=sim.world,
         sensor=sim.sensor,
-        n_map_scans=sim.n_scans,
         seed=sim.seed,
-        condition=loc.condition,
         n_queries=loc.n_queries,
+        n_map=sim.n_scans,
+        conditions=(loc.condition,),
     )
+    return split.map, split.queries[loc.condition]
 
 
 def run_localize(cfg: ExperimentConfig) -> tuple[Sequence, Sequence, list[PipelineRecord]]:
