@@ -180,6 +180,29 @@ def run(
     typer.echo(f"results: {run_dir}  (report: {run_dir / 'index.html'})")
 
 
+@app.command()
+def simulate(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (KITTI odometry layout).")],
+    preset: Annotated[str, typer.Option(help="World preset: town, campus, industrial.")] = "town",
+    sensor: Annotated[str, typer.Option(help="Sensor: vlp16, hdl64, os1-64, os1-64-gen2, os1-128.")] = "os1-64",
+    scans: Annotated[int | None, typer.Option(help="Number of scans (default: the whole route).")] = None,
+    seed: Annotated[int, typer.Option(help="World and noise seed.")] = 0,
+) -> None:
+    """Simulate a sequence with revisits: velodyne/*.bin, ring/*.npy, poses.txt, times.txt, sensor.yaml.
+
+    Example: placerec simulate --preset town --sensor hdl64 --scans 300 --seed 1 --out sim/town_hdl64
+    """
+    from placerec.errors import PlacerecError
+    from placerec.sim import simulate as run_simulation
+
+    try:
+        path = run_simulation(preset, sensor, scans, seed, out, progress=True)
+    except PlacerecError as exc:
+        _fail(exc)
+        return
+    typer.echo(f"wrote {path}")
+
+
 def main() -> None:
     try:
         app()

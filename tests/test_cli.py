@@ -77,3 +77,17 @@ def test_info_on_real_kitti(real_data, name):
     summary = json.loads(result.output)
     assert summary["points"] > 100_000
     assert 50 <= summary["beams"] <= 70  # HDL-64 estimated from elevation peaks
+
+
+def test_simulate_writes_a_kitti_folder_placerec_reads_back(tmp_path):
+    out = tmp_path / "sim"
+    result = runner.invoke(app, ["simulate", "--preset", "town", "--sensor", "vlp16", "--scans", "3", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    from placerec.io import open_sequence
+
+    seq = open_sequence(out)
+    assert len(seq) == 3 and seq.poses.shape == (3, 4, 4)
+    scan = seq[0]
+    assert scan.ring is not None and scan.sensor.n_beams == 16 and len(scan) > 1000
+    bad = runner.invoke(app, ["simulate", "--sensor", "nope", "--scans", "1", "--out", str(tmp_path / "x")])
+    assert bad.exit_code == 2 and "nope" in bad.output
