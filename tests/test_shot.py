@@ -363,7 +363,7 @@ def test_lrf_tie_uses_points_around_the_median_distance(mirror):
     xs = mirror * np.array([-1.0, -2.0, -3.0, 4.0, 5.0, 6.0])
     d = np.column_stack([xs, [0.5, -0.5, 0.4, -0.4, 0.3, -0.3], [0.05, 0.1, -0.12, 0.15, -0.2, 0.25]])
     dist = np.linalg.norm(d, axis=1)
-    frames, valid = lrf_from_offsets(np.zeros(6, dtype=np.int64), np.array([6]), d, dist, 7.0)
+    frames, valid = lrf_from_offsets(np.zeros(6, dtype=np.int64), np.array([0, 6]), d.T, dist, 7.0)
     assert valid[0]
     assert frames[0, 0, 0] * mirror > 0.9
 

@@ -56,7 +56,7 @@ class RadiusPairs:
     def within(self, radius: float) -> RadiusPairs:
         """The pairs with ``dist2 <= radius**2`` (``radius`` <= this one's), order kept."""
         if radius > self.radius + 1e-12:
-            raise ValueError(f"cannot widen radius pairs from {self.radius} to {radius}")
+            raise ScanDataError(f"cannot widen radius pairs from {self.radius} m to {radius} m")
         if radius >= self.radius:
             return self
         keep = np.flatnonzero(self.dist2 <= radius * radius)

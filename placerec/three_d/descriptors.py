@@ -32,12 +32,26 @@ def _shot_params(support_radius: float, options: dict[str, Any]) -> SHOTParams:
         raise ConfigError(f"shot: invalid options {sorted(options)}: {exc}") from None
 
 
-def describe_shot(points, normals, intensity, keypoint_indices, support_radius=7.0, **options):
+def describe_shot(
+    points: np.ndarray,
+    normals: np.ndarray,
+    intensity: np.ndarray | None,
+    keypoint_indices: np.ndarray,
+    support_radius: float = 7.0,
+    **options: Any,
+) -> tuple[np.ndarray, np.ndarray]:
     """SHOT (352-d); ``options``: fields of `SHOTParams` other than ``support_radius``."""
     return compute_shot(points, normals, keypoint_indices, _shot_params(support_radius, options))
 
 
-def describe_ishot(points, normals, intensity, keypoint_indices, support_radius=7.0, **options):
+def describe_ishot(
+    points: np.ndarray,
+    normals: np.ndarray,
+    intensity: np.ndarray | None,
+    keypoint_indices: np.ndarray,
+    support_radius: float = 7.0,
+    **options: Any,
+) -> tuple[np.ndarray, np.ndarray]:
     """ISHOT (1344-d); needs ``intensity`` in [0, 1]."""
     if intensity is None:
         raise ScanDataError("ISHOT needs per-point intensity (calibrated, in [0, 1])")
@@ -46,7 +60,14 @@ def describe_ishot(points, normals, intensity, keypoint_indices, support_radius=
     )
 
 
-def describe_fpfh(points, normals, intensity, keypoint_indices, support_radius=7.0, max_nn=None):
+def describe_fpfh(
+    points: np.ndarray,
+    normals: np.ndarray,
+    intensity: np.ndarray | None,
+    keypoint_indices: np.ndarray,
+    support_radius: float = 7.0,
+    max_nn: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """FPFH (33-d) of the keypoints with Open3D; invalid where a keypoint has no neighbour."""
     import open3d as o3d
 

@@ -43,30 +43,35 @@ def _tie_break(
 
 
 def lrf_from_offsets(
-    q: np.ndarray, counts: np.ndarray, d: np.ndarray, dist: np.ndarray, radius: float
+    q: np.ndarray, splits: np.ndarray, d: np.ndarray, dist: np.ndarray, radius: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """LRFs from flat pairs grouped by keypoint: ``q`` keypoint of each pair (sorted), ``counts`` pairs per
-    keypoint, ``d`` (M, 3) offsets p_i - p, ``dist`` their norms. Pairs at distance 0 or beyond ``radius``
-    are ignored. Returns ``(frames, valid)`` as `shot_lrf`.
+    """LRFs from flat pairs grouped by keypoint: ``q`` keypoint of each pair (non-decreasing), ``splits``
+    (K + 1,) segment bounds, ``d`` (3, M) offsets p_i - p stored as rows x, y, z, ``dist`` their norms.
+    Pairs at distance 0 or beyond ``radius`` are ignored. Returns ``(frames, valid)`` as `shot_lrf`.
     """
-    K = counts.shape[0]
+    from scipy import sparse
+
+    K = splits.shape[0] - 1
+    counts = np.diff(splits)
     use = (dist > 0) & (dist <= radius)
     w = (radius - dist.astype(np.float64)) * use
     n = np.bincount(q, weights=use, minlength=K)
     wsum = np.bincount(q, weights=w, minlength=K)
     valid = (n >= MIN_LRF_NEIGHBORS) & (wsum > 0)
+    # weighted scatter M[k] = sum_i w_i d_i d_i^T: the (K x M) matrix of weights times each product row
+    W = sparse.csr_matrix((w, np.arange(q.shape[0]), splits), shape=(K, q.shape[0]))
     d64 = d.astype(np.float64)
-    wd = d64 * w[:, None]
-    M = np.zeros((K, 3, 3))
+    M = np.empty((K, 3, 3))
     for a in range(3):
         for b in range(a, 3):
-            M[:, a, b] = M[:, b, a] = np.bincount(q, weights=wd[:, a] * d64[:, b], minlength=K)
+            M[:, a, b] = M[:, b, a] = W @ (d64[a] * d64[b])
     M[valid] /= wsum[valid, None, None]
     M[~valid] = np.eye(3)
     _, vecs = np.linalg.eigh(M)  # ascending eigenvalues
     axes = []
     for a in (vecs[:, :, 2], vecs[:, :, 0]):  # x: largest, z: smallest
-        dots = np.einsum("ij,ij->i", d, np.repeat(a.astype(d.dtype), counts, axis=0))
+        rep = np.repeat(a.astype(d.dtype), counts, axis=0)
+        dots = d[0] * rep[:, 0] + d[1] * rep[:, 1] + d[2] * rep[:, 2]
         balance = 2 * np.bincount(q, weights=use & (dots >= 0), minlength=K) - n
         sign_pos = balance >= 0
         ties = np.flatnonzero((balance == 0) & valid)
@@ -101,6 +106,5 @@ def shot_lrf(
     pr = (pairs or radius_pairs(P, P[kp], radius)).within(radius)
     if pr.n_queries != K:
         raise ScanDataError(f"pairs have {pr.n_queries} queries for {K} keypoints")
-    counts = pr.counts
-    d = P[pr.index] - np.repeat(P[kp], counts, axis=0)
-    return lrf_from_offsets(pr.query, counts, d, np.sqrt(np.einsum("ij,ij->i", d, d)), radius)
+    d = (P[pr.index] - np.repeat(P[kp], pr.counts, axis=0)).T
+    return lrf_from_offsets(pr.query, pr.splits, d, np.sqrt(np.einsum("ij,ij->i", d.T, d.T)), radius)

@@ -72,10 +72,10 @@ class SHOTParams:
 
 def _value_bins(value: np.ndarray, n_bins: int, wrap: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Own bin, neighbour bin and neighbour weight for values already scaled to [0, n_bins - 1]."""
-    step = np.floor(value + 0.5)
+    step = np.floor(value + np.float32(0.5))
     frac = value - step
-    step = step.astype(np.int64)
-    nb = step + 2 * (frac > 0) - 1
+    step = step.astype(np.int32)
+    nb = step + ((frac > 0).view(np.int8) << 1) - np.int32(1)
     if wrap:  # PCL: modulo the number of intervals (n_bins - 1)
         nb %= n_bins - 1
     else:
@@ -85,46 +85,55 @@ def _value_bins(value: np.ndarray, n_bins: int, wrap: bool) -> tuple[np.ndarray,
 
 def _spatial_layout(loc: np.ndarray, dist: np.ndarray, R: float):
     """Volume of each pair, its own spatial weight and the (volume, weight) of its radial, elevation and
-    azimuth neighbour volumes (float32 math; ``dist`` > 0)."""
+    azimuth neighbour volumes. ``loc`` (3, M) local coordinates and ``dist`` (> 0) in float32."""
     f32 = np.float32
-    xl, yl, zl = loc[:, 0], loc[:, 1] + f32(0.0), loc[:, 2]  # + 0 turns -0.0 into +0.0 for atan2
-    upper = zl > 0
+    x, y, z = loc[0], loc[1] + f32(0.0), loc[2]  # + 0 turns -0.0 into +0.0 for atan2
+    upper = z > 0
     outer = dist > f32(R / 2)
-    s_up = upper.astype(np.int64) * 2 - 1  # +1 upper half, -1 lower half
-    s_out = outer.astype(np.int64) * 2 - 1  # +1 outer shell, -1 inner shell
-    az = np.arctan2(yl, xl)
-    on_axis = (xl == 0) & (yl == 0)
-    sector = np.minimum(np.floor((az + f32(np.pi)) * f32(1 / _SECTOR)), f32(7)).astype(np.int64)
+    s_up = upper * f32(2) - f32(1)  # +1 upper half, -1 lower half
+    s_out = outer * f32(2) - f32(1)  # +1 outer shell, -1 inner shell
+    az = np.arctan2(y, x)
+    on_axis = (x == 0) & (y == 0)
+    sector = np.floor((az + f32(np.pi)) * f32(1 / _SECTOR))
+    np.minimum(sector, f32(7), out=sector)
     sector[on_axis] = 0
-    vol = sector * 4 + outer * 2 + upper
+    # azimuth: circular, sector centres -7pi/8 + s pi/4, unit pi/4; no azimuth vote on the z axis
+    t_a = (az + f32(7 * np.pi / 8)) * f32(1 / _SECTOR) - sector
+    np.clip(t_a, f32(-0.5), f32(0.5), out=t_a)
+    t_a[on_axis] = 0.0
+    # small integer dtypes: these arrays are memory-bound
+    up8, out8 = upper.view(np.int8), outer.view(np.int8)
+    vol = (sector.astype(np.int32) << 2) | (out8 << 1) | up8
+    vol_a = (vol + np.int32(4) - ((t_a <= 0).view(np.int8) << 3)) & np.int32(N_VOLUMES - 1)
+    w_a = np.abs(t_a)
     # radial: shell centres R/4 (inner) and 3R/4 (outer), unit R/2; only the side between the centres votes
     t_r = (dist - f32(R / 2) - s_out * f32(R / 4)) * f32(2 / R)
     w_r = np.maximum(-s_out * t_r, f32(0))
     # elevation: centres 45 deg (upper) and 135 deg (lower) from the z axis, unit 90 deg
-    incl = np.arccos(np.clip(zl / dist, f32(-1), f32(1)))
-    t_e = (incl - f32(np.pi / 2) + s_up * f32(np.pi / 4)) * f32(2 / np.pi)
+    cos_incl = z / dist
+    np.clip(cos_incl, f32(-1), f32(1), out=cos_incl)
+    t_e = (np.arccos(cos_incl) - f32(np.pi / 2) + s_up * f32(np.pi / 4)) * f32(2 / np.pi)
     w_e = np.maximum(s_up * t_e, f32(0))
-    # azimuth: circular, sector centres -7pi/8 + s pi/4, unit pi/4; no azimuth vote on the z axis
-    t_a = np.clip((az + f32(7 * np.pi / 8)) * f32(1 / _SECTOR) - sector, f32(-0.5), f32(0.5))
-    t_a[on_axis] = 0.0
-    vol_a = (vol + 4 - 8 * (t_a <= 0)) & (N_VOLUMES - 1)
-    w_a = np.abs(t_a)
     own = f32(3) - np.abs(t_r) - np.abs(t_e) - w_a - on_axis
-    return vol, own, ((vol - 2 * s_out, w_r), (vol - s_up, w_e), (vol_a, w_a))
+    vol_r = vol + np.int32(2) - (out8 << 2)
+    vol_e = vol + np.int32(1) - (up8 << 1)
+    return vol, own, ((vol_r, w_r), (vol_e, w_e), (vol_a, w_a))
 
 
 def _signature_votes(out_idx, out_w, base, vol, own, spatial_nbs, value, n_bins, wrap, use):
     """Fill 5 rows of flat histogram indices / weights for one signature: own bin, value-neighbour bin and
     the three spatial-neighbour bins."""
     step, nb_step, w_nb = _value_bins(value, n_bins, wrap)
+    n_bins = base.dtype.type(n_bins)
     root = base + vol * n_bins
-    out_idx[0] = root + step
-    out_w[0] = (own + 1.0 - w_nb) * use
-    out_idx[1] = root + nb_step
-    out_w[1] = w_nb * use
+    np.add(root, step, out=out_idx[0])
+    np.multiply(own + (1.0 - w_nb), use, out=out_w[0])
+    np.add(root, nb_step, out=out_idx[1])
+    np.multiply(w_nb, use, out=out_w[1])
+    base_step = base + step
     for r, (nb_vol, nb_w) in enumerate(spatial_nbs, start=2):
-        out_idx[r] = base + nb_vol * n_bins + step
-        out_w[r] = nb_w * use
+        np.add(base_step, nb_vol * n_bins, out=out_idx[r])
+        np.multiply(nb_w, use, out=out_w[r])
 
 
 def compute_shot(
@@ -171,27 +180,32 @@ def compute_shot(
     if pr.n_queries != K:
         raise ScanDataError(f"pairs have {pr.n_queries} queries for {K} keypoints")
     q, j, counts = pr.query, pr.index, pr.counts
-    # pair math in float32 about the cloud centre (offsets < R: ~1e-6 m resolution); LRFs are fitted in float64
-    P32 = (P - P.mean(axis=0)).astype(np.float32)
-    d = P32[j] - np.repeat(P32[kp], counts, axis=0)
-    dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+    # pair math in float32, structure-of-arrays (3, M), about the cloud centre (~1e-6 m resolution within R);
+    # the LRF scatter matrices are accumulated in float64
+    PT = np.ascontiguousarray((P - P.mean(axis=0)).T, dtype=np.float32)
+    d = PT[:, j] - np.repeat(PT[:, kp], counts, axis=1)
+    dist = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
     if frames is None:
-        frames, valid = lrf_from_offsets(q, counts, d, dist, lrf_r)
+        frames, valid = lrf_from_offsets(q, pr.splits, d, dist, lrf_r)
     else:
         frames = np.asarray(frames, dtype=np.float64)
         if frames.shape != (K, 3, 3):
             raise ScanDataError(f"frames must have shape ({K}, 3, 3), got {frames.shape}")
         valid = np.isfinite(frames).all(axis=(1, 2))
     good_normal = np.isfinite(Nrm).all(axis=1)
-    N32 = np.where(good_normal[:, None], Nrm, 0.0).astype(np.float32)
+    NT = np.ascontiguousarray(np.where(good_normal[:, None], Nrm, 0.0).T, dtype=np.float32)
     use = (dist > 0) & (dist <= R) & np.repeat(valid, counts) & good_normal[j]
-    F = np.repeat(np.where(valid[:, None, None], frames, np.eye(3)).astype(np.float32), counts, axis=0)
-    loc = np.einsum("mij,mj->mi", F, d)
+    F = np.where(valid[:, None, None], frames, np.eye(3)).astype(np.float32)
+    Frep = [[np.repeat(F[:, a, b], counts) for b in range(3)] for a in range(3)]
+    loc = np.stack([Fa[0] * d[0] + Fa[1] * d[1] + Fa[2] * d[2] for Fa in Frep])
     vol, own, nbs = _spatial_layout(loc, np.maximum(dist, np.float32(1e-30)), R)
-    base = q * D
-    cos_z = np.clip(np.einsum("ij,ij->i", N32[j], F[:, 2, :]), np.float32(-1), np.float32(1))
+    itype = np.int32 if K * D < 2**31 else np.int64  # flat bin indices; int32 halves memory traffic
+    base = q.astype(itype) * itype(D)
+    Fz = Frep[2]
+    cos_z = NT[0, j] * Fz[0] + NT[1, j] * Fz[1] + NT[2, j] * Fz[2]
+    np.clip(cos_z, np.float32(-1), np.float32(1), out=cos_z)
     n_sig = 1 if inten is None else 2
-    idx = np.empty((5 * n_sig, q.size), dtype=np.int64)
+    idx = np.empty((5 * n_sig, q.size), dtype=itype)
     w = np.empty((5 * n_sig, q.size), dtype=np.float32)
     shape_value = (cos_z + np.float32(1)) * np.float32((SHAPE_BINS - 1) / 2)
     _signature_votes(idx[:5], w[:5], base, vol, own, nbs, shape_value, SHAPE_BINS, params.pcl_bin_wrap, use)
@@ -200,7 +214,16 @@ def compute_shot(
         f = np.clip(np.repeat(i32[kp], counts) - i32[j], np.float32(-1), np.float32(1))
         value = (f + np.float32(1)) * np.float32((INTENSITY_BINS - 1) / 2)
         _signature_votes(
-            idx[5:], w[5:], base + SHAPE_DIM, vol, own, nbs, value, INTENSITY_BINS, params.pcl_bin_wrap, use
+            idx[5:],
+            w[5:],
+            base + itype(SHAPE_DIM),
+            vol,
+            own,
+            nbs,
+            value,
+            INTENSITY_BINS,
+            params.pcl_bin_wrap,
+            use,
         )
     hist = np.bincount(idx.ravel(), weights=w.ravel(), minlength=K * D).reshape(K, D)
     if inten is not None and params.normalization == "per_part":
