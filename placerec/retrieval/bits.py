@@ -41,4 +41,9 @@ def unpack_bits(descriptors: np.ndarray) -> np.ndarray:
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamming distances between rows of two word arrays from `to_words`, broadcast like ``a ^ b``: (...,) int32."""
-    return popcount(np.bitwise_xor(a, b)).sum(axis=-1, dtype=np.int32)
+    counts = popcount(np.bitwise_xor(a, b))
+    # summing the few words column by column is several times faster than .sum(axis=-1) on (n, 4) arrays
+    out = counts[..., 0].astype(np.int32)
+    for k in range(1, counts.shape[-1]):
+        out += counts[..., k]
+    return out

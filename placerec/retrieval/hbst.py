@@ -60,9 +60,10 @@ class ImageScores:
 class HBSTResult:
     """Matches of one query image: the best match of each query descriptor in each reference image.
 
-    Parallel arrays sorted by (query_idx, image_id): ``query_idx`` (row of the query descriptor), ``image_id`` and
-    ``keypoint_idx`` of the reference descriptor, Hamming ``distance``. ``n_queries`` is the number of query
-    descriptors (the denominator of the matching ratio).
+    Parallel arrays sorted by ``query_idx`` (row of the query descriptor), then by the order in which the reference
+    images were added: ``image_id`` and ``keypoint_idx`` of the reference descriptor, Hamming ``distance``. Among
+    equally close reference descriptors of one image the one inserted first is reported (srrg keeps them all).
+    ``n_queries`` is the number of query descriptors (the denominator of the matching ratio).
     """
 
     query_idx: np.ndarray
@@ -257,7 +258,11 @@ class HBST:
         first[1:] = (query[1:] != query[:-1]) | (slot[1:] != slot[:-1])
         pos = pos[first]
         return HBSTResult(
-            query[first], ids[slot[first]], tree.keypoint[pos], dist[first], int(words.shape[0])
+            query[first],
+            ids[slot[first]],
+            tree.keypoint[pos].astype(np.int64),
+            dist[first],
+            int(words.shape[0]),
         )
 
     def _insert(
@@ -307,13 +312,15 @@ class HBST:
     @staticmethod
     def _keypoints(keypoint_ids: np.ndarray | None, n: int) -> np.ndarray:
         if keypoint_ids is None:
-            return np.arange(n, dtype=np.int64)
+            return np.arange(n, dtype=np.int32)
         kp = np.asarray(keypoint_ids)
         if kp.shape != (n,) or not np.issubdtype(kp.dtype, np.integer):
             raise ScanDataError(
                 f"keypoint_ids must be {n} integers (one per descriptor), got {kp.dtype} {kp.shape}"
             )
-        return kp.astype(np.int64, copy=False)
+        if kp.size and (kp.min() < np.iinfo(np.int32).min or kp.max() > np.iinfo(np.int32).max):
+            raise ScanDataError("keypoint_ids must fit in 32 bits")
+        return kp.astype(np.int32, copy=False)
 
     @staticmethod
     def _image_id(image_id: int) -> int:

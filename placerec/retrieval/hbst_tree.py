@@ -110,8 +110,8 @@ class FlatTree:
 
     def _alloc_pool(self, capacity: int) -> None:
         words = np.zeros((capacity, self.n_words), dtype=np.uint64)
-        image = np.zeros(capacity, dtype=np.int64)
-        keypoint = np.zeros(capacity, dtype=np.int64)
+        image = np.zeros(capacity, dtype=np.int32)
+        keypoint = np.zeros(capacity, dtype=np.int32)
         if hasattr(self, "words"):
             words[: self.top] = self.words[: self.top]
             image[: self.top] = self.image[: self.top]
@@ -129,8 +129,10 @@ class FlatTree:
         live = int(self.cap[leaves].sum())
         if self.top - live > live:
             self._compact(leaves)
-        if self.top + rows > self.words.shape[0]:
-            self._alloc_pool(max(2 * self.words.shape[0], self.top + rows))
+        # keep free room at least as large as the data, so that compactions (O(live)) stay rare: amortised O(1)
+        need = max(self.top + rows, 2 * self.top)
+        if need > self.words.shape[0]:
+            self._alloc_pool(max(2 * self.words.shape[0], need))
 
     def _compact(self, leaves: np.ndarray) -> None:
         leaves = leaves[np.argsort(self.start[leaves], kind="stable")]
@@ -140,8 +142,8 @@ class FlatTree:
         dst = segment_positions(new_start, self.count[leaves])
         capacity = self.words.shape[0]
         words = np.zeros((capacity, self.n_words), dtype=np.uint64)
-        image = np.zeros(capacity, dtype=np.int64)
-        keypoint = np.zeros(capacity, dtype=np.int64)
+        image = np.zeros(capacity, dtype=np.int32)
+        keypoint = np.zeros(capacity, dtype=np.int32)
         words[dst], image[dst], keypoint[dst] = self.words[src], self.image[src], self.keypoint[src]
         self.words, self.image, self.keypoint = words, image, keypoint
         self.start[leaves] = new_start
@@ -320,6 +322,13 @@ class FlatTree:
             raise ValueError("node arrays have inconsistent shapes")
         if not (image.shape == keypoint.shape == (desc.shape[0],)):
             raise ValueError("image/keypoint ids do not match the descriptors")
+        i32 = np.iinfo(np.int32)
+        if (
+            desc.shape[0]
+            and min(image.min(), keypoint.min()) < i32.min
+            or max(image.max(initial=0), keypoint.max(initial=0)) > i32.max
+        ):
+            raise ValueError("image/keypoint ids out of range")
         tree = cls(desc.shape[1], leaf_size, delta_max, max_depth)
         inner = np.flatnonzero(split >= 0)
         leaves = np.flatnonzero(split < 0)
