@@ -31,6 +31,7 @@ __all__ = [
     "DescribingRecognizer",
     "DescriptorRecognizer",
     "PIPELINES",
+    "PIPELINE_PRESETS",
     "pipeline_class",
     "make_pipeline",
     "params_key",
@@ -152,6 +153,14 @@ def coerce_params(cls: type, params: Any | None, overrides: dict[str, Any]) -> A
 PIPELINES: dict[str, str] = {
     "scan-context": "placerec.baselines.scan_context:ScanContext",
     "map-closures": "placerec.baselines.map_closures_peer:MapClosuresPeer",
+    "orb-hbst": "placerec.pipelines.visual:VisualHBST",
+    "brisk-hbst": "placerec.pipelines.visual:VisualHBST",
+}
+
+#: Parameter presets of registered names (merged under the config's own ``params``).
+PIPELINE_PRESETS: dict[str, dict[str, Any]] = {
+    "orb-hbst": {"features": "orb"},
+    "brisk-hbst": {"features": "brisk"},
 }
 
 
@@ -173,6 +182,7 @@ def pipeline_class(name: str) -> type:
 def make_pipeline(name: str, params: dict[str, Any] | None = None) -> Any:
     """Build a pipeline by registry name (or ``module:Class``) with parameter overrides from a config."""
     cls = pipeline_class(name)
+    merged = {**PIPELINE_PRESETS.get(name, {}), **(params or {})}
     if hasattr(cls, "from_params"):
-        return cls.from_params(params or {})
-    return cls(**(params or {}))
+        return cls.from_params(merged)
+    return cls(**merged)

@@ -1,4 +1,4 @@
-"""End to end: `placerec run` on a tiny simulated sequence (the block loop driven twice, VLP-16, 2 m spacing)."""
+"""End to end: `placerec run` on a tiny simulated sequence (the block loop driven twice, OS1-64, 2 m spacing)."""
 
 import json
 
@@ -11,9 +11,10 @@ from placerec.experiment.report import recompute_loop_metrics
 TINY = """
 name: tiny
 dataset:
-  simulator: {world: town, sensor: vlp16, route: loop, spacing: 2.0, seed: 3}
+  simulator: {world: town, sensor: os1-64, route: loop, spacing: 2.0, seed: 3}
 pipelines:
   - name: scan-context
+  - name: orb-hbst
 evaluation:
   exclusion: {frames: 50}
 output:
@@ -33,17 +34,19 @@ def run_dir(tmp_path_factory):
     return root / "results" / "latest"
 
 
-def test_scan_context_finds_the_revisits(run_dir):
+@pytest.mark.parametrize("pipeline", ["scan-context", "orb-hbst"])
+def test_pipelines_find_the_revisits(run_dir, pipeline):
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    sc = metrics["pipelines"]["scan-context"]
-    assert sc["n_revisits"] >= 60
+    m = metrics["pipelines"][pipeline]
+    assert m["n_revisits"] >= 60
     # chance: a random eligible scan is within 5 m of the query for ~5/(2*86) of the route
-    assert sc["max_f1"] > 0.5 and sc["recall_at_1"] > 0.5
+    assert m["max_f1"] > 0.5 and m["recall_at_1"] > 0.5
 
 
-def test_metrics_json_agrees_with_the_candidates_csv(run_dir):
-    metrics = json.loads((run_dir / "metrics.json").read_text())["pipelines"]["scan-context"]
-    again = recompute_loop_metrics(run_dir, "scan-context")
+@pytest.mark.parametrize("pipeline", ["scan-context", "orb-hbst"])
+def test_metrics_json_agrees_with_the_candidates_csv(run_dir, pipeline):
+    metrics = json.loads((run_dir / "metrics.json").read_text())["pipelines"][pipeline]
+    again = recompute_loop_metrics(run_dir, pipeline)
     for key in (
         "max_f1",
         "precision_at_max_f1",
@@ -53,5 +56,5 @@ def test_metrics_json_agrees_with_the_candidates_csv(run_dir):
         "n_queries",
     ):
         assert again[key] == pytest.approx(metrics[key]), key
-    for name in ("pr_curves.png", "trajectory_scan-context.png", "timing.png", "index.html", "poses.txt"):
+    for name in ("pr_curves.png", f"trajectory_{pipeline}.png", "timing.png", "index.html", "poses.txt"):
         assert (run_dir / name).is_file()

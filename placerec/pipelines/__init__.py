@@ -1,0 +1,1 @@
+"""Place-recognition pipelines (registered by name in `placerec.recognizer.PIPELINES`)."""
