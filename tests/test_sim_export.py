@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 import yaml
 
-from placerec.sim import CONDITIONS, SimulatedSequence, make_localization_split, simulate, write_kitti_sequence
+from placerec.sim import (
+    CONDITIONS,
+    SimulatedSequence,
+    make_localization_split,
+    simulate,
+    write_kitti_sequence,
+)
 from placerec.types import SensorInfo
 
 

@@ -2,7 +2,8 @@
 
 From surface to raw value, for one return at range R and incidence angle alpha:
 
-1. **Surface response** ``beta``: Lambertian ``rho cos(alpha)`` for diffuse materials, plus an optional specular
+1. **Surface response** ``beta``: Lambertian ``rho cos(alpha)`` for diffuse materials (``rho cos(alpha)^k`` with
+   ``k`` 0.6-0.8 for rough ground and foliage, which backscatter more at grazing angles), plus an optional specular
    lobe ``k_s exp(-(alpha / 0.12)^2)`` (car paint, metal); retro-reflectors (``rho > 1``) follow
    ``rho cos(alpha)^0.5`` (sheeting angularity), so they stay bright at oblique angles.
 2. **Received power** (LiDAR equation, VPR paper eq. 1):
@@ -13,7 +14,8 @@ From surface to raw value, for one return at range R and incidence angle alpha:
 3. **Range compensation**: the sensor multiplies by ``R^2`` to report reflectance; the compensation is imperfect
    (a residual ``(R / R_ref)^-eps``) and, beyond ``degradation_range`` (~30 m, ISHOT paper Fig. 2), the low SNR
    degrades the value: ``exp(-(R - 30) / L)``, with growing noise. A sensor with ``range_compensated=False``
-   reports the raw signal ``beta O(R) (R_ref / R)^2`` instead.
+   reports the raw signal ``beta O(R) (R_sig / R)^2`` instead (``R_sig`` = 15 m puts the weakest detectable
+   return at ~15 counts, like the MulRan OS1-64 signal channel).
 4. **Speckle**: log-normal multiplicative noise, stronger beyond the degradation range.
 5. **Per-beam response** (ground truth, ISHOT Fig. 7): beam ``b`` maps apparent reflectance ``x`` to
    ``S(g_b f_b(x)) + o_b`` with ``f_b(x) = x^gamma_b`` up to 1 and its tangent line ``1 + gamma_b (x - 1)`` above
@@ -40,11 +42,14 @@ _RETRO_SPAN = 160.0
 _SPEC_WIDTH = 0.12  # rad
 
 
-def surface_response(reflectance: np.ndarray, cos_incidence: np.ndarray, specular: np.ndarray | float = 0.0) -> np.ndarray:
+def surface_response(
+    reflectance: np.ndarray, cos_incidence: np.ndarray, specular: np.ndarray | float = 0.0, lambert: np.ndarray | float = 1.0
+) -> np.ndarray:
     """Effective backscatter ``beta`` of a surface (step 1 of the module docstring)."""
     rho = np.asarray(reflectance, dtype=np.float32)
     c = np.clip(np.asarray(cos_incidence, dtype=np.float32), 0.0, 1.0)
-    diffuse = rho * c
+    k = np.asarray(lambert, dtype=np.float32)
+    diffuse = rho * (c if np.all(k == 1.0) else c**k)
     spec = np.asarray(specular, dtype=np.float32)
     if np.any(spec > 0):
         alpha = np.arccos(c)
@@ -110,11 +115,11 @@ class BeamResponse:
         ``apparent`` is the range-compensated surface response (`IntensityModel.apparent`); for a Lambertian
         surface at normal incidence within the compensated range it is close to the true reflectance.
         """
-        x = np.maximum(np.asarray(apparent, dtype=np.float64), 0.0)
+        x = np.maximum(np.asarray(apparent), 0.0)
         b = np.asarray(beam)
-        g = self.gamma[b]
-        y = self.gain[b] * np.where(x <= 1.0, x ** g, 1.0 + g * (x - 1.0))
-        raw = self._scale_out(y) + self.offset[b]
+        g = self.gamma[b].astype(x.dtype, copy=False)
+        y = self.gain[b].astype(x.dtype, copy=False) * np.where(x <= 1.0, x**g, 1.0 + g * (x - 1.0))
+        raw = self._scale_out(y) + self.offset[b].astype(x.dtype, copy=False)
         return np.clip(raw, 0.0, self.intensity_max) if clip else raw
 
     def to_apparent(self, raw: np.ndarray, beam: np.ndarray | int) -> np.ndarray:
@@ -140,7 +145,8 @@ class IntensityModel:
     extinction: float = 1e-4
     speckle: float = 0.10
     speckle_far: float = 0.30
-    detection_softness: float = 0.35
+    detection_softness: float = 0.25
+    signal_range: float = 15.0
 
     @classmethod
     def for_sensor(cls, sensor: SensorModel) -> IntensityModel:
@@ -169,7 +175,7 @@ class IntensityModel:
         overlap = 1.0 - np.exp(-((r / self.near_field_range) ** 2))
         atm = np.exp(-2.0 * self.extinction * r)
         if not self.range_compensated:
-            return overlap * atm * (self.reference_range / r) ** 2
+            return overlap * atm * (self.signal_range / r) ** 2
         residual = (r / self.reference_range) ** (-self.residual_exponent)
         degrade = np.exp(-np.maximum(r - self.degradation_range, 0.0) / self.degradation_length)
         return overlap * atm * residual * degrade
@@ -193,8 +199,8 @@ class IntensityModel:
         """Noisy, quantised raw intensity (float32 integers in [0, intensity_max])."""
         x = self.apparent(beta, rng_m)
         s = self.speckle_sigma(rng_m)
-        x = x * np.exp(s * rng.standard_normal(x.shape[0]).astype(np.float32) - 0.5 * s * s)
+        x = x * np.exp(s * rng.standard_normal(x.shape[0], dtype=np.float32) - 0.5 * s * s)
         raw = response.expected_raw(x, beam, clip=False)
         add_sd = 0.6 if response.family == "velodyne" else 0.004 * response.scale
-        raw = raw + add_sd * rng.standard_normal(raw.shape[0])
+        raw = raw + add_sd * rng.standard_normal(raw.shape[0], dtype=np.float32)
         return np.clip(np.rint(raw), 0.0, response.intensity_max).astype(np.float32)

@@ -34,6 +34,8 @@ __all__ = [
     "Shade",
     "shade",
     "PARAM_COUNT",
+    "SPECULAR",
+    "LAMBERT",
     "P_HX",
     "P_HY",
     "P_H",
@@ -92,21 +94,22 @@ class Material:
     specular: float = 0.0
     dropout: float = 0.0
     texture: str = "plain"
+    lambert: float = 1.0  # exponent k of cos(incidence)^k: 1 Lambertian, < 1 rough surfaces that backscatter
 
 
 MATERIALS: dict[M, Material] = {
     M.NONE: Material("none", 0.0),
     M.GROUND: Material("ground", 0.2),
-    M.ASPHALT: Material("asphalt", 0.10, texture="asphalt"),
-    M.ASPHALT_PATCH: Material("asphalt_patch", 0.065, texture="asphalt"),
-    M.MARKING: Material("road_marking", 0.60, texture="marking"),
+    M.ASPHALT: Material("asphalt", 0.10, texture="asphalt", lambert=0.6),
+    M.ASPHALT_PATCH: Material("asphalt_patch", 0.065, texture="asphalt", lambert=0.6),
+    M.MARKING: Material("road_marking", 0.60, texture="marking", lambert=0.8),
     M.ROAD_STUD: Material("road_stud", 150.0),
-    M.PAVING: Material("paving", 0.30, texture="paving"),
-    M.CURB: Material("curb", 0.40, texture="rough"),
-    M.GRASS: Material("grass", 0.42, texture="grass"),
-    M.GRAVEL: Material("gravel", 0.28, texture="rough"),
-    M.DIRT: Material("dirt", 0.20, texture="rough"),
-    M.CONCRETE: Material("concrete", 0.30, texture="concrete"),
+    M.PAVING: Material("paving", 0.30, texture="paving", lambert=0.8),
+    M.CURB: Material("curb", 0.40, texture="rough", lambert=0.8),
+    M.GRASS: Material("grass", 0.42, texture="grass", lambert=0.6),
+    M.GRAVEL: Material("gravel", 0.28, texture="rough", lambert=0.6),
+    M.DIRT: Material("dirt", 0.20, texture="rough", lambert=0.6),
+    M.CONCRETE: Material("concrete", 0.30, texture="concrete", lambert=0.8),
     M.MANHOLE: Material("manhole", 0.18, specular=0.1, texture="manhole"),
     M.FACADE: Material("facade", 0.35, texture="facade"),
     M.ROOF: Material("roof", 0.12, texture="rough"),
@@ -116,7 +119,7 @@ MATERIALS: dict[M, Material] = {
     M.CAR_GLASS: Material("car_glass", 0.06, specular=0.6, dropout=0.45),
     M.RUBBER: Material("rubber", 0.05),
     M.BARK: Material("bark", 0.22, texture="rough"),
-    M.FOLIAGE: Material("foliage", 0.45, dropout=0.22, texture="foliage"),
+    M.FOLIAGE: Material("foliage", 0.45, dropout=0.12, texture="foliage", lambert=0.8),
     M.CORRUGATED: Material("corrugated_metal", 0.30, specular=0.15, texture="corrugated"),
     M.FENCE: Material("fence", 0.32, texture="fence"),
     M.PERSON: Material("person", 0.35, texture="person"),
@@ -129,6 +132,7 @@ N_MATERIALS = len(M)
 _BASE = np.array([MATERIALS[M(i)].reflectance for i in range(N_MATERIALS)], dtype=np.float32)
 SPECULAR = np.array([MATERIALS[M(i)].specular for i in range(N_MATERIALS)], dtype=np.float32)
 DROPOUT = np.array([MATERIALS[M(i)].dropout for i in range(N_MATERIALS)], dtype=np.float32)
+LAMBERT = np.array([MATERIALS[M(i)].lambert for i in range(N_MATERIALS)], dtype=np.float32)
 
 
 @dataclass
@@ -170,13 +174,13 @@ def _tex_plain(h: Hits) -> Shade:
 def _tex_rough(h: Hits) -> Shade:
     p = h.pw
     n = value_noise3(p[:, 0] * 3.0, p[:, 1] * 3.0, p[:, 2] * 3.0, h.seed) - 0.5
-    big = fbm2(p[:, 0] * 0.3 + p[:, 2], p[:, 1] * 0.3, 7, octaves=2)
-    return Shade(h.tone() * (1.0 + 0.35 * n * _att(h.footprint, 0.3) + 0.15 * big))
+    big = value_noise2(p[:, 0] * 0.3 + p[:, 2], p[:, 1] * 0.3, 7) - 0.5
+    return Shade(h.tone() * (1.0 + 0.35 * n * _att(h.footprint, 0.3) + 0.3 * big))
 
 
 def _tex_asphalt(h: Hits) -> Shade:
     x, y = h.pw[:, 0], h.pw[:, 1]
-    big = fbm2(x * 0.07, y * 0.07, 11, octaves=3)
+    big = fbm2(x * 0.07, y * 0.07, 11, octaves=2)
     grain = value_noise2(x * 6.0, y * 6.0, 12) - 0.5
     return Shade(h.tone() * (1.0 + 0.3 * big + 0.6 * grain * _att(h.footprint, 0.15)))
 
@@ -245,16 +249,19 @@ def _tex_person(h: Hits) -> Shade:
 
 def _face_coords(h: Hits) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(u along the face, face length, face index 0..3, horizontal-face mask) for box objects."""
-    ax = np.abs(h.nl[:, 0])
-    ay = np.abs(h.nl[:, 1])
-    along_y = ax >= ay
+    nx = h.nl[:, 0]
+    ny = h.nl[:, 1]
+    along_y = np.abs(nx) >= np.abs(ny)
     hx = h.params[:, P_HX]
     hy = h.params[:, P_HY]
-    u = np.where(along_y, np.where(h.nl[:, 0] > 0, hy - h.pl[:, 1], h.pl[:, 1] + hy), np.where(h.nl[:, 1] > 0, h.pl[:, 0] + hx, hx - h.pl[:, 0]))
-    length = np.where(along_y, 2.0 * hy, 2.0 * hx)
-    face = np.where(along_y, np.where(h.nl[:, 0] > 0, 0, 1), np.where(h.nl[:, 1] > 0, 2, 3)).astype(np.int64)
+    pos = np.where(along_y, nx, ny) > 0
+    half = np.where(along_y, hy, hx)
+    coord = np.where(along_y, h.pl[:, 1], h.pl[:, 0])
+    # walking around the box counter-clockwise seen from above, u grows along each face
+    u = half + np.where(pos == along_y, -coord, coord)
+    face = along_y * 2 + pos  # 0..3
     horizontal = np.abs(h.nl[:, 2]) > 0.7
-    return u.astype(np.float32), length.astype(np.float32), face, horizontal
+    return u, 2.0 * half, face.astype(np.int64), horizontal
 
 
 def _tex_corrugated(h: Hits) -> Shade:
@@ -375,7 +382,7 @@ def _tex_facade(h: Hits) -> Shade:
         wall[i] = tone[i] * (1.0 + 0.35 * bid * _att(fp[i], 0.15)) * solid + 0.55 * (1.0 - solid)
     i = np.flatnonzero(style == 1)  # plaster
     if len(i):
-        wall[i] = tone[i] * (1.0 + 0.15 * fbm2(u[i] / 3.0, v[i] / 3.0, seed[i], octaves=2))
+        wall[i] = tone[i] * (0.85 + 0.3 * value_noise2(u[i] * 0.33, v[i] * 0.33, seed[i] + np.uint32(7)))
     i = np.flatnonzero(style == 2)  # office cladding panels
     if len(i):
         wall[i] = tone[i] * (1.0 - 0.5 * (1.0 - filtered_pulse(u[i], 1.5, 0.98, fp[i])))
@@ -392,7 +399,7 @@ def _tex_facade(h: Hits) -> Shade:
     col = np.floor(uc / pitch)
     du = uc - col * pitch - 0.5 * (pitch - win_w)
     flr = np.floor(v / floor_h)
-    dv = v - flr * floor_h - np.where(style == 2, 0.6, 0.9)
+    dv = v - flr * floor_h - np.where(style == 2, np.float32(0.6), np.float32(0.9))
     win = (col >= 0) & (col < ncols) & (du >= 0) & (du <= win_w) & (dv >= 0) & (dv <= win_h) & (v < height - 0.7) & ((flr >= 1) | ~shop)
     rho = wall
     drop = np.zeros(n, np.float32)
@@ -415,7 +422,7 @@ def _tex_facade(h: Hits) -> Shade:
         fascia = (vi >= 3.0) & (ui > 0.5) & (ui < li - 0.5)
         bg = np.where(hash_unit(fs, None, None, 5) < 0.5, 0.1, 0.6)
         letter = (hash_unit(np.floor(ui / 0.45), fs, None, 6) < 0.55) & (vi > 3.12) & (vi < 3.58)
-        letter_rho = np.where(hash_unit(fs, None, None, 7) < 0.15, 30.0, np.where(bg > 0.3, 0.1, 0.8))
+        letter_rho = np.where(hash_unit(fs, None, None, 7) < 0.06, 30.0, np.where(bg > 0.3, 0.1, 0.8))
         r = np.where(shop_win, 0.05, rho[i])
         rho[i] = np.where(fascia, np.where(letter, letter_rho, bg), r)
         drop[i] = np.where(shop_win, 0.7, drop[i])
@@ -433,7 +440,7 @@ def _tex_facade(h: Hits) -> Shade:
 
     rho = np.where(horiz, tone, rho)
     drop[horiz] = 0.0
-    rho *= 1.0 + 0.1 * fbm2(u / 2.0, v / 2.0, seed + np.uint32(99), octaves=2)
+    rho *= 0.9 + 0.2 * value_noise2(u * 0.5, v * 0.5, seed)
     return Shade(np.maximum(rho, 0.01).astype(np.float32), dropout=drop)
 
 

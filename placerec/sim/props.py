@@ -223,12 +223,11 @@ def add_cars(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, yaw: np.ndar
     base = np.c_[xy, z + 0.3]
     ids = b.add_boxes(base, np.c_[length, width, body_h], yaw, M.CAR, params=paint[:, None], seed=seed.astype(np.int64))
     c, s = np.cos(yaw), np.sin(yaw)
-    car = cabin_h > 0
-    if car.any():
-        cl = length[car] * cabin_f[car]
-        back = -0.08 * length[car]
-        cab_base = np.c_[xy[car] + np.c_[c[car], s[car]] * back[:, None], z[car] + 0.3 + body_h[car]]
-        b.add_boxes(cab_base, np.c_[cl, width[car] - 0.16, cabin_h[car]], yaw[car], M.CAR_GLASS, top_mat=M.CAR, obj=ids[car])
+    car = cabin_h > 0  # vans get a zero-size cabin, so every vehicle has the same mesh layout (see clutter.py)
+    cl = np.where(car, length * cabin_f, 0.0)
+    back = -0.08 * length
+    cab_base = np.c_[xy + np.c_[c, s] * back[:, None], z + 0.3 + body_h]
+    b.add_boxes(cab_base, np.c_[cl, np.where(car, width - 0.16, 0.0), cabin_h], yaw, M.CAR_GLASS, top_mat=M.CAR, obj=ids)
     off = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], float)
     wl = (length / 2 - 0.75)[:, None] * off[None, :, 0]
     ww = (width / 2 - 0.2)[:, None] * off[None, :, 1]

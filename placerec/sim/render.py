@@ -16,7 +16,7 @@ import numpy as np
 
 from placerec.sim.clutter import ClutterConfig, build_clutter
 from placerec.sim.intensity import BeamResponse, IntensityModel, surface_response
-from placerec.sim.materials import SPECULAR, Hits, M, shade
+from placerec.sim.materials import LAMBERT, P_TONE, SPECULAR, Hits, M, shade
 from placerec.sim.sensors import RayGrid, SensorModel, ray_grid
 from placerec.sim.world import World, make_scene
 from placerec.types import Scan
@@ -60,16 +60,16 @@ class Renderer:
         self.model = model or IntensityModel.for_sensor(sensor)
         self.clutter = clutter
         self._rays = np.empty((self.grid.directions.shape[0], 6), dtype=np.float32)
+        self._dirs_t = np.ascontiguousarray(self.grid.directions.T)
 
     def cast(self, pose: np.ndarray, timestamp: float, seed: int, index: int, occluders: bool = False) -> RawHits:
         """Ray-cast one sweep from ``pose`` (T_world_sensor) against the world and this scan's clutter."""
         w = self.world
         R = np.asarray(pose[:3, :3], dtype=np.float32)
-        g = self.grid.directions
-        dirs = g[:, 0:1] * R[:, 0] + g[:, 1:2] * R[:, 1] + g[:, 2:3] * R[:, 2]  # no BLAS threads for a 3x3
         rays = self._rays
         rays[:, :3] = np.asarray(pose[:3, 3], dtype=np.float32)
-        rays[:, 3:] = dirs
+        rays[:, 3:] = (R @ self._dirs_t).T  # (3, N) layout: one fast GEMM
+        dirs = rays[:, 3:]
         t, prim, nrm = _cast(w.scene, rays)
         valid = np.isfinite(t)
         primc = np.where(valid, prim, 0)
@@ -118,17 +118,26 @@ class Renderer:
         ring_mask = (elev >= el.min() - margin) & (elev <= el.max() + margin)
         return np.flatnonzero(col_mask[self.grid.column] & ring_mask[self.grid.ring])
 
-    def _object_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _object_table(self) -> tuple[np.ndarray, np.ndarray]:
+        """(M, 16) float32 rows [cos, sin, origin xyz, params...] and (M,) seeds of the world's and clutter's objects."""
         w = self.world
+        if "object_table" not in w.cache:
+            tab = np.zeros((w.n_objects, 16), np.float32)
+            tab[:, 0] = w.obj_rot[:, 0, 0]
+            tab[:, 1] = w.obj_rot[:, 0, 1]
+            tab[:, 2:5] = w.obj_origin
+            tab[:, 5 : 5 + w.obj_params.shape[1]] = w.obj_params
+            w.cache["object_table"] = tab
+        tab = w.cache["object_table"]
         m = self._clutter_objects
         if m is None or len(m.obj_seed) == 0:
-            return w.obj_rot, w.obj_origin, w.obj_params, w.obj_seed
-        return (
-            np.concatenate([w.obj_rot, m.obj_rot]),
-            np.concatenate([w.obj_origin, m.obj_origin]),
-            np.concatenate([w.obj_params, m.obj_params]),
-            np.concatenate([w.obj_seed, m.obj_seed]),
-        )
+            return tab, w.obj_seed
+        extra = np.zeros((len(m.obj_seed), 16), np.float32)
+        extra[:, 0] = m.obj_rot[:, 0, 0]
+        extra[:, 1] = m.obj_rot[:, 0, 1]
+        extra[:, 2:5] = m.obj_origin
+        extra[:, 5 : 5 + m.obj_params.shape[1]] = m.obj_params
+        return np.concatenate([tab, extra]), np.concatenate([w.obj_seed, m.obj_seed])
 
     def render(self, pose: np.ndarray, timestamp: float, seed: int, index: int, occluders: bool = False, source: str | None = None) -> Scan:
         """One simulated scan (deterministic in pose, timestamp, seed and index)."""
@@ -138,7 +147,7 @@ class Renderer:
         rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(index), 0x5CA7])
         sel = np.flatnonzero((hits.t >= sensor.min_range) & (hits.t <= sensor.max_range))
         t = hits.t[sel]
-        d = hits.directions_world[sel]
+        d = np.take(hits.directions_world, sel, axis=0)
         origin = np.asarray(pose[:3, 3], dtype=np.float32)
         pw = origin + d * t[:, None]
         mat = hits.material[sel]
@@ -146,21 +155,38 @@ class Renderer:
         if ground.any():
             mat[ground] = self.world.ground.lookup(pw[ground, 0], pw[ground, 1])
         order = np.argsort(mat, kind="stable")
-        sel, mat, t, d, pw = sel[order], mat[order], t[order], d[order], pw[order]
+        sel, mat, t = sel[order], mat[order], t[order]
+        d = np.take(d, order, axis=0)
+        pw = np.take(pw, order, axis=0)
         obj = hits.obj[sel]
-        nrm = hits.normal[sel]
+        nrm = np.take(hits.normal, sel, axis=0)
         cos_inc = np.abs(np.einsum("ij,ij->i", nrm, d))
-        rot, org, prm, oseed = self._object_tables()
-        c = rot[obj, 0, 0]
-        s_ = rot[obj, 0, 1]
-        dp = pw - org[obj].astype(np.float32)
-        pl = np.stack([c * dp[:, 0] + s_ * dp[:, 1], c * dp[:, 1] - s_ * dp[:, 0], dp[:, 2]], axis=1)
-        nl = np.stack([c * nrm[:, 0] + s_ * nrm[:, 1], c * nrm[:, 1] - s_ * nrm[:, 0], nrm[:, 2]], axis=1)
-        params = prm[obj]
-        seeds = oseed[obj]
-        footprint = (t * np.float32(sensor.beam_divergence_mrad * 1e-3) + np.float32(0.004)).astype(np.float32)
-
+        table, oseed = self._object_table()
         n = len(sel)
+        # materials below FACADE (ground, paving, kerbs, ...) are textured in world coordinates and only need the
+        # object's tone; the others get their hit point and normal in the object frame and the full parameters
+        k0 = int(np.searchsorted(mat, M.FACADE))
+        pl = np.empty((n, 3), np.float32)
+        nl = np.empty((n, 3), np.float32)
+        params = np.zeros((n, table.shape[1] - 5), np.float32)
+        pl[:k0] = pw[:k0]
+        nl[:k0] = nrm[:k0]
+        params[:k0, P_TONE] = np.take(table[:, 5 + P_TONE], obj[:k0])
+        if k0 < n:
+            tab = np.take(table, obj[k0:], axis=0)
+            c, s_ = tab[:, 0], tab[:, 1]
+            dp = pw[k0:] - tab[:, 2:5]
+            nr = nrm[k0:]
+            pl[k0:, 0] = c * dp[:, 0] + s_ * dp[:, 1]
+            pl[k0:, 1] = c * dp[:, 1] - s_ * dp[:, 0]
+            pl[k0:, 2] = dp[:, 2]
+            nl[k0:, 0] = c * nr[:, 0] + s_ * nr[:, 1]
+            nl[k0:, 1] = c * nr[:, 1] - s_ * nr[:, 0]
+            nl[k0:, 2] = nr[:, 2]
+            params[k0:] = tab[:, 5:]
+        seeds = np.take(oseed, obj)
+        footprint = t * np.float32(sensor.beam_divergence_mrad * 1e-3) + np.float32(0.004)
+
         rho = np.empty(n, np.float32)
         drop = np.zeros(n, np.float32)
         depth = np.zeros(n, np.float32)
@@ -176,21 +202,22 @@ class Renderer:
             if sh.depth is not None:
                 depth[a:b] = sh.depth
 
-        beta = surface_response(rho, cos_inc, SPECULAR[mat])
+        beta = surface_response(rho, cos_inc, SPECULAR[mat], LAMBERT[mat])
         r_true = t + depth
         p_det = self.model.detection_probability(beta, r_true) * (1.0 - drop)
-        keep = rng.random(n) < p_det
+        keep = rng.random(n, dtype=np.float32) < p_det
         sigma = sensor.range_noise_std * (1.0 + r_true / 100.0)
-        r_meas = r_true + sigma * rng.standard_normal(n).astype(np.float32)
+        r_meas = r_true + sigma * rng.standard_normal(n, dtype=np.float32)
         keep &= (r_meas >= sensor.min_range) & (r_meas <= sensor.max_range)
         k_sel = sel[keep]
         ring = grid.ring[k_sel]
         raw = self.model.measure(beta[keep], r_true[keep], ring, self.response, rng)
 
         N = grid.directions.shape[0]
-        xyz = np.zeros((N, 3), np.float32)
+        r_out = np.zeros(N, np.float32)
+        r_out[k_sel] = r_meas[keep]
+        xyz = grid.directions * r_out[:, None]
         inten = np.zeros(N, np.float32)
-        xyz[k_sel] = grid.directions[k_sel] * r_meas[keep][:, None]
         inten[k_sel] = raw
         info = sensor.to_sensor_info()
         if sensor.organized:
