@@ -37,6 +37,15 @@ def test_protocol_and_default_route(town: SimulatedSequence) -> None:
     assert town[-1].source == town[len(town) - 1].source
 
 
+def test_pickles_by_construction_arguments() -> None:
+    import pickle
+
+    small = SimulatedSequence("town", "vlp16", n_scans=4, seed=0, odometry_drift=True)
+    back = pickle.loads(pickle.dumps(small))
+    assert _bytes(back[2]) == _bytes(small[2])
+    assert np.array_equal(back.odometry_poses, small.odometry_poses)
+
+
 def test_same_seed_same_bytes_different_seed_different(town: SimulatedSequence) -> None:
     again = SimulatedSequence("town", "os1-64", seed=0)
     a = _bytes(town[42])
@@ -111,6 +120,14 @@ def test_route_kinds_and_extension() -> None:
     assert np.allclose(np.diff(hz.timestamps), 0.1)
     with pytest.raises(ConfigError):
         make_route(w, "zigzag")
+
+
+@pytest.mark.parametrize("preset", ["town", "campus", "industrial"])
+def test_routes_stay_clear_of_obstacles(preset: str) -> None:
+    w = build_world(preset, 0)
+    for kind in ("default", "long"):
+        xy = make_route(w, kind).poses[:, :2, 3]
+        assert w.free.is_free(xy[:, 0], xy[:, 1]).all()
 
 
 def test_odometry_drift() -> None:

@@ -101,18 +101,18 @@ def build_campus(seed: int) -> PresetResult:
                 walk.append(np.stack([poly[1:], poly[:-1]], 1))
                 s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
                 if main or rng.random() < 0.4:
-                    for sp in np.arange(rng.uniform(5, 15), s[-1] - 5, 30.0):
+                    for sp in np.arange(rng.uniform(10, 20), s[-1] - 10, 30.0):  # away from junctions
                         k = int(np.searchsorted(s, sp))
                         d = poly[min(k + 1, len(poly) - 1)] - poly[max(k - 1, 0)]
                         nrm = np.array([-d[1], d[0]]) / np.linalg.norm(d)
                         side = 1.0 if rng.random() < 0.5 else -1.0
-                        lamp_xy.append(poly[k] + nrm * side * 2.6)
+                        lamp_xy.append(poly[k] + nrm * side * 3.0)
                         lamp_yaw.append(np.arctan2(-nrm[1] * side, -nrm[0] * side))
-                if rng.random() < 0.5:
-                    k = int(rng.integers(1, len(poly) - 1))
+                if rng.random() < 0.5 and len(poly) > 12:
+                    k = int(rng.integers(6, len(poly) - 6))
                     d = poly[k + 1] - poly[k - 1]
                     nrm = np.array([-d[1], d[0]]) / np.linalg.norm(d)
-                    bench_xy.append(poly[k] + nrm * 2.8)
+                    bench_xy.append(poly[k] + nrm * 3.6)
                     bench_yaw.append(np.arctan2(d[1], d[0]))
 
     # buildings with forecourts, parking lots
@@ -176,26 +176,27 @@ def build_campus(seed: int) -> PresetResult:
     bush = np.c_[rng.uniform(x0, x1, 900), rng.uniform(y0, y1, 900)]
     near_path = ~clear(bush, corridor)
     bush = bush[clear(bush, bldg_tree_block) & (near_path | (rng.random(900) < 0.3))]
-    # keep bushes at least 3.5 m from path centre lines
+    # keep bushes at least 7.5 m from path centre lines (routes drive up to 4.5 m off them)
     inner = Canvas(x0, y0, x1, y1, 0.5, 0)
     for poly in edges.values():
-        inner.polygons(strip_polys(poly[:-1], poly[1:], 7.0), 1)
+        inner.polygons(strip_polys(poly[:-1], poly[1:], 15.0), 1)
     bush = bush[clear(bush, inner)]
     add_bushes(b, bush, h(bush[:, 0], bush[:, 1]) - 0.1, rng, free=free)
-    # hedges along some straight-ish path stretches
-    for poly in list(edges.values())[:: 3]:
-        if rng.random() < 0.5:
+    # hedges along some straight-ish path stretches, clear of every path's 6 m band
+    for poly in list(edges.values())[::3]:
+        if rng.random() < 0.5 or len(poly) < 14:
             continue
-        k0 = int(rng.integers(1, max(len(poly) - 8, 2)))
+        k0 = int(rng.integers(3, len(poly) - 10))
         seg = poly[k0 : k0 + 8]
-        if len(seg) < 3:
-            continue
         d = seg[-1] - seg[0]
         nrm = np.array([-d[1], d[0]]) / np.linalg.norm(d)
-        mid = (seg[0] + seg[-1]) / 2 + nrm * 4.0 * (1 if rng.random() < 0.5 else -1)
-        ids = b.add_boxes(np.r_[mid, h(mid[0], mid[1]) - 0.1], [np.linalg.norm(d), 1.0, rng.uniform(1.1, 1.8)], np.arctan2(d[1], d[0]), M.FOLIAGE, params=[[0.45]], seed=int(rng.integers(2**31)))
-        free.boxes(mid, np.linalg.norm(d), 1.0, np.arctan2(d[1], d[0]), 0, margin=0.5)
-        del ids
+        mid = (seg[0] + seg[-1]) / 2 + nrm * 7.0 * (1 if rng.random() < 0.5 else -1)
+        along = np.linspace(-0.5, 0.5, 7)[:, None] * d + mid
+        if not clear(along, inner).all():
+            continue
+        yaw = np.arctan2(d[1], d[0])
+        b.add_boxes(np.r_[mid, h(mid[0], mid[1]) - 0.1], [np.linalg.norm(d), 1.0, rng.uniform(1.1, 1.8)], yaw, M.FOLIAGE, params=[[0.45]], seed=int(rng.integers(2**31)))
+        free.boxes(mid, np.linalg.norm(d), 1.0, yaw, 0, margin=0.5)
 
     if lamp_xy:
         lxy = np.stack(lamp_xy)
@@ -203,7 +204,9 @@ def build_campus(seed: int) -> PresetResult:
     if bench_xy:
         bxy = np.stack(bench_xy)
         add_benches(b, bxy, h(bxy[:, 0], bxy[:, 1]), np.array(bench_yaw), rng, free)
-    junctions = nodes.reshape(-1, 2)[rng.random(_N * _N) < 0.35] + rng.uniform(-3.5, 3.5, 2)
+    pick = rng.random(_N * _N) < 0.35
+    diag = rng.choice([-1.0, 1.0], (int(pick.sum()), 2)) * 5.0  # between the paths, clear of the lanes
+    junctions = nodes.reshape(-1, 2)[pick] + diag
     add_signs(b, junctions, h(junctions[:, 0], junctions[:, 1]), rng.uniform(-np.pi, np.pi, len(junctions)), rng, free)
     if car_xy:
         cxy = np.concatenate(car_xy)

@@ -4,7 +4,7 @@ Plots (45-55 m around the anchor, 60-95 m elsewhere) hold one of: large corrugat
 and translucent window strips, stacks of shipping containers (painted, corrugated, logo bands, door ends), open
 concrete or gravel yards with heaps, pallet stacks, trucks and trailers, or storage tanks. Chain-link or palisade
 fences with gates surround the plots; light masts, signs and a few trees line the roads, which have dashed centre
-lines and solid edge lines on dark asphalt. Large flat surfaces and repeated containers make it geometrically
+lines and solid edge lines on dark asphalt; the road through the route anchor has two lanes per direction. Large flat surfaces and repeated containers make it geometrically
 repetitive: intensity (paint, logos, doors) carries much of what distinguishes places.
 """
 
@@ -132,7 +132,11 @@ def build_industrial(seed: int) -> PresetResult:
     Y = np.concatenate([[0.0], np.cumsum(by)])
     X -= X[ai]
     Y -= Y[aj]
-    half = LANE_W + 0.5
+    n_h = np.ones(len(Y), int)
+    n_h[aj] = 2  # the main road through the anchor has two lanes per direction
+    n_v = np.ones(len(X), int)
+    half_h = n_h * LANE_W + 0.5
+    half_v = n_v * LANE_W + 0.5
     margin = 30.0
     x0, x1, y0, y1 = X[0] - margin, X[-1] + margin, Y[0] - margin, Y[-1] + margin
     ground = Canvas(x0, y0, x1, y1, 0.1, int(M.DIRT))
@@ -140,28 +144,39 @@ def build_industrial(seed: int) -> PresetResult:
     b = MeshBuilder()
     gobj = b.add_objects(np.zeros((1, 3)))[0]
     b.add_mesh(np.array([[x0 - 400, y0 - 400, 0], [x1 + 400, y0 - 400, 0], [x1 + 400, y1 + 400, 0], [x0 - 400, y1 + 400, 0]]), np.array([[0, 1, 2], [0, 2, 3]]), M.GROUND, gobj)
-    for xi in X:
-        ground.rect(xi - half, Y[0] - half, xi + half, Y[-1] + half, M.ASPHALT)
-    for yj in Y:
-        ground.rect(X[0] - half, yj - half, X[-1] + half, yj + half, M.ASPHALT)
+    for xi, hv in zip(X, half_v, strict=True):
+        ground.rect(xi - hv, Y[0] - half_h[0], xi + hv, Y[-1] + half_h[-1], M.ASPHALT)
+    for yj, hh in zip(Y, half_h, strict=True):
+        ground.rect(X[0] - half_v[0], yj - hh, X[-1] + half_v[-1], yj + hh, M.ASPHALT)
     edges: dict = {}
+    lane_count: dict = {}
     lanes, walk, slots = [], [], []
     sign_xy, sign_yaw, lamp_xy, lamp_yaw, tree_xy = [], [], [], [], []
+    segs = []  # (a node, e node, p0, p1, lanes, half, half of the crossing street at p0, at p1)
     for j, yj in enumerate(Y):
         for i in range(len(X) - 1):
-            edges[((i, j), (i + 1, j))] = np.array([[X[i], yj], [X[i + 1], yj]])
+            segs.append(((i, j), (i + 1, j), np.array([X[i], yj]), np.array([X[i + 1], yj]), n_h[j], half_h[j], half_v[i], half_v[i + 1]))
     for i, xi in enumerate(X):
         for j in range(len(Y) - 1):
-            edges[((i, j), (i, j + 1))] = np.array([[xi, Y[j]], [xi, Y[j + 1]]])
-    for (_, _), poly in edges.items():
-        p0, p1 = poly
+            segs.append(((i, j), (i, j + 1), np.array([xi, Y[j]]), np.array([xi, Y[j + 1]]), n_v[i], half_v[i], half_h[j], half_h[j + 1]))
+    for na, ne, p0, p1, nl, half, c0, c1 in segs:
+        edges[(na, ne)] = np.stack([p0, p1])
+        lane_count[(na, ne)] = int(nl)
         d = (p1 - p0) / np.linalg.norm(p1 - p0)
         n = np.array([-d[1], d[0]])
-        a, e = p0 + d * (half + 1.0), p1 - d * (half + 1.0)
-        ground.dashed(a, e, 0.15, 3.0, 9.0, M.MARKING, phase=rng.uniform(0, 12))
+        a, e = p0 + d * (c0 + 1.0), p1 - d * (c1 + 1.0)
+        if nl == 1:
+            ground.dashed(a, e, 0.15, 3.0, 9.0, M.MARKING, phase=rng.uniform(0, 12))
+        else:
+            for s_ in (-0.12, 0.12):
+                ground.strip(a + n * s_, e + n * s_, 0.12, M.MARKING)
+            for s_ in (-LANE_W, LANE_W):
+                ground.dashed(a + n * s_, e + n * s_, 0.15, 3.0, 9.0, M.MARKING)
         for s_ in (-half + 0.35, half - 0.35):
             ground.strip(a + n * s_, e + n * s_, 0.15, M.MARKING)
-        lanes += [np.array([p0 - n * LANE_W / 2, p1 - n * LANE_W / 2]), np.array([p1 + n * LANE_W / 2, p0 + n * LANE_W / 2])]
+        for k in range(nl):
+            off = (k + 0.5) * LANE_W
+            lanes += [np.array([p0 - n * off, p1 - n * off]), np.array([p1 + n * off, p0 + n * off])]
         walk.append(np.array([a + n * (half + 1.0), e + n * (half + 1.0)]))
         length = float(np.linalg.norm(e - a))
         for side in (-1.0, 1.0):
@@ -177,15 +192,15 @@ def build_industrial(seed: int) -> PresetResult:
             sign_yaw.append(np.arctan2(-d[1], -d[0]))
     for i in range(_N):
         for j in range(_N):
-            px0, px1 = X[i] + half + 2.0, X[i + 1] - half - 2.0
-            py0, py1 = Y[j] + half + 2.0, Y[j + 1] - half - 2.0
-            b.add_boxes([(X[i] + X[i + 1]) / 2, (Y[j] + Y[j + 1]) / 2, 0.0], [X[i + 1] - X[i] - 2 * half, Y[j + 1] - Y[j] - 2 * half, KERB_H], 0.0, M.CURB, top_mat=M.GROUND, seed=int(rng.integers(2**31)))
-            slots.append(_plot(b, ground, free, np.random.default_rng(int(rng.integers(2**31))), px0, py0, px1, py1, int(rng.integers(4))))
+            kx0, kx1 = X[i] + half_v[i], X[i + 1] - half_v[i + 1]
+            ky0, ky1 = Y[j] + half_h[j], Y[j + 1] - half_h[j + 1]
+            b.add_boxes([(kx0 + kx1) / 2, (ky0 + ky1) / 2, 0.0], [kx1 - kx0, ky1 - ky0, KERB_H], 0.0, M.CURB, top_mat=M.GROUND, seed=int(rng.integers(2**31)))
+            slots.append(_plot(b, ground, free, np.random.default_rng(int(rng.integers(2**31))), kx0 + 2.0, ky0 + 2.0, kx1 - 2.0, ky1 - 2.0, int(rng.integers(4))))
     add_lamps(b, np.concatenate(lamp_xy), KERB_H, np.concatenate(lamp_yaw), rng, free)
     if tree_xy:
         add_trees(b, np.concatenate(tree_xy), KERB_H, rng, free=free)
     add_signs(b, np.stack(sign_xy), KERB_H, np.array(sign_yaw), rng, free)
-    masts = np.c_[X[:-1] + half + 3.0, Y[:-1] + half + 3.0]
+    masts = np.c_[X[:-1] + half_v[:-1] + 3.0, Y[:-1] + half_h[:-1] + 3.0]
     mobj = b.add_objects(np.c_[masts, np.zeros(len(masts))], 0.0, np.c_[np.zeros((len(masts), 3)), np.full(len(masts), 0.3)], 7)
     b.add_prisms(np.c_[masts, np.full(len(masts), KERB_H)], 0.25, 16.0, M.METAL, mobj, sides=8, top_radius=0.12)
     b.add_boxes(np.c_[masts, np.full(len(masts), 16.0)], [1.6, 1.6, 0.6], 0.0, M.METAL, obj=mobj)
@@ -196,7 +211,7 @@ def build_industrial(seed: int) -> PresetResult:
         mesh=b.build(),
         ground=GroundMap(ground.img, ground.x0, ground.y0, ground.res),
         terrain=Terrain(),
-        roads=RoadGraph(nodes=nodes, edges=edges, lane_width=LANE_W, anchor=_ANCHOR),
+        roads=RoadGraph(nodes=nodes, edges=edges, lane_width=LANE_W, anchor=_ANCHOR, lanes=lane_count),
         free=FreeSpace(free.img.astype(bool), free.x0, free.y0, free.res),
         lanes=np.stack(lanes),
         walkways=np.concatenate([np.stack(walk), np.stack(walk)[:, ::-1]]),

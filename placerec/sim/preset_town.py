@@ -237,6 +237,7 @@ def build_town(seed: int) -> PresetResult:
 
     # blocks
     templates: list[tuple[float, float, list]] = []
+    n_reused = 0
     park_tree_xy: list[np.ndarray] = []
     for i in range(_NX):
         for j in range(_NY):
@@ -258,6 +259,7 @@ def build_town(seed: int) -> PresetResult:
                 reuse = [t for t in templates if abs(t[0] - W) < 4 and abs(t[1] - H) < 4]
                 if reuse and brng.random() < 0.35:
                     rows = reuse[int(brng.integers(len(reuse)))][2]
+                    n_reused += 1
                 else:
                     ds = min(14.0, H / 2 - 1)
                     rows = [_row(brng, W, ds, shop_p), _row(brng, W, ds, shop_p)]
@@ -334,5 +336,5 @@ def build_town(seed: int) -> PresetResult:
         walkways=walk_arr,
         parking_slots=cat(slots, 3),
         bounds=(x0, y0, x1, y1),
-        info={"walkway_z": KERB_H, "block_x": bx.tolist(), "block_y": by.tolist(), "n_templates": len(templates)},
+        info={"walkway_z": KERB_H, "block_x": bx.tolist(), "block_y": by.tolist(), "n_building_blocks": len(templates) + n_reused, "n_reused_blocks": n_reused},
     )

@@ -288,4 +288,4 @@ def add_benches(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, yaw: np.n
     b.add_boxes(np.c_[back, z + 0.5], np.array([1.8, 0.06, 0.45]), yaw, M.WOOD, seed=rng.integers(0, 2**31, k))
     b.add_boxes(np.c_[xy, z], np.array([1.5, 0.4, 0.4]), yaw, M.METAL, seed=rng.integers(0, 2**31, k))
     if free is not None:
-        free.circles(xy, 1.3, 0)
+        free.circles(xy, 1.0, 0)

@@ -86,6 +86,9 @@ class SimulatedSequence:
     ) -> None:
         if n_scans is not None and n_scans < 1:
             raise ConfigError(f"sim.n_scans must be >= 1, got {n_scans}")
+        self._init_args = dict(world=world, sensor=sensor, n_scans=n_scans, seed=seed, route=route, clutter=clutter,
+                               occluders=occluders, odometry_drift=odometry_drift, sensor_height=sensor_height,
+                               spacing=spacing, rate_hz=rate_hz, unit_seed=unit_seed, world_seed=world_seed, name=name)  # fmt: skip
         self._seed = int(seed)
         self._world = build_world(world, self._seed if world_seed is None else int(world_seed))
         self._sensor = get_sensor(sensor)
@@ -190,6 +193,13 @@ class SimulatedSequence:
         """Render a scan at an arbitrary pose with this sequence's world, sensor and unit."""
         occ = self._occluders if occluders is None else occluders
         return self._renderer.render(np.asarray(pose, dtype=np.float64), float(timestamp), self._seed, int(index), occ, source=f"{self._name}@pose")
+
+    def __getstate__(self) -> dict:
+        """Pickle the constructor arguments only; the scans are regenerated identically after unpickling."""
+        return self._init_args
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(**state)
 
     def __repr__(self) -> str:
         return f"SimulatedSequence({self._name!r}, {len(self)} scans)"

@@ -157,6 +157,14 @@ class World:
     def n_objects(self) -> int:
         return int(self.obj_seed.shape[0])
 
+    def __reduce__(self) -> tuple:
+        # the ray-casting scene cannot be pickled; a preset world is rebuilt (deterministically) on unpickling
+        from placerec.sim.presets import PRESETS
+
+        if self.preset not in PRESETS:
+            raise TypeError(f"world {self.preset!r} is not a preset and cannot be pickled")
+        return (build_world, (self.preset, self.seed))
+
     def ground_height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return self.terrain.height(x, y)
 
