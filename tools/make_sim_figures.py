@@ -232,15 +232,16 @@ def fig_real(out: Path, seed: int, real: Path) -> dict:
     xyz, rint, rrng = read_mulran(real / "ouster_os1_64_revisit_pair" / "32line_1.bin")
     rvalid = rrng > 0
     sig_sensor = dataclasses.replace(get_sensor("os1-64"), range_compensated=False)
-    ref = SimulatedSequence("campus", "os1-64", seed=seed, n_scans=120)
-    sim = ref[60]
-    sim_sig = SimulatedSequence(ref.world, sig_sensor, seed=seed, route=ref.route)[60]
-    town = SimulatedSequence("town", sig_sensor, seed=seed, n_scans=60)[40]
+    town_ref = SimulatedSequence("town", "os1-64", seed=seed, n_scans=60)
+    town_sig = SimulatedSequence(town_ref.world, sig_sensor, seed=seed, route=town_ref.route)[40]
+    town = town_ref[40]
+    campus_ref = SimulatedSequence("campus", "os1-64", seed=seed, n_scans=120)
+    campus_sig = SimulatedSequence(campus_ref.world, sig_sensor, seed=seed, route=campus_ref.route)[60]
     imgs = [
         ("real", "real OS1-64 (MulRan, 16-bit intensity = signal, not range compensated; raw column order, staggered)", rint, rrng),
-        ("sim campus signal", "simulated OS1-64, campus, signal channel (range_compensated=False, like the real file)", ring_image(sim_sig), ring_image(sim_sig, "range")),
-        ("sim town signal", "simulated OS1-64, town, signal channel", ring_image(town), ring_image(town, "range")),
-        ("sim campus reflectivity", "simulated OS1-64, campus, reflectivity channel (range compensated, the default)", ring_image(sim), ring_image(sim, "range")),
+        ("sim town signal", "simulated OS1-64, town, signal channel (range_compensated=False, like the real file)", ring_image(town_sig), ring_image(town_sig, "range")),
+        ("sim town reflectivity", "simulated OS1-64, town, reflectivity channel (range compensated, the default)", ring_image(town), ring_image(town, "range")),
+        ("sim campus signal", "simulated OS1-64, campus, signal channel", ring_image(campus_sig), ring_image(campus_sig, "range")),
     ]
     fig, axes = plt.subplots(len(imgs), 2, figsize=(20, 2.4 * len(imgs)), gridspec_kw={"width_ratios": [1, 1]})
     stats: dict = {}
@@ -273,7 +274,7 @@ def fig_real(out: Path, seed: int, real: Path) -> dict:
     for a in axes:
         a.legend(fontsize=8)
         a.set_ylabel("density")
-    axes[0].set_title("intensity histogram: real MulRan OS1-64 vs simulated", fontsize=9)
+    axes[0].set_title("intensity histogram: real MulRan OS1-64 vs simulated OS1-64", fontsize=9)
     axes[1].set_title("range histogram", fontsize=9)
     fig.tight_layout()
     fig.savefig(out / "sim_vs_real_histograms.png", dpi=90)

@@ -76,13 +76,16 @@ class BeamResponse:
 
     @classmethod
     def draw(cls, sensor: SensorModel, seed: int) -> BeamResponse:
-        """Draw a unit's curves from a seeded RNG: gains ~ lognormal(0, 0.12), gammas in [0.75, 1.3], offsets."""
+        """Draw a unit's curves from a seeded RNG: gains ~ lognormal(0, 0.12), gammas in [0.75, 1.3], offsets
+        (Velodyne: N(0, 1.5) counts; Ouster: a positive dark level of 0.5 % + |N(0, 1.2 %)| of the scale)."""
         rng = np.random.default_rng([int(seed), 0xBEA3])
         n = sensor.n_beams
         gain = np.exp(rng.normal(0.0, 0.12, n))
         gamma = np.clip(rng.normal(1.0, 0.12, n), 0.75, 1.3)
-        off_sd = 1.5 if sensor.family == "velodyne" else 0.012 * sensor.intensity_scale
-        offset = rng.normal(0.0, off_sd, n)
+        if sensor.family == "velodyne":
+            offset = rng.normal(0.0, 1.5, n)
+        else:  # a dark level: a 16-bit channel does not report detected returns at zero
+            offset = np.abs(rng.normal(0.0, 0.012 * sensor.intensity_scale, n)) + 0.005 * sensor.intensity_scale
         return cls(
             gain=gain.astype(np.float64),
             gamma=gamma.astype(np.float64),

@@ -10,14 +10,17 @@ the ~15 materials present, not over points.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from placerec.sim.clutter import ClutterConfig, build_clutter
 from placerec.sim.intensity import BeamResponse, IntensityModel, surface_response
-from placerec.sim.materials import LAMBERT, P_TONE, SPECULAR, Hits, M, shade
+from placerec.sim.materials import LAMBERT, P_TONE, SPECULAR, Hits, M
 from placerec.sim.sensors import RayGrid, SensorModel, ray_grid
+from placerec.sim.textures import shade
 from placerec.sim.world import World, make_scene
 from placerec.types import Scan
 
@@ -52,8 +55,10 @@ class Renderer:
         response: BeamResponse,
         model: IntensityModel | None = None,
         clutter: ClutterConfig | None = None,
+        threads: int | None = None,
     ) -> None:
         self.world = world
+        self.threads = min(2, os.cpu_count() or 1) if threads is None else int(threads)
         self.sensor = sensor
         self.grid: RayGrid = ray_grid(sensor)
         self.response = response
@@ -139,16 +144,11 @@ class Renderer:
         extra[:, 5 : 5 + m.obj_params.shape[1]] = m.obj_params
         return np.concatenate([tab, extra]), np.concatenate([w.obj_seed, m.obj_seed])
 
-    def render(self, pose: np.ndarray, timestamp: float, seed: int, index: int, occluders: bool = False, source: str | None = None) -> Scan:
-        """One simulated scan (deterministic in pose, timestamp, seed and index)."""
+    def _measure_chunk(self, hits: RawHits, sel: np.ndarray, origin: np.ndarray, table: np.ndarray, oseed: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Shade and measure the rays ``sel`` of one sweep: (kept ray indices, measured ranges, raw intensities)."""
         sensor = self.sensor
-        grid = self.grid
-        hits = self.cast(pose, timestamp, seed, index, occluders)
-        rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(index), 0x5CA7])
-        sel = np.flatnonzero((hits.t >= sensor.min_range) & (hits.t <= sensor.max_range))
         t = hits.t[sel]
         d = np.take(hits.directions_world, sel, axis=0)
-        origin = np.asarray(pose[:3, 3], dtype=np.float32)
         pw = origin + d * t[:, None]
         mat = hits.material[sel]
         ground = mat == M.GROUND
@@ -161,7 +161,6 @@ class Renderer:
         obj = hits.obj[sel]
         nrm = np.take(hits.normal, sel, axis=0)
         cos_inc = np.abs(np.einsum("ij,ij->i", nrm, d))
-        table, oseed = self._object_table()
         n = len(sel)
         # materials below FACADE (ground, paving, kerbs, ...) are textured in world coordinates and only need the
         # object's tone; the others get their hit point and normal in the object frame and the full parameters
@@ -210,15 +209,34 @@ class Renderer:
         r_meas = r_true + sigma * rng.standard_normal(n, dtype=np.float32)
         keep &= (r_meas >= sensor.min_range) & (r_meas <= sensor.max_range)
         k_sel = sel[keep]
-        ring = grid.ring[k_sel]
-        raw = self.model.measure(beta[keep], r_true[keep], ring, self.response, rng)
+        raw = self.model.measure(beta[keep], r_true[keep], self.grid.ring[k_sel], self.response, rng)
+        return k_sel, r_meas[keep], raw
 
+    def render(self, pose: np.ndarray, timestamp: float, seed: int, index: int, occluders: bool = False, source: str | None = None) -> Scan:
+        """One simulated scan (deterministic in pose, timestamp, seed and index, whatever the thread count)."""
+        sensor = self.sensor
+        grid = self.grid
+        hits = self.cast(pose, timestamp, seed, index, occluders)
+        sel = np.flatnonzero((hits.t >= sensor.min_range) & (hits.t <= sensor.max_range))
+        origin = np.asarray(pose[:3, 3], dtype=np.float32)
+        table, oseed = self._object_table()
+        # two fixed halves of the sweep, each with its own noise stream: NumPy releases the GIL in its loops, so the
+        # halves shade in parallel on two cores and the result does not depend on the thread count
         N = grid.directions.shape[0]
+        halves = (sel[sel < N // 2], sel[sel >= N // 2])
+        rngs = [np.random.default_rng([int(seed) & 0xFFFFFFFF, int(index), 0x5CA7, k]) for k in range(2)]
+        pool = _pool() if self.threads > 1 else None
+        if pool is not None:
+            futures = [pool.submit(self._measure_chunk, hits, h, origin, table, oseed, r) for h, r in zip(halves, rngs, strict=True)]
+            parts = [f.result() for f in futures]
+        else:
+            parts = [self._measure_chunk(hits, h, origin, table, oseed, r) for h, r in zip(halves, rngs, strict=True)]
+        k_sel = np.concatenate([p[0] for p in parts])
         r_out = np.zeros(N, np.float32)
-        r_out[k_sel] = r_meas[keep]
+        r_out[k_sel] = np.concatenate([p[1] for p in parts])
         xyz = grid.directions * r_out[:, None]
         inten = np.zeros(N, np.float32)
-        inten[k_sel] = raw
+        inten[k_sel] = np.concatenate([p[2] for p in parts])
         info = sensor.to_sensor_info()
         if sensor.organized:
             return Scan(xyz=xyz, intensity=inten, ring=grid.ring.copy(), time=grid.time.copy(), shape=(sensor.n_beams, sensor.columns),
@@ -227,3 +245,14 @@ class Renderer:
         mask[k_sel] = True
         return Scan(xyz=xyz[mask], intensity=inten[mask], ring=grid.ring[mask], time=grid.time[mask], shape=None,
                     sensor=info, timestamp=float(timestamp), source=source)  # fmt: skip
+
+
+_POOL: tuple[int, ThreadPoolExecutor] | None = None
+
+
+def _pool() -> ThreadPoolExecutor:
+    """A 2-thread pool for this process (recreated after a fork: threads do not survive one)."""
+    global _POOL
+    if _POOL is None or _POOL[0] != os.getpid():
+        _POOL = (os.getpid(), ThreadPoolExecutor(max_workers=2, thread_name_prefix="placerec-sim"))
+    return _POOL[1]
