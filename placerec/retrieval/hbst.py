@@ -209,6 +209,7 @@ class HBST:
             "n_bytes": self.n_bytes,
         }
         save_artifact(path, ARTIFACT_KIND, FORMAT_VERSION, arrays, meta)
+        log.debug("saved %r to %s", self, path)
 
     @classmethod
     def load(cls, path: str | Path) -> HBST:
@@ -232,6 +233,7 @@ class HBST:
                     raise ValueError("descriptors refer to unknown images")
         except (KeyError, TypeError, ValueError, ConfigError) as exc:
             raise ArtifactError(f"{path}: corrupt hbst artifact ({exc})") from exc
+        log.debug("loaded %r from %s", hbst, path)
         return hbst
 
     # ---------------------------------------------------------------------------------------------- internals
