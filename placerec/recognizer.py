@@ -155,12 +155,18 @@ PIPELINES: dict[str, str] = {
     "map-closures": "placerec.baselines.map_closures_peer:MapClosuresPeer",
     "orb-hbst": "placerec.pipelines.visual:VisualHBST",
     "brisk-hbst": "placerec.pipelines.visual:VisualHBST",
+    "ishot-votes": "placerec.pipelines.keypoint_voting:KeypointVoting",
+    "shot-votes": "placerec.pipelines.keypoint_voting:KeypointVoting",
+    "fpfh-votes": "placerec.pipelines.keypoint_voting:KeypointVoting",
 }
 
 #: Parameter presets of registered names (merged under the config's own ``params``).
 PIPELINE_PRESETS: dict[str, dict[str, Any]] = {
     "orb-hbst": {"features": "orb"},
     "brisk-hbst": {"features": "brisk"},
+    "ishot-votes": {"descriptor": "ishot"},
+    "shot-votes": {"descriptor": "shot"},
+    "fpfh-votes": {"descriptor": "fpfh"},
 }
 
 

@@ -1,0 +1,414 @@
+"""A first 3D pipeline: ISS-BR keypoints + ISHOT (or SHOT/FPFH) descriptors, ratio-tested NN votes per place.
+
+For every query descriptor the two nearest database descriptors (exact L2, brute force with ``faiss.knn``;
+`tools/bench_3d_nn.py` measured a k-d tree ~40x slower at 1344-d and HNSW minutes to build) give the ratio
+``tau = d1 / d2`` (ISHOT paper, eq. 4); when ``tau < tau_max`` the query descriptor votes for the entry (place)
+its 1st neighbour belongs to. Candidates are the entries with most votes.
+
+Score (documented, what thresholds apply to): ``score="fraction"`` (default) is votes / number of query
+descriptors, in [0, 1], so one threshold works for scans with many or few keypoints; ``score="votes"`` is the raw
+vote count. ``relative_pose`` is None (no verification yet: the next step adds the paper's probabilistic voting,
+geometric consistency and ICP).
+
+Entries ("places"):
+
+* default (``place_spacing_m = 0``, ``place_window_m = 0``): every added scan is one entry, described alone;
+  match ids are scan ids, which is what the loop and localize evaluators expect.
+* ``place_window_m > 0``: an entry accumulates, in its own frame, the voxelised clouds of the scans added just
+  before it within that much travelled distance (from the poses given to ``add``; causal, so it also works in
+  loop mode), then is described as one cloud (a place of the paper, Sec. IV-B).
+* ``place_spacing_m > 0``: only scans at least that far from every earlier entry become entries (the others
+  only contribute points to later entries); ids stay scan ids, so ``map_poses[match_id]`` is the place pose.
+* ``places_db``: a `placerec.three_d.places.PlacesDatabase` file (built offline by ``build_places`` from the
+  map sequence) replaces the entries; its place ids are the map's scan indices. ``add`` then only checks that a
+  scan with that id and pose is part of the map the database was built from (`ArtifactError` otherwise), so
+  the localize evaluator's ``add(i, scan, pose)`` over the map scans is consistent with it.
+
+``max_id``: entries with ``id <= max_id`` only. Descriptor rows are stored in insertion order; when ids were
+added in increasing order (the usual case) the eligible rows are a prefix and no copy is made.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+
+from placerec.errors import ArtifactError, ConfigError, DependencyError, ScanDataError
+from placerec.io.atomic import load_artifact, save_artifact
+from placerec.preprocess import normalize_intensity
+from placerec.recognizer import Description, DescriptorRecognizer, params_key
+from placerec.three_d.descriptors import DESCRIPTOR_DIMS
+from placerec.three_d.features import FeatureParams, extract_features
+from placerec.three_d.keypoints import ISSParams
+from placerec.three_d.normals import NormalParams
+from placerec.three_d.places import PlacesDatabase
+from placerec.types import Candidate, Scan, as_pose
+
+log = logging.getLogger(__name__)
+
+__all__ = ["VotingParams", "KeypointVoting", "knn2", "ratio_votes"]
+
+_KIND = "keypoint-voting-db"
+_VERSION = 1
+
+
+@dataclass(frozen=True)
+class VotingParams:
+    """Front end (the ISHOT paper's feature settings), ratio test, score and place aggregation."""
+
+    descriptor: str = "ishot"
+    max_range: float | None = 40.0
+    voxel_size: float = 0.4
+    support_radius: float = 7.0
+    iss: ISSParams = field(default_factory=lambda: ISSParams(max_keypoints=300))
+    normals: NormalParams = field(default_factory=NormalParams)
+    tau_max: float = 0.9
+    score: Literal["fraction", "votes"] = "fraction"
+    backend: Literal["faiss", "numpy"] = "faiss"
+    place_spacing_m: float = 0.0
+    place_window_m: float = 0.0
+    places_db: str | None = None
+
+    def features(self) -> FeatureParams:
+        return FeatureParams(
+            max_range=self.max_range,
+            voxel_size=self.voxel_size,
+            normals=self.normals,
+            iss=self.iss,
+            descriptor=self.descriptor,
+            support_radius=self.support_radius,
+        )
+
+
+def knn2(query: np.ndarray, db: np.ndarray, backend: str = "faiss") -> tuple[np.ndarray, np.ndarray]:
+    """Exact 2 nearest neighbours: (distances (Q, 2) Euclidean, indices (Q, 2)); needs ``len(db) >= 2``."""
+    q = np.ascontiguousarray(query, dtype=np.float32)
+    x = np.ascontiguousarray(db, dtype=np.float32)
+    if backend == "faiss":
+        try:
+            import faiss
+        except ImportError as exc:  # pragma: no cover - faiss-cpu is a dependency
+            raise DependencyError("keypoint voting needs faiss-cpu (pip install faiss-cpu)") from exc
+        d2, idx = faiss.knn(q, x, 2)
+    else:
+        xx = np.einsum("ij,ij->i", x, x)
+        d2 = np.empty((q.shape[0], 2), np.float32)
+        idx = np.empty((q.shape[0], 2), np.int64)
+        for a in range(0, q.shape[0], 512):
+            dd = xx[None, :] - 2.0 * (q[a : a + 512] @ x.T)
+            part = np.argpartition(dd, 1, axis=1)[:, :2]
+            pd = np.take_along_axis(dd, part, axis=1)
+            o = np.argsort(pd, axis=1, kind="stable")
+            idx[a : a + 512] = np.take_along_axis(part, o, 1)
+            d2[a : a + 512] = (
+                np.take_along_axis(pd, o, 1) + np.einsum("ij,ij->i", q[a : a + 512], q[a : a + 512])[:, None]
+            )
+    return np.sqrt(np.maximum(d2, 0.0)), np.asarray(idx, dtype=np.int64)
+
+
+def ratio_votes(
+    dist: np.ndarray, idx: np.ndarray, row_entry: np.ndarray, n_entries: int, tau_max: float
+) -> np.ndarray:
+    """Votes per entry: each query row votes for the entry of its 1st neighbour when ``d1 / d2 < tau_max``."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tau = np.where(dist[:, 1] > 0, dist[:, 0] / dist[:, 1], 1.0)
+    ok = tau < tau_max
+    return np.bincount(row_entry[idx[ok, 0]], minlength=n_entries)
+
+
+class KeypointVoting(DescriptorRecognizer):
+    """`PlaceRecognizer`: 3D local descriptors, 2-NN ratio test, vote counting (see the module docstring)."""
+
+    name: ClassVar[str] = "keypoint-voting"
+    Params: ClassVar[type] = VotingParams
+
+    def __init__(self, params: VotingParams | None = None, **overrides: Any) -> None:
+        super().__init__(params, **overrides)
+        p = self.params
+        if p.descriptor not in DESCRIPTOR_DIMS:
+            raise ConfigError(
+                f"{self.name}: unknown descriptor {p.descriptor!r}; allowed: {sorted(DESCRIPTOR_DIMS)}"
+            )
+        if not 0 < p.tau_max <= 1.0 + 1e-9:
+            raise ConfigError(f"{self.name}: tau_max must be in (0, 1], got {p.tau_max}")
+        if p.place_spacing_m < 0 or p.place_window_m < 0:
+            raise ConfigError(f"{self.name}: place_spacing_m and place_window_m must be >= 0")
+        self._features = p.features()
+        self._dim = DESCRIPTOR_DIMS[p.descriptor]
+        self._warned = False
+        self._reset()
+        self._places: PlacesDatabase | None = None
+        if p.places_db is not None:
+            self.use_places(PlacesDatabase.load(p.places_db, features=self._features))
+
+    def _reset(self) -> None:
+        self._desc = np.zeros((0, self._dim), np.float32)
+        self._n_rows = 0
+        self._row_entry = np.zeros(0, np.int64)
+        self._ids: list[int] = []
+        self._idset: set[int] = set()
+        self._poses: list[np.ndarray] = []
+        self._counts: list[int] = []
+        self._keypoints: list[np.ndarray] = []
+        self._sorted = True
+        # trailing window of (id, pose, travelled distance, cloud xyz, cloud intensity) for place aggregation
+        self._buffer: list[tuple[int, np.ndarray, float, np.ndarray, np.ndarray]] = []
+        self._travelled = 0.0
+
+    # -- construction from a places database ----------------------------------------------------------------
+    @classmethod
+    def from_places(cls, db: PlacesDatabase, **overrides: Any) -> KeypointVoting:
+        """A recognizer serving ``db`` (its descriptor settings must match; `ArtifactError` otherwise)."""
+        f = db.params.features
+        base = {
+            "descriptor": f.descriptor,
+            "max_range": f.max_range,
+            "voxel_size": f.voxel_size,
+            "support_radius": f.support_radius,
+            "iss": f.iss,
+            "normals": f.normals,
+        }
+        rec = cls(**{**base, **overrides})
+        rec.use_places(db)
+        return rec
+
+    def use_places(self, db: PlacesDatabase) -> None:
+        """Replace the entries by the places of ``db`` (ids = place ids, poses = place poses)."""
+        db.check_features(self._features)
+        self._reset()
+        counts = np.diff(db.kp_offsets)
+        self._append_rows(db.descriptors, np.repeat(np.arange(len(db)), counts))
+        self._ids = [int(i) for i in db.ids]
+        self._idset = set(self._ids)
+        self._sorted = bool(np.all(np.diff(db.ids) > 0))
+        self._poses = [np.asarray(T) for T in db.poses]
+        self._counts = [int(c) for c in counts]
+        self._keypoints = [db.place_features(p)[0] for p in range(len(db))]
+        self._places = db
+
+    # -- front end -------------------------------------------------------------------------------------------
+    @property
+    def frontend_key(self) -> str:
+        p = self.params
+        return params_key(
+            "keypoint-voting", {"features": asdict(self._features), "cloud": p.place_window_m > 0}
+        )
+
+    def _normalised(self, scan: Scan) -> Scan:
+        if len(scan) and float(np.max(scan.intensity)) > 1.0 + 1e-6:
+            if not self._warned:
+                log.warning("%s: intensity above 1; normalising with the sensor default", self.name)
+                self._warned = True
+            scan = normalize_intensity(scan)
+        return scan
+
+    def describe(self, scan: Scan) -> Description:
+        """Keypoints (K, 3), descriptors (K, D); with place aggregation also the voxelised cloud."""
+        scan = self._normalised(scan)
+        try:
+            lf = extract_features(scan, self._features)
+        except ScanDataError as exc:
+            log.warning("%s", exc)
+            return {
+                "keypoints": np.zeros((0, 3), np.float32),
+                "descriptors": np.zeros((0, self._dim), np.float32),
+            }
+        out = {"keypoints": lf.keypoints.astype(np.float32), "descriptors": lf.descriptors.astype(np.float32)}
+        if self.params.place_window_m > 0:
+            out["cloud_xyz"] = lf.points.astype(np.float32)
+            out["cloud_intensity"] = lf.intensity.astype(np.float32)
+        return out
+
+    # -- database --------------------------------------------------------------------------------------------
+    def _append_rows(self, desc: np.ndarray, entry: np.ndarray) -> None:
+        n = desc.shape[0]
+        if self._n_rows + n > self._desc.shape[0]:
+            cap = max(1024, 2 * self._desc.shape[0], self._n_rows + n)
+            grown = np.empty((cap, self._dim), np.float32)
+            grown[: self._n_rows] = self._desc[: self._n_rows]
+            self._desc = grown
+        self._desc[self._n_rows : self._n_rows + n] = desc
+        self._row_entry = np.concatenate([self._row_entry, entry.astype(np.int64)])
+        self._n_rows += n
+
+    def _add_entry(
+        self, scan_id: int, keypoints: np.ndarray, desc: np.ndarray, pose: np.ndarray | None
+    ) -> None:
+        desc = np.asarray(desc, np.float32).reshape(-1, self._dim)
+        if self._ids and scan_id <= self._ids[-1]:
+            self._sorted = False
+        self._append_rows(desc, np.full(desc.shape[0], len(self._ids)))
+        self._ids.append(scan_id)
+        self._idset.add(scan_id)
+        self._poses.append(np.eye(4) if pose is None else as_pose(pose))
+        self._counts.append(desc.shape[0])
+        self._keypoints.append(np.asarray(keypoints, np.float32).reshape(-1, 3))
+
+    def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
+        scan_id = int(scan_id)
+        p = self.params
+        if self._places is not None:
+            self._check_map_scan(scan_id, pose)
+            return
+        if scan_id in self._idset:
+            raise ScanDataError(f"{self.name}: id {scan_id} was added already")
+        if p.place_window_m <= 0 and p.place_spacing_m <= 0:
+            self._add_entry(scan_id, description["keypoints"], description["descriptors"], pose)
+            return
+        if pose is None:
+            raise ScanDataError(
+                f"{self.name}: place_spacing_m/place_window_m need the pose of every added scan"
+            )
+        T = as_pose(pose)
+        if p.place_window_m > 0:
+            self._push_buffer(scan_id, T, description)
+        if p.place_spacing_m > 0 and self._poses:
+            centres = np.stack([P[:3, 3] for P in self._poses])
+            if np.min(np.linalg.norm(centres - T[:3, 3], axis=1)) < p.place_spacing_m:
+                return
+        if p.place_window_m > 0:
+            kp, desc = self._describe_buffer(T)
+        else:
+            kp, desc = description["keypoints"], description["descriptors"]
+        self._add_entry(scan_id, kp, desc, T)
+
+    def _push_buffer(self, scan_id: int, T: np.ndarray, description: Description) -> None:
+        if "cloud_xyz" not in description:
+            raise ScanDataError(f"{self.name}: description without a cloud (made with place_window_m = 0?)")
+        if self._buffer:
+            self._travelled += float(np.linalg.norm(T[:3, 3] - self._buffer[-1][1][:3, 3]))
+        self._buffer.append(
+            (scan_id, T, self._travelled, description["cloud_xyz"], description["cloud_intensity"])
+        )
+        w = self.params.place_window_m
+        while self._buffer and self._travelled - self._buffer[0][2] > w:
+            self._buffer.pop(0)
+
+    def _describe_buffer(self, T_world_place: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        T_place_world = np.linalg.inv(T_world_place)
+        xyz, inten = [], []
+        for _, T, _, pts, it in self._buffer:
+            R = T_place_world @ T
+            xyz.append(pts.astype(np.float64) @ R[:3, :3].T + R[:3, 3])
+            inten.append(it)
+        cloud = Scan(np.concatenate(xyz), np.concatenate(inten), source="place")
+        try:
+            lf = extract_features(cloud, self._features)
+        except ScanDataError as exc:
+            log.warning("%s", exc)
+            return np.zeros((0, 3), np.float32), np.zeros((0, self._dim), np.float32)
+        return lf.keypoints, lf.descriptors
+
+    def _check_map_scan(self, scan_id: int, pose: np.ndarray | None) -> None:
+        sp = self._places.scan_poses
+        if not 0 <= scan_id < sp.shape[0]:
+            raise ArtifactError(
+                f"{self.name}: scan {scan_id} is not part of the map the places database was built from"
+            )
+        if pose is not None and not np.allclose(as_pose(pose), sp[scan_id], atol=1e-6):
+            raise ArtifactError(f"{self.name}: scan {scan_id}'s pose differs from the places database's map")
+
+    def _eligible(self, max_id: int | None) -> tuple[np.ndarray, np.ndarray, int]:
+        """(descriptor rows, their entry index, number of eligible entries) for ``id <= max_id``."""
+        rows, entry = self._desc[: self._n_rows], self._row_entry
+        if max_id is None or (self._ids and max_id >= max(self._ids)):
+            return rows, entry, len(self._ids)
+        if self._sorted:
+            n_ent = int(np.searchsorted(np.asarray(self._ids), max_id, side="right"))
+            n = int(np.sum(self._counts[:n_ent]))
+            return rows[:n], entry[:n], n_ent
+        ok = np.asarray(self._ids)[entry] <= max_id
+        return rows[ok], entry[ok], len(self._ids)
+
+    def query_description(
+        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
+    ) -> list[Candidate]:
+        q = np.asarray(description["descriptors"], np.float32).reshape(-1, self._dim)
+        rows, entry, n_ent = self._eligible(max_id)
+        if q.shape[0] == 0 or rows.shape[0] < 2:
+            return []
+        dist, idx = knn2(q, rows, self.params.backend)
+        votes = ratio_votes(dist, idx, entry, n_ent, self.params.tau_max)
+        top = np.flatnonzero(votes)
+        top = top[np.lexsort((np.asarray(self._ids)[top], -votes[top]))][:k]
+        scale = 1.0 / q.shape[0] if self.params.score == "fraction" else 1.0
+        return [
+            Candidate(
+                query_id,
+                self._ids[e],
+                float(votes[e] * scale),
+                None,
+                None,
+                {"votes": int(votes[e]), "n_query": int(q.shape[0])},
+            )
+            for e in top
+        ]
+
+    # -- persistence ----------------------------------------------------------------------------------------
+    def save(self, path: str | Path) -> None:
+        """Entries (ids, poses, keypoints, descriptors) and the aggregation buffer, with the parameters."""
+        buf = self._buffer
+        arrays = {
+            "ids": np.asarray(self._ids, np.int64),
+            "poses": np.asarray(self._poses, np.float64).reshape(-1, 4, 4),
+            "counts": np.asarray(self._counts, np.int64),
+            "keypoints": _cat(self._keypoints, (0, 3)),
+            "descriptors": self._desc[: self._n_rows].copy(),
+            "buffer_ids": np.asarray([b[0] for b in buf], np.int64),
+            "buffer_poses": np.asarray([b[1] for b in buf], np.float64).reshape(-1, 4, 4),
+            "buffer_travelled": np.asarray([b[2] for b in buf], np.float64),
+            "buffer_counts": np.asarray([b[3].shape[0] for b in buf], np.int64),
+            "buffer_xyz": _cat([b[3] for b in buf], (0, 3)),
+            "buffer_intensity": _cat([b[4] for b in buf], (0,)),
+        }
+        save_artifact(
+            path, _KIND, _VERSION, arrays, {"params": _jsonable(self.params), "travelled": self._travelled}
+        )
+
+    def load(self, path: str | Path) -> None:
+        arrays, header = load_artifact(path, _KIND, (_VERSION,))
+        if header["meta"].get("params") != _jsonable(self.params):
+            raise ArtifactError(
+                f"{path}: database was made with other parameters: {header['meta'].get('params')}"
+            )
+        self._reset()
+        self._places = None
+        kp = np.split(arrays["keypoints"], np.cumsum(arrays["counts"])[:-1]) if len(arrays["ids"]) else []
+        self._append_rows(arrays["descriptors"], np.repeat(np.arange(len(arrays["ids"])), arrays["counts"]))
+        self._ids = [int(i) for i in arrays["ids"]]
+        self._idset = set(self._ids)
+        self._sorted = bool(np.all(np.diff(arrays["ids"]) > 0))
+        self._poses = list(arrays["poses"])
+        self._counts = [int(c) for c in arrays["counts"]]
+        self._keypoints = list(kp)
+        cuts = np.cumsum(arrays["buffer_counts"])[:-1]
+        self._buffer = list(
+            zip(
+                (int(i) for i in arrays["buffer_ids"]),
+                arrays["buffer_poses"],
+                (float(t) for t in arrays["buffer_travelled"]),
+                np.split(arrays["buffer_xyz"], cuts) if len(arrays["buffer_ids"]) else [],
+                np.split(arrays["buffer_intensity"], cuts) if len(arrays["buffer_ids"]) else [],
+                strict=False,
+            )
+        )
+        self._travelled = float(header["meta"].get("travelled", 0.0))
+        if self.params.places_db is not None:
+            self._places = PlacesDatabase.load(self.params.places_db, features=self._features)
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+
+def _cat(parts: list[np.ndarray], empty: tuple[int, ...]) -> np.ndarray:
+    return np.concatenate(parts).astype(np.float32) if parts else np.zeros(empty, np.float32)
+
+
+def _jsonable(params: Any) -> Any:
+    import json
+
+    return json.loads(json.dumps(asdict(params), default=str))
