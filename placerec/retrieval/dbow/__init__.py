@@ -1,0 +1,63 @@
+"""DBoW2-style bags of binary (and float) words: vocabulary tree, inverse/direct index database, loop detection.
+
+* `placerec.retrieval.dbow.vocabulary` — `Vocabulary` (tree, transform, L1 score), `train_vocabulary`.
+* `placerec.retrieval.dbow.kmeans` — the vectorised hierarchical k-means++ behind training.
+* `placerec.retrieval.dbow.database` — `BowDatabase`: inverse index (CSR + append buffer), direct index, queries.
+* `placerec.retrieval.dbow.loop_detector` — DLoopDetector's options: normalised score, islands, temporal check.
+* `placerec.retrieval.dbow.io` — the compact binary vocabulary format and the ORB-SLAM2/DBoW2 text format.
+* `placerec.retrieval.dbow.training` — `train_vocabulary_from_config` (the ``placerec train-vocab`` command).
+
+Names below are imported lazily.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__all__ = [
+    "BowVector",
+    "Vocabulary",
+    "l1_score",
+    "train_vocabulary",
+    "BowDatabase",
+    "QueryResults",
+    "LoopDetectorParams",
+    "LoopFilter",
+    "load_vocabulary",
+    "save_vocabulary",
+    "read_text_vocabulary",
+    "write_text_vocabulary",
+    "VocabTrainingConfig",
+    "train_vocabulary_from_config",
+]
+
+_LAZY = {
+    "BowVector": "vocabulary",
+    "Vocabulary": "vocabulary",
+    "l1_score": "vocabulary",
+    "train_vocabulary": "vocabulary",
+    "BowDatabase": "database",
+    "QueryResults": "database",
+    "LoopDetectorParams": "loop_detector",
+    "LoopFilter": "loop_detector",
+    "load_vocabulary": "io",
+    "save_vocabulary": "io",
+    "read_text_vocabulary": "io",
+    "write_text_vocabulary": "io",
+    "VocabTrainingConfig": "training",
+    "train_vocabulary_from_config": "training",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

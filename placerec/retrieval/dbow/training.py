@@ -1,0 +1,271 @@
+"""Train a vocabulary from a config: intensity images of simulated (or recorded) sequences -> features -> tree.
+
+The images are formed exactly as the experiment runner does for the visual pipelines (the config's
+``preprocess`` section, then `placerec.image.make_image` with ``image``, then the feature extractor), so the words
+match what ORB-DBoW / SURF-DBoW see at run time. By default the simulator supplies campus, industrial and town
+worlds with seeds 100-109, disjoint from the evaluation configs (town, seeds 0-9): no scan of a test sequence is
+used for training (a warning is logged otherwise). ``n_images`` are spread evenly over all sequences and along
+each route.
+
+Outputs: the vocabulary (binary format, `placerec.retrieval.dbow.io`) and ``<output stem>.json`` beside it with
+the provenance (worlds, sensors, seeds, n_images, n_descriptors, training time, placerec version, config).
+
+Example config (``configs/vocab_orb.yaml``)::
+
+    features: orb
+    k: 10
+    L: 5
+    n_images: 3000
+    simulator: {worlds: [campus, industrial, town], sensors: [os1-64], seeds: [100, 101, 102]}
+    output: vocab/orb_k10L5.dbow
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from placerec.config import DatasetConfig, PreprocessConfig
+from placerec.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "VocabTrainingConfig",
+    "TrainingSimulator",
+    "load_training_config",
+    "collect_descriptors",
+    "train_vocabulary_from_config",
+]
+
+#: Seeds of the town world used by the evaluation configs (never trained on by default).
+EVALUATION_SEEDS = tuple(range(10))
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class TrainingSimulator(_Section):
+    """Simulated sequences to draw training images from: every (world, sensor, seed) combination."""
+
+    worlds: list[str] = Field(default_factory=lambda: ["campus", "industrial", "town"])
+    sensors: list[str] = Field(default_factory=lambda: ["os1-64"])
+    seeds: list[int] = Field(default_factory=lambda: list(range(100, 110)))
+    route: str = "default"
+    spacing: float = Field(1.0, gt=0)
+    clutter: bool = True
+
+
+class VocabTrainingConfig(_Section):
+    """What ``placerec train-vocab`` trains (see the module docstring)."""
+
+    features: str = "orb"
+    feature_params: dict[str, Any] = Field(default_factory=dict)
+    image: dict[str, Any] = Field(default_factory=dict, description="placerec.image.ImageParams fields")
+    preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
+    k: int = Field(10, ge=2)
+    L: int = Field(5, ge=1)
+    weighting: Literal["tf-idf", "tf", "idf", "binary"] = "tf-idf"
+    n_images: int = Field(3000, ge=1)
+    simulator: TrainingSimulator | None = Field(default_factory=TrainingSimulator)
+    datasets: list[DatasetConfig] = Field(default_factory=list, description="extra sequences (e.g. recorded)")
+    seed: int = 0
+    max_iterations: int = Field(10, ge=1)
+    max_fit: int | None = Field(None, ge=100, description="fit nodes larger than this on a random subset")
+    centre_dtype: Literal["auto", "float32", "float16"] = "auto"
+    workers: int = Field(1, ge=1, description="processes extracting features")
+    output: str = "vocab/vocabulary.dbow"
+
+
+def load_training_config(path: str | Path | None, **overrides: Any) -> VocabTrainingConfig:
+    """Read a training config from YAML (None = defaults) with top-level overrides; `ConfigError` on bad keys."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"{path}: no such config file")
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: invalid YAML ({exc})") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: a training config must be a mapping")
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return VocabTrainingConfig.model_validate(data)
+    except ValidationError as exc:
+        details = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+        raise ConfigError(f"{path or 'training config'}: {details}") from None
+
+
+def image_params_of(cfg: VocabTrainingConfig) -> Any:
+    """The config's ``image`` section as a validated `placerec.image.ImageParams`."""
+    from pydantic import TypeAdapter
+
+    from placerec.image import ImageParams
+
+    try:
+        return TypeAdapter(ImageParams).validate_python(cfg.image)
+    except ValidationError as exc:
+        details = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+        raise ConfigError(f"training config image: {details}") from None
+
+
+def _sequences(cfg: VocabTrainingConfig) -> list[tuple[str, dict[str, Any]]]:
+    """(label, spec) of every training sequence; spec is a DatasetConfig dump."""
+    out = []
+    sim = cfg.simulator
+    if sim is not None:
+        for world in sim.worlds:
+            for sensor in sim.sensors:
+                for seed in sim.seeds:
+                    if world == "town" and seed in EVALUATION_SEEDS:
+                        log.warning("training on town seed %d, which the evaluation configs use", seed)
+                    spec = DatasetConfig(
+                        source="simulator",
+                        simulator={
+                            "world": world,
+                            "sensor": sensor,
+                            "seed": seed,
+                            "route": sim.route,
+                            "spacing": sim.spacing,
+                            "clutter": sim.clutter,
+                        },
+                    )
+                    out.append((f"{world}/{sensor}/seed{seed}", spec.model_dump(mode="json")))
+    for i, ds in enumerate(cfg.datasets):
+        out.append((ds.path or f"dataset{i}", ds.model_dump(mode="json")))
+    if not out:
+        raise ConfigError("training config: no sequence (set 'simulator' or 'datasets')")
+    return out
+
+
+def _extract(job: tuple[dict[str, Any], int, dict[str, Any]]) -> list[np.ndarray]:
+    """Descriptors of ``count`` evenly spaced scans of one sequence (runs in a worker process)."""
+    from placerec.datasets import open_dataset
+    from placerec.features import make_extractor
+    from placerec.image import make_image
+    from placerec.preprocess import preprocess_scan
+
+    spec, count, c = job
+    cfg = VocabTrainingConfig.model_validate(c)
+    seq = open_dataset(DatasetConfig.model_validate(spec))
+    extractor = make_extractor(cfg.features, **cfg.feature_params)
+    image_params = image_params_of(cfg)
+    index = np.unique(np.linspace(0, len(seq) - 1, min(count, len(seq))).round().astype(int))
+    out = []
+    for i in index:
+        scan = preprocess_scan(seq[int(i)], cfg.preprocess, keep_organized=True)
+        out.append(extractor.extract(make_image(scan, image_params).image).descriptors)
+    return out
+
+
+def collect_descriptors(
+    cfg: VocabTrainingConfig, progress: bool = False
+) -> tuple[list[np.ndarray], list[str]]:
+    """Per-image descriptors of the training images, and the labels of the sequences used."""
+    seqs = _sequences(cfg)
+    counts = np.diff(np.linspace(0, cfg.n_images, len(seqs) + 1).round().astype(int))
+    jobs = [
+        (spec, int(n), cfg.model_dump(mode="json")) for (_, spec), n in zip(seqs, counts, strict=True) if n
+    ]
+    parts: list[np.ndarray] = []
+    with _Bar(progress, len(jobs), "features") as advance:
+        if cfg.workers > 1 and len(jobs) > 1:
+            with ProcessPoolExecutor(cfg.workers) as pool:
+                for res in pool.map(_extract, jobs):
+                    parts.extend(res)
+                    advance()
+        else:
+            for job in jobs:
+                parts.extend(_extract(job))
+                advance()
+    return parts, [label for (label, _), n in zip(seqs, counts, strict=True) if n]
+
+
+def train_vocabulary_from_config(
+    config: VocabTrainingConfig | str | Path | None = None,
+    output: str | Path | None = None,
+    progress: bool = False,
+) -> Path:
+    """Train the vocabulary a config describes and write it (plus ``<stem>.json``); returns the vocabulary path."""
+    from placerec import __version__
+    from placerec.features import make_extractor
+    from placerec.retrieval.dbow.io import save_vocabulary
+    from placerec.retrieval.dbow.vocabulary import train_vocabulary
+
+    cfg = config if isinstance(config, VocabTrainingConfig) else load_training_config(config)
+    out = Path(output or cfg.output)
+    make_extractor(cfg.features, **cfg.feature_params)  # fail early on bad settings
+    image_params_of(cfg)
+    t0 = time.perf_counter()
+    parts, labels = collect_descriptors(cfg, progress)
+    t_features = time.perf_counter() - t0
+    meta = {
+        "features": cfg.features,
+        "feature_params": cfg.feature_params,
+        "image": cfg.image,
+        "sequences": labels,
+        "simulator": None if cfg.simulator is None else cfg.simulator.model_dump(mode="json"),
+        "placerec_version": __version__,
+        "feature_seconds": round(t_features, 1),
+    }
+    voc = train_vocabulary(
+        parts,
+        k=cfg.k,
+        L=cfg.L,
+        weighting=cfg.weighting,
+        seed=cfg.seed,
+        max_iterations=cfg.max_iterations,
+        max_fit=cfg.max_fit,
+        progress=progress,
+        meta=meta,
+    )
+    centre_dtype = None if cfg.centre_dtype == "auto" else cfg.centre_dtype
+    save_vocabulary(voc, out, None if voc.binary else centre_dtype)
+    info = {
+        **voc.meta,
+        "k": voc.k,
+        "L": voc.L,
+        "n_nodes": voc.n_nodes,
+        "n_words": voc.n_words,
+        "file_bytes": out.stat().st_size,
+        "fingerprint": voc.fingerprint,
+        "config": cfg.model_dump(mode="json"),
+    }
+    from placerec.io.atomic import atomic_write
+
+    with atomic_write(out.with_suffix(".json"), "w") as fh:
+        fh.write(json.dumps(info, indent=2, default=str) + "\n")
+    log.info("wrote %s (%d words, %.1f MB)", out, voc.n_words, info["file_bytes"] / 1e6)
+    return out
+
+
+class _Bar:
+    def __init__(self, enabled: bool, total: int, label: str) -> None:
+        self.enabled, self.total, self.label = enabled, total, label
+
+    def __enter__(self):  # noqa: ANN204
+        if not self.enabled:
+            return lambda: None
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        self._bar = Progress(
+            TextColumn("{task.description:<20}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()
+        )
+        self._bar.__enter__()
+        task = self._bar.add_task(f"{self.label} (sequences)", total=self.total)
+        return lambda: self._bar.update(task, advance=1)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.enabled:
+            self._bar.__exit__(*exc)
