@@ -107,9 +107,9 @@ def fig_sensors(out: Path, seed: int) -> dict:
         seq = SimulatedSequence(ref.world, name, seed=seed, route=ref.route)
         scan = seq[i]
         img = ring_image(scan)
-        fam = seq.sensor.family
-        ax.imshow(show(img, scale=100.0) if fam == "velodyne" else show(img), cmap="gray", aspect="auto", interpolation="nearest")
-        ax.set_title(f"{name}: {seq.sensor.n_beams} beams x {seq.sensor.columns} columns, intensity ({'8-bit, 0..100 shown' if fam == 'velodyne' else '16-bit, to 99th pct'})", fontsize=9)
+        bits = seq.sensor.intensity_bits
+        ax.imshow(show(img), cmap="gray", aspect="auto", interpolation="nearest")
+        ax.set_title(f"{name}: {seq.sensor.n_beams} beams x {seq.sensor.columns} columns, {bits}-bit intensity (shown to its 99th percentile)", fontsize=9)
         ax.set_yticks([])
         stats[name] = {"valid_points": int(np.count_nonzero(scan.ranges > 0))}
     fig.suptitle(f"Same place (town, default route scan {i}) seen by each sensor preset (rows = rings)", fontsize=11)
@@ -150,12 +150,12 @@ def fig_hdl64(out: Path, seed: int, real: Path | None) -> dict:
     uni, hit = uniform_image(scan.xyz, scan.intensity, up, down)
     rows = 3 if real is None else 4
     fig, axes = plt.subplots(rows, 1, figsize=(16, 2.6 * rows))
-    axes[0].imshow(show(uni, scale=100.0), cmap="gray", aspect="auto", interpolation="nearest")
+    axes[0].imshow(show(uni), cmap="gray", aspect="auto", interpolation="nearest")
     empty = np.flatnonzero(hit.mean(axis=1) < 0.05)
     axes[0].set_title(f"simulated HDL-64, uniform projection (VPR eq. 2): empty rows {empty.tolist()}", fontsize=9)
     axes[1].imshow(hit, cmap="gray", aspect="auto", interpolation="nearest")
     axes[1].set_title("pixels hit (white) under the uniform projection: the lower block's 0.52 deg spacing skips rows", fontsize=9)
-    axes[2].imshow(show(ring_image(scan), scale=100.0), cmap="gray", aspect="auto", interpolation="nearest")
+    axes[2].imshow(show(ring_image(scan)), cmap="gray", aspect="auto", interpolation="nearest")
     axes[2].set_title("the same scan projected per beam from the ring index: no empty rows", fontsize=9)
     res = {"sim_empty_rows": empty.tolist()}
     if real is not None and (real / "kitti00_frames" / "000094.bin").is_file():
@@ -165,6 +165,10 @@ def fig_hdl64(out: Path, seed: int, real: Path | None) -> dict:
         axes[3].imshow(show(kimg, scale=0.6), cmap="gray", aspect="auto", interpolation="nearest")
         axes[3].set_title(f"real KITTI 00 frame 94 (HDL-64E), same projection: empty rows {kempty.tolist()}", fontsize=9)
         res["kitti_empty_rows"] = kempty.tolist()
+        pct = [5, 25, 50, 75, 95]
+        res["kitti_bin_intensity_pct"] = np.percentile(k[:, 3], pct).round(3).tolist()
+        res["kitti_zero_fraction"] = round(float(np.mean(k[:, 3] == 0)), 3)
+        res["sim_bin_intensity_pct"] = np.percentile(scan.intensity / scan.sensor.intensity_max, pct).round(3).tolist()
     for ax in axes:
         ax.set_yticks([])
     fig.tight_layout()

@@ -19,8 +19,10 @@ From surface to raw value, for one return at range R and incidence angle alpha:
 4. **Speckle**: log-normal multiplicative noise, stronger beyond the degradation range.
 5. **Per-beam response** (ground truth, ISHOT Fig. 7): beam ``b`` maps apparent reflectance ``x`` to
    ``S(g_b f_b(x)) + o_b`` with ``f_b(x) = x^gamma_b`` up to 1 and its tangent line ``1 + gamma_b (x - 1)`` above
-   (retro-reflective range), where ``S`` is the sensor's output scale: Velodyne ``100 x`` up to 1 and a
-   compressive curve from 101 to 255 for retro-reflectors, Ouster ``scale * x`` (linear, 16 bit).
+   (retro-reflective range), where ``S`` is the sensor's output scale: Velodyne ``scale * x`` up to 1 (VLP-16:
+   100, diffuse surfaces 0..100) and a compressive curve up to 255 for retro-reflectors, Ouster ``scale * x``
+   (linear, 16 bit). The HDL-64 preset has a strongly compressive response (nominal gamma 0.5, scale 255), as the
+   HDL-64E S2 of KITTI, whose asphalt reads ~0.3 of full scale.
 6. **Quantisation** to integers and saturation at ``intensity_max`` (retro-reflectors saturate).
 
 `BeamResponse.expected_raw` and `BeamResponse.to_apparent` give the noise-free curve and its inverse per beam, so
@@ -37,8 +39,7 @@ from placerec.sim.sensors import SensorModel
 
 __all__ = ["BeamResponse", "IntensityModel", "surface_response"]
 
-_RETRO_KNEE = 4.0  # Velodyne retro compression: 100 + 160 (1 - exp(-(x - 1) / knee))
-_RETRO_SPAN = 160.0
+_RETRO_KNEE = 4.0  # Velodyne retro compression: scale + span (1 - exp(-(x - 1) / knee)), span = max + 5 - scale
 _SPEC_WIDTH = 0.12  # rad
 
 
@@ -81,7 +82,7 @@ class BeamResponse:
         rng = np.random.default_rng([int(seed), 0xBEA3])
         n = sensor.n_beams
         gain = np.exp(rng.normal(0.0, 0.12, n))
-        gamma = np.clip(rng.normal(1.0, 0.12, n), 0.75, 1.3)
+        gamma = np.clip(rng.normal(1.0, 0.12, n), 0.75, 1.3) * sensor.response_gamma
         if sensor.family == "velodyne":
             offset = rng.normal(0.0, 1.5, n)
         else:  # a dark level: a 16-bit channel does not report detected returns at zero
@@ -101,15 +102,17 @@ class BeamResponse:
 
     def _scale_out(self, y: np.ndarray) -> np.ndarray:
         if self.family == "velodyne":
-            retro = 100.0 + _RETRO_SPAN * (1.0 - np.exp(-(np.maximum(y, 1.0) - 1.0) / _RETRO_KNEE))
+            span = self.intensity_max + 5.0 - self.scale
+            retro = self.scale + span * (1.0 - np.exp(-(np.maximum(y, 1.0) - 1.0) / _RETRO_KNEE))
             return np.where(y <= 1.0, self.scale * y, retro)
         return self.scale * y
 
     def _scale_in(self, raw: np.ndarray) -> np.ndarray:
         if self.family == "velodyne":
-            frac = np.clip((raw - 100.0) / _RETRO_SPAN, 0.0, 1.0 - 1e-9)
+            span = self.intensity_max + 5.0 - self.scale
+            frac = np.clip((raw - self.scale) / span, 0.0, 1.0 - 1e-9)
             retro = 1.0 - _RETRO_KNEE * np.log1p(-frac)
-            return np.where(raw <= 100.0, raw / self.scale, retro)
+            return np.where(raw <= self.scale, raw / self.scale, retro)
         return raw / self.scale
 
     def expected_raw(self, apparent: np.ndarray, beam: np.ndarray | int, clip: bool = True) -> np.ndarray:

@@ -35,7 +35,8 @@ class SensorModel:
     target (reflectance 1) at normal incidence and the reference range. ``range_10pct`` is the longest range at
     which a 10 % Lambertian target is still detected (half the time) at normal incidence; darker, farther or more
     oblique surfaces drop out. ``range_compensated`` False simulates a raw *signal* channel that falls ~1/R^2
-    (as the 16-bit "intensity" of first-generation Ouster data in MulRan).
+    (as the 16-bit "intensity" of first-generation Ouster data in MulRan). ``response_gamma`` is the nominal
+    exponent of the unit's per-beam response curves (see `placerec.sim.intensity.BeamResponse`).
     """
 
     name: str
@@ -54,6 +55,7 @@ class SensorModel:
     rotation_hz: float = 10.0
     range_compensated: bool = True
     degradation_range: float = 30.0
+    response_gamma: float = 1.0
 
     @property
     def n_beams(self) -> int:
@@ -133,11 +135,12 @@ SENSORS: dict[str, SensorModel] = {
         max_range=120.0,
         range_noise_std=0.02,
         intensity_bits=8,
-        intensity_scale=100.0,
+        intensity_scale=255.0,
         range_10pct=50.0,
         beam_divergence_mrad=2.0,
         organized=False,
         mount_height=1.73,
+        response_gamma=0.5,
     ),
     "os1-64": SensorModel(
         name="os1-64",
