@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from placerec.sim.clutter import ClutterConfig, build_clutter
+from placerec.sim.geometry import MeshArrays
 from placerec.sim.intensity import BeamResponse, IntensityModel, surface_response
 from placerec.sim.materials import LAMBERT, P_TONE, SPECULAR, Hits, M
 from placerec.sim.sensors import RayGrid, SensorModel, ray_grid
@@ -36,6 +37,7 @@ class RawHits:
     obj: np.ndarray
     normal: np.ndarray
     directions_world: np.ndarray
+    clutter: MeshArrays | None = None
 
 
 def _cast(scene: object, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -64,14 +66,13 @@ class Renderer:
         self.response = response
         self.model = model or IntensityModel.for_sensor(sensor)
         self.clutter = clutter
-        self._rays = np.empty((self.grid.directions.shape[0], 6), dtype=np.float32)
         self._dirs_t = np.ascontiguousarray(self.grid.directions.T)
 
     def cast(self, pose: np.ndarray, timestamp: float, seed: int, index: int, occluders: bool = False) -> RawHits:
         """Ray-cast one sweep from ``pose`` (T_world_sensor) against the world and this scan's clutter."""
         w = self.world
         R = np.asarray(pose[:3, :3], dtype=np.float32)
-        rays = self._rays
+        rays = np.empty((self.grid.directions.shape[0], 6), dtype=np.float32)  # per call: renders may run concurrently
         rays[:, :3] = np.asarray(pose[:3, 3], dtype=np.float32)
         rays[:, 3:] = (R @ self._dirs_t).T  # (3, N) layout: one fast GEMM
         dirs = rays[:, 3:]
@@ -81,7 +82,6 @@ class Renderer:
         mat = np.where(valid, w.tri_material[primc], M.NONE).astype(np.uint8)
         obj = np.where(valid, w.tri_object[primc], 0).astype(np.int32)
         mesh = build_clutter(w, pose, timestamp, self.clutter, seed, index, occluders)
-        self._clutter_objects = mesh
         if mesh is not None:
             cand = self._clutter_candidates(mesh, pose, everything=occluders)
             t2, prim2, nrm2 = _cast(make_scene(mesh.vertices, mesh.triangles), rays[cand])
@@ -93,7 +93,7 @@ class Renderer:
                 mat[idx] = mesh.tri_material[p2]
                 obj[idx] = mesh.tri_object[p2]
                 nrm[idx] = nrm2[closer]
-        return RawHits(t=t, material=mat, obj=obj, normal=nrm, directions_world=dirs)
+        return RawHits(t=t, material=mat, obj=obj, normal=nrm, directions_world=dirs, clutter=mesh)
 
     def _clutter_candidates(self, mesh: object, pose: np.ndarray, everything: bool) -> np.ndarray:
         """Indices of the rays that can hit the clutter: columns spanned by some clutter object, rows within the
@@ -123,7 +123,7 @@ class Renderer:
         ring_mask = (elev >= el.min() - margin) & (elev <= el.max() + margin)
         return np.flatnonzero(col_mask[self.grid.column] & ring_mask[self.grid.ring])
 
-    def _object_table(self) -> tuple[np.ndarray, np.ndarray]:
+    def _object_table(self, m: MeshArrays | None) -> tuple[np.ndarray, np.ndarray]:
         """(M, 16) float32 rows [cos, sin, origin xyz, params...] and (M,) seeds of the world's and clutter's objects."""
         w = self.world
         if "object_table" not in w.cache:
@@ -134,7 +134,6 @@ class Renderer:
             tab[:, 5 : 5 + w.obj_params.shape[1]] = w.obj_params
             w.cache["object_table"] = tab
         tab = w.cache["object_table"]
-        m = self._clutter_objects
         if m is None or len(m.obj_seed) == 0:
             return tab, w.obj_seed
         extra = np.zeros((len(m.obj_seed), 16), np.float32)
@@ -219,7 +218,7 @@ class Renderer:
         hits = self.cast(pose, timestamp, seed, index, occluders)
         sel = np.flatnonzero((hits.t >= sensor.min_range) & (hits.t <= sensor.max_range))
         origin = np.asarray(pose[:3, 3], dtype=np.float32)
-        table, oseed = self._object_table()
+        table, oseed = self._object_table(hits.clutter)
         # two fixed halves of the sweep, each with its own noise stream: NumPy releases the GIL in its loops, so the
         # halves shade in parallel on two cores and the result does not depend on the thread count
         N = grid.directions.shape[0]
