@@ -203,6 +203,31 @@ def simulate(
     typer.echo(f"wrote {path}")
 
 
+@app.command("train-vocab")
+def train_vocab(
+    config: Annotated[
+        Path | None, typer.Option("--config", "-c", help="Training YAML (see configs/vocab_*.yaml).")
+    ] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Vocabulary file (default: output).")] = None,
+    n_images: Annotated[int | None, typer.Option(help="Override n_images.")] = None,
+    workers: Annotated[int | None, typer.Option(help="Processes extracting features.")] = None,
+) -> None:
+    """Train a DBoW vocabulary (hierarchical k-means++, TF-IDF) on intensity images; writes it and a .json.
+
+    Example: placerec train-vocab --config configs/vocab_orb.yaml
+    """
+    from placerec.errors import PlacerecError
+    from placerec.retrieval.dbow.training import load_training_config, train_vocabulary_from_config
+
+    try:
+        cfg = load_training_config(config, n_images=n_images, workers=workers)
+        path = train_vocabulary_from_config(cfg, out, progress=True)
+    except PlacerecError as exc:
+        _fail(exc)
+        return
+    typer.echo(f"wrote {path} and {path.with_suffix('.json')}")
+
+
 def main() -> None:
     try:
         app()

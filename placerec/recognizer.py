@@ -158,6 +158,8 @@ PIPELINES: dict[str, str] = {
     "ishot-votes": "placerec.pipelines.keypoint_voting:KeypointVoting",
     "shot-votes": "placerec.pipelines.keypoint_voting:KeypointVoting",
     "fpfh-votes": "placerec.pipelines.keypoint_voting:KeypointVoting",
+    "orb-dbow": "placerec.pipelines.dbow:VisualDBoW",
+    "surf-dbow": "placerec.pipelines.dbow:VisualDBoW",
 }
 
 #: Parameter presets of registered names (merged under the config's own ``params``).
@@ -167,6 +169,8 @@ PIPELINE_PRESETS: dict[str, dict[str, Any]] = {
     "ishot-votes": {"descriptor": "ishot"},
     "shot-votes": {"descriptor": "shot"},
     "fpfh-votes": {"descriptor": "fpfh"},
+    "orb-dbow": {"features": "orb"},
+    "surf-dbow": {"features": "fast-surf"},
 }
 
 

@@ -29,7 +29,7 @@ from placerec.recognizer import Description, DescriptorRecognizer, params_key
 from placerec.retrieval.hbst import HBST
 from placerec.types import Candidate, Scan
 
-__all__ = ["VisualParams", "VisualHBST", "yaw_pose"]
+__all__ = ["VisualParams", "VisualHBST", "yaw_pose", "shift_consensus", "visual_frontend_key", "describe_visual"]
 
 _KIND = "visual-hbst-db"
 _VERSION = 1
@@ -66,6 +66,25 @@ def yaw_pose(yaw_rad: float) -> np.ndarray:
     T = np.eye(4)
     T[:2, :2] = [[c, -s], [s, c]]
     return T
+
+
+def visual_frontend_key(params: Any) -> str:
+    """Cache key of the intensity-image + features front end (``params`` has ``features``, ``feature_params``
+    and ``image``): equal for every visual pipeline with the same front-end settings, so they share descriptions."""
+    return params_key(
+        "visual", {"features": params.features, "fp": params.feature_params, "image": asdict(params.image)}
+    )
+
+
+def describe_visual(scan: Scan, image_params: ImageParams, extractor: Any) -> Description:
+    """The visual front end: intensity image, then features -> keypoints (K, 2), descriptors, image width."""
+    img = make_image(scan, image_params)
+    feats = extractor.extract(img.image)
+    return {
+        "keypoints": np.asarray(feats.keypoints, np.float32).reshape(-1, 2),
+        "descriptors": np.ascontiguousarray(feats.descriptors),
+        "width": np.array(img.image.shape[1], np.int64),
+    }
 
 
 def shift_consensus(
@@ -112,19 +131,10 @@ class VisualHBST(DescriptorRecognizer):
 
     @property
     def frontend_key(self) -> str:
-        p = self.params
-        return params_key(
-            "visual", {"features": p.features, "fp": p.feature_params, "image": asdict(p.image)}
-        )
+        return visual_frontend_key(self.params)
 
     def describe(self, scan: Scan) -> Description:
-        img = make_image(scan, self.params.image)
-        feats = self.extractor.extract(img.image)
-        return {
-            "keypoints": np.asarray(feats.keypoints, np.float32).reshape(-1, 2),
-            "descriptors": np.ascontiguousarray(feats.descriptors),
-            "width": np.array(img.image.shape[1], np.int64),
-        }
+        return describe_visual(scan, self.params.image, self.extractor)
 
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
         scan_id = int(scan_id)

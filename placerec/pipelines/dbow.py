@@ -1,0 +1,301 @@
+"""The 2D visual pipeline with DBoW2-style retrieval (VPR paper: ORB-DBoW2, SURF-DBoW2).
+
+Front end: the same as `placerec.pipelines.visual.VisualHBST` (intensity image, then features; the same
+``frontend_key`` for the same image/feature settings, so the runner computes the description once for ORB-HBST
+and ORB-DBoW). Each image becomes an L1-normalised TF-IDF bag of words (`placerec.retrieval.dbow`), stored in an
+inverse-index database with a direct index; a query is one database query (DBoW2's L1 score).
+
+Score (what thresholds apply to):
+
+* ``verify="none"``: the DBoW2 L1 score ``s = 1 - 0.5 |v_q - v_m|_1`` in [0, 1] (divided by the score against the
+  previous frame when ``loop.use_nss``, as DLoopDetector's normalised similarity score).
+* ``verify="shift"`` (default, as VisualHBST): the ``n_verify`` best database results are checked geometrically:
+  query features are matched to the candidate's features under the same vocabulary node at depth
+  ``L - levels_up`` (the direct index; nearest neighbour with ratio test ``nn_ratio`` and distance cap
+  ``max_distance``, one query feature per candidate feature, as DLoopDetector's ``GEOM_DI``), then the column-shift
+  consensus of VisualHBST (`shift_consensus`) counts the inliers and gives the yaw. Score
+  ``inliers / min(n_query_features, n_match_features)``; ``extra["bow_score"]`` keeps the L1 score.
+
+DLoopDetector's options (normalised score with ``alpha``, islands, temporal consistency: ``loop``) are off by
+default: the paper queries DBoW2's database as is. The temporal window lives in the recognizer (queries are assumed
+in acquisition order) and is not saved.
+
+Vocabulary: ``vocabulary`` is a path (absolute, or relative to the working directory or to the repository root);
+None picks the shipped ``vocab/<orb|surf>_k10L5.dbow`` for the feature type. Vocabularies are loaded once per
+process and shared.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+
+from placerec.errors import ArtifactError, ConfigError
+from placerec.image import ImageParams
+from placerec.io.atomic import load_artifact, save_artifact
+from placerec.pipelines.visual import describe_visual, shift_consensus, visual_frontend_key, yaw_pose
+from placerec.recognizer import Description, DescriptorRecognizer
+from placerec.retrieval.bits import hamming, to_words
+from placerec.retrieval.dbow.database import BowDatabase, candidate_pairs
+from placerec.retrieval.dbow.loop_detector import LoopDetectorParams, LoopFilter
+from placerec.retrieval.dbow.vocabulary import Vocabulary, l1_score
+from placerec.types import Candidate, Scan
+
+log = logging.getLogger(__name__)
+
+__all__ = ["DBoWParams", "VisualDBoW", "default_vocabulary_path", "resolve_vocabulary", "VOCAB_DIR"]
+
+_KIND = "visual-dbow-db"
+_VERSION = 1
+REPO_ROOT = Path(__file__).resolve().parents[2]
+VOCAB_DIR = REPO_ROOT / "vocab"
+#: Shipped vocabulary per feature extractor (SURF's descriptor with FAST or SURF keypoints share one).
+SHIPPED = {"orb": "orb_k10L5.dbow", "fast-surf": "surf_k10L5.dbow", "surf": "surf_k10L5.dbow"}
+_TRAIN_CONFIG = {
+    "orb": "configs/vocab_orb.yaml",
+    "fast-surf": "configs/vocab_surf.yaml",
+    "surf": "configs/vocab_surf.yaml",
+}
+_CACHE: dict[tuple[str, int, int], Vocabulary] = {}
+
+
+@dataclass(frozen=True)
+class DBoWParams:
+    """Front end (as `VisualParams`), vocabulary, direct index depth, DLoopDetector options and verification."""
+
+    features: str = "orb"
+    feature_params: dict[str, Any] = field(default_factory=dict)
+    image: ImageParams = field(default_factory=ImageParams)
+    vocabulary: str | None = None
+    levels_up: int = 3  # direct index depth L - levels_up (at least 1)
+    loop: LoopDetectorParams = field(default_factory=LoopDetectorParams)
+    verify: Literal["shift", "none"] = "shift"
+    n_verify: int = 10
+    nn_ratio: float = 0.8
+    max_distance: float | None = None
+    shift_tolerance_px: int = 8
+    row_tolerance_px: int = 4
+
+
+def default_vocabulary_path(features: str) -> Path:
+    """The shipped vocabulary for a feature extractor name."""
+    name = SHIPPED.get(features, f"{features}_k10L5.dbow")
+    return VOCAB_DIR / name
+
+
+def resolve_vocabulary(path: str | None, features: str) -> Path:
+    """Where the vocabulary for ``path``/``features`` is (see the module docstring); `ArtifactError` if absent."""
+    if path is None:
+        found = default_vocabulary_path(features)
+    else:
+        p = Path(path).expanduser()
+        found = p if p.is_absolute() or p.exists() else REPO_ROOT / p
+    if not found.is_file():
+        cfg = _TRAIN_CONFIG.get(features, "configs/vocab_orb.yaml (with 'features' set)")
+        raise ArtifactError(
+            f"DBoW vocabulary {found} not found (features {features!r}). Train one with "
+            f"`placerec train-vocab --config {cfg}` or set the pipeline parameter 'vocabulary' to a vocabulary "
+            "file (placerec .dbow or ORB-SLAM2 text)."
+        )
+    return found
+
+
+def _load_cached(path: Path) -> Vocabulary:
+    from placerec.retrieval.dbow.io import load_vocabulary
+
+    st = path.stat()
+    key = (str(path.resolve()), st.st_mtime_ns, st.st_size)
+    if key not in _CACHE:
+        if len(_CACHE) >= 4:
+            _CACHE.pop(next(iter(_CACHE)))
+        _CACHE[key] = load_vocabulary(path)
+    return _CACHE[key]
+
+
+class VisualDBoW(DescriptorRecognizer):
+    """`PlaceRecognizer` of the VPR paper's 2D modality with DBoW2 retrieval (ORB-DBoW, SURF-DBoW)."""
+
+    name: ClassVar[str] = "visual-dbow"
+    Params: ClassVar[type] = DBoWParams
+
+    def __init__(self, params: DBoWParams | None = None, **overrides: Any) -> None:
+        super().__init__(params, **overrides)
+        from placerec.features import make_extractor
+
+        p = self.params
+        self.extractor = make_extractor(p.features, **p.feature_params)
+        self.vocabulary_path = resolve_vocabulary(p.vocabulary, p.features)
+        self.vocabulary = _load_cached(self.vocabulary_path)
+        voc = self.vocabulary
+        size = self.extractor.descriptor_size
+        if voc.kind != self.extractor.descriptor_kind or voc.descriptor_size != size:
+            raise ArtifactError(
+                f"{self.vocabulary_path}: a {voc.kind} vocabulary of size {voc.descriptor_size} does not fit "
+                f"{p.features} descriptors ({self.extractor.descriptor_kind}, size {size})"
+            )
+        if p.levels_up < 0:
+            raise ConfigError(f"{self.name}: levels_up must be >= 0, got {p.levels_up}")
+        self.levels_up = min(p.levels_up, voc.L - 1)  # direct index at depth L - levels_up >= 1
+        self._loop_on = p.loop.use_nss or p.loop.islands or p.loop.alpha > 0 or p.loop.temporal_k > 0
+        self._reset()
+
+    def _reset(self) -> None:
+        self.db = BowDatabase(self.vocabulary, self.levels_up)
+        self.loop_filter = LoopFilter(self.params.loop)
+        self._keypoints: dict[int, np.ndarray] = {}
+        self._descriptors: dict[int, np.ndarray] = {}
+        self._width: dict[int, int] = {}
+
+    @property
+    def frontend_key(self) -> str:
+        return visual_frontend_key(self.params)
+
+    def describe(self, scan: Scan) -> Description:
+        return describe_visual(scan, self.params.image, self.extractor)
+
+    def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
+        scan_id = int(scan_id)
+        desc = np.ascontiguousarray(description["descriptors"])
+        self.db.add_descriptors(desc, scan_id)
+        self._keypoints[scan_id] = np.asarray(description["keypoints"], np.float32).reshape(-1, 2)
+        self._descriptors[scan_id] = desc
+        self._width[scan_id] = int(description["width"])
+
+    def __len__(self) -> int:
+        return len(self.db)
+
+    def query_description(
+        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
+    ) -> list[Candidate]:
+        p = self.params
+        desc = np.ascontiguousarray(description["descriptors"])
+        if desc.shape[0] == 0 or len(self.db) == 0:
+            return []
+        bow, nodes = self.vocabulary.transform(desc, self.levels_up)
+        n_res = max(
+            k, p.n_verify if p.verify == "shift" else k, p.loop.max_db_results if self._loop_on else 0
+        )
+        res = self.db.query(bow, n_res, max_id)
+        ids, scores, status = res.ids, res.scores, "ok"
+        if self._loop_on:
+            last = self.db.last_id
+            eta = l1_score(bow, self.db.bow(last)) if p.loop.use_nss and last is not None else None
+            lr = self.loop_filter.apply(query_id if query_id >= 0 else len(self.db), ids, scores, eta)
+            ids, scores, status = lr.ids, lr.scores, lr.status
+        if p.verify == "none":
+            return [
+                Candidate(query_id, int(i), float(s), None, None, {"bow_score": float(s), "status": status})
+                for i, s in zip(ids[:k], scores[:k], strict=True)
+            ]
+        kq = np.asarray(description["keypoints"], np.float32).reshape(-1, 2)
+        width = int(description["width"])
+        out = []
+        for image_id, bow_score in zip(ids[: p.n_verify], scores[: p.n_verify], strict=True):
+            out.append(self._verify(int(image_id), float(bow_score), desc, nodes, kq, width, query_id))
+        out.sort(key=lambda c: (-c.score, c.match_id))
+        return out[:k]
+
+    def _verify(
+        self,
+        image_id: int,
+        bow_score: float,
+        desc: np.ndarray,
+        nodes: np.ndarray,
+        kq: np.ndarray,
+        width: int,
+        query_id: int,
+    ) -> Candidate:
+        p = self.params
+        kr = self._keypoints[image_id]
+        qi, ri = self._match(desc, nodes, self._descriptors[image_id], self.db.feature_nodes(image_id))
+        inliers, shift = shift_consensus(
+            kq[qi, 0], kq[qi, 1], kr[ri, 0], kr[ri, 1], width, p.shift_tolerance_px, p.row_tolerance_px
+        )
+        score = inliers / max(1, min(desc.shape[0], kr.shape[0]))
+        yaw = (2.0 * np.pi * shift / width + np.pi) % (2 * np.pi) - np.pi
+        extra = {"bow_score": bow_score, "matches": int(qi.size), "yaw_deg": float(np.degrees(yaw))}
+        return Candidate(query_id, image_id, float(score), yaw_pose(yaw), inliers, extra)
+
+    def _match(
+        self, dq: np.ndarray, nq: np.ndarray, dr: np.ndarray, nr: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Direct-index matching: nearest candidate feature under the same node, ratio test, distance cap, and
+        at most one query feature per candidate feature (the closest)."""
+        ia, jb = candidate_pairs(nq, nr)
+        if ia.size == 0:
+            return ia, jb
+        if self.vocabulary.binary:
+            d = hamming(to_words(dq)[ia], to_words(dr)[jb]).astype(np.float64)
+            cap = self.params.max_distance
+            cap = 50.0 * dq.shape[1] * 8 / 256 if cap is None else cap
+        else:
+            diff = dq[ia].astype(np.float64) - dr[jb]
+            d = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+            cap = np.inf if self.params.max_distance is None else self.params.max_distance
+        order = np.lexsort((d, ia))
+        ia, jb, d = ia[order], jb[order], d[order]
+        best = np.flatnonzero(np.r_[True, ia[1:] != ia[:-1]])
+        nxt = best + 1
+        has2 = (nxt < ia.size) & (ia[np.minimum(nxt, ia.size - 1)] == ia[best])
+        d2 = np.full(best.size, np.inf)
+        d2[has2] = d[nxt[has2]]
+        d1 = d[best]
+        keep = best[(d1 <= self.params.nn_ratio * d2) & (d1 <= cap)]
+        qi, ri, dk = ia[keep], jb[keep], d[keep]
+        order = np.lexsort((dk, ri))
+        qi, ri = qi[order], ri[order]
+        first = np.r_[True, ri[1:] != ri[:-1]] if ri.size else np.zeros(0, bool)
+        return qi[first], ri[first]
+
+    # ------------------------------------------------------------------------------------------ persistence
+    def save(self, path: str | Path) -> None:
+        """Store every added image's keypoints and descriptors (insertion order) with the parameters and the
+        vocabulary's fingerprint; `load` re-adds them (the transform is deterministic)."""
+        order = self.db.ids.tolist()
+        dim = self.vocabulary.descriptor_size
+        dtype = np.uint8 if self.vocabulary.binary else np.float32
+        arrays = {
+            "ids": np.asarray(order, np.int64),
+            "counts": np.array([self._keypoints[i].shape[0] for i in order], np.int64),
+            "widths": np.array([self._width[i] for i in order], np.int64),
+            "keypoints": _stack([self._keypoints[i] for i in order], (0, 2), np.float32),
+            "descriptors": _stack([self._descriptors[i] for i in order], (0, dim), dtype),
+        }
+        meta = {"params": _jsonable(self.params), "vocabulary": self.vocabulary.fingerprint}
+        save_artifact(path, _KIND, _VERSION, arrays, meta)
+
+    def load(self, path: str | Path) -> None:
+        arrays, header = load_artifact(path, _KIND, (_VERSION,))
+        meta = header["meta"]
+        if meta.get("params") != _jsonable(self.params):
+            raise ArtifactError(f"{path}: database was made with other parameters: {meta.get('params')}")
+        if meta.get("vocabulary") != self.vocabulary.fingerprint:
+            raise ArtifactError(
+                f"{path}: database was made with vocabulary {meta.get('vocabulary')}, "
+                f"not {self.vocabulary_path} ({self.vocabulary.fingerprint})"
+            )
+        self._reset()
+        offsets = np.r_[0, np.cumsum(arrays["counts"])]
+        for i, a, b, w in zip(arrays["ids"], offsets[:-1], offsets[1:], arrays["widths"], strict=True):
+            self.add_description(
+                int(i),
+                {
+                    "keypoints": arrays["keypoints"][a:b],
+                    "descriptors": arrays["descriptors"][a:b],
+                    "width": w,
+                },
+            )
+
+
+def _stack(parts: list[np.ndarray], empty_shape: tuple[int, int], dtype: type) -> np.ndarray:
+    return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(empty_shape, dtype)
+
+
+def _jsonable(params: Any) -> Any:
+    import json
+
+    return json.loads(json.dumps(asdict(params), default=str))
