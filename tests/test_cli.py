@@ -91,3 +91,17 @@ def test_simulate_writes_a_kitti_folder_placerec_reads_back(tmp_path):
     assert scan.ring is not None and scan.sensor.n_beams == 16 and len(scan) > 1000
     bad = runner.invoke(app, ["simulate", "--sensor", "nope", "--scans", "1", "--out", str(tmp_path / "x")])
     assert bad.exit_code == 2 and "nope" in bad.output
+
+
+def test_simulated_export_round_trips_raw_intensity(tmp_path):
+    import numpy as np
+
+    from placerec.io import open_sequence
+    from placerec.sim import SimulatedSequence, write_kitti_sequence
+
+    seq = SimulatedSequence(world="town", sensor="vlp16", n_scans=2, seed=4)
+    write_kitti_sequence(seq, tmp_path / "out", progress=False)
+    loaded, original = open_sequence(tmp_path / "out")[1], seq[1]
+    valid = np.any(original.xyz != 0, axis=1)
+    assert loaded.sensor.intensity_max == original.sensor.intensity_max == 255
+    assert np.allclose(np.sort(loaded.intensity), np.sort(original.intensity[valid]), atol=0.01)

@@ -3,7 +3,10 @@
 Both folder loaders understand two files written by placerec's simulator:
 
 * ``sensor.yaml`` in the sequence root (keys name, beam_elevations_deg, columns, intensity_max, min_range,
-  max_range): it becomes the `SensorInfo` of every scan;
+  max_range): it becomes the `SensorInfo` of every scan. KITTI ``.bin`` files store intensity as a [0, 1]
+  reflectance (KITTI's convention, which the simulator's export follows: raw / intensity_max); with a
+  ``sensor.yaml`` giving ``intensity_max`` they are multiplied back to the sensor's raw units, so a loaded scan
+  has the same intensities as the simulated one;
 * per-scan ring files: for a scan ``<dir>/velodyne/000042.bin`` the file ``<dir>/ring/000042.npy`` (an int16
   array, one beam index per point) — in general a folder named ``ring`` beside the scan folder, same stem,
   ``.npy`` — is attached as ``Scan.ring`` when it exists.
@@ -107,6 +110,8 @@ class _FileSequence:
         changes: dict[str, Any] = {}
         if self._sensor is not None:
             changes["sensor"] = self._sensor
+            if self._sensor.intensity_max and self._options.get("format", "kitti") == "kitti" and path.suffix == ".bin":
+                changes["intensity"] = scan.intensity * np.float32(self._sensor.intensity_max)
         if self._timestamps is not None:
             changes["timestamp"] = float(self._timestamps[index])
         if self._ring_dir is not None:
