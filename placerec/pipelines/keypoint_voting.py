@@ -1,9 +1,14 @@
 """A first 3D pipeline: ISS-BR keypoints + ISHOT (or SHOT/FPFH) descriptors, ratio-tested NN votes per place.
 
-For every query descriptor the two nearest database descriptors (exact L2, brute force with ``faiss.knn``;
-`tools/bench_3d_nn.py` measured a k-d tree ~40x slower at 1344-d and HNSW minutes to build) give the ratio
-``tau = d1 / d2`` (ISHOT paper, eq. 4); when ``tau < tau_max`` the query descriptor votes for the entry (place)
-its 1st neighbour belongs to. Candidates are the entries with most votes.
+For every query descriptor the two nearest database descriptors (exact L2, brute force with ``faiss.knn``) give
+the ratio ``tau = d1 / d2`` (ISHOT paper, eq. 4); when ``tau < tau_max`` the query descriptor votes for the entry
+(place) its 1st neighbour belongs to. Candidates are the entries with most votes. The paper has no hard ratio
+threshold (its votes are weighted by a model per tau range); 0.9 was best or tied in a localize sweep on the
+simulator (docs/descriptors.md: success 0.55/0.60/0.60 on gator, 0.15/0.25/0.20 on pole for 0.8/0.9/1.0).
+
+Nearest neighbours (`tools/bench_3d_nn.py`, docs/benchmarks.md): at 1344-d a k-d tree is 40-80x slower than
+brute force and HNSW takes minutes to build over 100k descriptors, so the search is exact brute force, on one
+OpenMP thread by default (``nn_threads``; on the shared 2-core machine one faiss thread beat two).
 
 Score (documented, what thresholds apply to): ``score="fraction"`` (default) is votes / number of query
 descriptors, in [0, 1], so one threshold works for scans with many or few keypoints; ``score="votes"`` is the raw
@@ -69,6 +74,7 @@ class VotingParams:
     tau_max: float = 0.9
     score: Literal["fraction", "votes"] = "fraction"
     backend: Literal["faiss", "numpy"] = "faiss"
+    nn_threads: int | None = 1
     place_spacing_m: float = 0.0
     place_window_m: float = 0.0
     places_db: str | None = None
@@ -84,8 +90,13 @@ class VotingParams:
         )
 
 
-def knn2(query: np.ndarray, db: np.ndarray, backend: str = "faiss") -> tuple[np.ndarray, np.ndarray]:
-    """Exact 2 nearest neighbours: (distances (Q, 2) Euclidean, indices (Q, 2)); needs ``len(db) >= 2``."""
+def knn2(
+    query: np.ndarray, db: np.ndarray, backend: str = "faiss", threads: int | None = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact 2 nearest neighbours: (distances (Q, 2) Euclidean, indices (Q, 2)); needs ``len(db) >= 2``.
+
+    ``threads``: OpenMP threads for faiss during the call (None: faiss's default, all cores).
+    """
     q = np.ascontiguousarray(query, dtype=np.float32)
     x = np.ascontiguousarray(db, dtype=np.float32)
     if backend == "faiss":
@@ -93,7 +104,13 @@ def knn2(query: np.ndarray, db: np.ndarray, backend: str = "faiss") -> tuple[np.
             import faiss
         except ImportError as exc:  # pragma: no cover - faiss-cpu is a dependency
             raise DependencyError("keypoint voting needs faiss-cpu (pip install faiss-cpu)") from exc
-        d2, idx = faiss.knn(q, x, 2)
+        before = faiss.omp_get_max_threads()
+        if threads is not None:
+            faiss.omp_set_num_threads(int(threads))
+        try:
+            d2, idx = faiss.knn(q, x, 2)
+        finally:
+            faiss.omp_set_num_threads(before)
     else:
         xx = np.einsum("ij,ij->i", x, x)
         d2 = np.empty((q.shape[0], 2), np.float32)
@@ -331,7 +348,7 @@ class KeypointVoting(DescriptorRecognizer):
         rows, entry, n_ent = self._eligible(max_id)
         if q.shape[0] == 0 or rows.shape[0] < 2:
             return []
-        dist, idx = knn2(q, rows, self.params.backend)
+        dist, idx = knn2(q, rows, self.params.backend, self.params.nn_threads)
         votes = ratio_votes(dist, idx, entry, n_ent, self.params.tau_max)
         top = np.flatnonzero(votes)
         top = top[np.lexsort((np.asarray(self._ids)[top], -votes[top]))][:k]
