@@ -1,4 +1,6 @@
-"""Vocabulary files: binary and ORB-SLAM2 text round trips, float16 storage, malformed files."""
+"""Vocabulary files: binary and ORB-SLAM2 text round trips, float16 storage, malformed files, shipped files."""
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +13,8 @@ from placerec.retrieval.dbow.io import (
     write_text_vocabulary,
 )
 from placerec.retrieval.dbow.vocabulary import train_vocabulary
+
+VOCAB_DIR = Path(__file__).resolve().parents[1] / "vocab"
 
 
 @pytest.fixture(scope="module", params=["binary", "float"])
@@ -59,6 +63,17 @@ def test_float16_storage(tmp_path, vocab):
     half = load_vocabulary(tmp_path / "h.dbow")
     assert half.centres.dtype == np.float32 and np.allclose(half.centres, voc.centres, atol=2e-3)
     assert (tmp_path / "h.dbow").stat().st_size < 0.6 * voc.centres.nbytes + 4096
+
+
+def test_compressed_and_int8_storage(tmp_path, vocab):
+    voc, _ = vocab
+    save_vocabulary(voc, tmp_path / "z.dbow", compress=True)
+    _same(voc, load_vocabulary(tmp_path / "z.dbow"))
+    if not voc.binary:
+        save_vocabulary(voc, tmp_path / "q.dbow", "int8")
+        q = load_vocabulary(tmp_path / "q.dbow")
+        step = np.abs(voc.centres).max() / 127
+        assert np.abs(q.centres - voc.centres).max() <= 0.5 * step + 1e-6
 
 
 def test_orb_slam2_text_with_hand_written_tree(tmp_path):
@@ -110,3 +125,24 @@ def test_corrupt_and_missing_binary_files(tmp_path, vocab):
         load_vocabulary(path)
     with pytest.raises(ArtifactError, match="no such"):
         load_vocabulary(tmp_path / "missing.dbow")
+
+
+@pytest.mark.parametrize(
+    "name, kind, size, levels",
+    [("orb_k10L5.dbow", "binary", 32, 5), ("surf_k10L4.dbow", "float", 64, 4)],
+)
+def test_shipped_vocabularies_load_and_transform(name, kind, size, levels):
+    path = VOCAB_DIR / name
+    assert path.is_file(), f"{path} is missing (see vocab/README.md)"
+    voc = load_vocabulary(path)
+    assert voc.kind == kind and voc.descriptor_size == size and (voc.k, voc.L) == (10, levels)
+    assert voc.n_words > 5000 and voc.meta["n_images"] == 3000
+    assert path.stat().st_size < 10e6
+    rng = np.random.default_rng(0)
+    if kind == "binary":
+        d = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    else:
+        d = rng.standard_normal((300, 64)).astype(np.float32)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+    bow = voc.transform(d)
+    assert len(bow) > 0 and bow.values.sum() == pytest.approx(1.0)

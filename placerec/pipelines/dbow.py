@@ -11,7 +11,7 @@ Score (what thresholds apply to):
   previous frame when ``loop.use_nss``, as DLoopDetector's normalised similarity score).
 * ``verify="shift"`` (default, as VisualHBST): the ``n_verify`` best database results are checked geometrically:
   query features are matched to the candidate's features under the same vocabulary node at depth
-  ``L - levels_up`` (the direct index; nearest neighbour with ratio test ``nn_ratio`` and distance cap
+  ``L - levels_up`` (the direct index; default depth 2, as ORB-SLAM2's levelsup 4 with L = 6; nearest neighbour with ratio test ``nn_ratio`` and distance cap
   ``max_distance``, one query feature per candidate feature, as DLoopDetector's ``GEOM_DI``), then the column-shift
   consensus of VisualHBST (`shift_consensus`) counts the inliers and gives the yaw. Score
   ``inliers / min(n_query_features, n_match_features)``; ``extra["bow_score"]`` keeps the L1 score.
@@ -21,13 +21,14 @@ default: the paper queries DBoW2's database as is. The temporal window lives in 
 in acquisition order) and is not saved.
 
 Vocabulary: ``vocabulary`` is a path (absolute, or relative to the working directory or to the repository root);
-None picks the shipped ``vocab/<orb|surf>_k10L5.dbow`` for the feature type. Vocabularies are loaded once per
-process and shared.
+None picks the shipped vocabulary for the feature type (``vocab/orb_k10L5.dbow``, ``vocab/surf_k10L4.dbow``).
+Vocabularies are loaded once per process and shared.
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -54,7 +55,7 @@ _VERSION = 1
 REPO_ROOT = Path(__file__).resolve().parents[2]
 VOCAB_DIR = REPO_ROOT / "vocab"
 #: Shipped vocabulary per feature extractor (SURF's descriptor with FAST or SURF keypoints share one).
-SHIPPED = {"orb": "orb_k10L5.dbow", "fast-surf": "surf_k10L5.dbow", "surf": "surf_k10L5.dbow"}
+SHIPPED = {"orb": "orb_k10L5.dbow", "fast-surf": "surf_k10L4.dbow", "surf": "surf_k10L4.dbow"}
 _TRAIN_CONFIG = {
     "orb": "configs/vocab_orb.yaml",
     "fast-surf": "configs/vocab_surf.yaml",
@@ -71,7 +72,7 @@ class DBoWParams:
     feature_params: dict[str, Any] = field(default_factory=dict)
     image: ImageParams = field(default_factory=ImageParams)
     vocabulary: str | None = None
-    levels_up: int = 3  # direct index depth L - levels_up (at least 1)
+    levels_up: int | None = None  # direct index at depth L - levels_up (>= 1); None: depth 2
     loop: LoopDetectorParams = field(default_factory=LoopDetectorParams)
     verify: Literal["shift", "none"] = "shift"
     n_verify: int = 10
@@ -137,9 +138,10 @@ class VisualDBoW(DescriptorRecognizer):
                 f"{self.vocabulary_path}: a {voc.kind} vocabulary of size {voc.descriptor_size} does not fit "
                 f"{p.features} descriptors ({self.extractor.descriptor_kind}, size {size})"
             )
-        if p.levels_up < 0:
+        if p.levels_up is not None and p.levels_up < 0:
             raise ConfigError(f"{self.name}: levels_up must be >= 0, got {p.levels_up}")
-        self.levels_up = min(p.levels_up, voc.L - 1)  # direct index at depth L - levels_up >= 1
+        levels_up = max(voc.L - 2, 0) if p.levels_up is None else p.levels_up
+        self.levels_up = min(levels_up, voc.L - 1)  # direct index at depth L - levels_up >= 1
         self._loop_on = p.loop.use_nss or p.loop.islands or p.loop.alpha > 0 or p.loop.temporal_k > 0
         self._reset()
 
@@ -209,6 +211,7 @@ class VisualDBoW(DescriptorRecognizer):
         width: int,
         query_id: int,
     ) -> Candidate:
+        t0 = time.perf_counter()
         p = self.params
         kr = self._keypoints[image_id]
         qi, ri = self._match(desc, nodes, self._descriptors[image_id], self.db.feature_nodes(image_id))
@@ -217,7 +220,12 @@ class VisualDBoW(DescriptorRecognizer):
         )
         score = inliers / max(1, min(desc.shape[0], kr.shape[0]))
         yaw = (2.0 * np.pi * shift / width + np.pi) % (2 * np.pi) - np.pi
-        extra = {"bow_score": bow_score, "matches": int(qi.size), "yaw_deg": float(np.degrees(yaw))}
+        extra = {
+            "bow_score": bow_score,
+            "matches": int(qi.size),
+            "yaw_deg": float(np.degrees(yaw)),
+            "verify_ms": (time.perf_counter() - t0) * 1e3,
+        }
         return Candidate(query_id, image_id, float(score), yaw_pose(yaw), inliers, extra)
 
     def _match(
@@ -229,26 +237,32 @@ class VisualDBoW(DescriptorRecognizer):
         if ia.size == 0:
             return ia, jb
         if self.vocabulary.binary:
-            d = hamming(to_words(dq)[ia], to_words(dr)[jb]).astype(np.float64)
+            d = hamming(np.take(to_words(dq), ia, axis=0), np.take(to_words(dr), jb, axis=0)).astype(
+                np.float64
+            )
             cap = self.params.max_distance
             cap = 50.0 * dq.shape[1] * 8 / 256 if cap is None else cap
-        else:
-            diff = dq[ia].astype(np.float64) - dr[jb]
-            d = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        else:  # per pair (no BLAS: multithreaded small GEMMs are slow on a busy machine)
+            diff = np.take(dq, ia, axis=0) - np.take(dr, jb, axis=0)
+            d = np.sqrt(np.einsum("ij,ij->i", diff, diff)).astype(np.float64)
             cap = np.inf if self.params.max_distance is None else self.params.max_distance
         order = np.lexsort((d, ia))
         ia, jb, d = ia[order], jb[order], d[order]
-        best = np.flatnonzero(np.r_[True, ia[1:] != ia[:-1]])
+        new = np.ones(ia.size, bool)
+        new[1:] = ia[1:] != ia[:-1]
+        best = np.flatnonzero(new)
         nxt = best + 1
-        has2 = (nxt < ia.size) & (ia[np.minimum(nxt, ia.size - 1)] == ia[best])
+        has2 = nxt < ia.size
+        has2[has2] = ~new[nxt[has2]]
         d2 = np.full(best.size, np.inf)
         d2[has2] = d[nxt[has2]]
         d1 = d[best]
         keep = best[(d1 <= self.params.nn_ratio * d2) & (d1 <= cap)]
-        qi, ri, dk = ia[keep], jb[keep], d[keep]
-        order = np.lexsort((dk, ri))
+        qi, ri = ia[keep], jb[keep]
+        order = np.lexsort((d[keep], ri))
         qi, ri = qi[order], ri[order]
-        first = np.r_[True, ri[1:] != ri[:-1]] if ri.size else np.zeros(0, bool)
+        first = np.ones(ri.size, bool)
+        first[1:] = ri[1:] != ri[:-1]
         return qi[first], ri[first]
 
     # ------------------------------------------------------------------------------------------ persistence

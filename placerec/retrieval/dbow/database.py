@@ -241,14 +241,14 @@ def candidate_pairs(nodes_a: np.ndarray, nodes_b: np.ndarray) -> tuple[np.ndarra
     a = np.asarray(nodes_a, np.int64)
     b = np.asarray(nodes_b, np.int64)
     order = np.argsort(b, kind="stable")
-    bs = b[order]
+    bs = np.take(b, order)
     lo = np.searchsorted(bs, a, side="left")
     hi = np.searchsorted(bs, a, side="right")
     lens = np.where(a >= 0, hi - lo, 0)
     total = int(lens.sum())
     ia = np.repeat(np.arange(a.size), lens)
     offsets = np.cumsum(lens) - lens
-    jb = order[np.repeat(lo - offsets, lens) + np.arange(total)]
+    jb = np.take(order, np.repeat(lo - offsets, lens) + np.arange(total))
     return ia, jb
 
 

@@ -6,15 +6,17 @@ Binary format (``.dbow``, little-endian), written atomically (temp file, fsync, 
     uint32    format version (1)
     uint32    header length H
     H bytes   JSON header: k, L, weighting, scoring, kind ("binary"/"float"), descriptor_size, n_nodes,
-              centre_dtype ("uint8", "float32", "float16"), meta, and for every array its dtype, shape,
-              byte offset (from the start of the payload) and CRC-32
+              centre_dtype ("uint8", "float32", "float16", "int8") and centre_scale, meta, and for every array
+              its dtype, shape, byte offset (from the start of the payload), stored bytes, codec and CRC-32
     padding   to a multiple of 64 bytes
-    payload   parents int32 (n_nodes), weights float32 (n_nodes), centres (n_nodes, size)
+    payload   parents int32 (n_nodes), weights float32 (n_nodes), centres (n_nodes, size), each padded to 64
+              bytes, raw or zlib-compressed
 
 Loading reads the file once and wraps the arrays with ``np.frombuffer`` (a 1M-node vocabulary loads in a fraction
-of a second). Float centres can be stored as float16 (``centre_dtype="float16"``: half the size; SURF components
-lie in [-1, 1], so the rounding, at most 2^-11 relative, is far below descriptor noise); they are float32 again
-once loaded.
+of a second). Float centres can be stored smaller: ``centre_dtype="float16"`` (half the size, relative rounding
+2^-11) or ``"int8"`` (a quarter: centres scaled so the largest component is 127 and rounded; for SURF, whose
+components lie in [-1, 1], the step is below 0.01); with ``compress=True`` every array is zlib-compressed (codec
+recorded per array). Centres are float32 again once loaded.
 
 Text format (ORB-SLAM2's ``ORBvoc.txt``; DBoW2 forks' ``saveToTextFile``): first line ``k L scoring weighting``
 (scoring 0 = L1-norm; weighting 0 = TF-IDF, 1 = TF, 2 = IDF, 3 = binary), then one line per node from node 1 in
@@ -57,28 +59,44 @@ _SCORING = {0: "l1", 1: "l2", 2: "chi-square", 3: "kl", 4: "bhattacharyya", 5: "
 _WEIGHTING = {0: "tf-idf", 1: "tf", 2: "idf", 3: "binary"}
 
 
-def save_vocabulary(voc: Vocabulary, path: str | Path, centre_dtype: str | None = None) -> None:
-    """Write ``voc`` in the binary format. ``centre_dtype``: None (uint8 for binary, float32 for float) or
-    "float16" for float vocabularies."""
+def save_vocabulary(
+    voc: Vocabulary, path: str | Path, centre_dtype: str | None = None, compress: bool = False
+) -> None:
+    """Write ``voc`` in the binary format.
+
+    ``centre_dtype``: None (uint8 for binary, float32 for float), or for float vocabularies "float16" or "int8"
+    (centres scaled by ``127 / max|c|`` and rounded; the scale is stored). ``compress``: zlib each array.
+    """
     if centre_dtype is None:
         centre_dtype = "uint8" if voc.binary else "float32"
-    allowed = ("uint8",) if voc.binary else ("float32", "float16")
+    allowed = ("uint8",) if voc.binary else ("float32", "float16", "int8")
     if centre_dtype not in allowed:
         raise ArtifactError(f"{path}: centre_dtype {centre_dtype!r} not allowed for a {voc.kind} vocabulary")
+    scale = 1.0
+    if centre_dtype == "int8":
+        top = float(np.abs(voc.centres).max()) if voc.centres.size else 0.0
+        scale = top / 127.0 if top > 0 else 1.0
+        centres = np.clip(np.rint(voc.centres / scale), -127, 127).astype(np.int8)
+    else:
+        centres = voc.centres.astype("<" + np.dtype(centre_dtype).str[1:])
     arrays = {
         "parents": np.ascontiguousarray(voc.parents, "<i4"),
         "weights": np.ascontiguousarray(voc.weights, "<f4"),
-        "centres": np.ascontiguousarray(voc.centres.astype("<" + np.dtype(centre_dtype).str[1:])),
+        "centres": np.ascontiguousarray(centres),
     }
-    table, offset = {}, 0
+    table, blobs, offset = {}, [], 0
     for name, arr in arrays.items():
+        data = zlib.compress(arr.data, 6) if compress else bytes(arr.data)
         table[name] = {
             "dtype": arr.dtype.str,
             "shape": list(arr.shape),
             "offset": offset,
-            "crc32": zlib.crc32(arr.data),
+            "stored_bytes": len(data),
+            "codec": "zlib" if compress else "raw",
+            "crc32": zlib.crc32(data),
         }
-        offset += _padded(arr.nbytes)
+        blobs.append(data)
+        offset += _padded(len(data))
     header = {
         "k": voc.k,
         "L": voc.L,
@@ -89,6 +107,7 @@ def save_vocabulary(voc: Vocabulary, path: str | Path, centre_dtype: str | None 
         "n_nodes": voc.n_nodes,
         "n_words": voc.n_words,
         "centre_dtype": centre_dtype,
+        "centre_scale": scale,
         "arrays": table,
         "meta": _jsonable(voc.meta),
     }
@@ -96,9 +115,9 @@ def save_vocabulary(voc: Vocabulary, path: str | Path, centre_dtype: str | None 
     head = MAGIC + struct.pack("<II", FORMAT_VERSION, len(blob)) + blob
     with atomic_write(path) as fh:
         fh.write(head + b"\0" * (_padded(len(head)) - len(head)))
-        for arr in arrays.values():
-            fh.write(arr.data)
-            fh.write(b"\0" * (_padded(arr.nbytes) - arr.nbytes))
+        for data in blobs:
+            fh.write(data)
+            fh.write(b"\0" * (_padded(len(data)) - len(data)))
 
 
 def load_vocabulary(path: str | Path) -> Vocabulary:
@@ -124,21 +143,23 @@ def load_vocabulary(path: str | Path) -> Vocabulary:
         arrays = {}
         for name in ("parents", "weights", "centres"):
             spec = header["arrays"][name]
-            dt = np.dtype(spec["dtype"])
-            count = int(np.prod(spec["shape"]))
-            a = base + int(spec["offset"])
-            if a + count * dt.itemsize > len(data):
+            a, n = base + int(spec["offset"]), int(spec["stored_bytes"])
+            if a + n > len(data):
                 raise ArtifactError(f"{path}: truncated vocabulary file (array {name!r})")
-            arr = np.frombuffer(data, dt, count, a).reshape(spec["shape"])
-            if zlib.crc32(arr.data) != spec["crc32"]:
+            stored = memoryview(data)[a : a + n]
+            if zlib.crc32(stored) != spec["crc32"]:
                 raise ArtifactError(f"{path}: corrupt vocabulary file (checksum of {name!r})")
-            arrays[name] = arr
+            raw = zlib.decompress(stored) if spec["codec"] == "zlib" else stored
+            arrays[name] = np.frombuffer(raw, np.dtype(spec["dtype"])).reshape(spec["shape"])
     except ArtifactError:
         raise
-    except (KeyError, ValueError, TypeError, struct.error, json.JSONDecodeError) as exc:
-        raise ArtifactError(f"{path}: corrupt vocabulary header ({exc})") from exc
+    except (KeyError, ValueError, TypeError, struct.error, zlib.error, json.JSONDecodeError) as exc:
+        raise ArtifactError(f"{path}: corrupt vocabulary file ({exc})") from exc
     centres = arrays["centres"]
-    centres = centres.astype(np.uint8 if header["kind"] == "binary" else np.float32, copy=False)
+    if header["kind"] == "binary":
+        centres = centres.astype(np.uint8, copy=False)
+    else:
+        centres = centres.astype(np.float32) * np.float32(header.get("centre_scale", 1.0))
     return Vocabulary(
         int(header["k"]),
         int(header["L"]),

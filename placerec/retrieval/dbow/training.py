@@ -22,6 +22,7 @@ Example config (``configs/vocab_orb.yaml``)::
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import time
@@ -43,6 +44,7 @@ __all__ = [
     "TrainingSimulator",
     "load_training_config",
     "collect_descriptors",
+    "cached_descriptors",
     "train_vocabulary_from_config",
 ]
 
@@ -81,8 +83,12 @@ class VocabTrainingConfig(_Section):
     seed: int = 0
     max_iterations: int = Field(10, ge=1)
     max_fit: int | None = Field(None, ge=100, description="fit nodes larger than this on a random subset")
-    centre_dtype: Literal["auto", "float32", "float16"] = "auto"
+    centre_dtype: Literal["auto", "float32", "float16", "int8"] = "auto"
+    compress: bool = Field(False, description="zlib-compress the vocabulary file's arrays")
     workers: int = Field(1, ge=1, description="processes extracting features")
+    descriptor_cache: str | None = Field(
+        None, description="folder caching the extracted descriptors (reused when the image settings match)"
+    )
     output: str = "vocab/vocabulary.dbow"
 
 
@@ -172,24 +178,59 @@ def _extract(job: tuple[dict[str, Any], int, dict[str, Any]]) -> list[np.ndarray
 def collect_descriptors(
     cfg: VocabTrainingConfig, progress: bool = False
 ) -> tuple[list[np.ndarray], list[str]]:
-    """Per-image descriptors of the training images, and the labels of the sequences used."""
+    """Per-image descriptors of the training images and, per image, the label of its sequence
+    (``world/sensor/seed<n>`` for simulated ones)."""
     seqs = _sequences(cfg)
     counts = np.diff(np.linspace(0, cfg.n_images, len(seqs) + 1).round().astype(int))
-    jobs = [
-        (spec, int(n), cfg.model_dump(mode="json")) for (_, spec), n in zip(seqs, counts, strict=True) if n
-    ]
+    jobs = [(label, spec, int(n)) for (label, spec), n in zip(seqs, counts, strict=True) if n]
+    work = [(spec, n, cfg.model_dump(mode="json")) for _, spec, n in jobs]
     parts: list[np.ndarray] = []
+    labels: list[str] = []
     with _Bar(progress, len(jobs), "features") as advance:
         if cfg.workers > 1 and len(jobs) > 1:
             with ProcessPoolExecutor(cfg.workers) as pool:
-                for res in pool.map(_extract, jobs):
+                results = pool.map(_extract, work)
+                for (label, _, _), res in zip(jobs, results, strict=True):
                     parts.extend(res)
+                    labels.extend([label] * len(res))
                     advance()
         else:
-            for job in jobs:
-                parts.extend(_extract(job))
+            for (label, _, _), job in zip(jobs, work, strict=True):
+                res = _extract(job)
+                parts.extend(res)
+                labels.extend([label] * len(res))
                 advance()
-    return parts, [label for (label, _), n in zip(seqs, counts, strict=True) if n]
+    return parts, labels
+
+
+def cached_descriptors(
+    cfg: VocabTrainingConfig, progress: bool = False
+) -> tuple[list[np.ndarray], list[str]]:
+    """`collect_descriptors`, through ``cfg.descriptor_cache`` when set: the cache file is keyed by every setting
+    that changes the descriptors (features, image, preprocessing, sequences, n_images), not by k, L, etc."""
+    if cfg.descriptor_cache is None:
+        return collect_descriptors(cfg, progress)
+    keys = ("features", "feature_params", "image", "preprocess", "n_images", "simulator", "datasets")
+    blob = json.dumps(cfg.model_dump(mode="json", include=set(keys)), sort_keys=True)
+    path = (
+        Path(cfg.descriptor_cache)
+        / f"descriptors_{cfg.features}_{hashlib.sha1(blob.encode()).hexdigest()[:12]}.npz"
+    )
+    if path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                counts, flat, labels = z["counts"], z["descriptors"], [str(v) for v in z["labels"]]
+            log.info("descriptors from the cache %s", path)
+            return np.split(flat, np.cumsum(counts)[:-1]), labels
+        except (OSError, ValueError, KeyError) as exc:
+            log.warning("ignoring unreadable descriptor cache %s (%s)", path, exc)
+    parts, labels = collect_descriptors(cfg, progress)
+    from placerec.io.atomic import atomic_write
+
+    counts = np.array([p.shape[0] for p in parts], np.int64)
+    with atomic_write(path) as fh:
+        np.savez(fh, counts=counts, descriptors=np.concatenate(parts), labels=np.array(labels))
+    return parts, labels
 
 
 def train_vocabulary_from_config(
@@ -208,7 +249,8 @@ def train_vocabulary_from_config(
     make_extractor(cfg.features, **cfg.feature_params)  # fail early on bad settings
     image_params_of(cfg)
     t0 = time.perf_counter()
-    parts, labels = collect_descriptors(cfg, progress)
+    parts, labels = cached_descriptors(cfg, progress)
+    labels = list(dict.fromkeys(labels))
     t_features = time.perf_counter() - t0
     meta = {
         "features": cfg.features,
@@ -231,7 +273,7 @@ def train_vocabulary_from_config(
         meta=meta,
     )
     centre_dtype = None if cfg.centre_dtype == "auto" else cfg.centre_dtype
-    save_vocabulary(voc, out, None if voc.binary else centre_dtype)
+    save_vocabulary(voc, out, None if voc.binary else centre_dtype, compress=cfg.compress)
     info = {
         **voc.meta,
         "k": voc.k,

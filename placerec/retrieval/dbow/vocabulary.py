@@ -97,47 +97,46 @@ class Vocabulary:
             raise ArtifactError(f"vocabulary: unknown weighting {self.weighting!r}; allowed: {WEIGHTINGS}")
         if self.scoring != "l1":
             log.warning("vocabulary scoring %r: placerec always scores with L1", self.scoring)
-        order = np.argsort(p, kind="stable") + 1  # children grouped by parent, in node id order
-        n_children = np.bincount(p, minlength=n).astype(np.int64)
-        first = np.r_[0, np.cumsum(n_children)[:-1]]
-        kmax = int(n_children.max()) if n > 1 else 1
-        table = np.full((n, max(kmax, 1)), -1, np.int32)
-        parent_sorted = self.parents[order]
-        slot = np.arange(order.size) - first[parent_sorted]
-        table[parent_sorted, slot] = order
-        self.children = table
+        n_children = np.bincount(p, minlength=n)
         self.is_leaf = n_children == 0
         self.is_leaf[0] = False  # the root is never a word
-        self.word_of_node = np.full(n, -1, np.int32)
         leaves = np.flatnonzero(self.is_leaf)
+        self.word_of_node = np.full(n, -1, np.int32)
         self.word_of_node[leaves] = np.arange(leaves.size, dtype=np.int32)
         self.node_of_word = leaves.astype(np.int32)
         self.depth = _depths(self.parents)
         self.word_weights = self.weights[self.node_of_word].astype(np.float64)
-        self._build_descent_tables()
+        self._build_descent_tables(p, n_children, leaves)
 
-    def _build_descent_tables(self) -> None:
-        """Tables for the vectorised descent: every node's children padded with a sentinel node ``n`` that is
-        never chosen (a huge distance penalty), and every leaf its own only child, so that all descriptors can
-        take the same number of steps without bookkeeping."""
+    def _build_descent_tables(self, p: np.ndarray, n_children: np.ndarray, leaves: np.ndarray) -> None:
+        """The descent table ``_next`` (n, kmax): every node's children in node id order, padded with node 0 (the
+        root, never a child, so it can serve as a sentinel with an infinite distance), and every leaf its own only
+        child, so that all descriptors take the same number of steps without bookkeeping."""
         n = self.n_nodes
-        nxt = np.where(self.children >= 0, self.children, n).astype(np.int64)
-        leaves = np.flatnonzero(self.is_leaf)
-        nxt[leaves] = n
+        kmax = max(int(n_children.max()) if n > 1 else 1, 1)
+        order = np.argsort(p, kind="stable").astype(np.int32) + 1  # children grouped by parent, in id order
+        first = np.cumsum(n_children) - n_children
+        parent_sorted = self.parents[order]
+        nxt = np.zeros((n, kmax), np.int32)
+        nxt[parent_sorted, np.arange(order.size) - first[parent_sorted]] = order
         nxt[leaves, 0] = leaves
-        self._next = np.vstack([nxt, np.full((1, nxt.shape[1]), n, np.int64)])
+        self._next = nxt
         self._steps = int(self.depth.max()) if n > 1 else 0
         if self.binary:
-            self._centre_words = np.vstack(
-                [to_words(self.centres), np.zeros((1, -(-self.descriptor_size // 8)), np.uint64)]
-            )
-            self._penalty = np.r_[np.zeros(n, np.int32), np.int32(1 << 20)]
+            self._centre_words = to_words(self.centres)
+            self._penalty = np.zeros(n, np.int32)
+            self._penalty[0] = 1 << 20
         else:
-            c = np.vstack([self.centres, np.zeros((1, self.descriptor_size), np.float32)])
-            self._centres_ext = c
-            sq = np.einsum("ij,ij->i", c, c, dtype=np.float64)
-            sq[n] = np.inf
-            self._penalty = sq.astype(np.float32)
+            sq = np.einsum("ij,ij->i", self.centres, self.centres, dtype=np.float64).astype(np.float32)
+            sq[0] = np.inf
+            self._penalty = sq
+
+    @property
+    def children(self) -> np.ndarray:
+        """(n_nodes, kmax) int32: children of every node in node id order, -1 padded."""
+        out = np.where(self._next > 0, self._next, -1)
+        out[self.is_leaf] = -1
+        return out
 
     # ------------------------------------------------------------------------------------------ properties
     @property
@@ -229,7 +228,7 @@ class Vocabulary:
                 for w in range(1, counts.shape[2]):
                     dist += counts[:, :, w]
             else:  # |c|^2 - 2 c.x (|x|^2 is the same for every child)
-                dot = np.matmul(np.take(self._centres_ext, ch, axis=0), x)[:, :, 0]
+                dot = np.matmul(np.take(self.centres, ch, axis=0), x)[:, :, 0]
                 dist = np.take(self._penalty, ch) - 2.0 * dot
             cur = np.take_along_axis(ch, np.argmin(dist, axis=1)[:, None], axis=1)[:, 0]
             if step == node_depth:
@@ -280,21 +279,18 @@ class Vocabulary:
 
 
 def _depths(parents: np.ndarray) -> np.ndarray:
-    """Depth of every node (root 0); parents precede children."""
+    """Depth of every node (root 0): climb all nodes one level per step until they reach the root."""
     depth = np.zeros(parents.size, np.int32)
-    frontier = np.array([0])
-    d = 0
-    children_of = np.argsort(parents[1:], kind="stable") + 1
-    starts = np.searchsorted(parents[children_of], np.arange(parents.size), side="left")
-    ends = np.searchsorted(parents[children_of], np.arange(parents.size), side="right")
-    while frontier.size:
-        lens = ends[frontier] - starts[frontier]
-        if lens.sum() == 0:
+    up = parents.astype(np.int64)
+    up[0] = 0
+    cur = up.copy()
+    while True:
+        moving = cur > 0
+        if not moving.any():
             break
-        idx = np.repeat(starts[frontier] - np.r_[0, np.cumsum(lens)[:-1]], lens) + np.arange(lens.sum())
-        frontier = children_of[idx]
-        d += 1
-        depth[frontier] = d
+        depth += moving
+        cur = np.take(up, cur)
+    depth[1:] += 1
     return depth
 
 
