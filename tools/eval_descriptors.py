@@ -371,9 +371,10 @@ def main() -> None:
         if b["link_frequency"]:
             print(f"  fraction of resamples in which each link holds: {b['link_frequency']}")
 
+    extent = "one sweep each" if args.window_m == 0 else f"sweeps within +-{args.window_m} m of travel"
     title = (
-        f"{split.map.name}: {results[names[0]]['places']} places (every {args.place_spacing} m, "
-        f"window +-{args.window_m} m); {args.query_mode} queries; tau 0.5..1; TP: place within 5 m"
+        f"{split.map.name}: {results[names[0]]['places']} places (every {args.place_spacing} m, {extent}); "
+        f"{args.query_mode}-sweep queries; tau 0.5..1; TP: place within 5 m"
     )
     figure(results, grid, args.figure, title)
     print(f"figure: {args.figure}")

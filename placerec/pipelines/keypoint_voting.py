@@ -21,7 +21,9 @@ Entries ("places"):
   match ids are scan ids, which is what the loop and localize evaluators expect.
 * ``place_window_m > 0``: an entry accumulates, in its own frame, the voxelised clouds of the scans added just
   before it within that much travelled distance (from the poses given to ``add``; causal, so it also works in
-  loop mode), then is described as one cloud (a place of the paper, Sec. IV-B).
+  loop mode), then is described as one cloud (a place of the paper, Sec. IV-B). The paper queries such places
+  with dense static scans; a single sweep's descriptors (sparser rings) match accumulated places poorly
+  (docs/descriptors.md), so keep 0 when queries are single sweeps.
 * ``place_spacing_m > 0``: only scans at least that far from every earlier entry become entries (the others
   only contribute points to later entries); ids stay scan ids, so ``map_poses[match_id]`` is the place pose.
 * ``places_db``: a `placerec.three_d.places.PlacesDatabase` file (built offline by ``build_places`` from the
