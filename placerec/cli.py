@@ -228,6 +228,81 @@ def train_vocab(
     typer.echo(f"wrote {path} and {path.with_suffix('.json')}")
 
 
+@app.command()
+def calibrate(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Calibration table to write (.npz).")],
+    sequence: Annotated[
+        Path | None, typer.Argument(help="A sequence with poses and rings (anything `placerec info` reads).")
+    ] = None,
+    format: Annotated[str | None, typer.Option(help="Force a reader, e.g. 'nclt'.")] = None,
+    poses: Annotated[Path | None, typer.Option(help="Poses file (default: the sequence's own).")] = None,
+    sim_world: Annotated[
+        str | None, typer.Option("--sim-world", help="Calibrate on the simulator instead: town, campus, industrial.")
+    ] = None,
+    sim_sensor: Annotated[str, typer.Option("--sim-sensor", help="Simulated sensor.")] = "vlp16",
+    sim_scans: Annotated[int | None, typer.Option("--sim-scans", help="Simulated scans (default: the route).")] = None,
+    seed: Annotated[int, typer.Option(help="Simulator seed.")] = 0,
+    voxel_size: Annotated[float, typer.Option(help="Map cell size (m).")] = 0.25,
+    max_range: Annotated[float, typer.Option(help="Intensity range cut-off (m).")] = 30.0,
+    iterations: Annotated[int, typer.Option(help="Maximum EM iterations.")] = 100,
+    step: Annotated[int, typer.Option(help="Use every step-th scan.")] = 1,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", "-s", help="Another CalibrationParams field: key=value (repeatable)."),
+    ] = None,
+) -> None:
+    """Per-beam intensity calibration (Levinson & Thrun) from registered scans; writes the lookup table.
+
+    Use it in preprocessing with `preprocess.intensity.calibration: <table>` in an experiment config.
+
+    Examples:
+
+      placerec calibrate sim/town_vlp16 --out vlp16_calibration.npz
+
+      placerec calibrate --sim-world town --sim-sensor vlp16 --sim-scans 300 --seed 1 --out calib.npz
+    """
+    import time
+
+    from pydantic import ValidationError
+    from rich.progress import Progress
+
+    from placerec.calibration import CalibrationParams, calibrate_sequence
+    from placerec.config import apply_overrides
+    from placerec.errors import ConfigError, PlacerecError
+
+    try:
+        if (sequence is None) == (sim_world is None):
+            raise ConfigError("give either a SEQUENCE path or --sim-world (not both)")
+        values = {"voxel_size": voxel_size, "max_range": max_range, "iterations": iterations, "step": step}
+        try:
+            params = CalibrationParams(**apply_overrides(values, set_ or []))
+        except ValidationError as exc:
+            bad = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+            raise ConfigError(f"calibration parameters: {bad}") from None
+        if sim_world is not None:
+            from placerec.sim import SimulatedSequence
+
+            seq = SimulatedSequence(world=sim_world, sensor=sim_sensor, n_scans=sim_scans, seed=seed)
+        else:
+            from placerec.io import open_sequence
+
+            kwargs = {k: v for k, v in (("format", format), ("poses", poses)) if v is not None}
+            seq = open_sequence(sequence, **kwargs)
+        t0 = time.perf_counter()
+        with Progress(transient=True) as bar:
+            task = bar.add_task("reading scans", total=None)
+            table = calibrate_sequence(seq, params, lambda done, total: bar.update(task, completed=done, total=total))
+        table.save(out)
+    except PlacerecError as exc:
+        _fail(exc)
+        return
+    m = table.meta
+    typer.echo(
+        f"{table.sensor}: {table.n_beams} beams, {m['n_cells']} cells, {m['n_observations']} observations, "
+        f"{m['em_iterations']} EM iterations, saturation {m['saturation']:g} ({time.perf_counter() - t0:.1f} s)"
+    )
+    typer.echo(f"wrote {out}")
+
 def main() -> None:
     try:
         app()

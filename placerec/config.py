@@ -74,11 +74,17 @@ class DatasetConfig(Section):
 
 
 class IntensityConfig(Section):
-    """Intensity normalisation (`placerec.preprocess.INTENSITY_NORMALIZERS`); ``auto`` = per-sensor default."""
+    """Intensity normalisation (`placerec.preprocess.INTENSITY_NORMALIZERS`); ``auto`` = per-sensor default.
+
+    ``calibration``: path of a per-beam calibration table (``placerec calibrate``); when set, each point's raw
+    intensity is mapped through its beam's table (already in [0, 1], so ``mode`` is not applied) and points beyond
+    the table's intensity range cut-off (30 m) are dropped (zeroed in organised scans).
+    """
 
     mode: Literal["auto", "raw", "linear", "percentile"] = "auto"
     saturation: float | None = Field(None, gt=0)
     percentile: float = Field(99.0, gt=0, le=100)
+    calibration: str | None = None
 
 
 class PreprocessConfig(Section):

@@ -210,7 +210,7 @@ def normalize_intensity(scan: Scan, spec: IntensitySpec | None = None) -> Scan:
 
 
 def preprocess_scan(scan: Scan, cfg: PreprocessConfig, keep_organized: bool = False) -> Scan:
-    """Apply a `PreprocessConfig`: remove invalid points, crop, normalise intensity, voxelise (if configured).
+    """Apply a `PreprocessConfig`: remove invalid points, crop, normalise (or calibrate) intensity, voxelise.
 
     With ``keep_organized`` an organised scan keeps its grid (dropped points zeroed) and is not voxelised, which
     is what image-based pipelines need.
@@ -218,12 +218,19 @@ def preprocess_scan(scan: Scan, cfg: PreprocessConfig, keep_organized: bool = Fa
     scan, _ = remove_invalid(scan, keep_organized)
     scan = crop(scan, cfg.min_range, cfg.max_range, cfg.min_z, cfg.max_z, keep_organized)
     ic = cfg.intensity
-    spec = (
-        default_intensity_spec(scan.sensor.name)
-        if ic.mode == "auto"
-        else IntensitySpec(ic.mode, saturation=ic.saturation, percentile=ic.percentile)
-    )
-    scan = normalize_intensity(scan, spec)
+    if ic.calibration:
+        # per-beam calibration table: output already in [0, 1]; NaN (beyond its range cut-off) -> dropped
+        from placerec.calibration import load_calibration
+
+        scan = load_calibration(ic.calibration).apply(scan)
+        scan = _keep(scan, np.isfinite(scan.intensity), keep_organized)
+    else:
+        spec = (
+            default_intensity_spec(scan.sensor.name)
+            if ic.mode == "auto"
+            else IntensitySpec(ic.mode, saturation=ic.saturation, percentile=ic.percentile)
+        )
+        scan = normalize_intensity(scan, spec)
     if cfg.voxel_size and not (keep_organized and scan.shape is not None):
         scan = voxel_downsample(scan, cfg.voxel_size)
     return scan
