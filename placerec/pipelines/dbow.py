@@ -194,59 +194,86 @@ class VisualDBoW(DescriptorRecognizer):
                 for i, s in zip(ids[:k], scores[:k], strict=True)
             ]
         kq = np.asarray(description["keypoints"], np.float32).reshape(-1, 2)
-        width = int(description["width"])
-        out = []
-        for image_id, bow_score in zip(ids[: p.n_verify], scores[: p.n_verify], strict=True):
-            out.append(self._verify(int(image_id), float(bow_score), desc, nodes, kq, width, query_id))
+        out = self._verify(
+            [int(i) for i in ids[: p.n_verify]],
+            scores[: p.n_verify],
+            desc,
+            nodes,
+            kq,
+            int(description["width"]),
+            query_id,
+        )
         out.sort(key=lambda c: (-c.score, c.match_id))
         return out[:k]
 
     def _verify(
         self,
-        image_id: int,
-        bow_score: float,
+        image_ids: list[int],
+        bow_scores: np.ndarray,
         desc: np.ndarray,
         nodes: np.ndarray,
         kq: np.ndarray,
         width: int,
         query_id: int,
-    ) -> Candidate:
+    ) -> list[Candidate]:
+        """Match against all candidates at once, then the column-shift consensus per candidate."""
+        if not image_ids:
+            return []
         t0 = time.perf_counter()
         p = self.params
-        kr = self._keypoints[image_id]
-        qi, ri = self._match(desc, nodes, self._descriptors[image_id], self.db.feature_nodes(image_id))
-        inliers, shift = shift_consensus(
-            kq[qi, 0], kq[qi, 1], kr[ri, 0], kr[ri, 1], width, p.shift_tolerance_px, p.row_tolerance_px
-        )
-        score = inliers / max(1, min(desc.shape[0], kr.shape[0]))
-        yaw = (2.0 * np.pi * shift / width + np.pi) % (2 * np.pi) - np.pi
-        extra = {
-            "bow_score": bow_score,
-            "matches": int(qi.size),
-            "yaw_deg": float(np.degrees(yaw)),
-            "verify_ms": (time.perf_counter() - t0) * 1e3,
-        }
-        return Candidate(query_id, image_id, float(score), yaw_pose(yaw), inliers, extra)
+        cand, qi, ri = self._match(desc, nodes, image_ids)
+        bounds = np.searchsorted(cand, np.arange(len(image_ids) + 1))
+        out = []
+        for c, (image_id, bow_score) in enumerate(zip(image_ids, bow_scores, strict=True)):
+            sel = slice(bounds[c], bounds[c + 1])
+            q, r = qi[sel], ri[sel]
+            kr = self._keypoints[image_id]
+            inliers, shift = shift_consensus(
+                kq[q, 0], kq[q, 1], kr[r, 0], kr[r, 1], width, p.shift_tolerance_px, p.row_tolerance_px
+            )
+            score = inliers / max(1, min(desc.shape[0], kr.shape[0]))
+            yaw = (2.0 * np.pi * shift / width + np.pi) % (2 * np.pi) - np.pi
+            extra = {"bow_score": float(bow_score), "matches": int(q.size), "yaw_deg": float(np.degrees(yaw))}
+            out.append(Candidate(query_id, image_id, float(score), yaw_pose(yaw), inliers, extra))
+        per = (time.perf_counter() - t0) * 1e3 / len(out)
+        for c in out:
+            c.extra["verify_ms"] = per
+        return out
 
     def _match(
-        self, dq: np.ndarray, nq: np.ndarray, dr: np.ndarray, nr: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Direct-index matching: nearest candidate feature under the same node, ratio test, distance cap, and
-        at most one query feature per candidate feature (the closest)."""
-        ia, jb = candidate_pairs(nq, nr)
+        self, dq: np.ndarray, nq: np.ndarray, image_ids: list[int]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Direct-index matching against several stored images at once: for every (candidate, query feature) the
+        nearest candidate feature under the same vocabulary node, kept if it passes the ratio test and the
+        distance cap; then at most one query feature per candidate feature (the closest). Returns (candidate
+        index, query feature, candidate feature), sorted by candidate."""
+        n_nodes = self.vocabulary.n_nodes
+        r_nodes = [self.db.feature_nodes(i) for i in image_ids]
+        sizes = np.array([x.size for x in r_nodes])
+        r_cand = np.repeat(np.arange(len(image_ids)), sizes)
+        r_local = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+        rn = np.concatenate(r_nodes).astype(np.int64)
+        nq64 = nq.astype(np.int64)
+        # one join over (candidate, node) keys; -1 never matches
+        key_r = np.where(rn >= 0, r_cand * n_nodes + rn, -1)
+        key_q = np.where(nq64 >= 0, np.arange(len(image_ids))[:, None] * n_nodes + nq64, -1).ravel()
+        ia, jb = candidate_pairs(key_q, key_r)
+        empty = np.zeros(0, np.int64)
         if ia.size == 0:
-            return ia, jb
+            return empty, empty, empty
+        qa = ia % nq.size
+        dr = np.concatenate([self._descriptors[i] for i in image_ids])
         if self.vocabulary.binary:
-            d = hamming(np.take(to_words(dq), ia, axis=0), np.take(to_words(dr), jb, axis=0)).astype(
+            d = hamming(np.take(to_words(dq), qa, axis=0), np.take(to_words(dr), jb, axis=0)).astype(
                 np.float64
             )
             cap = self.params.max_distance
             cap = 50.0 * dq.shape[1] * 8 / 256 if cap is None else cap
         else:  # per pair (no BLAS: multithreaded small GEMMs are slow on a busy machine)
-            diff = np.take(dq, ia, axis=0) - np.take(dr, jb, axis=0)
+            diff = np.take(dq, qa, axis=0) - np.take(dr, jb, axis=0)
             d = np.sqrt(np.einsum("ij,ij->i", diff, diff)).astype(np.float64)
             cap = np.inf if self.params.max_distance is None else self.params.max_distance
-        order = np.lexsort((d, ia))
+        order = np.lexsort((d, ia))  # ia identifies (candidate, query feature)
         ia, jb, d = ia[order], jb[order], d[order]
         new = np.ones(ia.size, bool)
         new[1:] = ia[1:] != ia[:-1]
@@ -258,12 +285,15 @@ class VisualDBoW(DescriptorRecognizer):
         d2[has2] = d[nxt[has2]]
         d1 = d[best]
         keep = best[(d1 <= self.params.nn_ratio * d2) & (d1 <= cap)]
-        qi, ri = ia[keep], jb[keep]
-        order = np.lexsort((d[keep], ri))
-        qi, ri = qi[order], ri[order]
-        first = np.ones(ri.size, bool)
-        first[1:] = ri[1:] != ri[:-1]
-        return qi[first], ri[first]
+        ia, jb = ia[keep], jb[keep]
+        order = np.lexsort((d[keep], jb))  # jb identifies (candidate, candidate feature)
+        ia, jb = ia[order], jb[order]
+        first = np.ones(jb.size, bool)
+        first[1:] = jb[1:] != jb[:-1]
+        ia, jb = ia[first], jb[first]
+        order = np.argsort(r_cand[jb], kind="stable")
+        ia, jb = ia[order], jb[order]
+        return r_cand[jb], ia % nq.size, r_local[jb]
 
     # ------------------------------------------------------------------------------------------ persistence
     def save(self, path: str | Path) -> None:
