@@ -3,7 +3,8 @@
 DBoW2 (``TemplatedVocabulary::HKmeansStep``) clusters one node at a time; here every node of a level is clustered
 in the same NumPy passes. Descriptors are kept sorted by node, so a node is a contiguous *segment* of rows, and
 the per-segment steps are segment-wise array operations (cumulative sums + ``searchsorted`` for the k-means++ draw,
-``reduceat`` for the centres).
+one sparse-matrix product for the centres). After the first pass only nodes whose assignments changed are
+iterated again (the others are at a fixed point).
 
 What follows DBoW2:
 
@@ -13,7 +14,8 @@ What follows DBoW2:
   member coincides with a chosen centre (fewer than k clusters).
 * Lloyd iterations: assign to the nearest centre (first one on ties), recompute centres (binary: bit set when at
   least ceil(n/2) members have it; float: the mean). DBoW2 iterates until no assignment changes; we stop there
-  too, or after ``max_iterations`` (default 10: in our runs >95% of nodes converge before).
+  too, or after ``max_iterations`` (default 10; on ORB descriptors of intensity images fewer than 3 % of the
+  assignments of a level still change at the 10th iteration, mostly near-ties between two centres).
 * a node with at most k descriptors gets one child per descriptor; a child is split further only if it holds more
   than one descriptor and the depth is below L.
 
