@@ -251,6 +251,9 @@ class Vocabulary:
         ``L - levels_up`` (-1 for descriptors of stopped words), which `BowDatabase` keeps as the direct index.
         """
         d = self.check_descriptors(descriptors)
+        if self.n_words == 0:  # a root-only vocabulary
+            empty = BowVector.empty()
+            return empty if levels_up is None else (empty, np.full(d.shape[0], -1, np.int32))
         node_depth = None if levels_up is None else self.L - int(levels_up)
         leaf, at_depth = self.descend(d, node_depth)
         words = self.word_of_node[leaf]
