@@ -214,9 +214,12 @@ def read_text_vocabulary(path: str | Path, kind: str | None = None) -> Vocabular
         raise ArtifactError(f"{path}: vocabulary has no nodes")
     n_cols = len(lines[0].split())
     n_lines = body.strip().count("\n") + 1
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)  # raised when a token is not a number
-        values = np.fromstring(body, dtype=np.float64, sep=" ")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)  # NumPy < 2.3 warns when a token is not a number
+            values = np.fromstring(body, dtype=np.float64, sep=" ")
+    except ValueError:  # NumPy >= 2.3 raises instead
+        values = np.zeros(0)
     if n_cols < 4 or values.size != n_lines * n_cols:
         raise ArtifactError(
             f"{path}: malformed node lines: expected {n_lines} lines of {n_cols} numbers "
