@@ -14,9 +14,7 @@ Pipelines are registered by name in `PIPELINES` (``name -> "module:Class"``); `m
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import importlib
-import json
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, ClassVar, Protocol, runtime_checkable
@@ -24,6 +22,7 @@ from typing import Any, ClassVar, Protocol, runtime_checkable
 import numpy as np
 
 from placerec.errors import ConfigError
+from placerec.hashing import stable_hash
 from placerec.types import Candidate, Scan
 
 __all__ = [
@@ -69,8 +68,7 @@ def params_key(name: str, params: Any) -> str:
     """A short stable hash of a front-end name and its parameters (a dataclass or a mapping)."""
     if dataclasses.is_dataclass(params) and not isinstance(params, type):
         params = dataclasses.asdict(params)
-    blob = json.dumps({"name": name, "params": params}, sort_keys=True, default=str)
-    return f"{name}-{hashlib.sha1(blob.encode()).hexdigest()[:12]}"
+    return f"{name}-{stable_hash({'name': name, 'params': params})}"
 
 
 class DescriptorRecognizer(ABC):

@@ -32,8 +32,6 @@ reported as ``extra["yaw_deg"]`` (wrapped to (-180, 180]).
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
@@ -45,6 +43,7 @@ from scipy.spatial import cKDTree
 
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.io.atomic import load_artifact, save_artifact
+from placerec.recognizer import params_key
 from placerec.types import Candidate, Scan
 
 log = logging.getLogger(__name__)
@@ -246,8 +245,7 @@ class ScanContext:
     @property
     def frontend_key(self) -> str:
         """Identifies the descriptor and its parameters (equal keys give identical descriptions)."""
-        blob = json.dumps({"name": self.name, "params": self.params.descriptor_dict()}, sort_keys=True)
-        return f"{self.name}-{hashlib.sha1(blob.encode()).hexdigest()[:12]}"
+        return params_key(self.name, self.params.descriptor_dict())
 
     def describe(self, scan: Scan) -> dict[str, np.ndarray]:
         """``{"scan_context": descriptor}`` of the scan with this recognizer's parameters."""

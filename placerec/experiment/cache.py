@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -11,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from placerec.errors import ArtifactError
+from placerec.hashing import stable_hash
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.recognizer import Description
 
@@ -24,8 +23,7 @@ _VERSION = 1
 
 def config_hash(*parts: Any) -> str:
     """A short stable hash of JSON-serialisable config parts."""
-    blob = json.dumps(parts, sort_keys=True, default=str)
-    return hashlib.sha1(blob.encode()).hexdigest()[:12]
+    return stable_hash(list(parts))
 
 
 class DescriptionCache:

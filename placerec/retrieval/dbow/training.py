@@ -22,7 +22,6 @@ Example config (``configs/vocab_orb.yaml``)::
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import time
@@ -36,6 +35,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from placerec.config import DatasetConfig, PreprocessConfig
 from placerec.errors import ConfigError
+from placerec.hashing import stable_hash
 
 log = logging.getLogger(__name__)
 
@@ -211,11 +211,8 @@ def cached_descriptors(
     if cfg.descriptor_cache is None:
         return collect_descriptors(cfg, progress)
     keys = ("features", "feature_params", "image", "preprocess", "n_images", "simulator", "datasets")
-    blob = json.dumps(cfg.model_dump(mode="json", include=set(keys)), sort_keys=True)
-    path = (
-        Path(cfg.descriptor_cache)
-        / f"descriptors_{cfg.features}_{hashlib.sha1(blob.encode()).hexdigest()[:12]}.npz"
-    )
+    digest = stable_hash(cfg.model_dump(mode="json", include=set(keys)))
+    path = Path(cfg.descriptor_cache) / f"descriptors_{cfg.features}_{digest}.npz"
     if path.is_file():
         try:
             with np.load(path, allow_pickle=False) as z:
