@@ -27,6 +27,9 @@ From surface to raw value, for one return at range R and incidence angle alpha:
 
 `BeamResponse.expected_raw` and `BeamResponse.to_apparent` give the noise-free curve and its inverse per beam, so
 intensity calibration code can be checked against the truth.
+
+Each step is one scalar kernel (``*_1``, compiled with Numba) that the renderer calls per hit; the NumPy-style
+functions and methods here run the same kernels over arrays, so there is one implementation of every formula.
 """
 
 from __future__ import annotations
@@ -35,30 +38,154 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from placerec.sim.jit import elementwise, inline, njit
 from placerec.sim.sensors import SensorModel
 
 __all__ = ["BeamResponse", "IntensityModel", "surface_response"]
 
-_RETRO_KNEE = 4.0  # Velodyne retro compression: scale + span (1 - exp(-(x - 1) / knee)), span = max + 5 - scale
+# Velodyne retro compression: scale + span (1 - exp(-(x - 1) / knee)), span = max + 5 - scale
+_RETRO_KNEE = 4.0
 _SPEC_WIDTH = 0.12  # rad
+_F4 = np.float32
+_F8 = np.float64
+_I8 = np.int64
+
+# indices into `IntensityModel.packed()` and `BeamResponse.packed()`
+(_RANGE_10, _COMPENSATED, _REF_RANGE, _NEAR_FIELD, _RESIDUAL, _DEGRADE_AT, _DEGRADE_LEN, _EXTINCTION, _SPECKLE,
+ _SPECKLE_FAR, _SOFTNESS, _SIGNAL_RANGE, _P_MIN) = range(13)  # fmt: skip
+_VELODYNE, _SCALE, _MAX, _ADD_SD = range(4)
+
+
+# -- scalar kernels (one hit) ---------------------------------------------------------------------------------------
+@inline
+def surface_response_1(rho: float, cos_incidence: float, specular: float, lambert: float) -> float:
+    """Effective backscatter ``beta`` of one surface point (step 1 of the module docstring)."""
+    c = min(max(cos_incidence, 0.0), 1.0)
+    if rho > 1.0:
+        return rho * np.sqrt(c)  # retro-reflective sheeting
+    beta = rho * (c if lambert == 1.0 else c**lambert)
+    if specular > 0:
+        beta += specular * np.exp(-((np.arccos(c) / _SPEC_WIDTH) ** 2))
+    return beta
+
+
+@inline
+def _overlap_extinction(r: float, mp: tuple) -> float:
+    return (1.0 - np.exp(-((r / mp[_NEAR_FIELD]) ** 2))) * np.exp(-2.0 * mp[_EXTINCTION] * r)
+
+
+@inline
+def received_power_1(beta: float, rng_m: float, mp: tuple) -> float:
+    """Relative received power ``beta O(R) exp(-2 sigma R) / R^2`` (LiDAR equation)."""
+    r = max(rng_m, 1e-3)
+    return beta * _overlap_extinction(r, mp) / (r * r)
+
+
+@inline
+def detection_probability_1(beta: float, rng_m: float, mp: tuple) -> float:
+    """Probability that a return is detected at all (a logistic in log received power)."""
+    z = np.log(max(received_power_1(beta, rng_m, mp), 1e-30) / mp[_P_MIN]) / mp[_SOFTNESS]
+    return 1.0 / (1.0 + np.exp(-min(max(z, -50.0), 50.0)))
+
+
+@inline
+def range_factor_1(rng_m: float, mp: tuple) -> float:
+    """Multiplier from surface response to apparent reflectance at range ``rng_m``."""
+    r = max(rng_m, 1e-3)
+    f = _overlap_extinction(r, mp)
+    if mp[_COMPENSATED] == 0:
+        return f * (mp[_SIGNAL_RANGE] / r) ** 2
+    residual = (r / mp[_REF_RANGE]) ** (-mp[_RESIDUAL])
+    return f * residual * np.exp(-max(r - mp[_DEGRADE_AT], 0.0) / mp[_DEGRADE_LEN])
+
+
+@inline
+def speckle_sigma_1(rng_m: float, mp: tuple) -> float:
+    far = min(max((rng_m - mp[_DEGRADE_AT]) / mp[_DEGRADE_AT], 0.0), 1.5)
+    return mp[_SPECKLE] + mp[_SPECKLE_FAR] * far
+
+
+@inline
+def expected_raw_1(apparent: float, gain: float, gamma: float, offset: float, rp: tuple) -> float:
+    """Noise-free, unquantised, unclipped raw value of a beam with curve (gain, gamma, offset) for apparent
+    reflectance ``apparent`` (``rp`` = `BeamResponse.packed`)."""
+    x = max(apparent, 0.0)
+    y = gain * (x**gamma if x <= 1.0 else 1.0 + gamma * (x - 1.0))
+    scale = rp[_SCALE]
+    if rp[_VELODYNE] != 0 and y > 1.0:
+        span = rp[_MAX] + 5.0 - scale
+        out = scale + span * (1.0 - np.exp(-(y - 1.0) / _RETRO_KNEE))
+    else:
+        out = scale * y
+    return out + offset
+
+
+@inline
+def measure_1(beta: float, rng_m: float, gain: float, gamma: float, offset: float, z_speckle: float, z_noise: float,
+              mp: tuple, rp: tuple) -> float:  # fmt: skip
+    """Noisy, quantised raw intensity of one return on a beam with curve (gain, gamma, offset), given two
+    standard-normal draws (speckle, additive noise)."""
+    s = speckle_sigma_1(rng_m, mp)
+    x = beta * range_factor_1(rng_m, mp) * np.exp(s * z_speckle - 0.5 * s * s)
+    raw = expected_raw_1(x, gain, gamma, offset, rp) + rp[_ADD_SD] * z_noise
+    return min(max(np.rint(raw), 0.0), rp[_MAX])
+
+
+# -- array kernels --------------------------------------------------------------------------------------------------
+@njit
+def _surface_response_n(rho, c, spec, k, out):
+    for i in range(out.shape[0]):
+        out[i] = surface_response_1(rho[i], c[i], spec[i], k[i])
+
+
+@njit
+def _received_power_n(beta, r, mp, out):
+    for i in range(out.shape[0]):
+        out[i] = received_power_1(beta[i], r[i], mp)
+
+
+@njit
+def _detection_probability_n(beta, r, mp, out):
+    for i in range(out.shape[0]):
+        out[i] = detection_probability_1(beta[i], r[i], mp)
+
+
+@njit
+def _apparent_n(beta, r, mp, out):
+    for i in range(out.shape[0]):
+        out[i] = beta[i] * range_factor_1(r[i], mp)
+
+
+@njit
+def _speckle_sigma_n(r, mp, out):
+    for i in range(out.shape[0]):
+        out[i] = speckle_sigma_1(r[i], mp)
+
+
+@njit
+def _expected_raw_n(x, beam, gain, gamma, offset, rp, out):
+    for i in range(out.shape[0]):
+        b = beam[i]
+        out[i] = expected_raw_1(x[i], gain[b], gamma[b], offset[b], rp)
+
+
+@njit
+def _measure_n(beta, r, beam, z1, z2, mp, gain, gamma, offset, rp, out):
+    for i in range(out.shape[0]):
+        b = beam[i]
+        out[i] = measure_1(beta[i], r[i], gain[b], gamma[b], offset[b], z1[i], z2[i], mp, rp)
 
 
 def surface_response(
-    reflectance: np.ndarray, cos_incidence: np.ndarray, specular: np.ndarray | float = 0.0, lambert: np.ndarray | float = 1.0
+    reflectance: np.ndarray,
+    cos_incidence: np.ndarray,
+    specular: np.ndarray | float = 0.0,
+    lambert: np.ndarray | float = 1.0,
 ) -> np.ndarray:
-    """Effective backscatter ``beta`` of a surface (step 1 of the module docstring)."""
-    rho = np.asarray(reflectance, dtype=np.float32)
-    c = np.clip(np.asarray(cos_incidence, dtype=np.float32), 0.0, 1.0)
-    k = np.asarray(lambert, dtype=np.float32)
-    diffuse = rho * (c if np.all(k == 1.0) else c**k)
-    spec = np.asarray(specular, dtype=np.float32)
-    if np.any(spec > 0):
-        alpha = np.arccos(c)
-        diffuse = diffuse + spec * np.exp(-((alpha / _SPEC_WIDTH) ** 2))
-    retro = rho > 1.0
-    if np.any(retro):
-        diffuse = np.where(retro, rho * np.sqrt(c), diffuse)
-    return diffuse.astype(np.float32)
+    """Effective backscatter ``beta`` of a surface (step 1 of the module docstring), float32."""
+    return elementwise(
+        _surface_response_n, (reflectance, cos_incidence, specular, lambert), (_F4,) * 4, np.float32
+    )
 
 
 @dataclass(frozen=True)
@@ -86,7 +213,9 @@ class BeamResponse:
         if sensor.family == "velodyne":
             offset = rng.normal(0.0, 1.5, n)
         else:  # a dark level: a 16-bit channel does not report detected returns at zero
-            offset = np.abs(rng.normal(0.0, 0.012 * sensor.intensity_scale, n)) + 0.005 * sensor.intensity_scale
+            offset = (
+                np.abs(rng.normal(0.0, 0.012 * sensor.intensity_scale, n)) + 0.005 * sensor.intensity_scale
+            )
         return cls(
             gain=gain.astype(np.float64),
             gamma=gamma.astype(np.float64),
@@ -100,12 +229,15 @@ class BeamResponse:
     def n_beams(self) -> int:
         return int(self.gain.shape[0])
 
-    def _scale_out(self, y: np.ndarray) -> np.ndarray:
-        if self.family == "velodyne":
-            span = self.intensity_max + 5.0 - self.scale
-            retro = self.scale + span * (1.0 - np.exp(-(np.maximum(y, 1.0) - 1.0) / _RETRO_KNEE))
-            return np.where(y <= 1.0, self.scale * y, retro)
-        return self.scale * y
+    def packed(self) -> tuple[float, ...]:
+        """(velodyne?, scale, intensity_max, additive noise sd) for the compiled kernels."""
+        velodyne = self.family == "velodyne"
+        return (
+            float(velodyne),
+            float(self.scale),
+            float(self.intensity_max),
+            0.6 if velodyne else 0.004 * self.scale,
+        )
 
     def _scale_in(self, raw: np.ndarray) -> np.ndarray:
         if self.family == "velodyne":
@@ -121,11 +253,11 @@ class BeamResponse:
         ``apparent`` is the range-compensated surface response (`IntensityModel.apparent`); for a Lambertian
         surface at normal incidence within the compensated range it is close to the true reflectance.
         """
-        x = np.maximum(np.asarray(apparent), 0.0)
-        b = np.asarray(beam)
-        g = self.gamma[b].astype(x.dtype, copy=False)
-        y = self.gain[b].astype(x.dtype, copy=False) * np.where(x <= 1.0, x**g, 1.0 + g * (x - 1.0))
-        raw = self._scale_out(y) + self.offset[b].astype(x.dtype, copy=False)
+        x = np.asarray(apparent)
+        dtype = x.dtype if x.dtype.kind == "f" else np.float64
+        raw = elementwise(
+            _expected_raw_n, (x, beam), (_F8, _I8), dtype, self.gain, self.gamma, self.offset, self.packed()
+        )
         return np.clip(raw, 0.0, self.intensity_max) if clip else raw
 
     def to_apparent(self, raw: np.ndarray, beam: np.ndarray | int) -> np.ndarray:
@@ -162,37 +294,33 @@ class IntensityModel:
             degradation_range=sensor.degradation_range,
         )
 
+    def packed(self) -> tuple[float, ...]:
+        """The parameters as the tuple of floats the compiled kernels read (the detection threshold ``P_min``
+        last: the received power of a 10 % target at ``range_10pct``)."""
+        p_min = 0.1 * np.exp(-2.0 * self.extinction * self.range_10pct) / self.range_10pct**2
+        values = (self.range_10pct, self.range_compensated, self.reference_range, self.near_field_range,
+                  self.residual_exponent, self.degradation_range, self.degradation_length, self.extinction,
+                  self.speckle, self.speckle_far, self.detection_softness, self.signal_range, p_min)  # fmt: skip
+        return tuple(float(v) for v in values)
+
     def received_power(self, beta: np.ndarray, rng_m: np.ndarray) -> np.ndarray:
         """Relative received power ``beta O(R) exp(-2 sigma R) / R^2`` (LiDAR equation)."""
-        r = np.maximum(np.asarray(rng_m, dtype=np.float32), 1e-3)
-        overlap = 1.0 - np.exp(-((r / self.near_field_range) ** 2))
-        return np.asarray(beta, dtype=np.float32) * overlap * np.exp(-2.0 * self.extinction * r) / (r * r)
+        return elementwise(_received_power_n, (beta, rng_m), (_F4, _F4), np.float32, self.packed())
 
     def detection_probability(self, beta: np.ndarray, rng_m: np.ndarray) -> np.ndarray:
         """Probability that a return is detected at all (a logistic in log received power)."""
-        p_min = 0.1 * np.exp(-2.0 * self.extinction * self.range_10pct) / self.range_10pct**2
-        p = self.received_power(beta, rng_m)
-        z = np.log(np.maximum(p, 1e-30) / p_min) / self.detection_softness
-        return 1.0 / (1.0 + np.exp(-np.clip(z, -50.0, 50.0)))
+        return elementwise(_detection_probability_n, (beta, rng_m), (_F4, _F4), np.float32, self.packed())
 
     def range_factor(self, rng_m: np.ndarray) -> np.ndarray:
         """Multiplier from surface response to apparent reflectance, as a function of range."""
-        r = np.maximum(np.asarray(rng_m, dtype=np.float32), 1e-3)
-        overlap = 1.0 - np.exp(-((r / self.near_field_range) ** 2))
-        atm = np.exp(-2.0 * self.extinction * r)
-        if not self.range_compensated:
-            return overlap * atm * (self.signal_range / r) ** 2
-        residual = (r / self.reference_range) ** (-self.residual_exponent)
-        degrade = np.exp(-np.maximum(r - self.degradation_range, 0.0) / self.degradation_length)
-        return overlap * atm * residual * degrade
+        return self.apparent(1.0, rng_m)
 
     def apparent(self, beta: np.ndarray, rng_m: np.ndarray) -> np.ndarray:
         """Noise-free apparent reflectance the sensor reports before its per-beam response."""
-        return np.asarray(beta, dtype=np.float32) * self.range_factor(rng_m)
+        return elementwise(_apparent_n, (beta, rng_m), (_F4, _F4), np.float32, self.packed())
 
     def speckle_sigma(self, rng_m: np.ndarray) -> np.ndarray:
-        far = np.clip((np.asarray(rng_m, dtype=np.float32) - self.degradation_range) / self.degradation_range, 0, 1.5)
-        return self.speckle + self.speckle_far * far
+        return elementwise(_speckle_sigma_n, (rng_m,), (_F4,), np.float32, self.packed())
 
     def measure(
         self,
@@ -203,10 +331,8 @@ class IntensityModel:
         rng: np.random.Generator,
     ) -> np.ndarray:
         """Noisy, quantised raw intensity (float32 integers in [0, intensity_max])."""
-        x = self.apparent(beta, rng_m)
-        s = self.speckle_sigma(rng_m)
-        x = x * np.exp(s * rng.standard_normal(x.shape[0], dtype=np.float32) - 0.5 * s * s)
-        raw = response.expected_raw(x, beam, clip=False)
-        add_sd = 0.6 if response.family == "velodyne" else 0.004 * response.scale
-        raw = raw + add_sd * rng.standard_normal(raw.shape[0], dtype=np.float32)
-        return np.clip(np.rint(raw), 0.0, response.intensity_max).astype(np.float32)
+        n = np.broadcast_shapes(np.shape(beta), np.shape(rng_m), np.shape(beam))
+        z_speckle = rng.standard_normal(n, dtype=np.float32)
+        z_noise = rng.standard_normal(n, dtype=np.float32)
+        return elementwise(_measure_n, (beta, rng_m, beam, z_speckle, z_noise), (_F4, _F4, _I8, _F4, _F4), np.float32,
+                           self.packed(), response.gain, response.gamma, response.offset, response.packed())  # fmt: skip

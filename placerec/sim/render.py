@@ -18,11 +18,18 @@ import numpy as np
 
 from placerec.sim.clutter import ClutterConfig, build_clutter
 from placerec.sim.geometry import MeshArrays
-from placerec.sim.intensity import BeamResponse, IntensityModel, surface_response
-from placerec.sim.materials import LAMBERT, P_TONE, SPECULAR, Hits, M
+from placerec.sim.intensity import (
+    BeamResponse,
+    IntensityModel,
+    detection_probability_1,
+    measure_1,
+    surface_response_1,
+)
+from placerec.sim.jit import njit
+from placerec.sim.materials import M
 from placerec.sim.sensors import RayGrid, SensorModel, ray_grid
-from placerec.sim.textures import shade
-from placerec.sim.world import World, make_scene
+from placerec.sim.textures import MATERIAL_TABLE, param_row, shade_hit
+from placerec.sim.world import World, ground_cell_1, make_scene
 from placerec.types import Scan
 
 __all__ = ["Renderer", "RawHits"]
@@ -36,7 +43,7 @@ class RawHits:
     material: np.ndarray
     obj: np.ndarray
     normal: np.ndarray
-    directions_world: np.ndarray
+    rays: np.ndarray  # (N, 6) float32 [origin, unit direction] in the world frame
     clutter: MeshArrays | None = None
 
 
@@ -67,15 +74,27 @@ class Renderer:
         self.model = model or IntensityModel.for_sensor(sensor)
         self.clutter = clutter
         self._dirs_t = np.ascontiguousarray(self.grid.directions.T)
+        self._model_params = self.model.packed()
+        self._response_params = response.packed()
+        # [beam divergence (rad), range noise sd (m), min range, max range]
+        self._sensor_params = (
+            sensor.beam_divergence_mrad * 1e-3,
+            float(sensor.range_noise_std),
+            float(sensor.min_range),
+            float(sensor.max_range),
+        )
 
-    def cast(self, pose: np.ndarray, timestamp: float, seed: int, index: int, occluders: bool = False) -> RawHits:
+    def cast(
+        self, pose: np.ndarray, timestamp: float, seed: int, index: int, occluders: bool = False
+    ) -> RawHits:
         """Ray-cast one sweep from ``pose`` (T_world_sensor) against the world and this scan's clutter."""
         w = self.world
         R = np.asarray(pose[:3, :3], dtype=np.float32)
-        rays = np.empty((self.grid.directions.shape[0], 6), dtype=np.float32)  # per call: renders may run concurrently
+        rays = np.empty(
+            (self.grid.directions.shape[0], 6), dtype=np.float32
+        )  # per call: renders may run concurrently
         rays[:, :3] = np.asarray(pose[:3, 3], dtype=np.float32)
         rays[:, 3:] = (R @ self._dirs_t).T  # (3, N) layout: one fast GEMM
-        dirs = rays[:, 3:]
         t, prim, nrm = _cast(w.scene, rays)
         valid = np.isfinite(t)
         primc = np.where(valid, prim, 0)
@@ -93,7 +112,7 @@ class Renderer:
                 mat[idx] = mesh.tri_material[p2]
                 obj[idx] = mesh.tri_object[p2]
                 nrm[idx] = nrm2[closer]
-        return RawHits(t=t, material=mat, obj=obj, normal=nrm, directions_world=dirs, clutter=mesh)
+        return RawHits(t=t, material=mat, obj=obj, normal=nrm, rays=rays, clutter=mesh)
 
     def _clutter_candidates(self, mesh: object, pose: np.ndarray, everything: bool) -> np.ndarray:
         """Indices of the rays that can hit the clutter: columns spanned by some clutter object, rows within the
@@ -143,93 +162,51 @@ class Renderer:
         extra[:, 5 : 5 + m.obj_params.shape[1]] = m.obj_params
         return np.concatenate([tab, extra]), np.concatenate([w.obj_seed, m.obj_seed])
 
-    def _measure_chunk(self, hits: RawHits, sel: np.ndarray, origin: np.ndarray, table: np.ndarray, oseed: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _shade_half(
+        self, hits: RawHits, sel: np.ndarray, table: np.ndarray, oseed: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Shade and measure the rays ``sel`` of one sweep: (kept ray indices, measured ranges, raw intensities)."""
-        sensor = self.sensor
-        t = hits.t[sel]
-        d = np.take(hits.directions_world, sel, axis=0)
-        pw = origin + d * t[:, None]
-        mat = hits.material[sel]
-        ground = mat == M.GROUND
-        if ground.any():
-            mat[ground] = self.world.ground.lookup(pw[ground, 0], pw[ground, 1])
-        order = np.argsort(mat, kind="stable")
-        sel, mat, t = sel[order], mat[order], t[order]
-        d = np.take(d, order, axis=0)
-        pw = np.take(pw, order, axis=0)
-        obj = hits.obj[sel]
-        nrm = np.take(hits.normal, sel, axis=0)
-        cos_inc = np.abs(np.einsum("ij,ij->i", nrm, d))
         n = len(sel)
-        # materials below FACADE (ground, paving, kerbs, ...) are textured in world coordinates and only need the
-        # object's tone; the others get their hit point and normal in the object frame and the full parameters
-        k0 = int(np.searchsorted(mat, M.FACADE))
-        pl = np.empty((n, 3), np.float32)
-        nl = np.empty((n, 3), np.float32)
-        params = np.zeros((n, table.shape[1] - 5), np.float32)
-        pl[:k0] = pw[:k0]
-        nl[:k0] = nrm[:k0]
-        params[:k0, P_TONE] = np.take(table[:, 5 + P_TONE], obj[:k0])
-        if k0 < n:
-            tab = np.take(table, obj[k0:], axis=0)
-            c, s_ = tab[:, 0], tab[:, 1]
-            dp = pw[k0:] - tab[:, 2:5]
-            nr = nrm[k0:]
-            pl[k0:, 0] = c * dp[:, 0] + s_ * dp[:, 1]
-            pl[k0:, 1] = c * dp[:, 1] - s_ * dp[:, 0]
-            pl[k0:, 2] = dp[:, 2]
-            nl[k0:, 0] = c * nr[:, 0] + s_ * nr[:, 1]
-            nl[k0:, 1] = c * nr[:, 1] - s_ * nr[:, 0]
-            nl[k0:, 2] = nr[:, 2]
-            params[k0:] = tab[:, 5:]
-        seeds = np.take(oseed, obj)
-        footprint = t * np.float32(sensor.beam_divergence_mrad * 1e-3) + np.float32(0.004)
+        u = rng.random(n, dtype=np.float32)
+        z = rng.standard_normal((3, n), dtype=np.float32)
+        keep = np.empty(n, np.bool_)
+        r_meas = np.empty(n, np.float32)
+        raw = np.empty(n, np.float32)
+        ground = self.world.ground
+        _shade_rays(sel, hits.t, hits.rays, hits.normal, hits.material, hits.obj, ground.labels, ground.geometry(), table, oseed,
+                    self.grid.ring, u, z, self._sensor_params, self._model_params, self.response.gain, self.response.gamma,
+                    self.response.offset, self._response_params, MATERIAL_TABLE, keep, r_meas, raw)  # fmt: skip
+        return sel[keep], r_meas[keep], raw[keep]
 
-        rho = np.empty(n, np.float32)
-        drop = np.zeros(n, np.float32)
-        depth = np.zeros(n, np.float32)
-        bounds = np.searchsorted(mat, np.arange(len(M) + 1))
-        for m in range(len(M)):
-            a, b = bounds[m], bounds[m + 1]
-            if a == b:
-                continue
-            sh = shade(Hits(pw[a:b], pl[a:b], nl[a:b], params[a:b], seeds[a:b], footprint[a:b], m))
-            rho[a:b] = sh.reflectance
-            if sh.dropout is not None:
-                drop[a:b] = sh.dropout
-            if sh.depth is not None:
-                depth[a:b] = sh.depth
-
-        beta = surface_response(rho, cos_inc, SPECULAR[mat], LAMBERT[mat])
-        r_true = t + depth
-        p_det = self.model.detection_probability(beta, r_true) * (1.0 - drop)
-        keep = rng.random(n, dtype=np.float32) < p_det
-        sigma = sensor.range_noise_std * (1.0 + r_true / 100.0)
-        r_meas = r_true + sigma * rng.standard_normal(n, dtype=np.float32)
-        keep &= (r_meas >= sensor.min_range) & (r_meas <= sensor.max_range)
-        k_sel = sel[keep]
-        raw = self.model.measure(beta[keep], r_true[keep], self.grid.ring[k_sel], self.response, rng)
-        return k_sel, r_meas[keep], raw
-
-    def render(self, pose: np.ndarray, timestamp: float, seed: int, index: int, occluders: bool = False, source: str | None = None) -> Scan:
+    def render(
+        self,
+        pose: np.ndarray,
+        timestamp: float,
+        seed: int,
+        index: int,
+        occluders: bool = False,
+        source: str | None = None,
+    ) -> Scan:
         """One simulated scan (deterministic in pose, timestamp, seed and index, whatever the thread count)."""
         sensor = self.sensor
         grid = self.grid
         hits = self.cast(pose, timestamp, seed, index, occluders)
         sel = np.flatnonzero((hits.t >= sensor.min_range) & (hits.t <= sensor.max_range))
-        origin = np.asarray(pose[:3, 3], dtype=np.float32)
         table, oseed = self._object_table(hits.clutter)
-        # two fixed halves of the sweep, each with its own noise stream: NumPy releases the GIL in its loops, so the
+        # two fixed halves of the sweep, each with its own noise stream: the shading kernel releases the GIL, so the
         # halves shade in parallel on two cores and the result does not depend on the thread count
         N = grid.directions.shape[0]
         halves = (sel[sel < N // 2], sel[sel >= N // 2])
         rngs = [np.random.default_rng([int(seed) & 0xFFFFFFFF, int(index), 0x5CA7, k]) for k in range(2)]
         pool = _pool() if self.threads > 1 else None
         if pool is not None:
-            futures = [pool.submit(self._measure_chunk, hits, h, origin, table, oseed, r) for h, r in zip(halves, rngs, strict=True)]
+            futures = [
+                pool.submit(self._shade_half, hits, h, table, oseed, r)
+                for h, r in zip(halves, rngs, strict=True)
+            ]
             parts = [f.result() for f in futures]
         else:
-            parts = [self._measure_chunk(hits, h, origin, table, oseed, r) for h, r in zip(halves, rngs, strict=True)]
+            parts = [self._shade_half(hits, h, table, oseed, r) for h, r in zip(halves, rngs, strict=True)]
         k_sel = np.concatenate([p[0] for p in parts])
         r_out = np.zeros(N, np.float32)
         r_out[k_sel] = np.concatenate([p[1] for p in parts])
@@ -244,6 +221,53 @@ class Renderer:
         mask[k_sel] = True
         return Scan(xyz=xyz[mask], intensity=inten[mask], ring=grid.ring[mask], time=grid.time[mask], shape=None,
                     sensor=info, timestamp=float(timestamp), source=source)  # fmt: skip
+
+
+_GROUND = int(M.GROUND)
+_FACADE = int(M.FACADE)
+
+
+@njit
+def _shade_rays(sel, t, rays, normal, material, obj, ground_labels, ground_geometry, table, oseed, ring, u, z, sp, mp,
+                gain, gamma, offset, rp, mtab, keep, r_meas, raw):  # fmt: skip
+    """Shade and measure the rays ``sel`` (one pass per hit): hit point, ground material, object frame, texture,
+    surface response, detection (uniform draw ``u``), range noise (``z[0]``), intensity (``z[1]``, ``z[2]``).
+    ``sp`` = (beam divergence (rad), range noise sd, min range, max range); ``mp``/``rp`` = the packed
+    intensity model and beam response; per-hit helpers take scalars and tuples only (no array references)."""
+    for j in range(sel.shape[0]):
+        i = sel[j]
+        ti = t[i]
+        dx, dy, dz = rays[i, 3], rays[i, 4], rays[i, 5]
+        pw = (rays[i, 0] + dx * ti, rays[i, 1] + dy * ti, rays[i, 2] + dz * ti)
+        nw = (normal[i, 0], normal[i, 1], normal[i, 2])
+        m = material[i]
+        if m == _GROUND:
+            gy, gx = ground_cell_1(ground_geometry, ground_labels.shape, pw[0], pw[1])
+            m = ground_labels[gy, gx]
+        o = obj[i]
+        prm = param_row(table, o, 5)
+        if m < _FACADE:  # ground-like materials are textured in world coordinates
+            pl, nl = pw, nw
+        else:
+            c, s = table[o, 0], table[o, 1]
+            qx, qy = pw[0] - table[o, 2], pw[1] - table[o, 3]
+            pl = (c * qx + s * qy, c * qy - s * qx, pw[2] - table[o, 4])
+            nl = (c * nw[0] + s * nw[1], c * nw[1] - s * nw[0], nw[2])
+        footprint = ti * sp[0] + 0.004
+        rho, drop, depth = shade_hit(
+            mtab[0, m], mtab[1, m], mtab[2, m], pw, pl, nl, prm, np.int64(oseed[o]), footprint
+        )
+        beta = surface_response_1(rho, abs(nw[0] * dx + nw[1] * dy + nw[2] * dz), mtab[3, m], mtab[4, m])
+        r_true = ti + depth
+        r = r_true + sp[1] * (1.0 + r_true / 100.0) * z[0, j]
+        ok = u[j] < detection_probability_1(beta, r_true, mp) * (1.0 - drop) and sp[2] <= r <= sp[3]
+        keep[j] = ok
+        r_meas[j] = r
+        if ok:
+            b = ring[i]
+            raw[j] = measure_1(beta, r_true, gain[b], gamma[b], offset[b], z[1, j], z[2, j], mp, rp)
+        else:
+            raw[j] = 0.0
 
 
 _POOL: tuple[int, ThreadPoolExecutor] | None = None

@@ -1,264 +1,243 @@
-"""Procedural textures of the simulator's materials, evaluated on batches of hits (see `placerec.sim.materials`).
+"""Procedural textures of the simulator's materials, evaluated per hit by compiled kernels.
 
-Every texture is vectorised over the hits of one material and a pure function of the hit's coordinates (world or
-object frame), the object's parameter row and seed, and the beam footprint; so scans are deterministic.
+A texture maps one hit to ``(reflectance, extra dropout probability, extra range)``. It sees the hit point in world
+coordinates ``pw``, the point and normal in the hit object's local frame ``pl``/``nl`` (for ground-like materials
+below `M.FACADE` these are the world point and normal), the object's parameter row ``prm`` and seed, the beam
+footprint diameter ``fp`` (m) and the base reflectance ``tone``. Each texture is a pure function of these, so scans
+are deterministic. Thin features (mortar joints, tile gaps, ribs) are box-filtered by the footprint, so their
+contrast fades with range as on a real sensor.
+
+`TEXTURES` names the textures; materials refer to them by name (`placerec.sim.materials`) and the renderer by id.
+`shade` evaluates materials on arrays of hits (for tests and tools; the renderer calls `shade_hit` per hit).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
-from placerec.sim.materials import (
-    MATERIALS,
-    P_A,
-    P_B,
-    P_C,
-    P_D,
-    P_FLAGS,
-    P_H,
-    P_HX,
-    P_HY,
-    P_STYLE,
-    Hits,
-    M,
-    Shade,
+from placerec.sim.jit import inline, njit
+from placerec.sim.materials import MATERIALS, P_A, P_B, P_C, P_D, P_FLAGS, P_H, P_HX, P_HY, P_STYLE, P_TONE, M
+from placerec.sim.noise import (
+    fbm2_1,
+    filtered_pulse_1,
+    hash_u32_1,
+    hash_unit_1,
+    value_noise2_1,
+    value_noise3_1,
 )
-from placerec.sim.noise import fbm2, filtered_pulse, hash_u32, hash_unit, value_noise2, value_noise3
 
-__all__ = ["shade", "TEXTURES"]
+__all__ = ["TEXTURES", "TEXTURE_ID", "MATERIAL_TABLE", "shade", "shade_hit", "param_row"]
+
+#: texture names in id order (the id is what the compiled dispatcher `_texture` switches on)
+TEXTURES: tuple[str, ...] = ("plain", "rough", "asphalt", "marking", "grass", "paving", "concrete", "manhole", "foliage",
+                             "wood", "person", "corrugated", "fence", "sign", "car", "facade")  # fmt: skip
+TEXTURE_ID: dict[str, int] = {name: i for i, name in enumerate(TEXTURES)}
+
+_N_MAT = len(M)
+#: per material: texture id, base reflectance, material dropout, specular, Lambert exponent (rows in that order)
+MATERIAL_TABLE = np.array(
+    [
+        [TEXTURE_ID[MATERIALS[M(i)].texture] for i in range(_N_MAT)],
+        [MATERIALS[M(i)].reflectance for i in range(_N_MAT)],
+        [MATERIALS[M(i)].dropout for i in range(_N_MAT)],
+        [MATERIALS[M(i)].specular for i in range(_N_MAT)],
+        [MATERIALS[M(i)].lambert for i in range(_N_MAT)],
+    ],
+    dtype=np.float32,
+)
+
+_F0 = np.float32(0.0)
+_F1 = np.float32(1.0)
 
 
-def _att(footprint: np.ndarray, size: float) -> np.ndarray:
+@inline
+def _att(fp, size):
     """Contrast left of a detail of ``size`` metres after averaging over the footprint."""
-    return 1.0 / (1.0 + (footprint / size) ** 2)
+    q = fp / size
+    return _F1 / (_F1 + q * q)
 
 
-def _tex_plain(h: Hits) -> Shade:
-    return Shade(h.tone())
+@inline
+def _hu(a, b, c, seed) -> float:
+    """`hash_unit_1` of float lattice coordinates (truncated to integers, as array hashing does)."""
+    return hash_unit_1(np.int64(a), np.int64(b), np.int64(c), np.int64(seed))
 
 
-def _tex_rough(h: Hits) -> Shade:
-    p = h.pw
-    n = value_noise3(p[:, 0] * 3.0, p[:, 1] * 3.0, p[:, 2] * 3.0, h.seed) - 0.5
-    big = value_noise2(p[:, 0] * 0.3 + p[:, 2], p[:, 1] * 0.3, 7) - 0.5
-    return Shade(h.tone() * (1.0 + 0.35 * n * _att(h.footprint, 0.3) + 0.3 * big))
+@njit
+def _rough(pw, seed, fp, tone):
+    n = value_noise3_1(pw[0] * 3.0, pw[1] * 3.0, pw[2] * 3.0, seed) - 0.5
+    big = value_noise2_1(pw[0] * 0.3 + pw[2], pw[1] * 0.3, 7) - 0.5
+    return tone * (1.0 + 0.35 * n * _att(fp, 0.3) + 0.3 * big)
 
 
-def _tex_asphalt(h: Hits) -> Shade:
-    x, y = h.pw[:, 0], h.pw[:, 1]
-    big = fbm2(x * 0.07, y * 0.07, 11, octaves=2)
-    grain = value_noise2(x * 6.0, y * 6.0, 12) - 0.5
-    return Shade(h.tone() * (1.0 + 0.3 * big + 0.6 * grain * _att(h.footprint, 0.15)))
+@njit
+def _asphalt(x, y, fp, tone):
+    big = fbm2_1(x * 0.07, y * 0.07, 11, 2)
+    grain = value_noise2_1(x * 6.0, y * 6.0, 12) - 0.5
+    return tone * (1.0 + 0.3 * big + 0.6 * grain * _att(fp, 0.15))
 
 
-def _tex_marking(h: Hits) -> Shade:
-    x, y = h.pw[:, 0], h.pw[:, 1]
-    wear = value_noise2(x * 1.5, y * 1.5, 21)
-    return Shade(h.tone() * (0.65 + 0.45 * wear))
+@njit
+def _grass(x, y, fp, tone):
+    patches = fbm2_1(x * 0.12, y * 0.12, 31, 3)
+    tufts = value_noise2_1(x * 4.0, y * 4.0, 32) - 0.5
+    return tone * (1.0 + 0.35 * patches + 0.7 * tufts * _att(fp, 0.25))
 
 
-def _tex_grass(h: Hits) -> Shade:
-    x, y = h.pw[:, 0], h.pw[:, 1]
-    patches = fbm2(x * 0.12, y * 0.12, 31, octaves=3)
-    tufts = value_noise2(x * 4.0, y * 4.0, 32) - 0.5
-    return Shade(h.tone() * (1.0 + 0.35 * patches + 0.7 * tufts * _att(h.footprint, 0.25)))
-
-
-def _tex_paving(h: Hits) -> Shade:
-    x, y = h.pw[:, 0], h.pw[:, 1]
+@njit
+def _paving(x, y, fp, tone):
     tile = 0.4
-    joint_x = 1.0 - filtered_pulse(x, tile, 0.97, h.footprint)
-    joint_y = 1.0 - filtered_pulse(y, tile, 0.97, h.footprint)
-    joint = np.maximum(joint_x, joint_y)
-    var = hash_unit(np.floor(x / tile), np.floor(y / tile), None, 41) - 0.5
-    stain = fbm2(x * 0.2, y * 0.2, 42, octaves=2)
-    rho = h.tone() * (1.0 + 0.3 * var * _att(h.footprint, 0.4) + 0.2 * stain)
-    return Shade(rho * (1.0 - 0.5 * joint))
+    joint = max(1.0 - filtered_pulse_1(x, tile, 0.97, fp), 1.0 - filtered_pulse_1(y, tile, 0.97, fp))
+    var = _hu(np.floor(x / tile), np.floor(y / tile), 0, 41) - 0.5
+    stain = fbm2_1(x * 0.2, y * 0.2, 42, 2)
+    return tone * (1.0 + 0.3 * var * _att(fp, 0.4) + 0.2 * stain) * (1.0 - 0.5 * joint)
 
 
-def _tex_concrete(h: Hits) -> Shade:
-    x, y = h.pw[:, 0], h.pw[:, 1]
-    joint = np.maximum(1.0 - filtered_pulse(x, 6.0, 0.995, h.footprint), 1.0 - filtered_pulse(y, 6.0, 0.995, h.footprint))
-    stain = fbm2(x * 0.15, y * 0.15, 51, octaves=3)
-    oil = np.clip(value_noise2(x * 0.4, y * 0.4, 52) - 0.75, 0.0, 1.0) * 2.5
-    return Shade(h.tone() * (1.0 + 0.3 * stain) * (1.0 - 0.6 * oil) * (1.0 - 0.6 * joint))
+@njit
+def _concrete(x, y, fp, tone):
+    joint = max(1.0 - filtered_pulse_1(x, 6.0, 0.995, fp), 1.0 - filtered_pulse_1(y, 6.0, 0.995, fp))
+    stain = fbm2_1(x * 0.15, y * 0.15, 51, 3)
+    oil = min(max(value_noise2_1(x * 0.4, y * 0.4, 52) - 0.75, 0.0), 1.0) * 2.5
+    return tone * (1.0 + 0.3 * stain) * (1.0 - 0.6 * oil) * (1.0 - 0.6 * joint)
 
 
-def _tex_manhole(h: Hits) -> Shade:
-    x, y = h.pw[:, 0], h.pw[:, 1]
-    grid = filtered_pulse(x, 0.06, 0.5, h.footprint) * filtered_pulse(y, 0.06, 0.5, h.footprint)
-    return Shade(h.tone() * (0.7 + 0.6 * grid))
+@njit
+def _foliage(pw, seed, tone):
+    """Leaves: bright clumps with gaps the beam passes through, and returns from inside the crown."""
+    clumps = value_noise3_1(pw[0] / 0.45, pw[1] / 0.45, pw[2] / 0.45, seed)
+    fine = value_noise3_1(pw[0] / 0.12, pw[1] / 0.12, pw[2] / 0.12, seed + 5)
+    rho = max(tone * (0.45 + 0.8 * clumps + 0.5 * (fine - 0.5)), 0.02)
+    gaps = min(max(0.6 - 1.4 * clumps, 0.0), 0.9)
+    return rho, gaps, 0.6 * (1.0 - fine) ** 2
 
 
-def _tex_foliage(h: Hits, rng_depth: bool = True) -> Shade:
-    p = h.pw
-    clumps = value_noise3(p[:, 0] / 0.45, p[:, 1] / 0.45, p[:, 2] / 0.45, h.seed)
-    fine = value_noise3(p[:, 0] / 0.12, p[:, 1] / 0.12, p[:, 2] / 0.12, h.seed + np.uint32(5))
-    rho = h.tone() * (0.45 + 0.8 * clumps + 0.5 * (fine - 0.5))
-    gaps = np.clip(0.6 - 1.4 * clumps, 0.0, 0.9)
-    depth = 0.6 * (1.0 - fine) ** 2
-    return Shade(np.maximum(rho, 0.02), dropout=gaps, depth=depth.astype(np.float32))
-
-
-def _tex_wood(h: Hits) -> Shade:
-    u = h.pl[:, 0] + h.pl[:, 1]
-    planks = hash_unit(np.floor(h.pl[:, 2] / 0.15), np.floor(u / 1.2), None, h.seed) - 0.5
-    return Shade(h.tone() * (1.0 + 0.4 * planks))
-
-
-def _tex_person(h: Hits) -> Shade:
-    z = h.pl[:, 2]
-    legs = h.params[:, P_A]
-    rho = np.where(z < 0.85, legs, np.where(z < 1.5, h.tone(), 0.35))
-    return Shade(rho.astype(np.float32))
-
-
-def _face_coords(h: Hits) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(u along the face, face length, face index 0..3, horizontal-face mask) for box objects."""
-    nx = h.nl[:, 0]
-    ny = h.nl[:, 1]
-    along_y = np.abs(nx) >= np.abs(ny)
-    hx = h.params[:, P_HX]
-    hy = h.params[:, P_HY]
-    pos = np.where(along_y, nx, ny) > 0
-    half = np.where(along_y, hy, hx)
-    coord = np.where(along_y, h.pl[:, 1], h.pl[:, 0])
+@inline
+def _face_coords(pl, nl, prm):
+    """(u along the face, face length, face index 0..3, horizontal face?) for box objects."""
+    along_y = abs(nl[0]) >= abs(nl[1])
+    pos = (nl[0] if along_y else nl[1]) > 0
+    half = prm[P_HY] if along_y else prm[P_HX]
+    coord = pl[1] if along_y else pl[0]
     # walking around the box counter-clockwise seen from above, u grows along each face
-    u = half + np.where(pos == along_y, -coord, coord)
-    face = along_y * 2 + pos  # 0..3
-    horizontal = np.abs(h.nl[:, 2]) > 0.7
-    return u, 2.0 * half, face.astype(np.int64), horizontal
+    u = half + (-coord if pos == along_y else coord)
+    return u, 2.0 * half, np.int64(along_y) * 2 + np.int64(pos), abs(nl[2]) > 0.7
 
 
-def _tex_corrugated(h: Hits) -> Shade:
-    u, length, face, horiz = _face_coords(h)
-    v = h.pl[:, 2]
-    period = np.where(h.params[:, P_A] > 0, h.params[:, P_A], 0.15)
-    ribs = np.cos(2 * np.pi * u / period) * np.exp(-2.0 * (np.pi * h.footprint / period) ** 2)
-    rho = h.tone() * (1.0 + 0.3 * ribs)
-    rust = fbm2(u * 0.3, v * 0.3, h.seed, octaves=3)
-    rho = rho * (1.0 + 0.25 * rust)
-    style = h.params[:, P_STYLE].astype(np.int64)
-    height = h.params[:, P_H]
-    # sheds: roller doors on the long faces and a translucent window strip under the eaves
-    is_shed = style == 0
+@njit
+def _corrugated(pl, nl, prm, seed, fp, tone):
+    """Sheds (roller doors, window strip under the eaves) and containers (logo bands, lock bars)."""
+    u, length, face, horiz = _face_coords(pl, nl, prm)
+    v = pl[2]
+    period = prm[P_A] if prm[P_A] > 0 else 0.15
+    ribs = np.cos(2 * np.pi * u / period) * np.exp(-2.0 * (np.pi * fp / period) ** 2)
+    rust = fbm2_1(u * 0.3, v * 0.3, seed, 3)
+    rho = tone * (1.0 + 0.3 * ribs) * (1.0 + 0.25 * rust)
+    style = np.int64(prm[P_STYLE])
+    height = prm[P_H]
     long_face = length > 12.0
-    door_pitch = 14.0
-    dc = np.floor(u / door_pitch)
-    du = u - dc * door_pitch
-    has_door = hash_unit(dc, face, None, h.seed) < 0.5
-    door = is_shed & long_face & has_door & (du > 5.0) & (du < 10.0) & (v < np.minimum(4.8, height - 1.0))
-    slats = filtered_pulse(v, 0.09, 0.8, h.footprint)
-    door_tone = 0.2 + 0.5 * hash_unit(dc, face, 3, h.seed)
-    rho = np.where(door, door_tone * (0.8 + 0.25 * slats), rho)
-    strip = is_shed & (h.params[:, P_FLAGS] > 0) & (v > height - 2.2) & (v < height - 1.3)
-    rho = np.where(strip, 0.55, rho)
-    # containers: a painted logo band on some long sides, lock bars on the door end
-    is_box = style == 1
-    logo_side = is_box & long_face & (hash_unit(face, None, None, h.seed) < 0.45)
-    cell = np.floor(u / 0.7)
-    letters = logo_side & (v > 1.0) & (v < 1.75) & (u > 1.5) & (u < length - 1.5) & (hash_unit(cell, face, None, h.seed) < 0.6)
-    rho = np.where(letters, 0.75, rho)
-    door_end = is_box & ~long_face & (h.nl[:, 0] > 0.5)
-    bars = filtered_pulse(u + 0.3, 0.6, 0.12, h.footprint)
-    rho = np.where(door_end, rho * (1.0 - 0.5 * bars) + 0.3 * bars, rho)
-    rho = np.where(horiz, h.tone() * (1.0 + 0.2 * rust), rho)
-    return Shade(np.maximum(rho, 0.01).astype(np.float32))
+    if style == 0:  # shed
+        dc = np.floor(u / 14.0)
+        du = u - dc * 14.0
+        if long_face and _hu(dc, face, 0, seed) < 0.5 and 5.0 < du < 10.0 and v < min(4.8, height - 1.0):
+            slats = filtered_pulse_1(v, 0.09, 0.8, fp)
+            rho = (0.2 + 0.5 * _hu(dc, face, 3, seed)) * (0.8 + 0.25 * slats)
+        if prm[P_FLAGS] > 0 and height - 2.2 < v < height - 1.3:
+            rho = 0.55
+    elif style == 1:  # container
+        if long_face and _hu(face, 0, 0, seed) < 0.45 and 1.0 < v < 1.75 and 1.5 < u < length - 1.5:
+            if _hu(np.floor(u / 0.7), face, 0, seed) < 0.6:
+                rho = 0.75
+        if not long_face and nl[0] > 0.5:
+            bars = filtered_pulse_1(u + 0.3, 0.6, 0.12, fp)
+            rho = rho * (1.0 - 0.5 * bars) + 0.3 * bars
+    if horiz:
+        rho = tone * (1.0 + 0.2 * rust)
+    return max(rho, 0.01)
 
 
-def _tex_fence(h: Hits) -> Shade:
-    u, _, _, _ = _face_coords(h)
-    style = h.params[:, P_STYLE].astype(np.int64)
-    tone = h.tone()
-    drop = np.full(len(h), 0.6, dtype=np.float32)  # chain-link: mostly see-through
-    planks = filtered_pulse(u, 0.15, 0.8, h.footprint)  # wooden: gaps between planks
-    bars = filtered_pulse(u, 0.13, 0.25, h.footprint)  # palisade: thin bars
-    drop = np.where(style == 1, 1.0 - planks, np.where(style == 2, 1.0 - bars, drop))
-    var = hash_unit(np.floor(u / 0.15), None, None, h.seed) - 0.5
-    rho = tone * np.where(style == 1, 1.0 + 0.35 * var, 1.0)
-    return Shade(rho.astype(np.float32), dropout=drop.astype(np.float32))
+@njit
+def _fence(pl, nl, prm, seed, fp, tone):
+    """Chain-link (mostly see-through), wooden planks with gaps, palisade bars."""
+    u = _face_coords(pl, nl, prm)[0]
+    style = np.int64(prm[P_STYLE])
+    if style == 1:
+        var = _hu(np.floor(u / 0.15), 0, 0, seed) - 0.5
+        return tone * (1.0 + 0.35 * var), 1.0 - filtered_pulse_1(u, 0.15, 0.8, fp)
+    if style == 2:
+        return tone, 1.0 - filtered_pulse_1(u, 0.13, 0.25, fp)
+    return tone, 0.6
 
 
-def _tex_sign(h: Hits) -> Shade:
-    front = h.nl[:, 0] > 0.5
-    s = h.pl[:, 1] / np.maximum(h.params[:, P_HY], 1e-3)
-    height = np.maximum(h.params[:, P_H], 1e-3)
-    t = 2.0 * h.pl[:, 2] / height - 1.0
-    retro = h.tone()
-    style = h.params[:, P_STYLE].astype(np.int64)
+@njit
+def _sign(pl, nl, prm, seed, tone):
+    """Retro-reflective sheeting on the front: round signs (ring, symbol, empty corners), guide signs (letters)."""
+    if nl[0] <= 0.5:
+        return 0.28, 0.0  # the painted back
+    s = pl[1] / max(prm[P_HY], 1e-3)
+    t = 2.0 * pl[2] / max(prm[P_H], 1e-3) - 1.0
+    style = np.int64(prm[P_STYLE])
     r = np.sqrt(s * s + t * t)
-    rho = retro.copy()
-    drop = np.zeros(len(h), dtype=np.float32)
-    # round sign: red ring, white field, dark symbol; corners outside the disc are empty
-    round_ = style == 0
-    rho = np.where(round_ & (r > 0.72), 0.55 * retro, rho)
-    sym = round_ & (r < 0.6) & (np.abs(t) < 0.25) & (hash_unit(np.floor((s + 1) * 4), None, None, h.seed) < 0.6)
-    rho = np.where(sym, 0.05, rho)
-    drop = np.where(round_ & (r > 1.0), 1.0, drop)
-    # guide sign: darker sheeting with bright letters
-    guide = style == 2
-    cells = hash_unit(np.floor((s + 1) * 6), np.floor((t + 1) * 2.5), None, h.seed) < 0.5
-    rho = np.where(guide, np.where(cells & (np.abs(t) < 0.8) & (np.abs(s) < 0.9), retro, 0.25 * retro), rho)
-    rho = np.where(front, rho, 0.28)
-    drop = np.where(front, drop, 0.0)
-    return Shade(rho.astype(np.float32), dropout=drop.astype(np.float32))
+    rho = tone
+    drop = 0.0
+    if style == 0:
+        if r > 0.72:
+            rho = 0.55 * tone
+        if r < 0.6 and abs(t) < 0.25 and _hu(np.floor((s + 1) * 4), 0, 0, seed) < 0.6:
+            rho = 0.05
+        if r > 1.0:
+            drop = 1.0
+    elif style == 2:
+        cell = _hu(np.floor((s + 1) * 6), np.floor((t + 1) * 2.5), 0, seed) < 0.5
+        rho = tone if (cell and abs(t) < 0.8 and abs(s) < 0.9) else 0.25 * tone
+    return rho, drop
 
 
-def _tex_car(h: Hits) -> Shade:
-    paint = h.tone()
-    ends = np.abs(h.nl[:, 0]) > 0.6
-    y = np.abs(h.pl[:, 1])
-    z = h.pl[:, 2]
-    plate = ends & (y < 0.26) & (z > 0.12) & (z < 0.25)
-    lights = ends & (y > 0.5) & (y < 0.8) & (z > 0.32) & (z < 0.48)
-    grime = fbm2(h.pl[:, 0] * 0.8 + h.pl[:, 2], h.pl[:, 1] * 0.8, h.seed, octaves=2)
-    rho = paint * (1.0 + 0.15 * grime)
-    rho = np.where(lights, 20.0, rho)  # rear reflectors
-    rho = np.where(plate, 150.0, rho)
-    return Shade(rho.astype(np.float32))
+@njit
+def _car(pl, nl, seed, tone):
+    """Paint with grime, a retro-reflective licence plate and rear reflectors on the ends."""
+    ends = abs(nl[0]) > 0.6
+    y = abs(pl[1])
+    z = pl[2]
+    if ends and y < 0.26 and 0.12 < z < 0.25:
+        return 150.0
+    if ends and 0.5 < y < 0.8 and 0.32 < z < 0.48:
+        return 20.0
+    return tone * (1.0 + 0.15 * fbm2_1(pl[0] * 0.8 + pl[2], pl[1] * 0.8, seed, 2))
 
 
-def _tex_facade(h: Hits) -> Shade:
+@njit
+def _facade(pl, nl, prm, seed, fp, tone):
     """Building facades: brick/plaster/office walls, a grid of windows, shop fronts, doors, plinths, posters."""
-    u, length, face, horiz = _face_coords(h)
-    v = h.pl[:, 2]
-    p = h.params
-    n = len(h)
-    tone = h.tone()
-    floor_h = np.maximum(p[:, P_A], 2.5)
-    win_w = p[:, P_B]
-    win_h = p[:, P_C]
-    pitch = np.maximum(p[:, P_D], win_w + 0.3)
-    style = p[:, P_STYLE]
-    flags = p[:, P_FLAGS].astype(np.int32)
-    height = p[:, P_H]
-    fp = h.footprint
-    seed = h.seed
-    fseed = hash_u32(face, None, None, seed)
+    u, length, face, horiz = _face_coords(pl, nl, prm)
+    if horiz:
+        return max(tone * (0.9 + 0.2 * value_noise2_1(u * 0.5, pl[2] * 0.5, seed)), 0.01), 0.0
+    v = pl[2]
+    floor_h = max(prm[P_A], 2.5)
+    win_w = prm[P_B]
+    win_h = prm[P_C]
+    pitch = max(prm[P_D], win_w + 0.3)
+    style = prm[P_STYLE]
+    flags = np.int64(prm[P_FLAGS])
+    fseed = hash_u32_1(face, 0, 0, seed)
 
     # wall, per style
-    wall = tone.copy()
-    i = np.flatnonzero(style == 0)  # brick: 21.5 x 6.5 cm bricks, 1 cm mortar, per-brick tone
-    if len(i):
-        vi, ui = v[i], u[i]
-        row = np.floor(vi / 0.075)
-        us = ui + np.float32(0.1125) * (row % 2)
-        solid = filtered_pulse(vi, 0.075, 0.87, fp[i]) * filtered_pulse(us, 0.225, 0.955, fp[i])
-        bid = hash_unit(np.floor(us / 0.225), row, None, seed[i]) - 0.5
-        wall[i] = tone[i] * (1.0 + 0.35 * bid * _att(fp[i], 0.15)) * solid + 0.55 * (1.0 - solid)
-    i = np.flatnonzero(style == 1)  # plaster
-    if len(i):
-        wall[i] = tone[i] * (0.85 + 0.3 * value_noise2(u[i] * 0.33, v[i] * 0.33, seed[i] + np.uint32(7)))
-    i = np.flatnonzero(style == 2)  # office cladding panels
-    if len(i):
-        wall[i] = tone[i] * (1.0 - 0.5 * (1.0 - filtered_pulse(u[i], 1.5, 0.98, fp[i])))
-    wall *= np.where(v < 1.5, 0.85 + 0.1 * v, 1.0)
-    cornice = ((flags & 4) > 0) & (np.abs(v - np.rint(v / floor_h) * floor_h) < 0.12) & (v > 1.0)
-    wall[cornice] = 0.65
-    plinth = v < 0.4 + 0.5 * hash_unit(seed, None, None, 3)
-    wall[plinth] = 0.2
+    wall = tone
+    if style == 0:  # brick: 21.5 x 6.5 cm bricks, 1 cm mortar, per-brick tone
+        row = np.floor(v / 0.075)
+        us = u + 0.1125 * (row % 2)
+        solid = filtered_pulse_1(v, 0.075, 0.87, fp) * filtered_pulse_1(us, 0.225, 0.955, fp)
+        bid = _hu(np.floor(us / 0.225), row, 0, seed) - 0.5
+        wall = tone * (1.0 + 0.35 * bid * _att(fp, 0.15)) * solid + 0.55 * (1.0 - solid)
+    elif style == 1:  # plaster
+        wall = tone * (0.85 + 0.3 * value_noise2_1(u * 0.33, v * 0.33, seed + 7))
+    elif style == 2:  # office cladding panels
+        wall = tone * (1.0 - 0.5 * (1.0 - filtered_pulse_1(u, 1.5, 0.98, fp)))
+    if v < 1.5:
+        wall *= 0.85 + 0.1 * v
+    if (flags & 4) > 0 and abs(v - np.rint(v / floor_h) * floor_h) < 0.12 and v > 1.0:
+        wall = 0.65  # cornice
+    if v < 0.4 + 0.5 * hash_unit_1(seed, 0, 0, 3):
+        wall = 0.2  # plinth
 
     # windows on the upper floors (and on the ground floor unless it is a shop)
     shop = (flags & 1) > 0
@@ -267,76 +246,159 @@ def _tex_facade(h: Hits) -> Shade:
     col = np.floor(uc / pitch)
     du = uc - col * pitch - 0.5 * (pitch - win_w)
     flr = np.floor(v / floor_h)
-    dv = v - flr * floor_h - np.where(style == 2, np.float32(0.6), np.float32(0.9))
-    win = (col >= 0) & (col < ncols) & (du >= 0) & (du <= win_w) & (dv >= 0) & (dv <= win_h) & (v < height - 0.7) & ((flr >= 1) | ~shop)
+    dv = v - flr * floor_h - (0.6 if style == 2 else 0.9)
+    win = (
+        0 <= col < ncols
+        and 0 <= du <= win_w
+        and 0 <= dv <= win_h
+        and v < prm[P_H] - 0.7
+        and (flr >= 1 or not shop)
+    )
     rho = wall
-    drop = np.zeros(n, np.float32)
-    i = np.flatnonzero(win)
-    if len(i):
-        edge = np.minimum(np.minimum(du[i], win_w[i] - du[i]), np.minimum(dv[i], win_h[i] - dv[i]))
-        state = hash_unit(col[i], flr[i], face[i], seed[i])
-        slats = filtered_pulse(dv[i], 0.05, 0.7, fp[i])
-        pane_rho = np.where(state < 0.62, 0.04, np.where(state < 0.82, 0.45 + 0.15 * slats, 0.28))
-        frame = edge < 0.09
-        rho[i] = np.where(frame, np.where((flags[i] & 2) > 0, 0.1, 0.65), pane_rho)
-        drop[i] = np.where(frame | (state >= 0.62), 0.0, 0.85)
+    drop = 0.0
+    if win:
+        edge = min(min(du, win_w - du), min(dv, win_h - dv))
+        state = _hu(col, flr, face, seed)
+        if edge < 0.09:  # frame
+            rho = 0.1 if (flags & 2) > 0 else 0.65
+        else:
+            rho = (
+                0.04
+                if state < 0.62
+                else (0.45 + 0.15 * filtered_pulse_1(dv, 0.05, 0.7, fp) if state < 0.82 else 0.28)
+            )
+            drop = 0.0 if state >= 0.62 else 0.85
 
     # shop fronts: big windows between pillars, a fascia with lettering (sometimes retro-reflective)
-    i = np.flatnonzero(shop & (v < 3.7))
-    if len(i):
-        ui, vi, li, fs = u[i], v[i], length[i], fseed[i]
-        su = ui - np.floor(ui / 5.0) * 5.0
-        shop_win = (vi > 0.35) & (vi < 2.8) & (su > 0.6) & (su < 4.4) & (ui > 1.0) & (ui < li - 1.0)
-        fascia = (vi >= 3.0) & (ui > 0.5) & (ui < li - 0.5)
-        bg = np.where(hash_unit(fs, None, None, 5) < 0.5, 0.1, 0.6)
-        letter = (hash_unit(np.floor(ui / 0.45), fs, None, 6) < 0.55) & (vi > 3.12) & (vi < 3.58)
-        letter_rho = np.where(hash_unit(fs, None, None, 7) < 0.06, 30.0, np.where(bg > 0.3, 0.1, 0.8))
-        r = np.where(shop_win, 0.05, rho[i])
-        rho[i] = np.where(fascia, np.where(letter, letter_rho, bg), r)
-        drop[i] = np.where(shop_win, 0.7, drop[i])
+    if shop and v < 3.7:
+        su = u - np.floor(u / 5.0) * 5.0
+        if 0.35 < v < 2.8 and 0.6 < su < 4.4 and 1.0 < u < length - 1.0:
+            rho = 0.05
+            drop = 0.7
+        if v >= 3.0 and 0.5 < u < length - 0.5:
+            bg = 0.1 if hash_unit_1(fseed, 0, 0, 5) < 0.5 else 0.6
+            letter = _hu(np.floor(u / 0.45), fseed, 0, 6) < 0.55 and 3.12 < v < 3.58
+            if letter:
+                rho = 30.0 if hash_unit_1(fseed, 0, 0, 7) < 0.06 else (0.1 if bg > 0.3 else 0.8)
+            else:
+                rho = bg
 
     # one door per face, posters on the ground floor walls
-    i = np.flatnonzero(v < 2.2)
-    if len(i):
-        ui, vi, fs = u[i], v[i], fseed[i]
-        door = np.abs(ui - (1.5 + (length[i] - 3.0) * hash_unit(fs, None, None, 8))) < 0.6
-        pc = np.floor(ui / 1.6)
-        poster = (vi > 0.9) & ~win[i] & ~door & (drop[i] == 0) & (hash_unit(pc, fs, None, 9) < 0.08)
-        r = np.where(door, 0.12, rho[i])
-        rho[i] = np.where(poster, 0.1 + 0.7 * hash_unit(pc, fs, None, 10), r)
-        drop[i] = np.where(door, 0.0, drop[i])
-
-    rho = np.where(horiz, tone, rho)
-    drop[horiz] = 0.0
-    rho *= 0.9 + 0.2 * value_noise2(u * 0.5, v * 0.5, seed)
-    return Shade(np.maximum(rho, 0.01).astype(np.float32), dropout=drop)
+    if v < 2.2:
+        door = abs(u - (1.5 + (length - 3.0) * hash_unit_1(fseed, 0, 0, 8))) < 0.6
+        pc = np.floor(u / 1.6)
+        if door:
+            rho = 0.12
+            drop = 0.0
+        elif v > 0.9 and not win and drop == 0 and _hu(pc, fseed, 0, 9) < 0.08:
+            rho = 0.1 + 0.7 * _hu(pc, fseed, 0, 10)
+    rho *= 0.9 + 0.2 * value_noise2_1(u * 0.5, v * 0.5, seed)
+    return max(rho, 0.01), drop
 
 
-TEXTURES: dict[str, Callable[[Hits], Shade]] = {
-    "plain": _tex_plain,
-    "rough": _tex_rough,
-    "asphalt": _tex_asphalt,
-    "marking": _tex_marking,
-    "grass": _tex_grass,
-    "paving": _tex_paving,
-    "concrete": _tex_concrete,
-    "manhole": _tex_manhole,
-    "foliage": _tex_foliage,
-    "wood": _tex_wood,
-    "person": _tex_person,
-    "corrugated": _tex_corrugated,
-    "fence": _tex_fence,
-    "sign": _tex_sign,
-    "car": _tex_car,
-    "facade": _tex_facade,
-}
+@njit
+def _texture(tex, pw, pl, nl, prm, seed, fp, tone):
+    """Dispatch on the texture id: (reflectance, extra dropout, extra range) of one hit."""
+    x, y = pw[0], pw[1]
+    if tex == 15:  # facade (most hits first)
+        rho, drop = _facade(pl, nl, prm, seed, fp, tone)
+        return rho, drop, 0.0
+    if tex == 2:  # asphalt
+        return _asphalt(x, y, fp, tone), 0.0, 0.0
+    if tex == 1:  # rough
+        return _rough(pw, seed, fp, tone), 0.0, 0.0
+    if tex == 8:  # foliage
+        return _foliage(pw, seed, tone)
+    if tex == 0:  # plain
+        return tone, 0.0, 0.0
+    if tex == 3:  # marking
+        return tone * (0.65 + 0.45 * value_noise2_1(x * 1.5, y * 1.5, 21)), 0.0, 0.0
+    if tex == 4:  # grass
+        return _grass(x, y, fp, tone), 0.0, 0.0
+    if tex == 5:  # paving
+        return _paving(x, y, fp, tone), 0.0, 0.0
+    if tex == 6:  # concrete
+        return _concrete(x, y, fp, tone), 0.0, 0.0
+    if tex == 7:  # manhole
+        return (
+            tone * (0.7 + 0.6 * filtered_pulse_1(x, 0.06, 0.5, fp) * filtered_pulse_1(y, 0.06, 0.5, fp)),
+            0.0,
+            0.0,
+        )
+    if tex == 9:  # wood
+        planks = _hu(np.floor(pl[2] / 0.15), np.floor((pl[0] + pl[1]) / 1.2), 0, seed) - 0.5
+        return tone * (1.0 + 0.4 * planks), 0.0, 0.0
+    if tex == 10:  # person: trousers (parameter A), jacket (tone), head
+        return (prm[P_A] if pl[2] < 0.85 else (tone if pl[2] < 1.5 else 0.35)), 0.0, 0.0
+    if tex == 11:  # corrugated
+        return _corrugated(pl, nl, prm, seed, fp, tone), 0.0, 0.0
+    if tex == 12:  # fence
+        rho, drop = _fence(pl, nl, prm, seed, fp, tone)
+        return rho, drop, 0.0
+    if tex == 13:  # sign
+        rho, drop = _sign(pl, nl, prm, seed, tone)
+        return rho, drop, 0.0
+    if tex == 14:  # car
+        return _car(pl, nl, seed, tone), 0.0, 0.0
+    return tone, 0.0, 0.0
 
 
-def shade(h: Hits) -> Shade:
-    """Evaluate the material's texture on a batch of hits; adds the material's own dropout probability."""
-    mat = MATERIALS[M(h.material)]
-    out = TEXTURES[mat.texture](h)
-    if mat.dropout > 0:
-        base = np.float32(mat.dropout)
-        out.dropout = np.full(len(h), base, np.float32) if out.dropout is None else 1.0 - (1.0 - out.dropout) * (1.0 - base)
-    return out
+@inline
+def shade_hit(texture, base, dropout, pw, pl, nl, prm, seed, fp):
+    """Reflectance, dropout probability (texture and material combined) and extra range of one hit on a material
+    with ``texture`` id, base reflectance ``base`` and own ``dropout`` (a `MATERIAL_TABLE` column)."""
+    tone = prm[P_TONE] if prm[P_TONE] > 0 else base
+    rho, drop, depth = _texture(np.int64(texture), pw, pl, nl, prm, seed, fp, tone)
+    return np.float32(rho), np.float32(1.0 - (1.0 - drop) * (1.0 - dropout)), np.float32(depth)
+
+
+@inline
+def param_row(table: np.ndarray, i: int, first: int) -> tuple:
+    """Row ``i`` of an object parameter table (columns ``first``..``first + PARAM_COUNT - 1``) as a tuple: hits
+    pass parameters by value, as an array view per hit would cost a reference-count update."""
+    return (table[i, first], table[i, first + 1], table[i, first + 2], table[i, first + 3], table[i, first + 4],
+            table[i, first + 5], table[i, first + 6], table[i, first + 7], table[i, first + 8], table[i, first + 9])  # fmt: skip
+
+
+@njit
+def _shade_n(material, pw, pl, nl, params, seed, footprint, mtab, rho, drop, depth):
+    for i in range(material.shape[0]):
+        m = material[i]
+        rho[i], drop[i], depth[i] = shade_hit(mtab[0, m], mtab[1, m], mtab[2, m], (pw[i, 0], pw[i, 1], pw[i, 2]),
+                                              (pl[i, 0], pl[i, 1], pl[i, 2]), (nl[i, 0], nl[i, 1], nl[i, 2]),
+                                              param_row(params, i, 0), np.int64(seed[i]), footprint[i])  # fmt: skip
+
+
+def shade(
+    material: np.ndarray | int,
+    pw: np.ndarray,
+    pl: np.ndarray | None = None,
+    nl: np.ndarray | None = None,
+    params: np.ndarray | None = None,
+    seed: np.ndarray | int = 0,
+    footprint: np.ndarray | float = 0.01,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Evaluate materials on n hits: (reflectance, dropout probability, extra range), float32 arrays.
+
+    ``pw`` (n, 3) world points; ``pl``/``nl`` (n, 3) point and normal in the object frame (default: ``pw`` and
+    +z); ``params`` (n, PARAM_COUNT) object parameter rows (default zeros: the material's base tone).
+    """
+    pw = np.ascontiguousarray(pw, dtype=np.float32).reshape(-1, 3)
+    n = pw.shape[0]
+    pl = pw if pl is None else np.ascontiguousarray(pl, dtype=np.float32).reshape(n, 3)
+    nl = (
+        np.tile(np.float32([0, 0, 1]), (n, 1))
+        if nl is None
+        else np.ascontiguousarray(nl, dtype=np.float32).reshape(n, 3)
+    )
+    prm = (
+        np.zeros((n, P_FLAGS + 1), np.float32)
+        if params is None
+        else np.ascontiguousarray(params, dtype=np.float32).reshape(n, -1)
+    )
+    mat = np.ascontiguousarray(np.broadcast_to(np.asarray(material, dtype=np.int64), (n,)))
+    sd = np.ascontiguousarray(np.broadcast_to(np.asarray(seed).astype(np.int64), (n,)))
+    fp = np.ascontiguousarray(np.broadcast_to(np.asarray(footprint, dtype=np.float32), (n,)))
+    rho, drop, depth = (np.empty(n, np.float32) for _ in range(3))
+    _shade_n(mat, pw, pl, nl, prm, sd, fp, MATERIAL_TABLE, rho, drop, depth)
+    return rho, drop, depth

@@ -19,8 +19,19 @@ import numpy as np
 
 from placerec.errors import DependencyError
 from placerec.sim.geometry import MeshArrays
+from placerec.sim.jit import elementwise, inline, njit
 
-__all__ = ["World", "GroundMap", "RoadGraph", "Terrain", "FreeSpace", "PresetResult", "build_world", "finalise_world", "world_from_mesh"]
+__all__ = [
+    "World",
+    "GroundMap",
+    "RoadGraph",
+    "Terrain",
+    "FreeSpace",
+    "PresetResult",
+    "build_world",
+    "finalise_world",
+    "world_from_mesh",
+]
 
 log = logging.getLogger(__name__)
 
@@ -35,10 +46,30 @@ class GroundMap:
     resolution: float
 
     def lookup(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        h, w = self.labels.shape
-        ix = np.clip(((x - self.x0) / self.resolution).astype(np.int64), 0, w - 1)
-        iy = np.clip(((y - self.y0) / self.resolution).astype(np.int64), 0, h - 1)
-        return self.labels[iy, ix]
+        """Material ids at world points (x, y); points outside the raster take the nearest edge cell."""
+        return elementwise(
+            _ground_label_n, (x, y), (np.float32, np.float32), np.uint8, self.labels, self.geometry()
+        )
+
+    def geometry(self) -> tuple[float, float, float]:
+        """(x0, y0, resolution) as the compiled kernels read it."""
+        return (float(self.x0), float(self.y0), float(self.resolution))
+
+
+@inline
+def ground_cell_1(geometry: tuple, shape: tuple, x: float, y: float) -> tuple[int, int]:
+    """(row, column) of the ground raster cell under (x, y), clamped to the raster (``geometry`` =
+    `GroundMap.geometry`, ``shape`` = the raster's shape)."""
+    ix = min(max(np.int64((x - geometry[0]) / geometry[2]), 0), shape[1] - 1)
+    iy = min(max(np.int64((y - geometry[1]) / geometry[2]), 0), shape[0] - 1)
+    return iy, ix
+
+
+@njit
+def _ground_label_n(x, y, labels, geometry, out):
+    for i in range(out.shape[0]):
+        iy, ix = ground_cell_1(geometry, labels.shape, x[i], y[i])
+        out[i] = labels[iy, ix]
 
 
 @dataclass
@@ -177,7 +208,10 @@ def make_scene(vertices: np.ndarray, triangles: np.ndarray) -> object:
         raise DependencyError("the simulator needs open3d (pip install open3d)") from exc
     scene = o3d.t.geometry.RaycastingScene()
     if len(triangles):
-        scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)), o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)))
+        scene.add_triangles(
+            o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
+            o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)),
+        )
     return scene
 
 
@@ -206,7 +240,14 @@ def finalise_world(preset: str, seed: int, res: PresetResult, t0: float) -> Worl
         build_seconds=time.perf_counter() - t0,
         info=res.info,
     )
-    log.debug("built world %s seed %d: %d triangles, %d objects in %.2f s", preset, seed, world.n_triangles, world.n_objects, world.build_seconds)
+    log.debug(
+        "built world %s seed %d: %d triangles, %d objects in %.2f s",
+        preset,
+        seed,
+        world.n_triangles,
+        world.n_objects,
+        world.build_seconds,
+    )
     return world
 
 
