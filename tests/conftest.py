@@ -15,3 +15,13 @@ def real_data() -> Path:
     if not REAL_DATA.is_dir():
         pytest.skip(f"real sample data not found at {REAL_DATA} (it lives outside the repository, in ../shared)")
     return REAL_DATA
+
+
+@pytest.fixture(scope="session")
+def warm_kernels() -> None:
+    """Compile (or load from the disk cache) the simulator's Numba kernels once, so that tests with a loose time
+    bound measure rendering rather than a cold compile (about 15 s on a fresh clone)."""
+    from placerec.sim import SimulatedSequence
+
+    for world in ("town", "campus"):
+        SimulatedSequence(world, "vlp16", seed=0, n_scans=2)[0]

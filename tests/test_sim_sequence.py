@@ -156,7 +156,7 @@ def test_odometry_drift() -> None:
 
 
 @pytest.mark.parametrize("preset", ["campus", "industrial"])
-def test_other_presets_render(preset: str) -> None:
+def test_other_presets_render(preset: str, warm_kernels: None) -> None:
     t0 = time.perf_counter()
     seq = SimulatedSequence(preset, "os1-64", seed=0, n_scans=40)
     scan = seq[20]
@@ -167,7 +167,7 @@ def test_other_presets_render(preset: str) -> None:
     assert seq.world.build_seconds < 5.0 and time.perf_counter() - t0 < 20
 
 
-def test_generation_is_fast_enough() -> None:
+def test_generation_is_fast_enough(warm_kernels: None) -> None:
     seq = SimulatedSequence("town", "os1-64", seed=0, n_scans=60)
     t0 = time.perf_counter()
     for i in range(0, 60, 6):

@@ -2,7 +2,16 @@ import numpy as np
 import pytest
 
 from placerec.errors import PlacerecError, ScanDataError
-from placerec.types import Candidate, ListSequence, PlaceRecognizer, Scan, SensorInfo, Sequence, as_pose, relative_pose
+from placerec.types import (
+    Candidate,
+    ListSequence,
+    PlaceRecognizer,
+    Scan,
+    SensorInfo,
+    Sequence,
+    as_pose,
+    relative_pose,
+)
 
 
 def _scan(n=10, **kw):

@@ -74,7 +74,7 @@ def _lerp(a, b, t):
     return a + (b - a) * t
 
 
-@inline
+@njit
 def value_noise2_1(x: float, y: float, seed: int) -> float:
     """Smooth 2D value noise in [0, 1) with unit lattice spacing: hashed lattice values, smoothstep blending."""
     xf = np.floor(x)
@@ -89,7 +89,7 @@ def value_noise2_1(x: float, y: float, seed: int) -> float:
     return _lerp(a, b, sy)
 
 
-@inline
+@njit
 def value_noise3_1(x: float, y: float, z: float, seed: int) -> float:
     """Smooth 3D value noise in [0, 1) with unit lattice spacing (see `value_noise2_1`)."""
     xf = np.floor(x)
@@ -109,7 +109,7 @@ def value_noise3_1(x: float, y: float, z: float, seed: int) -> float:
     return _lerp(_lerp(lo_a, lo_b, sy), _lerp(hi_a, hi_b, sy), sz)
 
 
-@inline
+@njit
 def fbm2_1(x: float, y: float, seed: int, octaves: int) -> float:
     """Fractal sum of `value_noise2_1` octaves (frequency x2.03, amplitude x0.5), centred: roughly in [-1, 1]."""
     total = np.float32(0.0)
@@ -131,7 +131,7 @@ def _pulse_integral(t, duty):
     return ft * duty + min(t - ft, duty)
 
 
-@inline
+@njit
 def filtered_pulse_1(x: float, period: float, duty: float, width: float) -> float:
     """Fraction of a box filter of ``width`` centred at ``x`` covering the "on" part of a pulse train (on where
     ``frac(x / period) < duty``); see `filtered_pulse`."""
