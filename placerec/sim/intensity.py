@@ -54,6 +54,8 @@ _I8 = np.int64
 (_RANGE_10, _COMPENSATED, _REF_RANGE, _NEAR_FIELD, _RESIDUAL, _DEGRADE_AT, _DEGRADE_LEN, _EXTINCTION, _SPECKLE,
  _SPECKLE_FAR, _SOFTNESS, _SIGNAL_RANGE, _P_MIN) = range(13)  # fmt: skip
 _VELODYNE, _SCALE, _MAX, _ADD_SD = range(4)
+_E_50 = float(np.exp(50.0))
+_E_M50 = float(np.exp(-50.0))
 
 
 # -- scalar kernels (one hit) ---------------------------------------------------------------------------------------
@@ -70,33 +72,50 @@ def surface_response_1(rho: float, cos_incidence: float, specular: float, lamber
 
 
 @inline
-def _overlap_extinction(r: float, mp: tuple) -> float:
-    return (1.0 - np.exp(-((r / mp[_NEAR_FIELD]) ** 2))) * np.exp(-2.0 * mp[_EXTINCTION] * r)
+def path_gain_1(rng_m: float, mp: tuple) -> float:
+    """Near-field overlap times two-way atmospheric transmission, ``O(R) exp(-2 sigma R)``, at range ``rng_m``."""
+    r = max(rng_m, 1e-3)
+    q = r / mp[_NEAR_FIELD]
+    overlap = 1.0 - np.exp(-q * q) if q < 6.5 else 1.0  # beyond 6.5 R_nf the overlap is 1 within 1e-18
+    return overlap * np.exp(-2.0 * mp[_EXTINCTION] * r)
 
 
 @inline
 def received_power_1(beta: float, rng_m: float, mp: tuple) -> float:
     """Relative received power ``beta O(R) exp(-2 sigma R) / R^2`` (LiDAR equation)."""
     r = max(rng_m, 1e-3)
-    return beta * _overlap_extinction(r, mp) / (r * r)
+    return beta * path_gain_1(r, mp) / (r * r)
+
+
+@inline
+def _detection_from_power(power: float, mp: tuple) -> float:
+    # the logistic 1 / (1 + exp(-z)) of z = ln(P / P_min) / softness, as 1 / (1 + (P / P_min) ** (-1 / softness)),
+    # with z clipped to [-50, 50]
+    q = max(power, 1e-30) / mp[_P_MIN]
+    return 1.0 / (1.0 + min(max(q ** (-1.0 / mp[_SOFTNESS]), _E_M50), _E_50))
 
 
 @inline
 def detection_probability_1(beta: float, rng_m: float, mp: tuple) -> float:
     """Probability that a return is detected at all (a logistic in log received power)."""
-    z = np.log(max(received_power_1(beta, rng_m, mp), 1e-30) / mp[_P_MIN]) / mp[_SOFTNESS]
-    return 1.0 / (1.0 + np.exp(-min(max(z, -50.0), 50.0)))
+    return _detection_from_power(received_power_1(beta, rng_m, mp), mp)
+
+
+@inline
+def _range_factor_from_gain(rng_m: float, gain: float, mp: tuple) -> float:
+    r = max(rng_m, 1e-3)
+    if mp[_COMPENSATED] == 0:
+        return gain * (mp[_SIGNAL_RANGE] / r) ** 2
+    f = gain * (r / mp[_REF_RANGE]) ** (-mp[_RESIDUAL])
+    if r > mp[_DEGRADE_AT]:
+        f *= np.exp(-(r - mp[_DEGRADE_AT]) / mp[_DEGRADE_LEN])
+    return f
 
 
 @inline
 def range_factor_1(rng_m: float, mp: tuple) -> float:
     """Multiplier from surface response to apparent reflectance at range ``rng_m``."""
-    r = max(rng_m, 1e-3)
-    f = _overlap_extinction(r, mp)
-    if mp[_COMPENSATED] == 0:
-        return f * (mp[_SIGNAL_RANGE] / r) ** 2
-    residual = (r / mp[_REF_RANGE]) ** (-mp[_RESIDUAL])
-    return f * residual * np.exp(-max(r - mp[_DEGRADE_AT], 0.0) / mp[_DEGRADE_LEN])
+    return _range_factor_from_gain(rng_m, path_gain_1(rng_m, mp), mp)
 
 
 @inline
@@ -121,14 +140,34 @@ def expected_raw_1(apparent: float, gain: float, gamma: float, offset: float, rp
 
 
 @inline
+def _measure_from_factor(beta, rng_m, factor, gain, gamma, offset, z_speckle, z_noise, mp, rp) -> float:
+    s = speckle_sigma_1(rng_m, mp)
+    x = beta * factor * np.exp(s * z_speckle - 0.5 * s * s)
+    raw = expected_raw_1(x, gain, gamma, offset, rp) + rp[_ADD_SD] * z_noise
+    return min(max(np.rint(raw), 0.0), rp[_MAX])
+
+
+@inline
 def measure_1(beta: float, rng_m: float, gain: float, gamma: float, offset: float, z_speckle: float, z_noise: float,
               mp: tuple, rp: tuple) -> float:  # fmt: skip
     """Noisy, quantised raw intensity of one return on a beam with curve (gain, gamma, offset), given two
     standard-normal draws (speckle, additive noise)."""
-    s = speckle_sigma_1(rng_m, mp)
-    x = beta * range_factor_1(rng_m, mp) * np.exp(s * z_speckle - 0.5 * s * s)
-    raw = expected_raw_1(x, gain, gamma, offset, rp) + rp[_ADD_SD] * z_noise
-    return min(max(np.rint(raw), 0.0), rp[_MAX])
+    factor = range_factor_1(rng_m, mp)
+    return _measure_from_factor(beta, rng_m, factor, gain, gamma, offset, z_speckle, z_noise, mp, rp)
+
+
+@inline
+def detect_and_measure_1(beta: float, rng_m: float, p_pass: float, u: float, gain: float, gamma: float,
+                         offset: float, z_speckle: float, z_noise: float, mp: tuple, rp: tuple) -> tuple[bool, float]:  # fmt: skip
+    """`detection_probability_1` (times ``p_pass``, the chance the beam is not lost on the way) decided by the
+    uniform draw ``u``, then `measure_1` of a detected return: (detected?, raw intensity or 0). Shares the path
+    gain between the two steps."""
+    r = max(rng_m, 1e-3)
+    g = path_gain_1(r, mp)
+    if u >= _detection_from_power(beta * g / (r * r), mp) * p_pass:
+        return False, 0.0
+    factor = _range_factor_from_gain(r, g, mp)
+    return True, _measure_from_factor(beta, rng_m, factor, gain, gamma, offset, z_speckle, z_noise, mp, rp)
 
 
 # -- array kernels --------------------------------------------------------------------------------------------------

@@ -18,13 +18,7 @@ import numpy as np
 
 from placerec.sim.clutter import ClutterConfig, build_clutter
 from placerec.sim.geometry import MeshArrays
-from placerec.sim.intensity import (
-    BeamResponse,
-    IntensityModel,
-    detection_probability_1,
-    measure_1,
-    surface_response_1,
-)
+from placerec.sim.intensity import BeamResponse, IntensityModel, detect_and_measure_1, surface_response_1
 from placerec.sim.jit import njit
 from placerec.sim.materials import M
 from placerec.sim.sensors import RayGrid, SensorModel, ray_grid
@@ -193,10 +187,12 @@ class Renderer:
         hits = self.cast(pose, timestamp, seed, index, occluders)
         sel = np.flatnonzero((hits.t >= sensor.min_range) & (hits.t <= sensor.max_range))
         table, oseed = self._object_table(hits.clutter)
-        # two fixed halves of the sweep, each with its own noise stream: the shading kernel releases the GIL, so the
-        # halves shade in parallel on two cores and the result does not depend on the thread count
+        # two fixed halves of the sweep (even and odd ray indices, so both see the same mix of near ground and far
+        # or empty sky), each with its own noise stream: the shading kernel releases the GIL, so the halves shade in
+        # parallel on two cores and the result does not depend on the thread count
         N = grid.directions.shape[0]
-        halves = (sel[sel < N // 2], sel[sel >= N // 2])
+        odd = (sel & 1).astype(bool)
+        halves = (sel[~odd], sel[odd])
         rngs = [np.random.default_rng([int(seed) & 0xFFFFFFFF, int(index), 0x5CA7, k]) for k in range(2)]
         pool = _pool() if self.threads > 1 else None
         if pool is not None:
@@ -260,14 +256,14 @@ def _shade_rays(sel, t, rays, normal, material, obj, ground_labels, ground_geome
         beta = surface_response_1(rho, abs(nw[0] * dx + nw[1] * dy + nw[2] * dz), mtab[3, m], mtab[4, m])
         r_true = ti + depth
         r = r_true + sp[1] * (1.0 + r_true / 100.0) * z[0, j]
-        ok = u[j] < detection_probability_1(beta, r_true, mp) * (1.0 - drop) and sp[2] <= r <= sp[3]
-        keep[j] = ok
         r_meas[j] = r
-        if ok:
+        if sp[2] <= r <= sp[3]:
             b = ring[i]
-            raw[j] = measure_1(beta, r_true, gain[b], gamma[b], offset[b], z[1, j], z[2, j], mp, rp)
+            keep[j], raw[j] = detect_and_measure_1(
+                beta, r_true, 1.0 - drop, u[j], gain[b], gamma[b], offset[b], z[1, j], z[2, j], mp, rp
+            )
         else:
-            raw[j] = 0.0
+            keep[j], raw[j] = False, 0.0
 
 
 _POOL: tuple[int, ThreadPoolExecutor] | None = None
