@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
@@ -10,7 +11,7 @@ from placerec.config import DatasetConfig
 from placerec.errors import ConfigError
 from placerec.types import Scan, Sequence
 
-__all__ = ["DATASET_SOURCES", "open_dataset", "SlicedSequence"]
+__all__ = ["DATASET_SOURCES", "open_dataset", "dataset_fingerprint", "files_fingerprint", "SlicedSequence"]
 
 
 class SlicedSequence:
@@ -87,6 +88,42 @@ DATASET_SOURCES: dict[str, Callable[[DatasetConfig], Sequence]] = {
     "simulator": _simulator,
     "path": _path,
 }
+
+
+def files_fingerprint(*paths: str | Path | None) -> list:
+    """(relative name, size, mtime) of every file at or under ``paths``: changes when any file is replaced."""
+    out = []
+    for p in paths:
+        if p is None:
+            continue
+        root = Path(p).expanduser()
+        files = sorted(f for f in root.rglob("*") if f.is_file()) if root.is_dir() else [root]
+        for f in files:
+            st = f.stat() if f.exists() else None
+            out.append(
+                [
+                    str(f.relative_to(root)) if root.is_dir() else str(f),
+                    st and st.st_size,
+                    st and st.st_mtime_ns,
+                ]
+            )
+    return out
+
+
+def _simulator_fingerprint() -> list:
+    """(file name, content hash) of the simulator's sources: any change to the simulator changes its scans."""
+    from placerec.hashing import stable_hash
+
+    sim = Path(__file__).parent / "sim"
+    return [[f.name, stable_hash(f.read_text())] for f in sorted(sim.glob("*.py"))]
+
+
+def dataset_fingerprint(cfg: DatasetConfig) -> list:
+    """What, besides the config, determines the scans of a dataset: the simulator's code, or the files' sizes and
+    modification times. Part of the description cache key, so that cached descriptions never outlive their data."""
+    if cfg.source == "simulator":
+        return _simulator_fingerprint()
+    return files_fingerprint(cfg.path, cfg.poses)
 
 
 def open_dataset(cfg: DatasetConfig) -> Sequence:

@@ -114,3 +114,31 @@ def test_detector_metres_and_seconds_windows_need_inputs():
         pose[0, 3] = i
         det.process(scan, pose=pose, timestamp=10.0 * i)
     assert {c.match_id for c in det.last_candidates} == {0}
+
+
+def test_description_cache_key_follows_the_data(tmp_path):
+    """Cached descriptions never outlive their data: the key changes with the files, the calibration table and
+    the simulator's code, not only with the config."""
+    from placerec.config import DatasetConfig
+    from placerec.datasets import dataset_fingerprint
+    from placerec.experiment.runner import _data_key
+
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    (folder / "000000.bin").write_bytes(np.zeros(8, np.float32).tobytes())
+    cfg = load_config(None, ["dataset.source=path", f"dataset.path={folder}"])
+    before = _data_key(cfg, cfg.dataset)
+    assert _data_key(cfg, cfg.dataset) == before  # stable
+    (folder / "000000.bin").write_bytes(np.ones(12, np.float32).tobytes())  # the scan was replaced
+    after = _data_key(cfg, cfg.dataset)
+    assert after != before
+    table = tmp_path / "calib.npz"
+    table.write_bytes(b"x")
+    with_calib = load_config(
+        None, ["dataset.source=path", f"dataset.path={folder}", f"preprocess.intensity.calibration={table}"]
+    )
+    key = _data_key(with_calib, with_calib.dataset)
+    table.write_bytes(b"xy")
+    assert _data_key(with_calib, with_calib.dataset) != key
+    sim = dataset_fingerprint(DatasetConfig())
+    assert {"render.py", "textures.py", "intensity.py", "routes.py"} <= {name for name, _ in sim}

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from placerec.config import ExperimentConfig, PreprocessConfig
-from placerec.datasets import open_dataset
+from placerec.datasets import dataset_fingerprint, files_fingerprint, open_dataset
 from placerec.errors import ConfigError
 from placerec.experiment.cache import DescriptionCache, config_hash
 from placerec.loop_closure import LoopClosureDetector, split_verify_time
@@ -129,7 +129,14 @@ def _build_pipelines(cfg: ExperimentConfig) -> list[tuple[str, Any]]:
 
 
 def _data_key(cfg: ExperimentConfig, dataset_cfg: Any) -> str:
-    return config_hash(dataset_cfg.model_dump(mode="json"), cfg.preprocess.model_dump(mode="json"))
+    """Cache key of a dataset's preprocessed scans: the configs, the data itself (simulator code or file stats) and
+    the calibration table's file."""
+    return config_hash(
+        dataset_cfg.model_dump(mode="json"),
+        cfg.preprocess.model_dump(mode="json"),
+        dataset_fingerprint(dataset_cfg),
+        files_fingerprint(cfg.preprocess.intensity.calibration),
+    )
 
 
 def run_loop(cfg: ExperimentConfig, seq: Sequence | None = None) -> tuple[Sequence, list[PipelineRecord]]:

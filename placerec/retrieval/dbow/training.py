@@ -207,11 +207,19 @@ def cached_descriptors(
     cfg: VocabTrainingConfig, progress: bool = False
 ) -> tuple[list[np.ndarray], list[str]]:
     """`collect_descriptors`, through ``cfg.descriptor_cache`` when set: the cache file is keyed by every setting
-    that changes the descriptors (features, image, preprocessing, sequences, n_images), not by k, L, etc."""
+    that changes the descriptors (features, image, preprocessing, sequences and their data, n_images), not by k,
+    L, etc."""
     if cfg.descriptor_cache is None:
         return collect_descriptors(cfg, progress)
+    from placerec.datasets import dataset_fingerprint, files_fingerprint
+
     keys = ("features", "feature_params", "image", "preprocess", "n_images", "simulator", "datasets")
-    digest = stable_hash(cfg.model_dump(mode="json", include=set(keys)))
+    sources = [DatasetConfig.model_validate(spec) for _, spec in _sequences(cfg)]
+    data = (
+        [dataset_fingerprint(ds) for ds in sources],
+        files_fingerprint(cfg.preprocess.intensity.calibration),
+    )
+    digest = stable_hash([cfg.model_dump(mode="json", include=set(keys)), data])
     path = Path(cfg.descriptor_cache) / f"descriptors_{cfg.features}_{digest}.npz"
     if path.is_file():
         try:
