@@ -10,6 +10,7 @@ the ~15 materials present, not over points.
 
 from __future__ import annotations
 
+import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -19,7 +20,7 @@ import numpy as np
 from placerec.sim.clutter import ClutterConfig, build_clutter
 from placerec.sim.geometry import MeshArrays
 from placerec.sim.intensity import BeamResponse, IntensityModel, detect_and_measure_1, surface_response_1
-from placerec.sim.jit import njit
+from placerec.sim.jit import needs_compile, njit
 from placerec.sim.materials import M
 from placerec.sim.sensors import RayGrid, SensorModel, ray_grid
 from placerec.sim.textures import MATERIAL_TABLE, param_row, shade_hit
@@ -27,6 +28,9 @@ from placerec.sim.world import World, ground_cell_1, make_scene
 from placerec.types import Scan
 
 __all__ = ["Renderer", "RawHits"]
+
+log = logging.getLogger(__name__)
+_COMPILE_NOTED = False
 
 
 @dataclass
@@ -68,6 +72,7 @@ class Renderer:
         self.model = model or IntensityModel.for_sensor(sensor)
         self.clutter = clutter
         self._dirs_t = np.ascontiguousarray(self.grid.directions.T)
+        _note_first_compile()
         self._model_params = self.model.packed()
         self._response_params = response.packed()
         # [beam divergence (rad), range noise sd (m), min range, max range]
@@ -264,6 +269,15 @@ def _shade_rays(sel, t, rays, normal, material, obj, ground_labels, ground_geome
             )
         else:
             keep[j], raw[j] = False, 0.0
+
+
+def _note_first_compile() -> None:
+    """Tell the user, once per process, that the first scan waits for the shading kernel to compile."""
+    global _COMPILE_NOTED
+    if not _COMPILE_NOTED:
+        _COMPILE_NOTED = True
+        if needs_compile(_shade_rays):
+            log.warning("compiling the simulator's shading kernels (once after install or update, ~15 s; cached on disk)")
 
 
 _POOL: tuple[int, ThreadPoolExecutor] | None = None
