@@ -4,8 +4,8 @@ Per scan: rotate the sensor's ray grid into the world, ray-cast the static scene
 (``RaycastingScene.cast_rays``), keep the nearer hit, look up material and object of the hit triangle (ground
 hits: the ground raster), evaluate the material's texture in object coordinates, apply the intensity model
 (`placerec.sim.intensity`): detection / dropout, range noise, per-beam response, speckle and quantisation, and
-assemble a `placerec.types.Scan` in the sensor frame. Everything is vectorised; the per-material loop runs over
-the ~15 materials present, not over points.
+assemble a `placerec.types.Scan` in the sensor frame. Everything after the cast runs in one compiled pass over the
+hits (`_shade_rays`), on two threads (see ``docs/simulator.md#speed``).
 """
 
 from __future__ import annotations
