@@ -71,7 +71,6 @@ class Renderer:
         self.response = response
         self.model = model or IntensityModel.for_sensor(sensor)
         self.clutter = clutter
-        self._dirs_t = np.ascontiguousarray(self.grid.directions.T)
         _note_first_compile()
         self._model_params = self.model.packed()
         self._response_params = response.packed()
@@ -88,17 +87,13 @@ class Renderer:
     ) -> RawHits:
         """Ray-cast one sweep from ``pose`` (T_world_sensor) against the world and this scan's clutter."""
         w = self.world
-        R = np.asarray(pose[:3, :3], dtype=np.float32)
-        rays = np.empty(
-            (self.grid.directions.shape[0], 6), dtype=np.float32
-        )  # per call: renders may run concurrently
-        rays[:, :3] = np.asarray(pose[:3, 3], dtype=np.float32)
-        rays[:, 3:] = (R @ self._dirs_t).T  # (3, N) layout: one fast GEMM
+        n = self.grid.directions.shape[0]
+        rays = np.empty((n, 6), dtype=np.float32)  # per call: renders may run concurrently
+        _sweep_rays(np.asarray(pose, dtype=np.float64), self.grid.directions, rays)
         t, prim, nrm = _cast(w.scene, rays)
-        valid = np.isfinite(t)
-        primc = np.where(valid, prim, 0)
-        mat = np.where(valid, w.tri_material[primc], M.NONE).astype(np.uint8)
-        obj = np.where(valid, w.tri_object[primc], 0).astype(np.int32)
+        mat = np.empty(n, np.uint8)
+        obj = np.empty(n, np.int32)
+        _hit_labels(t, prim, w.tri_material, w.tri_object, mat, obj)
         mesh = build_clutter(w, pose, timestamp, self.clutter, seed, index, occluders)
         if mesh is not None:
             cand = self._clutter_candidates(mesh, pose, everything=occluders)
@@ -224,6 +219,31 @@ class Renderer:
                     sensor=info, timestamp=float(timestamp), source=source)  # fmt: skip
 
 
+_NONE = int(M.NONE)
+
+
+@njit
+def _sweep_rays(pose, directions, rays):
+    """Rays [origin, direction] in the world frame of the sensor-frame ``directions`` from ``pose``."""
+    for i in range(directions.shape[0]):
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+        for k in range(3):
+            rays[i, k] = pose[k, 3]
+            rays[i, 3 + k] = pose[k, 0] * dx + pose[k, 1] * dy + pose[k, 2] * dz
+
+
+@njit
+def _hit_labels(t, prim, tri_material, tri_object, material, obj):
+    """Material and object of every hit triangle (`M.NONE` and 0 for rays that hit nothing)."""
+    for i in range(t.shape[0]):
+        if np.isfinite(t[i]):
+            material[i] = tri_material[prim[i]]
+            obj[i] = tri_object[prim[i]]
+        else:
+            material[i] = _NONE
+            obj[i] = 0
+
+
 _GROUND = int(M.GROUND)
 _FACADE = int(M.FACADE)
 
@@ -277,7 +297,9 @@ def _note_first_compile() -> None:
     if not _COMPILE_NOTED:
         _COMPILE_NOTED = True
         if needs_compile(_shade_rays):
-            log.warning("compiling the simulator's shading kernels (once after install or update, ~15 s; cached on disk)")
+            log.warning(
+                "compiling the simulator's shading kernels (once after install or update, ~15 s; cached on disk)"
+            )
 
 
 _POOL: tuple[int, ThreadPoolExecutor] | None = None
