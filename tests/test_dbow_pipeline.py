@@ -121,3 +121,19 @@ def test_missing_or_mismatched_vocabulary(tmp_path, trained):
         make_pipeline("surf-dbow", {"vocabulary": str(trained)})
     with pytest.raises(ConfigError, match="unknown parameter"):
         make_pipeline("orb-dbow", {"vocab": "x"})
+
+
+def test_descriptor_cache_key_follows_settings_and_data(tmp_path):
+    from placerec.retrieval.dbow.training import VocabTrainingConfig, descriptor_cache_key
+
+    folder = tmp_path / "velodyne"
+    folder.mkdir()
+    (folder / "000000.bin").write_bytes(np.zeros(8, np.float32).tobytes())
+    cfg = VocabTrainingConfig(simulator=None, datasets=[{"source": "path", "path": str(folder)}])
+    key = descriptor_cache_key(cfg)
+    assert descriptor_cache_key(cfg) == key
+    assert descriptor_cache_key(cfg.model_copy(update={"k": 7})) == key  # vocabulary shape: same descriptors
+    assert descriptor_cache_key(cfg.model_copy(update={"n_images": 10})) != key
+    (folder / "000000.bin").write_bytes(np.ones(12, np.float32).tobytes())  # a scan replaced
+    assert descriptor_cache_key(cfg) != key
+    assert descriptor_cache_key(VocabTrainingConfig()) != key  # the simulator's sources are part of its key

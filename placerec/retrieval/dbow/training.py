@@ -45,6 +45,7 @@ __all__ = [
     "load_training_config",
     "collect_descriptors",
     "cached_descriptors",
+    "descriptor_cache_key",
     "train_vocabulary_from_config",
 ]
 
@@ -203,14 +204,9 @@ def collect_descriptors(
     return parts, labels
 
 
-def cached_descriptors(
-    cfg: VocabTrainingConfig, progress: bool = False
-) -> tuple[list[np.ndarray], list[str]]:
-    """`collect_descriptors`, through ``cfg.descriptor_cache`` when set: the cache file is keyed by every setting
-    that changes the descriptors (features, image, preprocessing, sequences and their data, n_images), not by k,
-    L, etc."""
-    if cfg.descriptor_cache is None:
-        return collect_descriptors(cfg, progress)
+def descriptor_cache_key(cfg: VocabTrainingConfig) -> str:
+    """Hash of every setting that changes the extracted descriptors, and of the data they come from (the
+    simulator's code, the dataset files, the calibration table)."""
     from placerec.datasets import dataset_fingerprint, files_fingerprint
 
     keys = ("features", "feature_params", "image", "preprocess", "n_images", "simulator", "datasets")
@@ -219,7 +215,18 @@ def cached_descriptors(
         [dataset_fingerprint(ds) for ds in sources],
         files_fingerprint(cfg.preprocess.intensity.calibration),
     )
-    digest = stable_hash([cfg.model_dump(mode="json", include=set(keys)), data])
+    return stable_hash([cfg.model_dump(mode="json", include=set(keys)), data])
+
+
+def cached_descriptors(
+    cfg: VocabTrainingConfig, progress: bool = False
+) -> tuple[list[np.ndarray], list[str]]:
+    """`collect_descriptors`, through ``cfg.descriptor_cache`` when set: the cache file is keyed by every setting
+    that changes the descriptors (features, image, preprocessing, sequences and their data, n_images), not by k,
+    L, etc."""
+    if cfg.descriptor_cache is None:
+        return collect_descriptors(cfg, progress)
+    digest = descriptor_cache_key(cfg)
     path = Path(cfg.descriptor_cache) / f"descriptors_{cfg.features}_{digest}.npz"
     if path.is_file():
         try:
