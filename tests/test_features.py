@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_surf import textured_image  # tests/ is on sys.path (pytest rootdir, no __init__.py)
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.features import EXTRACTORS, Features, available_extractors, make_extractor
 from placerec.features.compat import brisk_create
+from placerec.features.synthetic import textured_image
 
 NAMES = ["orb", "brisk", "fast-surf", "surf"]
 PANORAMA = textured_image(64, 1024, seed=21)

@@ -26,29 +26,11 @@ import numpy as np
 
 from placerec.features import available_extractors, make_extractor
 from placerec.features.surf import SURF
+from placerec.features.synthetic import textured_image
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI_FRAME = REPO.parent / "shared" / "data" / "real" / "kitti00_frames" / "000094.bin"
 SIZES = ((64, 1024), (64, 2048))
-
-
-def texture(h: int, w: int, seed: int = 0) -> np.ndarray:
-    """Deterministic 8-bit texture: multi-scale smoothed noise, rectangles, ellipses and letters."""
-    rng = np.random.default_rng(seed)
-    img = np.full((h, w), 128.0, np.float32)
-    for sigma, amp in ((6.0, 70.0), (2.5, 50.0), (1.0, 25.0)):
-        n = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), sigma)
-        img += amp * n / (n.std() + 1e-9)
-    img = (np.clip(img, 0, 255) * (195 / 255) + 20).astype(np.uint8)
-    for _ in range(h * w // 900):
-        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
-        a, b = int(rng.integers(3, 20)), int(rng.integers(3, 20))
-        cv2.rectangle(img, (x, y), (x + a, y + b), int(rng.integers(20, 216)), -1)
-    for _ in range(h * w // 1500):
-        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
-        letter = chr(int(rng.integers(65, 91)))
-        cv2.putText(img, letter, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.8, int(rng.integers(20, 216)), 2)
-    return img
 
 
 def kitti_image(width: int) -> np.ndarray | None:
@@ -81,7 +63,7 @@ def main() -> None:
     )
     args = ap.parse_args()
 
-    images = {f"texture {h}x{w}": texture(h, w) for h, w in SIZES}
+    images = {f"texture {h}x{w}": textured_image(h, w) for h, w in SIZES}
     for _, w in SIZES:
         img = kitti_image(w)
         if img is not None:

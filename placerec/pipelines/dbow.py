@@ -38,13 +38,13 @@ import numpy as np
 from placerec.errors import ArtifactError, ConfigError
 from placerec.image import ImageParams
 from placerec.io.atomic import load_artifact, save_artifact
-from placerec.pipelines.visual import describe_visual, shift_consensus, visual_frontend_key, yaw_pose
+from placerec.pipelines.visual import VisualFrontend, shift_consensus, yaw_pose
 from placerec.recognizer import Description, DescriptorRecognizer
 from placerec.retrieval.bits import hamming, to_words
 from placerec.retrieval.dbow.database import BowDatabase, candidate_pairs
 from placerec.retrieval.dbow.loop_detector import LoopDetectorParams, LoopFilter
 from placerec.retrieval.dbow.vocabulary import Vocabulary, l1_score
-from placerec.types import Candidate, Scan
+from placerec.types import Candidate
 
 log = logging.getLogger(__name__)
 
@@ -117,7 +117,7 @@ def _load_cached(path: Path) -> Vocabulary:
     return _CACHE[key]
 
 
-class VisualDBoW(DescriptorRecognizer):
+class VisualDBoW(VisualFrontend, DescriptorRecognizer):
     """`PlaceRecognizer` of the VPR paper's 2D modality with DBoW2 retrieval (ORB-DBoW, SURF-DBoW)."""
 
     name: ClassVar[str] = "visual-dbow"
@@ -151,13 +151,6 @@ class VisualDBoW(DescriptorRecognizer):
         self._keypoints: dict[int, np.ndarray] = {}
         self._descriptors: dict[int, np.ndarray] = {}
         self._width: dict[int, int] = {}
-
-    @property
-    def frontend_key(self) -> str:
-        return visual_frontend_key(self.params)
-
-    def describe(self, scan: Scan) -> Description:
-        return describe_visual(scan, self.params.image, self.extractor)
 
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
         scan_id = int(scan_id)

@@ -29,7 +29,7 @@ from placerec.recognizer import Description, DescriptorRecognizer, params_key
 from placerec.retrieval.hbst import HBST
 from placerec.types import Candidate, Scan
 
-__all__ = ["VisualParams", "VisualHBST", "yaw_pose", "shift_consensus", "visual_frontend_key", "describe_visual"]
+__all__ = ["VisualParams", "VisualFrontend", "VisualHBST", "yaw_pose", "shift_consensus", "visual_frontend_key", "describe_visual"]
 
 _KIND = "visual-hbst-db"
 _VERSION = 1
@@ -107,7 +107,22 @@ def shift_consensus(
     return int(inl.sum()), refined
 
 
-class VisualHBST(DescriptorRecognizer):
+class VisualFrontend:
+    """The intensity-image front end shared by the visual pipelines: needs ``params`` (with ``image`` and the
+    feature settings) and ``extractor``; scans with equal front-end settings share their descriptions."""
+
+    params: Any
+    extractor: Any
+
+    @property
+    def frontend_key(self) -> str:
+        return visual_frontend_key(self.params)
+
+    def describe(self, scan: Scan) -> Description:
+        return describe_visual(scan, self.params.image, self.extractor)
+
+
+class VisualHBST(VisualFrontend, DescriptorRecognizer):
     """`PlaceRecognizer` of the VPR paper's 2D modality with HBST retrieval (ORB-HBST, BRISK-HBST)."""
 
     name: ClassVar[str] = "visual-hbst"
@@ -128,13 +143,6 @@ class VisualHBST(DescriptorRecognizer):
         hb = self.params.hbst
         threshold = hb.threshold or round(25 * self.extractor.descriptor_size * 8 / 256)
         return HBST(hb.delta_max, hb.leaf_size, hb.max_depth, threshold)
-
-    @property
-    def frontend_key(self) -> str:
-        return visual_frontend_key(self.params)
-
-    def describe(self, scan: Scan) -> Description:
-        return describe_visual(scan, self.params.image, self.extractor)
 
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
         scan_id = int(scan_id)

@@ -15,6 +15,7 @@ Ouster-like presets produce organised, destaggered ``rows x columns`` scans, row
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 
@@ -110,6 +111,22 @@ def _hdl64_elevations() -> tuple[float, ...]:
     return tuple(round(float(v), 4) for v in elev)
 
 
+_OS1_GEN2 = SensorModel(
+    name="os1-64-gen2",
+    beam_elevations_deg=_uniform(22.5, -22.5, 64),
+    columns=1024,
+    family="ouster",
+    min_range=0.5,
+    max_range=120.0,
+    range_noise_std=0.015,
+    intensity_bits=16,
+    intensity_scale=1000.0,
+    range_10pct=45.0,
+    beam_divergence_mrad=2.5,
+    organized=True,
+    mount_height=1.8,
+)
+
 SENSORS: dict[str, SensorModel] = {
     "vlp16": SensorModel(
         name="vlp16",
@@ -157,36 +174,8 @@ SENSORS: dict[str, SensorModel] = {
         organized=True,
         mount_height=1.8,
     ),
-    "os1-64-gen2": SensorModel(
-        name="os1-64-gen2",
-        beam_elevations_deg=_uniform(22.5, -22.5, 64),
-        columns=1024,
-        family="ouster",
-        min_range=0.5,
-        max_range=120.0,
-        range_noise_std=0.015,
-        intensity_bits=16,
-        intensity_scale=1000.0,
-        range_10pct=45.0,
-        beam_divergence_mrad=2.5,
-        organized=True,
-        mount_height=1.8,
-    ),
-    "os1-128": SensorModel(
-        name="os1-128",
-        beam_elevations_deg=_uniform(22.5, -22.5, 128),
-        columns=1024,
-        family="ouster",
-        min_range=0.5,
-        max_range=120.0,
-        range_noise_std=0.015,
-        intensity_bits=16,
-        intensity_scale=1000.0,
-        range_10pct=45.0,
-        beam_divergence_mrad=2.5,
-        organized=True,
-        mount_height=1.8,
-    ),
+    "os1-64-gen2": _OS1_GEN2,
+    "os1-128": dataclasses.replace(_OS1_GEN2, name="os1-128", beam_elevations_deg=_uniform(22.5, -22.5, 128)),
 }
 
 _ALIASES = {"os1-64-gen1": "os1-64", "vlp-16": "vlp16", "hdl-64": "hdl64", "hdl64e": "hdl64", "os1-128-gen2": "os1-128"}
