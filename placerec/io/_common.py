@@ -7,7 +7,7 @@ import logging
 import re
 import struct
 import zipfile
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import TypeVar
 
@@ -79,6 +79,23 @@ def guard(what: str) -> Callable[[_F], _F]:
         return wrapper  # type: ignore[return-value]
 
     return deco
+
+
+def header_lines(buf: bytes, where: Path, kind: str, end: str, max_lines: int) -> Iterator[tuple[str, int]]:
+    """The stripped lines of an ASCII header at the start of ``buf``, each with the byte offset just after it, up to
+    ``max_lines`` lines. ScanFormatError (naming the file, the ``kind`` of file and the ``end`` line expected) when
+    the bytes run out before a newline or a line is not ASCII."""
+    pos = 0
+    for _ in range(max_lines):
+        nl = buf.find(b"\n", pos)
+        if nl < 0:
+            raise ScanFormatError(f"{where}: {kind} header has no {end} line (truncated or not a {kind} file)")
+        try:
+            line = buf[pos:nl].decode("ascii").strip()
+        except UnicodeDecodeError:
+            raise ScanFormatError(f"{where}: {kind} header line at byte {pos} is not ASCII; not a {kind} file?") from None
+        pos = nl + 1
+        yield line, pos
 
 
 def pick(columns: Mapping[str, np.ndarray], names: tuple[str, ...]) -> tuple[str, np.ndarray] | None:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from placerec.errors import ConfigError, ScanFormatError
-from placerec.io._common import columns_to_scan, guard, read_bytes, structured_columns
+from placerec.io._common import columns_to_scan, guard, header_lines, read_bytes, structured_columns
 from placerec.io.atomic import atomic_write
 from placerec.io.lzf import LZFError, lzf_compress, lzf_decompress
 from placerec.types import Scan
@@ -74,15 +74,7 @@ def parse_pcd_header(buf: bytes, where: Path) -> PcdHeader:
     """Parse the header lines up to and including ``DATA``; ScanFormatError on anything inconsistent."""
     entries: dict[str, list[str]] = {}
     pos = 0
-    for _ in range(_MAX_HEADER_LINES):
-        nl = buf.find(b"\n", pos)
-        if nl < 0:
-            raise ScanFormatError(f"{where}: PCD header has no DATA line (truncated or not a PCD file)")
-        try:
-            line = buf[pos:nl].decode("ascii").strip()
-        except UnicodeDecodeError:
-            raise ScanFormatError(f"{where}: PCD header line at byte {pos} is not ASCII; not a PCD file?") from None
-        pos = nl + 1
+    for line, pos in header_lines(buf, where, "PCD", "DATA", _MAX_HEADER_LINES):  # noqa: B007 (pos: data offset)
         if not line or line.startswith("#"):
             continue
         key, *vals = line.split()

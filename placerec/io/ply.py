@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from placerec.errors import ScanFormatError
-from placerec.io._common import columns_to_scan, guard, read_bytes, structured_columns
+from placerec.io._common import columns_to_scan, guard, header_lines, read_bytes, structured_columns
 from placerec.io.atomic import atomic_write
 from placerec.types import Scan
 
@@ -41,15 +41,7 @@ def _parse_header(buf: bytes, where: Path) -> tuple[str, list[_Element], int]:
     fmt = None
     elements: list[_Element] = []
     pos = 0
-    for _ in range(_MAX_HEADER_LINES):
-        nl = buf.find(b"\n", pos)
-        if nl < 0:
-            raise ScanFormatError(f"{where}: PLY header has no end_header line (truncated?)")
-        try:
-            line = buf[pos:nl].decode("ascii").strip()
-        except UnicodeDecodeError:
-            raise ScanFormatError(f"{where}: PLY header line at byte {pos} is not ASCII") from None
-        pos = nl + 1
+    for line, pos in header_lines(buf, where, "PLY", "end_header", _MAX_HEADER_LINES):  # noqa: B007 (pos: data offset)
         parts = line.split()
         if not parts or parts[0] in ("ply", "comment", "obj_info"):
             continue
