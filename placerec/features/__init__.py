@@ -9,8 +9,7 @@ Names are resolved lazily, so ``import placerec.features`` costs nothing until a
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from placerec._lazy import lazy_exports
 
 __all__ = [
     "SURF",
@@ -31,13 +30,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _LAZY)
 
 
 def __dir__() -> list[str]:
