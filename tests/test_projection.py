@@ -115,3 +115,64 @@ def test_vertical_hole_filling_respects_max_gap():
     assert not ok[3, 0] and not ok[1, 1]  # gaps of 3 and 5 rows are left alone
     out, ok = fill_vertical_holes(img, valid, max_gap=3)
     assert ok[3, 0] and out[3, 0] == pytest.approx(40) and not ok[1, 1]
+
+
+# ---------------------------------------------------------------- degenerate scans give blank images, never a bare error
+_VLP16 = SensorInfo("vlp16", beam_elevations_deg=tuple(np.linspace(-15, 15, 16)), columns=1800)
+
+
+def _degenerate(case: str) -> Scan:
+    rng = np.random.default_rng(0)
+    n = 500
+    rings = rng.integers(0, 16, n)
+    if case == "origin":  # organised-style invalid returns, rings known
+        return _scan(np.zeros((n, 3)), np.ones(n), ring=rings, sensor=_VLP16)
+    if case == "far":  # 1e30 overflows float32 ranges to inf
+        return _scan(np.full((n, 3), 1e30), np.ones(n), ring=rings, sensor=_VLP16)
+    if case == "outside-fov":  # finite but all far above the field of view
+        return _scan(np.c_[np.ones(n), np.zeros(n), np.full(n, 100.0)], np.ones(n), sensor=_VLP16)
+    if case == "ten-points":
+        return _scan(rng.normal(size=(10, 3)) * 10, rng.random(10), sensor=_VLP16)
+    if case == "empty":
+        return _scan(np.zeros((0, 3)), np.zeros(0), ring=np.zeros(0), sensor=_VLP16)
+    raise AssertionError(case)
+
+
+@pytest.mark.parametrize("mode", ["auto", "uniform", "per-beam"])
+@pytest.mark.parametrize(
+    "case", ["origin", "far", "outside-fov", "ten-points", "empty"]
+)
+def test_degenerate_scans_give_a_blank_or_sparse_image(case, mode):
+    scan = _degenerate(case)
+    if mode == "per-beam" and scan.ring is None:
+        with pytest.raises(ScanDataError, match="ring"):
+            make_image(scan, ImageParams(mode=mode))
+        return
+    img = make_image(scan, ImageParams(mode=mode))
+    assert img.image.dtype == np.uint8 and img.image.shape[0] == 16
+    assert img.valid.sum() <= 10
+    assert (img.image[~img.valid] == 0).all() and not img.filled_rows.any()
+
+
+@pytest.mark.parametrize("value", [0.0, 5.0])
+def test_constant_intensity_gives_a_flat_image(value):
+    rng = np.random.default_rng(1)
+    az = rng.uniform(-np.pi, np.pi, 4000)
+    elev = np.radians(rng.uniform(-14, 14, 4000))
+    xyz = 10 * np.c_[np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az), np.sin(elev)]
+    img = make_image(_scan(xyz, np.full(4000, value), sensor=_VLP16))
+    assert img.valid.any()
+    assert np.unique(img.image[img.valid]).size == 1  # one grey level (black for zero intensity)
+    assert img.image.max() == (0 if value == 0 else 255)
+
+
+def test_rings_outside_the_sensor_layout_are_a_scan_data_error():
+    xyz = np.random.default_rng(2).normal(size=(50, 3)) * 10
+    ring = np.r_[np.zeros(49), 40]
+    with pytest.raises(ScanDataError, match="1 of 50 points have a ring outside 0..15"):
+        make_image(_scan(xyz, np.ones(50), ring=ring, sensor=_VLP16, source="f.pcd"))
+
+
+def test_per_beam_without_layout_and_negative_rings_gives_a_blank_image():
+    img = make_image(_scan(np.ones((5, 3)), np.ones(5), ring=np.full(5, -3)), ImageParams(mode="per-beam"))
+    assert img.shape == (1, 1024) and not img.valid.any()

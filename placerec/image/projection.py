@@ -15,6 +15,10 @@ Three ways to form the image, chosen by `ImageParams.mode`:
 ``auto`` picks ``organized`` for organised scans, ``per-beam`` when rings are known, else ``uniform``. When
 several points fall in one pixel the one with the smallest range is kept; the image stores its intensity (and,
 in separate channels, its range and its point index).
+
+Degenerate scans (no points, every point at the origin or at a non-finite range, all outside the field of view)
+give a blank image (no valid pixel), from which extractors find no features; rings outside the sensor's beam
+layout are a `ScanDataError`.
 """
 
 from __future__ import annotations
@@ -102,15 +106,18 @@ def _scatter_nearest(
     idx: np.ndarray,
     shape: tuple[int, int],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per pixel, the point with the smallest range: (intensity, range, point index) images."""
+    """Per pixel, the point with the smallest range: (intensity, range, point index) images; all empty when no
+    point is given."""
     h, w = shape
+    inten = np.zeros(h * w, np.float32)
+    rng = np.zeros(h * w, np.float32)
+    pidx = np.full(h * w, -1, np.int32)
+    if rows.size == 0:
+        return inten.reshape(shape), rng.reshape(shape), pidx.reshape(shape)
     pix = rows * w + cols
     order = np.lexsort((ranges, pix))
     pix_sorted = pix[order]
     first = order[np.r_[True, pix_sorted[1:] != pix_sorted[:-1]]]
-    inten = np.zeros(h * w, np.float32)
-    rng = np.zeros(h * w, np.float32)
-    pidx = np.full(h * w, -1, np.int32)
     inten[pix[first]] = scan.intensity[idx[first]]
     rng[pix[first]] = ranges[first]
     pidx[pix[first]] = idx[first]
@@ -151,7 +158,7 @@ def project_uniform(
     idx, r = _valid_points(scan)
     xyz = scan.xyz[idx]
     if idx.size == 0:
-        return np.zeros((h, w), np.float32), np.zeros((h, w), np.float32), np.full((h, w), -1, np.int32)
+        return _scatter_nearest(idx, idx, r, scan, idx, (h, w))
     up, down = _fov(scan, params, xyz, r)
     phi = np.degrees(np.arcsin(np.clip(xyz[:, 2] / r, -1.0, 1.0)))
     v = np.floor((1.0 - (phi + down) / (up + down)) * h).astype(np.int64)
@@ -172,12 +179,18 @@ def project_per_beam(
         rank[np.argsort(-np.asarray(elev), kind="stable")] = np.arange(len(elev))
         n_rows = len(elev)
     else:  # no layout: assume ring 0 is the top beam and rings are consecutive
-        n_rows = int(scan.ring.max()) + 1 if len(scan) else 1
+        n_rows = max(int(scan.ring.max()) + 1, 1) if len(scan) else 1
         rank = np.arange(n_rows)
     w = params.width or scan.sensor.columns or 1024
     idx, r = _valid_points(scan)
     ring = scan.ring[idx].astype(np.int64)
     ok = (ring >= 0) & (ring < rank.size)
+    if elev is not None and not ok.all():
+        raise ScanDataError(
+            f"{scan.source or 'scan'}: {int((~ok).sum())} of {ok.size} points have a ring outside "
+            f"0..{rank.size - 1}, the {rank.size}-beam layout of sensor {scan.sensor.name!r}; "
+            "use image mode 'uniform' or give the right sensor"
+        )
     idx, r, ring = idx[ok], r[ok], ring[ok]
     cols = _columns(scan.xyz[idx], w)
     return _scatter_nearest(rank[ring], cols, r, scan, idx, (n_rows, w))
