@@ -217,7 +217,7 @@ def train_vocab(
     Example: placerec train-vocab --config configs/vocab_orb.yaml
     """
     from placerec.errors import PlacerecError
-    from placerec.retrieval.dbow.training import load_training_config, train_vocabulary_from_config
+    from placerec.experiment.vocab_training import load_training_config, train_vocabulary_from_config
 
     try:
         cfg = load_training_config(config, n_images=n_images, workers=workers)

@@ -14,7 +14,7 @@ from placerec.retrieval.dbow.io import (
 )
 from placerec.retrieval.dbow.vocabulary import train_vocabulary
 
-VOCAB_DIR = Path(__file__).resolve().parents[1] / "vocab"
+VOCAB_DIR = Path(__file__).resolve().parents[1] / "placerec" / "vocab"
 
 
 @pytest.fixture(scope="module", params=["binary", "float"])
@@ -133,7 +133,7 @@ def test_corrupt_and_missing_binary_files(tmp_path, vocab):
 )
 def test_shipped_vocabularies_load_and_transform(name, kind, size, levels):
     path = VOCAB_DIR / name
-    assert path.is_file(), f"{path} is missing (see vocab/README.md)"
+    assert path.is_file(), f"{path} is missing (see placerec/vocab/README.md)"
     voc = load_vocabulary(path)
     assert voc.kind == kind and voc.descriptor_size == size and (voc.k, voc.L) == (10, levels)
     assert voc.n_words > 5000 and voc.meta["n_images"] == 3000

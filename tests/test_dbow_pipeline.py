@@ -124,7 +124,7 @@ def test_missing_or_mismatched_vocabulary(tmp_path, trained):
 
 
 def test_descriptor_cache_key_follows_settings_and_data(tmp_path):
-    from placerec.retrieval.dbow.training import VocabTrainingConfig, descriptor_cache_key
+    from placerec.experiment.vocab_training import VocabTrainingConfig, descriptor_cache_key
 
     folder = tmp_path / "velodyne"
     folder.mkdir()

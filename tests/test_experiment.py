@@ -120,7 +120,7 @@ def test_description_cache_key_follows_the_data(tmp_path):
     """Cached descriptions never outlive their data: the key changes with the files, the calibration table and
     the simulator's code, not only with the config."""
     from placerec.config import DatasetConfig
-    from placerec.datasets import dataset_fingerprint
+    from placerec.experiment.datasets import dataset_fingerprint
     from placerec.experiment.runner import _data_key
 
     folder = tmp_path / "scans"

@@ -9,7 +9,7 @@
    the training images' BoW vectors (cycled: 2000 images twice), each from a random 80 % of its descriptors.
    Also: load time of the trained vocabulary and of a synthetic 1,111,111-node (k=10, L=6) one.
 4. ``f1``: max F1 of ORB-DBoW (BoW score only, and with the column-shift check), ORB-HBST, Scan Context (and
-   SURF-DBoW with the shipped ``vocab/surf_k10L4.dbow``) on the
+   SURF-DBoW with the shipped ``placerec/vocab/surf_k10L4.dbow``) on the
    same simulated town sequences (seeds 0.., the evaluation protocol of ``configs/demo.yaml``: exclusion 120
    frames, a true match within 5 m), with the vocabulary trained in step 1.
 5. ``cross``: ORB-DBoW max F1 on the same sequences with vocabularies trained on one world preset only
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from placerec.retrieval.dbow.database import BowDatabase
-from placerec.retrieval.dbow.training import cached_descriptors, load_training_config
+from placerec.experiment.vocab_training import cached_descriptors, load_training_config
 from placerec.retrieval.dbow.vocabulary import Vocabulary, train_vocabulary
 
 REPO = Path(__file__).resolve().parents[1]

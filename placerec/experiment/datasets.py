@@ -114,7 +114,7 @@ def _simulator_fingerprint() -> list:
     """(file name, content hash) of the simulator's sources: any change to the simulator changes its scans."""
     from placerec.hashing import stable_hash
 
-    sim = Path(__file__).parent / "sim"
+    sim = Path(__file__).parents[1] / "sim"
     return [[f.name, stable_hash(f.read_text())] for f in sorted(sim.glob("*.py"))]
 
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from placerec.config import ExperimentConfig, PreprocessConfig
-from placerec.datasets import dataset_fingerprint, files_fingerprint, open_dataset
+from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint, open_dataset
 from placerec.errors import ConfigError
 from placerec.experiment.cache import DescriptionCache, config_hash
 from placerec.loop_closure import LoopClosureDetector, split_verify_time

@@ -17,7 +17,7 @@ Example config (``configs/vocab_orb.yaml``)::
     L: 5
     n_images: 3000
     simulator: {worlds: [campus, industrial, town], sensors: [os1-64], seeds: [100, 101, 102]}
-    output: vocab/orb_k10L5.dbow
+    output: placerec/vocab/orb_k10L5.dbow
 """
 
 from __future__ import annotations
@@ -100,10 +100,7 @@ def load_training_config(path: str | Path | None, **overrides: Any) -> VocabTrai
         path = Path(path)
         if not path.is_file():
             raise ConfigError(f"{path}: no such config file")
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: invalid YAML ({exc})") from None
+        data = load_yaml_file(path) or {}
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: a training config must be a mapping")
     data.update({k: v for k, v in overrides.items() if v is not None})
@@ -158,7 +155,7 @@ def _sequences(cfg: VocabTrainingConfig) -> list[tuple[str, dict[str, Any]]]:
 
 def _extract(job: tuple[dict[str, Any], int, dict[str, Any]]) -> list[np.ndarray]:
     """Descriptors of ``count`` evenly spaced scans of one sequence (runs in a worker process)."""
-    from placerec.datasets import open_dataset
+    from placerec.experiment.datasets import open_dataset
     from placerec.features import make_extractor
     from placerec.image import make_image
     from placerec.preprocess import preprocess_scan
@@ -207,7 +204,7 @@ def collect_descriptors(
 def descriptor_cache_key(cfg: VocabTrainingConfig) -> str:
     """Hash of every setting that changes the extracted descriptors, and of the data they come from (the
     simulator's code, the dataset files, the calibration table)."""
-    from placerec.datasets import dataset_fingerprint, files_fingerprint
+    from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint
 
     keys = ("features", "feature_params", "image", "preprocess", "n_images", "simulator", "datasets")
     sources = [DatasetConfig.model_validate(spec) for _, spec in _sequences(cfg)]

@@ -20,13 +20,15 @@ DLoopDetector's options (normalised score with ``alpha``, islands, temporal cons
 default: the paper queries DBoW2's database as is. The temporal window lives in the recognizer (queries are assumed
 in acquisition order) and is not saved.
 
-Vocabulary: ``vocabulary`` is a path (absolute, or relative to the working directory or to the repository root);
-None picks the shipped vocabulary for the feature type (``vocab/orb_k10L5.dbow``, ``vocab/surf_k10L4.dbow``).
+Vocabulary: ``vocabulary`` is a path (absolute or relative to the working directory; a missing relative path whose
+file name is a shipped vocabulary picks that one); None picks the shipped vocabulary for the feature type
+(``orb_k10L5.dbow``, ``surf_k10L4.dbow``: package data in ``placerec/vocab/``, found with `importlib.resources`).
 Vocabularies are loaded once per process and shared.
 """
 
 from __future__ import annotations
 
+import importlib.resources
 import logging
 import time
 from dataclasses import asdict, dataclass, field
@@ -52,8 +54,8 @@ __all__ = ["DBoWParams", "VisualDBoW", "default_vocabulary_path", "resolve_vocab
 
 _KIND = "visual-dbow-db"
 _VERSION = 1
-REPO_ROOT = Path(__file__).resolve().parents[2]
-VOCAB_DIR = REPO_ROOT / "vocab"
+#: The shipped vocabularies: package data, installed as files with the package (editable install or wheel).
+VOCAB_DIR = Path(importlib.resources.files("placerec").joinpath("vocab"))
 #: Shipped vocabulary per feature extractor (SURF's descriptor with FAST or SURF keypoints share one).
 SHIPPED = {"orb": "orb_k10L5.dbow", "fast-surf": "surf_k10L4.dbow", "surf": "surf_k10L4.dbow"}
 _TRAIN_CONFIG = {
@@ -94,7 +96,8 @@ def resolve_vocabulary(path: str | None, features: str) -> Path:
         found = default_vocabulary_path(features)
     else:
         p = Path(path).expanduser()
-        found = p if p.is_absolute() or p.exists() else REPO_ROOT / p
+        shipped = VOCAB_DIR / p.name
+        found = shipped if not (p.is_absolute() or p.exists()) and shipped.is_file() else p
     if not found.is_file():
         cfg = _TRAIN_CONFIG.get(features, "configs/vocab_orb.yaml (with 'features' set)")
         raise ArtifactError(

@@ -5,7 +5,9 @@
 * `placerec.retrieval.dbow.database` — `BowDatabase`: inverse index (CSR + append buffer), direct index, queries.
 * `placerec.retrieval.dbow.loop_detector` — DLoopDetector's options: normalised score, islands, temporal check.
 * `placerec.retrieval.dbow.io` — the compact binary vocabulary format and the ORB-SLAM2/DBoW2 text format.
-* `placerec.retrieval.dbow.training` — `train_vocabulary_from_config` (the ``placerec train-vocab`` command).
+
+Training a vocabulary from an experiment config (``placerec train-vocab``) is orchestration and lives in
+`placerec.experiment.vocab_training`.
 
 Names below are imported lazily.
 """
@@ -27,8 +29,6 @@ __all__ = [
     "save_vocabulary",
     "read_text_vocabulary",
     "write_text_vocabulary",
-    "VocabTrainingConfig",
-    "train_vocabulary_from_config",
 ]
 
 _LAZY = {
@@ -44,8 +44,6 @@ _LAZY = {
     "save_vocabulary": "io",
     "read_text_vocabulary": "io",
     "write_text_vocabulary": "io",
-    "VocabTrainingConfig": "training",
-    "train_vocabulary_from_config": "training",
 }
 
 
