@@ -112,10 +112,13 @@ class PipelineSpec(Section):
 
 
 class ExclusionConfig(Section):
-    """Loop mode ignores database scans newer than this window before the query (frames, seconds or metres
-    travelled; the first one set wins in that order of precedence: metres, seconds, frames)."""
+    """Loop mode: a database scan is eligible for a query only when it is older than EVERY limit set here —
+    at least ``frames`` frames, ``seconds`` seconds (needs timestamps) and ``metres`` travelled (needs poses)
+    before it; ``null`` = no limit of that kind. ``frames`` stays 120 (VPR paper) when the others are set: write
+    ``frames: null`` to use only seconds or metres. The detector and the ground truth apply this one rule
+    (`placerec.eval.exclusion.ExclusionWindow`)."""
 
-    frames: int = Field(120, ge=0)
+    frames: int | None = Field(120, ge=0)
     seconds: float | None = Field(None, ge=0)
     metres: float | None = Field(None, ge=0)
 

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from placerec.errors import ConfigError, ScanDataError
+from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES, ExclusionWindow, path_length
 from placerec.recognizer import DescribingRecognizer, Description
 from placerec.types import Candidate, PlaceRecognizer, Scan, as_pose
 
@@ -32,7 +33,9 @@ class LoopClosureDetector:
 
     ``exclusion_frames``/``exclusion_seconds``/``exclusion_metres``: database scans are eligible only if they are
     at least that many frames older / seconds older (needs ``timestamp``) / metres travelled before the current
-    scan (needs ``pose``, e.g. odometry). When several are set, a scan must satisfy all of them.
+    scan (needs ``pose``, e.g. odometry); ``None`` = no limit of that kind. Every limit that is set applies — the
+    rule of `placerec.eval.exclusion.ExclusionWindow`, which the evaluation's ground truth uses too.
+    ``last_max_id`` is the bound the last query used (``-1``: nothing was eligible, the query was skipped).
     ``k``: candidates requested per query (accepted ones are returned best first).
     """
 
@@ -40,24 +43,21 @@ class LoopClosureDetector:
         self,
         recognizer: PlaceRecognizer,
         threshold: float,
-        exclusion_frames: int = 120,
+        exclusion_frames: int | None = DEFAULT_EXCLUSION_FRAMES,
         exclusion_seconds: float | None = None,
         exclusion_metres: float | None = None,
         k: int = 1,
     ) -> None:
-        if exclusion_frames < 0 or (exclusion_seconds or 0) < 0 or (exclusion_metres or 0) < 0:
-            raise ConfigError("exclusion windows must be non-negative")
+        self.exclusion = ExclusionWindow(exclusion_frames, exclusion_seconds, exclusion_metres)
         if k < 1:
             raise ConfigError(f"k must be >= 1, got {k}")
         self.recognizer = recognizer
         self.threshold = float(threshold)
-        self.exclusion_frames = int(exclusion_frames)
-        self.exclusion_seconds = exclusion_seconds
-        self.exclusion_metres = exclusion_metres
         self.k = int(k)
         self._times: list[float] = []
         self._path: list[float] = []
         self._last_position: np.ndarray | None = None
+        self.last_max_id = -1
         self.last_candidates: list[Candidate] = []
         self.last_timing_ms: dict[str, float] = {}
         self.closures: list[Candidate] = []
@@ -67,32 +67,26 @@ class LoopClosureDetector:
         return len(self._path)
 
     def _max_eligible_id(self, scan_id: int) -> int:
-        bound = scan_id - max(self.exclusion_frames, 1)  # the scan itself is added after its query
-        if self.exclusion_seconds is not None:
-            cutoff = self._times[scan_id] - self.exclusion_seconds
-            bound = min(bound, int(np.searchsorted(self._times[:scan_id], cutoff, side="right")) - 1)
-        if self.exclusion_metres is not None:
-            cutoff = self._path[scan_id] - self.exclusion_metres
-            bound = min(bound, int(np.searchsorted(self._path[:scan_id], cutoff, side="right")) - 1)
-        return bound
+        return int(self.exclusion.max_eligible(scan_id, self._times, self._path))
 
     def _record_motion(self, pose: np.ndarray | None, timestamp: float | None) -> None:
-        if self.exclusion_seconds is not None:
+        """Append the scan's timestamp and distance travelled (checked first, so a refused scan leaves no trace)."""
+        if self.exclusion.seconds is not None:
             if timestamp is None:
                 raise ScanDataError("exclusion_seconds is set: process() needs the scan's timestamp")
+            if not np.isfinite(timestamp):
+                raise ScanDataError(f"timestamps must be finite, got {timestamp}")
             if self._times and timestamp < self._times[-1]:
                 raise ScanDataError(f"timestamps must not decrease ({timestamp} after {self._times[-1]})")
-        self._times.append(float(timestamp) if timestamp is not None else float(len(self._times)))
+        if pose is None and self.exclusion.metres is not None:
+            raise ScanDataError("exclusion_metres is set: process() needs the scan's pose (odometry is enough)")
         step = 0.0
         if pose is not None:
             position = as_pose(pose)[:3, 3]
-            if self._last_position is not None:
-                step = float(np.linalg.norm(position - self._last_position))
+            if self._last_position is not None:  # the ground truth's formula, so both agree to the last bit
+                step = float(path_length(np.stack([self._last_position, position]))[1])
             self._last_position = position
-        elif self.exclusion_metres is not None:
-            raise ScanDataError(
-                "exclusion_metres is set: process() needs the scan's pose (odometry is enough)"
-            )
+        self._times.append(float(timestamp) if timestamp is not None else float(len(self._times)))
         self._path.append((self._path[-1] if self._path else 0.0) + step)
 
     def process(
@@ -109,7 +103,7 @@ class LoopClosureDetector:
         """
         scan_id = self.n_processed
         self._record_motion(pose, timestamp)
-        max_id = self._max_eligible_id(scan_id)
+        max_id = self.last_max_id = self._max_eligible_id(scan_id)
         rec = self.recognizer
         timing: dict[str, float] = {}
         describing = isinstance(rec, DescribingRecognizer)

@@ -3,9 +3,9 @@ import time
 import numpy as np
 import pytest
 
-from placerec.errors import ScanDataError
+from placerec.errors import ConfigError, ScanDataError
 from placerec.eval import (
-    eligible_max_index,
+    ExclusionWindow,
     evaluate_loop,
     localization_metrics,
     loop_ground_truth,
@@ -39,39 +39,59 @@ def square_lap():
 # ---------------------------------------------------------------- exclusion windows
 
 
+def bounds(n, frames=None, seconds=None, metres=None, timestamps=None, positions=None):
+    return ExclusionWindow(frames, seconds, metres).sequence_bounds(n, timestamps, positions)
+
+
 def test_frame_window_edge_is_inclusive():
-    b = eligible_max_index(300, frames=120)
+    b = bounds(300, frames=120)
     assert b[200] == 80  # exactly 120 frames older is eligible, 119 (index 81) is not
     assert b[119] == -1 and b[120] == 0
-    assert eligible_max_index(5, frames=0).tolist() == [-1, 0, 1, 2, 3]  # never the query itself
+    assert bounds(5, frames=0).tolist() == [-1, 0, 1, 2, 3]  # never the query itself
+    assert bounds(5).tolist() == [-1, 0, 1, 2, 3]  # no limit at all: every older scan
+    assert np.array_equal(ExclusionWindow().sequence_bounds(300), b)  # the default is 120 frames
 
 
 def test_seconds_window_edge():
     t = np.arange(300) * 0.5  # 2 Hz: 60 s = 120 frames
-    b = eligible_max_index(300, seconds=60.0, timestamps=t)
+    b = bounds(300, seconds=60.0, timestamps=t)
     assert b[200] == 80 and b[119] == -1 and b[120] == 0
-    with pytest.raises(ScanDataError):
-        eligible_max_index(300, seconds=60.0)  # no timestamps
-    with pytest.raises(ScanDataError):
-        eligible_max_index(3, seconds=1.0, timestamps=[0.0, 2.0, 1.0])  # not monotonic
+    with pytest.raises(ScanDataError, match="seconds needs the timestamps"):
+        bounds(300, seconds=60.0)
+    with pytest.raises(ScanDataError, match="non-decreasing"):
+        bounds(3, seconds=1.0, timestamps=[0.0, 2.0, 1.0])
+    # equal timestamps with a zero window: still only older scans
+    assert bounds(3, seconds=0.0, timestamps=[1.0, 1.0, 1.0]).tolist() == [-1, 0, 1]
 
 
 def test_metres_window_edge_and_stops():
     xy = np.stack([np.arange(300.0), np.zeros(300)], axis=1)  # 1 m per frame
-    b = eligible_max_index(300, metres=120.0, positions=np.c_[xy, np.zeros(300)])
+    b = bounds(300, metres=120.0, positions=np.c_[xy, np.zeros(300)])
     assert b[200] == 80 and b[119] == -1
     # standing still: no distance travelled, nothing becomes eligible during the stop
     xs = np.r_[np.arange(10.0), np.full(20, 9.0), 9.0 + np.arange(1.0, 11.0)]
-    b = eligible_max_index(xs.size, metres=5.0, positions=np.c_[xs, np.zeros((xs.size, 2))])
+    b = bounds(xs.size, metres=5.0, positions=np.c_[xs, np.zeros((xs.size, 2))])
     assert b[10] == 4 and b[29] == 4  # s = 9 during the stop: s_j <= 4 -> j <= 4
     assert b[30] == 5  # s = 10 -> s_j <= 5
     assert path_length(np.c_[xs, np.zeros((xs.size, 2))])[-1] == pytest.approx(19.0)
+    with pytest.raises(ScanDataError, match="metres needs the positions"):
+        bounds(300, metres=5.0)
 
 
-def test_metres_take_precedence_over_seconds_and_frames():
-    pos = np.c_[np.arange(10.0) * 2.0, np.zeros((10, 2))]  # 2 m per frame
-    b = eligible_max_index(10, frames=1, seconds=0.0, metres=6.0, timestamps=np.arange(10.0), positions=pos)
-    assert b[9] == 6
+def test_every_set_limit_applies():
+    pos = np.c_[np.arange(10.0) * 2.0, np.zeros((10, 2))]  # 2 m and 1 s per frame
+    t = np.arange(10.0)
+    assert bounds(10, frames=1, seconds=0.0, metres=6.0, timestamps=t, positions=pos)[9] == 6  # metres bind
+    assert bounds(10, frames=5, seconds=0.0, metres=6.0, timestamps=t, positions=pos)[9] == 4  # frames bind
+    assert bounds(10, frames=1, seconds=4.0, metres=6.0, timestamps=t, positions=pos)[9] == 5  # seconds bind
+
+
+@pytest.mark.parametrize(
+    "bad", [{"frames": -1}, {"seconds": -0.5}, {"metres": float("nan")}, {"frames": 2.5}]
+)
+def test_invalid_window_is_a_config_error(bad):
+    with pytest.raises(ConfigError, match=next(iter(bad))):
+        ExclusionWindow(**{"frames": None, **bad})
 
 
 # ---------------------------------------------------------------- ground truth
@@ -97,7 +117,7 @@ def test_ground_truth_square_driven_twice():
 
 def test_ground_truth_eligibility_edge_on_straight_line():
     xy = np.stack([np.arange(400) * 0.01, np.zeros(400)], axis=1)  # everything within 4 m
-    gt = loop_ground_truth(poses_from(xy), frames=120)
+    gt = loop_ground_truth(poses_from(xy), exclusion=ExclusionWindow(frames=120))
     assert gt.is_true_match(200, 80) and not gt.is_true_match(200, 81)
     assert gt.is_revisit[120] and not gt.is_revisit[119]
     assert gt.true_matches(200).tolist() == list(range(81))
@@ -115,15 +135,18 @@ def test_ground_truth_yaw_limit():
     assert not gt.is_true_match(300, 140) and gt.is_true_match(317, 160)
     assert loop_ground_truth(poses).is_true_match(300, 140)  # no yaw limit
     # the heading difference wraps: 179 deg vs -179 deg differ by 2 deg
-    wrap = loop_ground_truth(poses_from([[0, 0], [1, 0]], [179.0, -179.0]), gt_yaw_deg=5.0, frames=1)
+    wrap = loop_ground_truth(
+        poses_from([[0, 0], [1, 0]], [179.0, -179.0]), gt_yaw_deg=5.0, exclusion=ExclusionWindow(frames=1)
+    )
     assert wrap.is_revisit.tolist() == [False, True]
 
 
 def test_ground_truth_planar_vs_3d():
     P = poses_from([[0, 0], [0, 0]])
     P[1, 2, 3] = 4.0  # 4 m above
-    assert loop_ground_truth(P, gt_distance=3.0, frames=1).is_revisit[1] == False  # noqa: E712
-    assert loop_ground_truth(P, gt_distance=3.0, frames=1, planar=True).is_revisit[1]
+    one = ExclusionWindow(frames=1)
+    assert loop_ground_truth(P, gt_distance=3.0, exclusion=one).is_revisit[1] == False  # noqa: E712
+    assert loop_ground_truth(P, gt_distance=3.0, exclusion=one, planar=True).is_revisit[1]
 
 
 def test_ground_truth_matches_brute_force_on_random_walk():
@@ -131,7 +154,7 @@ def test_ground_truth_matches_brute_force_on_random_walk():
     n = 5000
     xy = np.cumsum(rng.normal(size=(n, 2)), axis=0) * 0.8
     t0 = time.perf_counter()
-    gt = loop_ground_truth(poses_from(xy), gt_distance=5.0, frames=120)
+    gt = loop_ground_truth(poses_from(xy), gt_distance=5.0, exclusion=ExclusionWindow(frames=120))
     elapsed = time.perf_counter() - t0
     idx = np.arange(n)
     for i in rng.choice(np.arange(120, n), 40, replace=False):
@@ -149,7 +172,9 @@ def hand_gt():
     """Scans 0..4 far apart (100 m), scans 5..9 revisit scan i-5 at 1 m, scans 10, 11 far from everything.
     Window 5 frames: scans 5..9 are revisits whose only true match is i - 5; 0..4, 10, 11 are not revisits."""
     x = np.r_[np.arange(5) * 100.0, np.arange(5) * 100.0 + 1.0, 1000.0, 2000.0]
-    return loop_ground_truth(poses_from(np.c_[x, np.zeros(12)]), gt_distance=5.0, frames=5)
+    return loop_ground_truth(
+        poses_from(np.c_[x, np.zeros(12)]), gt_distance=5.0, exclusion=ExclusionWindow(frames=5)
+    )
 
 
 Q = [5, 6, 7, 8, 9, 10, 11]
@@ -258,7 +283,7 @@ def test_candidate_inside_exclusion_window_is_a_false_positive():
     gt = hand_gt()
     m = loop_metrics([6], [5], [0.9], gt)  # scan 5 is 99 m away anyway but also too recent
     assert m.fp.tolist() == [1] and m.tp.tolist() == [0]
-    near = loop_ground_truth(poses_from(np.zeros((10, 2))), frames=5)
+    near = loop_ground_truth(poses_from(np.zeros((10, 2))), exclusion=ExclusionWindow(frames=5))
     assert loop_metrics([9], [8], [1.0], near).fp.tolist() == [1]  # same place, but too recent
     assert loop_metrics([9], [4], [1.0], near).tp.tolist() == [1]
 
@@ -270,7 +295,11 @@ def test_evaluate_loop_from_csv_like_arrays(tmp_path):
     data = np.genfromtxt(csv, delimiter=",", names=True)
     x = np.r_[np.arange(5) * 100.0, np.arange(5) * 100.0 + 1.0, 1000.0, 2000.0]
     m, gt = evaluate_loop(
-        data["query_id"], data["match_id"], data["score"], poses_from(np.c_[x, np.zeros(12)]), frames=5
+        data["query_id"],
+        data["match_id"],
+        data["score"],
+        poses_from(np.c_[x, np.zeros(12)]),
+        exclusion=ExclusionWindow(frames=5),
     )
     assert m.max_f1 == pytest.approx(6 / 11) and gt.n_revisits == 5
 

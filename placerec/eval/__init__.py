@@ -3,11 +3,10 @@
 Only NumPy and SciPy are imported here.
 """
 
+from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES, ExclusionWindow, path_length
 from placerec.eval.ground_truth import (
     LoopGroundTruth,
-    eligible_max_index,
     loop_ground_truth,
-    path_length,
     positions_from_poses,
     yaws_from_poses,
 )
@@ -21,8 +20,9 @@ from placerec.eval.metrics import (
 )
 
 __all__ = [
+    "DEFAULT_EXCLUSION_FRAMES",
+    "ExclusionWindow",
     "LoopGroundTruth",
-    "eligible_max_index",
     "loop_ground_truth",
     "path_length",
     "positions_from_poses",

@@ -4,12 +4,8 @@ Conventions
 -----------
 * Scans are identified by their *index* in the pose array (acquisition order). The loop evaluator adds scan ``i``
   under id ``i``, so ids and indices coincide.
-* **Eligibility** (VPR paper protocol: results from the most recent 120 steps are ignored): a database scan ``j``
-  is eligible for query ``i`` when it is older than an exclusion window — ``j <= i - frames``, or
-  ``t_j <= t_i - seconds``, or ``s_j <= s_i - metres`` with ``s`` the cumulative path length. Whatever the window,
-  ``j < i`` (a scan never matches itself). Because indices are acquisition-ordered, eligibility is one bound per
-  query: ``j <= max_eligible[i]`` (``-1`` = nothing eligible), which is what ``PlaceRecognizer.query(max_id=...)``
-  takes.
+* **Eligibility**: `placerec.eval.exclusion.ExclusionWindow` (the rule the loop-closure detector applies too).
+  A database scan ``j`` is eligible for query ``i`` when ``j <= max_eligible[i]`` (``-1`` = nothing eligible).
 * A **true match** of query ``i`` is an eligible ``j`` whose position is within ``gt_distance`` of ``i``'s
   (3D Euclidean distance of the pose translations by default, xy only with ``planar=True``) and, when
   ``gt_yaw_deg`` is set, whose heading (yaw of the sensor x axis in the world frame) differs by at most that many
@@ -25,14 +21,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from placerec.errors import ScanDataError
+from placerec.eval.exclusion import ExclusionWindow
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "positions_from_poses",
     "yaws_from_poses",
-    "path_length",
-    "eligible_max_index",
     "LoopGroundTruth",
     "loop_ground_truth",
 ]
@@ -59,59 +54,6 @@ def yaws_from_poses(poses: np.ndarray) -> np.ndarray:
     """(N,) heading in radians: the angle of the sensor x axis projected on the world xy plane."""
     P = _check_poses(poses)
     return np.arctan2(P[:, 1, 0], P[:, 0, 0])
-
-
-def path_length(positions: np.ndarray) -> np.ndarray:
-    """(N,) cumulative distance travelled along the trajectory (0 at the first position)."""
-    p = np.asarray(positions, dtype=np.float64)
-    if p.ndim != 2 or p.shape[0] == 0:
-        return np.zeros(p.shape[0] if p.ndim else 0)
-    steps = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    return np.concatenate([[0.0], np.cumsum(steps)])
-
-
-def eligible_max_index(
-    n: int,
-    frames: int = 120,
-    seconds: float | None = None,
-    metres: float | None = None,
-    timestamps: np.ndarray | None = None,
-    positions: np.ndarray | None = None,
-) -> np.ndarray:
-    """For every query index ``0..n-1`` the largest eligible database index (``-1`` when none), as int64.
-
-    The window is ``metres`` if set (needs ``positions``), else ``seconds`` if set (needs non-decreasing
-    ``timestamps``), else ``frames`` — the precedence of `placerec.config.ExclusionConfig`. The bound is
-    inclusive: with ``frames=120`` scan ``i - 120`` is eligible, ``i - 119`` is not; with seconds/metres a scan
-    exactly ``window`` older/behind is eligible. The result is always ``< i``.
-    """
-    n = int(n)
-    idx = np.arange(n, dtype=np.int64)
-    if metres is not None:
-        if metres < 0:
-            raise ScanDataError(f"exclusion window must be >= 0 m, got {metres}")
-        if positions is None:
-            raise ScanDataError("an exclusion window in metres needs the positions (poses)")
-        s = path_length(positions)
-        if s.shape[0] != n:
-            raise ScanDataError(f"{s.shape[0]} positions for {n} scans")
-        bound = np.searchsorted(s, s - metres, side="right") - 1
-    elif seconds is not None:
-        if seconds < 0:
-            raise ScanDataError(f"exclusion window must be >= 0 s, got {seconds}")
-        if timestamps is None:
-            raise ScanDataError("an exclusion window in seconds needs the timestamps")
-        t = np.asarray(timestamps, dtype=np.float64).reshape(-1)
-        if t.shape[0] != n:
-            raise ScanDataError(f"{t.shape[0]} timestamps for {n} scans")
-        if not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0):
-            raise ScanDataError("timestamps must be finite and non-decreasing")
-        bound = np.searchsorted(t, t - seconds, side="right") - 1
-    else:
-        if frames < 0:
-            raise ScanDataError(f"exclusion window must be >= 0 frames, got {frames}")
-        bound = idx - int(frames)
-    return np.minimum(bound, idx - 1).astype(np.int64)
 
 
 @dataclass(frozen=True, eq=False)
@@ -215,14 +157,13 @@ def loop_ground_truth(
     gt_distance: float = 5.0,
     gt_yaw_deg: float | None = None,
     planar: bool = False,
-    frames: int = 120,
-    seconds: float | None = None,
-    metres: float | None = None,
+    exclusion: ExclusionWindow | None = None,
     timestamps: np.ndarray | None = None,
 ) -> LoopGroundTruth:
     """Revisits, true-match test and nearest eligible distance for every scan of a trajectory.
 
-    ``poses`` (N, 4, 4) ``T_world_sensor``; the exclusion window arguments are those of `eligible_max_index`.
+    ``poses`` (N, 4, 4) ``T_world_sensor``; ``exclusion`` the window (default `ExclusionWindow()`, 120 frames);
+    ``timestamps`` (N,) are needed when it has a limit in seconds.
     Cost: one KD-tree kNN query for all scans plus brute force for the few whose 32 nearest are all too recent.
     """
     if not gt_distance > 0:
@@ -233,7 +174,8 @@ def loop_ground_truth(
     positions = P[:, :3, 3].copy()
     yaws = np.arctan2(P[:, 1, 0], P[:, 0, 0])
     n = positions.shape[0]
-    max_eligible = eligible_max_index(n, frames, seconds, metres, timestamps, positions)
+    window = ExclusionWindow() if exclusion is None else exclusion
+    max_eligible = window.sequence_bounds(n, timestamps, positions)
     coords = positions[:, :2] if planar else positions
     dist, near = _nearest_eligible(coords, max_eligible)
     is_revisit = dist <= gt_distance

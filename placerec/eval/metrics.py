@@ -236,7 +236,7 @@ def evaluate_loop(
     topn_match_ids: np.ndarray | None = None,
     **gt_options: Any,
 ) -> tuple[LoopMetrics, LoopGroundTruth]:
-    """`loop_ground_truth` (``gt_options``: gt_distance, gt_yaw_deg, planar, frames, seconds, metres, timestamps)
+    """`loop_ground_truth` (``gt_options``: gt_distance, gt_yaw_deg, planar, exclusion, timestamps)
     followed by `loop_metrics`; e.g. to recompute metrics from a candidates CSV and the poses."""
     gt = loop_ground_truth(poses, **gt_options)
     return loop_metrics(query_ids, match_ids, scores, gt, topn_match_ids), gt

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from placerec.config import ExperimentConfig, config_to_yaml
-from placerec.eval import evaluate_loop, localization_metrics, timing_summary
+from placerec.eval import ExclusionWindow, evaluate_loop, localization_metrics, timing_summary
 from placerec.experiment import figures
 from placerec.experiment.runner import STAGES, PipelineRecord
 from placerec.io import read_poses, write_kitti_poses
@@ -100,9 +100,7 @@ def _gt_options(cfg: ExperimentConfig, timestamps: np.ndarray | None) -> dict[st
     return {
         "gt_distance": ev.gt_distance,
         "gt_yaw_deg": ev.gt_yaw_deg,
-        "frames": ev.exclusion.frames,
-        "seconds": ev.exclusion.seconds,
-        "metres": ev.exclusion.metres,
+        "exclusion": ExclusionWindow(**ev.exclusion.model_dump()),
         "timestamps": timestamps,
     }
 
