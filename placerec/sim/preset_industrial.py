@@ -15,7 +15,7 @@ import numpy as np
 from placerec.sim.geometry import MeshBuilder
 from placerec.sim.materials import M
 from placerec.sim.props import Canvas, add_cars, add_fence, add_lamps, add_signs, add_trees, strip_polys
-from placerec.sim.world import FreeSpace, GroundMap, PresetResult, RoadGraph, Terrain
+from placerec.sim.site import FreeSpace, GroundMap, PresetResult, RoadGraph, Terrain
 
 __all__ = ["build_industrial"]
 

@@ -25,7 +25,7 @@ from placerec.sim.props import (
     add_trees,
     strip_polys,
 )
-from placerec.sim.world import FreeSpace, GroundMap, PresetResult, RoadGraph, Terrain
+from placerec.sim.site import FreeSpace, GroundMap, PresetResult, RoadGraph, Terrain
 
 __all__ = ["build_town"]
 

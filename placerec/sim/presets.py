@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from placerec.errors import ConfigError
-from placerec.sim.world import PresetResult
+from placerec.sim.site import PresetResult
 
 __all__ = ["PRESETS", "get_preset", "preset_names", "canonical_preset"]
 

@@ -23,8 +23,9 @@ from placerec.sim.intensity import BeamResponse, IntensityModel, detect_and_meas
 from placerec.sim.jit import needs_compile, njit
 from placerec.sim.materials import M
 from placerec.sim.sensors import RayGrid, SensorModel, ray_grid
+from placerec.sim.site import ground_cell_1
 from placerec.sim.textures import MATERIAL_TABLE, param_row, shade_hit
-from placerec.sim.world import World, ground_cell_1, make_scene
+from placerec.sim.world import World, make_scene
 from placerec.types import Scan
 
 __all__ = ["Renderer", "RawHits"]

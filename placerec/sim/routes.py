@@ -31,7 +31,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from placerec.errors import ConfigError
-from placerec.sim.world import RoadGraph, World
+from placerec.sim.site import RoadGraph
+from placerec.sim.world import World
 
 __all__ = ["Revisit", "Route", "ROUTES", "make_route", "find_revisits", "poses_from_xy_yaw"]
 
