@@ -1,9 +1,9 @@
 """Reading and writing scans, trajectories and sequences.
 
-Scan formats (`SCAN_READERS`): ``kitti`` (``.bin``), ``nclt`` (``.bin``, by name only), ``pcd``, ``ply``, ``npy``,
-``npz``; writers (`SCAN_WRITERS`): kitti, pcd, ply, npz. Sequences: `KittiSequence`, `FolderSequence`,
-`placerec.io.rosbag.RosbagSequence` (needs ``rosbags``), `placerec.io.ouster.OusterSequence` (needs
-``ouster-sdk``); `open_sequence` picks one. The optional dependencies are imported only when used.
+Scan formats (`SCAN_READERS`): ``kitti`` (``.bin``), ``nclt`` (``.bin``, recognised by its bytes), ``pcd``,
+``ply``, ``npy``, ``npz``; writers (`SCAN_WRITERS`): kitti, pcd, ply, npz. Sequences: `KittiSequence`,
+`FolderSequence`, `placerec.io.rosbag.RosbagSequence` (needs ``rosbags``), `placerec.io.ouster.OusterSequence`
+(needs ``ouster-sdk``); `open_sequence` picks one. The optional dependencies are imported only when used.
 """
 
 from __future__ import annotations

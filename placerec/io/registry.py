@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from placerec.errors import ConfigError, ScanFormatError
+from placerec.io.bin_sniff import sniff_bin_format
 from placerec.io.kitti import read_kitti_bin, write_kitti_bin
 from placerec.io.nclt import read_nclt_bin
 from placerec.io.numpy_io import read_npy, read_npz, write_npz
@@ -18,7 +19,15 @@ from placerec.io.pcd import read_pcd, write_pcd
 from placerec.io.ply import read_ply, write_ply
 from placerec.types import Scan, SensorInfo
 
-__all__ = ["SCAN_READERS", "SCAN_WRITERS", "EXTENSIONS", "read_scan", "write_scan", "scan_format_of"]
+__all__ = [
+    "SCAN_READERS",
+    "SCAN_WRITERS",
+    "EXTENSIONS",
+    "read_scan",
+    "write_scan",
+    "scan_format_of",
+    "read_format_of",
+]
 
 #: format name -> reader ``(path, *, organized=False, **format_options) -> Scan``
 SCAN_READERS: dict[str, Callable[..., Scan]] = {
@@ -38,7 +47,7 @@ SCAN_WRITERS: dict[str, Callable[..., None]] = {
     "npz": write_npz,
 }
 
-#: file suffix -> default format name (``.bin`` is KITTI; NCLT needs ``format="nclt"``)
+#: file suffix -> default format name (a ``.bin`` read without a format is checked for NCLT: `sniff_bin_format`)
 EXTENSIONS: dict[str, str] = {".bin": "kitti", ".pcd": "pcd", ".ply": "ply", ".npy": "npy", ".npz": "npz"}
 
 
@@ -53,6 +62,15 @@ def scan_format_of(path: str | Path, format: str | None, table: dict[str, Any] |
     if fmt is None or fmt not in table:
         known = sorted(k for k, v in EXTENSIONS.items() if v in table)
         raise ScanFormatError(f"{path}: cannot tell the scan format from the suffix (known: {known}); pass format=")
+    return fmt
+
+
+def read_format_of(path: str | Path, format: str | None, options: dict[str, Any] | None = None) -> str:
+    """The reader `read_scan` uses for ``path``: `scan_format_of`, then, for a ``.bin`` given neither ``format``
+    nor a ``layout`` option, KITTI or NCLT as its bytes say (`sniff_bin_format`)."""
+    fmt = scan_format_of(path, format)
+    if format is None and fmt == "kitti" and "layout" not in (options or {}):
+        fmt = sniff_bin_format(Path(path))
     return fmt
 
 
@@ -75,11 +93,14 @@ def read_scan(
 ) -> Scan:
     """Read one scan, choosing the reader by ``format`` or by the file suffix.
 
+    A ``.bin`` without ``format`` (and without ``layout``) is read as KITTI unless its bytes are implausible as
+    KITTI and plausible as NCLT ``velodyne_sync`` (`placerec.io.bin_sniff`); neither is a `ScanFormatError`.
+
     ``organized=True`` keeps the image structure when the file has one (PCD HEIGHT > 1, ``.npz`` shape,
     ``layout=`` for KITTI-style ``.bin``). ``sensor`` replaces the reader's `SensorInfo`. Other keyword
     options go to the reader, e.g. ``layout=(64, 1024, "column-major")`` for an organised ``.bin``.
     """
-    fmt = scan_format_of(path, format)
+    fmt = read_format_of(path, format, options)
     reader = SCAN_READERS[fmt]
     _check_options(reader, options, fmt)
     scan = reader(path, organized=organized, **options)

@@ -25,7 +25,7 @@ from placerec.errors import ConfigError, ScanDataError, ScanFormatError
 from placerec.io._common import natural_key, read_bytes
 from placerec.io.numpy_io import parse_npy
 from placerec.io.poses import read_poses
-from placerec.io.registry import EXTENSIONS, read_scan, scan_format_of
+from placerec.io.registry import EXTENSIONS, read_format_of, read_scan
 from placerec.types import Scan, SensorInfo, Sequence, check_poses
 
 __all__ = ["KittiSequence", "FolderSequence", "open_sequence", "load_sensor_yaml", "read_kitti_calib"]
@@ -221,11 +221,11 @@ class FolderSequence(_FileSequence):
         else:
             files = [f for f in root.glob(pattern) if f.is_file()]
         files.sort(key=natural_key)
-        if files:
-            scan_format_of(files[0], format)  # unknown suffix or format: fail now, not on the first scan
         bad = set(read_options) - {"organized", "layout", "sensor"}
         if bad:
             raise ConfigError(f"FolderSequence got unknown option(s) {sorted(bad)}; allowed: organized, layout, sensor")
+        if files:  # decided once from the first file; an unknown suffix or format fails now, not on the first scan
+            format = read_format_of(files[0], format, read_options)
         super().__init__(root, files, root.name, {"format": format, **read_options})
         if poses is None and (root / "poses.txt").is_file():
             poses = root / "poses.txt"
