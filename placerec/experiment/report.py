@@ -6,15 +6,18 @@ Output folder ``<output.dir>/<name>_<timestamp>/`` (and a ``latest`` link beside
 * ``metrics.json`` — per pipeline: ``max_f1``, ``precision_at_max_f1``, ``recall_at_max_f1``, ``auc`` (average
   precision, see `placerec.eval.metrics`), ``recall_at_1``, ``recall_at_n``, ``success_rate`` (localize mode),
   ``time_ms`` {mean, median, p95} per scan and per stage, ``n_queries``, ``n_revisits``; plus peak memory;
-* ``candidates_<label>.csv`` — ``query_id,match_id,score`` per query (``-1`` and empty score when none);
+* ``candidates_<label>.csv`` — every candidate, one row per (query, rank): ``query_id,rank,match_id,score,inliers``
+  (`placerec.experiment.candidates`);
 * ``poses.txt`` — the ground-truth poses (KITTI format) the ids index into (localize mode: ``map_poses.txt`` and
   ``query_poses.txt``), so the metrics can be recomputed from the folder alone (`recompute_loop_metrics`);
 * ``pr_curves.png``, ``trajectory_<label>.png`` (or ``localization_<label>.png``), ``timing.png``, ``index.html``.
+
+``latest`` is repointed only once every file of the report is written: a run that fails keeps its folder (for
+inspection) but leaves ``latest`` on the last complete run.
 """
 
 from __future__ import annotations
 
-import csv
 import html
 import json
 import os
@@ -30,12 +33,20 @@ import numpy as np
 from placerec.config import ExperimentConfig, config_to_yaml
 from placerec.eval import ExclusionWindow, evaluate_loop, localization_metrics, timing_summary
 from placerec.experiment import figures
+from placerec.experiment.candidates import read_candidates, write_candidates
 from placerec.experiment.runner import STAGES, PipelineRecord
 from placerec.io import read_poses, write_kitti_poses
 from placerec.io.atomic import atomic_write
 from placerec.types import Sequence
 
-__all__ = ["make_run_dir", "report_loop", "report_localize", "recompute_loop_metrics", "print_table"]
+__all__ = [
+    "make_run_dir",
+    "point_latest",
+    "report_loop",
+    "report_localize",
+    "recompute_loop_metrics",
+    "print_table",
+]
 
 
 def _slug(label: str) -> str:
@@ -43,7 +54,8 @@ def _slug(label: str) -> str:
 
 
 def make_run_dir(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> Path:
-    """A new timestamped folder for this run, the config written into it, and ``latest`` pointing at it."""
+    """A new timestamped folder for this run with the config written into it (``latest`` is moved to it only
+    when its report is complete, by `point_latest`)."""
     root = Path(out_dir or cfg.output.dir)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     run = root / f"{_slug(cfg.name)}_{stamp}"
@@ -54,34 +66,20 @@ def make_run_dir(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> Pa
     run.mkdir(parents=True)
     with atomic_write(run / "config.yaml", "w") as fh:
         fh.write(config_to_yaml(cfg))
-    latest = root / "latest"
-    tmp = root / f".latest-{os.getpid()}"
+    return run
+
+
+def point_latest(run: Path) -> None:
+    """Point ``<run's parent>/latest`` at ``run``, atomically (a new link renamed over the old one)."""
+    tmp = run.parent / f".latest-{os.getpid()}"
     try:
         if tmp.is_symlink():
             tmp.unlink()
         tmp.symlink_to(run.name, target_is_directory=True)
-        os.replace(tmp, latest)
-    except OSError:  # filesystems without symlinks: just skip the link
-        pass
-    return run
-
-
-def _write_candidates(path: Path, record: PipelineRecord) -> None:
-    q, m, s = record.top1()
-    with atomic_write(path, "w") as fh:
-        w = csv.writer(fh)
-        w.writerow(["query_id", "match_id", "score"])
-        for qi, mi, si in zip(q, m, s, strict=True):
-            w.writerow([int(qi), int(mi), "" if mi < 0 else repr(float(si))])
-
-
-def read_candidates(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Read a ``candidates_<label>.csv``: (query_ids, match_ids, scores with NaN where no candidate)."""
-    rows = list(csv.DictReader(Path(path).open(encoding="utf-8")))
-    q = np.array([int(r["query_id"]) for r in rows], dtype=np.int64)
-    m = np.array([int(r["match_id"]) for r in rows], dtype=np.int64)
-    s = np.array([float(r["score"]) if r["score"] else np.nan for r in rows])
-    return q, m, s
+        os.replace(tmp, run.parent / "latest")
+    except OSError:  # filesystems without symlinks, or a real folder named latest: no link
+        if tmp.is_symlink():
+            tmp.unlink()
 
 
 def _timing(record: PipelineRecord) -> dict[str, Any]:
@@ -106,15 +104,18 @@ def _gt_options(cfg: ExperimentConfig, timestamps: np.ndarray | None) -> dict[st
 
 
 def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
-    """Recompute a pipeline's loop metrics from the run folder alone (config, poses, candidates CSV)."""
+    """Recompute a pipeline's loop metrics (recall@N included) from the run folder alone (config, poses,
+    candidates CSV)."""
     from placerec.config import load_config
 
     run_dir = Path(run_dir)
     cfg = load_config(run_dir / "config.yaml")
     poses, _ = read_poses(run_dir / "poses.txt")
     stamps = np.loadtxt(run_dir / "times.txt", ndmin=1) if (run_dir / "times.txt").is_file() else None
-    q, m, s = read_candidates(run_dir / f"candidates_{_slug(label)}.csv")
-    metrics, _ = evaluate_loop(q, m, s, poses, **_gt_options(cfg, stamps))
+    table = read_candidates(run_dir / f"candidates_{_slug(label)}.csv")
+    q, m, s = table.top1()
+    topn = table.topn(cfg.evaluation.top_n)
+    metrics, _ = evaluate_loop(q, m, s, poses, topn, **_gt_options(cfg, stamps))
     return metrics.summary()
 
 
@@ -132,7 +133,7 @@ def report_loop(
     results: dict[str, Any] = {}
     curves: dict[str, dict[str, Any]] = {}
     for record in records:
-        _write_candidates(run / f"candidates_{_slug(record.label)}.csv", record)
+        write_candidates(run / f"candidates_{_slug(record.label)}.csv", record.query_ids, record.candidates)
         q, m, s = record.top1()
         metrics, gt = evaluate_loop(
             q, m, s, poses, record.topn(cfg.evaluation.top_n), **_gt_options(cfg, seq.timestamps)
@@ -184,7 +185,7 @@ def report_localize(
     success_distance = cfg.evaluation.localize.success_distance
     results: dict[str, Any] = {}
     for record in records:
-        _write_candidates(run / f"candidates_{_slug(record.label)}.csv", record)
+        write_candidates(run / f"candidates_{_slug(record.label)}.csv", record.query_ids, record.candidates)
         estimates = np.full((len(record.candidates), 3), np.nan)
         for row, cands in enumerate(record.candidates):
             if cands:
@@ -245,6 +246,7 @@ def _finish(
         }
         figures.plot_timing(means, run / "timing.png")
         write_index_html(run, cfg, payload)
+    point_latest(run)  # last: a run that failed before this point leaves latest where it was
 
 
 def _json_default(value: Any) -> Any:
