@@ -74,7 +74,7 @@ class DatasetConfig(Section):
 
 
 class IntensityConfig(Section):
-    """Intensity normalisation (`placerec.preprocess.INTENSITY_NORMALIZERS`); ``auto`` = per-sensor default.
+    """Intensity normalisation (`placerec.intensity.INTENSITY_NORMALIZERS`); ``auto`` = per-sensor default.
 
     ``calibration``: path of a per-beam calibration table (``placerec calibrate``); when set, each point's raw
     intensity is mapped through its beam's table (already in [0, 1], so ``mode`` is not applied) and points beyond

@@ -1,4 +1,5 @@
-"""Scan preprocessing: invalid-point removal, range/height crops, voxel downsampling, intensity normalisation.
+"""Scan preprocessing: invalid-point removal, range/height crops, voxel downsampling, then `preprocess_scan`
+with intensity normalisation (`placerec.intensity`) or a per-beam calibration table (`placerec.calibration`).
 
 All functions are vectorised, return new `Scan` objects and never modify their input.
 """
@@ -6,28 +7,18 @@ All functions are vectorised, return new `Scan` objects and never modify their i
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
-from placerec.config import PreprocessConfig
-from placerec.errors import ConfigError, ScanDataError
+from placerec.errors import ScanDataError
+from placerec.intensity import IntensitySpec, normalize_intensity
 from placerec.types import Scan
 
 log = logging.getLogger(__name__)
 
-__all__ = [
-    "remove_invalid",
-    "crop",
-    "voxel_downsample",
-    "normalize_intensity",
-    "INTENSITY_NORMALIZERS",
-    "SENSOR_INTENSITY_DEFAULTS",
-    "IntensitySpec",
-    "default_intensity_spec",
-    "preprocess_scan",
-]
+__all__ = ["remove_invalid", "crop", "voxel_downsample", "PreprocessParams", "preprocess_scan"]
 
 
 def _keep(scan: Scan, keep: np.ndarray, keep_organized: bool) -> Scan:
@@ -133,104 +124,41 @@ def voxel_downsample(scan: Scan, voxel_size: float) -> Scan:
     )
 
 
-# --- intensity normalisation -------------------------------------------------------------------------------
-
-
 @dataclass(frozen=True)
-class IntensitySpec:
-    """How to map raw intensity to [0, 1]: ``mode`` is a key of `INTENSITY_NORMALIZERS`.
+class PreprocessParams:
+    """What `preprocess_scan` does (None = no limit / not applied).
 
-    ``saturation``: raw value mapped to 1 by ``linear`` (values above are clipped); ``percentile``: the
-    percentile of the scan's own intensities mapped to 1 by ``percentile``.
+    Points are kept within ``[min_range, max_range]`` and ``[min_z, max_z]``. Intensity: a per-beam
+    ``calibration`` table (path of a ``placerec calibrate`` result) when given, else normalised with ``intensity``
+    (None: the sensor's default, `placerec.intensity.default_intensity_spec`). ``voxel_size``: voxel downsampling.
     """
 
-    mode: str = "raw"
-    saturation: float | None = None
-    percentile: float = 99.0
+    min_range: float | None = None
+    max_range: float | None = None
+    min_z: float | None = None
+    max_z: float | None = None
+    voxel_size: float | None = None
+    intensity: IntensitySpec | None = None
+    calibration: str | Path | None = None
 
 
-def _raw(values: np.ndarray, spec: IntensitySpec) -> np.ndarray:
-    return values
-
-
-def _linear(values: np.ndarray, spec: IntensitySpec) -> np.ndarray:
-    if spec.saturation is None or spec.saturation <= 0:
-        raise ConfigError("intensity mode 'linear' needs a positive 'saturation' value")
-    return np.clip(values / np.float32(spec.saturation), 0.0, 1.0).astype(np.float32)
-
-
-def _percentile(values: np.ndarray, spec: IntensitySpec) -> np.ndarray:
-    if not 0 < spec.percentile <= 100:
-        raise ConfigError(f"intensity 'percentile' must be in (0, 100], got {spec.percentile}")
-    if values.size == 0:
-        return values
-    top = float(np.percentile(values, spec.percentile))
-    if top <= 0:
-        return np.zeros_like(values)
-    return np.clip(values / np.float32(top), 0.0, 1.0).astype(np.float32)
-
-
-INTENSITY_NORMALIZERS: dict[str, Callable[[np.ndarray, IntensitySpec], np.ndarray]] = {
-    "raw": _raw,
-    "linear": _linear,
-    "percentile": _percentile,
-}
-
-#: Defaults per sensor name (prefix match on `SensorInfo.name`). VLP-16: the ISHOT paper maps raw >= 100 to 1.
-#: KITTI's HDL-64 reflectance is already in [0, 1]. Ouster 16-bit reflectivity and 8-bit Velodyne HDL sensors
-#: are scaled by a high percentile of each scan, which is robust to retro-reflector outliers.
-SENSOR_INTENSITY_DEFAULTS: dict[str, IntensitySpec] = {
-    "vlp16": IntensitySpec("linear", saturation=100.0),
-    "hdl64": IntensitySpec("percentile", percentile=99.0),
-    "hdl32": IntensitySpec("percentile", percentile=99.0),
-    "kitti": IntensitySpec("linear", saturation=1.0),
-    "os": IntensitySpec("percentile", percentile=99.0),
-}
-
-
-def default_intensity_spec(sensor_name: str) -> IntensitySpec:
-    """The per-sensor default (`SENSOR_INTENSITY_DEFAULTS`), ``percentile`` 99 for unknown sensors."""
-    name = sensor_name.lower()
-    for prefix, spec in SENSOR_INTENSITY_DEFAULTS.items():
-        if name.startswith(prefix):
-            return spec
-    return IntensitySpec("percentile", percentile=99.0)
-
-
-def normalize_intensity(scan: Scan, spec: IntensitySpec | None = None) -> Scan:
-    """Map the scan's intensity to [0, 1] with ``spec`` (default: the sensor's default spec)."""
-    spec = spec or default_intensity_spec(scan.sensor.name)
-    try:
-        fn = INTENSITY_NORMALIZERS[spec.mode]
-    except KeyError:
-        raise ConfigError(
-            f"unknown intensity mode {spec.mode!r}; allowed: {sorted(INTENSITY_NORMALIZERS)}"
-        ) from None
-    return scan.with_intensity(fn(scan.intensity, spec))
-
-
-def preprocess_scan(scan: Scan, cfg: PreprocessConfig, keep_organized: bool = False) -> Scan:
-    """Apply a `PreprocessConfig`: remove invalid points, crop, normalise (or calibrate) intensity, voxelise.
+def preprocess_scan(scan: Scan, params: PreprocessParams | None = None, keep_organized: bool = False) -> Scan:
+    """Remove invalid points, crop, normalise (or calibrate) intensity and voxelise, as ``params`` says.
 
     With ``keep_organized`` an organised scan keeps its grid (dropped points zeroed) and is not voxelised, which
     is what image-based pipelines need.
     """
+    p = params or PreprocessParams()
     scan, _ = remove_invalid(scan, keep_organized)
-    scan = crop(scan, cfg.min_range, cfg.max_range, cfg.min_z, cfg.max_z, keep_organized)
-    ic = cfg.intensity
-    if ic.calibration:
+    scan = crop(scan, p.min_range, p.max_range, p.min_z, p.max_z, keep_organized)
+    if p.calibration:
         # per-beam calibration table: output already in [0, 1]; NaN (beyond its range cut-off) -> dropped
-        from placerec.calibration import load_calibration
+        from placerec.calibration.table import load_calibration
 
-        scan = load_calibration(ic.calibration).apply(scan)
+        scan = load_calibration(p.calibration).apply(scan)
         scan = _keep(scan, np.isfinite(scan.intensity), keep_organized)
     else:
-        spec = (
-            default_intensity_spec(scan.sensor.name)
-            if ic.mode == "auto"
-            else IntensitySpec(ic.mode, saturation=ic.saturation, percentile=ic.percentile)
-        )
-        scan = normalize_intensity(scan, spec)
-    if cfg.voxel_size and not (keep_organized and scan.shape is not None):
-        scan = voxel_downsample(scan, cfg.voxel_size)
+        scan = normalize_intensity(scan, p.intensity)
+    if p.voxel_size and not (keep_organized and scan.shape is not None):
+        scan = voxel_downsample(scan, p.voxel_size)
     return scan

@@ -18,9 +18,8 @@ from placerec.calibration import (
     incidence_cosine,
     load_calibration,
 )
-from placerec.config import PreprocessConfig
 from placerec.errors import ArtifactError, ScanDataError
-from placerec.preprocess import preprocess_scan
+from placerec.preprocess import PreprocessParams, preprocess_scan
 from placerec.types import Scan, SensorInfo
 
 VLP = SensorInfo(name="vlp16", beam_elevations_deg=tuple(np.linspace(15, -15, 16)), intensity_max=255.0)
@@ -185,12 +184,11 @@ def test_preprocess_applies_the_table_and_drops_points_beyond_the_cut_off(tmp_pa
     path = tmp_path / "t.npz"
     _table().save(path)
     scan = _scan()
-    cfg = PreprocessConfig(min_range=0.5, intensity={"calibration": str(path)})
-    out = preprocess_scan(scan, cfg)
+    out = preprocess_scan(scan, PreprocessParams(min_range=0.5, calibration=path))
     near = scan.ranges <= 30.0
     assert len(out) == near.sum() and np.isfinite(out.intensity).all()
     assert np.allclose(out.intensity, _table().apply(scan).intensity[near])
-    plain = preprocess_scan(scan, PreprocessConfig(min_range=0.5))  # VLP-16 default: raw / 100, not dropped
+    plain = preprocess_scan(scan, PreprocessParams(min_range=0.5))  # VLP-16 default: raw / 100, not dropped
     assert len(plain) == len(scan)
 
 

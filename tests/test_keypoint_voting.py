@@ -118,7 +118,7 @@ FAST = dict(descriptor="ishot", iss=ISSParams(max_keypoints=100))
 
 @pytest.fixture(scope="module")
 def sim_map():
-    from placerec.preprocess import normalize_intensity
+    from placerec.intensity import normalize_intensity
     from placerec.sim import SimulatedSequence
 
     seq = SimulatedSequence("town", "vlp16", n_scans=16, seed=2, spacing=2.0)
@@ -127,7 +127,7 @@ def sim_map():
 
 def test_localises_queries_taken_at_map_poses(sim_map):
     """Scans re-rendered at four map poses later (other clutter and noise) find their map scan."""
-    from placerec.preprocess import normalize_intensity
+    from placerec.intensity import normalize_intensity
 
     seq, scans = sim_map
     rec = KeypointVoting(**FAST)
@@ -144,7 +144,7 @@ def test_localises_queries_taken_at_map_poses(sim_map):
 
 
 def test_aggregated_places_and_places_database(sim_map, tmp_path):
-    from placerec.preprocess import normalize_intensity
+    from placerec.intensity import normalize_intensity
 
     seq, scans = sim_map
     agg = KeypointVoting(place_spacing_m=6.0, place_window_m=6.0, **FAST)

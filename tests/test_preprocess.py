@@ -3,15 +3,9 @@ import pytest
 
 from placerec.config import PreprocessConfig
 from placerec.errors import ConfigError, ScanDataError
-from placerec.preprocess import (
-    IntensitySpec,
-    crop,
-    default_intensity_spec,
-    normalize_intensity,
-    preprocess_scan,
-    remove_invalid,
-    voxel_downsample,
-)
+from placerec.experiment.preprocessing import preprocess_params
+from placerec.intensity import IntensitySpec, default_intensity_spec, normalize_intensity
+from placerec.preprocess import PreprocessParams, crop, preprocess_scan, remove_invalid, voxel_downsample
 from placerec.types import Scan, SensorInfo
 
 
@@ -79,16 +73,27 @@ def test_intensity_normalisers():
     assert default_intensity_spec("OS1-64").mode == "percentile"
 
 
-def test_preprocess_scan_applies_config():
+def test_preprocess_scan_applies_params():
     rng = np.random.default_rng(2)
     xyz = rng.uniform(-30, 30, size=(5000, 3))
     xyz[:10] = np.nan
     s = Scan(xyz, rng.uniform(0, 255, 5000), sensor=SensorInfo("vlp16"))
-    cfg = PreprocessConfig(min_range=1.0, max_range=20.0, voxel_size=1.0)
-    out = preprocess_scan(s, cfg)
+    out = preprocess_scan(s, PreprocessParams(min_range=1.0, max_range=20.0, voxel_size=1.0))
     assert np.isfinite(out.xyz).all() and out.intensity.max() <= 1.0
     assert np.linalg.norm(out.xyz, axis=1).max() <= 20.0 + 1e-3
     assert len(out) < len(s)
+    plain = preprocess_scan(s)  # no params: invalid points removed, the sensor's intensity default (raw / 100)
+    assert len(plain) == len(s) - 10 and plain.intensity.max() == 1.0
+
+
+def test_config_section_becomes_preprocess_params():
+    """The experiment layer converts its config section; ``auto`` intensity means the sensor's default."""
+    cfg = PreprocessConfig(min_range=1.0, max_z=3.0, voxel_size=0.5, intensity={"calibration": "t.npz"})
+    assert preprocess_params(cfg) == PreprocessParams(min_range=1.0, max_z=3.0, voxel_size=0.5, calibration="t.npz")
+    linear = preprocess_params(PreprocessConfig(intensity={"mode": "linear", "saturation": 50.0}))
+    assert linear.intensity == IntensitySpec("linear", saturation=50.0) and linear.min_range == 0.5
+    s = Scan([[1, 0, 0], [2, 0, 0]], [25.0, 100.0], sensor=SensorInfo("vlp16"))
+    assert preprocess_scan(s, linear).intensity.tolist() == [0.5, 1.0]
 
 
 def test_voxel_speed_is_reasonable_on_a_kitti_sized_scan():

@@ -58,7 +58,7 @@ def synthetic(n_db: int, n_q: int, dim: int, seed: int) -> tuple[np.ndarray, np.
 
 def from_sim(n_scans: int, n_q: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Real ISHOT descriptors: map scans of a simulated VLP-16 town sequence, queries from its gator set."""
-    from placerec.preprocess import normalize_intensity
+    from placerec.intensity import normalize_intensity
     from placerec.sim import make_localization_split
     from placerec.three_d import extract_features
 

@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from placerec.retrieval.dbow.database import BowDatabase
 from placerec.experiment.vocab_training import cached_descriptors, load_training_config
+from placerec.retrieval.dbow.database import BowDatabase
 from placerec.retrieval.dbow.vocabulary import Vocabulary, train_vocabulary
 
 REPO = Path(__file__).resolve().parents[1]

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from placerec.preprocess import normalize_intensity
+from placerec.intensity import normalize_intensity
 from placerec.three_d import FeatureParams, ISSParams, extract_features
 from placerec.types import Scan
 

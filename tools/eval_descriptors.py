@@ -46,8 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
+from placerec.intensity import normalize_intensity
 from placerec.pipelines.keypoint_voting import knn2
-from placerec.preprocess import normalize_intensity
 from placerec.sim import make_localization_split
 from placerec.three_d import FeatureParams, extract_features
 from placerec.three_d.places import PlacesParams, build_places

@@ -17,6 +17,7 @@ from placerec.calibration.observations import (
 )
 from placerec.calibration.params import CalibrationParams
 from placerec.calibration.table import CalibrationTable
+from placerec.intensity import default_intensity_spec
 from placerec.types import Sequence
 
 log = logging.getLogger(__name__)
@@ -25,10 +26,8 @@ __all__ = ["calibrate_observations", "calibrate_points", "calibrate_sequence", "
 
 
 def default_saturation(obs: Observations, sensor: str = "unknown") -> float:
-    """Raw value mapped to 1: the sensor's linear default (`placerec.preprocess.SENSOR_INTENSITY_DEFAULTS`: VLP-16
+    """Raw value mapped to 1: the sensor's linear default (`placerec.intensity.SENSOR_INTENSITY_DEFAULTS`: VLP-16
     100 as in the ISHOT paper, KITTI 1.0), else the 99th percentile of the observed raw values."""
-    from placerec.preprocess import default_intensity_spec
-
     spec = default_intensity_spec(sensor)
     if spec.mode == "linear" and spec.saturation:
         return float(spec.saturation)

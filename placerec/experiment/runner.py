@@ -16,9 +16,10 @@ from typing import Any
 import numpy as np
 
 from placerec.config import ExperimentConfig, PreprocessConfig
-from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint, open_dataset
 from placerec.errors import ConfigError
 from placerec.experiment.cache import DescriptionCache, config_hash
+from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint, open_dataset
+from placerec.experiment.preprocessing import preprocess_params
 from placerec.loop_closure import LoopClosureDetector, split_verify_time
 from placerec.preprocess import preprocess_scan
 from placerec.recognizer import DescribingRecognizer, Description, make_pipeline
@@ -96,7 +97,7 @@ def progress_bars(enabled: bool) -> Iterator[Any]:
 
 def _preprocessed(seq: Sequence, index: int, cfg: PreprocessConfig) -> tuple[Scan, float]:
     t0 = time.perf_counter()
-    scan = preprocess_scan(seq[index], cfg, keep_organized=True)
+    scan = preprocess_scan(seq[index], preprocess_params(cfg), keep_organized=True)
     return scan, (time.perf_counter() - t0) * 1e3
 
 

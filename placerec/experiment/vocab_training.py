@@ -30,12 +30,12 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from placerec.config import DatasetConfig, PreprocessConfig
 from placerec.errors import ConfigError
 from placerec.hashing import stable_hash
+from placerec.safe_yaml import load_yaml_file
 
 log = logging.getLogger(__name__)
 
@@ -156,6 +156,7 @@ def _sequences(cfg: VocabTrainingConfig) -> list[tuple[str, dict[str, Any]]]:
 def _extract(job: tuple[dict[str, Any], int, dict[str, Any]]) -> list[np.ndarray]:
     """Descriptors of ``count`` evenly spaced scans of one sequence (runs in a worker process)."""
     from placerec.experiment.datasets import open_dataset
+    from placerec.experiment.preprocessing import preprocess_params
     from placerec.features import make_extractor
     from placerec.image import make_image
     from placerec.preprocess import preprocess_scan
@@ -165,10 +166,11 @@ def _extract(job: tuple[dict[str, Any], int, dict[str, Any]]) -> list[np.ndarray
     seq = open_dataset(DatasetConfig.model_validate(spec))
     extractor = make_extractor(cfg.features, **cfg.feature_params)
     image_params = image_params_of(cfg)
+    preprocess = preprocess_params(cfg.preprocess)
     index = np.unique(np.linspace(0, len(seq) - 1, min(count, len(seq))).round().astype(int))
     out = []
     for i in index:
-        scan = preprocess_scan(seq[int(i)], cfg.preprocess, keep_organized=True)
+        scan = preprocess_scan(seq[int(i)], preprocess, keep_organized=True)
         out.append(extractor.extract(make_image(scan, image_params).image).descriptors)
     return out
 

@@ -46,7 +46,7 @@ import numpy as np
 
 from placerec.errors import ArtifactError, ConfigError, DependencyError, ScanDataError
 from placerec.io.atomic import load_artifact, save_artifact
-from placerec.preprocess import normalize_intensity
+from placerec.intensity import normalize_intensity
 from placerec.recognizer import Description, DescriptorRecognizer, params_key
 from placerec.three_d.descriptors import DESCRIPTOR_DIMS
 from placerec.three_d.features import FeatureParams, extract_features

@@ -3,7 +3,7 @@
 ``extract_features(scan)`` runs the paper's chain with its settings: drop points beyond 40 m, voxel grid
 0.4 m with the intensity averaged per voxel (`placerec.preprocess.voxel_downsample`), normals
 (`normals.estimate_normals`), ISS-BR keypoints (salient radius 2.4 m), ISHOT with a 7 m support. The scan's
-intensity must already be calibrated to [0, 1] (`placerec.preprocess.normalize_intensity`).
+intensity must already be calibrated to [0, 1] (`placerec.intensity.normalize_intensity`).
 """
 
 from __future__ import annotations

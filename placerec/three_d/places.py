@@ -33,7 +33,8 @@ import numpy as np
 
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.io.atomic import load_artifact, save_artifact
-from placerec.preprocess import crop, normalize_intensity, remove_invalid
+from placerec.intensity import normalize_intensity
+from placerec.preprocess import crop, remove_invalid
 from placerec.three_d.features import FeatureParams, extract_features
 from placerec.types import Scan, Sequence
 
@@ -292,7 +293,7 @@ def build_places(
     """Partition ``seq`` into places, accumulate and describe each (see the module docstring).
 
     ``intensity`` maps every raw scan to [0, 1] intensity before accumulation (default: the sensor's default
-    normalisation, `placerec.preprocess.normalize_intensity`; pass a calibration's ``apply`` for ISHOT-C) and
+    normalisation, `placerec.intensity.normalize_intensity`; pass a calibration's ``apply`` for ISHOT-C) and
     ``intensity_label`` names it in the database. ``progress(done, total)`` is called after every place.
     """
     params = params or PlacesParams()
