@@ -13,7 +13,8 @@ from typing import Any, Literal, get_args
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from placerec.errors import ConfigError
+from placerec.errors import ConfigError, short_repr
+from placerec.safe_yaml import load_yaml, load_yaml_file
 
 __all__ = [
     "Section",
@@ -217,7 +218,7 @@ def _format_errors(exc: ValidationError, model: type[BaseModel], origin: str) ->
             section = ".".join(str(p) for p in loc[:-1]) or "the top level"
             lines.append(f"unknown key '{key}'; allowed keys in {section}: {', '.join(allowed)}")
         else:
-            lines.append(f"'{key}': {err['msg']} (got {err.get('input')!r})")
+            lines.append(f"'{key}': {err['msg']} (got {short_repr(err.get('input'))})")
     return f"{origin}: invalid configuration:\n  " + "\n  ".join(lines)
 
 
@@ -242,10 +243,7 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
         parts = [p for p in key.strip().split(".") if p]
         if not parts:
             raise ConfigError(f"override {item!r} has an empty key")
-        try:
-            value = yaml.safe_load(raw)
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"override {item!r}: value is not valid YAML ({exc})") from None
+        value = load_yaml(raw, f"override {short_repr(item)}")
         node = data
         for i, part in enumerate(parts[:-1]):
             child = node.get(part)
@@ -267,10 +265,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
         origin = str(path)
         if not path.is_file():
             raise ConfigError(f"{path}: config file not found")
-        try:
-            loaded = yaml.safe_load(path.read_text(encoding="utf-8"))
-        except (yaml.YAMLError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"{path}: not valid YAML ({exc})") from None
+        loaded = load_yaml_file(path)
         if loaded is not None and not isinstance(loaded, dict):
             raise ConfigError(
                 f"{path}: the top level of a config must be a mapping, got {type(loaded).__name__}"

@@ -12,6 +12,8 @@
 
 from __future__ import annotations
 
+import reprlib
+
 
 class PlacerecError(Exception):
     """Base class of every placerec error."""
@@ -35,3 +37,13 @@ class ArtifactError(PlacerecError):
 
 class DependencyError(PlacerecError, ImportError):
     """A required native or optional dependency is missing."""
+
+
+def short_repr(value: object, limit: int = 80) -> str:
+    """``repr(value)`` for an error message, at most ``limit`` characters; never walks more than a few elements
+    of a container, so a huge (or alias-expanded) input cannot make the message itself expensive."""
+    r = reprlib.Repr()
+    r.maxlevel, r.maxstring, r.maxother = 3, limit, limit
+    r.maxlist = r.maxtuple = r.maxdict = r.maxset = r.maxfrozenset = 6
+    text = r.repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."

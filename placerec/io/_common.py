@@ -14,6 +14,7 @@ from typing import TypeVar
 import numpy as np
 
 from placerec.errors import ConfigError, DependencyError, ScanDataError, ScanFormatError
+from placerec.io.limits import check_size
 from placerec.types import Scan, SensorInfo
 
 log = logging.getLogger(__name__)
@@ -50,9 +51,22 @@ def check_file(path: str | Path, what: str) -> Path:
         raise ScanFormatError(f"{p}: no such {what} file")
     if not p.is_file():
         raise ScanFormatError(f"{p}: expected a {what} file, found a directory or special file")
-    if p.stat().st_size == 0:
+    size = p.stat().st_size
+    if size == 0:
         raise ScanFormatError(f"{p}: empty file, expected {what} data")
+    check_size(size, p, f"{what} file size", ScanFormatError, "scan")
     return p
+
+
+def check_count(count: int, item_bytes: int, available: int, where: str | Path, what: str) -> int:
+    """``count`` if ``count`` items of ``item_bytes`` each fit in the ``available`` bytes of the file and in the
+    scan load cap (`placerec.io.limits`); ScanFormatError naming the file and ``what`` declared the count otherwise."""
+    need = check_size(count * item_bytes, where, f"{what} ({count} x {item_bytes} bytes)", ScanFormatError, "scan")
+    if count < 0 or need > available:
+        raise ScanFormatError(
+            f"{where}: {what} declares {count} items of {item_bytes} bytes ({need} bytes), the file holds {available}"
+        )
+    return count
 
 
 def read_bytes(path: str | Path, what: str) -> tuple[Path, bytes]:

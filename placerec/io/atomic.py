@@ -1,47 +1,121 @@
-"""Atomic, versioned artifact files: write to a temporary file in the same folder, fsync, rename.
+"""Atomic, versioned artifact files: write to a temporary file in the same folder, fsync, rename, fsync the folder.
 
 Artifacts (databases, vocabularies, calibration tables, caches) are ``.npz`` archives holding a JSON header under
 the key ``__header__`` with ``kind``, ``format_version`` and free metadata (e.g. the config that made them).
+`load_artifact` reads them through `placerec.io.npz` (declared sizes checked against the artifact load cap of
+`placerec.io.limits` before anything is read, stored members only, no pickles) and checks the header and, given a schema
+(`placerec.io.artifact_schema`), every array; anything wrong is an `ArtifactError` naming the file.
+
+Files get the permissions the user's umask gives new files (not `tempfile`'s 0600). A save's temporary file is
+named ``.<target name>.<pid>.<random>.tmp`` beside the target; one left by a save that was interrupted (its
+process has ended) is removed by the next save of the same target.
 """
 
 from __future__ import annotations
 
 import contextlib
-import io
 import json
 import os
 import tempfile
-import zipfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import IO, Any
 
 import numpy as np
 
-from placerec.errors import ArtifactError
+from placerec.errors import ArtifactError, short_repr
+from placerec.io.artifact_schema import Schema, check_members
+from placerec.io.limits import check_size
+from placerec.io.npz import read_npz_arrays
 
-__all__ = ["atomic_write", "save_artifact", "load_artifact"]
+__all__ = ["atomic_write", "save_artifact", "load_artifact", "HEADER_KEY"]
+
+HEADER_KEY = "__header__"
+_MAX_HEADER_BYTES = 16 << 20
+_TMP_SUFFIX = ".tmp"
+_in_flight: set[str] = set()  # temporary files this process is writing now
+_lock = threading.Lock()
+
+
+def _umask() -> int:
+    with _lock:  # os.umask can only be read by setting it
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return mask
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists but belongs to someone else (or cannot be asked): leave its file alone
+    return True
+
+
+def _remove_stale_temps(path: Path) -> None:
+    """Remove temporary files of earlier saves of ``path`` whose process has ended (or, for this process, that
+    no save of this process is writing)."""
+    prefix = f".{path.name}."
+    with contextlib.suppress(OSError):
+        for entry in os.scandir(path.parent):
+            name = entry.name
+            if not (name.startswith(prefix) and name.endswith(_TMP_SUFFIX)):
+                continue
+            pid_text = name[len(prefix) : -len(_TMP_SUFFIX)].split(".", 1)[0]
+            pid = int(pid_text) if pid_text.isdigit() else None
+            with _lock:
+                busy = entry.path in _in_flight
+            if busy or (pid is not None and pid != os.getpid() and _pid_alive(pid)):
+                continue
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(entry.path)
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename in ``folder`` durable; a no-op where folders cannot be opened or fsynced."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager
-def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[BinaryIO]:
-    """Open a temporary file beside ``path``; on success fsync it and rename it over ``path``.
+def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
+    """Open a temporary file beside ``path``; on success fsync it, rename it over ``path`` and fsync the folder.
 
-    If the body raises, the temporary file is removed and ``path`` is left untouched.
+    If the body raises, the temporary file is removed and ``path`` is left untouched. The file gets mode
+    ``0o666 & ~umask``. Temporary files left beside ``path`` by interrupted saves are removed first.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    _remove_stale_temps(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=_TMP_SUFFIX, dir=path.parent)
+    with _lock:
+        _in_flight.add(tmp)
     try:
+        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, mode) as fh:
             yield fh
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
+        _fsync_dir(path.parent)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+    finally:
+        with _lock:
+            _in_flight.discard(tmp)
 
 
 def save_artifact(
@@ -53,38 +127,65 @@ def save_artifact(
 ) -> None:
     """Write ``arrays`` and a JSON header atomically as an uncompressed ``.npz``."""
     header = {"kind": kind, "format_version": int(format_version), "meta": meta or {}}
-    if "__header__" in arrays:
-        raise ArtifactError("array name '__header__' is reserved")
-    buf = io.BytesIO()
+    if HEADER_KEY in arrays:
+        raise ArtifactError(f"array name {HEADER_KEY!r} is reserved")
     payload = dict(arrays)
-    payload["__header__"] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
-    np.savez(buf, **payload)
+    payload[HEADER_KEY] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
     with atomic_write(path) as fh:
-        fh.write(buf.getbuffer())
+        np.savez(fh, **payload)
 
 
 def load_artifact(
-    path: str | Path, kind: str, supported_versions: tuple[int, ...]
+    path: str | Path,
+    kind: str,
+    supported_versions: tuple[int, ...],
+    schema: Schema | None = None,
+    *,
+    limit: int | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """Read an artifact written by `save_artifact`; checks kind and version. Returns (arrays, header)."""
+    """Read an artifact written by `save_artifact`. Returns (arrays, header); arrays are writable.
+
+    Checks, raising `ArtifactError` naming the file: the archive (file and declared member sizes within the
+    artifact load cap, `placerec.io.limits`, or ``limit``; stored members only, as `save_artifact` writes them,
+    so nothing expands; no pickles), the header
+    (a JSON object with ``kind`` == ``kind``, an integer ``format_version`` in ``supported_versions``, a ``meta``
+    object) and, with ``schema``, every array (`placerec.io.artifact_schema.check_members`).
+    """
     path = Path(path)
     if not path.is_file():
         raise ArtifactError(f"{path}: no such artifact file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if "__header__" not in z.files:
-                raise ArtifactError(f"{path}: not a placerec artifact (no header)")
-            header = json.loads(bytes(z["__header__"]).decode("utf-8"))
-            arrays = {k: z[k] for k in z.files if k != "__header__"}
-    except ArtifactError:
-        raise
-    except (OSError, ValueError, zipfile.BadZipFile, json.JSONDecodeError, EOFError) as exc:
-        raise ArtifactError(f"{path}: corrupt artifact ({exc})") from exc
-    if header.get("kind") != kind:
-        raise ArtifactError(f"{path}: artifact is a {header.get('kind')!r}, expected a {kind!r}")
-    if header.get("format_version") not in supported_versions:
+    check_size(path.stat().st_size, path, "file size", ArtifactError, "artifact", limit)
+    arrays = read_npz_arrays(path, path, ArtifactError, "artifact", allow_deflate=False, limit=limit)
+    header = _parse_header(arrays.pop(HEADER_KEY, None), path)
+    if header["kind"] != kind:
+        raise ArtifactError(f"{path}: artifact is a {short_repr(header['kind'])}, expected a {kind!r}")
+    if header["format_version"] not in supported_versions:
         raise ArtifactError(
-            f"{path}: {kind} format version {header.get('format_version')} is not supported "
+            f"{path}: {kind} format version {short_repr(header['format_version'])} is not supported "
             f"(this placerec reads {list(supported_versions)})"
         )
+    if schema is not None:
+        check_members(arrays, schema, path)
     return arrays, header
+
+
+def _parse_header(raw: np.ndarray | None, path: Path) -> dict[str, Any]:
+    if raw is None:
+        raise ArtifactError(f"{path}: not a placerec artifact (no {HEADER_KEY!r} member)")
+    if raw.dtype != np.uint8 or raw.ndim != 1 or raw.size > _MAX_HEADER_BYTES:
+        raise ArtifactError(f"{path}: header must be UTF-8 JSON bytes (uint8, 1-D), got {raw.dtype} {raw.shape}")
+    try:
+        header = json.loads(raw.tobytes().decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ArtifactError(f"{path}: header is not valid JSON ({exc})") from None
+    if not isinstance(header, dict):
+        raise ArtifactError(f"{path}: header must be a JSON object, got {type(header).__name__}")
+    kind, version, meta = header.get("kind"), header.get("format_version"), header.get("meta", {})
+    if not isinstance(kind, str):
+        raise ArtifactError(f"{path}: header 'kind' must be a string, got {short_repr(kind)}")
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise ArtifactError(f"{path}: header 'format_version' must be an integer, got {short_repr(version)}")
+    if not isinstance(meta, dict):
+        raise ArtifactError(f"{path}: header 'meta' must be a JSON object, got {type(meta).__name__}")
+    header["meta"] = meta
+    return header

@@ -6,17 +6,15 @@
 ``.npz``: keys ``xyz`` (N, 3), optional ``intensity`` (N,), ``ring`` (N,), ``time`` (N,), ``shape`` (2,) for an
 organised scan, ``timestamp`` (scalar) and ``sensor`` (UTF-8 JSON of `SensorInfo.to_dict`, as uint8).
 
-Arrays are parsed from the bytes with the array header checked against the data size, so a truncated or
-lying file gives ScanFormatError instead of a huge allocation; pickled (object) arrays are refused.
+Arrays are decoded by `placerec.io.npz`: headers and zip member sizes are checked against the data and the load
+cap (`placerec.io.limits`) before anything is decompressed, so a truncated, lying or zip-bomb file gives
+ScanFormatError instead of a huge allocation; pickled (object) arrays are refused.
 """
 
 from __future__ import annotations
 
 import io
 import json
-import math
-import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -24,45 +22,19 @@ import numpy as np
 from placerec.errors import ScanFormatError
 from placerec.io._common import columns_to_scan, guard, read_bytes, structured_columns
 from placerec.io.atomic import atomic_write
+from placerec.io.npz import parse_npy, read_npz_arrays
 from placerec.types import Scan, SensorInfo
 
-__all__ = ["read_npy", "read_npz", "write_npz", "parse_npy"]
+__all__ = ["read_npy", "read_npz", "write_npz"]
 
 _NPZ_KEYS = ("xyz", "intensity", "ring", "time", "shape", "timestamp", "sensor")
-
-
-def parse_npy(buf: bytes, where: str | Path) -> np.ndarray:
-    """Decode the bytes of one ``.npy`` file (no pickles) after checking the header against the data size."""
-    f = io.BytesIO(buf)
-    try:
-        version = np.lib.format.read_magic(f)
-        if version == (1, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
-        elif version == (2, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
-        else:
-            raise ScanFormatError(f"{where}: unsupported .npy format version {version}")
-    except ScanFormatError:
-        raise
-    except Exception as exc:  # numpy's header parser raises ValueError, SyntaxError, tokenize.TokenError, ...
-        raise ScanFormatError(f"{where}: not a valid .npy array ({type(exc).__name__}: {exc})") from None
-    if dtype.hasobject:
-        raise ScanFormatError(f"{where}: .npy holds Python objects (pickles are not loaded)")
-    count = math.prod(int(v) for v in shape)
-    need = count * dtype.itemsize
-    have = len(buf) - f.tell()
-    if have < need:
-        raise ScanFormatError(f"{where}: .npy data truncated: {have} bytes, expected {need} for shape {shape} "
-                              f"of {dtype}")
-    arr = np.frombuffer(buf, dtype=dtype, count=count, offset=f.tell())
-    return arr.reshape(shape, order="F" if fortran else "C")
 
 
 @guard(".npy")
 def read_npy(path: str | Path, *, organized: bool = False) -> Scan:
     """Read a scan from a ``.npy`` array (see the module docstring for the accepted shapes)."""
     p, buf = read_bytes(path, ".npy")
-    arr = parse_npy(buf, p)
+    arr = parse_npy(buf, p, ScanFormatError)
     if arr.dtype.names:
         if arr.ndim not in (1, 2):
             raise ScanFormatError(f"{p}: structured .npy must be 1-D or 2-D (organised), got shape {arr.shape}")
@@ -86,15 +58,7 @@ def read_npy(path: str | Path, *, organized: bool = False) -> Scan:
 def read_npz(path: str | Path, *, organized: bool = False) -> Scan:
     """Read a scan from an ``.npz`` archive with keys xyz, intensity, ring, time, shape, timestamp, sensor."""
     p, buf = read_bytes(path, ".npz")
-    arrays: dict[str, np.ndarray] = {}
-    try:
-        with zipfile.ZipFile(io.BytesIO(buf)) as zf:
-            for info in zf.infolist():
-                key = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
-                if key in _NPZ_KEYS:
-                    arrays[key] = parse_npy(zf.read(info), f"{p}[{key}]")
-    except (zipfile.BadZipFile, zlib.error, NotImplementedError, RuntimeError, EOFError) as exc:
-        raise ScanFormatError(f"{p}: not a valid .npz archive ({exc})") from None
+    arrays = read_npz_arrays(buf, p, ScanFormatError, "scan", keys=_NPZ_KEYS)
     if "xyz" not in arrays:
         raise ScanFormatError(f"{p}: .npz has no 'xyz' array (keys found: {sorted(arrays)}; expected {_NPZ_KEYS})")
     xyz = arrays["xyz"]

@@ -23,9 +23,10 @@ import numpy as np
 
 from placerec.errors import ConfigError, ScanDataError, ScanFormatError
 from placerec.io._common import natural_key, read_bytes
-from placerec.io.numpy_io import parse_npy
+from placerec.io.npz import parse_npy
 from placerec.io.poses import read_poses
 from placerec.io.registry import EXTENSIONS, read_format_of, read_scan
+from placerec.safe_yaml import load_yaml
 from placerec.types import Scan, SensorInfo, Sequence, check_poses
 
 __all__ = ["KittiSequence", "FolderSequence", "open_sequence", "load_sensor_yaml", "read_kitti_calib"]
@@ -35,13 +36,8 @@ log = logging.getLogger(__name__)
 
 def load_sensor_yaml(path: str | Path) -> SensorInfo:
     """Read a ``sensor.yaml`` sensor description (see `SensorInfo.from_dict`)."""
-    import yaml
-
     p, buf = read_bytes(path, "sensor.yaml")
-    try:
-        d = yaml.safe_load(buf.decode("utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise ScanFormatError(f"{p}: not valid YAML ({exc})") from None
+    d = load_yaml(buf, p, ScanFormatError)
     if not isinstance(d, dict):
         raise ScanFormatError(f"{p}: expected a mapping of sensor keys, got {type(d).__name__}")
     try:
@@ -123,7 +119,7 @@ class _FileSequence:
     @staticmethod
     def _read_ring(path: Path, n: int) -> np.ndarray:
         p, buf = read_bytes(path, "ring .npy")
-        ring = parse_npy(buf, p)
+        ring = parse_npy(buf, p, ScanFormatError)
         if ring.dtype.kind not in "iu" or ring.size != n:
             raise ScanFormatError(f"{p}: ring file must hold {n} integers (one per point), got {ring.shape} "
                                   f"{ring.dtype}")

@@ -1,0 +1,138 @@
+"""Bounded decoding of ``.npy`` arrays and ``.npz`` archives, for scans and artifacts alike.
+
+Nothing is decompressed or allocated before its declared size is checked: a ``.npz`` member table's uncompressed
+sizes against the load cap (`placerec.io.limits`), each member's ``.npy`` header (shape x itemsize) against the
+member's size, only stored (or, where allowed, deflated) members, no pickled (object) arrays. Every failure raises
+the caller's placerec error class naming the file (and member) and what was expected.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import struct
+import zipfile
+import zlib
+from collections.abc import Iterable
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+
+from placerec.errors import PlacerecError
+from placerec.io.limits import FileClass, check_size
+
+__all__ = ["parse_npy", "read_npz_arrays"]
+
+_CODECS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflate"}
+# what corrupt bytes can raise inside zipfile / zlib / numpy's header parser
+_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, struct.error, NotImplementedError, RuntimeError)
+
+
+def _read_header(fp: BinaryIO, where: str, error: type[PlacerecError]) -> tuple[tuple[int, ...], bool, np.dtype]:
+    try:
+        version = np.lib.format.read_magic(fp)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fp)
+        elif version == (2, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(fp)
+        else:
+            raise error(f"{where}: unsupported .npy format version {version}")
+    except PlacerecError:
+        raise
+    except Exception as exc:  # numpy's header parser raises ValueError, SyntaxError, tokenize.TokenError, ...
+        raise error(f"{where}: not a valid .npy array ({type(exc).__name__}: {exc})") from None
+    if dtype.hasobject:
+        raise error(f"{where}: .npy holds Python objects (pickles are not loaded)")
+    return tuple(int(v) for v in shape), bool(fortran), dtype
+
+
+def _nbytes(shape: tuple[int, ...], dtype: np.dtype) -> int:
+    return math.prod(shape) * dtype.itemsize
+
+
+def parse_npy(
+    buf: bytes, where: str | Path, error: type[PlacerecError], cls: FileClass = "scan", limit: int | None = None
+) -> np.ndarray:
+    """Decode the bytes of one ``.npy`` file (no pickles) after checking its header against the data size and the
+    load cap of ``cls``. The array is a read-only view of ``buf``."""
+    f = io.BytesIO(buf)
+    shape, fortran, dtype = _read_header(f, str(where), error)
+    need = check_size(_nbytes(shape, dtype), where, f".npy header (shape {shape} of {dtype})", error, cls, limit)
+    have = len(buf) - f.tell()
+    if have < need:
+        raise error(f"{where}: .npy data truncated: {have} bytes, expected {need} for shape {shape} of {dtype}")
+    arr = np.frombuffer(buf, dtype=dtype, count=math.prod(shape), offset=f.tell())
+    return arr.reshape(shape, order="F" if fortran else "C")
+
+
+def read_npz_arrays(
+    source: str | Path | bytes,
+    where: str | Path,
+    error: type[PlacerecError],
+    cls: FileClass,
+    *,
+    keys: Iterable[str] | None = None,
+    allow_deflate: bool = True,
+    limit: int | None = None,
+) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` archive (a path, or its bytes), by name without ``.npy``; with ``keys`` only
+    those members are decoded (the others are still size-checked). Arrays are writable.
+
+    Checks, before any member is decompressed: unique ``.npy`` member names, known codecs (stored, and deflate
+    if ``allow_deflate``; a stored member's declared size equal to its stored size), no encryption, total
+    declared size within the load cap of ``cls`` (or ``limit``); then for each member, that its ``.npy``
+    header's shape x itemsize plus the header is exactly the member's declared size.
+    """
+    codecs = _CODECS if allow_deflate else {zipfile.ZIP_STORED: "stored"}
+    wanted = None if keys is None else set(keys)
+    src = io.BytesIO(source) if isinstance(source, bytes) else source
+    out: dict[str, np.ndarray] = {}
+    try:
+        with zipfile.ZipFile(src) as zf:
+            infos = zf.infolist()
+            names = [info.filename for info in infos]
+            if len(set(names)) != len(names):
+                raise error(f"{where}: .npz has duplicate members {sorted({n for n in names if names.count(n) > 1})}")
+            for info in infos:
+                if not info.filename.endswith(".npy"):
+                    raise error(f"{where}: .npz member {info.filename!r} is not a .npy array")
+                if info.compress_type not in codecs:
+                    raise error(
+                        f"{where}: .npz member {info.filename!r} uses zip codec {info.compress_type}; "
+                        f"expected {' or '.join(sorted(codecs.values()))}"
+                    )
+                if info.compress_type == zipfile.ZIP_STORED and info.file_size != info.compress_size:
+                    raise error(
+                        f"{where}: stored .npz member {info.filename!r} declares {info.file_size} bytes but "
+                        f"stores {info.compress_size}"
+                    )
+                if info.flag_bits & 0x1:
+                    raise error(f"{where}: .npz member {info.filename!r} is encrypted")
+            check_size(sum(info.file_size for info in infos), where, ".npz member table", error, cls, limit)
+            for info in infos:
+                key = info.filename[:-4]
+                if wanted is None or key in wanted:
+                    out[key] = _read_member(zf, info, f"{where}[{key}]", error)
+    except PlacerecError:
+        raise
+    except _ZIP_ERRORS as exc:
+        raise error(f"{where}: not a valid .npz archive ({type(exc).__name__}: {exc})") from None
+    return out
+
+
+def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, where: str, error: type[PlacerecError]) -> np.ndarray:
+    with zf.open(info) as fh:
+        shape, fortran, dtype = _read_header(fh, where, error)
+        need = _nbytes(shape, dtype)
+        if fh.tell() + need != info.file_size:
+            raise error(
+                f"{where}: .npy header declares shape {shape} of {dtype} ({need} bytes) but the member holds "
+                f"{info.file_size - fh.tell()} data bytes"
+            )
+        data = bytearray(need)
+        got = fh.readinto(data) if need else 0
+        if got != need:
+            raise error(f"{where}: .npy data truncated: {got} bytes, expected {need}")
+    arr = np.frombuffer(data, dtype=dtype, count=math.prod(shape))
+    return arr.reshape(shape, order="F" if fortran else "C")
