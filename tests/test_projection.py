@@ -80,16 +80,13 @@ def test_uneven_beams_leave_empty_rows_that_get_filled():
     pts = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3) * 20
     inten = np.repeat(np.arange(16.0), az.size) + 1
     scan = _scan(pts, inten)
+    geometry = dict(mode="uniform", width=360, height=32, fov_up_deg=2.5, fov_down_deg=24.5)
     raw = make_image(
         scan,
-        ImageParams(
-            mode="uniform", width=360, height=32, fov_up_deg=2.5, fov_down_deg=24.5, fill_empty_rows=False
-        ),
+        ImageParams(**geometry, fill_empty_rows=False, fill_holes_max_gap=0),
     )
     assert (~raw.valid).all(axis=1).sum() >= 10
-    filled = make_image(
-        scan, ImageParams(mode="uniform", width=360, height=32, fov_up_deg=2.5, fov_down_deg=24.5)
-    )
+    filled = make_image(scan, ImageParams(**geometry, fill_holes_max_gap=0))  # the paper's row filling alone
     assert filled.filled_rows.sum() == (~raw.valid).all(axis=1).sum()
     assert filled.valid.all(axis=1).sum() >= 30 and filled.image.dtype == np.uint8
 
@@ -117,7 +114,7 @@ def test_vertical_hole_filling_respects_max_gap():
     assert ok[3, 0] and out[3, 0] == pytest.approx(40) and not ok[1, 1]
 
 
-# ---------------------------------------------------------------- degenerate scans give blank images, never a bare error
+# ------------------------------------------------ degenerate scans give blank images, never a bare error
 _VLP16 = SensorInfo("vlp16", beam_elevations_deg=tuple(np.linspace(-15, 15, 16)), columns=1800)
 
 
@@ -176,3 +173,47 @@ def test_rings_outside_the_sensor_layout_are_a_scan_data_error():
 def test_per_beam_without_layout_and_negative_rings_gives_a_blank_image():
     img = make_image(_scan(np.ones((5, 3)), np.ones(5), ring=np.full(5, -3)), ImageParams(mode="per-beam"))
     assert img.shape == (1, 1024) and not img.valid.any()
+
+
+# ------------------------------------------------ default row filling on real KITTI (no black streaks)
+def _streak_rows(valid: np.ndarray) -> int:
+    """Rows emptier than both neighbours by more than 5 % of the width (tools/eval_row_filling.py)."""
+    ef = 1.0 - valid.mean(axis=1)
+    return int((ef[1:-1] - np.maximum(ef[:-2], ef[2:]) > 0.05).sum())
+
+
+def _holes(valid: np.ndarray) -> float:
+    """Fraction of empty pixels with valid pixels within 3 rows above and below in their column."""
+    h = valid.shape[0]
+    rows = np.arange(h)[:, None]
+    above = np.maximum.accumulate(np.where(valid, rows, -h), axis=0)
+    below = np.minimum.accumulate(np.where(valid, rows, 2 * h)[::-1], axis=0)[::-1]
+    return float((~valid & (rows - above <= 3) & (below - rows <= 3)).mean())
+
+
+@pytest.mark.parametrize("name", ["kitti00_frames/000094.bin", "kitti_raw_hdl64_sequence/0000000010.pcd"])
+def test_default_leaves_no_row_streaks_on_real_kitti(real_data, name):
+    from placerec.io import read_scan
+
+    scan = read_scan(real_data / name)
+    default = make_image(scan)
+    assert default.mode == "uniform" and _streak_rows(default.valid) == 0
+    paper = make_image(scan, ImageParams(fill_holes_max_gap=0))  # whole-row filling alone keeps the streaks
+    assert _streak_rows(paper.valid) >= 2
+    assert _holes(default.valid) < 0.02 < 0.05 < _holes(paper.valid)
+
+
+def test_default_hole_filling_is_only_for_uniform_images():
+    xyz = np.zeros((3 * 4, 3), np.float32)
+    xyz[:, 0] = 5
+    xyz[5] = 0  # an invalid return between two valid ones in its column
+    img = make_image(_scan(xyz, np.arange(12), shape=(3, 4)))
+    assert img.mode == "organized" and not img.valid[1, 1]
+    sensor = SensorInfo("x", beam_elevations_deg=(1.0, 0.0, -1.0), columns=8)
+    pts = np.array([[10, 0, 0.17], [10, 0, -0.17]], np.float32)
+    per_beam = make_image(_scan(pts, [1, 3], ring=[0, 2], sensor=sensor), ImageParams(fill_empty_rows=False))
+    assert per_beam.mode == "per-beam" and per_beam.valid.sum() == 2
+    uniform = make_image(
+        _scan(pts, [1, 3], sensor=sensor), ImageParams(mode="uniform", height=3, fill_empty_rows=False)
+    )
+    assert uniform.valid.sum() == 3 and uniform.intensity[1, 4] == pytest.approx(2)

@@ -60,14 +60,14 @@ def hdl64_simulated() -> None:
 def hdl64_kitti() -> None:
     scan = read_scan(REAL / "kitti00_frames" / "000094.bin")
     base = dict(mode="uniform", width=1024, height=64, fov_up_deg=3.0, fov_down_deg=25.0)
-    raw = make_image(scan, ImageParams(fill_empty_rows=False, **base))
-    rows = make_image(scan, ImageParams(**base))
-    holes = make_image(scan, ImageParams(fill_holes_max_gap=1, **base))
+    raw = make_image(scan, ImageParams(fill_empty_rows=False, fill_holes_max_gap=0, **base))
+    rows = make_image(scan, ImageParams(fill_holes_max_gap=0, **base))
+    holes = make_image(scan, ImageParams(**base))  # the default for uniform images: fill_holes_max_gap=2
     _panel(
         [
             ("real KITTI 00 frame 94 (HDL-64), uniform projection: partly empty rows from the uneven beams", raw.image),
             (f"paper's empty-row interpolation ({int(rows.filled_rows.sum())} whole rows below 5 % fill)", rows.image),
-            ("plus vertical interpolation of one-pixel holes (placerec option fill_holes_max_gap=1)", holes.image),
+            ("plus vertical interpolation of holes up to 2 rows (placerec's default for uniform images)", holes.image),
         ],
         OUT / "images_hdl64_kitti.png",
     )

@@ -42,7 +42,12 @@ __all__ = [
     "fill_empty_rows",
     "fill_vertical_holes",
     "to_uint8",
+    "UNIFORM_HOLES_MAX_GAP",
 ]
+
+#: default ``fill_holes_max_gap`` of uniform (eq. 2) images: on 26 real KITTI HDL-64E frames it leaves no row
+#: streak, where the paper's whole-row filling leaves 7 a frame (tools/eval_row_filling.py, docs/intensity_images.md)
+UNIFORM_HOLES_MAX_GAP = 2
 
 
 @dataclass(frozen=True)
@@ -54,8 +59,9 @@ class ImageParams:
     beam elevations, else from the scan's own elevation range). ``empty_row_threshold``: a row whose fraction of
     valid pixels is below it counts as empty. ``fill_holes_max_gap`` > 0 also fills single empty pixels (partly
     empty rows, as KITTI's HDL-64 leaves) by vertical interpolation when valid pixels lie within that many rows
-    above and below (an improvement over the paper's whole-row filling; 0 = off). ``clip``: ``percentile`` (of the image's valid intensities) or
-    ``saturation`` (a fixed value in the scan's units) is mapped to 255; ``equalize`` applies histogram
+    above and below (an improvement over the paper's whole-row filling; 0 = off; None = `UNIFORM_HOLES_MAX_GAP`
+    for the uniform projection, which leaves such streaks, and 0 for per-beam and organised images, which have
+    none). ``clip``: ``percentile`` (of the image's valid intensities) or ``saturation`` (a fixed value in the scan's units) is mapped to 255; ``equalize`` applies histogram
     equalisation after that.
     """
 
@@ -66,7 +72,7 @@ class ImageParams:
     fov_down_deg: float | None = None
     fill_empty_rows: bool = True
     empty_row_threshold: float = 0.05
-    fill_holes_max_gap: int = 0
+    fill_holes_max_gap: int | None = None
     clip: Literal["percentile", "saturation"] = "percentile"
     percentile: float = 99.0
     saturation: float | None = None
@@ -304,8 +310,10 @@ def make_image(scan: Scan, params: ImageParams = ImageParams()) -> IntensityImag
             valid[filled] = fill_empty_rows(valid.astype(np.float32), filled)[filled] > 0.5
         else:
             filled[:] = False
-    if params.fill_holes_max_gap > 0:
-        gap = params.fill_holes_max_gap
+    gap = params.fill_holes_max_gap
+    if gap is None:
+        gap = UNIFORM_HOLES_MAX_GAP if mode == "uniform" else 0
+    if gap > 0:
         rng, _ = fill_vertical_holes(rng, valid, gap)
         inten, valid = fill_vertical_holes(inten, valid, gap)
     image = to_uint8(inten, valid, params)
