@@ -47,6 +47,7 @@ def test_frame_window_edge_is_inclusive():
     b = bounds(300, frames=120)
     assert b[200] == 80  # exactly 120 frames older is eligible, 119 (index 81) is not
     assert b[119] == -1 and b[120] == 0
+    assert np.all(b[:120] == -1)  # -1 is the one value for "nothing eligible"
     assert bounds(5, frames=0).tolist() == [-1, 0, 1, 2, 3]  # never the query itself
     assert bounds(5).tolist() == [-1, 0, 1, 2, 3]  # no limit at all: every older scan
     assert np.array_equal(ExclusionWindow().sequence_bounds(300), b)  # the default is 120 frames

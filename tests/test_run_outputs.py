@@ -8,10 +8,11 @@ import pytest
 from placerec.baselines.scan_context import ScanContext
 from placerec.config import load_config
 from placerec.errors import ScanDataError, ScanFormatError
+from placerec.eval import ExclusionWindow, loop_ground_truth
 from placerec.experiment import run_experiment
 from placerec.experiment.candidates import read_candidates, write_candidates
 from placerec.experiment.report import recompute_loop_metrics
-from placerec.io import write_kitti_poses
+from placerec.io import read_poses, write_kitti_poses
 from placerec.types import Candidate
 
 N_SCANS = 24
@@ -47,7 +48,7 @@ def sequence_dir(tmp_path_factory):
     return root
 
 
-def config(sequence_dir, out, pipeline="scan-context"):
+def config(sequence_dir, out, pipeline="scan-context", exclusion=("evaluation.exclusion.frames=6",)):
     return load_config(
         None,
         [
@@ -55,7 +56,7 @@ def config(sequence_dir, out, pipeline="scan-context"):
             "dataset.source=path",
             f"dataset.path={sequence_dir}",
             f"pipelines=[{{name: '{pipeline}'}}]",
-            "evaluation.exclusion.frames=6",
+            *exclusion,
             "evaluation.top_n=3",
             f"output.dir={out}",
             "output.cache_dir=null",
@@ -88,6 +89,23 @@ def test_candidates_csv_holds_the_top_n_per_query_and_recomputes_recall_at_n(seq
     again = recompute_loop_metrics(run, "scan-context")
     assert again["recall_at_n"] == pytest.approx(m["recall_at_n"])
     assert again["max_f1"] == pytest.approx(m["max_f1"])
+
+
+@pytest.mark.parametrize("frames", ["null", "2"])
+def test_run_applies_the_configured_window_to_detector_and_ground_truth(sequence_dir, tmp_path, frames):
+    """Metres and frames from the config reach both sides: no candidate inside the window, revisits counted alike."""
+    settings = (f"evaluation.exclusion.frames={frames}", "evaluation.exclusion.metres=40")
+    run, payload = run_experiment(config(sequence_dir, tmp_path, exclusion=settings))
+    window = ExclusionWindow(None if frames == "null" else int(frames), None, 40.0)
+    poses, _ = read_poses(run / "poses.txt")
+    gt = loop_ground_truth(poses, exclusion=window)
+    table = read_candidates(run / "candidates_scan-context.csv")
+    bound = gt.max_eligible[table.query_ids]
+    assert np.all(table.match_ids <= bound[:, None])
+    assert np.array_equal(
+        table.match_ids[:, 0] >= 0, bound >= 0
+    )  # queried exactly when something was eligible
+    assert payload["pipelines"]["scan-context"]["n_revisits"] == gt.n_revisits > 0
 
 
 def test_candidates_round_trip_with_inliers(tmp_path):

@@ -95,7 +95,7 @@ class ExclusionWindow:
                 raise ScanDataError(f"an exclusion window in {unit} needs {needs}")
             v = np.asarray(values, dtype=np.float64)
             bound = np.minimum(bound, np.searchsorted(v, v[q] - limit, side="right") - 1)
-        return bound.astype(np.int64)
+        return np.maximum(bound, -1).astype(np.int64)
 
     def sequence_bounds(
         self, n: int, timestamps: np.ndarray | None = None, positions: np.ndarray | None = None
