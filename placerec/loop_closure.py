@@ -8,7 +8,8 @@
 ...         graph.add_edge(closure.match_id, closure.query_id, closure.relative_pose)
 
 Scans get consecutive ids from 0 in the order they are fed. Each scan first queries the database restricted to
-scans older than the exclusion window, then is added. Candidates with ``score >= threshold`` are accepted and
+scans older than the exclusion window, then is added. A scan the recognizer cannot describe (blank, a few points)
+raises `ScanDataError` and takes no id; `skip` records a frame that is no place, so ids can follow frame numbers. Candidates with ``score >= threshold`` are accepted and
 returned; the threshold is applied here, inside the library. ``relative_pose`` (when the pipeline estimates one)
 is ``T_match_query``: it maps points of the new scan into the frame of the matched older scan.
 """
@@ -22,8 +23,7 @@ import numpy as np
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES, ExclusionWindow, path_length
-from placerec.recognizer import DescribingRecognizer, Description
-from placerec.types import Candidate, PlaceRecognizer, Scan, as_pose
+from placerec.types import Candidate, Description, PlaceRecognizer, Scan, as_pose
 
 __all__ = ["LoopClosureDetector"]
 
@@ -79,7 +79,9 @@ class LoopClosureDetector:
             if self._times and timestamp < self._times[-1]:
                 raise ScanDataError(f"timestamps must not decrease ({timestamp} after {self._times[-1]})")
         if pose is None and self.exclusion.metres is not None:
-            raise ScanDataError("exclusion_metres is set: process() needs the scan's pose (odometry is enough)")
+            raise ScanDataError(
+                "exclusion_metres is set: process() needs the scan's pose (odometry is enough)"
+            )
         step = 0.0
         if pose is not None:
             position = as_pose(pose)[:3, 3]
@@ -98,36 +100,28 @@ class LoopClosureDetector:
     ) -> list[Candidate]:
         """Query with the next scan, add it, and return the accepted closures (``score >= threshold``).
 
-        ``description`` may be given instead of ``scan`` for a `DescribingRecognizer` (a cached front end).
-        All candidates, accepted or not, are kept in ``last_candidates``; stage times in ``last_timing_ms``.
+        ``description`` (the recognizer's ``describe`` of the scan, e.g. cached) may be given instead of ``scan``.
+        The scan is described first: a `ScanDataError` there leaves no trace (no id used, nothing recorded).
+        All candidates, accepted or not, are kept in ``last_candidates``; stage times (ms) in ``last_timing_ms``.
         """
-        scan_id = self.n_processed
-        self._record_motion(pose, timestamp)
-        max_id = self.last_max_id = self._max_eligible_id(scan_id)
         rec = self.recognizer
         timing: dict[str, float] = {}
-        describing = isinstance(rec, DescribingRecognizer)
-        if description is None and describing:
+        if description is None:
             if scan is None:
                 raise ScanDataError("process() needs a scan or a description")
             t0 = time.perf_counter()
             description = rec.describe(scan)
-            timing["features"] = (time.perf_counter() - t0) * 1e3
-        elif description is not None and not describing:
-            raise ScanDataError(f"{rec.name} does not take descriptions; pass the scan")
+            timing["describe"] = (time.perf_counter() - t0) * 1e3
+        scan_id = self.n_processed
+        self._record_motion(pose, timestamp)
+        max_id = self.last_max_id = self._max_eligible_id(scan_id)
         t0 = time.perf_counter()
         candidates: list[Candidate] = []
         if max_id >= 0:
-            if describing:
-                candidates = rec.query_description(description, k=self.k, max_id=max_id, query_id=scan_id)
-            else:
-                candidates = rec.query(scan, k=self.k, max_id=max_id, query_id=scan_id)
+            candidates = rec.query_description(description, k=self.k, max_id=max_id, query_id=scan_id)
         timing["query"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
-        if describing:
-            rec.add_description(scan_id, description, pose)
-        else:
-            rec.add(scan_id, scan, pose)
+        rec.add_description(scan_id, description, pose)
         timing["insert"] = (time.perf_counter() - t0) * 1e3
         split_verify_time(candidates, timing)
         self.last_candidates = candidates
@@ -135,6 +129,16 @@ class LoopClosureDetector:
         accepted = [c for c in candidates if c.score >= self.threshold]
         self.closures.extend(accepted)
         return accepted
+
+    def skip(self, pose: np.ndarray | None = None, timestamp: float | None = None) -> int:
+        """Record a frame that is not a place (e.g. one `process` refused): it takes the next id and counts in
+        the exclusion window, so later ids stay frame numbers, but it is never queried or added. Returns its id."""
+        scan_id = self.n_processed
+        self._record_motion(pose, timestamp)
+        self.last_max_id = -1
+        self.last_candidates = []
+        self.last_timing_ms = {}
+        return scan_id
 
 
 def split_verify_time(candidates: list[Candidate], timing: dict[str, Any]) -> None:

@@ -1,92 +1,108 @@
-"""Building blocks for place recognizers: the describe/database split, and the pipeline registry.
+"""The base class of every place recognizer, the pipeline registry, and the check for scans nothing can match.
 
-Most recognizers have a *front end* that turns a scan into a description (an image with features, a Scan Context
-matrix, ISHOT descriptors) and a *database* that stores and searches descriptions. `DescribingRecognizer`
-makes that split explicit so the experiment runner can cache descriptions per scan and share them between
-pipelines with the same front end (``frontend_key``). `DescriptorRecognizer` implements the
-`placerec.types.PlaceRecognizer` protocol on top of the split, so a subclass only writes ``describe``,
-``add_description`` and ``query_description``.
+`Recognizer` implements the `placerec.types.PlaceRecognizer` protocol's ``add``/``query`` from ``describe`` +
+``add_description`` + ``query_description``; a subclass sets ``name`` and ``Params`` (a `placerec.params.Params`
+model with the paper's defaults) and writes those three plus ``save``/``load``.
 
-Pipelines are registered by name in `PIPELINES` (``name -> "module:Class"``); `make_pipeline` also accepts a
-``"module:Class"`` path, so pipelines from other packages work without registration.
+Pipelines are registered by name in `PIPELINES` (a `PipelineEntry`: ``"module:Class"``, a parameter preset and a
+one-line summary). `make_pipeline` also accepts a ``"module:Class"`` path, so pipelines from other packages work
+without registration; such a path must name a class implementing the protocol, checked before anything is called.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import importlib
+import inspect
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import Any, ClassVar
 
 import numpy as np
 
-from placerec.errors import ConfigError
+from placerec.errors import ConfigError, ScanDataError
 from placerec.hashing import stable_hash
-from placerec.types import Candidate, Scan
+from placerec.params import Params, deep_merge, resolve
+from placerec.types import Candidate, Description, PlaceRecognizer, Scan
 
 __all__ = [
     "Description",
-    "DescribingRecognizer",
-    "DescriptorRecognizer",
+    "Recognizer",
+    "PipelineEntry",
     "PIPELINES",
-    "PIPELINE_PRESETS",
     "pipeline_class",
+    "pipeline_params",
     "make_pipeline",
     "params_key",
+    "valid_points",
+    "require_points",
+    "MIN_POINTS",
+    "MAX_RANGE_M",
 ]
 
-#: A scan's description: named NumPy arrays (so it can be cached as ``.npz``).
-Description = dict[str, np.ndarray]
+#: Fewest valid points a scan needs to be described; fewer is a `ScanDataError` in every pipeline.
+MIN_POINTS = 100
+#: Points at or beyond this range (m) are not returns of any LiDAR (e.g. 1e30 fill values) and count as invalid.
+MAX_RANGE_M = 1e4
 
 
-@runtime_checkable
-class DescribingRecognizer(Protocol):
-    """A place recognizer whose front end can be run (and cached) separately from its database.
+def valid_points(scan: Scan) -> np.ndarray:
+    """Mask of the points that are real returns: finite, not at the origin (organised scans' invalid returns),
+    closer than `MAX_RANGE_M`."""
+    r = scan.ranges
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(r) & (r > 1e-6) & (r < MAX_RANGE_M)
 
-    ``frontend_key`` identifies the front end *and its parameters*: two recognizers with the same key must
-    return identical descriptions for the same scan.
-    """
 
-    name: str
-
-    @property
-    def frontend_key(self) -> str: ...
-
-    def describe(self, scan: Scan) -> Description: ...
-
-    def add_description(
-        self, scan_id: int, description: Description, pose: np.ndarray | None = None
-    ) -> None: ...
-
-    def query_description(
-        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
-    ) -> list[Candidate]: ...
+def require_points(scan: Scan, where: str, minimum: int = MIN_POINTS) -> np.ndarray:
+    """`valid_points` of ``scan``; `ScanDataError` naming ``where`` when fewer than ``minimum`` are valid."""
+    ok = valid_points(scan)
+    n = int(ok.sum())
+    if n < minimum:
+        src = f"{scan.source}: " if scan.source else ""
+        raise ScanDataError(
+            f"{src}{where}: the scan has {n} valid points of {len(scan)} (finite, not at the origin, closer "
+            f"than {MAX_RANGE_M:g} m); at least {minimum} are needed to describe a place"
+        )
+    return ok
 
 
 def params_key(name: str, params: Any) -> str:
-    """A short stable hash of a front-end name and its parameters (a dataclass or a mapping)."""
-    if dataclasses.is_dataclass(params) and not isinstance(params, type):
-        params = dataclasses.asdict(params)
+    """A short stable hash of a front-end name and its parameters (a `Params` model or plain JSON data)."""
+    if isinstance(params, Params):
+        params = params.model_dump(mode="json")
     return f"{name}-{stable_hash({'name': name, 'params': params})}"
 
 
-class DescriptorRecognizer(ABC):
-    """Base class: implements ``add``/``query`` from ``describe`` + ``add_description`` + ``query_description``.
+class Recognizer(ABC):
+    """Base class of every place recognizer: implements ``add``/``query`` from the three primitives.
 
-    Subclasses set ``name``, a frozen dataclass ``Params`` with the paper's defaults, and implement the three
-    abstract methods plus ``save``/``load``. ``self.params`` holds the validated parameters.
+    Subclasses set ``name`` and ``Params`` and implement ``describe``, ``add_description``,
+    ``query_description``, ``save`` and ``load``; ``self.params`` holds the validated parameters.
+    ``frontend_key`` defaults to a hash of all parameters; override it with the front end's own ones so that
+    pipelines sharing a front end share descriptions. ``cache_descriptions`` = False keeps descriptions out of
+    the on-disk cache (when they are as large as the scan itself).
     """
 
     name: ClassVar[str] = "recognizer"
-    Params: ClassVar[type]
+    Params: ClassVar[type[Params]] = Params
+    cache_descriptions: ClassVar[bool] = True
 
-    def __init__(self, params: Any | None = None, **overrides: Any) -> None:
-        self.params = coerce_params(type(self), params, overrides)
+    def __init__(self, params: Params | Mapping[str, Any] | None = None, **overrides: Any) -> None:
+        if isinstance(params, Params) and not isinstance(params, self.Params):
+            raise ConfigError(
+                f"{self.name}: params must be a {self.Params.__name__}, got {type(params).__name__}"
+            )
+        if not isinstance(params, Params) or overrides:
+            base = params.model_dump() if isinstance(params, Params) else params
+            params = resolve(self.Params, base, overrides, where=self.name)
+        self.params = params
 
     @classmethod
-    def from_params(cls, params: dict[str, Any] | None = None) -> DescriptorRecognizer:
-        return cls(coerce_params(cls, None, params or {}))
+    def from_params(cls, params: Mapping[str, Any] | None = None) -> Recognizer:
+        """Build from a parameter mapping (e.g. a config's), merged deeply into the defaults."""
+        return cls(resolve(cls.Params, params, where=cls.name))
 
     @property
     def frontend_key(self) -> str:
@@ -118,79 +134,132 @@ class DescriptorRecognizer(ABC):
         return self.query_description(self.describe(scan), k=k, max_id=max_id, query_id=query_id)
 
 
-def coerce_params(cls: type, params: Any | None, overrides: dict[str, Any]) -> Any:
-    """Build ``cls.Params`` from an instance and/or keyword overrides, with a `ConfigError` naming bad keys."""
-    params_cls = cls.Params
-    if params is None:
-        params = params_cls()
-    elif not isinstance(params, params_cls):
-        raise ConfigError(
-            f"{cls.__name__}: params must be a {params_cls.__name__}, got {type(params).__name__}"
-        )
-    if not overrides:
-        return params
-    allowed = [f.name for f in dataclasses.fields(params_cls)]
-    unknown = sorted(set(overrides) - set(allowed))
-    if unknown:
-        raise ConfigError(
-            f"{getattr(cls, 'name', cls.__name__)}: unknown parameter(s) {unknown}; allowed: {', '.join(allowed)}"
-        )
-    try:
-        from pydantic import TypeAdapter, ValidationError
+@dataclass(frozen=True)
+class PipelineEntry:
+    """A registered pipeline: its class (``"module:Class"``), parameter preset and a one-line summary."""
 
-        merged = {**dataclasses.asdict(params), **overrides}
-        return TypeAdapter(params_cls).validate_python(merged)
-    except ValidationError as exc:
-        details = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
-        raise ConfigError(
-            f"{getattr(cls, 'name', cls.__name__)}: invalid parameter value ({details})"
-        ) from None
+    target: str
+    summary: str
+    preset: dict[str, Any] = field(default_factory=dict)
 
 
-#: Registered pipelines: short name -> "module:Class". Later modules add their entries here.
-PIPELINES: dict[str, str] = {
-    "scan-context": "placerec.baselines.scan_context:ScanContext",
-    "map-closures": "placerec.baselines.map_closures_peer:MapClosuresPeer",
-    "orb-hbst": "placerec.pipelines.visual:VisualHBST",
-    "brisk-hbst": "placerec.pipelines.visual:VisualHBST",
-    "ishot-votes": "placerec.pipelines.keypoint_voting:KeypointVoting",
-    "shot-votes": "placerec.pipelines.keypoint_voting:KeypointVoting",
-    "fpfh-votes": "placerec.pipelines.keypoint_voting:KeypointVoting",
-    "orb-dbow": "placerec.pipelines.dbow:VisualDBoW",
-    "surf-dbow": "placerec.pipelines.dbow:VisualDBoW",
+#: Registered pipelines by short name.
+PIPELINES: dict[str, PipelineEntry] = {
+    "scan-context": PipelineEntry(
+        "placerec.baselines.scan_context:ScanContext",
+        "Scan Context (Kim & Kim 2018): polar max-height grid, ring-key search, column-shift distance",
+    ),
+    "map-closures": PipelineEntry(
+        "placerec.baselines.map_closures_peer:MapClosuresPeer",
+        "MapClosures peer (PRBonn): bird's-eye density-map ORB, HBST, RANSAC; fed single scans",
+    ),
+    "orb-hbst": PipelineEntry(
+        "placerec.pipelines.visual:VisualHBST",
+        "VPR paper: intensity image, ORB features, HBST retrieval, column-shift check",
+        {"features": "orb"},
+    ),
+    "brisk-hbst": PipelineEntry(
+        "placerec.pipelines.visual:VisualHBST",
+        "VPR paper: intensity image, FAST + BRISK features, HBST retrieval, column-shift check",
+        {"features": "brisk"},
+    ),
+    "orb-dbow": PipelineEntry(
+        "placerec.pipelines.dbow:VisualDBoW",
+        "VPR paper: intensity image, ORB features, DBoW2 bag of words, column-shift check",
+        {"features": "orb"},
+    ),
+    "surf-dbow": PipelineEntry(
+        "placerec.pipelines.dbow:VisualDBoW",
+        "VPR paper: intensity image, FAST + SURF features, DBoW2 bag of words, column-shift check",
+        {"features": "fast-surf"},
+    ),
+    "ishot-votes": PipelineEntry(
+        "placerec.pipelines.keypoint_voting:KeypointVoting",
+        "ISHOT paper: ISS-BR keypoints, ISHOT descriptors (geometry + intensity), ratio-tested NN votes",
+        {"descriptor": "ishot"},
+    ),
+    "shot-votes": PipelineEntry(
+        "placerec.pipelines.keypoint_voting:KeypointVoting",
+        "ISHOT paper's baseline: ISS-BR keypoints, SHOT descriptors, ratio-tested NN votes",
+        {"descriptor": "shot"},
+    ),
+    "fpfh-votes": PipelineEntry(
+        "placerec.pipelines.keypoint_voting:KeypointVoting",
+        "ISHOT paper's baseline: ISS-BR keypoints, FPFH descriptors, ratio-tested NN votes",
+        {"descriptor": "fpfh"},
+    ),
 }
 
-#: Parameter presets of registered names (merged under the config's own ``params``).
-PIPELINE_PRESETS: dict[str, dict[str, Any]] = {
-    "orb-hbst": {"features": "orb"},
-    "brisk-hbst": {"features": "brisk"},
-    "ishot-votes": {"descriptor": "ishot"},
-    "shot-votes": {"descriptor": "shot"},
-    "fpfh-votes": {"descriptor": "fpfh"},
-    "orb-dbow": {"features": "orb"},
-    "surf-dbow": {"features": "fast-surf"},
-}
+_PROTOCOL_METHODS = (
+    "describe",
+    "add_description",
+    "query_description",
+    "add",
+    "query",
+    "save",
+    "load",
+)
 
 
 def pipeline_class(name: str) -> type:
-    """The class of a registered pipeline, or of a ``"package.module:Class"`` path."""
-    target = PIPELINES.get(name, name)
-    if ":" not in target:
+    """The class of a registered pipeline, or of a ``"package.module:Class"`` path.
+
+    The path must name a class that implements `placerec.types.PlaceRecognizer` (a `Recognizer` subclass, or
+    a class with every protocol method, ``name`` and ``frontend_key``); anything else is a `ConfigError`, raised
+    before anything is called.
+    """
+    entry = PIPELINES.get(name)
+    target = entry.target if entry else str(name)
+    module_name, sep, attr = target.partition(":")
+    if not sep or not module_name or not attr.isidentifier():
         raise ConfigError(
-            f"unknown pipeline {name!r}; registered: {', '.join(sorted(PIPELINES))} (or 'module:Class')"
+            f"unknown pipeline {name!r}; registered: {', '.join(PIPELINES)} (or 'package.module:Class')"
         )
-    module_name, _, attr = target.partition(":")
     try:
         module = importlib.import_module(module_name)
-        return getattr(module, attr)
-    except (ImportError, AttributeError) as exc:
-        raise ConfigError(f"pipeline {name!r}: cannot load {target} ({exc})") from exc
+    except ImportError as exc:
+        raise ConfigError(f"pipeline {name!r}: cannot import {module_name!r} ({exc})") from exc
+    obj = inspect.getattr_static(module, attr, None)
+    if not inspect.isclass(obj):
+        kind = "nothing" if obj is None else f"a {type(obj).__name__}"
+        raise ConfigError(
+            f"pipeline {name!r}: {target} is {kind}, not a class implementing placerec.types.PlaceRecognizer"
+        )
+    if not issubclass(obj, Recognizer):
+        missing = [m for m in _PROTOCOL_METHODS if not inspect.isfunction(getattr(obj, m, None))]
+        missing += [a for a in ("name", "frontend_key") if not hasattr(obj, a)]
+        if missing:
+            raise ConfigError(
+                f"pipeline {name!r}: class {target} does not implement placerec.types.PlaceRecognizer "
+                f"(missing: {', '.join(missing)})"
+            )
+    return obj
 
 
-def make_pipeline(name: str, params: dict[str, Any] | None = None) -> Any:
-    """Build a pipeline by registry name (or ``module:Class``) with parameter overrides from a config."""
+def pipeline_params(name: str, params: Mapping[str, Any] | None = None, path: str = "") -> Params:
+    """The resolved parameters of a `Recognizer` pipeline: its defaults, the registry preset, then ``params``.
+
+    ``path`` is where ``params`` sit in a config (e.g. ``pipelines[1].params``), for the error messages.
+    """
     cls = pipeline_class(name)
-    merged = {**PIPELINE_PRESETS.get(name, {}), **(params or {})}
-    if hasattr(cls, "from_params"):
-        return cls.from_params(merged)
-    return cls(**merged)
+    if not issubclass(cls, Recognizer):
+        raise ConfigError(
+            f"pipeline {name!r}: {cls.__name__} does not declare its parameters (not a Recognizer)"
+        )
+    entry = PIPELINES.get(name)
+    return resolve(cls.Params, entry.preset if entry else None, params, where=name, path=path or "params")
+
+
+def make_pipeline(name: str, params: Mapping[str, Any] | None = None, path: str = "") -> PlaceRecognizer:
+    """Build a pipeline by registry name (or ``module:Class``) with parameter overrides from a config.
+
+    A `Recognizer` gets its defaults, the registry preset and ``params`` merged deeply and validated
+    (`ConfigError` naming ``path.key`` and the allowed keys); any other protocol class is called with
+    ``**params``.
+    """
+    cls = pipeline_class(name)
+    if issubclass(cls, Recognizer):
+        return cls(pipeline_params(name, params, path))
+    if params is not None and not isinstance(params, Mapping):
+        raise ConfigError(f"pipeline {name!r}: {path or 'params'} must be a mapping")
+    return cls(**deep_merge({}, params))

@@ -28,6 +28,7 @@ __all__ = [
     "Sequence",
     "ListSequence",
     "Candidate",
+    "Description",
     "PlaceRecognizer",
     "as_pose",
     "relative_pose",
@@ -308,19 +309,43 @@ class Candidate:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+#: A scan's description by a recognizer's front end: named NumPy arrays (so it can be cached as ``.npz``).
+Description = dict[str, np.ndarray]
+
+
 @runtime_checkable
 class PlaceRecognizer(Protocol):
-    """The one interface every pipeline, baseline and peer adapter implements.
+    """The one interface every pipeline, baseline and peer adapter implements (`placerec.recognizer.Recognizer`
+    is its base class, which derives ``add``/``query`` from the three primitives).
 
-    * ``add(scan_id, scan, pose=None)`` inserts a scan into the database under ``scan_id`` (unique, caller-chosen).
-    * ``query(scan, k=1, max_id=None, query_id=-1)`` returns up to ``k`` candidates, best first, among database
-      entries with ``id <= max_id`` (all entries when None). Loop-closure callers number scans in acquisition
-      order, so the exclusion window of recent frames becomes one bound. It never modifies the database;
-      ``query_id`` is only copied into the returned candidates.
-    * ``save(path)`` / ``load(path)`` persist the database (atomic, versioned).
+    A recognizer is a *front end* that turns a scan into a `Description` and a *database* of descriptions, kept
+    apart so descriptions can be computed once, cached and shared:
+
+    * ``frontend_key`` identifies the front end and its parameters: equal keys give identical descriptions.
+    * ``describe(scan)`` is the front end; a scan it cannot describe (blank, a few points) is a `ScanDataError`.
+    * ``add_description(scan_id, description, pose=None)`` inserts under ``scan_id`` (unique, caller-chosen).
+    * ``query_description(description, k=1, max_id=None, query_id=-1)`` returns up to ``k`` candidates, best
+      first, among database entries with ``id <= max_id`` (all entries when None). Loop-closure callers number
+      scans in acquisition order, so the exclusion window of recent frames becomes one bound. It never modifies
+      the database; ``query_id`` is only copied into the returned candidates.
+    * ``add(scan_id, scan, pose=None)`` / ``query(scan, ...)``: the same on a scan (``describe`` first).
+    * ``save(path)`` / ``load(path)`` persist the database (atomic, versioned; `ArtifactError` on a wrong file).
     """
 
     name: str
+
+    @property
+    def frontend_key(self) -> str: ...
+
+    def describe(self, scan: Scan) -> Description: ...
+
+    def add_description(
+        self, scan_id: int, description: Description, pose: np.ndarray | None = None
+    ) -> None: ...
+
+    def query_description(
+        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
+    ) -> list[Candidate]: ...
 
     def add(self, scan_id: int, scan: Scan, pose: np.ndarray | None = None) -> None: ...
 

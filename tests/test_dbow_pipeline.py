@@ -119,7 +119,7 @@ def test_missing_or_mismatched_vocabulary(tmp_path, trained):
         VisualDBoW(vocabulary=str(tmp_path / "none.dbow"))
     with pytest.raises(ArtifactError, match="does not fit"):
         make_pipeline("surf-dbow", {"vocabulary": str(trained)})
-    with pytest.raises(ConfigError, match="unknown parameter"):
+    with pytest.raises(ConfigError, match=r"params\.vocab: unknown key; allowed keys there: .*vocabulary"):
         make_pipeline("orb-dbow", {"vocab": "x"})
 
 

@@ -35,8 +35,8 @@ def test_revisit_found_with_relative_pose_as_T_match_query():
     peer = make_pipeline("map-closures")
     first, T0 = _scan(world, 0, 0, 0)
     peer.add(0, first)
-    for i in range(1, 5):
-        peer.add(i, _scan(world, 200 + 30 * i, 0, 0)[0])
+    for i, (x, y) in enumerate([(60, 60), (-60, 60), (60, -60), (-60, -60)], start=1):
+        peer.add(i, _scan(world, x, y, 0)[0])
     query, Tq = _scan(world, 3, 1, 0.3)
     assert peer.query(query, k=3, max_id=-1, query_id=5) == []  # nothing eligible
     again, _ = _scan(world, 3.2, 1, 0.3)

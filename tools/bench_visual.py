@@ -38,10 +38,13 @@ def main() -> None:
     from rich.progress import track
 
     for i in track(range(args.db), description="filling the database"):
-        desc = cache.get(rec.frontend_key, i)
-        if desc is None:
+        hit = cache.get(rec.frontend_key, i)
+        if hit is None:
+            t_describe = time.perf_counter()
             desc = rec.describe(seq[i])
-            cache.put(rec.frontend_key, i, desc)
+            cache.put(rec.frontend_key, i, desc, (time.perf_counter() - t_describe) * 1e3)
+        else:
+            desc = hit[0]
         rec.add_description(i, desc)
     fill_s = time.perf_counter() - t0
 

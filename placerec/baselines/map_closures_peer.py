@@ -5,51 +5,65 @@ verifies with RANSAC. This adapter feeds it **single scans** (each scan, as prep
 map"); it does not build local maps from poses or odometry, so results are those of MapClosures on single scans,
 which is how a per-scan place recognizer is compared. Document that when quoting numbers.
 
-Protocol notes (the peer's API inserts while it queries):
+Protocol notes:
 
-* ``query(scan, query_id=i)`` calls the peer's ``get_top_k_closures(i, scan)``, which also inserts the scan under
-  id ``i``; a following ``add(i, ...)`` with the same id is then a no-op. ``add`` of a new id inserts it. This
-  is the one deviation from "query never modifies the database"; the evaluator's order (query, then add the same
-  id) makes it harmless.
+* ``describe`` keeps the scan's valid points (float64); the peer computes its density map itself. Descriptions
+  are as large as the scans, so they are not cached on disk (``cache_descriptions = False``).
+* The peer (map-closures 2.x) only matches while inserting: each of its query calls also stores the map. So a query
+  inserts the scan *tentatively*; when the next call adds the same points under the same id (the loop-closure
+  order: query, then add), the insertion is kept. Any other next call first rebuilds the peer from the added
+  scans, which removes the tentative one: queries never change what is stored, at the cost of re-inserting every
+  scan (O(database size)) after a query that is not followed by adding that scan (e.g. localisation queries).
 * Candidates whose match id is above ``max_id`` (inside the exclusion window) are dropped after the peer answers.
 * ``score`` = number of RANSAC inliers; ``relative_pose`` = ``T_match_query``: the peer's ``pose`` maps the match's
   (``source_id``) points into the query's (``target_id``) frame, so it is inverted here (checked in the tests).
+* ``save`` stores the added scans' points; ``load`` re-inserts them in the same order.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
+from pydantic import Field
 
-from placerec.errors import DependencyError, PlacerecError
-from placerec.recognizer import coerce_params
-from placerec.types import Candidate, Scan
+from placerec.errors import ArtifactError, DependencyError, ScanDataError
+from placerec.io.atomic import load_artifact, save_artifact
+from placerec.params import Params
+from placerec.recognizer import Recognizer, params_key, require_points
+from placerec.types import Candidate, Description, Scan
 
 __all__ = ["MapClosuresPeer", "MapClosuresParams"]
 
+_KIND = "map-closures-db"
+_VERSION = 1
 
-@dataclass(frozen=True)
-class MapClosuresParams:
+
+class MapClosuresParams(Params):
     """The peer's own settings (its defaults) plus how many candidates to ask for."""
 
-    density_map_resolution: float = 0.5
-    density_threshold: float = 0.05
-    hamming_distance_threshold: int = 50
-    inliers_threshold: int = 5
-    top_k: int = 5
+    density_map_resolution: float = Field(
+        0.5, gt=0, description="m per density-map pixel (MapClosures default)"
+    )
+    density_threshold: float = Field(
+        0.05, ge=0, le=1, description="density-map cut-off (MapClosures default)"
+    )
+    hamming_distance_threshold: int = Field(50, ge=0, description="ORB match distance (MapClosures default)")
+    inliers_threshold: int = Field(5, ge=0, description="RANSAC inliers of a closure (MapClosures default)")
+    top_k: int = Field(5, ge=1, description="closures asked of the peer per query (at least the query's k)")
 
 
-class MapClosuresPeer:
+class MapClosuresPeer(Recognizer):
     """`placerec.types.PlaceRecognizer` over ``map_closures.MapClosures`` (optional extra ``peers``)."""
 
     name: ClassVar[str] = "map-closures"
-    Params: ClassVar[type] = MapClosuresParams
+    Params: ClassVar[type[Params]] = MapClosuresParams
+    cache_descriptions: ClassVar[bool] = False
 
-    def __init__(self, params: MapClosuresParams | None = None, **overrides: Any) -> None:
-        self.params = coerce_params(type(self), params, overrides)
+    def __init__(self, params: MapClosuresParams | Mapping[str, Any] | None = None, **overrides: Any) -> None:
+        super().__init__(params, **overrides)
         try:
             from map_closures.config import MapClosuresConfig
             from map_closures.map_closures import MapClosures
@@ -57,54 +71,114 @@ class MapClosuresPeer:
             raise DependencyError(
                 f"the map-closures peer needs the 'map-closures' package (pip install 'placerec[peers]'): {exc}"
             ) from exc
-        cfg = {k: v for k, v in asdict(self.params).items() if k != "top_k"}
-        self._peer = MapClosures(MapClosuresConfig(**cfg))
-        self._inserted: set[int] = set()
+        cfg = self.params.model_dump(exclude={"top_k"})
+        self._new_peer = lambda: MapClosures(MapClosuresConfig(**cfg))
+        self._reset()
 
-    @classmethod
-    def from_params(cls, params: dict[str, Any] | None = None) -> MapClosuresPeer:
-        return cls(None, **(params or {}))
+    def _reset(self) -> None:
+        self._peer = self._new_peer()
+        self._points: dict[int, np.ndarray] = {}
+        self._pending: tuple[int, np.ndarray] | None = None
+
+    def __len__(self) -> int:
+        return len(self._points)
+
+    @property
+    def frontend_key(self) -> str:
+        return params_key(self.name, {"points": "valid"})
+
+    def describe(self, scan: Scan) -> Description:
+        """The scan's valid points, (N, 3) float64; `ScanDataError` when too few are valid."""
+        ok = require_points(scan, self.name)
+        return {"points": np.ascontiguousarray(scan.xyz[ok], dtype=np.float64)}
 
     @staticmethod
-    def _points(scan: Scan) -> np.ndarray:
-        xyz = scan.xyz[np.isfinite(scan.xyz).all(axis=1) & np.any(scan.xyz != 0, axis=1)]
-        return np.ascontiguousarray(xyz, dtype=np.float64)
+    def _unwrap(description: Description) -> np.ndarray:
+        pts = np.asarray(description["points"], dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ScanDataError(f"map-closures: points must have shape (N, 3), got {pts.shape}")
+        return np.ascontiguousarray(pts)
 
-    def _insert(self, scan_id: int, scan: Scan) -> list[Any]:
-        if scan_id in self._inserted:
-            raise PlacerecError(f"map-closures: id {scan_id} was already inserted")
-        self._inserted.add(scan_id)
-        k = max(1, self.params.top_k)
-        return list(self._peer.get_top_k_closures(int(scan_id), self._points(scan), k))
+    def _rollback(self) -> None:
+        """Drop a tentative insertion by rebuilding the peer from the added scans (in insertion order)."""
+        if self._pending is None:
+            return
+        self._pending = None
+        self._peer = self._new_peer()
+        for sid, pts in self._points.items():
+            self._peer.get_top_k_closures(sid, pts, 1)
 
-    def add(self, scan_id: int, scan: Scan, pose: np.ndarray | None = None) -> None:
-        if scan_id not in self._inserted:
-            self._insert(scan_id, scan)
+    def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
+        sid, pts = int(scan_id), self._unwrap(description)
+        if sid in self._points:
+            raise ScanDataError(f"map-closures: id {sid} was added already")
+        pending, self._pending = self._pending, None
+        if pending is None or pending[0] != sid or not np.array_equal(pending[1], pts):
+            self._pending = pending
+            self._rollback()
+            self._peer.get_top_k_closures(sid, pts, 1)
+        self._points[sid] = pts
 
-    def query(self, scan: Scan, k: int = 1, max_id: int | None = None, query_id: int = -1) -> list[Candidate]:
-        if query_id < 0:
-            raise PlacerecError("map-closures: query needs the query_id the scan will be stored under")
-        closures = self._insert(query_id, scan)
+    def query_description(
+        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
+    ) -> list[Candidate]:
+        pts = self._unwrap(description)
+        self._rollback()
+        if not self._points:
+            return []
+        qid = int(query_id)
+        if qid < 0 or qid in self._points:  # the peer needs an id it has not stored
+            qid = max(self._points) + 1
+        closures = list(self._peer.get_top_k_closures(qid, pts, max(k, self.params.top_k)))
+        self._pending = (qid, pts)
         out = []
         for c in closures:
-            match = int(c.source_id) if int(c.target_id) == query_id else int(c.target_id)
-            if match == query_id or (max_id is not None and match > max_id):
+            match = int(c.source_id) if int(c.target_id) == qid else int(c.target_id)
+            if match == qid or match not in self._points or (max_id is not None and match > max_id):
                 continue
             T_query_match = np.asarray(c.pose, dtype=np.float64)
             out.append(
                 Candidate(
-                    query_id=query_id,
+                    query_id=int(query_id),
                     match_id=match,
                     score=float(c.number_of_inliers),
                     relative_pose=np.linalg.inv(T_query_match),
                     inliers=int(c.number_of_inliers),
                 )
             )
-        out.sort(key=lambda c: -c.score)
+        out.sort(key=lambda c: (-c.score, c.match_id))
         return out[:k]
 
     def save(self, path: str | Path) -> None:
-        raise PlacerecError("map-closures: the peer's database cannot be saved through placerec")
+        """The added scans' points (insertion order) with the parameters."""
+        ids = list(self._points)
+        arrays = {
+            "ids": np.asarray(ids, np.int64),
+            "counts": np.asarray([self._points[i].shape[0] for i in ids], np.int64),
+            "points": np.concatenate([self._points[i] for i in ids]) if ids else np.zeros((0, 3)),
+        }
+        save_artifact(path, _KIND, _VERSION, arrays, {"params": self.params.model_dump(mode="json")})
 
     def load(self, path: str | Path) -> None:
-        raise PlacerecError("map-closures: the peer's database cannot be loaded through placerec")
+        arrays, header = load_artifact(path, _KIND, (_VERSION,))
+        saved = (header.get("meta") or {}).get("params")
+        if saved != self.params.model_dump(mode="json"):
+            raise ArtifactError(f"{path}: database was made with other parameters: {saved}")
+        ids, counts, points = (np.asarray(arrays.get(k)) for k in ("ids", "counts", "points"))
+        n = ids.shape[0] if ids.ndim == 1 else -1
+        if (
+            n < 0
+            or counts.shape != (n,)
+            or (counts < 0).any()
+            or points.shape != (int(counts.sum()), 3)
+            or np.unique(ids).size != n
+            or not np.isfinite(points).all()
+        ):
+            raise ArtifactError(
+                f"{path}: inconsistent map-closures database (ids unique, one count per id, counts adding up to "
+                "the (N, 3) finite points expected)"
+            )
+        self._reset()
+        offsets = np.r_[0, np.cumsum(counts)]
+        for sid, a, b in zip(ids, offsets[:-1], offsets[1:], strict=True):
+            self.add_description(int(sid), {"points": points[a:b]})

@@ -34,16 +34,17 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
+from pydantic import Field
 from scipy.spatial import cKDTree
 
-from placerec.errors import ArtifactError, ConfigError, ScanDataError
+from placerec.errors import ArtifactError, ScanDataError
 from placerec.io.atomic import load_artifact, save_artifact
-from placerec.recognizer import params_key
+from placerec.params import Params
+from placerec.recognizer import Recognizer, params_key, require_points
 from placerec.types import Candidate, Scan
 
 log = logging.getLogger(__name__)
@@ -62,44 +63,33 @@ FORMAT_VERSION = 1
 _DESCRIPTOR_PARAMS = ("num_rings", "num_sectors", "max_radius", "lidar_height")
 
 
-@dataclass(frozen=True)
-class ScanContextParams:
+class ScanContextParams(Params):
     """Scan Context parameters (defaults: the paper / reference implementation).
 
     The descriptor parameters (``num_rings``, ``num_sectors``, ``max_radius``, ``lidar_height``) are stored with a
     saved database and must match on load; the others only affect queries.
     """
 
-    num_rings: int = 20
-    num_sectors: int = 60
-    max_radius: float = 80.0
-    lidar_height: float = 2.0
-    num_candidates: int = 10
-    search_ratio: float = 0.1
-    full_shift_search: bool = False
-    tree_rebuild_every: int = 50
-
-    def __post_init__(self) -> None:
-        checks = {
-            "num_rings": self.num_rings >= 1,
-            "num_sectors": self.num_sectors >= 1,
-            "max_radius": self.max_radius > 0,
-            "num_candidates": self.num_candidates >= 1,
-            "search_ratio": 0 <= self.search_ratio <= 1,
-            "tree_rebuild_every": self.tree_rebuild_every >= 1,
-        }
-        bad = [k for k, ok in checks.items() if not ok]
-        if bad:
-            raise ConfigError(f"scan-context: invalid value for {bad[0]!r}: {getattr(self, bad[0])!r}")
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> ScanContextParams:
-        """Build from a dict; unknown keys raise `ConfigError` naming the allowed keys."""
-        allowed = [f.name for f in fields(cls)]
-        unknown = sorted(set(d) - set(allowed))
-        if unknown:
-            raise ConfigError(f"scan-context: unknown parameter(s) {unknown}; allowed: {', '.join(allowed)}")
-        return cls(**d)
+    num_rings: int = Field(20, ge=1, description="rings N_r (Scan Context paper; reference PC_NUM_RING)")
+    num_sectors: int = Field(
+        60, ge=1, description="sectors N_s (Scan Context paper; reference PC_NUM_SECTOR)"
+    )
+    max_radius: float = Field(
+        80.0, gt=0, description="m; L_max (Scan Context paper; reference PC_MAX_RADIUS)"
+    )
+    lidar_height: float = Field(2.0, description="m; added to z (reference LIDAR_HEIGHT)")
+    num_candidates: int = Field(
+        10, ge=1, description="ring-key neighbours re-ranked (reference NUM_CANDIDATES)"
+    )
+    search_ratio: float = Field(
+        0.1, ge=0, le=1, description="fine shift search width (reference SEARCH_RATIO)"
+    )
+    full_shift_search: bool = Field(
+        False, description="try every column shift instead of the two-stage search"
+    )
+    tree_rebuild_every: int = Field(
+        50, ge=1, description="additions between KD-tree rebuilds (reference: 50)"
+    )
 
     @property
     def search_radius(self) -> int:
@@ -204,22 +194,19 @@ def _yaw_pose(yaw_deg: float) -> np.ndarray:
     return T
 
 
-class ScanContext:
-    """Scan Context place recognizer implementing `placerec.types.PlaceRecognizer` (see module docstring).
+class ScanContext(Recognizer):
+    """Scan Context place recognizer, a `placerec.recognizer.Recognizer` (see module docstring).
 
     ``ScanContext()`` uses the paper's defaults; ``ScanContext(params)`` or keyword overrides
-    (``ScanContext(full_shift_search=True)``) change them. ``add`` ignores ``pose``.
-
-    It also offers the describe/database split (``describe`` -> ``{"scan_context": (R, S) array}``,
-    ``add_description``, ``query_description``, ``frontend_key``) so descriptions can be cached per scan;
-    ``frontend_key`` depends on the descriptor parameters only.
+    (``ScanContext(full_shift_search=True)``) change them. ``add`` ignores ``pose``. ``describe`` gives
+    ``{"scan_context": (R, S) array}``; ``frontend_key`` depends on the descriptor parameters only.
     """
 
-    name = "scan-context"
+    name: ClassVar[str] = "scan-context"
+    Params: ClassVar[type[Params]] = ScanContextParams
 
-    def __init__(self, params: ScanContextParams | dict[str, Any] | None = None, **overrides: Any) -> None:
-        base = params if isinstance(params, ScanContextParams) else ScanContextParams.from_dict(params or {})
-        self.params = ScanContextParams.from_dict({**asdict(base), **overrides}) if overrides else base
+    def __init__(self, params: ScanContextParams | Mapping[str, Any] | None = None, **overrides: Any) -> None:
+        super().__init__(params, **overrides)
         R, S = self.params.num_rings, self.params.num_sectors
         self._desc = np.zeros((0, R, S), dtype=np.float32)
         self._keys = np.zeros((0, R), dtype=np.float64)
@@ -237,18 +224,15 @@ class ScanContext:
         """The ids in the database, in insertion order."""
         return self._ids[: self._n].copy()
 
-    @classmethod
-    def from_params(cls, params: dict[str, Any] | None = None) -> ScanContext:
-        """Build from a config's parameter dict (unknown keys raise `ConfigError`)."""
-        return cls(ScanContextParams.from_dict(params or {}))
-
     @property
     def frontend_key(self) -> str:
         """Identifies the descriptor and its parameters (equal keys give identical descriptions)."""
         return params_key(self.name, self.params.descriptor_dict())
 
     def describe(self, scan: Scan) -> dict[str, np.ndarray]:
-        """``{"scan_context": descriptor}`` of the scan with this recognizer's parameters."""
+        """``{"scan_context": descriptor}`` of the scan with this recognizer's parameters; `ScanDataError` for a
+        scan with too few valid points (a blank scan would otherwise match every other blank scan)."""
+        require_points(scan, self.name)
         return {"scan_context": make_descriptor(scan, self.params)}
 
     def _unwrap(self, description: Mapping[str, np.ndarray] | np.ndarray) -> np.ndarray:
@@ -259,10 +243,6 @@ class ScanContext:
         return d
 
     # ------------------------------------------------------------------ database
-
-    def add(self, scan_id: int, scan: Scan, pose: np.ndarray | None = None) -> None:
-        """Insert ``scan`` under ``scan_id`` (unique)."""
-        self.add_description(scan_id, self.describe(scan))
 
     def add_description(
         self,
@@ -327,13 +307,6 @@ class ScanContext:
         order = np.argsort(d, kind="stable")[:want]
         return cand[order], d[order]
 
-    def query(self, scan: Scan, k: int = 1, max_id: int | None = None, query_id: int = -1) -> list[Candidate]:
-        """Up to ``k`` candidates, best (highest score) first, among entries with ``id <= max_id``.
-
-        ``max(k, num_candidates)`` ring-key neighbours are re-ranked by the Scan Context distance.
-        """
-        return self.query_description(self.describe(scan), k=k, max_id=max_id, query_id=query_id)
-
     def query_description(
         self,
         description: Mapping[str, np.ndarray] | np.ndarray,
@@ -341,7 +314,9 @@ class ScanContext:
         max_id: int | None = None,
         query_id: int = -1,
     ) -> list[Candidate]:
-        """`query` with a precomputed description (``describe``'s dict or the bare (R, S) array)."""
+        """Up to ``k`` candidates, best (highest score) first, among entries with ``id <= max_id``, for a
+        description (``describe``'s dict or the bare (R, S) array): ``max(k, num_candidates)`` ring-key
+        neighbours re-ranked by the Scan Context distance."""
         if k < 1:
             raise ScanDataError(f"scan-context: k must be >= 1, got {k}")
         q = self._unwrap(description)
@@ -387,7 +362,7 @@ class ScanContext:
             ARTIFACT_KIND,
             FORMAT_VERSION,
             {"descriptors": self._desc[:n], "ids": self._ids[:n]},
-            meta={"params": asdict(self.params)},
+            meta={"params": self.params.model_dump(mode="json")},
         )
 
     def load(self, path: str | Path) -> None:
@@ -414,6 +389,8 @@ class ScanContext:
             raise ArtifactError(f"{path}: scan-context database arrays are missing or malformed")
         if np.unique(ids).size != ids.size:
             raise ArtifactError(f"{path}: scan-context database has duplicate ids")
+        if not np.isfinite(desc).all():
+            raise ArtifactError(f"{path}: scan-context database has non-finite descriptors")
         n = int(ids.size)
         self._desc = np.ascontiguousarray(desc, dtype=np.float32)
         self._keys = ring_key(self._desc).astype(np.float64)

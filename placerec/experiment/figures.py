@@ -97,7 +97,7 @@ def plot_timing(timing: dict[str, dict[str, float]], path: Path) -> Path:
     labels = list(timing)
     stages = [
         s
-        for s in ("preprocess", "features", "query", "insert", "verify")
+        for s in ("preprocess", "describe", "query", "insert", "verify")
         if any(timing[lab].get(s, 0) for lab in labels)
     ]
     fig, ax = plt.subplots(figsize=(max(4.5, 1.3 * len(labels) + 2), 4), dpi=120)

@@ -3,6 +3,8 @@
 Output folder ``<output.dir>/<name>_<timestamp>/`` (and a ``latest`` link beside it):
 
 * ``config.yaml`` — the resolved config;
+* ``pipelines.yaml`` — per pipeline label: registry name, class and resolved parameters (defaults, the registry
+  preset and the config's overrides merged);
 * ``metrics.json`` — per pipeline: ``max_f1``, ``precision_at_max_f1``, ``recall_at_max_f1``, ``auc`` (average
   precision, see `placerec.eval.metrics`), ``recall_at_1``, ``recall_at_n``, ``success_rate`` (localize mode),
   ``time_ms`` {mean, median, p95} per scan and per stage, ``n_queries``, ``n_revisits``; plus peak memory;
@@ -29,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from placerec.config import ExperimentConfig, config_to_yaml
 from placerec.eval import ExclusionWindow, evaluate_loop, localization_metrics, timing_summary
@@ -237,6 +240,9 @@ def _finish(
 ) -> None:
     with atomic_write(run / "metrics.json", "w") as fh:
         json.dump(payload, fh, indent=2, default=_json_default)
+    with atomic_write(run / "pipelines.yaml", "w") as fh:  # resolved parameters: presets and defaults applied
+        resolved = {r.label: {"pipeline": r.pipeline, "class": r.name, "params": r.params} for r in records}
+        yaml.safe_dump(resolved, fh, sort_keys=False)
     if cfg.output.figures:
         if curves:
             figures.plot_pr_curves(curves, run / "pr_curves.png", f"{cfg.name}: precision-recall")

@@ -1,7 +1,10 @@
 """Run an experiment config: dataset -> preprocessing -> every pipeline -> per-query records.
 
 Scans are read and preprocessed once and fed to all pipelines in lockstep; pipelines with the same front end
-(`DescribingRecognizer.frontend_key`) share one description per scan, in memory and in the on-disk cache.
+(`placerec.types.PlaceRecognizer.frontend_key`) share one description per scan, in memory and in the on-disk
+cache. The describe time reported for a scan is the time its front end took to compute the description, stored
+with it, so it does not depend on the cache or on which pipeline came first. A scan a pipeline cannot describe
+(`ScanDataError`: blank, a few points) gets no candidates from it and is not added to its database.
 """
 
 from __future__ import annotations
@@ -16,28 +19,32 @@ from typing import Any
 import numpy as np
 
 from placerec.config import ExperimentConfig, PreprocessConfig
-from placerec.errors import ConfigError
+from placerec.errors import ConfigError, ScanDataError
 from placerec.experiment.cache import DescriptionCache, config_hash
 from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint, open_dataset
 from placerec.experiment.preprocessing import preprocess_params
 from placerec.loop_closure import LoopClosureDetector, split_verify_time
+from placerec.params import Params
 from placerec.preprocess import preprocess_scan
-from placerec.recognizer import DescribingRecognizer, Description, make_pipeline
-from placerec.types import Candidate, Scan, Sequence
+from placerec.recognizer import make_pipeline
+from placerec.types import Candidate, Description, PlaceRecognizer, Scan, Sequence
 
 log = logging.getLogger(__name__)
 
 __all__ = ["PipelineRecord", "run_loop", "run_localize", "progress_bars"]
 
-STAGES = ("preprocess", "features", "query", "insert", "verify")
+STAGES = ("preprocess", "describe", "query", "insert", "verify")
 
 
 @dataclass
 class PipelineRecord:
-    """What one pipeline answered: top-N candidates per query and stage times (ms) per scan."""
+    """What one pipeline answered: top-N candidates per query and stage times (ms) per scan; ``pipeline`` is
+    the registry name (or ``module:Class``), ``params`` the resolved parameters (presets and defaults applied)."""
 
     label: str
     name: str
+    pipeline: str = ""
+    params: dict[str, Any] = field(default_factory=dict)
     query_ids: list[int] = field(default_factory=list)
     candidates: list[list[Candidate]] = field(default_factory=list)
     timing_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
@@ -57,10 +64,10 @@ class PipelineRecord:
         return out
 
     def per_scan_ms(self) -> np.ndarray:
-        """Total pipeline time per processed scan (features + query + insert + verify; preprocessing excluded)."""
+        """Total pipeline time per processed scan (describe + query + insert + verify; preprocessing excluded)."""
         parts = [
             np.asarray(self.timing_ms[s])
-            for s in ("features", "query", "insert", "verify")
+            for s in ("describe", "query", "insert", "verify")
             if self.timing_ms[s]
         ]
         if not parts:
@@ -102,31 +109,42 @@ def _preprocessed(seq: Sequence, index: int, cfg: PreprocessConfig) -> tuple[Sca
 
 
 class _Frontends:
-    """Shares descriptions between pipelines with the same front end, for the current scan and on disk."""
+    """Shares descriptions between pipelines with the same front end, for the current scan and on disk; each
+    description comes with the milliseconds its front end took to compute it (stored with it in the cache)."""
 
     def __init__(self, cache: DescriptionCache) -> None:
         self.cache = cache
-        self._current: dict[str, Description] = {}
+        self._current: dict[str, tuple[Description, float]] = {}
         self._index = -1
 
-    def describe(self, rec: DescribingRecognizer, index: int, scan: Scan) -> tuple[Description, float]:
+    def describe(self, rec: PlaceRecognizer, index: int, scan: Scan) -> tuple[Description, float]:
+        """(description, describe ms) of scan ``index`` by ``rec``'s front end; `ScanDataError` from it passes."""
         if index != self._index:
             self._current.clear()
             self._index = index
         key = rec.frontend_key
-        if key in self._current:
-            return self._current[key], 0.0
-        t0 = time.perf_counter()
-        desc = self.cache.get(key, index)
-        if desc is None:
-            desc = rec.describe(scan)
-            self.cache.put(key, index, desc)
-        self._current[key] = desc
-        return desc, (time.perf_counter() - t0) * 1e3
+        if key not in self._current:
+            on_disk = getattr(rec, "cache_descriptions", True)
+            hit = self.cache.get(key, index) if on_disk else None
+            if hit is None:
+                t0 = time.perf_counter()
+                desc = rec.describe(scan)
+                hit = desc, (time.perf_counter() - t0) * 1e3
+                if on_disk:
+                    self.cache.put(key, index, *hit)
+            self._current[key] = hit
+        return self._current[key]
 
 
-def _build_pipelines(cfg: ExperimentConfig) -> list[tuple[str, Any]]:
-    return [(spec.display_name, make_pipeline(spec.name, spec.params)) for spec in cfg.pipelines]
+def _build_pipelines(cfg: ExperimentConfig) -> list[tuple[PipelineRecord, PlaceRecognizer]]:
+    """Every pipeline of the config with an empty record holding its resolved parameters."""
+    out = []
+    for i, spec in enumerate(cfg.pipelines):
+        rec = make_pipeline(spec.name, spec.params, path=f"pipelines[{i}].params")
+        params = getattr(rec, "params", None)
+        resolved = params.model_dump(mode="json") if isinstance(params, Params) else dict(spec.params)
+        out.append((PipelineRecord(spec.display_name, type(rec).__name__, spec.name, resolved), rec))
+    return out
 
 
 def _data_key(cfg: ExperimentConfig, dataset_cfg: Any) -> str:
@@ -142,8 +160,8 @@ def _data_key(cfg: ExperimentConfig, dataset_cfg: Any) -> str:
 
 def run_loop(cfg: ExperimentConfig, seq: Sequence | None = None) -> tuple[Sequence, list[PipelineRecord]]:
     """Loop mode: every scan queries (exclusion window applied) and is then added, for every pipeline."""
-    seq = open_dataset(cfg.dataset) if seq is None else seq
     pipelines = _build_pipelines(cfg)
+    seq = open_dataset(cfg.dataset) if seq is None else seq
     ex = cfg.evaluation.exclusion
     detectors = [
         LoopClosureDetector(
@@ -156,7 +174,6 @@ def run_loop(cfg: ExperimentConfig, seq: Sequence | None = None) -> tuple[Sequen
         )
         for _, rec in pipelines
     ]
-    records = [PipelineRecord(label, type(rec).__name__) for label, rec in pipelines]
     poses, stamps = seq.poses, seq.timestamps
     if ex.metres is not None and poses is None:
         raise ConfigError("evaluation.exclusion.metres needs a dataset with poses")
@@ -164,29 +181,27 @@ def run_loop(cfg: ExperimentConfig, seq: Sequence | None = None) -> tuple[Sequen
         raise ConfigError("evaluation.exclusion.seconds needs a dataset with timestamps")
     frontends = _Frontends(DescriptionCache(cfg.output.cache_dir, _data_key(cfg, cfg.dataset)))
     with progress_bars(cfg.output.progress) as progress:
-        tasks = [progress.add_task(label, total=len(seq)) for label, _ in pipelines]
+        tasks = [progress.add_task(record.label, total=len(seq)) for record, _ in pipelines]
         for i in range(len(seq)):
             scan, pre_ms = _preprocessed(seq, i, cfg.preprocess)
-            for (_, rec), det, record, task in zip(pipelines, detectors, records, tasks, strict=True):
-                desc, feat_ms = (None, None)
-                if isinstance(rec, DescribingRecognizer):
-                    desc, feat_ms = frontends.describe(rec, i, scan)
-                det.process(
-                    scan,
-                    pose=None if poses is None else poses[i],
-                    timestamp=None if stamps is None else float(stamps[i]),
-                    description=desc,
-                )
-                timing = dict(det.last_timing_ms)
-                if feat_ms is not None:
-                    timing["features"] = feat_ms
-                timing["preprocess"] = pre_ms
+            pose = None if poses is None else poses[i]
+            stamp = None if stamps is None else float(stamps[i])
+            for (record, rec), det, task in zip(pipelines, detectors, tasks, strict=True):
+                timing = {"preprocess": pre_ms}
+                try:
+                    desc, timing["describe"] = frontends.describe(rec, i, scan)
+                except ScanDataError as exc:
+                    log.warning("%s: scan %d gets no candidates: %s", record.label, i, exc)
+                    det.skip(pose, stamp)  # keeps the detector's ids equal to scan indices
+                else:
+                    det.process(None, pose=pose, timestamp=stamp, description=desc)
+                    timing.update({k: v for k, v in det.last_timing_ms.items() if k != "describe"})
                 for stage in STAGES:
                     record.timing_ms[stage].append(timing.get(stage, 0.0))
                 record.query_ids.append(i)
                 record.candidates.append(det.last_candidates)
                 progress.advance(task)
-    return seq, records
+    return seq, [record for record, _ in pipelines]
 
 
 def _localize_sequences(cfg: ExperimentConfig) -> tuple[Sequence, Sequence]:
@@ -217,38 +232,38 @@ def run_localize(cfg: ExperimentConfig) -> tuple[Sequence, Sequence, list[Pipeli
     if map_seq.poses is None or query_seq.poses is None:
         raise ConfigError("localize mode needs poses for the map and the query sequences")
     pipelines = _build_pipelines(cfg)
-    records = [PipelineRecord(label, type(rec).__name__) for label, rec in pipelines]
     map_front = _Frontends(
         DescriptionCache(cfg.output.cache_dir, _data_key(cfg, cfg.evaluation.localize.map or cfg.dataset))
     )
     query_front = _Frontends(DescriptionCache(None, "queries"))
     with progress_bars(cfg.output.progress) as progress:
-        tasks = [progress.add_task(f"{label} (map)", total=len(map_seq)) for label, _ in pipelines]
+        tasks = [progress.add_task(f"{record.label} (map)", total=len(map_seq)) for record, _ in pipelines]
         for i in range(len(map_seq)):
             scan, _ = _preprocessed(map_seq, i, cfg.preprocess)
-            for (_, rec), task in zip(pipelines, tasks, strict=True):
-                if isinstance(rec, DescribingRecognizer):
+            for (record, rec), task in zip(pipelines, tasks, strict=True):
+                try:
                     rec.add_description(i, map_front.describe(rec, i, scan)[0], map_seq.poses[i])
-                else:
-                    rec.add(i, scan, map_seq.poses[i])
+                except ScanDataError as exc:
+                    log.warning("%s: map scan %d not added: %s", record.label, i, exc)
                 progress.advance(task)
-        tasks = [progress.add_task(f"{label} (queries)", total=len(query_seq)) for label, _ in pipelines]
+        tasks = [progress.add_task(f"{record.label} (queries)", total=len(query_seq)) for record, _ in pipelines]
         for q in range(len(query_seq)):
             scan, pre_ms = _preprocessed(query_seq, q, cfg.preprocess)
-            for (_, rec), record, task in zip(pipelines, records, tasks, strict=True):
+            for (record, rec), task in zip(pipelines, tasks, strict=True):
                 timing = {"preprocess": pre_ms}
-                t0 = time.perf_counter()
-                if isinstance(rec, DescribingRecognizer):
-                    desc, timing["features"] = query_front.describe(rec, q, scan)
+                cands: list[Candidate] = []
+                try:
+                    desc, timing["describe"] = query_front.describe(rec, q, scan)
+                except ScanDataError as exc:
+                    log.warning("%s: query %d gets no candidates: %s", record.label, q, exc)
+                else:
                     t0 = time.perf_counter()
                     cands = rec.query_description(desc, k=cfg.evaluation.top_n, query_id=q)
-                else:
-                    cands = rec.query(scan, k=cfg.evaluation.top_n, query_id=q)
-                timing["query"] = (time.perf_counter() - t0) * 1e3
-                split_verify_time(cands, timing)
+                    timing["query"] = (time.perf_counter() - t0) * 1e3
+                    split_verify_time(cands, timing)
                 for stage in STAGES:
                     record.timing_ms[stage].append(timing.get(stage, 0.0))
                 record.query_ids.append(q)
                 record.candidates.append(cands)
                 progress.advance(task)
-    return map_seq, query_seq, records
+    return map_seq, query_seq, [record for record, _ in pipelines]

@@ -30,13 +30,20 @@ from typing import Any, ClassVar, Literal
 
 import cv2
 import numpy as np
+from pydantic import Field
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.features import compat
 from placerec.features.surf import SURF
+from placerec.params import Params, resolve
 
 __all__ = [
     "Features",
+    "ExtractorParams",
+    "OrbParams",
+    "BriskParams",
+    "FastSurfParams",
+    "SurfParams",
     "FeatureExtractor",
     "OrbExtractor",
     "BriskExtractor",
@@ -45,6 +52,7 @@ __all__ = [
     "EXTRACTORS",
     "available_extractors",
     "make_extractor",
+    "extractor_params",
 ]
 
 log = logging.getLogger(__name__)
@@ -156,44 +164,80 @@ class _Keypoints:
         )
 
 
+class ExtractorParams(Params):
+    """Settings of every extractor (VPR paper Table I: at most 300 features per image)."""
+
+    nfeatures: int = Field(300, gt=0, description="features kept, strongest first (VPR paper Table I)")
+    wrap_pad: bool = Field(True, description="pad the 360 degree panorama with the opposite side's columns")
+    pad: int = Field(64, ge=0, description="px of wrap-around padding (a multiple of 8 keeps SURF aligned)")
+
+
+class OrbParams(ExtractorParams):
+    """ORB (VPR paper Table I; the other values are OpenCV's defaults)."""
+
+    fast_threshold: int = Field(40, gt=0, description="FAST threshold inside cv2.ORB (VPR paper Table I)")
+    scale_factor: float = Field(1.2, gt=1, description="pyramid scale (VPR paper Table I)")
+    n_levels: int = Field(8, gt=0, description="pyramid levels (VPR paper Table I)")
+    edge_threshold: int = Field(15, ge=0, description="px border without keypoints (VPR paper Table I)")
+    first_level: int = Field(0, ge=0, description="OpenCV default")
+    wta_k: Literal[2, 3, 4] = Field(2, description="points per BRIEF comparison (OpenCV default)")
+    score_type: Literal["harris", "fast"] = Field("harris", description="keypoint ranking (OpenCV default)")
+    patch_size: int = Field(31, gt=0, description="px (OpenCV default)")
+
+
+class BriskParams(ExtractorParams):
+    """FAST keypoints described by BRISK (VPR paper Table I)."""
+
+    fast_threshold: int = Field(40, gt=0, description="FAST threshold (VPR paper Table I)")
+    threshold: int = Field(30, gt=0, description="BRISK AGAST threshold, detector=brisk only (Table I)")
+    octaves: int = Field(3, ge=0, description="BRISK octaves, detector=brisk only (VPR paper Table I)")
+    pattern_scale: float = Field(1.0, gt=0, description="BRISK sampling pattern scale (VPR paper Table I)")
+    detector: Literal["fast", "brisk"] = Field("fast", description="fast: Table I; brisk: BRISK's own AGAST")
+
+
+class FastSurfParams(ExtractorParams):
+    """FAST keypoints described by our SURF (VPR paper Table I)."""
+
+    fast_threshold: int = Field(40, gt=0, description="FAST threshold (VPR paper Table I)")
+    extended: bool = Field(False, description="128-d instead of 64-d descriptors")
+    upright: bool = Field(False, description="no orientation (U-SURF)")
+
+
+class SurfParams(ExtractorParams):
+    """Our SURF detector and descriptor (VPR paper Table I)."""
+
+    hessian_threshold: float = Field(400.0, gt=0, description="VPR paper Table I")
+    n_octaves: int = Field(4, gt=0, description="VPR paper Table I")
+    n_octave_layers: int = Field(3, gt=0, description="layers per octave (VPR paper Table I)")
+    extended: bool = Field(False, description="128-d instead of 64-d descriptors")
+    upright: bool = Field(False, description="no orientation (U-SURF)")
+
+
 class FeatureExtractor:
     """Base class of the registered extractors.
 
-    A subclass sets ``name``, ``descriptor_kind`` and ``PARAMS`` (its Table I defaults; ``CHOICES`` for string
-    parameters) and implements ``_run(image, mask) -> (_Keypoints, descriptors)`` on the (padded) image, keeping
-    keypoints only where ``mask`` is non-zero and at most ``self.params["nfeatures"]`` of them (ideally after any
-    it drops). The base class validates parameters and inputs, pads for the azimuth wrap-around, caps and orders.
+    A subclass sets ``name``, ``descriptor_kind`` and ``Params`` (an `ExtractorParams` subclass with its Table I
+    defaults) and implements ``_run(image, mask) -> (_Keypoints, descriptors)`` on the (padded) image, keeping
+    keypoints only where ``mask`` is non-zero and at most ``self.params.nfeatures`` of them (ideally after any
+    it drops). The base class validates inputs, pads for the azimuth wrap-around, caps and orders.
     """
 
     name: ClassVar[str] = ""
     descriptor_kind: ClassVar[Literal["binary", "float"]] = "binary"
-    COMMON: ClassVar[dict[str, Any]] = {"nfeatures": 300, "wrap_pad": True, "pad": 64}
-    PARAMS: ClassVar[dict[str, Any]] = {}
-    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {}
+    Params: ClassVar[type[ExtractorParams]] = ExtractorParams
 
-    def __init__(self, **params: Any) -> None:
-        defaults = {**self.COMMON, **self.PARAMS}
-        unknown = sorted(set(params) - set(defaults))
-        if unknown:
+    def __init__(self, params: ExtractorParams | None = None, **overrides: Any) -> None:
+        if params is not None and type(params) is not self.Params:
             raise ConfigError(
-                f"features.{self.name}: unknown parameter(s) {unknown}; allowed: {sorted(defaults)}"
+                f"features.{self.name}: params must be a {self.Params.__name__}, got {type(params).__name__}"
             )
-        self.params: dict[str, Any] = {
-            k: _coerce(self.name, k, params.get(k, v), v) for k, v in defaults.items()
-        }
-        for key, allowed in self.CHOICES.items():
-            if self.params[key] not in allowed:
-                raise ConfigError(
-                    f"features.{self.name}.{key} must be one of {list(allowed)}, got {self.params[key]!r}"
-                )
-        self._check_positive("nfeatures")
-        if self.params["pad"] < 0:
-            raise ConfigError(f"features.{self.name}.pad must be >= 0, got {self.params['pad']}")
+        base = params.model_dump() if params is not None else None
+        self.params = resolve(self.Params, base, overrides, where=f"features.{self.name}")
         self._setup()
 
     # --------------------------------------------------------------------- subclass hooks
     def _setup(self) -> None:
-        """Validate own parameters and build the OpenCV objects."""
+        """Build the OpenCV objects."""
 
     def _run(self, image: np.ndarray, mask: np.ndarray) -> tuple[_Keypoints, np.ndarray]:
         raise NotImplementedError
@@ -209,7 +253,7 @@ class FeatureExtractor:
         return np.uint8 if self.descriptor_kind == "binary" else np.float32
 
     def __repr__(self) -> str:
-        args = ", ".join(f"{k}={v!r}" for k, v in self.params.items())
+        args = ", ".join(f"{k}={v!r}" for k, v in self.params.model_dump().items())
         return f"{type(self).__name__}({args})"
 
     def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> Features:
@@ -229,7 +273,7 @@ class FeatureExtractor:
                     f"features.{self.name}: mask shape {m.shape} differs from the image's {img.shape}"
                 )
             m = np.where(m != 0, 255, 0).astype(np.uint8)
-        pad = self.params["pad"] if self.params["wrap_pad"] else 0
+        pad = self.params.pad if self.params.wrap_pad else 0
         if pad:
             img = np.pad(img, ((0, 0), (pad, pad)), mode="wrap")
             m = np.pad(m, ((0, 0), (pad, pad)), mode="constant")  # no keypoint centres in the padding
@@ -238,7 +282,7 @@ class FeatureExtractor:
         col = np.rint(kps.xy[:, 0])
         keep = np.flatnonzero((col >= pad) & (col < pad + w))
         order = np.lexsort((kps.xy[keep, 0], kps.xy[keep, 1], -kps.response[keep].astype(np.float64)))
-        keep = keep[order][: self.params["nfeatures"]]
+        keep = keep[order][: self.params.nfeatures]
         kps = kps.select(keep)
         xy = kps.xy.copy()
         xy[:, 0] -= pad
@@ -252,11 +296,6 @@ class FeatureExtractor:
         )
 
     # --------------------------------------------------------------------- helpers
-    def _check_positive(self, *keys: str) -> None:
-        for key in keys:
-            if not self.params[key] > 0:
-                raise ConfigError(f"features.{self.name}.{key} must be > 0, got {self.params[key]}")
-
     def _fast_keypoints(self, image: np.ndarray, mask: np.ndarray, keep: int) -> list[cv2.KeyPoint]:
         """FAST keypoints inside ``mask``, the ``keep`` strongest (ties broken by row, then column)."""
         kps = self._fast.detect(image, mask)
@@ -268,65 +307,25 @@ class FeatureExtractor:
         return [kps[i] for i in order]
 
 
-def _coerce(extractor: str, key: str, value: Any, default: Any) -> Any:
-    where = f"features.{extractor}.{key}"
-    if isinstance(default, bool):
-        if not isinstance(value, (bool, np.bool_)):
-            raise ConfigError(f"{where} must be true or false, got {value!r}")
-        return bool(value)
-    if isinstance(default, int):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-            raise ConfigError(f"{where} must be an integer, got {value!r}")
-        return int(value)
-    if isinstance(default, float):
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, (int, float, np.integer, np.floating))
-            or not np.isfinite(value)
-        ):
-            raise ConfigError(f"{where} must be a finite number, got {value!r}")
-        return float(value)
-    if isinstance(default, str):
-        if not isinstance(value, str):
-            raise ConfigError(f"{where} must be a string, got {value!r}")
-        return value
-    return value
-
-
 class OrbExtractor(FeatureExtractor):
     """ORB (oriented FAST + rotated BRIEF) as in the VPR paper's Table I."""
 
     name = "orb"
     descriptor_kind = "binary"
-    PARAMS = {
-        "fast_threshold": 40,
-        "scale_factor": 1.2,
-        "n_levels": 8,
-        "edge_threshold": 15,
-        "first_level": 0,
-        "wta_k": 2,
-        "score_type": "harris",
-        "patch_size": 31,
-    }
-    CHOICES = {"score_type": ("harris", "fast")}
+    Params = OrbParams
 
     def _setup(self) -> None:
         p = self.params
-        self._check_positive("fast_threshold", "n_levels", "patch_size")
-        if p["scale_factor"] <= 1.0:
-            raise ConfigError(f"features.orb.scale_factor must be > 1, got {p['scale_factor']}")
-        if p["wta_k"] not in (2, 3, 4):
-            raise ConfigError(f"features.orb.wta_k must be 2, 3 or 4, got {p['wta_k']}")
         self._orb = compat.orb_create(
-            p["nfeatures"],
-            p["scale_factor"],
-            p["n_levels"],
-            p["edge_threshold"],
-            p["first_level"],
-            p["wta_k"],
-            p["score_type"],
-            p["patch_size"],
-            p["fast_threshold"],
+            p.nfeatures,
+            p.scale_factor,
+            p.n_levels,
+            p.edge_threshold,
+            p.first_level,
+            p.wta_k,
+            p.score_type,
+            p.patch_size,
+            p.fast_threshold,
         )
 
     @property
@@ -343,24 +342,20 @@ class BriskExtractor(FeatureExtractor):
 
     name = "brisk"
     descriptor_kind = "binary"
-    PARAMS = {"fast_threshold": 40, "threshold": 30, "octaves": 3, "pattern_scale": 1.0, "detector": "fast"}
-    CHOICES = {"detector": ("fast", "brisk")}
+    Params = BriskParams
 
     def _setup(self) -> None:
-        self._check_positive("fast_threshold", "threshold", "pattern_scale")
-        if self.params["octaves"] < 0:
-            raise ConfigError(f"features.brisk.octaves must be >= 0, got {self.params['octaves']}")
         p = self.params
-        self._brisk = compat.brisk_create(p["threshold"], p["octaves"], p["pattern_scale"])
-        self._fast = compat.fast_create(p["fast_threshold"])
+        self._brisk = compat.brisk_create(p.threshold, p.octaves, p.pattern_scale)
+        self._fast = compat.fast_create(p.fast_threshold)
 
     @property
     def descriptor_size(self) -> int:
         return 64
 
     def _run(self, image: np.ndarray, mask: np.ndarray) -> tuple[_Keypoints, np.ndarray]:
-        n = self.params["nfeatures"]
-        if self.params["detector"] == "fast":
+        n = self.params.nfeatures
+        if self.params.detector == "fast":
             kps = self._fast_keypoints(image, mask, 2 * n)  # slack: BRISK drops points near the top/bottom
         else:
             kps = list(self._brisk.detect(image, mask))
@@ -375,22 +370,21 @@ class _SurfDescribed(FeatureExtractor):
 
     @property
     def descriptor_size(self) -> int:
-        return 128 if self.params["extended"] else 64
+        return 128 if self.params.extended else 64
 
 
 class FastSurfExtractor(_SurfDescribed):
     """FAST keypoints (Table I threshold 40) described by our SURF at the FAST keypoint size (7 px)."""
 
     name = "fast-surf"
-    PARAMS = {"fast_threshold": 40, "extended": False, "upright": False}
+    Params = FastSurfParams
 
     def _setup(self) -> None:
-        self._check_positive("fast_threshold")
-        self._fast = compat.fast_create(self.params["fast_threshold"])
-        self._surf = SURF(extended=self.params["extended"], upright=self.params["upright"])
+        self._fast = compat.fast_create(self.params.fast_threshold)
+        self._surf = SURF(extended=self.params.extended, upright=self.params.upright)
 
     def _run(self, image: np.ndarray, mask: np.ndarray) -> tuple[_Keypoints, np.ndarray]:
-        kps = _Keypoints.from_cv(self._fast_keypoints(image, mask, self.params["nfeatures"]))
+        kps = _Keypoints.from_cv(self._fast_keypoints(image, mask, self.params.nfeatures))
         kps.angle, desc = self._surf.describe_arrays(image, kps.xy, kps.size)
         return kps, desc
 
@@ -399,24 +393,16 @@ class SurfExtractor(_SurfDescribed):
     """Our SURF detector and descriptor (Table I: hessian threshold 400, 4 octaves, 3 layers per octave)."""
 
     name = "surf"
-    PARAMS = {
-        "hessian_threshold": 400.0,
-        "n_octaves": 4,
-        "n_octave_layers": 3,
-        "extended": False,
-        "upright": False,
-    }
+    Params = SurfParams
 
     def _setup(self) -> None:
         p = self.params
-        self._surf = SURF(
-            p["hessian_threshold"], p["n_octaves"], p["n_octave_layers"], p["extended"], p["upright"]
-        )
+        self._surf = SURF(p.hessian_threshold, p.n_octaves, p.n_octave_layers, p.extended, p.upright)
 
     def _run(self, image: np.ndarray, mask: np.ndarray) -> tuple[_Keypoints, np.ndarray]:
         det = self._surf.detect_arrays(image, mask)
         order = np.lexsort((det.xy[:, 0], det.xy[:, 1], -det.response.astype(np.float64)))[
-            : self.params["nfeatures"]
+            : self.params.nfeatures
         ]
         kps = _Keypoints(
             det.xy[order].astype(np.float64),
@@ -439,12 +425,21 @@ def available_extractors() -> list[str]:
     return sorted(EXTRACTORS)
 
 
-def make_extractor(name: str, **params: Any) -> FeatureExtractor:
-    """The extractor registered as ``name`` with Table I defaults overridden by ``params``.
-
-    Raises `ConfigError` for an unknown name (listing the allowed ones) or an unknown/invalid parameter.
-    """
+def _extractor_class(name: str) -> type[FeatureExtractor]:
     cls = EXTRACTORS.get(str(name).lower())
     if cls is None:
         raise ConfigError(f"features: unknown extractor {name!r}; allowed: {available_extractors()}")
-    return cls(**params)
+    return cls
+
+
+def extractor_params(name: str) -> type[ExtractorParams]:
+    """The parameter model of the extractor registered as ``name`` (`ConfigError` for an unknown name)."""
+    return _extractor_class(name).Params
+
+
+def make_extractor(name: str, params: ExtractorParams | None = None, **overrides: Any) -> FeatureExtractor:
+    """The extractor registered as ``name`` with Table I defaults (or ``params``) overridden by ``overrides``.
+
+    Raises `ConfigError` for an unknown name (listing the allowed ones) or an unknown/invalid parameter.
+    """
+    return _extractor_class(name)(params, **overrides)

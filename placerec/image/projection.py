@@ -27,8 +27,10 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
 from placerec.errors import ConfigError, ScanDataError
+from placerec.params import Params
 from placerec.types import Scan
 
 __all__ = [
@@ -50,8 +52,7 @@ __all__ = [
 UNIFORM_HOLES_MAX_GAP = 2
 
 
-@dataclass(frozen=True)
-class ImageParams:
+class ImageParams(Params):
     """How scans become intensity images.
 
     ``width``/``height``: image size (default: the sensor's columns / beams, else 1024 x 64). ``fov_up_deg`` /
@@ -65,18 +66,25 @@ class ImageParams:
     equalisation after that.
     """
 
-    mode: Literal["auto", "uniform", "per-beam", "organized"] = "auto"
-    width: int | None = None
-    height: int | None = None
-    fov_up_deg: float | None = None
-    fov_down_deg: float | None = None
-    fill_empty_rows: bool = True
-    empty_row_threshold: float = 0.05
-    fill_holes_max_gap: int | None = None
-    clip: Literal["percentile", "saturation"] = "percentile"
-    percentile: float = 99.0
-    saturation: float | None = None
-    equalize: bool = False
+    mode: Literal["auto", "uniform", "per-beam", "organized"] = Field(
+        "auto", description="VPR paper Sec. IV-A eq. 2 (uniform), per-beam rows or the organised scan"
+    )
+    width: int | None = Field(None, gt=0, description="px; None = the sensor's columns, else 1024")
+    height: int | None = Field(None, gt=0, description="px; None = the sensor's beams, else 64")
+    fov_up_deg: float | None = Field(None, description="deg above the horizon; None = from the sensor or scan")
+    fov_down_deg: float | None = Field(None, description="deg below the horizon; None = from the sensor or scan")
+    fill_empty_rows: bool = Field(True, description="VPR paper Sec. IV-A: interpolate empty rows")
+    empty_row_threshold: float = Field(0.05, ge=0, le=1, description="valid-pixel fraction of an empty row")
+    fill_holes_max_gap: int | None = Field(
+        None, ge=0, description="rows; fill empty pixels vertically (0 = off, None = 2 for uniform images, else 0)"
+    )
+    clip: Literal["percentile", "saturation"] = Field("percentile", description="what maps to 255")
+    percentile: float = Field(99.0, gt=0, le=100, description="of the valid intensities, for clip=percentile")
+    saturation: float | None = Field(None, gt=0, description="intensity mapped to 255, for clip=saturation")
+    equalize: bool = Field(False, description="histogram equalisation after clipping")
+
+
+_DEFAULT_PARAMS = ImageParams()
 
 
 @dataclass(frozen=True, eq=False)
@@ -156,7 +164,7 @@ def _fov(scan: Scan, params: ImageParams, xyz: np.ndarray, r: np.ndarray) -> tup
 
 
 def project_uniform(
-    scan: Scan, params: ImageParams = ImageParams()
+    scan: Scan, params: ImageParams = _DEFAULT_PARAMS
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Eq. 2 projection (uniform beams): (intensity, range, point index) images."""
     h = params.height or scan.sensor.n_beams or 64
@@ -174,7 +182,7 @@ def project_uniform(
 
 
 def project_per_beam(
-    scan: Scan, params: ImageParams = ImageParams()
+    scan: Scan, params: ImageParams = _DEFAULT_PARAMS
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One row per beam (rank of its elevation, top first), columns from eq. 2: no empty rows by construction."""
     if scan.ring is None:
@@ -259,7 +267,7 @@ def fill_vertical_holes(image: np.ndarray, valid: np.ndarray, max_gap: int) -> t
     return out, valid | hole
 
 
-def to_uint8(intensity: np.ndarray, valid: np.ndarray, params: ImageParams = ImageParams()) -> np.ndarray:
+def to_uint8(intensity: np.ndarray, valid: np.ndarray, params: ImageParams = _DEFAULT_PARAMS) -> np.ndarray:
     """Map intensities to 0..255: clip at a percentile of the valid pixels or at a saturation value."""
     if params.clip == "saturation":
         if not params.saturation or params.saturation <= 0:
@@ -288,7 +296,7 @@ def _resolve_mode(scan: Scan, mode: str) -> str:
     return mode
 
 
-def make_image(scan: Scan, params: ImageParams = ImageParams()) -> IntensityImage:
+def make_image(scan: Scan, params: ImageParams = _DEFAULT_PARAMS) -> IntensityImage:
     """Form the intensity image of ``scan`` (see the module docstring)."""
     mode = _resolve_mode(scan, params.mode)
     if mode == "organized":

@@ -31,22 +31,30 @@ from __future__ import annotations
 import importlib.resources
 import logging
 import time
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
+from pydantic import Field
 
-from placerec.errors import ArtifactError, ConfigError
-from placerec.image import ImageParams
+from placerec.errors import ArtifactError, ScanDataError
 from placerec.io.atomic import load_artifact, save_artifact
-from placerec.pipelines.visual import VisualFrontend, shift_consensus, yaw_pose
-from placerec.recognizer import Description, DescriptorRecognizer
+from placerec.params import Params
+from placerec.pipelines.visual import (
+    VisualFrontend,
+    VisualFrontendParams,
+    check_saved_params,
+    pack_features,
+    shift_consensus,
+    stored_features,
+    yaw_pose,
+)
+from placerec.recognizer import Recognizer
 from placerec.retrieval.bits import hamming, to_words
 from placerec.retrieval.dbow.database import BowDatabase, candidate_pairs
 from placerec.retrieval.dbow.loop_detector import LoopDetectorParams, LoopFilter
 from placerec.retrieval.dbow.vocabulary import Vocabulary, l1_score
-from placerec.types import Candidate
+from placerec.types import Candidate, Description
 
 log = logging.getLogger(__name__)
 
@@ -66,22 +74,28 @@ _TRAIN_CONFIG = {
 _CACHE: dict[tuple[str, int, int], Vocabulary] = {}
 
 
-@dataclass(frozen=True)
-class DBoWParams:
+class DBoWParams(VisualFrontendParams):
     """Front end (as `VisualParams`), vocabulary, direct index depth, DLoopDetector options and verification."""
 
-    features: str = "orb"
-    feature_params: dict[str, Any] = field(default_factory=dict)
-    image: ImageParams = field(default_factory=ImageParams)
-    vocabulary: str | None = None
-    levels_up: int | None = None  # direct index at depth L - levels_up (>= 1); None: depth 2
-    loop: LoopDetectorParams = field(default_factory=LoopDetectorParams)
-    verify: Literal["shift", "none"] = "shift"
-    n_verify: int = 10
-    nn_ratio: float = 0.8
-    max_distance: float | None = None
-    shift_tolerance_px: int = 8
-    row_tolerance_px: int = 4
+    vocabulary: str | None = Field(
+        None, description="vocabulary file; None = the shipped one for the features"
+    )
+    levels_up: int | None = Field(
+        None,
+        ge=0,
+        description="direct index at depth L - levels_up (>= 1); None = depth 2 (ORB-SLAM2's 4, L=6)",
+    )
+    loop: LoopDetectorParams = Field(default_factory=LoopDetectorParams)
+    verify: Literal["shift", "none"] = Field("shift", description="column-shift consensus or the DBoW2 score")
+    n_verify: int = Field(10, ge=1, description="best database results checked geometrically")
+    nn_ratio: float = Field(
+        0.8, gt=0, le=1, description="nearest-neighbour ratio test (DLoopDetector GEOM_DI)"
+    )
+    max_distance: float | None = Field(
+        None, gt=0, description="descriptor distance cap; None = 50 per 256 bits (binary), none (float)"
+    )
+    shift_tolerance_px: int = Field(8, ge=0, description="px; column-shift bin half-width")
+    row_tolerance_px: int = Field(4, ge=0, description="px; row difference allowed in a match")
 
 
 def default_vocabulary_path(features: str) -> Path:
@@ -120,18 +134,18 @@ def _load_cached(path: Path) -> Vocabulary:
     return _CACHE[key]
 
 
-class VisualDBoW(VisualFrontend, DescriptorRecognizer):
+class VisualDBoW(VisualFrontend, Recognizer):
     """`PlaceRecognizer` of the VPR paper's 2D modality with DBoW2 retrieval (ORB-DBoW, SURF-DBoW)."""
 
     name: ClassVar[str] = "visual-dbow"
-    Params: ClassVar[type] = DBoWParams
+    Params: ClassVar[type[Params]] = DBoWParams
 
     def __init__(self, params: DBoWParams | None = None, **overrides: Any) -> None:
         super().__init__(params, **overrides)
         from placerec.features import make_extractor
 
         p = self.params
-        self.extractor = make_extractor(p.features, **p.feature_params)
+        self.extractor = make_extractor(p.features, p.feature_params)
         self.vocabulary_path = resolve_vocabulary(p.vocabulary, p.features)
         self.vocabulary = _load_cached(self.vocabulary_path)
         voc = self.vocabulary
@@ -141,8 +155,6 @@ class VisualDBoW(VisualFrontend, DescriptorRecognizer):
                 f"{self.vocabulary_path}: a {voc.kind} vocabulary of size {voc.descriptor_size} does not fit "
                 f"{p.features} descriptors ({self.extractor.descriptor_kind}, size {size})"
             )
-        if p.levels_up is not None and p.levels_up < 0:
-            raise ConfigError(f"{self.name}: levels_up must be >= 0, got {p.levels_up}")
         levels_up = max(voc.L - 2, 0) if p.levels_up is None else p.levels_up
         self.levels_up = min(levels_up, voc.L - 1)  # direct index at depth L - levels_up >= 1
         self._loop_on = p.loop.use_nss or p.loop.islands or p.loop.alpha > 0 or p.loop.temporal_k > 0
@@ -157,6 +169,8 @@ class VisualDBoW(VisualFrontend, DescriptorRecognizer):
 
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
         scan_id = int(scan_id)
+        if scan_id in self._width:
+            raise ScanDataError(f"{self.name}: id {scan_id} was added already")
         desc = np.ascontiguousarray(description["descriptors"])
         self.db.add_descriptors(desc, scan_id)
         self._keypoints[scan_id] = np.asarray(description["keypoints"], np.float32).reshape(-1, 2)
@@ -295,47 +309,31 @@ class VisualDBoW(VisualFrontend, DescriptorRecognizer):
     def save(self, path: str | Path) -> None:
         """Store every added image's keypoints and descriptors (insertion order) with the parameters and the
         vocabulary's fingerprint; `load` re-adds them (the transform is deterministic)."""
-        order = self.db.ids.tolist()
-        dim = self.vocabulary.descriptor_size
-        dtype = np.uint8 if self.vocabulary.binary else np.float32
-        arrays = {
-            "ids": np.asarray(order, np.int64),
-            "counts": np.array([self._keypoints[i].shape[0] for i in order], np.int64),
-            "widths": np.array([self._width[i] for i in order], np.int64),
-            "keypoints": _stack([self._keypoints[i] for i in order], (0, 2), np.float32),
-            "descriptors": _stack([self._descriptors[i] for i in order], (0, dim), dtype),
-        }
-        meta = {"params": _jsonable(self.params), "vocabulary": self.vocabulary.fingerprint}
+        arrays = pack_features(
+            self.db.ids.tolist(),
+            self._keypoints,
+            self._descriptors,
+            self._width,
+            self.vocabulary.descriptor_size,
+            self._dtype,
+        )
+        meta = {"params": self.params.model_dump(mode="json"), "vocabulary": self.vocabulary.fingerprint}
         save_artifact(path, _KIND, _VERSION, arrays, meta)
+
+    @property
+    def _dtype(self) -> type:
+        return np.uint8 if self.vocabulary.binary else np.float32
 
     def load(self, path: str | Path) -> None:
         arrays, header = load_artifact(path, _KIND, (_VERSION,))
-        meta = header["meta"]
-        if meta.get("params") != _jsonable(self.params):
-            raise ArtifactError(f"{path}: database was made with other parameters: {meta.get('params')}")
-        if meta.get("vocabulary") != self.vocabulary.fingerprint:
+        check_saved_params(path, header, self.params)
+        saved_voc = header["meta"].get("vocabulary")
+        if saved_voc != self.vocabulary.fingerprint:
             raise ArtifactError(
-                f"{path}: database was made with vocabulary {meta.get('vocabulary')}, "
+                f"{path}: database was made with vocabulary {saved_voc}, "
                 f"not {self.vocabulary_path} ({self.vocabulary.fingerprint})"
             )
+        stored = stored_features(path, arrays, self.vocabulary.descriptor_size, self._dtype)
         self._reset()
-        offsets = np.r_[0, np.cumsum(arrays["counts"])]
-        for i, a, b, w in zip(arrays["ids"], offsets[:-1], offsets[1:], arrays["widths"], strict=True):
-            self.add_description(
-                int(i),
-                {
-                    "keypoints": arrays["keypoints"][a:b],
-                    "descriptors": arrays["descriptors"][a:b],
-                    "width": w,
-                },
-            )
-
-
-def _stack(parts: list[np.ndarray], empty_shape: tuple[int, int], dtype: type) -> np.ndarray:
-    return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(empty_shape, dtype)
-
-
-def _jsonable(params: Any) -> Any:
-    import json
-
-    return json.loads(json.dumps(asdict(params), default=str))
+        for scan_id, desc in stored:
+            self.add_description(scan_id, desc)

@@ -1,4 +1,4 @@
-"""A first 3D pipeline: ISS-BR keypoints + ISHOT (or SHOT/FPFH) descriptors, ratio-tested NN votes per place.
+"""The 3D pipeline: ISS-BR keypoints + ISHOT (or SHOT/FPFH) descriptors, ratio-tested NN votes per place.
 
 For every query descriptor the two nearest database descriptors (exact L2, brute force with ``faiss.knn``) give
 the ratio ``tau = d1 / d2`` (ISHOT paper, eq. 4); when ``tau < tau_max`` the query descriptor votes for the entry
@@ -12,8 +12,8 @@ OpenMP thread by default (``nn_threads``; on the shared 2-core machine one faiss
 
 Score (documented, what thresholds apply to): ``score="fraction"`` (default) is votes / number of query
 descriptors, in [0, 1], so one threshold works for scans with many or few keypoints; ``score="votes"`` is the raw
-vote count. ``relative_pose`` is None (no verification yet: the next step adds the paper's probabilistic voting,
-geometric consistency and ICP).
+vote count. ``relative_pose`` is None: this pipeline does not verify candidates geometrically (the paper's
+probabilistic voting, geometric consistency and ICP are not implemented).
 
 Entries ("places"):
 
@@ -38,22 +38,24 @@ added in increasing order (the usual case) the eligible rows are a prefix and no
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, field
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
+from pydantic import Field
 
-from placerec.errors import ArtifactError, ConfigError, DependencyError, ScanDataError
-from placerec.io.atomic import load_artifact, save_artifact
+from placerec.errors import ArtifactError, DependencyError, ScanDataError
 from placerec.intensity import normalize_intensity
-from placerec.recognizer import Description, DescriptorRecognizer, params_key
+from placerec.io.atomic import load_artifact, save_artifact
+from placerec.params import Params
+from placerec.recognizer import Recognizer, params_key, require_points
 from placerec.three_d.descriptors import DESCRIPTOR_DIMS
 from placerec.three_d.features import FeatureParams, extract_features
 from placerec.three_d.keypoints import ISSParams
 from placerec.three_d.normals import NormalParams
 from placerec.three_d.places import PlacesDatabase
-from placerec.types import Candidate, Scan, as_pose
+from placerec.types import Candidate, Description, Scan, as_pose
 
 log = logging.getLogger(__name__)
 
@@ -63,23 +65,32 @@ _KIND = "keypoint-voting-db"
 _VERSION = 1
 
 
-@dataclass(frozen=True)
-class VotingParams:
+class VotingParams(Params):
     """Front end (the ISHOT paper's feature settings), ratio test, score and place aggregation."""
 
-    descriptor: str = "ishot"
-    max_range: float | None = 40.0
-    voxel_size: float = 0.4
-    support_radius: float = 7.0
-    iss: ISSParams = field(default_factory=lambda: ISSParams(max_keypoints=300))
-    normals: NormalParams = field(default_factory=NormalParams)
-    tau_max: float = 0.9
-    score: Literal["fraction", "votes"] = "fraction"
-    backend: Literal["faiss", "numpy"] = "faiss"
-    nn_threads: int | None = 1
-    place_spacing_m: float = 0.0
-    place_window_m: float = 0.0
-    places_db: str | None = None
+    descriptor: Literal["ishot", "shot", "fpfh"] = Field(
+        "ishot", description="local descriptor (ISHOT paper; SHOT, FPFH baselines)"
+    )
+    max_range: float | None = Field(
+        40.0, gt=0, description="m; points beyond are dropped (ISHOT paper Sec. V-B)"
+    )
+    voxel_size: float = Field(0.4, gt=0, description="m; voxel grid (ISHOT paper Sec. V-B)")
+    support_radius: float = Field(7.0, gt=0, description="m; descriptor support (ISHOT paper Sec. V-B)")
+    iss: ISSParams = Field(default_factory=lambda: ISSParams(max_keypoints=300))
+    normals: NormalParams = Field(default_factory=NormalParams)
+    tau_max: float = Field(
+        0.9, gt=0, le=1, description="NN ratio d1/d2 below which a descriptor votes (eq. 4)"
+    )
+    score: Literal["fraction", "votes"] = Field("fraction", description="votes / query descriptors, or votes")
+    backend: Literal["faiss", "numpy"] = Field("faiss", description="exact 2-NN search")
+    nn_threads: int | None = Field(1, ge=1, description="faiss OpenMP threads (None = faiss's default)")
+    place_spacing_m: float = Field(
+        0.0, ge=0, description="m; only scans this far from every entry become entries"
+    )
+    place_window_m: float = Field(
+        0.0, ge=0, description="m; accumulate scans over this path as a place (Sec. IV-B)"
+    )
+    places_db: str | None = Field(None, description="a PlacesDatabase file replacing the entries")
 
     def features(self) -> FeatureParams:
         return FeatureParams(
@@ -139,23 +150,15 @@ def ratio_votes(
     return np.bincount(row_entry[idx[ok, 0]], minlength=n_entries)
 
 
-class KeypointVoting(DescriptorRecognizer):
+class KeypointVoting(Recognizer):
     """`PlaceRecognizer`: 3D local descriptors, 2-NN ratio test, vote counting (see the module docstring)."""
 
     name: ClassVar[str] = "keypoint-voting"
-    Params: ClassVar[type] = VotingParams
+    Params: ClassVar[type[Params]] = VotingParams
 
     def __init__(self, params: VotingParams | None = None, **overrides: Any) -> None:
         super().__init__(params, **overrides)
         p = self.params
-        if p.descriptor not in DESCRIPTOR_DIMS:
-            raise ConfigError(
-                f"{self.name}: unknown descriptor {p.descriptor!r}; allowed: {sorted(DESCRIPTOR_DIMS)}"
-            )
-        if not 0 < p.tau_max <= 1.0 + 1e-9:
-            raise ConfigError(f"{self.name}: tau_max must be in (0, 1], got {p.tau_max}")
-        if p.place_spacing_m < 0 or p.place_window_m < 0:
-            raise ConfigError(f"{self.name}: place_spacing_m and place_window_m must be >= 0")
         self._features = p.features()
         self._dim = DESCRIPTOR_DIMS[p.descriptor]
         self._warned = False
@@ -214,7 +217,8 @@ class KeypointVoting(DescriptorRecognizer):
     def frontend_key(self) -> str:
         p = self.params
         return params_key(
-            "keypoint-voting", {"features": asdict(self._features), "cloud": p.place_window_m > 0}
+            "keypoint-voting",
+            {"features": self._features.model_dump(mode="json"), "cloud": p.place_window_m > 0},
         )
 
     def _normalised(self, scan: Scan) -> Scan:
@@ -226,7 +230,9 @@ class KeypointVoting(DescriptorRecognizer):
         return scan
 
     def describe(self, scan: Scan) -> Description:
-        """Keypoints (K, 3), descriptors (K, D); with place aggregation also the voxelised cloud."""
+        """Keypoints (K, 3), descriptors (K, D); with place aggregation also the voxelised cloud.
+        `ScanDataError` for a scan with too few valid points (`placerec.recognizer.require_points`)."""
+        require_points(scan, self.name)
         scan = self._normalised(scan)
         try:
             lf = extract_features(scan, self._features)
@@ -384,16 +390,16 @@ class KeypointVoting(DescriptorRecognizer):
             "buffer_xyz": _cat([b[3] for b in buf], (0, 3)),
             "buffer_intensity": _cat([b[4] for b in buf], (0,)),
         }
-        save_artifact(
-            path, _KIND, _VERSION, arrays, {"params": _jsonable(self.params), "travelled": self._travelled}
-        )
+        meta = {"params": self.params.model_dump(mode="json"), "travelled": self._travelled}
+        save_artifact(path, _KIND, _VERSION, arrays, meta)
 
     def load(self, path: str | Path) -> None:
         arrays, header = load_artifact(path, _KIND, (_VERSION,))
-        if header["meta"].get("params") != _jsonable(self.params):
+        if header["meta"].get("params") != self.params.model_dump(mode="json"):
             raise ArtifactError(
                 f"{path}: database was made with other parameters: {header['meta'].get('params')}"
             )
+        _check_saved(path, arrays, self._dim)
         self._reset()
         self._places = None
         kp = np.split(arrays["keypoints"], np.cumsum(arrays["counts"])[:-1]) if len(arrays["ids"]) else []
@@ -427,7 +433,52 @@ def _cat(parts: list[np.ndarray], empty: tuple[int, ...]) -> np.ndarray:
     return np.concatenate(parts).astype(np.float32) if parts else np.zeros(empty, np.float32)
 
 
-def _jsonable(params: Any) -> Any:
-    import json
-
-    return json.loads(json.dumps(asdict(params), default=str))
+def _check_saved(path: str | Path, arrays: Mapping[str, np.ndarray], dim: int) -> None:
+    """`ArtifactError` unless a saved database's arrays are consistent (shapes, counts, unique ids, finite poses)."""
+    shapes = {
+        "ids": 1,
+        "poses": 3,
+        "counts": 1,
+        "keypoints": 2,
+        "descriptors": 2,
+        "buffer_ids": 1,
+        "buffer_poses": 3,
+        "buffer_travelled": 1,
+        "buffer_counts": 1,
+        "buffer_xyz": 2,
+        "buffer_intensity": 1,
+    }
+    bad = [k for k, nd in shapes.items() if k not in arrays or np.asarray(arrays[k]).ndim != nd]
+    if bad:
+        raise ArtifactError(f"{path}: keypoint-voting database arrays missing or of the wrong rank: {bad}")
+    ids, counts = arrays["ids"], arrays["counts"]
+    n, total = ids.shape[0], int(arrays["counts"].sum())
+    problems = []
+    if arrays["poses"].shape != (n, 4, 4) or counts.shape != (n,):
+        problems.append(f"{n} ids but poses {arrays['poses'].shape} and counts {counts.shape}")
+    if np.unique(ids).size != n:
+        problems.append("duplicate ids")
+    if (
+        (counts < 0).any()
+        or arrays["keypoints"].shape != (total, 3)
+        or arrays["descriptors"].shape != (total, dim)
+    ):
+        problems.append(
+            f"counts add up to {total}, keypoints are {arrays['keypoints'].shape}, descriptors "
+            f"{arrays['descriptors'].shape} (expected ({total}, 3), ({total}, {dim}))"
+        )
+    nb, bc = arrays["buffer_ids"].shape[0], arrays["buffer_counts"]
+    bt = int(bc.sum())
+    if (
+        arrays["buffer_poses"].shape != (nb, 4, 4)
+        or arrays["buffer_travelled"].shape != (nb,)
+        or bc.shape != (nb,)
+        or (bc < 0).any()
+        or arrays["buffer_xyz"].shape != (bt, 3)
+        or arrays["buffer_intensity"].shape != (bt,)
+    ):
+        problems.append("the aggregation buffer's arrays do not add up")
+    if not (np.isfinite(arrays["poses"]).all() and np.isfinite(arrays["buffer_poses"]).all()):
+        problems.append("non-finite poses")
+    if problems:
+        raise ArtifactError(f"{path}: inconsistent keypoint-voting database: {'; '.join(problems)}")

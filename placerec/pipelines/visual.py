@@ -16,48 +16,93 @@ column minus the match column of the same landmark (eq. 2 columns decrease with 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
+from pydantic import Field, SerializeAsAny, ValidationError, model_validator
 
-from placerec.errors import ArtifactError
+from placerec.errors import ArtifactError, ScanDataError
+from placerec.features.registry import ExtractorParams, extractor_params
 from placerec.image import ImageParams, make_image
 from placerec.io.atomic import load_artifact, save_artifact
-from placerec.recognizer import Description, DescriptorRecognizer, params_key
+from placerec.params import Params, SectionError
+from placerec.recognizer import Recognizer, params_key, require_points
 from placerec.retrieval.hbst import HBST
-from placerec.types import Candidate, Scan
+from placerec.types import Candidate, Description, Scan
 
-__all__ = ["VisualParams", "VisualFrontend", "VisualHBST", "yaw_pose", "shift_consensus", "visual_frontend_key", "describe_visual"]
+__all__ = [
+    "HBSTParams",
+    "VisualFrontendParams",
+    "VisualParams",
+    "VisualFrontend",
+    "VisualHBST",
+    "yaw_pose",
+    "shift_consensus",
+    "visual_frontend_key",
+    "describe_visual",
+    "pack_features",
+    "stored_features",
+    "check_saved_params",
+]
 
 _KIND = "visual-hbst-db"
 _VERSION = 1
 
 
-@dataclass(frozen=True)
-class HBSTParams:
-    """HBST settings (paper: delta_max 0.1, N_max 50). ``threshold`` None = srrg's 25 for 256-bit ORB, scaled
-    with the descriptor length (50 for 512-bit BRISK)."""
+class HBSTParams(Params):
+    """HBST settings (VPR paper: delta_max 0.1, N_max 50)."""
 
-    delta_max: float = 0.1
-    leaf_size: int = 50
-    max_depth: int = 75
-    threshold: int | None = None
+    delta_max: float = Field(0.1, ge=0, le=0.5, description="split balance bound (VPR paper: 0.1)")
+    leaf_size: int = Field(50, ge=1, description="N_max, descriptors per leaf (VPR paper: 50)")
+    max_depth: int = Field(75, ge=0, description="tree depth limit (srrg_hbst default)")
+    threshold: int | None = Field(
+        None, ge=1, description="max Hamming distance of a match; None = srrg's 25 per 256 bits"
+    )
 
 
-@dataclass(frozen=True)
-class VisualParams:
-    """Image formation, features (registry name + overrides of its Table I defaults), HBST and verification."""
+class VisualFrontendParams(Params):
+    """The intensity-image front end: image formation and a registered feature extractor with its parameters
+    (``feature_params``: overrides of that extractor's Table I defaults, validated by its own model)."""
 
-    features: str = "orb"
-    feature_params: dict[str, Any] = field(default_factory=dict)
-    image: ImageParams = field(default_factory=ImageParams)
-    hbst: HBSTParams = field(default_factory=HBSTParams)
-    verify: Literal["shift", "none"] = "shift"
-    n_verify: int = 10
-    shift_tolerance_px: int = 8
-    row_tolerance_px: int = 4
+    features: str = Field(
+        "orb", description="feature extractor (placerec.features.EXTRACTORS; VPR paper Table I)"
+    )
+    feature_params: SerializeAsAny[ExtractorParams]
+    image: ImageParams = Field(default_factory=ImageParams)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _extractor_params(cls, data: Any) -> Any:
+        """Validate ``feature_params`` with the model of the extractor named by ``features``."""
+        if not isinstance(data, Mapping):
+            return data
+        name = data.get("features", cls.model_fields["features"].default)
+        model = extractor_params(name) if isinstance(name, str) else None
+        given = data.get("feature_params")
+        if model is None or isinstance(given, model):
+            return data
+        if isinstance(given, ExtractorParams):
+            raise ValueError(
+                f"feature_params is a {type(given).__name__}, not the {model.__name__} of {name!r}"
+            )
+        if given is not None and not isinstance(given, Mapping):
+            raise ValueError(f"feature_params must be a mapping of {name!r} parameters")
+        try:
+            return {**data, "feature_params": model.model_validate(given or {})}
+        except ValidationError as exc:
+            raise SectionError(exc, model, "feature_params") from None
+
+
+class VisualParams(VisualFrontendParams):
+    """Image formation, features, HBST and verification (see the module docstring)."""
+
+    hbst: HBSTParams = Field(default_factory=HBSTParams)
+    verify: Literal["shift", "none"] = Field("shift", description="column-shift consensus or HBST's ratio")
+    n_verify: int = Field(10, ge=1, description="best HBST images checked geometrically")
+    shift_tolerance_px: int = Field(8, ge=0, description="px; column-shift bin half-width")
+    row_tolerance_px: int = Field(4, ge=0, description="px; row difference allowed in a match")
 
 
 def yaw_pose(yaw_rad: float) -> np.ndarray:
@@ -68,16 +113,17 @@ def yaw_pose(yaw_rad: float) -> np.ndarray:
     return T
 
 
-def visual_frontend_key(params: Any) -> str:
-    """Cache key of the intensity-image + features front end (``params`` has ``features``, ``feature_params``
-    and ``image``): equal for every visual pipeline with the same front-end settings, so they share descriptions."""
-    return params_key(
-        "visual", {"features": params.features, "fp": params.feature_params, "image": asdict(params.image)}
-    )
+def visual_frontend_key(params: VisualFrontendParams) -> str:
+    """Cache key of the intensity-image + features front end: equal for every visual pipeline with the same
+    front-end settings, so they share descriptions."""
+    front = params.model_dump(mode="json", include={"features", "feature_params", "image"})
+    return params_key("visual", front)
 
 
 def describe_visual(scan: Scan, image_params: ImageParams, extractor: Any) -> Description:
-    """The visual front end: intensity image, then features -> keypoints (K, 2), descriptors, image width."""
+    """The visual front end: intensity image, then features -> keypoints (K, 2), descriptors, image width.
+    `ScanDataError` for a scan with too few valid points (`placerec.recognizer.require_points`)."""
+    require_points(scan, "visual front end")
     img = make_image(scan, image_params)
     feats = extractor.extract(img.image)
     return {
@@ -108,10 +154,10 @@ def shift_consensus(
 
 
 class VisualFrontend:
-    """The intensity-image front end shared by the visual pipelines: needs ``params`` (with ``image`` and the
-    feature settings) and ``extractor``; scans with equal front-end settings share their descriptions."""
+    """The intensity-image front end shared by the visual pipelines: needs ``params`` (`VisualFrontendParams`)
+    and ``extractor``; scans with equal front-end settings share their descriptions."""
 
-    params: Any
+    params: VisualFrontendParams
     extractor: Any
 
     @property
@@ -122,17 +168,17 @@ class VisualFrontend:
         return describe_visual(scan, self.params.image, self.extractor)
 
 
-class VisualHBST(VisualFrontend, DescriptorRecognizer):
+class VisualHBST(VisualFrontend, Recognizer):
     """`PlaceRecognizer` of the VPR paper's 2D modality with HBST retrieval (ORB-HBST, BRISK-HBST)."""
 
     name: ClassVar[str] = "visual-hbst"
-    Params: ClassVar[type] = VisualParams
+    Params: ClassVar[type[Params]] = VisualParams
 
     def __init__(self, params: VisualParams | None = None, **overrides: Any) -> None:
         super().__init__(params, **overrides)
         from placerec.features import make_extractor
 
-        self.extractor = make_extractor(self.params.features, **self.params.feature_params)
+        self.extractor = make_extractor(self.params.features, self.params.feature_params)
         self.tree = self._new_tree()
         self._keypoints: dict[int, np.ndarray] = {}
         self._descriptors: dict[int, np.ndarray] = {}
@@ -146,6 +192,8 @@ class VisualHBST(VisualFrontend, DescriptorRecognizer):
 
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
         scan_id = int(scan_id)
+        if scan_id in self._width:
+            raise ScanDataError(f"{self.name}: id {scan_id} was added already")
         self.tree.add(scan_id, description["descriptors"])
         self._keypoints[scan_id] = np.asarray(description["keypoints"], np.float32)
         self._descriptors[scan_id] = np.asarray(description["descriptors"], np.uint8)
@@ -209,39 +257,78 @@ class VisualHBST(VisualFrontend, DescriptorRecognizer):
     def save(self, path: str | Path) -> None:
         """Store every added image's keypoints and descriptors (in insertion order) with the parameters; `load`
         re-inserts them, which rebuilds the identical tree (HBST is deterministic in the insertion order)."""
-        ids = np.array(self._order, dtype=np.int64)
-        arrays = {
-            "ids": ids,
-            "counts": np.array([self._keypoints[i].shape[0] for i in self._order], dtype=np.int64),
-            "widths": np.array([self._width[i] for i in self._order], dtype=np.int64),
-            "keypoints": _stack([self._keypoints[i] for i in self._order], (0, 2), np.float32),
-            "descriptors": _stack([self._descriptors[i] for i in self._order], (0, self._n_bytes), np.uint8),
-        }
-        save_artifact(path, _KIND, _VERSION, arrays, {"params": _jsonable(self.params)})
+        arrays = pack_features(
+            self._order, self._keypoints, self._descriptors, self._width, self._n_bytes, np.uint8
+        )
+        save_artifact(path, _KIND, _VERSION, arrays, {"params": self.params.model_dump(mode="json")})
 
     def load(self, path: str | Path) -> None:
         arrays, header = load_artifact(path, _KIND, (_VERSION,))
-        if header["meta"].get("params") != _jsonable(self.params):
-            raise ArtifactError(
-                f"{path}: database was made with other parameters: {header['meta'].get('params')}"
-            )
+        check_saved_params(path, header, self.params)
+        stored = stored_features(path, arrays, self._n_bytes, np.uint8)
         self.tree = self._new_tree()
         self._keypoints, self._descriptors, self._width, self._order = {}, {}, {}, []
-        offsets = np.r_[0, np.cumsum(arrays["counts"])]
-        for i, a, b, w in zip(arrays["ids"], offsets[:-1], offsets[1:], arrays["widths"], strict=True):
-            desc = {
-                "keypoints": arrays["keypoints"][a:b],
-                "descriptors": arrays["descriptors"][a:b],
-                "width": w,
-            }
-            self.add_description(int(i), desc)
+        for scan_id, desc in stored:
+            self.add_description(scan_id, desc)
+
+
+def pack_features(
+    order: list[int],
+    keypoints: dict[int, np.ndarray],
+    descriptors: dict[int, np.ndarray],
+    widths: dict[int, int],
+    dim: int,
+    dtype: type,
+) -> dict[str, np.ndarray]:
+    """The arrays of a visual database: per-image counts and widths, stacked keypoints and descriptors."""
+    return {
+        "ids": np.asarray(order, dtype=np.int64),
+        "counts": np.array([keypoints[i].shape[0] for i in order], dtype=np.int64),
+        "widths": np.array([widths[i] for i in order], dtype=np.int64),
+        "keypoints": _stack([keypoints[i] for i in order], (0, 2), np.float32),
+        "descriptors": _stack([descriptors[i] for i in order], (0, dim), dtype),
+    }
+
+
+def check_saved_params(path: str | Path, header: dict[str, Any], params: Params) -> None:
+    """`ArtifactError` unless the artifact's header records exactly ``params``."""
+    saved = (header.get("meta") or {}).get("params")
+    if saved != params.model_dump(mode="json"):
+        raise ArtifactError(f"{path}: database was made with other parameters: {saved}")
+
+
+def stored_features(
+    path: str | Path, arrays: Mapping[str, np.ndarray], dim: int, dtype: type
+) -> list[tuple[int, Description]]:
+    """(id, description) of every image of a saved visual database, after checking that ids are unique, counts
+    add up, widths are positive and the arrays have the expected shapes and dtypes (`ArtifactError` otherwise)."""
+    need = {"ids": 1, "counts": 1, "widths": 1, "keypoints": 2, "descriptors": 2}
+    bad = [k for k, nd in need.items() if k not in arrays or np.asarray(arrays[k]).ndim != nd]
+    if bad:
+        raise ArtifactError(f"{path}: visual database arrays missing or of the wrong rank: {bad}")
+    ids, counts, widths = arrays["ids"], arrays["counts"], arrays["widths"]
+    kp, desc = arrays["keypoints"], arrays["descriptors"]
+    n = ids.shape[0]
+    if counts.shape[0] != n or widths.shape[0] != n:
+        raise ArtifactError(f"{path}: {n} ids but {counts.shape[0]} counts and {widths.shape[0]} widths")
+    if np.unique(ids).size != n:
+        raise ArtifactError(f"{path}: duplicate image ids")
+    if (counts < 0).any() or (widths <= 0).any():
+        raise ArtifactError(f"{path}: negative feature counts or non-positive image widths")
+    total = int(counts.sum())
+    if kp.shape != (total, 2) or desc.shape != (total, dim) or desc.dtype != np.dtype(dtype):
+        raise ArtifactError(
+            f"{path}: counts add up to {total} features, but keypoints are {kp.shape} and descriptors "
+            f"{desc.shape} {desc.dtype} (expected ({total}, 2) and ({total}, {dim}) {np.dtype(dtype)})"
+        )
+    if not np.isfinite(kp).all() or ((kp[:, 0] < 0) | (kp[:, 0] >= np.repeat(widths, counts))).any():
+        raise ArtifactError(f"{path}: keypoints outside their images")
+    offsets = np.r_[0, np.cumsum(counts)]
+    return [
+        (int(i), {"keypoints": kp[a:b], "descriptors": desc[a:b], "width": np.int64(w)})
+        for i, a, b, w in zip(ids, offsets[:-1], offsets[1:], widths, strict=True)
+    ]
 
 
 def _stack(parts: list[np.ndarray], empty_shape: tuple[int, int], dtype: type) -> np.ndarray:
-    return np.concatenate(parts) if parts else np.zeros(empty_shape, dtype)
-
-
-def _jsonable(params: Any) -> Any:
-    import json
-
-    return json.loads(json.dumps(asdict(params), default=str))
+    return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(empty_shape, dtype)

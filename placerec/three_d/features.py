@@ -9,12 +9,14 @@ intensity must already be calibrated to [0, 1] (`placerec.intensity.normalize_in
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
+from pydantic import Field
 
 from placerec.errors import ScanDataError
+from placerec.params import Params
 from placerec.preprocess import crop, remove_invalid, voxel_downsample
 from placerec.three_d.descriptors import describe
 from placerec.three_d.keypoints import ISSParams, detect_iss
@@ -26,17 +28,18 @@ log = logging.getLogger(__name__)
 __all__ = ["FeatureParams", "LocalFeatures", "extract_features", "prepare_cloud"]
 
 
-@dataclass(frozen=True)
-class FeatureParams:
-    """The 3D modality's feature settings (defaults: ISHOT paper; ``max_keypoints`` ~ its 296 per scan)."""
+class FeatureParams(Params):
+    """The 3D modality's feature settings (defaults: ISHOT paper Sec. V-B; ``max_keypoints`` ~ its 296 per scan)."""
 
-    max_range: float | None = 40.0
-    voxel_size: float = 0.4
-    normals: NormalParams = field(default_factory=NormalParams)
-    iss: ISSParams = field(default_factory=lambda: ISSParams(max_keypoints=300))
-    descriptor: str = "ishot"
-    support_radius: float = 7.0
-    descriptor_options: tuple[tuple[str, Any], ...] = ()
+    max_range: float | None = Field(40.0, gt=0, description="m; points beyond are dropped (ISHOT paper Sec. V-B)")
+    voxel_size: float = Field(0.4, gt=0, description="m; voxel grid (ISHOT paper Sec. V-B)")
+    normals: NormalParams = Field(default_factory=NormalParams)
+    iss: ISSParams = Field(default_factory=lambda: ISSParams(max_keypoints=300))
+    descriptor: Literal["ishot", "shot", "fpfh"] = Field("ishot", description="ISHOT paper Sec. III")
+    support_radius: float = Field(7.0, gt=0, description="m; descriptor support (ISHOT paper Sec. V-B)")
+    descriptor_options: tuple[tuple[str, Any], ...] = Field(
+        (), strict=False, description="extra keyword arguments of the descriptor"
+    )
 
 
 @dataclass(frozen=True)

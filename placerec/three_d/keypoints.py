@@ -31,51 +31,37 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
-from placerec.errors import ConfigError, ScanDataError
+from placerec.errors import ScanDataError
+from placerec.params import Params
 from placerec.three_d._neighbors import RadiusPairs, check_points, radius_pairs
 
 log = logging.getLogger(__name__)
 
 __all__ = ["ISSParams", "ISSResult", "iss_saliency", "boundary_points", "detect_iss", "sym3_eigvalsh"]
 
-_SCATTER_MODES = ("point", "centroid")
 _REL_EPS = 1e-10
 _TIE_TOL = 1e-9
 
 
-@dataclass(frozen=True)
-class ISSParams:
-    """ISS-BR parameters (defaults: ISHOT paper / PCL). ``border_radius=0`` disables boundary removal.
+class ISSParams(Params):
+    """ISS-BR parameters (defaults: ISHOT paper / PCL, see the module docstring). ``border_radius=0`` disables
+    boundary removal; ``max_keypoints`` keeps the most salient keypoints after non-maximum suppression (None keeps
+    all)."""
 
-    ``max_keypoints`` keeps the most salient keypoints after non-maximum suppression (None keeps all).
-    """
-
-    salient_radius: float = 2.4
-    non_max_radius: float = 1.6
-    gamma_21: float = 0.975
-    gamma_32: float = 0.975
-    min_neighbors: int = 5
-    border_radius: float = 0.8
-    angle_threshold: float = np.pi / 2
-    max_keypoints: int | None = None
-    scatter: str = "point"
-
-    def check(self) -> None:
-        if self.salient_radius <= 0 or self.non_max_radius <= 0:
-            raise ConfigError("iss: salient_radius and non_max_radius must be positive")
-        if self.gamma_21 <= 0 or self.gamma_32 <= 0:
-            raise ConfigError("iss: gamma_21 and gamma_32 must be positive")
-        if self.min_neighbors < 1:
-            raise ConfigError("iss: min_neighbors must be >= 1")
-        if self.border_radius < 0:
-            raise ConfigError("iss: border_radius must be >= 0 (0 disables boundary removal)")
-        if self.max_keypoints is not None and self.max_keypoints < 0:
-            raise ConfigError("iss: max_keypoints must be >= 0 or None")
-        if self.scatter not in _SCATTER_MODES:
-            raise ConfigError(f"iss: unknown scatter {self.scatter!r}; allowed: {list(_SCATTER_MODES)}")
+    salient_radius: float = Field(2.4, gt=0, description="m; ISHOT paper Sec. V-B (6 x the 0.4 m voxel)")
+    non_max_radius: float = Field(1.6, gt=0, description="m; PCL's 4 x resolution")
+    gamma_21: float = Field(0.975, gt=0, description="eigenvalue ratio l2/l1 bound; PCL default")
+    gamma_32: float = Field(0.975, gt=0, description="eigenvalue ratio l3/l2 bound; PCL default")
+    min_neighbors: int = Field(5, ge=1, description="PCL default")
+    border_radius: float = Field(0.8, ge=0, description="m; boundary removal (2 x voxel), 0 = off")
+    angle_threshold: float = Field(np.pi / 2, gt=0, description="rad; boundary angular gap, PCL default")
+    max_keypoints: int | None = Field(None, ge=0, description="most salient kept (None = all)")
+    scatter: Literal["point", "centroid"] = Field("point", description="point: PCL; centroid: Open3D")
 
 
 @dataclass(frozen=True)
@@ -96,7 +82,6 @@ def iss_saliency(
     ``pairs``: precomputed neighbours of every point (radius >= ``salient_radius``), else searched here.
     """
     params = params or ISSParams()
-    params.check()
     P = check_points(points)
     n = P.shape[0]
     if n == 0:
@@ -229,7 +214,6 @@ def detect_iss(
     Returns an empty result for clouds with fewer than ``min_neighbors`` points.
     """
     params = params or ISSParams()
-    params.check()
     P = check_points(points)
     n = P.shape[0]
     if n < params.min_neighbors:

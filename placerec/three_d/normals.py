@@ -10,11 +10,11 @@ consistent between scans of the same surface.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import numpy as np
+from pydantic import Field
 
-from placerec.errors import ScanDataError
+from placerec.params import Params
 from placerec.three_d._neighbors import check_points
 
 log = logging.getLogger(__name__)
@@ -22,13 +22,14 @@ log = logging.getLogger(__name__)
 __all__ = ["NormalParams", "estimate_normals"]
 
 
-@dataclass(frozen=True)
-class NormalParams:
+class NormalParams(Params):
     """Normal estimation: hybrid search (``radius`` m, at most ``max_nn`` neighbours), flipped to ``viewpoint``."""
 
-    radius: float = 1.2
-    max_nn: int = 30
-    viewpoint: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    radius: float = Field(1.2, gt=0, description="m; three 0.4 m voxels (see the module docstring)")
+    max_nn: int = Field(30, ge=3, description="neighbours at most")
+    viewpoint: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), strict=False, description="normals point towards it (the sensor origin)"
+    )
 
 
 def estimate_normals(points: np.ndarray, params: NormalParams | None = None) -> np.ndarray:
@@ -37,10 +38,6 @@ def estimate_normals(points: np.ndarray, params: NormalParams | None = None) -> 
     Points with fewer than three neighbours get Open3D's fallback normal, oriented the same way.
     """
     params = params or NormalParams()
-    if params.radius <= 0 or params.max_nn < 3:
-        raise ScanDataError(
-            f"normal estimation needs radius > 0 and max_nn >= 3, got {params.radius}, {params.max_nn}"
-        )
     P = check_points(points)
     if P.shape[0] == 0:
         return np.zeros((0, 3), dtype=np.float32)

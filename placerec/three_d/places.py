@@ -34,6 +34,7 @@ import numpy as np
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.intensity import normalize_intensity
+from placerec.params import Params
 from placerec.preprocess import crop, remove_invalid
 from placerec.three_d.features import FeatureParams, extract_features
 from placerec.types import Scan, Sequence
@@ -86,12 +87,16 @@ class PlacePartition:
 
 
 def _jsonable(obj: Any) -> Any:
-    return json.loads(json.dumps(asdict(obj), default=str))
+    return json.loads(json.dumps(asdict(obj), default=_plain))
+
+
+def _plain(value: Any) -> Any:
+    return value.model_dump(mode="json") if isinstance(value, Params) else str(value)
 
 
 def features_json(features: FeatureParams) -> Any:
     """The feature settings as plain JSON (what a database records and is checked against)."""
-    return _jsonable(features)
+    return features.model_dump(mode="json")
 
 
 def arc_length(positions: np.ndarray) -> np.ndarray:

@@ -23,35 +23,28 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import Field
 
-from placerec.errors import ConfigError
+from placerec.params import Params
 
 log = logging.getLogger(__name__)
 
 __all__ = ["LoopDetectorParams", "LoopFilter", "LoopResult", "Island", "compute_islands"]
 
 
-@dataclass(frozen=True)
-class LoopDetectorParams:
-    """DLoopDetector options (defaults: all off; DLoopDetector's own defaults in brackets)."""
+class LoopDetectorParams(Params):
+    """DLoopDetector options (defaults: all off; DLoopDetector's own defaults in the descriptions)."""
 
-    use_nss: bool = False  # [true]
-    alpha: float = 0.0  # [0.3]
-    min_nss_factor: float = 0.005
-    max_db_results: int = 50
-    islands: bool = False  # [always on]
-    max_intragroup_gap: int = 3
-    min_matches_per_group: int = 1
-    temporal_k: int = 0  # [3 or 4]
-    max_distance_between_groups: int = 3
-    max_distance_between_queries: int = 2
-
-    def __post_init__(self) -> None:
-        for name in ("max_db_results", "max_intragroup_gap", "min_matches_per_group"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"loop.{name} must be >= 1, got {getattr(self, name)}")
-        if self.alpha < 0 or self.min_nss_factor < 0 or self.temporal_k < 0:
-            raise ConfigError("loop.alpha, loop.min_nss_factor and loop.temporal_k must be >= 0")
+    use_nss: bool = Field(False, description="normalised similarity score [DLoopDetector: true]")
+    alpha: float = Field(0.0, ge=0, description="minimum (normalised) score [DLoopDetector: 0.3]")
+    min_nss_factor: float = Field(0.005, ge=0, description="minimum score against the previous frame")
+    max_db_results: int = Field(50, ge=1, description="database results considered [DLoopDetector: 50]")
+    islands: bool = Field(False, description="group results by id [DLoopDetector: always on]")
+    max_intragroup_gap: int = Field(3, ge=1, description="ids; DLoopDetector default")
+    min_matches_per_group: int = Field(1, ge=1, description="DLoopDetector default")
+    temporal_k: int = Field(0, ge=0, description="consistent queries needed [DLoopDetector: 3 or 4]")
+    max_distance_between_groups: int = Field(3, ge=0, description="ids; DLoopDetector default")
+    max_distance_between_queries: int = Field(2, ge=0, description="queries; DLoopDetector default")
 
 
 @dataclass(frozen=True)
