@@ -174,8 +174,9 @@ def test_corrupt_or_wrong_files_raise_artifact_errors(tmp_path):
     with pytest.raises(ArtifactError, match="partial.npz.*'counts'"):
         CalibrationTable.load(partial)
     wrong = tmp_path / "wrong.npz"
-    save_artifact(wrong, "intensity-calibration", 1, {"values": np.full((2, 4), 3.0), "counts": np.zeros((2, 4))},
-                  {"sensor": "x", "n_beams": 2, "raw_step": 1.0})  # fmt: skip
+    save_artifact(wrong, "intensity-calibration", 1,
+                  {"values": np.full((2, 4), 3.0), "counts": np.zeros((2, 4), np.int64)},
+                  {"sensor": "x", "n_beams": 2, "n_raw": 4, "raw_step": 1.0})  # fmt: skip
     with pytest.raises(ArtifactError, match="wrong.npz.*\\[0, 1\\]"):
         CalibrationTable.load(wrong)
 

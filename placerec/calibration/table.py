@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +22,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from placerec.errors import ArtifactError, ScanDataError
+from placerec.errors import ArtifactError, ScanDataError, short_repr
+from placerec.io.artifact_schema import Member
 from placerec.types import Scan
 
 log = logging.getLogger(__name__)
@@ -30,6 +32,10 @@ __all__ = ["CalibrationTable", "load_calibration", "KIND", "FORMAT_VERSION"]
 
 KIND = "intensity-calibration"
 FORMAT_VERSION = 1
+_SCHEMA = {
+    "values": Member("f", ("n_beams", "n_raw"), finite=True),
+    "counts": Member("iu", ("n_beams", "n_raw"), min_value=0),
+}
 
 
 @dataclass(frozen=True, eq=False)
@@ -167,30 +173,37 @@ class CalibrationTable:
         """Read a table written by `save`; `ArtifactError` naming the file and key on any inconsistency."""
         from placerec.io.atomic import load_artifact
 
-        arrays, header = load_artifact(path, KIND, (FORMAT_VERSION,))
-        meta = dict(header.get("meta") or {})
-        for key in ("values", "counts"):
-            if key not in arrays:
-                raise ArtifactError(f"{path}: calibration table has no array {key!r}")
-        for key in ("sensor", "n_beams", "raw_step"):
+        arrays, header = load_artifact(path, KIND, (FORMAT_VERSION,), _SCHEMA)
+        meta = dict(header["meta"])
+        for key in ("sensor", "n_beams", "n_raw", "raw_step"):
             if key not in meta:
                 raise ArtifactError(f"{path}: calibration header has no key {key!r}")
-        values = arrays["values"]
-        if values.ndim != 2 or values.shape[0] != meta["n_beams"]:
+        shape = arrays["values"].shape
+        if (meta["n_beams"], meta["n_raw"]) != shape:
             raise ArtifactError(
-                f"{path}: 'values' has shape {values.shape}, the header says n_beams={meta['n_beams']}"
+                f"{path}: 'values' has shape {shape}, the header says n_beams={short_repr(meta['n_beams'])}, "
+                f"n_raw={short_repr(meta['n_raw'])}"
             )
+        if not isinstance(meta["sensor"], str):
+            raise ArtifactError(f"{path}: calibration header 'sensor' must be a string, got {short_repr(meta['sensor'])}")
+        for key, value in (("raw_step", meta["raw_step"]), ("max_range", meta.get("max_range"))):
+            if not (value is None and key == "max_range") and not _positive_number(value):
+                raise ArtifactError(f"{path}: calibration header {key!r} must be a positive number, got {short_repr(value)}")
         try:
             return cls(
-                values=values,
+                values=arrays["values"],
                 raw_step=float(meta.pop("raw_step")),
-                sensor=str(meta.pop("sensor")),
+                sensor=meta.pop("sensor"),
                 max_range=meta.pop("max_range", None),
                 counts=arrays["counts"],
                 meta={k: v for k, v in meta.items() if k not in ("n_beams", "n_raw")},
             )
-        except (ScanDataError, TypeError, ValueError) as exc:
+        except ScanDataError as exc:
             raise ArtifactError(f"{path}: invalid calibration table ({exc})") from None
+
+
+def _positive_number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) and value > 0
 
 
 @functools.lru_cache(maxsize=8)

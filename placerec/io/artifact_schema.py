@@ -67,11 +67,15 @@ def check_members(arrays: Mapping[str, np.ndarray], schema: Schema, where: str |
         if member.finite and arr.dtype.kind == "f" and not np.isfinite(arr).all():
             raise ArtifactError(f"{where}: array {name!r} holds NaN or infinite values")
         if member.min_value is not None and arr.size and arr.min() < member.min_value:
-            raise ArtifactError(f"{where}: array {name!r} holds {arr.min()}, expected values >= {member.min_value}")
+            raise ArtifactError(
+                f"{where}: array {name!r} holds {arr.min()}, expected values >= {member.min_value}"
+            )
     return dims
 
 
-def _check_shape(name: str, shape: tuple[int, ...], member: Member, dims: dict[str, int], where: str | Path) -> None:
+def _check_shape(
+    name: str, shape: tuple[int, ...], member: Member, dims: dict[str, int], where: str | Path
+) -> None:
     expected = member.shape or ()
     ok = len(shape) == len(expected)
     for size, want in zip(shape, expected, strict=False):
@@ -90,6 +94,7 @@ def _check_shape(name: str, shape: tuple[int, ...], member: Member, dims: dict[s
 def check_offsets(offsets: np.ndarray, n: int, total: int, where: str | Path, name: str) -> None:
     """``offsets`` must be the ``n + 1`` row starts of ``n`` consecutive blocks covering ``total`` rows:
     0 first, ``total`` last, never decreasing."""
+    offsets = offsets.astype(np.int64)  # unsigned offsets would wrap in np.diff
     if offsets.shape != (n + 1,):
         raise ArtifactError(f"{where}: {name!r} has shape {offsets.shape}, expected ({n + 1},)")
     if offsets[0] != 0 or offsets[-1] != total or (np.diff(offsets) < 0).any():

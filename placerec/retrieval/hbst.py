@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from placerec.errors import ArtifactError, ConfigError, ScanDataError
+from placerec.errors import ArtifactError, ConfigError, ScanDataError, short_repr
+from placerec.io.artifact_schema import Member, check_unique
 from placerec.retrieval.bits import to_words, unpack_bits
 from placerec.retrieval.hbst_tree import FlatTree
 
@@ -35,6 +36,18 @@ log = logging.getLogger(__name__)
 
 ARTIFACT_KIND = "hbst"
 FORMAT_VERSION = 1
+_TREE_MEMBERS = ("split", "child", "leaf_start", "leaf_count", "descriptors", "image_id", "keypoint_id")
+# a saved tree (`FlatTree.to_arrays`, all or none of the tree members) and the image ids by insertion index
+_SCHEMA = {
+    "images": Member("iu", ("n_images",)),
+    "split": Member("iu", ("n_nodes",), optional=True),
+    "child": Member("iu", ("n_nodes", 2), optional=True),
+    "leaf_start": Member("iu", ("n_nodes",), optional=True, min_value=0),
+    "leaf_count": Member("iu", ("n_nodes",), optional=True, min_value=0),
+    "descriptors": Member("u", ("n_descriptors", None), optional=True),
+    "image_id": Member("iu", ("n_descriptors",), optional=True, min_value=0),
+    "keypoint_id": Member("iu", ("n_descriptors",), optional=True),
+}
 
 
 @dataclass(frozen=True)
@@ -216,8 +229,15 @@ class HBST:
         """Read a tree written by `save`; raises `ArtifactError` if the file is corrupt or of another version."""
         from placerec.io.atomic import load_artifact
 
-        arrays, header = load_artifact(path, ARTIFACT_KIND, (FORMAT_VERSION,))
-        meta = header.get("meta", {})
+        arrays, header = load_artifact(path, ARTIFACT_KIND, (FORMAT_VERSION,), _SCHEMA)
+        meta = header["meta"]
+        present = [k for k in _TREE_MEMBERS if k in arrays]
+        if (present and len(present) != len(_TREE_MEMBERS)) or bool(present) != (meta.get("n_bytes") is not None):
+            raise ArtifactError(
+                f"{path}: corrupt hbst artifact: a saved tree needs all of {list(_TREE_MEMBERS)} and the header's "
+                f"n_bytes, an empty one none of them; found {present} and n_bytes={short_repr(meta.get('n_bytes'))}"
+            )
+        check_unique(arrays["images"], path, "images")
         try:
             hbst = cls(meta["delta_max"], meta["leaf_size"], meta["max_depth"], meta["threshold"])
             for image_id in np.asarray(arrays["images"], dtype=np.int64).tolist():

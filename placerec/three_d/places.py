@@ -31,9 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from placerec.errors import ArtifactError, ConfigError, ScanDataError
-from placerec.io.atomic import load_artifact, save_artifact
+from placerec.errors import ArtifactError, ConfigError, ScanDataError, short_repr
 from placerec.intensity import normalize_intensity
+from placerec.io.artifact_schema import Member, check_counts, check_offsets, check_unique
+from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
 from placerec.preprocess import crop, remove_invalid
 from placerec.three_d.features import FeatureParams, extract_features
@@ -53,6 +54,20 @@ __all__ = [
 
 KIND = "places-db"
 FORMAT_VERSION = 1
+# the arrays of a saved database; n_places, n_rows (keypoints), n_sources and n_cloud (points) tie them together
+_SCHEMA = {
+    "ids": Member("iu", ("n_places",), min_value=0),
+    "poses": Member("f", ("n_places", 4, 4), finite=True),
+    "source_counts": Member("iu", ("n_places",), min_value=0),
+    "sources": Member("iu", ("n_sources",), min_value=0),
+    "kp_offsets": Member("iu", (None,)),
+    "keypoints": Member("f", ("n_rows", 3), finite=True),
+    "descriptors": Member("f", ("n_rows", None), finite=True),
+    "scan_poses": Member("f", ("n_scans", 4, 4), finite=True),
+    "cloud_counts": Member("iu", ("n_places",), optional=True, min_value=0),
+    "cloud_xyz": Member("f", ("n_cloud", 3), optional=True, finite=True),
+    "cloud_intensity": Member("f", ("n_cloud",), optional=True),
+}
 
 IntensityFn = Callable[[Scan], Scan]
 
@@ -242,9 +257,11 @@ class PlacesDatabase:
         features: FeatureParams | None = None,
         intensity: str | None = None,
     ) -> PlacesDatabase:
-        """Read a database; `ArtifactError` if ``features`` (or the ``intensity`` label) differ from the file's."""
-        arrays, header = load_artifact(path, KIND, (FORMAT_VERSION,))
+        """Read a database; `ArtifactError` if the file is corrupt or inconsistent (`_check_layout`), or if
+        ``features`` (or the ``intensity`` label) differ from the file's."""
+        arrays, header = load_artifact(path, KIND, (FORMAT_VERSION,), _SCHEMA)
         meta = header["meta"]
+        _check_layout(arrays, meta, path)
         try:
             from pydantic import TypeAdapter
 
@@ -273,7 +290,7 @@ class PlacesDatabase:
                 intensity=str(meta.get("intensity", "")),
                 sequence=str(meta.get("sequence", "")),
             )
-        except (KeyError, ValueError) as exc:
+        except (KeyError, ValueError, TypeError) as exc:
             raise ArtifactError(f"{path}: malformed places database ({exc})") from exc
         if features is not None:
             db.check_features(features, str(path))
@@ -282,6 +299,30 @@ class PlacesDatabase:
                 f"{path}: places database has intensity {db.intensity!r}, expected {intensity!r}"
             )
         return db
+
+
+def _check_layout(arrays: dict[str, np.ndarray], meta: dict[str, Any], path: str | Path) -> None:
+    """The consistency `_SCHEMA` cannot state: offsets and counts cover their rows, ids are unique scans of the
+    map, place poses are their scans' poses, the descriptor size and the clouds agree with the header."""
+    n, n_scans = arrays["ids"].shape[0], arrays["scan_poses"].shape[0]
+    check_unique(arrays["ids"], path, "ids")
+    check_offsets(arrays["kp_offsets"], n, arrays["keypoints"].shape[0], path, "kp_offsets")
+    check_counts(arrays["source_counts"], arrays["sources"].shape[0], path, "source_counts")
+    for name in ("ids", "sources"):
+        if arrays[name].size and arrays[name].max() >= n_scans:
+            raise ArtifactError(f"{path}: {name!r} refers to scan {arrays[name].max()}, the map has {n_scans}")
+    if not np.array_equal(arrays["poses"], arrays["scan_poses"][arrays["ids"]]):
+        raise ArtifactError(f"{path}: place 'poses' differ from the 'scan_poses' of their centre scans ('ids')")
+    if meta.get("dim") != arrays["descriptors"].shape[1]:
+        raise ArtifactError(
+            f"{path}: descriptors have {arrays['descriptors'].shape[1]} columns, the header says dim="
+            f"{short_repr(meta.get('dim'))}"
+        )
+    cloud = [k for k in ("cloud_counts", "cloud_xyz", "cloud_intensity") if k in arrays]
+    if cloud and len(cloud) != 3:
+        raise ArtifactError(f"{path}: place clouds need cloud_counts, cloud_xyz and cloud_intensity, found {cloud}")
+    if cloud:
+        check_counts(arrays["cloud_counts"], arrays["cloud_xyz"].shape[0], path, "cloud_counts")
 
 
 def _cat(parts: list[np.ndarray], empty: tuple[int, ...]) -> np.ndarray:

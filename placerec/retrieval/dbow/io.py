@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import struct
 import warnings
 import zlib
@@ -37,8 +38,9 @@ from typing import Any
 
 import numpy as np
 
-from placerec.errors import ArtifactError
+from placerec.errors import ArtifactError, short_repr
 from placerec.io.atomic import atomic_write
+from placerec.io.limits import check_size
 from placerec.retrieval.dbow.vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
@@ -120,56 +122,150 @@ def save_vocabulary(
             fh.write(b"\0" * (_padded(len(data)) - len(data)))
 
 
-def load_vocabulary(path: str | Path) -> Vocabulary:
-    """Read a vocabulary: the binary format (by its magic) or else the ORB-SLAM2 text format."""
+def load_vocabulary(path: str | Path, limit: int | None = None) -> Vocabulary:
+    """Read a vocabulary: the binary format (by its magic) or else the ORB-SLAM2 text format.
+
+    The file's size and every array's declared size are checked against the artifact load cap
+    (`placerec.io.limits`, or ``limit`` bytes) before anything is read or decompressed; the header, each array's
+    dtype, shape, offset, codec and checksum, finite weights and centres and the tree's shape (at most ``k``
+    children per node, at most ``L`` levels) are validated. Anything wrong is an `ArtifactError` naming the file.
+    """
     path = Path(path)
     if not path.is_file():
         raise ArtifactError(f"{path}: no such vocabulary file")
+    check_size(path.stat().st_size, path, "vocabulary file size", ArtifactError, "artifact", limit)
     with open(path, "rb") as fh:
         start = fh.read(len(MAGIC))
     if start != MAGIC:
         return read_text_vocabulary(path)
     data = path.read_bytes()
-    try:
-        version, n_head = struct.unpack_from("<II", data, len(MAGIC))
-        if version != FORMAT_VERSION:
-            raise ArtifactError(
-                f"{path}: vocabulary format version {version} is not supported (this placerec reads "
-                f"[{FORMAT_VERSION}])"
-            )
-        head_end = len(MAGIC) + 8 + n_head
-        header = json.loads(data[len(MAGIC) + 8 : head_end].decode("utf-8"))
-        base = _padded(head_end)
-        arrays = {}
-        for name in ("parents", "weights", "centres"):
-            spec = header["arrays"][name]
-            a, n = base + int(spec["offset"]), int(spec["stored_bytes"])
-            if a + n > len(data):
-                raise ArtifactError(f"{path}: truncated vocabulary file (array {name!r})")
-            stored = memoryview(data)[a : a + n]
-            if zlib.crc32(stored) != spec["crc32"]:
-                raise ArtifactError(f"{path}: corrupt vocabulary file (checksum of {name!r})")
-            raw = zlib.decompress(stored) if spec["codec"] == "zlib" else stored
-            arrays[name] = np.frombuffer(raw, np.dtype(spec["dtype"])).reshape(spec["shape"])
-    except ArtifactError:
-        raise
-    except (KeyError, ValueError, TypeError, struct.error, zlib.error, json.JSONDecodeError) as exc:
-        raise ArtifactError(f"{path}: corrupt vocabulary file ({exc})") from exc
+    header, base = _read_binary_header(data, path)
+    arrays = {name: _read_array(data, base, header, name, path, limit) for name in _ARRAY_DTYPES}
     centres = arrays["centres"]
     if header["kind"] == "binary":
         centres = centres.astype(np.uint8, copy=False)
     else:
-        centres = centres.astype(np.float32) * np.float32(header.get("centre_scale", 1.0))
-    return Vocabulary(
-        int(header["k"]),
-        int(header["L"]),
-        arrays["parents"],
-        centres,
-        arrays["weights"],
-        header["weighting"],
-        header["scoring"],
-        header.get("meta", {}),
-    )
+        centres = centres.astype(np.float32) * np.float32(header["centre_scale"])
+    for name, values in (("weights", arrays["weights"]), ("centres", centres)):
+        if values.dtype.kind == "f" and not np.isfinite(values).all():
+            raise ArtifactError(f"{path}: vocabulary {name} hold NaN or infinite values")
+    _check_tree(arrays["parents"], header["k"], header["L"], path)
+    voc = Vocabulary(
+        header["k"], header["L"], arrays["parents"], centres, arrays["weights"], header["weighting"],
+        header["scoring"], header["meta"],
+    )  # fmt: skip
+    if voc.n_words != header["n_words"]:
+        raise ArtifactError(f"{path}: the tree has {voc.n_words} words, the header says {header['n_words']}")
+    return voc
+
+
+# the stored dtype of each array: parents and weights fixed, centres by ``centre_dtype`` (and kind)
+_ARRAY_DTYPES = {"parents": ("<i4",), "weights": ("<f4",), "centres": None}
+_CENTRE_DTYPES = {"binary": ("uint8",), "float": ("float32", "float16", "int8")}
+_INT, _STR, _NUM, _OBJ = (int, "an integer"), (str, "a string"), ((int, float), "a number"), (dict, "an object")
+_HEADER_TYPES = {
+    "k": _INT, "L": _INT, "weighting": _STR, "scoring": _STR, "kind": _STR, "descriptor_size": _INT, "n_nodes": _INT,
+    "n_words": _INT, "centre_dtype": _STR, "centre_scale": _NUM, "arrays": _OBJ, "meta": _OBJ,
+}  # fmt: skip
+
+
+def _read_binary_header(data: bytes, path: Path) -> tuple[dict[str, Any], int]:
+    """The validated JSON header of a binary vocabulary and the offset where its payload starts."""
+    if len(data) < len(MAGIC) + 8:
+        raise ArtifactError(f"{path}: truncated vocabulary file (no header)")
+    version, n_head = struct.unpack_from("<II", data, len(MAGIC))
+    if version != FORMAT_VERSION:
+        raise ArtifactError(
+            f"{path}: vocabulary format version {version} is not supported (this placerec reads [{FORMAT_VERSION}])"
+        )
+    head_end = len(MAGIC) + 8 + n_head
+    if head_end > len(data):
+        raise ArtifactError(f"{path}: truncated vocabulary file (header of {n_head} bytes)")
+    try:
+        header = json.loads(data[len(MAGIC) + 8 : head_end].decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ArtifactError(f"{path}: vocabulary header is not valid JSON ({exc})") from None
+    if not isinstance(header, dict):
+        raise ArtifactError(f"{path}: vocabulary header must be a JSON object")
+    for key, (types, expected) in _HEADER_TYPES.items():
+        value = header.get(key)
+        if not isinstance(value, types) or isinstance(value, bool):
+            raise ArtifactError(f"{path}: vocabulary header {key!r} is {short_repr(value)}, expected {expected}")
+    kind = header["kind"]
+    if kind not in _CENTRE_DTYPES or header["centre_dtype"] not in _CENTRE_DTYPES[kind]:
+        raise ArtifactError(
+            f"{path}: vocabulary kind {short_repr(kind)} with centre_dtype {short_repr(header['centre_dtype'])}; "
+            f"expected one of {_CENTRE_DTYPES}"
+        )
+    scale = header["centre_scale"]
+    if not (math.isfinite(scale) and scale > 0):
+        raise ArtifactError(f"{path}: vocabulary centre_scale must be a positive number, got {scale}")
+    if not (1 < header["k"] <= 1000 and 0 < header["L"] <= 20 and header["n_nodes"] > 0 and header["descriptor_size"] > 0):
+        raise ArtifactError(
+            f"{path}: implausible vocabulary header k={header['k']}, L={header['L']}, n_nodes={header['n_nodes']}, "
+            f"descriptor_size={header['descriptor_size']}"
+        )
+    return header, _padded(head_end)
+
+
+def _read_array(data: bytes, base: int, header: dict[str, Any], name: str, path: Path, limit: int | None) -> np.ndarray:
+    """One array of the payload, after checking its table entry against the header and the load cap."""
+    spec = header["arrays"].get(name)
+    if not isinstance(spec, dict):
+        raise ArtifactError(f"{path}: vocabulary header has no entry for array {name!r}")
+    n = header["n_nodes"]
+    shape = [n, header["descriptor_size"]] if name == "centres" else [n]
+    dtypes = _ARRAY_DTYPES[name] or (np.dtype(header["centre_dtype"]).newbyteorder("<").str,)
+    if spec.get("dtype") not in dtypes or spec.get("shape") != shape:
+        raise ArtifactError(
+            f"{path}: vocabulary array {name!r} is {short_repr(spec.get('dtype'))} {short_repr(spec.get('shape'))}, "
+            f"expected {dtypes[0]} {shape}"
+        )
+    dtype = np.dtype(spec["dtype"])
+    nbytes = check_size(math.prod(shape) * dtype.itemsize, path, f"vocabulary array {name!r}", ArtifactError,
+                        "artifact", limit)  # fmt: skip
+    offset, stored, codec = spec.get("offset"), spec.get("stored_bytes"), spec.get("codec")
+    if codec not in ("raw", "zlib"):
+        raise ArtifactError(f"{path}: vocabulary array {name!r} has unknown codec {short_repr(codec)}; expected raw or zlib")
+    if not (isinstance(offset, int) and isinstance(stored, int) and offset >= 0 and stored >= 0):
+        raise ArtifactError(f"{path}: vocabulary array {name!r} has no valid offset and stored_bytes")
+    a = base + offset
+    if a + stored > len(data):
+        raise ArtifactError(f"{path}: truncated vocabulary file (array {name!r})")
+    blob = memoryview(data)[a : a + stored]
+    if zlib.crc32(blob) != spec.get("crc32"):
+        raise ArtifactError(f"{path}: corrupt vocabulary file (checksum of {name!r})")
+    if codec == "zlib":
+        try:
+            inflater = zlib.decompressobj()
+            raw = inflater.decompress(blob, nbytes + 1)  # never more than declared (+1 to notice excess)
+        except zlib.error as exc:
+            raise ArtifactError(f"{path}: corrupt vocabulary file (array {name!r}: {exc})") from None
+        complete = inflater.eof
+    else:
+        raw, complete = blob, True
+    if len(raw) != nbytes or not complete:
+        raise ArtifactError(f"{path}: vocabulary array {name!r} holds {len(raw)} bytes, expected {nbytes}")
+    return np.frombuffer(raw, dtype).reshape(shape)
+
+
+def _check_tree(parents: np.ndarray, k: int, L: int, path: Path) -> None:
+    """Parents must form a tree of at most ``k`` children per node and ``L`` levels below the root (checked in
+    L vectorised steps, before `Vocabulary` builds tables sized by them)."""
+    p = parents.astype(np.int64)
+    n = p.size
+    if n == 0 or p[0] != -1 or (p[1:] < 0).any() or (p[1:] >= np.arange(1, n)).any():
+        raise ArtifactError(f"{path}: vocabulary parents must start with the root (-1), then earlier nodes")
+    children = np.bincount(p[1:], minlength=n)
+    if children.max(initial=0) > k:
+        raise ArtifactError(f"{path}: a vocabulary node has {children.max()} children, more than k={k}")
+    up = p.copy()
+    up[0] = 0
+    node = np.arange(n)
+    for _ in range(L):
+        node = up[node]
+    if node.any():
+        raise ArtifactError(f"{path}: the vocabulary tree is deeper than L={L} levels")
 
 
 def write_text_vocabulary(voc: Vocabulary, path: str | Path) -> None:
@@ -190,11 +286,14 @@ def write_text_vocabulary(voc: Vocabulary, path: str | Path) -> None:
         fh.write("\n".join(lines) + "\n")
 
 
-def read_text_vocabulary(path: str | Path, kind: str | None = None) -> Vocabulary:
+def read_text_vocabulary(path: str | Path, kind: str | None = None, limit: int | None = None) -> Vocabulary:
     """Read an ORB-SLAM2 / DBoW2 text vocabulary. ``kind`` "binary" or "float"; None = binary when every
-    descriptor value is an integer in 0..255 (as in ORB vocabularies)."""
+    descriptor value is an integer in 0..255 (as in ORB vocabularies). The file size is checked against the
+    artifact load cap (or ``limit``) first; parents, binary centres, finite weights and the tree's shape are
+    validated as for the binary format."""
     path = Path(path)
     try:
+        check_size(path.stat().st_size, path, "vocabulary file size", ArtifactError, "artifact", limit)
         text = path.read_text(encoding="ascii", errors="strict")
     except FileNotFoundError:
         raise ArtifactError(f"{path}: no such vocabulary file") from None
@@ -226,12 +325,20 @@ def read_text_vocabulary(path: str | Path, kind: str | None = None) -> Vocabular
             f"(as on the first), read {values.size} numbers"
         )
     table = values.reshape(-1, n_cols)
+    if not np.isfinite(table).all():
+        raise ArtifactError(f"{path}: node lines hold NaN or infinite values")
+    if (table[:, 0] != np.round(table[:, 0])).any() or (np.abs(table[:, 0]) >= 2**31).any():
+        raise ArtifactError(f"{path}: node parents must be integer node ids")
     parents = np.r_[-1, table[:, 0]].astype(np.int64)
+    _check_tree(parents, k, L, path)
     desc = table[:, 2:-1]
+    is_byte = bool(np.all((desc == np.round(desc)) & (desc >= 0) & (desc <= 255)))
     if kind is None:
-        kind = "binary" if np.all((desc == np.round(desc)) & (desc >= 0) & (desc <= 255)) else "float"
+        kind = "binary" if is_byte else "float"
     if kind not in ("binary", "float"):
         raise ArtifactError(f"{path}: kind must be 'binary' or 'float', got {kind!r}")
+    if kind == "binary" and not is_byte:
+        raise ArtifactError(f"{path}: a binary vocabulary's descriptor values must be integers in 0..255")
     centres = np.vstack([np.zeros((1, desc.shape[1])), desc])
     centres = centres.astype(np.uint8) if kind == "binary" else centres.astype(np.float32)
     weights = np.r_[0.0, table[:, -1]]
