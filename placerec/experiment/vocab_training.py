@@ -30,9 +30,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError
 
-from placerec.config import DatasetConfig, PreprocessConfig
+from placerec.config import DatasetConfig, PreprocessConfig, Section
 from placerec.errors import ConfigError
 from placerec.hashing import stable_hash
 from placerec.safe_yaml import load_yaml_file
@@ -53,11 +53,7 @@ __all__ = [
 EVALUATION_SEEDS = tuple(range(10))
 
 
-class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class TrainingSimulator(_Section):
+class TrainingSimulator(Section):
     """Simulated sequences to draw training images from: every (world, sensor, seed) combination."""
 
     worlds: list[str] = Field(default_factory=lambda: ["campus", "industrial", "town"])
@@ -68,7 +64,7 @@ class TrainingSimulator(_Section):
     clutter: bool = True
 
 
-class VocabTrainingConfig(_Section):
+class VocabTrainingConfig(Section):
     """What ``placerec train-vocab`` trains (see the module docstring)."""
 
     features: str = "orb"
