@@ -1,4 +1,15 @@
-"""Config-driven experiments: `run_experiment` runs every pipeline of a config and writes the results folder."""
+"""Config-driven experiments: `run_experiment` runs every pipeline of a config and writes the results folder.
+
+The experiment layer sits on top of the algorithms: it reads configs (`placerec.config`), opens data sources and
+turns config sections into the algorithms' own parameter objects; no algorithm module imports it.
+
+* `placerec.experiment.datasets` — a `DatasetConfig` as a sequence (simulator or recorded files), its fingerprint.
+* `placerec.experiment.preprocessing` — the ``preprocess`` section as `placerec.preprocess.PreprocessParams`.
+* `placerec.experiment.runner` — loop-closure and localisation runs over every pipeline.
+* `placerec.experiment.cache` — the description cache shared by pipelines with the same front end.
+* `placerec.experiment.report`, `.candidates`, `.figures` — the results folder: metrics, candidates, figures.
+* `placerec.experiment.vocab_training` — ``placerec train-vocab``: DBoW vocabularies from configured sequences.
+"""
 
 from __future__ import annotations
 
