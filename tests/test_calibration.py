@@ -18,7 +18,7 @@ from placerec.calibration import (
     incidence_cosine,
     load_calibration,
 )
-from placerec.errors import ArtifactError, ScanDataError
+from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.preprocess import PreprocessParams, preprocess_scan
 from placerec.types import Scan, SensorInfo
 
@@ -256,3 +256,12 @@ def test_cli_calibrate_on_the_simulator(tmp_path):
     assert table.n_beams == 16 and table.sensor == "vlp16" and table.meta["params"]["min_count"] == 3
     res = CliRunner().invoke(app, ["calibrate", "--out", str(out)])
     assert res.exit_code == 2 and "SEQUENCE" in res.output
+
+
+def test_calibration_params_use_the_strict_parameter_mechanism():
+    """Unknown keys and bad values are `ConfigError`s naming the key (and the allowed keys for a typo)."""
+    with pytest.raises(ConfigError, match="voxel_sise: unknown key; allowed keys there: .*voxel_size"):
+        CalibrationParams(voxel_sise=0.3)
+    with pytest.raises(ConfigError, match="levels"):
+        CalibrationParams(levels=2)
+    assert CalibrationParams(max_range=20).max_range == 20.0

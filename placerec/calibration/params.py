@@ -1,4 +1,4 @@
-"""`CalibrationParams`: every setting of the intensity calibration, validated (pydantic, unknown keys rejected)."""
+"""`CalibrationParams`: every setting of the intensity calibration, validated (`placerec.params.Params`)."""
 
 from __future__ import annotations
 
@@ -6,12 +6,12 @@ from typing import Literal
 
 from pydantic import Field
 
-from placerec.config import Section
+from placerec.params import Params
 
 __all__ = ["CalibrationParams"]
 
 
-class CalibrationParams(Section):
+class CalibrationParams(Params):
     """Settings of `placerec.calibration.calibrate_sequence` (see docs/calibration.md for the choices).
 
     Data: points within ``[min_range, max_range]`` (the intensity cut-off, 30 m: ISHOT paper) of every ``step``-th
