@@ -35,6 +35,7 @@ from pydantic import Field, ValidationError
 from placerec.config import DatasetConfig, PreprocessConfig, Section
 from placerec.errors import ConfigError
 from placerec.hashing import stable_hash
+from placerec.params import format_errors, resolve
 from placerec.safe_yaml import load_yaml_file
 
 log = logging.getLogger(__name__)
@@ -103,21 +104,14 @@ def load_training_config(path: str | Path | None, **overrides: Any) -> VocabTrai
     try:
         return VocabTrainingConfig.model_validate(data)
     except ValidationError as exc:
-        details = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
-        raise ConfigError(f"{path or 'training config'}: {details}") from None
+        raise ConfigError(format_errors(exc, VocabTrainingConfig, str(path or "training config"))) from None
 
 
 def image_params_of(cfg: VocabTrainingConfig) -> Any:
     """The config's ``image`` section as a validated `placerec.image.ImageParams`."""
-    from pydantic import TypeAdapter
-
     from placerec.image import ImageParams
 
-    try:
-        return TypeAdapter(ImageParams).validate_python(cfg.image)
-    except ValidationError as exc:
-        details = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
-        raise ConfigError(f"training config image: {details}") from None
+    return resolve(ImageParams, cfg.image, where="training config", path="image")
 
 
 def _sequences(cfg: VocabTrainingConfig) -> list[tuple[str, dict[str, Any]]]:
