@@ -93,6 +93,38 @@ def dump_config(
 
 
 @app.command()
+def pipelines(
+    name: Annotated[str | None, typer.Argument(help="A registered pipeline: list its parameters.")] = None,
+) -> None:
+    """List the registered pipelines, or every parameter of one (dotted path, default, type, source).
+
+    Examples: placerec pipelines;  placerec pipelines orb-dbow
+    """
+    from rich.console import Console
+    from rich.table import Table
+
+    from placerec.errors import PlacerecError
+    from placerec.params import param_rows
+    from placerec.recognizer import PIPELINES, pipeline_params
+
+    if name is None:
+        table = Table("pipeline", "description", title="registered pipelines (placerec pipelines NAME: parameters)")
+        for key, entry in PIPELINES.items():
+            table.add_row(key, entry.summary)
+        Console().print(table)
+        return
+    try:
+        params = pipeline_params(name)
+    except PlacerecError as exc:
+        _fail(exc)
+        return
+    table = Table("parameter", "default", "type", "what / where from", title=f"{name} parameters")
+    for key, value, kind, description in param_rows(params):
+        table.add_row(key, repr(value), kind, description)
+    Console().print(table)
+
+
+@app.command()
 def info(
     path: Annotated[
         Path, typer.Argument(help="A scan file (.bin .pcd .ply .npy .npz) or a sequence folder/bag.")

@@ -14,6 +14,8 @@ Protocol notes:
   order: query, then add), the insertion is kept. Any other next call first rebuilds the peer from the added
   scans, which removes the tentative one: queries never change what is stored, at the cost of re-inserting every
   scan (O(database size)) after a query that is not followed by adding that scan (e.g. localisation queries).
+* A query without a ``query_id`` (or with one already stored) is given an id past the newest stored one by more
+  than the 3 maps the peer never matches against (its consecutive local maps), so every stored scan is eligible.
 * Candidates whose match id is above ``max_id`` (inside the exclusion window) are dropped after the peer answers.
 * ``score`` = number of RANSAC inliers; ``relative_pose`` = ``T_match_query``: the peer's ``pose`` maps the match's
   (``source_id``) points into the query's (``target_id``) frame, so it is inverted here (checked in the tests).
@@ -39,6 +41,8 @@ __all__ = ["MapClosuresPeer", "MapClosuresParams"]
 
 _KIND = "map-closures-db"
 _VERSION = 1
+#: The peer never matches a map against the 3 maps stored just before it (its consecutive local maps).
+_PEER_SKIP = 3
 
 
 class MapClosuresParams(Params):
@@ -127,8 +131,8 @@ class MapClosuresPeer(Recognizer):
         if not self._points:
             return []
         qid = int(query_id)
-        if qid < 0 or qid in self._points:  # the peer needs an id it has not stored
-            qid = max(self._points) + 1
+        if qid < 0 or qid in self._points:  # an id the peer has not stored, past its skipped recent maps
+            qid = max(self._points) + 1 + _PEER_SKIP
         closures = list(self._peer.get_top_k_closures(qid, pts, max(k, self.params.top_k)))
         self._pending = (qid, pts)
         out = []

@@ -122,8 +122,18 @@ def visual_frontend_key(params: VisualFrontendParams) -> str:
 
 def describe_visual(scan: Scan, image_params: ImageParams, extractor: Any) -> Description:
     """The visual front end: intensity image, then features -> keypoints (K, 2), descriptors, image width.
-    `ScanDataError` for a scan with too few valid points (`placerec.recognizer.require_points`)."""
-    require_points(scan, "visual front end")
+
+    `ScanDataError` for a scan with too few valid points (`placerec.recognizer.require_points`) or one whose valid
+    points all have the same intensity: its image would show only where returns are missing, not the place.
+    """
+    ok = require_points(scan, "visual front end")
+    inten = scan.intensity[ok]
+    if not np.isfinite(inten).all() or float(inten.max()) == float(inten.min()):
+        src = f"{scan.source}: " if scan.source else ""
+        raise ScanDataError(
+            f"{src}visual front end: the intensity of the valid points is constant or not finite "
+            f"({inten.min()}..{inten.max()}); intensity images need varying intensity"
+        )
     img = make_image(scan, image_params)
     feats = extractor.extract(img.image)
     return {
@@ -200,10 +210,6 @@ class VisualHBST(VisualFrontend, Recognizer):
         self._width[scan_id] = int(description["width"])
         self._order.append(scan_id)
 
-    @property
-    def _n_bytes(self) -> int:
-        return self.tree.n_bytes or 32
-
     def query_description(
         self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
     ) -> list[Candidate]:
@@ -258,14 +264,19 @@ class VisualHBST(VisualFrontend, Recognizer):
         """Store every added image's keypoints and descriptors (in insertion order) with the parameters; `load`
         re-inserts them, which rebuilds the identical tree (HBST is deterministic in the insertion order)."""
         arrays = pack_features(
-            self._order, self._keypoints, self._descriptors, self._width, self._n_bytes, np.uint8
+            self._order,
+            self._keypoints,
+            self._descriptors,
+            self._width,
+            self.extractor.descriptor_size,
+            np.uint8,
         )
         save_artifact(path, _KIND, _VERSION, arrays, {"params": self.params.model_dump(mode="json")})
 
     def load(self, path: str | Path) -> None:
         arrays, header = load_artifact(path, _KIND, (_VERSION,))
         check_saved_params(path, header, self.params)
-        stored = stored_features(path, arrays, self._n_bytes, np.uint8)
+        stored = stored_features(path, arrays, self.extractor.descriptor_size, np.uint8)
         self.tree = self._new_tree()
         self._keypoints, self._descriptors, self._width, self._order = {}, {}, {}, []
         for scan_id, desc in stored:
