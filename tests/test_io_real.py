@@ -122,12 +122,15 @@ def test_ouster_pcaps(real_data: Path, pcap: str, meta: str, frames: int, shape:
         assert el[0] > 15 and el[-1] < -15 and np.mean(np.diff(el[np.isfinite(el)]) < 0) > 0.95
         assert 0 <= s.time.min() and s.time.max() < 0.11
     seq = open_sequence(folder / pcap)
-    assert isinstance(seq, OusterSequence) and len(seq) == frames and seq.poses is None
+    assert isinstance(seq, OusterSequence) and len(seq) == frames
     assert np.all(np.diff(seq.timestamps) > 0.09) if frames > 1 else seq.timestamps.shape == (1,)
     np.testing.assert_array_equal(seq[frames - 1].xyz, scans[-1].xyz)
-    if frames == 3:
+    if frames == 3:  # the capture's <stem>_poses_kitti.txt is loaded as its poses
         P, _ = read_poses(folder / "OS-1-128_v2.3.0_1024x10_lb_n3_poses_kitti.txt")
         assert P.shape == (3, 4, 4)
+        np.testing.assert_array_equal(seq.poses, P)
+    else:
+        assert seq.poses is None
 
 
 @ouster_required

@@ -5,7 +5,10 @@ with xyz from the sdk's ``XYZLut`` (sensor frame, metres; zero range -> zero poi
 ``REFLECTIVITY`` channel, ``ring`` = row and ``time`` = column time offset from the first valid column (s).
 `SensorInfo` carries the beam altitude angles, the column count and ``intensity_max`` = 255 or 65535 from the
 reflectivity field's width. The metadata must match the capture: a JSON of another sensor mode decodes no
-frame, which is reported as ScanFormatError.
+frame, which is reported as ScanFormatError. A frame with columns missing from the sensor's column window (a
+truncated capture, dropped packets) is logged as a warning when it is decoded; the last frame is checked on
+opening, so a truncated capture warns at once. Poses (``T_world_sensor``, one per frame) come from a KITTI-format
+``<capture stem>_poses_kitti.txt`` beside the capture, as ouster-sdk's tools name them, or from ``poses=``.
 """
 
 from __future__ import annotations
@@ -17,11 +20,12 @@ from typing import Any
 
 import numpy as np
 
-from placerec.errors import DependencyError, ScanFormatError
+from placerec.errors import DependencyError, ScanDataError, ScanFormatError
 from placerec.io._common import check_file
-from placerec.types import Scan, SensorInfo
+from placerec.io.poses import read_poses
+from placerec.types import Scan, SensorInfo, check_poses
 
-__all__ = ["OusterSequence", "read_ouster_pcap", "find_ouster_metadata"]
+__all__ = ["OusterSequence", "read_ouster_pcap", "find_ouster_metadata", "find_ouster_poses"]
 
 log = logging.getLogger(__name__)
 
@@ -53,13 +57,24 @@ def find_ouster_metadata(pcap: str | Path) -> Path:
     return cands[0]
 
 
-class OusterSequence:
-    """The frames of an Ouster ``.pcap`` as a lazy `Sequence` of organised scans (poses None).
+def find_ouster_poses(pcap: str | Path) -> Path | None:
+    """``<stem>_poses_kitti.txt`` beside ``pcap`` when it exists (the name ouster-sdk's tools give poses)."""
+    pcap = Path(pcap)
+    path = pcap.with_name(f"{pcap.stem}_poses_kitti.txt")
+    return path if path.is_file() else None
 
-    ``metadata`` is the sensor JSON; by default `find_ouster_metadata` picks it. Frames are decoded on access.
+
+class OusterSequence:
+    """The frames of an Ouster ``.pcap`` as a lazy `Sequence` of organised scans.
+
+    ``metadata`` is the sensor JSON; by default `find_ouster_metadata` picks it. ``poses``: a KITTI or TUM
+    trajectory with one pose per frame; by default `find_ouster_poses`, else no poses. Frames are decoded on
+    access.
     """
 
-    def __init__(self, pcap: str | Path, metadata: str | Path | None = None) -> None:
+    def __init__(
+        self, pcap: str | Path, metadata: str | Path | None = None, poses: str | Path | None = None
+    ) -> None:
         open_source, core = _sdk()
         self._pcap = check_file(pcap, "Ouster .pcap")
         self._meta = check_file(metadata if metadata is not None else find_ouster_metadata(self._pcap),
@@ -78,6 +93,16 @@ class OusterSequence:
         self._lut = lut_cls(self._info)
         self._sensor: SensorInfo | None = None
         self._timestamps: np.ndarray | None = None
+        self._poses: np.ndarray | None = None
+        self._incomplete_reported: set[int] = set()
+        self._frame(self._n - 1)  # a truncated capture ends in a partial frame: report it now
+        poses_path = Path(poses) if poses is not None else find_ouster_poses(self._pcap)
+        if poses_path is not None:
+            P, _ = read_poses(poses_path)
+            try:
+                self._poses = check_poses(P, self._n, str(poses_path))
+            except ScanDataError as exc:
+                raise ScanFormatError(f"{exc} (frames of {self._pcap.name})") from None
 
     def __len__(self) -> int:
         return self._n
@@ -90,6 +115,14 @@ class OusterSequence:
         frame = self._src[index][0]
         if frame is None:
             raise ScanFormatError(f"{self._pcap}: frame {index} is missing from the capture")
+        window = self._info.format.column_window
+        if not frame.complete(window) and index not in self._incomplete_reported:
+            self._incomplete_reported.add(index)
+            got = int(np.count_nonzero(np.asarray(frame.status) & 1))
+            log.warning(
+                "%s: frame %d of %d is incomplete (%d of %d columns decoded): the capture is truncated or lost "
+                "packets; its missing columns are empty", self._pcap, index, self._n, got, int(frame.w),
+            )
         return frame
 
     def _sensor_info(self, refl_dtype: np.dtype | None) -> SensorInfo:
@@ -140,8 +173,9 @@ class OusterSequence:
         return self._timestamps
 
     @property
-    def poses(self) -> None:
-        return None
+    def poses(self) -> np.ndarray | None:
+        """(N, 4, 4) ``T_world_sensor`` of every frame, or None without a poses file."""
+        return self._poses
 
     @property
     def name(self) -> str:

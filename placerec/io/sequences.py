@@ -248,7 +248,8 @@ def open_sequence(path: str | Path, **options: Any) -> Sequence:
     * a rosbag2 folder (``metadata.yaml``), a ``.db3``/``.mcap`` inside one, or a ROS1 ``.bag`` ->
       `placerec.io.rosbag.RosbagSequence` (option ``topic``);
     * a ``.pcap`` -> `placerec.io.ouster.OusterSequence` (option ``metadata``: the sensor JSON; default: the
-      ``.json`` beside the capture whose name matches best);
+      ``.json`` beside the capture whose name matches best; option ``poses``; default: the
+      ``<stem>_poses_kitti.txt`` beside the capture, if any);
     * any other folder -> `FolderSequence`.
     """
     p = Path(path)
