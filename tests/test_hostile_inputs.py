@@ -93,10 +93,28 @@ def _npy_header(shape: tuple[int, ...], descr: str = "<f4") -> bytes:
 def _zip_one_member(path: Path, name: str, data: bytes, method: int, declared: int, crc: int) -> None:
     """A one-member zip written byte by byte, so that the declared uncompressed size can be anything."""
     fn = name.encode()
-    local = struct.pack("<4sHHHHHIIIHH", b"PK\x03\x04", 20, 0, method, 0, 0, crc, len(data), declared, len(fn), 0)
+    local = struct.pack(
+        "<4sHHHHHIIIHH", b"PK\x03\x04", 20, 0, method, 0, 0, crc, len(data), declared, len(fn), 0
+    )
     central = struct.pack(
-        "<4sHHHHHHIIIHHHHHII", b"PK\x01\x02", 20, 20, 0, method, 0, 0, crc, len(data), declared, len(fn),
-        0, 0, 0, 0, 0, 0,
+        "<4sHHHHHHIIIHHHHHII",
+        b"PK\x01\x02",
+        20,
+        20,
+        0,
+        method,
+        0,
+        0,
+        crc,
+        len(data),
+        declared,
+        len(fn),
+        0,
+        0,
+        0,
+        0,
+        0,
+        0,
     )
     cd_offset = len(local) + len(fn) + len(data)
     end = struct.pack("<4sHHHHIIH", b"PK\x05\x06", 0, 0, 1, 1, len(central) + len(fn), cd_offset, 0)
@@ -116,7 +134,11 @@ def _deflate_bomb(path: Path, n_points: int) -> int:
         co = zlib.compressobj(9, zlib.DEFLATED, -15)
         return co.compress(data) + co.flush(zlib.Z_FULL_FLUSH)
 
-    stream = segment(header) + segment(bytes(chunk)) * (total // chunk) + zlib.compressobj(9, zlib.DEFLATED, -15).flush()
+    stream = (
+        segment(header)
+        + segment(bytes(chunk)) * (total // chunk)
+        + zlib.compressobj(9, zlib.DEFLATED, -15).flush()
+    )
     _zip_one_member(path, "xyz.npy", stream, zipfile.ZIP_DEFLATED, len(header) + total, 0)
     return len(header) + total
 

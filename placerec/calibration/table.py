@@ -185,10 +185,14 @@ class CalibrationTable:
                 f"n_raw={short_repr(meta['n_raw'])}"
             )
         if not isinstance(meta["sensor"], str):
-            raise ArtifactError(f"{path}: calibration header 'sensor' must be a string, got {short_repr(meta['sensor'])}")
+            raise ArtifactError(
+                f"{path}: calibration header 'sensor' must be a string, got {short_repr(meta['sensor'])}"
+            )
         for key, value in (("raw_step", meta["raw_step"]), ("max_range", meta.get("max_range"))):
             if not (value is None and key == "max_range") and not _positive_number(value):
-                raise ArtifactError(f"{path}: calibration header {key!r} must be a positive number, got {short_repr(value)}")
+                raise ArtifactError(
+                    f"{path}: calibration header {key!r} must be a positive number, got {short_repr(value)}"
+                )
         try:
             return cls(
                 values=arrays["values"],

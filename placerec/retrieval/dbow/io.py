@@ -3,8 +3,9 @@
 Binary format (``.dbow``, little-endian), written atomically (temp file, fsync, rename)::
 
     8 bytes   magic b"PRDBOW\\x00\\x01"
-    uint32    format version (1)
+    uint32    format version (2; version 1 files, which lack the next field, are read too)
     uint32    header length H
+    uint32    CRC-32 of the header
     H bytes   JSON header: k, L, weighting, scoring, kind ("binary"/"float"), descriptor_size, n_nodes,
               centre_dtype ("uint8", "float32", "float16", "int8") and centre_scale, meta, and for every array
               its dtype, shape, byte offset (from the start of the payload), stored bytes, codec and CRC-32
@@ -55,7 +56,8 @@ __all__ = [
 ]
 
 MAGIC = b"PRDBOW\x00\x01"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+_READ_VERSIONS = (1, 2)
 _ALIGN = 64
 _SCORING = {0: "l1", 1: "l2", 2: "chi-square", 3: "kl", 4: "bhattacharyya", 5: "dot-product"}
 _WEIGHTING = {0: "tf-idf", 1: "tf", 2: "idf", 3: "binary"}
@@ -114,7 +116,7 @@ def save_vocabulary(
         "meta": _jsonable(voc.meta),
     }
     blob = json.dumps(header, sort_keys=True).encode("utf-8")
-    head = MAGIC + struct.pack("<II", FORMAT_VERSION, len(blob)) + blob
+    head = MAGIC + struct.pack("<III", FORMAT_VERSION, len(blob), zlib.crc32(blob)) + blob
     with atomic_write(path) as fh:
         fh.write(head + b"\0" * (_padded(len(head)) - len(head)))
         for data in blobs:
@@ -141,6 +143,11 @@ def load_vocabulary(path: str | Path, limit: int | None = None) -> Vocabulary:
     data = path.read_bytes()
     header, base = _read_binary_header(data, path)
     arrays = {name: _read_array(data, base, header, name, path, limit) for name in _ARRAY_DTYPES}
+    end = base + max(
+        header["arrays"][n]["offset"] + _padded(header["arrays"][n]["stored_bytes"]) for n in _ARRAY_DTYPES
+    )
+    if len(data) != end:
+        raise ArtifactError(f"{path}: vocabulary file has {len(data)} bytes, its header describes {end}")
     centres = arrays["centres"]
     if header["kind"] == "binary":
         centres = centres.astype(np.uint8, copy=False)
@@ -162,7 +169,12 @@ def load_vocabulary(path: str | Path, limit: int | None = None) -> Vocabulary:
 # the stored dtype of each array: parents and weights fixed, centres by ``centre_dtype`` (and kind)
 _ARRAY_DTYPES = {"parents": ("<i4",), "weights": ("<f4",), "centres": None}
 _CENTRE_DTYPES = {"binary": ("uint8",), "float": ("float32", "float16", "int8")}
-_INT, _STR, _NUM, _OBJ = (int, "an integer"), (str, "a string"), ((int, float), "a number"), (dict, "an object")
+_INT, _STR, _NUM, _OBJ = (
+    (int, "an integer"),
+    (str, "a string"),
+    ((int, float), "a number"),
+    (dict, "an object"),
+)
 _HEADER_TYPES = {
     "k": _INT, "L": _INT, "weighting": _STR, "scoring": _STR, "kind": _STR, "descriptor_size": _INT, "n_nodes": _INT,
     "n_words": _INT, "centre_dtype": _STR, "centre_scale": _NUM, "arrays": _OBJ, "meta": _OBJ,
@@ -171,18 +183,22 @@ _HEADER_TYPES = {
 
 def _read_binary_header(data: bytes, path: Path) -> tuple[dict[str, Any], int]:
     """The validated JSON header of a binary vocabulary and the offset where its payload starts."""
-    if len(data) < len(MAGIC) + 8:
+    if len(data) < len(MAGIC) + 12:
         raise ArtifactError(f"{path}: truncated vocabulary file (no header)")
-    version, n_head = struct.unpack_from("<II", data, len(MAGIC))
-    if version != FORMAT_VERSION:
+    version, n_head, crc = struct.unpack_from("<III", data, len(MAGIC))
+    if version not in _READ_VERSIONS:
         raise ArtifactError(
-            f"{path}: vocabulary format version {version} is not supported (this placerec reads [{FORMAT_VERSION}])"
+            f"{path}: vocabulary format version {version} is not supported (this placerec reads {list(_READ_VERSIONS)})"
         )
-    head_end = len(MAGIC) + 8 + n_head
+    head_start = len(MAGIC) + (8 if version == 1 else 12)
+    head_end = head_start + n_head
     if head_end > len(data):
         raise ArtifactError(f"{path}: truncated vocabulary file (header of {n_head} bytes)")
+    blob = data[head_start:head_end]
+    if version > 1 and zlib.crc32(blob) != crc:
+        raise ArtifactError(f"{path}: corrupt vocabulary file (checksum of the header)")
     try:
-        header = json.loads(data[len(MAGIC) + 8 : head_end].decode("utf-8"))
+        header = json.loads(blob.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:
         raise ArtifactError(f"{path}: vocabulary header is not valid JSON ({exc})") from None
     if not isinstance(header, dict):
@@ -190,7 +206,9 @@ def _read_binary_header(data: bytes, path: Path) -> tuple[dict[str, Any], int]:
     for key, (types, expected) in _HEADER_TYPES.items():
         value = header.get(key)
         if not isinstance(value, types) or isinstance(value, bool):
-            raise ArtifactError(f"{path}: vocabulary header {key!r} is {short_repr(value)}, expected {expected}")
+            raise ArtifactError(
+                f"{path}: vocabulary header {key!r} is {short_repr(value)}, expected {expected}"
+            )
     kind = header["kind"]
     if kind not in _CENTRE_DTYPES or header["centre_dtype"] not in _CENTRE_DTYPES[kind]:
         raise ArtifactError(
@@ -200,7 +218,12 @@ def _read_binary_header(data: bytes, path: Path) -> tuple[dict[str, Any], int]:
     scale = header["centre_scale"]
     if not (math.isfinite(scale) and scale > 0):
         raise ArtifactError(f"{path}: vocabulary centre_scale must be a positive number, got {scale}")
-    if not (1 < header["k"] <= 1000 and 0 < header["L"] <= 20 and header["n_nodes"] > 0 and header["descriptor_size"] > 0):
+    if not (
+        1 < header["k"] <= 1000
+        and 0 < header["L"] <= 20
+        and header["n_nodes"] > 0
+        and header["descriptor_size"] > 0
+    ):
         raise ArtifactError(
             f"{path}: implausible vocabulary header k={header['k']}, L={header['L']}, n_nodes={header['n_nodes']}, "
             f"descriptor_size={header['descriptor_size']}"
@@ -208,7 +231,9 @@ def _read_binary_header(data: bytes, path: Path) -> tuple[dict[str, Any], int]:
     return header, _padded(head_end)
 
 
-def _read_array(data: bytes, base: int, header: dict[str, Any], name: str, path: Path, limit: int | None) -> np.ndarray:
+def _read_array(
+    data: bytes, base: int, header: dict[str, Any], name: str, path: Path, limit: int | None
+) -> np.ndarray:
     """One array of the payload, after checking its table entry against the header and the load cap."""
     spec = header["arrays"].get(name)
     if not isinstance(spec, dict):
@@ -226,7 +251,9 @@ def _read_array(data: bytes, base: int, header: dict[str, Any], name: str, path:
                         "artifact", limit)  # fmt: skip
     offset, stored, codec = spec.get("offset"), spec.get("stored_bytes"), spec.get("codec")
     if codec not in ("raw", "zlib"):
-        raise ArtifactError(f"{path}: vocabulary array {name!r} has unknown codec {short_repr(codec)}; expected raw or zlib")
+        raise ArtifactError(
+            f"{path}: vocabulary array {name!r} has unknown codec {short_repr(codec)}; expected raw or zlib"
+        )
     if not (isinstance(offset, int) and isinstance(stored, int) and offset >= 0 and stored >= 0):
         raise ArtifactError(f"{path}: vocabulary array {name!r} has no valid offset and stored_bytes")
     a = base + offset
@@ -315,7 +342,9 @@ def read_text_vocabulary(path: str | Path, kind: str | None = None, limit: int |
     n_lines = body.strip().count("\n") + 1
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore", DeprecationWarning)  # NumPy < 2.3 warns when a token is not a number
+            warnings.simplefilter(
+                "ignore", DeprecationWarning
+            )  # NumPy < 2.3 warns when a token is not a number
             values = np.fromstring(body, dtype=np.float64, sep=" ")
     except ValueError:  # NumPy >= 2.3 raises instead
         values = np.zeros(0)
