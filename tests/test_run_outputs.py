@@ -120,6 +120,13 @@ def test_candidates_round_trip_with_inliers(tmp_path):
     assert table.topn(3).tolist() == [[-1, -1, -1], [0, 3, -1]]
 
 
+def test_top1_files_of_earlier_runs_still_read(tmp_path):
+    path = tmp_path / "candidates_old.csv"
+    path.write_text("query_id,match_id,score\n0,-1,\n1,0,0.75\n")
+    q, m, s = read_candidates(path).top1()
+    assert q.tolist() == [0, 1] and m.tolist() == [-1, 0] and np.isnan(s[0]) and s[1] == 0.75
+
+
 @pytest.mark.parametrize(
     "text, message",
     [
