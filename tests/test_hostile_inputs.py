@@ -196,3 +196,17 @@ def test_check_count_refuses_counts_the_file_cannot_hold():
         check_count(11, 16, 160, "f.pcd", "POINTS")
     with pytest.raises(ScanFormatError, match="over the scan load cap"):
         check_count(10**12, 16, 10**13, "f.pcd", "POINTS")
+
+
+def test_compressed_pcd_expanding_beyond_the_scan_cap_is_refused_before_decompressing(tmp_path, monkeypatch):
+    from placerec.io.pcd import write_pcd
+    from placerec.types import Scan
+
+    n = 100_000  # 1.6 MB of x, y, z, intensity once decompressed; LZF shrinks the zeros ~80 times
+    path = tmp_path / "zeros.pcd"
+    write_pcd(path, Scan(xyz=np.zeros((n, 3), np.float32), intensity=np.zeros(n, np.float32)), "binary_compressed")
+    assert len(read_scan(path)) == n
+    monkeypatch.setenv(ENV_VARS["scan"], str(1 << 20))
+    assert path.stat().st_size < 1 << 20
+    with pytest.raises(ScanFormatError, match="binary_compressed uncompressed size declares 1600000 bytes, over"):
+        read_scan(path)

@@ -20,6 +20,7 @@ import numpy as np
 from placerec.errors import ConfigError, ScanFormatError
 from placerec.io._common import columns_to_scan, guard, header_lines, read_bytes, structured_columns
 from placerec.io.atomic import atomic_write
+from placerec.io.limits import check_size
 from placerec.io.lzf import LZFError, lzf_compress, lzf_decompress
 from placerec.types import Scan
 
@@ -136,6 +137,7 @@ def _compressed(buf: bytes, h: PcdHeader, where: Path) -> dict[str, np.ndarray]:
     if raw != need:
         raise ScanFormatError(f"{where}: PCD binary_compressed uncompressed size {raw} bytes, expected {need} "
                               f"({h.points} points x {dt.itemsize} bytes)")
+    check_size(raw, where, "PCD binary_compressed uncompressed size", ScanFormatError, "scan")
     if len(buf) < off + 8 + comp:
         raise ScanFormatError(f"{where}: PCD binary_compressed data truncated: {len(buf) - off - 8} of "
                               f"{comp} compressed bytes present")
