@@ -210,3 +210,24 @@ def test_compressed_pcd_expanding_beyond_the_scan_cap_is_refused_before_decompre
     assert path.stat().st_size < 1 << 20
     with pytest.raises(ScanFormatError, match="binary_compressed uncompressed size declares 1600000 bytes, over"):
         read_scan(path)
+
+
+def test_a_corrupt_descriptor_cache_is_recomputed_not_used(tmp_path):
+    from placerec.experiment.vocab_training import VocabTrainingConfig, cached_descriptors
+
+    folder = tmp_path / "velodyne"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        pts = np.c_[rng.normal(0, 10, (5000, 3)), rng.uniform(0, 1, 5000)].astype(np.float32)
+        (folder / f"{i:06d}.bin").write_bytes(pts.tobytes())
+    datasets = [{"source": "path", "path": str(folder)}]
+    cfg = VocabTrainingConfig(simulator=None, datasets=datasets, descriptor_cache=str(tmp_path / "c"), n_images=2)
+    fresh, labels = cached_descriptors(cfg)
+    (cache,) = (tmp_path / "c").iterdir()
+    with np.load(cache) as z:
+        saved = {k: z[k] for k in z.files}
+    for corrupt in ({**saved, "counts": saved["counts"] * 1000}, {**saved, "labels": saved["labels"][:1]}):
+        np.savez(cache, **corrupt)
+        again, again_labels = cached_descriptors(cfg)
+        assert again_labels == labels and all(np.array_equal(a, b) for a, b in zip(again, fresh, strict=True))

@@ -33,8 +33,9 @@ import numpy as np
 from pydantic import Field, ValidationError
 
 from placerec.config import DatasetConfig, PreprocessConfig, Section
-from placerec.errors import ConfigError
+from placerec.errors import ArtifactError, ConfigError
 from placerec.hashing import stable_hash
+from placerec.io.npz import read_npz_arrays
 from placerec.params import format_errors, resolve
 from placerec.safe_yaml import load_yaml_file
 
@@ -219,11 +220,13 @@ def cached_descriptors(
     path = Path(cfg.descriptor_cache) / f"descriptors_{cfg.features}_{digest}.npz"
     if path.is_file():
         try:
-            with np.load(path, allow_pickle=False) as z:
-                counts, flat, labels = z["counts"], z["descriptors"], [str(v) for v in z["labels"]]
+            z = read_npz_arrays(path, path, ArtifactError, "artifact", allow_deflate=False)
+            counts, flat, labels = z["counts"], z["descriptors"], [str(v) for v in z["labels"]]
+            if counts.ndim != 1 or len(labels) != counts.size or int(counts.sum()) != flat.shape[0]:
+                raise ArtifactError(f"{path}: counts, descriptors and labels of the cache disagree")
             log.info("descriptors from the cache %s", path)
             return np.split(flat, np.cumsum(counts)[:-1]), labels
-        except (OSError, ValueError, KeyError) as exc:
+        except (ArtifactError, KeyError, IndexError) as exc:
             log.warning("ignoring unreadable descriptor cache %s (%s)", path, exc)
     parts, labels = collect_descriptors(cfg, progress)
     from placerec.io.atomic import atomic_write
