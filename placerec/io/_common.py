@@ -122,6 +122,30 @@ def pick(columns: Mapping[str, np.ndarray], names: tuple[str, ...]) -> tuple[str
     return None
 
 
+def checked_ints(values: np.ndarray, dtype: np.dtype | str, where: str | Path, what: str) -> np.ndarray:
+    """``values`` (parsed as float64) as integers of ``dtype``; ScanFormatError naming ``where`` and ``what`` for
+    NaN/inf, a fraction or a value outside the type's range (instead of a silent wrap-around)."""
+    dt = np.dtype(dtype)
+    info = np.iinfo(dt)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        raise ScanFormatError(f"{where}: {what} holds NaN/inf; expected {dt.name} integers")
+    bad = (values < info.min) | (values > info.max) | (values != np.round(values))
+    if bad.any():
+        raise ScanFormatError(
+            f"{where}: {what} holds {values[bad][0]:g} ({int(bad.sum())} value(s) in all); expected {dt.name} "
+            f"integers in {info.min}..{info.max}"
+        )
+    return values.astype(dt)
+
+
+def _ring(name: str, col: np.ndarray, where: str | Path) -> np.ndarray:
+    """A ring column as placerec's int16; ScanFormatError when a value does not fit (or is not an integer)."""
+    if col.dtype.kind in "iu" and np.can_cast(col.dtype, np.int16):
+        return col.astype(np.int16)
+    return checked_ints(np.asarray(col, np.float64), np.int16, where, f"ring field {name!r} ({col.dtype.name})")
+
+
 def intensity_max_of(dtype: np.dtype) -> float | None:
     """Saturation value implied by an integer intensity type (255 for uint8, 65535 for uint16)."""
     if dtype.kind == "u" and dtype.itemsize <= 2:
@@ -166,7 +190,7 @@ def columns_to_scan(
         imax = intensity_max_of(inten[1].dtype)
         intensity = inten[1].astype(np.float32)
     ring_col = pick(columns, RING_NAMES)
-    ring = None if ring_col is None else ring_col[1].astype(np.int16)
+    ring = None if ring_col is None else _ring(*ring_col, where)
     time_col = pick(columns, TIME_NAMES)
     time = None if time_col is None else time_seconds(time_col[1])
     if shape is not None:

@@ -18,7 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from placerec.errors import ConfigError, ScanFormatError
-from placerec.io._common import columns_to_scan, guard, header_lines, read_bytes, structured_columns
+from placerec.io._common import (
+    checked_ints,
+    columns_to_scan,
+    guard,
+    header_lines,
+    read_bytes,
+    structured_columns,
+)
 from placerec.io.atomic import atomic_write
 from placerec.io.limits import check_size
 from placerec.io.lzf import LZFError, lzf_compress, lzf_decompress
@@ -175,9 +182,7 @@ def _ascii(buf: bytes, h: PcdHeader, where: Path) -> dict[str, np.ndarray]:
             col = vals[:, j]
             fdt = dt.fields[name][0]
             if fdt.kind in "iu":
-                if not np.isfinite(col).all():
-                    raise ScanFormatError(f"{where}: PCD ascii integer field {name!r} holds NaN/inf")
-                col = col.astype(fdt)
+                col = checked_ints(col, fdt, where, f"PCD ascii integer field {name!r}")
             cols[name] = col
         j += c
     return cols

@@ -13,7 +13,14 @@ from pathlib import Path
 import numpy as np
 
 from placerec.errors import ScanFormatError
-from placerec.io._common import columns_to_scan, guard, header_lines, read_bytes, structured_columns
+from placerec.io._common import (
+    checked_ints,
+    columns_to_scan,
+    guard,
+    header_lines,
+    read_bytes,
+    structured_columns,
+)
 from placerec.io.atomic import atomic_write
 from placerec.types import Scan
 
@@ -106,8 +113,12 @@ def read_ply(path: str | Path, *, organized: bool = False) -> Scan:
             vals = np.array([t.decode("ascii") for t in tokens], dtype=np.float64).reshape(n, k)
         except ValueError as exc:
             raise ScanFormatError(f"{p}: PLY ascii vertex data contains a non-number ({exc})") from None
-        cols = {name: vals[:, j].astype(t) if t[0] == "f" else _as_int(vals[:, j], t, name, p)
-                for j, (name, t) in enumerate(vertex.props)}
+        cols = {
+            name: vals[:, j].astype(t)
+            if t[0] == "f"
+            else checked_ints(vals[:, j], t, p, f"PLY ascii integer property {name!r}")
+            for j, (name, t) in enumerate(vertex.props)
+        }
     else:
         for e in elements[:idx]:
             if e.has_list:
@@ -122,12 +133,6 @@ def read_ply(path: str | Path, *, organized: bool = False) -> Scan:
         arr = np.frombuffer(buf, dtype=dt, count=n, offset=off)
         cols = {k: v.astype(v.dtype.newbyteorder("=")) for k, v in structured_columns(arr).items()}
     return columns_to_scan(cols, p)
-
-
-def _as_int(col: np.ndarray, t: str, name: str, where: Path) -> np.ndarray:
-    if not np.isfinite(col).all():
-        raise ScanFormatError(f"{where}: PLY integer property {name!r} holds NaN/inf")
-    return col.astype(t)
 
 
 def write_ply(path: str | Path, scan: Scan) -> None:
