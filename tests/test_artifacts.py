@@ -3,6 +3,7 @@ exception and never a silent load of other content; saves are atomic, keep the u
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import os
@@ -21,8 +22,9 @@ import pytest
 from placerec.calibration.table import CalibrationTable
 from placerec.errors import ArtifactError
 from placerec.io.atomic import atomic_write, load_artifact, save_artifact
+from placerec.retrieval.dbow.database import BowDatabase
 from placerec.retrieval.dbow.io import load_vocabulary, save_vocabulary
-from placerec.retrieval.dbow.vocabulary import train_vocabulary
+from placerec.retrieval.dbow.vocabulary import Vocabulary, train_vocabulary
 from placerec.retrieval.hbst import HBST
 from placerec.three_d.places import PlacesDatabase, PlacesParams
 
@@ -64,11 +66,28 @@ def _calibration(path: Path) -> None:
     ).save(path)  # fmt: skip
 
 
+@functools.cache
+def _small_vocabulary() -> Vocabulary:
+    rng = np.random.default_rng(4)
+    return train_vocabulary([rng.integers(0, 256, (40, 32), dtype=np.uint8) for _ in range(6)], k=4, L=3, seed=0)
+
+
+def _bow_database(path: Path) -> None:
+    voc = _small_vocabulary()
+    rng = np.random.default_rng(6)
+    db = BowDatabase(voc, levels_up=1)
+    for i in range(5):
+        bow, nodes = voc.transform(rng.integers(0, 256, (20, 32), dtype=np.uint8), levels_up=1)
+        db.add(bow, nodes if i != 2 else None, entry_id=100 + i)
+    db.save(path)
+
+
 def _load_places(p: Path) -> object:
     return PlacesDatabase.load(p)
 
 
 KINDS = {
+    "dbow-database": (_bow_database, lambda p: BowDatabase.load(p, _small_vocabulary()), lambda obj, p: obj.save(p)),
     "hbst": (_hbst, HBST.load, lambda obj, p: obj.save(p)),
     "places-db": (_places, _load_places, lambda obj, p: obj.save(p)),
     "intensity-calibration": (_calibration, CalibrationTable.load, lambda obj, p: obj.save(p)),
@@ -142,6 +161,17 @@ def _generic_edits(arrays: dict[str, np.ndarray]) -> dict[str, Edit]:
 
 
 SPECIFIC: dict[str, dict[str, Edit]] = {
+    "dbow-database": {
+        "bow_lens-x1000": _scaled("bow_lens", 1000),
+        "node_lens-x1000": _scaled("node_lens", 1000),
+        "ids-duplicated": lambda a, h: a.__setitem__("ids", np.full_like(a["ids"], 7)),
+        "words-beyond-vocabulary": lambda a, h: a.__setitem__("bow_words", a["bow_words"] + 10**6),
+        "words-negative": lambda a, h: a.__setitem__("bow_words", a["bow_words"] - 10**6),
+        "values-nan": _nan_at("bow_values"),
+        "levels_up": _meta("levels_up", 99),
+        "levels_up-string": _meta("levels_up", "1"),
+        "other-vocabulary": _meta("vocabulary", "0123"),
+    },
     "hbst": {
         "leaf_start-x1000": _scaled("leaf_start", 1000),
         "leaf_count+1": lambda a, h: a.__setitem__("leaf_count", a["leaf_count"] + 1),
@@ -272,10 +302,8 @@ def test_corrupted_artifacts_raise_artifact_error(tmp_path, kind):
 # -------------------------------------------------------------------------------------------- vocabularies
 @pytest.fixture(scope="module")
 def vocab_file(tmp_path_factory) -> Path:
-    rng = np.random.default_rng(4)
-    parts = [rng.integers(0, 256, (40, 32), dtype=np.uint8) for _ in range(6)]
     path = tmp_path_factory.mktemp("voc") / "v.dbow"
-    save_vocabulary(train_vocabulary(parts, k=4, L=3, seed=0), path)
+    save_vocabulary(_small_vocabulary(), path)
     return path
 
 

@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from placerec.errors import ArtifactError, ScanDataError
+from placerec.errors import ArtifactError, ScanDataError, short_repr
+from placerec.io.artifact_schema import Member, check_counts, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.retrieval.dbow.vocabulary import BowVector, Vocabulary
 
@@ -32,6 +33,16 @@ __all__ = ["BowDatabase", "QueryResults", "candidate_pairs"]
 
 _KIND = "dbow-database"
 _VERSION = 1
+# entries (ids, BoW vector lengths, direct-index lengths) and their concatenated postings and nodes
+_SCHEMA = {
+    "ids": Member("iu", ("n_entries",)),
+    "bow_lens": Member("iu", ("n_entries",), min_value=0),
+    "bow_words": Member("iu", ("n_postings",), min_value=0),
+    "bow_values": Member("f", ("n_postings",), finite=True),
+    "node_lens": Member("iu", ("n_entries",), min_value=0),
+    "nodes": Member("iu", ("n_nodes",)),
+    "has_nodes": Member("b", ("n_entries",)),
+}
 _MIN_BUFFER = 1 << 14
 
 
@@ -217,14 +228,24 @@ class BowDatabase:
 
     @classmethod
     def load(cls, path: str | Path, vocabulary: Vocabulary) -> BowDatabase:
-        arrays, header = load_artifact(path, _KIND, (_VERSION,))
+        """Read a database saved with ``vocabulary``; `ArtifactError` if the file is corrupt or inconsistent (counts
+        that do not add up, repeated ids, words outside the vocabulary) or was built with another vocabulary."""
+        arrays, header = load_artifact(path, _KIND, (_VERSION,), _SCHEMA)
         meta = header["meta"]
         if meta.get("vocabulary") != vocabulary.fingerprint:
             raise ArtifactError(
-                f"{path}: database was built with vocabulary {meta.get('vocabulary')}, "
+                f"{path}: database was built with vocabulary {short_repr(meta.get('vocabulary'))}, "
                 f"not the given one ({vocabulary.fingerprint})"
             )
-        db = cls(vocabulary, meta.get("levels_up"))
+        levels_up = meta.get("levels_up")
+        if levels_up is not None and (type(levels_up) is not int or not 0 <= levels_up <= vocabulary.L):
+            raise ArtifactError(f"{path}: levels_up must be None or 0..{vocabulary.L}, got {short_repr(levels_up)}")
+        check_unique(arrays["ids"], path, "ids")
+        check_counts(arrays["bow_lens"], arrays["bow_words"].shape[0], path, "bow_lens")
+        check_counts(arrays["node_lens"], arrays["nodes"].shape[0], path, "node_lens")
+        if arrays["bow_words"].size and arrays["bow_words"].max() >= vocabulary.n_words:
+            raise ArtifactError(f"{path}: 'bow_words' refer to words beyond the vocabulary's {vocabulary.n_words}")
+        db = cls(vocabulary, levels_up)
         b_off = np.r_[0, np.cumsum(arrays["bow_lens"])]
         n_off = np.r_[0, np.cumsum(arrays["node_lens"])]
         for i, eid in enumerate(arrays["ids"]):
