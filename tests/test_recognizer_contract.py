@@ -156,3 +156,34 @@ def test_blank_scan_does_not_match_a_real_frame_in_scan_context(scans):
     rec.add(0, scans[0])
     with pytest.raises(ScanDataError, match="valid points"):
         rec.query(Scan(np.zeros((64 * 1024, 3)), np.zeros(64 * 1024), shape=(64, 1024)))
+
+
+def _rewritten(rec, src, dst, change):
+    """A copy of the artifact ``src`` with ``change`` applied to its arrays (header kept)."""
+    import sys
+
+    from placerec.io.atomic import load_artifact, save_artifact
+
+    module = sys.modules[type(rec).__module__]
+    kind = getattr(module, "ARTIFACT_KIND", None) or module._KIND
+    arrays, header = load_artifact(src, kind, (1,))
+    change(arrays)
+    save_artifact(dst, kind, header["format_version"], arrays, header["meta"])
+    return dst
+
+
+def test_inconsistent_artifacts_are_artifact_errors(built, tmp_path):
+    name, rec, _ = built
+    rec.save(tmp_path / "db.npz")
+
+    def duplicate_ids(a):
+        a["ids"][1] = a["ids"][0]
+
+    def inflated_counts(a):  # e.g. place 0 would claim every descriptor
+        a["counts"][0] *= 1000
+
+    changes = (duplicate_ids, inflated_counts) if name != "scan-context" else (duplicate_ids,)
+    for change in changes:
+        bad = _rewritten(rec, tmp_path / "db.npz", tmp_path / f"{change.__name__}.npz", change)
+        with pytest.raises(ArtifactError, match=change.__name__):
+            _make(name).load(bad)

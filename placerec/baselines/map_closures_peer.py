@@ -32,6 +32,7 @@ import numpy as np
 from pydantic import Field
 
 from placerec.errors import ArtifactError, DependencyError, ScanDataError
+from placerec.io.artifact_schema import Member, check_counts, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
 from placerec.recognizer import Recognizer, params_key, require_points
@@ -41,6 +42,11 @@ __all__ = ["MapClosuresPeer", "MapClosuresParams"]
 
 _KIND = "map-closures-db"
 _VERSION = 1
+_SCHEMA = {
+    "ids": Member("iu", ("n_scans",)),
+    "counts": Member("iu", ("n_scans",), min_value=0),
+    "points": Member("f", ("n_points", 3), finite=True),
+}
 #: The peer never matches a map against the 3 maps stored just before it (its consecutive local maps).
 _PEER_SKIP = 3
 
@@ -164,24 +170,13 @@ class MapClosuresPeer(Recognizer):
         save_artifact(path, _KIND, _VERSION, arrays, {"params": self.params.model_dump(mode="json")})
 
     def load(self, path: str | Path) -> None:
-        arrays, header = load_artifact(path, _KIND, (_VERSION,))
+        arrays, header = load_artifact(path, _KIND, (_VERSION,), _SCHEMA)
         saved = (header.get("meta") or {}).get("params")
         if saved != self.params.model_dump(mode="json"):
             raise ArtifactError(f"{path}: database was made with other parameters: {saved}")
-        ids, counts, points = (np.asarray(arrays.get(k)) for k in ("ids", "counts", "points"))
-        n = ids.shape[0] if ids.ndim == 1 else -1
-        if (
-            n < 0
-            or counts.shape != (n,)
-            or (counts < 0).any()
-            or points.shape != (int(counts.sum()), 3)
-            or np.unique(ids).size != n
-            or not np.isfinite(points).all()
-        ):
-            raise ArtifactError(
-                f"{path}: inconsistent map-closures database (ids unique, one count per id, counts adding up to "
-                "the (N, 3) finite points expected)"
-            )
+        ids, counts, points = arrays["ids"], arrays["counts"], arrays["points"]
+        check_unique(ids, path, "ids")
+        check_counts(counts, points.shape[0], path, "counts")
         self._reset()
         offsets = np.r_[0, np.cumsum(counts)]
         for sid, a, b in zip(ids, offsets[:-1], offsets[1:], strict=True):

@@ -42,6 +42,7 @@ from pydantic import Field
 from scipy.spatial import cKDTree
 
 from placerec.errors import ArtifactError, ScanDataError
+from placerec.io.artifact_schema import Member, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
 from placerec.recognizer import Recognizer, params_key, require_points
@@ -61,6 +62,10 @@ __all__ = [
 ARTIFACT_KIND = "scan-context-db"
 FORMAT_VERSION = 1
 _DESCRIPTOR_PARAMS = ("num_rings", "num_sectors", "max_radius", "lidar_height")
+_SCHEMA = {
+    "descriptors": Member("f", ("n_entries", None, None), finite=True),
+    "ids": Member("iu", ("n_entries",)),
+}
 
 
 class ScanContextParams(Params):
@@ -368,7 +373,7 @@ class ScanContext(Recognizer):
     def load(self, path: str | Path) -> None:
         """Replace the database with a saved one; `ArtifactError` if it is corrupt or its descriptor parameters
         differ from this recognizer's."""
-        arrays, header = load_artifact(path, ARTIFACT_KIND, (FORMAT_VERSION,))
+        arrays, header = load_artifact(path, ARTIFACT_KIND, (FORMAT_VERSION,), _SCHEMA)
         saved = (header.get("meta") or {}).get("params") or {}
         mine = self.params.descriptor_dict()
         theirs = {k: saved.get(k) for k in _DESCRIPTOR_PARAMS}
@@ -377,20 +382,10 @@ class ScanContext(Recognizer):
             raise ArtifactError(
                 f"{path}: database was made with other Scan Context parameters (saved, ours): {diff}"
             )
-        desc, ids = arrays.get("descriptors"), arrays.get("ids")
-        R, S = self.params.num_rings, self.params.num_sectors
-        if (
-            desc is None
-            or ids is None
-            or desc.ndim != 3
-            or desc.shape[1:] != (R, S)
-            or ids.shape != desc.shape[:1]
-        ):
-            raise ArtifactError(f"{path}: scan-context database arrays are missing or malformed")
-        if np.unique(ids).size != ids.size:
-            raise ArtifactError(f"{path}: scan-context database has duplicate ids")
-        if not np.isfinite(desc).all():
-            raise ArtifactError(f"{path}: scan-context database has non-finite descriptors")
+        desc, ids = arrays["descriptors"], arrays["ids"]
+        if desc.shape[1:] != (self.params.num_rings, self.params.num_sectors):
+            raise ArtifactError(f"{path}: descriptors of shape {desc.shape[1:]} for parameters {mine}")
+        check_unique(ids, path, "ids")
         n = int(ids.size)
         self._desc = np.ascontiguousarray(desc, dtype=np.float32)
         self._keys = ring_key(self._desc).astype(np.float64)

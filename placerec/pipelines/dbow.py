@@ -38,12 +38,14 @@ import numpy as np
 from pydantic import Field
 
 from placerec.errors import ArtifactError, ScanDataError
+from placerec.io.artifact_schema import check_members
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
 from placerec.pipelines.visual import (
     VisualFrontend,
     VisualFrontendParams,
     check_saved_params,
+    features_schema,
     pack_features,
     shift_consensus,
     stored_features,
@@ -333,7 +335,8 @@ class VisualDBoW(VisualFrontend, Recognizer):
                 f"{path}: database was made with vocabulary {saved_voc}, "
                 f"not {self.vocabulary_path} ({self.vocabulary.fingerprint})"
             )
-        stored = stored_features(path, arrays, self.vocabulary.descriptor_size, self._dtype)
+        check_members(arrays, features_schema(self.vocabulary.descriptor_size, self.vocabulary.binary), path)
+        stored = stored_features(path, arrays)
         self._reset()
         for scan_id, desc in stored:
             self.add_description(scan_id, desc)

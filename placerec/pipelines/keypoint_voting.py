@@ -47,6 +47,7 @@ from pydantic import Field
 
 from placerec.errors import ArtifactError, DependencyError, ScanDataError
 from placerec.intensity import normalize_intensity
+from placerec.io.artifact_schema import Member, check_counts, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
 from placerec.recognizer import Recognizer, params_key, require_points
@@ -394,12 +395,12 @@ class KeypointVoting(Recognizer):
         save_artifact(path, _KIND, _VERSION, arrays, meta)
 
     def load(self, path: str | Path) -> None:
-        arrays, header = load_artifact(path, _KIND, (_VERSION,))
+        arrays, header = load_artifact(path, _KIND, (_VERSION,), _schema(self._dim))
         if header["meta"].get("params") != self.params.model_dump(mode="json"):
             raise ArtifactError(
                 f"{path}: database was made with other parameters: {header['meta'].get('params')}"
             )
-        _check_saved(path, arrays, self._dim)
+        _check_saved(path, arrays)
         self._reset()
         self._places = None
         kp = np.split(arrays["keypoints"], np.cumsum(arrays["counts"])[:-1]) if len(arrays["ids"]) else []
@@ -433,52 +434,27 @@ def _cat(parts: list[np.ndarray], empty: tuple[int, ...]) -> np.ndarray:
     return np.concatenate(parts).astype(np.float32) if parts else np.zeros(empty, np.float32)
 
 
-def _check_saved(path: str | Path, arrays: Mapping[str, np.ndarray], dim: int) -> None:
-    """`ArtifactError` unless a saved database's arrays are consistent (shapes, counts, unique ids, finite poses)."""
-    shapes = {
-        "ids": 1,
-        "poses": 3,
-        "counts": 1,
-        "keypoints": 2,
-        "descriptors": 2,
-        "buffer_ids": 1,
-        "buffer_poses": 3,
-        "buffer_travelled": 1,
-        "buffer_counts": 1,
-        "buffer_xyz": 2,
-        "buffer_intensity": 1,
+def _schema(dim: int) -> dict[str, Member]:
+    """The arrays of a saved database: entries (ids, poses, per-entry counts of keypoint/descriptor rows) and
+    the aggregation buffer (ids, poses, travelled distance, per-scan counts of cloud points)."""
+    return {
+        "ids": Member("iu", ("n_entries",)),
+        "poses": Member("f", ("n_entries", 4, 4), finite=True),
+        "counts": Member("iu", ("n_entries",), min_value=0),
+        "keypoints": Member("f", ("n_rows", 3), finite=True),
+        "descriptors": Member("f", ("n_rows", dim), finite=True),
+        "buffer_ids": Member("iu", ("n_buffer",)),
+        "buffer_poses": Member("f", ("n_buffer", 4, 4), finite=True),
+        "buffer_travelled": Member("f", ("n_buffer",), finite=True),
+        "buffer_counts": Member("iu", ("n_buffer",), min_value=0),
+        "buffer_xyz": Member("f", ("n_points", 3), finite=True),
+        "buffer_intensity": Member("f", ("n_points",), finite=True),
     }
-    bad = [k for k, nd in shapes.items() if k not in arrays or np.asarray(arrays[k]).ndim != nd]
-    if bad:
-        raise ArtifactError(f"{path}: keypoint-voting database arrays missing or of the wrong rank: {bad}")
-    ids, counts = arrays["ids"], arrays["counts"]
-    n, total = ids.shape[0], int(arrays["counts"].sum())
-    problems = []
-    if arrays["poses"].shape != (n, 4, 4) or counts.shape != (n,):
-        problems.append(f"{n} ids but poses {arrays['poses'].shape} and counts {counts.shape}")
-    if np.unique(ids).size != n:
-        problems.append("duplicate ids")
-    if (
-        (counts < 0).any()
-        or arrays["keypoints"].shape != (total, 3)
-        or arrays["descriptors"].shape != (total, dim)
-    ):
-        problems.append(
-            f"counts add up to {total}, keypoints are {arrays['keypoints'].shape}, descriptors "
-            f"{arrays['descriptors'].shape} (expected ({total}, 3), ({total}, {dim}))"
-        )
-    nb, bc = arrays["buffer_ids"].shape[0], arrays["buffer_counts"]
-    bt = int(bc.sum())
-    if (
-        arrays["buffer_poses"].shape != (nb, 4, 4)
-        or arrays["buffer_travelled"].shape != (nb,)
-        or bc.shape != (nb,)
-        or (bc < 0).any()
-        or arrays["buffer_xyz"].shape != (bt, 3)
-        or arrays["buffer_intensity"].shape != (bt,)
-    ):
-        problems.append("the aggregation buffer's arrays do not add up")
-    if not (np.isfinite(arrays["poses"]).all() and np.isfinite(arrays["buffer_poses"]).all()):
-        problems.append("non-finite poses")
-    if problems:
-        raise ArtifactError(f"{path}: inconsistent keypoint-voting database: {'; '.join(problems)}")
+
+
+def _check_saved(path: str | Path, arrays: Mapping[str, np.ndarray]) -> None:
+    """What `_schema` cannot state: unique ids, counts adding up to their rows."""
+    check_unique(arrays["ids"], path, "ids")
+    check_unique(arrays["buffer_ids"], path, "buffer_ids")
+    check_counts(arrays["counts"], arrays["descriptors"].shape[0], path, "counts")
+    check_counts(arrays["buffer_counts"], arrays["buffer_xyz"].shape[0], path, "buffer_counts")

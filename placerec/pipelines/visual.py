@@ -26,6 +26,7 @@ from pydantic import Field, SerializeAsAny, ValidationError, model_validator
 from placerec.errors import ArtifactError, ScanDataError
 from placerec.features.registry import ExtractorParams, extractor_params
 from placerec.image import ImageParams, make_image
+from placerec.io.artifact_schema import Member, check_counts, check_members, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params, SectionError
 from placerec.recognizer import Recognizer, params_key, require_points
@@ -43,6 +44,7 @@ __all__ = [
     "visual_frontend_key",
     "describe_visual",
     "pack_features",
+    "features_schema",
     "stored_features",
     "check_saved_params",
 ]
@@ -276,7 +278,8 @@ class VisualHBST(VisualFrontend, Recognizer):
     def load(self, path: str | Path) -> None:
         arrays, header = load_artifact(path, _KIND, (_VERSION,))
         check_saved_params(path, header, self.params)
-        stored = stored_features(path, arrays, self.extractor.descriptor_size, np.uint8)
+        check_members(arrays, features_schema(self.extractor.descriptor_size, binary=True), path)
+        stored = stored_features(path, arrays)
         self.tree = self._new_tree()
         self._keypoints, self._descriptors, self._width, self._order = {}, {}, {}, []
         for scan_id, desc in stored:
@@ -308,33 +311,28 @@ def check_saved_params(path: str | Path, header: dict[str, Any], params: Params)
         raise ArtifactError(f"{path}: database was made with other parameters: {saved}")
 
 
-def stored_features(
-    path: str | Path, arrays: Mapping[str, np.ndarray], dim: int, dtype: type
-) -> list[tuple[int, Description]]:
-    """(id, description) of every image of a saved visual database, after checking that ids are unique, counts
-    add up, widths are positive and the arrays have the expected shapes and dtypes (`ArtifactError` otherwise)."""
-    need = {"ids": 1, "counts": 1, "widths": 1, "keypoints": 2, "descriptors": 2}
-    bad = [k for k, nd in need.items() if k not in arrays or np.asarray(arrays[k]).ndim != nd]
-    if bad:
-        raise ArtifactError(f"{path}: visual database arrays missing or of the wrong rank: {bad}")
-    ids, counts, widths = arrays["ids"], arrays["counts"], arrays["widths"]
-    kp, desc = arrays["keypoints"], arrays["descriptors"]
-    n = ids.shape[0]
-    if counts.shape[0] != n or widths.shape[0] != n:
-        raise ArtifactError(f"{path}: {n} ids but {counts.shape[0]} counts and {widths.shape[0]} widths")
-    if np.unique(ids).size != n:
-        raise ArtifactError(f"{path}: duplicate image ids")
-    if (counts < 0).any() or (widths <= 0).any():
-        raise ArtifactError(f"{path}: negative feature counts or non-positive image widths")
-    total = int(counts.sum())
-    if kp.shape != (total, 2) or desc.shape != (total, dim) or desc.dtype != np.dtype(dtype):
-        raise ArtifactError(
-            f"{path}: counts add up to {total} features, but keypoints are {kp.shape} and descriptors "
-            f"{desc.shape} {desc.dtype} (expected ({total}, 2) and ({total}, {dim}) {np.dtype(dtype)})"
-        )
-    if not np.isfinite(kp).all() or ((kp[:, 0] < 0) | (kp[:, 0] >= np.repeat(widths, counts))).any():
-        raise ArtifactError(f"{path}: keypoints outside their images")
+def features_schema(dim: int, binary: bool) -> dict[str, Member]:
+    """The arrays of a saved visual database (`pack_features`) with ``dim``-wide binary or float descriptors."""
+    return {
+        "ids": Member("iu", ("n_images",)),
+        "counts": Member("iu", ("n_images",), min_value=0),
+        "widths": Member("iu", ("n_images",), min_value=1),
+        "keypoints": Member("f", ("n_features", 2), finite=True),
+        "descriptors": Member("u" if binary else "f", ("n_features", dim), finite=True),
+    }
+
+
+def stored_features(path: str | Path, arrays: Mapping[str, np.ndarray]) -> list[tuple[int, Description]]:
+    """(id, description) of every image of a saved visual database whose arrays passed `features_schema`, after
+    checking that ids are unique, counts add up and keypoints lie in their images (`ArtifactError` otherwise)."""
+    ids, counts, widths, kp = arrays["ids"], arrays["counts"], arrays["widths"], arrays["keypoints"]
+    check_unique(ids, path, "ids")
+    check_counts(counts, kp.shape[0], path, "counts")
+    u = kp[:, 0]  # sub-pixel positions may reach half a pixel past the border
+    if ((u < -1) | (u > np.repeat(widths, counts))).any():
+        raise ArtifactError(f"{path}: 'keypoints' lie outside their images ('widths')")
     offsets = np.r_[0, np.cumsum(counts)]
+    desc = arrays["descriptors"]
     return [
         (int(i), {"keypoints": kp[a:b], "descriptors": desc[a:b], "width": np.int64(w)})
         for i, a, b, w in zip(ids, offsets[:-1], offsets[1:], widths, strict=True)
