@@ -73,8 +73,18 @@ def _main(
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
 
 
+def _error_line(exc: Exception) -> str:
+    """A placerec error as one line: the lines of its message joined by "; " (by a space after a colon)."""
+    line = ""
+    for part in (" ".join(p.split()) for p in str(exc).splitlines()):
+        if part:
+            line = f"{line}{' ' if not line or line.endswith(':') else '; '}{part}"
+    return f"error:{line}"
+
+
 def _fail(exc: Exception) -> None:
-    typer.echo(f"error: {exc}", err=True)
+    """Print a placerec error as one line on stderr and exit with status 2."""
+    typer.echo(_error_line(exc), err=True)
     raise typer.Exit(2)
 
 
@@ -335,11 +345,18 @@ def calibrate(
     )
     typer.echo(f"wrote {out}")
 
+
 def main() -> None:
+    """The console script: a placerec error that a command let through still ends as one line, status 2."""
+    from placerec.errors import PlacerecError
+
     try:
         app()
     except KeyboardInterrupt:
         sys.exit(130)
+    except PlacerecError as exc:
+        print(_error_line(exc), file=sys.stderr)
+        sys.exit(2)
 
 
 if __name__ == "__main__":

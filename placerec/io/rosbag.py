@@ -8,6 +8,7 @@ or i; ``ring``; ``t``/``time`` (integer times are nanoseconds, as the Ouster dri
 from __future__ import annotations
 
 import logging
+import sqlite3
 import struct
 from pathlib import Path
 from typing import Any
@@ -16,11 +17,16 @@ import numpy as np
 
 from placerec.errors import DependencyError, ScanFormatError
 from placerec.io._common import columns_to_scan, structured_columns
+from placerec.safe_yaml import load_yaml_file
 from placerec.types import Scan
 
 __all__ = ["RosbagSequence", "pointcloud2_to_scan", "POINTCLOUD2"]
 
 log = logging.getLogger(__name__)
+
+# what rosbags lets through for a damaged bag: an empty or malformed metadata.yaml (TypeError, KeyError), a
+# corrupt rosbag2 .db3 (sqlite3.Error), truncated records (struct.error, IndexError)
+_BAG_ERRORS = (OSError, ValueError, KeyError, TypeError, IndexError, struct.error, sqlite3.Error)
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -62,6 +68,24 @@ def pointcloud2_to_scan(msg: Any, where: str, *, organized: bool = False, timest
     return columns_to_scan(structured_columns(arr), where, shape=shape, timestamp=timestamp)
 
 
+def _check_rosbag2_metadata(folder: Path) -> None:
+    """ScanFormatError naming ``metadata.yaml`` when it is not a rosbag2 metadata mapping (rosbags would fail
+    with a bare TypeError on an empty file)."""
+    meta = folder / "metadata.yaml"
+    d = load_yaml_file(meta, ScanFormatError)
+    if not isinstance(d, dict) or not isinstance(d.get("rosbag2_bagfile_information"), dict):
+        if d is None:
+            got = "an empty file"
+        elif isinstance(d, dict):
+            got = f"the keys {sorted(map(str, d))[:10]}"
+        else:
+            got = f"a {type(d).__name__}"
+        raise ScanFormatError(
+            f"{meta}: not rosbag2 metadata (expected a mapping with the key 'rosbag2_bagfile_information', got "
+            f"{got})"
+        )
+
+
 def _rosbags() -> tuple[Any, Any, Any]:
     try:
         from rosbags.highlevel import AnyReader, AnyReaderError
@@ -94,11 +118,13 @@ class RosbagSequence:
         AnyReader, AnyReaderError, typestore = _rosbags()
         self._path = Path(path)
         self._organized = organized
+        if self._path.is_dir():
+            _check_rosbag2_metadata(self._path)
         try:
             self._reader = AnyReader([self._path], default_typestore=typestore)
             self._reader.open()
-        except (AnyReaderError, OSError, ValueError, KeyError) as exc:
-            raise ScanFormatError(f"{self._path}: cannot open as a rosbag ({exc})") from exc
+        except (AnyReaderError, *_BAG_ERRORS) as exc:
+            raise ScanFormatError(f"{self._path}: cannot open as a rosbag ({type(exc).__name__}: {exc})") from exc
         clouds = [c for c in self._reader.connections if c.msgtype == POINTCLOUD2]
         topics = sorted({c.topic for c in clouds})
         if topic is None:
@@ -116,7 +142,7 @@ class RosbagSequence:
             for _, t, raw in self._reader.messages(connections=self._conns):
                 log_times.append(t)
                 stamps.append(_header_stamp(raw, self._reader.is2))
-        except (AnyReaderError, struct.error, IndexError, OSError, ValueError) as exc:
+        except (AnyReaderError, *_BAG_ERRORS) as exc:
             self.close()
             raise ScanFormatError(f"{self._path}: cannot index topic {topic} ({exc})") from exc
         self._log_times = np.asarray(log_times, dtype=np.int64)
@@ -136,16 +162,19 @@ class RosbagSequence:
             raise IndexError(f"message {index} out of range ({n} messages on {self._topic})")
         t = int(self._log_times[index])
         where = f"{self._path}:{self._topic}#{index}"
-        if not self._reader.isopen:
-            self._reader.open()
-        for k, (conn, _, raw) in enumerate(self._reader.messages(connections=self._conns, start=t, stop=t + 1)):
-            if k == self._rank[index]:
-                try:
-                    msg = self._reader.deserialize(raw, conn.msgtype)
-                except (ValueError, IndexError, struct.error, KeyError) as exc:
-                    raise ScanFormatError(f"{where}: cannot deserialize PointCloud2 ({exc})") from exc
-                return pointcloud2_to_scan(msg, where, organized=self._organized,
-                                           timestamp=float(self._stamps[index]))
+        try:
+            if not self._reader.isopen:
+                self._reader.open()
+            found = [
+                (conn, raw)
+                for k, (conn, _, raw) in enumerate(self._reader.messages(connections=self._conns, start=t, stop=t + 1))
+                if k == self._rank[index]
+            ]
+            msg = self._reader.deserialize(found[0][1], found[0][0].msgtype) if found else None
+        except (AnyReaderError, *_BAG_ERRORS) as exc:
+            raise ScanFormatError(f"{where}: cannot read PointCloud2 ({type(exc).__name__}: {exc})") from exc
+        if msg is not None:
+            return pointcloud2_to_scan(msg, where, organized=self._organized, timestamp=float(self._stamps[index]))
         raise ScanFormatError(f"{where}: message not found again in the bag")  # pragma: no cover
 
     @property

@@ -14,6 +14,7 @@ Both folder loaders understand two files written by placerec's simulator:
 
 from __future__ import annotations
 
+import inspect
 import logging
 from dataclasses import replace
 from pathlib import Path
@@ -62,6 +63,16 @@ def read_kitti_calib(path: str | Path) -> dict[str, np.ndarray]:
             raise ScanFormatError(f"{p}:{no}: expected 'KEY: 12 numbers', got {line[:60]!r}")
         out[key.strip()] = np.vstack([vals.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
     return out
+
+
+def _check_rigid(T: np.ndarray, what: str, tol: float = 1e-2) -> None:
+    """ScanFormatError unless the 4x4 ``T`` is a rigid transform (orthonormal rotation, determinant +1)."""
+    R = T[:3, :3]
+    if not np.isfinite(T).all() or not np.allclose(R @ R.T, np.eye(3), atol=tol) or np.linalg.det(R) < 0:
+        raise ScanFormatError(
+            f"{what} is not a rigid transform (rotation {np.round(R, 4).tolist()} is not orthonormal with "
+            "determinant +1); expected the velodyne -> camera 0 calibration"
+        )
 
 
 def _read_times(path: Path, n: int) -> np.ndarray:
@@ -178,6 +189,8 @@ class KittiSequence(_FileSequence):
                     break
         calib_path = root / "calib.txt"
         self.Tr = read_kitti_calib(calib_path).get("Tr") if calib_path.is_file() else None
+        if self.Tr is not None:
+            _check_rigid(self.Tr, f"{calib_path}: Tr")
         if poses is not None:
             P, _ = read_poses(poses, format="kitti")
             if poses_in_camera_frame and self.Tr is None:
@@ -241,6 +254,19 @@ def _bag_root(path: Path) -> Path | None:
     return None
 
 
+def _open(loader: type, path: Path, options: dict[str, Any]) -> Sequence:
+    """``loader(path, **options)``; ConfigError naming the loader and the options it takes for any other option."""
+    params = inspect.signature(loader.__init__).parameters
+    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        allowed = list(params)[2:]  # after self and the path
+        unknown = sorted(set(options) - set(allowed))
+        if unknown:
+            raise ConfigError(
+                f"{path}: opened as {loader.__name__}, which does not take option(s) {unknown}; it takes {allowed}"
+            )
+    return loader(path, **options)
+
+
 def open_sequence(path: str | Path, **options: Any) -> Sequence:
     """Open a sequence with the loader its path calls for; ``options`` go to that loader.
 
@@ -251,6 +277,8 @@ def open_sequence(path: str | Path, **options: Any) -> Sequence:
       ``.json`` beside the capture whose name matches best; option ``poses``; default: the
       ``<stem>_poses_kitti.txt`` beside the capture, if any);
     * any other folder -> `FolderSequence`.
+
+    An option the chosen loader does not take (e.g. ``format`` for a KITTI sequence folder) is a `ConfigError`.
     """
     p = Path(path)
     if not p.exists():
@@ -259,13 +287,13 @@ def open_sequence(path: str | Path, **options: Any) -> Sequence:
     if bag is not None:
         from placerec.io.rosbag import RosbagSequence
 
-        return RosbagSequence(bag, **options)
+        return _open(RosbagSequence, bag, options)
     if p.is_file() and p.suffix.lower() == ".pcap":
         from placerec.io.ouster import OusterSequence
 
-        return OusterSequence(p, **options)
+        return _open(OusterSequence, p, options)
     if p.is_dir() and (p / "velodyne").is_dir():
-        return KittiSequence(p, **options)
+        return _open(KittiSequence, p, options)
     if p.is_dir():
         return FolderSequence(p, **options)
     raise ScanFormatError(f"{p}: cannot open as a sequence (expected a folder, a rosbag or an Ouster .pcap)")
