@@ -110,3 +110,17 @@ def test_an_error_no_command_catches_still_ends_in_one_line():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert out.stderr.strip() == "error: scan.bin: first line; second line"
+
+
+def test_a_bag_damaged_after_opening_fails_on_access(tmp_path):
+    pytest.importorskip("rosbags", reason="rosbags not installed (pip install placerec[ros])")
+    from placerec.errors import ScanFormatError
+    from placerec.io import open_sequence
+
+    bag = _ros2_bag(tmp_path / "bag")
+    seq = open_sequence(bag)
+    seq.close()  # indexed; the next access reopens the bag
+    (db3,) = bag.glob("*.db3")
+    db3.write_bytes(db3.read_bytes()[:2048])
+    with pytest.raises(ScanFormatError, match=r"bag:/points#0: cannot read PointCloud2 \(DatabaseError"):
+        seq[0]

@@ -116,6 +116,7 @@ class RosbagSequence:
 
     def __init__(self, path: str | Path, topic: str | None = None, *, organized: bool = False) -> None:
         AnyReader, AnyReaderError, typestore = _rosbags()
+        self._read_errors = (AnyReaderError, *_BAG_ERRORS)
         self._path = Path(path)
         self._organized = organized
         if self._path.is_dir():
@@ -171,7 +172,7 @@ class RosbagSequence:
                 if k == self._rank[index]
             ]
             msg = self._reader.deserialize(found[0][1], found[0][0].msgtype) if found else None
-        except (AnyReaderError, *_BAG_ERRORS) as exc:
+        except self._read_errors as exc:
             raise ScanFormatError(f"{where}: cannot read PointCloud2 ({type(exc).__name__}: {exc})") from exc
         if msg is not None:
             return pointcloud2_to_scan(msg, where, organized=self._organized, timestamp=float(self._stamps[index]))
