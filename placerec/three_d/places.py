@@ -22,14 +22,14 @@ parameters that made it; `PlacesDatabase.load` refuses a file made with other fe
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import Field
 
 from placerec.errors import ArtifactError, ConfigError, ScanDataError, short_repr
 from placerec.intensity import normalize_intensity
@@ -72,22 +72,15 @@ _SCHEMA = {
 IntensityFn = Callable[[Scan], Scan]
 
 
-@dataclass(frozen=True)
-class PlacesParams:
+class PlacesParams(Params):
     """How a mapping sequence becomes places (see the module docstring) and how places are described."""
 
-    place_spacing: float = 5.0
-    window_m: float = 10.0
-    window_s: float | None = None
-    member_spacing: float = 2.0
-    store_clouds: bool = True
-    features: FeatureParams = field(default_factory=FeatureParams)
-
-    def check(self) -> None:
-        if self.place_spacing < 0 or self.window_m < 0 or self.member_spacing < 0:
-            raise ConfigError("places: place_spacing, window_m and member_spacing must be >= 0")
-        if self.window_s is not None and self.window_s < 0:
-            raise ConfigError("places: window_s must be >= 0 or None")
+    place_spacing: float = Field(5.0, ge=0, description="m between place centres (ISHOT paper Sec. IV-B)")
+    window_m: float = Field(10.0, ge=0, description="m travelled merged into a place (ISHOT paper Sec. IV-B)")
+    window_s: float | None = Field(None, ge=0, description="s of acquisition merged instead (None = off)")
+    member_spacing: float = Field(2.0, ge=0, description="m between the scans merged into a place")
+    store_clouds: bool = Field(True, description="keep each place's cloud in the database")
+    features: FeatureParams = Field(default_factory=FeatureParams)
 
 
 @dataclass(frozen=True)
@@ -99,14 +92,6 @@ class PlacePartition:
 
     def __len__(self) -> int:
         return int(self.centres.shape[0])
-
-
-def _jsonable(obj: Any) -> Any:
-    return json.loads(json.dumps(asdict(obj), default=_plain))
-
-
-def _plain(value: Any) -> Any:
-    return value.model_dump(mode="json") if isinstance(value, Params) else str(value)
 
 
 def features_json(features: FeatureParams) -> Any:
@@ -124,7 +109,6 @@ def partition_places(
     poses: np.ndarray, timestamps: np.ndarray | None, params: PlacesParams
 ) -> PlacePartition:
     """Place centres at least ``place_spacing`` apart (greedy in order) and their time/space windows."""
-    params.check()
     P = np.asarray(poses, dtype=np.float64)
     if P.ndim != 3 or P.shape[1:] != (4, 4) or P.shape[0] == 0:
         raise ScanDataError(f"places: poses must have shape (N, 4, 4) with N > 0, got {P.shape}")
@@ -242,7 +226,7 @@ class PlacesDatabase:
             arrays["cloud_xyz"] = _cat([c[0] for c in self.clouds], (0, 3))
             arrays["cloud_intensity"] = _cat([c[1] for c in self.clouds], (0,))
         meta = {
-            "params": _jsonable(self.params),
+            "params": self.params.model_dump(mode="json"),
             "descriptor": self.descriptor,
             "dim": int(self.descriptors.shape[1]),
             "intensity": self.intensity,
@@ -263,9 +247,7 @@ class PlacesDatabase:
         meta = header["meta"]
         _check_layout(arrays, meta, path)
         try:
-            from pydantic import TypeAdapter
-
-            params = TypeAdapter(PlacesParams).validate_python(meta["params"])
+            params = PlacesParams.model_validate(meta["params"])
             src = np.split(arrays["sources"], np.cumsum(arrays["source_counts"])[:-1])
             clouds = None
             if "cloud_counts" in arrays:

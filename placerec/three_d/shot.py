@@ -31,11 +31,13 @@ than 5 neighbours) get an all-zero row and ``valid=False`` instead of PCL's NaN 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
-from placerec.errors import ConfigError, ScanDataError
+from placerec.errors import ScanDataError
+from placerec.params import Params
 from placerec.three_d._neighbors import RadiusPairs, check_points, radius_pairs
 from placerec.three_d.lrf import lrf_from_offsets
 
@@ -48,26 +50,20 @@ SHAPE_BINS = 11
 INTENSITY_BINS = 31
 SHAPE_DIM = N_VOLUMES * SHAPE_BINS  # 352
 ISHOT_DIM = SHAPE_DIM + N_VOLUMES * INTENSITY_BINS  # 1344
-_NORMALIZATIONS = ("joint", "per_part")
 _SECTOR = np.pi / 4
 
 
-@dataclass(frozen=True)
-class SHOTParams:
+class SHOTParams(Params):
     """SHOT/ISHOT settings. ``lrf_radius`` None = ``support_radius`` (PCL default); 7 m = ISHOT paper."""
 
-    support_radius: float = 7.0
-    lrf_radius: float | None = None
-    normalization: str = "joint"
-    pcl_bin_wrap: bool = False
-
-    def check(self) -> None:
-        if self.support_radius <= 0 or (self.lrf_radius is not None and self.lrf_radius <= 0):
-            raise ConfigError("shot: support_radius and lrf_radius must be positive")
-        if self.normalization not in _NORMALIZATIONS:
-            raise ConfigError(
-                f"shot: unknown normalization {self.normalization!r}; allowed: {list(_NORMALIZATIONS)}"
-            )
+    support_radius: float = Field(7.0, gt=0, description="m; descriptor support (ISHOT paper Sec. V-B)")
+    lrf_radius: float | None = Field(
+        None, gt=0, description="m; local reference frame radius (None = support)"
+    )
+    normalization: Literal["joint", "per_part"] = Field(
+        "joint", description="L2 over the whole descriptor or per part"
+    )
+    pcl_bin_wrap: bool = Field(False, description="PCL's wrapped neighbour bins (for comparisons with PCL)")
 
 
 def _value_bins(value: np.ndarray, n_bins: int, wrap: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -153,7 +149,6 @@ def compute_shot(
     Neighbours with a non-finite normal are skipped (as PCL does).
     """
     params = params or SHOTParams()
-    params.check()
     P = check_points(points)
     n = P.shape[0]
     Nrm = np.asarray(normals, dtype=np.float64)
