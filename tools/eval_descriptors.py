@@ -41,7 +41,6 @@ import json
 import os
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -165,7 +164,7 @@ def auc(prec: np.ndarray, rec: np.ndarray) -> float:
 def evaluate(name, intensity, feats, map_seq, queries, places_params, gt_xy, grid):
     """Build the places database with ``feats``/``intensity``, match every query keypoint, return the results."""
     t0 = time.perf_counter()
-    pp = replace(places_params, features=feats)
+    pp = places_params.model_copy(update={"features": feats})
     db = build_places(map_seq, pp, intensity=intensity, intensity_label=name)
     t_db = time.perf_counter() - t0
     place_xy = db.poses[:, :2, 3]
