@@ -164,3 +164,12 @@ def test_describe_times_do_not_depend_on_the_cache_or_the_order(tmp_path, sim_sc
     swapped = _describe_ms(tmp_path, sim_scans, ["orb-dbow", "orb-hbst"])
     assert warm == cold and swapped == cold
     assert np.all(np.isfinite(cold["orb-hbst"]))
+
+
+@pytest.mark.parametrize("path", ["configs/demo.yaml", "configs/vpr_os1_64.yaml", "configs/vpr_hdl64.yaml"])
+def test_shipped_configs_resolve_under_the_strict_parameters(path):
+    from pathlib import Path
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / path)
+    for i, spec in enumerate(cfg.pipelines):
+        assert pipeline_params(spec.name, spec.params, f"pipelines[{i}].params") is not None
