@@ -69,7 +69,9 @@ def _calibration(path: Path) -> None:
 @functools.cache
 def _small_vocabulary() -> Vocabulary:
     rng = np.random.default_rng(4)
-    return train_vocabulary([rng.integers(0, 256, (40, 32), dtype=np.uint8) for _ in range(6)], k=4, L=3, seed=0)
+    return train_vocabulary(
+        [rng.integers(0, 256, (40, 32), dtype=np.uint8) for _ in range(6)], k=4, L=3, seed=0
+    )
 
 
 def _bow_database(path: Path) -> None:
@@ -87,7 +89,11 @@ def _load_places(p: Path) -> object:
 
 
 KINDS = {
-    "dbow-database": (_bow_database, lambda p: BowDatabase.load(p, _small_vocabulary()), lambda obj, p: obj.save(p)),
+    "dbow-database": (
+        _bow_database,
+        lambda p: BowDatabase.load(p, _small_vocabulary()),
+        lambda obj, p: obj.save(p),
+    ),
     "hbst": (_hbst, HBST.load, lambda obj, p: obj.save(p)),
     "places-db": (_places, _load_places, lambda obj, p: obj.save(p)),
     "intensity-calibration": (_calibration, CalibrationTable.load, lambda obj, p: obj.save(p)),
@@ -421,22 +427,27 @@ def test_saved_files_get_the_users_umask(tmp_path, umask):
         assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o666 & ~umask
 
 
-def test_temp_files_of_an_interrupted_save_are_removed_by_the_next_save(tmp_path):
-    target = tmp_path / "db.npz"
+def _crash_mid_save(target: Path) -> None:
+    """Another process starts saving ``target`` and dies before the rename (no cleanup code runs)."""
     crash = (
         "import os, sys\n"
         "from placerec.io.atomic import atomic_write\n"
         "with atomic_write(sys.argv[1]) as fh:\n"
         "    fh.write(b'half an artifact')\n"
         "    fh.flush()\n"
-        "    os._exit(1)  # killed mid-save: no cleanup runs\n"
+        "    os._exit(1)\n"
     )
     subprocess.run([sys.executable, "-c", crash, str(target)], check=False, cwd=Path(__file__).parents[1])
+
+
+def test_temp_files_of_an_interrupted_save_are_removed_by_the_next_save(tmp_path):
+    target = tmp_path / "db.npz"
+    _crash_mid_save(target)
     left = [p.name for p in tmp_path.iterdir()]
     assert len(left) == 1 and left[0].startswith(".db.npz.") and left[0].endswith(".tmp")
-    (tmp_path / ".other.npz.123.abc.tmp").write_bytes(b"another target's temp file")
+    (tmp_path / ".notes.txt.tmp").write_bytes(b"a user's file that merely looks temporary")
     save_artifact(target, "k", 1, {"x": np.arange(3)})
-    assert sorted(p.name for p in tmp_path.iterdir()) == [".other.npz.123.abc.tmp", "db.npz"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".notes.txt.tmp", "db.npz"]
     assert load_artifact(target, "k", (1,))[0]["x"].tolist() == [0, 1, 2]
 
 
@@ -473,3 +484,20 @@ def test_a_failed_save_leaves_the_old_file_and_no_temp(tmp_path):
         fh.write(b"new")
         raise RuntimeError("disk full")
     assert target.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["t.bin"]
+
+
+def test_a_crash_after_this_process_saved_into_the_folder_is_still_cleaned_up(tmp_path, monkeypatch):
+    listed = []
+    real_listdir = os.listdir
+    monkeypatch.setattr(os, "listdir", lambda p: listed.append(p) or real_listdir(p))
+    for i in range(20):  # a cache filling up: the folder is listed once, not once per save
+        save_artifact(tmp_path / f"{i}.npz", "k", 1, {"x": np.arange(i)})
+    assert len(listed) == 1
+
+    def temps() -> list[str]:
+        return [e.name for e in os.scandir(tmp_path) if e.name.endswith(".tmp")]
+
+    _crash_mid_save(tmp_path / "5.npz")  # another process dies mid-save after this one looked at the folder
+    assert temps()
+    save_artifact(tmp_path / "20.npz", "k", 1, {"x": np.arange(3)})
+    assert len(listed) == 2 and not temps()

@@ -8,7 +8,7 @@ the key ``__header__`` with ``kind``, ``format_version`` and free metadata (e.g.
 
 Files get the permissions the user's umask gives new files (not `tempfile`'s 0600). A save's temporary file is
 named ``.<target name>.<pid>.<random>.tmp`` beside the target; one left by a save that was interrupted (its
-process has ended) is removed by the next save of the same target.
+process has ended) is removed by the next save into the same folder.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
 import threading
 from collections.abc import Iterator
@@ -34,7 +35,10 @@ __all__ = ["atomic_write", "save_artifact", "load_artifact", "HEADER_KEY"]
 HEADER_KEY = "__header__"
 _MAX_HEADER_BYTES = 16 << 20
 _TMP_SUFFIX = ".tmp"
+# a temporary file: "." + target name + "." + the saving process's pid + "." + mkstemp's 8 random characters + ".tmp"
+_TMP_NAME = re.compile(r"^\.(?P<target>.+)\.(?P<pid>\d+)\.[a-z0-9_]{8}\.tmp$")
 _in_flight: set[str] = set()  # temporary files this process is writing now
+_seen: dict[str, int] = {}  # folder -> its mtime after this process's last save into it
 _lock = threading.Lock()
 
 
@@ -55,23 +59,33 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def _remove_stale_temps(path: Path) -> None:
-    """Remove temporary files of earlier saves of ``path`` whose process has ended (or, for this process, that
-    no save of this process is writing)."""
-    prefix = f".{path.name}."
+def _remove_stale_temps(folder: Path) -> None:
+    """Remove the temporary files that saves into ``folder`` left behind: those whose process has ended, and this
+    process's own that no save is writing. The folder is listed only if something other than this process's
+    saves changed it since the last look (its mtime), so filling a cache of thousands of files stays cheap."""
+    try:
+        if _seen.get(str(folder)) == os.stat(folder).st_mtime_ns:
+            return
+        names = os.listdir(folder)
+    except OSError:
+        return
+    for name in names:
+        match = _TMP_NAME.match(name)
+        if match is None:
+            continue
+        pid, tmp = int(match["pid"]), os.path.join(os.path.abspath(folder), name)  # as mkstemp names it
+        with _lock:
+            busy = tmp in _in_flight
+        if busy or (pid != os.getpid() and _pid_alive(pid)):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+
+
+def _note_folder(folder: Path) -> None:
+    """Remember ``folder``'s mtime after this process changed it (see `_remove_stale_temps`)."""
     with contextlib.suppress(OSError):
-        for entry in os.scandir(path.parent):
-            name = entry.name
-            if not (name.startswith(prefix) and name.endswith(_TMP_SUFFIX)):
-                continue
-            pid_text = name[len(prefix) : -len(_TMP_SUFFIX)].split(".", 1)[0]
-            pid = int(pid_text) if pid_text.isdigit() else None
-            with _lock:
-                busy = entry.path in _in_flight
-            if busy or (pid is not None and pid != os.getpid() and _pid_alive(pid)):
-                continue
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(entry.path)
+        _seen[str(folder)] = os.stat(folder).st_mtime_ns
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -93,11 +107,11 @@ def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
     """Open a temporary file beside ``path``; on success fsync it, rename it over ``path`` and fsync the folder.
 
     If the body raises, the temporary file is removed and ``path`` is left untouched. The file gets mode
-    ``0o666 & ~umask``. Temporary files left beside ``path`` by interrupted saves are removed first.
+    ``0o666 & ~umask``. Temporary files left in its folder by interrupted saves are removed first.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    _remove_stale_temps(path)
+    _remove_stale_temps(path.parent)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=_TMP_SUFFIX, dir=path.parent)
     with _lock:
         _in_flight.add(tmp)
@@ -109,6 +123,7 @@ def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
         _fsync_dir(path.parent)
+        _note_folder(path.parent)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -173,7 +188,9 @@ def _parse_header(raw: np.ndarray | None, path: Path) -> dict[str, Any]:
     if raw is None:
         raise ArtifactError(f"{path}: not a placerec artifact (no {HEADER_KEY!r} member)")
     if raw.dtype != np.uint8 or raw.ndim != 1 or raw.size > _MAX_HEADER_BYTES:
-        raise ArtifactError(f"{path}: header must be UTF-8 JSON bytes (uint8, 1-D), got {raw.dtype} {raw.shape}")
+        raise ArtifactError(
+            f"{path}: header must be UTF-8 JSON bytes (uint8, 1-D), got {raw.dtype} {raw.shape}"
+        )
     try:
         header = json.loads(raw.tobytes().decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:
