@@ -20,6 +20,11 @@ Azimuth wrap-around: intensity images are 360 degree panoramas, so with ``wrap_p
 padded left and right with ``pad`` columns copied from the opposite side; keypoints are only taken in the original
 columns (the padding is masked out), so a keypoint at the seam has its full patch, and ``u`` is shifted back.
 Keep ``pad`` a multiple of 8 so SURF's sampling grid stays aligned with the image columns.
+
+Low images: an image with fewer than 64 rows (16- and 32-beam sensors) has its rows interpolated linearly
+(``row_upsample``; default: the smallest integer factor reaching 128 rows) before extraction, and ``v`` is
+mapped back to its rows; an image that gives fewer than 20 features is reported once per extractor
+(`placerec.features.low_rows`).
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from pydantic import Field
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.features import compat
+from placerec.features.low_rows import row_factor, rows_back, upsample_rows, warn_few_features
 from placerec.features.surf import SURF
 from placerec.params import Params, resolve
 
@@ -170,6 +176,9 @@ class ExtractorParams(Params):
     nfeatures: int = Field(300, gt=0, description="features kept, strongest first (VPR paper Table I)")
     wrap_pad: bool = Field(True, description="pad the 360 degree panorama with the opposite side's columns")
     pad: int = Field(64, ge=0, description="px of wrap-around padding (a multiple of 8 keeps SURF aligned)")
+    row_upsample: int | None = Field(
+        None, ge=1, description="row upsampling before extraction (1 = off; None = images < 64 rows to >= 128)"
+    )
 
 
 class OrbParams(ExtractorParams):
@@ -273,6 +282,9 @@ class FeatureExtractor:
                     f"features.{self.name}: mask shape {m.shape} differs from the image's {img.shape}"
                 )
             m = np.where(m != 0, 255, 0).astype(np.uint8)
+        factor = row_factor(h, self.params.row_upsample)  # low images (16 beams): placerec.features.low_rows
+        if factor > 1:
+            img, m = upsample_rows(img, m, factor)
         pad = self.params.pad if self.params.wrap_pad else 0
         if pad:
             img = np.pad(img, ((0, 0), (pad, pad)), mode="wrap")
@@ -286,6 +298,8 @@ class FeatureExtractor:
         kps = kps.select(keep)
         xy = kps.xy.copy()
         xy[:, 0] -= pad
+        xy[:, 1] = rows_back(xy[:, 1], factor)
+        warn_few_features(self, self.name, len(keep), (h, w), self.params.nfeatures)
         desc = (
             np.asarray(desc)[keep]
             if len(desc)
