@@ -231,3 +231,15 @@ def test_a_corrupt_descriptor_cache_is_recomputed_not_used(tmp_path):
         np.savez(cache, **corrupt)
         again, again_labels = cached_descriptors(cfg)
         assert again_labels == labels and all(np.array_equal(a, b) for a, b in zip(again, fresh, strict=True))
+
+
+@pytest.mark.parametrize("descr", ["|V0", "|S0", "<U0"])
+def test_zero_size_dtypes_are_refused(tmp_path, descr):
+    npy = tmp_path / "z.npy"
+    npy.write_bytes(_npy_header((5,), descr))
+    with pytest.raises(ScanFormatError, match="no bytes per element"):
+        read_scan(npy)
+    art, data = tmp_path / "z.npz", _npy_header((5,), descr)
+    _zip_one_member(art, "a.npy", data, zipfile.ZIP_STORED, len(data), zlib.crc32(data))
+    with pytest.raises(ArtifactError, match="no bytes per element"):
+        load_artifact(art, "k", (1,))

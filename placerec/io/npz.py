@@ -26,10 +26,20 @@ __all__ = ["parse_npy", "read_npz_arrays"]
 
 _CODECS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflate"}
 # what corrupt bytes can raise inside zipfile / zlib / numpy's header parser
-_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, struct.error, NotImplementedError, RuntimeError)
+_ZIP_ERRORS = (
+    zipfile.BadZipFile,
+    zlib.error,
+    EOFError,
+    OSError,
+    struct.error,
+    NotImplementedError,
+    RuntimeError,
+)
 
 
-def _read_header(fp: BinaryIO, where: str, error: type[PlacerecError]) -> tuple[tuple[int, ...], bool, np.dtype]:
+def _read_header(
+    fp: BinaryIO, where: str, error: type[PlacerecError]
+) -> tuple[tuple[int, ...], bool, np.dtype]:
     try:
         version = np.lib.format.read_magic(fp)
         if version == (1, 0):
@@ -44,6 +54,8 @@ def _read_header(fp: BinaryIO, where: str, error: type[PlacerecError]) -> tuple[
         raise error(f"{where}: not a valid .npy array ({type(exc).__name__}: {exc})") from None
     if dtype.hasobject:
         raise error(f"{where}: .npy holds Python objects (pickles are not loaded)")
+    if dtype.itemsize == 0:
+        raise error(f"{where}: .npy dtype {dtype} has no bytes per element")
     return tuple(int(v) for v in shape), bool(fortran), dtype
 
 
@@ -52,16 +64,24 @@ def _nbytes(shape: tuple[int, ...], dtype: np.dtype) -> int:
 
 
 def parse_npy(
-    buf: bytes, where: str | Path, error: type[PlacerecError], cls: FileClass = "scan", limit: int | None = None
+    buf: bytes,
+    where: str | Path,
+    error: type[PlacerecError],
+    cls: FileClass = "scan",
+    limit: int | None = None,
 ) -> np.ndarray:
     """Decode the bytes of one ``.npy`` file (no pickles) after checking its header against the data size and the
     load cap of ``cls``. The array is a read-only view of ``buf``."""
     f = io.BytesIO(buf)
     shape, fortran, dtype = _read_header(f, str(where), error)
-    need = check_size(_nbytes(shape, dtype), where, f".npy header (shape {shape} of {dtype})", error, cls, limit)
+    need = check_size(
+        _nbytes(shape, dtype), where, f".npy header (shape {shape} of {dtype})", error, cls, limit
+    )
     have = len(buf) - f.tell()
     if have < need:
-        raise error(f"{where}: .npy data truncated: {have} bytes, expected {need} for shape {shape} of {dtype}")
+        raise error(
+            f"{where}: .npy data truncated: {have} bytes, expected {need} for shape {shape} of {dtype}"
+        )
     arr = np.frombuffer(buf, dtype=dtype, count=math.prod(shape), offset=f.tell())
     return arr.reshape(shape, order="F" if fortran else "C")
 
@@ -93,7 +113,9 @@ def read_npz_arrays(
             infos = zf.infolist()
             names = [info.filename for info in infos]
             if len(set(names)) != len(names):
-                raise error(f"{where}: .npz has duplicate members {sorted({n for n in names if names.count(n) > 1})}")
+                raise error(
+                    f"{where}: .npz has duplicate members {sorted({n for n in names if names.count(n) > 1})}"
+                )
             for info in infos:
                 if not info.filename.endswith(".npy"):
                     raise error(f"{where}: .npz member {info.filename!r} is not a .npy array")
@@ -121,7 +143,9 @@ def read_npz_arrays(
     return out
 
 
-def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, where: str, error: type[PlacerecError]) -> np.ndarray:
+def _read_member(
+    zf: zipfile.ZipFile, info: zipfile.ZipInfo, where: str, error: type[PlacerecError]
+) -> np.ndarray:
     with zf.open(info) as fh:
         shape, fortran, dtype = _read_header(fh, where, error)
         need = _nbytes(shape, dtype)
