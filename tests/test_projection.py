@@ -132,12 +132,14 @@ def _degenerate(case: str) -> Scan:
         return _scan(rng.normal(size=(10, 3)) * 10, rng.random(10), sensor=_VLP16)
     if case == "empty":
         return _scan(np.zeros((0, 3)), np.zeros(0), ring=np.zeros(0), sensor=_VLP16)
+    if case == "organised-origin":  # an organised scan with no valid return
+        return _scan(np.zeros((16 * 1800, 3)), np.zeros(16 * 1800), shape=(16, 1800), sensor=_VLP16)
     raise AssertionError(case)
 
 
 @pytest.mark.parametrize("mode", ["auto", "uniform", "per-beam"])
 @pytest.mark.parametrize(
-    "case", ["origin", "far", "outside-fov", "ten-points", "empty"]
+    "case", ["origin", "far", "outside-fov", "ten-points", "empty", "organised-origin"]
 )
 def test_degenerate_scans_give_a_blank_or_sparse_image(case, mode):
     scan = _degenerate(case)
