@@ -140,7 +140,7 @@ def info(
         Path, typer.Argument(help="A scan file (.bin .pcd .ply .npy .npz) or a sequence folder/bag.")
     ],
     format: Annotated[
-        str | None, typer.Option(help="Force a reader, e.g. 'nclt' for NCLT .bin files.")
+        str | None, typer.Option(help="Force a reader (.bin files are recognised as 'kitti' or 'nclt').")
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
 ) -> None:

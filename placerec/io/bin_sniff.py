@@ -26,8 +26,8 @@ log = logging.getLogger(__name__)
 KITTI_MAX_PLAUSIBLE_M = 1.0e4
 #: fraction of implausible points above which a file is not KITTI
 _MAX_IMPLAUSIBLE = 0.1
-#: bytes looked at (4096 KITTI records)
-SNIFF_BYTES = 64 * 1024
+#: bytes looked at (1024 KITTI records, 2048 NCLT records)
+SNIFF_BYTES = 16 * 1024
 
 
 def _kitti_implausible_fraction(head: bytes) -> float:
