@@ -158,3 +158,13 @@ def test_open_sequence_dispatch_errors(tmp_path: Path) -> None:
     (tmp_path / "empty").mkdir()
     with pytest.raises(ScanFormatError, match="no scan files"):
         open_sequence(tmp_path / "empty")
+
+
+def test_folder_of_kitti_bins_with_sensor_yaml_gets_raw_intensity(tmp_path: Path) -> None:
+    # as for a KITTI sequence folder: [0, 1] reflectance times the sensor.yaml's intensity_max
+    rng = np.random.default_rng(5)
+    write_scan(tmp_path / "0.bin", Scan(rng.normal(size=(50, 3)) * 10, np.linspace(0, 1, 50)))
+    (tmp_path / "sensor.yaml").write_text("name: vlp16\nintensity_max: 255\n")
+    s = FolderSequence(tmp_path)[0]
+    assert s.sensor.name == "vlp16"
+    np.testing.assert_allclose(s.intensity, np.linspace(0, 255, 50), rtol=1e-6)
