@@ -37,7 +37,9 @@ def read_npy(path: str | Path, *, organized: bool = False) -> Scan:
     arr = parse_npy(buf, p, ScanFormatError)
     if arr.dtype.names:
         if arr.ndim not in (1, 2):
-            raise ScanFormatError(f"{p}: structured .npy must be 1-D or 2-D (organised), got shape {arr.shape}")
+            raise ScanFormatError(
+                f"{p}: structured .npy must be 1-D or 2-D (organised), got shape {arr.shape}"
+            )
         shape = (int(arr.shape[0]), int(arr.shape[1])) if arr.ndim == 2 and organized else None
         return columns_to_scan(structured_columns(arr), p, shape=shape)
     if arr.dtype.kind not in "fiu":
@@ -47,8 +49,10 @@ def read_npy(path: str | Path, *, organized: bool = False) -> Scan:
         shape = (int(arr.shape[0]), int(arr.shape[1])) if organized else None
         arr = arr.reshape(-1, arr.shape[2])
     if arr.ndim != 2 or arr.shape[1] not in (3, 4):
-        raise ScanFormatError(f"{p}: .npy array has shape {arr.shape}; expected (N, 3), (N, 4), (H, W, 3|4) "
-                              "or a structured array with x, y, z fields")
+        raise ScanFormatError(
+            f"{p}: .npy array has shape {arr.shape}; expected (N, 3), (N, 4), (H, W, 3|4) "
+            "or a structured array with x, y, z fields"
+        )
     intensity = arr[:, 3] if arr.shape[1] == 4 else np.zeros(arr.shape[0], np.float32)
     cols = {"x": arr[:, 0], "y": arr[:, 1], "z": arr[:, 2], "intensity": intensity}
     return columns_to_scan(cols, p, shape=shape)
@@ -60,7 +64,9 @@ def read_npz(path: str | Path, *, organized: bool = False) -> Scan:
     p, buf = read_bytes(path, ".npz")
     arrays = read_npz_arrays(buf, p, ScanFormatError, "scan", keys=_NPZ_KEYS)
     if "xyz" not in arrays:
-        raise ScanFormatError(f"{p}: .npz has no 'xyz' array (keys found: {sorted(arrays)}; expected {_NPZ_KEYS})")
+        raise ScanFormatError(
+            f"{p}: .npz has no 'xyz' array (keys found: {sorted(arrays)}; expected {_NPZ_KEYS})"
+        )
     xyz = arrays["xyz"]
     if xyz.ndim != 2 or xyz.shape[1] != 3 or xyz.dtype.kind not in "fiu":
         raise ScanFormatError(f"{p}: .npz 'xyz' must be an (N, 3) numeric array, got {xyz.shape} {xyz.dtype}")
