@@ -9,8 +9,9 @@
 
 Scans get consecutive ids from 0 in the order they are fed. Each scan first queries the database restricted to
 scans older than the exclusion window, then is added. A scan the recognizer cannot describe (blank, a few points)
-raises `ScanDataError` and takes no id; `skip` records a frame that is no place, so ids can follow frame numbers. Candidates with ``score >= threshold`` are accepted and
-returned; the threshold is applied here, inside the library. ``relative_pose`` (when the pipeline estimates one)
+raises `ScanDataError` and takes no id; `skip` records a frame that is no place, so ids can follow frame numbers.
+Candidates with ``score >= threshold`` are accepted and returned; the threshold is applied here, inside the
+library. ``relative_pose`` (when the pipeline estimates one)
 is ``T_match_query``: it maps points of the new scan into the frame of the matched older scan.
 """
 

@@ -72,12 +72,20 @@ def test_candidate_and_protocol_shape():
     c = Candidate(query_id=5, match_id=1, score=0.9)
     assert c.relative_pose is None and c.extra == {}
 
-    class Dummy:
-        name = "dummy"
+    class ScanOnly:
+        name = "scan-only"
 
         def add(self, scan_id, scan, pose=None): ...
         def query(self, scan, k=1, max_id=None, query_id=-1): return []
         def save(self, path): ...
         def load(self, path): ...
 
-    assert isinstance(Dummy(), PlaceRecognizer)
+    class Full(ScanOnly):
+        frontend_key = "full"
+
+        def describe(self, scan): return {}
+        def add_description(self, scan_id, description, pose=None): ...
+        def query_description(self, description, k=1, max_id=None, query_id=-1): return []
+
+    assert isinstance(Full(), PlaceRecognizer)
+    assert not isinstance(ScanOnly(), PlaceRecognizer)  # the one protocol includes the front end split
