@@ -18,7 +18,7 @@ from typing import Any, get_args
 
 from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
 
-from placerec.errors import ConfigError
+from placerec.errors import ConfigError, short_repr
 
 __all__ = ["Params", "SectionError", "deep_merge", "resolve", "format_errors", "param_rows"]
 
@@ -124,11 +124,6 @@ def _dotted(parts: tuple[Any, ...]) -> str:
     return out
 
 
-def _short(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= _MAX_REPR else text[: _MAX_REPR - 3] + "..."
-
-
 class SectionError(ValueError):
     """Raised by a validator that validates a section itself (e.g. with a model chosen by a sibling key):
     carries that section's error lines, which `format_errors` prefixes with the section's path."""
@@ -152,7 +147,7 @@ def error_lines(exc: ValidationError, model: type[BaseModel], path: str = "") ->
             lines.append(f"{key}: unknown key; allowed keys there: {', '.join(allowed)}")
         else:
             msg = err["msg"].removeprefix("Value error, ")
-            got = "" if err["type"] == "value_error" else f" (got {_short(err.get('input'))})"
+            got = "" if err["type"] == "value_error" else f" (got {short_repr(err.get('input'), _MAX_REPR)})"
             lines.append(f"{key or '<parameters>'}: {msg}{got}")
     return lines
 
