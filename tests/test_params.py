@@ -173,3 +173,36 @@ def test_shipped_configs_resolve_under_the_strict_parameters(path):
     cfg = load_config(Path(__file__).resolve().parents[1] / path)
     for i, spec in enumerate(cfg.pipelines):
         assert pipeline_params(spec.name, spec.params, f"pipelines[{i}].params") is not None
+
+
+def test_placerec_run_refuses_code_in_a_config(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = tmp_path / "evil.yaml"
+    config.write_text(
+        'pipelines: [{name: "subprocess:run", params: {args: "touch x", shell: true}}]\n'
+        "output: {progress: false, cache_dir: null}\n"
+    )
+    result = CliRunner().invoke(app, ["run", str(config), "--out", str(tmp_path / "results")])
+    assert (
+        result.exit_code == 2 and "not a class implementing placerec.types.PlaceRecognizer" in result.output
+    )
+    assert not (tmp_path / "x").exists()
+
+
+def test_runner_keeps_scan_indices_when_a_pipeline_refuses_a_scan(tmp_path):
+    from placerec.types import Scan
+    from tests.test_experiment import pole_world_sequence
+
+    seq = pole_world_sequence(n_loop=40, n_revisit=10)
+    scans = [seq[i] for i in range(len(seq))]
+    scans[5] = Scan(np.zeros((1000, 3)), np.zeros(1000))  # a blank frame (every return invalid)
+    seq = ListSequence(scans, seq.poses, seq.timestamps, name="poles-with-a-blank")
+    cfg = _config(tmp_path, {"name": "scan-context"})
+    cfg.evaluation.exclusion.frames = 20
+    _, (record,) = run_loop(cfg, seq)
+    assert record.query_ids == list(range(len(seq))) and record.candidates[5] == []
+    assert all(c.match_id != 5 for cands in record.candidates for c in cands)
+    revisits = [record.candidates[q][0].match_id for q in range(40, 50) if q != 45]
+    assert revisits == [
+        q - 40 for q in range(40, 50) if q != 45
+    ]  # ids are still scan indices after the blank

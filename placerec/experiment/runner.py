@@ -114,11 +114,12 @@ class _Frontends:
 
     def __init__(self, cache: DescriptionCache) -> None:
         self.cache = cache
-        self._current: dict[str, tuple[Description, float]] = {}
+        self._current: dict[str, tuple[Description, float] | ScanDataError] = {}
         self._index = -1
 
     def describe(self, rec: PlaceRecognizer, index: int, scan: Scan) -> tuple[Description, float]:
-        """(description, describe ms) of scan ``index`` by ``rec``'s front end; `ScanDataError` from it passes."""
+        """(description, describe ms) of scan ``index`` by ``rec``'s front end; a `ScanDataError` from it is
+        raised again for every pipeline sharing the front end, without describing the scan again."""
         if index != self._index:
             self._current.clear()
             self._index = index
@@ -128,12 +129,19 @@ class _Frontends:
             hit = self.cache.get(key, index) if on_disk else None
             if hit is None:
                 t0 = time.perf_counter()
-                desc = rec.describe(scan)
+                try:
+                    desc = rec.describe(scan)
+                except ScanDataError as exc:
+                    self._current[key] = exc
+                    raise
                 hit = desc, (time.perf_counter() - t0) * 1e3
                 if on_disk:
                     self.cache.put(key, index, *hit)
             self._current[key] = hit
-        return self._current[key]
+        found = self._current[key]
+        if isinstance(found, ScanDataError):
+            raise found
+        return found
 
 
 def _build_pipelines(cfg: ExperimentConfig) -> list[tuple[PipelineRecord, PlaceRecognizer]]:
