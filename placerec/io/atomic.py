@@ -43,7 +43,13 @@ _lock = threading.Lock()
 
 
 def _umask() -> int:
-    with _lock:  # os.umask can only be read by setting it
+    """The process's umask: from /proc where the kernel reports it, else by setting and restoring it (which,
+    for a moment, applies 0o022 to files other threads create)."""
+    with contextlib.suppress(OSError, ValueError), open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    with _lock:
         mask = os.umask(0o022)
         os.umask(mask)
     return mask
@@ -116,8 +122,8 @@ def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
     with _lock:
         _in_flight.add(tmp)
     try:
-        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, mode) as fh:
+            os.fchmod(fh.fileno(), 0o666 & ~_umask())
             yield fh
             fh.flush()
             os.fsync(fh.fileno())
