@@ -45,7 +45,8 @@ _DECODE_ERRORS = (
 
 
 def check_file(path: str | Path, what: str) -> Path:
-    """The path as a `Path`; ScanFormatError if it is missing, not a file, or empty."""
+    """The path as a `Path`; ScanFormatError if it is missing, not a file, empty, or larger than the scan load cap
+    (`placerec.io.limits`: 1 GiB unless ``PLACEREC_MAX_SCAN_BYTES`` says otherwise)."""
     p = Path(path)
     if not p.exists():
         raise ScanFormatError(f"{p}: no such {what} file")

@@ -20,7 +20,14 @@ from typing import Literal
 
 from placerec.errors import ConfigError, PlacerecError
 
-__all__ = ["DEFAULT_MAX_SCAN_BYTES", "DEFAULT_MAX_ARTIFACT_BYTES", "ENV_VARS", "max_load_bytes", "check_size"]
+__all__ = [
+    "DEFAULT_MAX_SCAN_BYTES",
+    "DEFAULT_MAX_ARTIFACT_BYTES",
+    "ENV_VARS",
+    "FileClass",
+    "max_load_bytes",
+    "check_size",
+]
 
 DEFAULT_MAX_SCAN_BYTES = 1 << 30
 DEFAULT_MAX_ARTIFACT_BYTES = 4 << 30
