@@ -81,9 +81,10 @@ class VisualFrontendParams(Params):
         if not isinstance(data, Mapping):
             return data
         name = data.get("features", cls.model_fields["features"].default)
-        model = extractor_params(name) if isinstance(name, str) else None
+        # a bad ``features`` value is reported on that key; the common settings stand in for the extractor's
+        model = extractor_params(name) if isinstance(name, str) else ExtractorParams
         given = data.get("feature_params")
-        if model is None or isinstance(given, model):
+        if isinstance(given, model):
             return data
         if isinstance(given, ExtractorParams):
             raise ValueError(
