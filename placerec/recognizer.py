@@ -79,7 +79,8 @@ class Recognizer(ABC):
     """Base class of every place recognizer: implements ``add``/``query`` from the three primitives.
 
     Subclasses set ``name`` and ``Params`` and implement ``describe``, ``add_description``,
-    ``query_description``, ``save`` and ``load``; ``self.params`` holds the validated parameters.
+    ``query_description``, ``save`` and ``load``. ``Cls(params)`` takes a ``Params`` instance or a mapping
+    (merged deeply into the defaults), plus keyword overrides; ``self.params`` holds the validated parameters.
     ``frontend_key`` defaults to a hash of all parameters; override it with the front end's own ones so that
     pipelines sharing a front end share descriptions. ``cache_descriptions`` = False keeps descriptions out of
     the on-disk cache (when they are as large as the scan itself).
@@ -98,11 +99,6 @@ class Recognizer(ABC):
             base = params.model_dump() if isinstance(params, Params) else params
             params = resolve(self.Params, base, overrides, where=self.name)
         self.params = params
-
-    @classmethod
-    def from_params(cls, params: Mapping[str, Any] | None = None) -> Recognizer:
-        """Build from a parameter mapping (e.g. a config's), merged deeply into the defaults."""
-        return cls(resolve(cls.Params, params, where=cls.name))
 
     @property
     def frontend_key(self) -> str:

@@ -267,6 +267,6 @@ def test_describe_split_and_frontend_key():
     assert a.frontend_key != ScanContext(lidar_height=1.73).frontend_key
     b.add_description(3, desc)
     assert b.query_description(desc)[0].match_id == 3
-    assert ScanContext.from_params({"num_rings": 10}).params.num_rings == 10
-    with pytest.raises(ConfigError):
-        ScanContext.from_params({"rings": 10})
+    assert ScanContext({"num_rings": 10}).params.num_rings == 10
+    with pytest.raises(ConfigError, match="rings: unknown key"):
+        ScanContext({"rings": 10})
