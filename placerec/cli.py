@@ -118,7 +118,9 @@ def pipelines(
     from placerec.recognizer import PIPELINES, pipeline_params
 
     if name is None:
-        table = Table("pipeline", "description", title="registered pipelines (placerec pipelines NAME: parameters)")
+        table = Table(
+            "pipeline", "description", title="registered pipelines (placerec pipelines NAME: parameters)"
+        )
         for key, entry in PIPELINES.items():
             table.add_row(key, entry.summary)
         Console().print(table)
@@ -226,7 +228,9 @@ def run(
 def simulate(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (KITTI odometry layout).")],
     preset: Annotated[str, typer.Option(help="World preset: town, campus, industrial.")] = "town",
-    sensor: Annotated[str, typer.Option(help="Sensor: vlp16, hdl64, os1-64, os1-64-gen2, os1-128.")] = "os1-64",
+    sensor: Annotated[
+        str, typer.Option(help="Sensor: vlp16, hdl64, os1-64, os1-64-gen2, os1-128.")
+    ] = "os1-64",
     scans: Annotated[int | None, typer.Option(help="Number of scans (default: the whole route).")] = None,
     seed: Annotated[int, typer.Option(help="World and noise seed.")] = 0,
 ) -> None:
@@ -250,7 +254,9 @@ def train_vocab(
     config: Annotated[
         Path | None, typer.Option("--config", "-c", help="Training YAML (see configs/vocab_*.yaml).")
     ] = None,
-    out: Annotated[Path | None, typer.Option("--out", "-o", help="Vocabulary file (default: output).")] = None,
+    out: Annotated[
+        Path | None, typer.Option("--out", "-o", help="Vocabulary file (default: output).")
+    ] = None,
     n_images: Annotated[int | None, typer.Option(help="Override n_images.")] = None,
     workers: Annotated[int | None, typer.Option(help="Processes extracting features.")] = None,
 ) -> None:
@@ -279,10 +285,13 @@ def calibrate(
     format: Annotated[str | None, typer.Option(help="Force a reader, e.g. 'nclt'.")] = None,
     poses: Annotated[Path | None, typer.Option(help="Poses file (default: the sequence's own).")] = None,
     sim_world: Annotated[
-        str | None, typer.Option("--sim-world", help="Calibrate on the simulator instead: town, campus, industrial.")
+        str | None,
+        typer.Option("--sim-world", help="Calibrate on the simulator instead: town, campus, industrial."),
     ] = None,
     sim_sensor: Annotated[str, typer.Option("--sim-sensor", help="Simulated sensor.")] = "vlp16",
-    sim_scans: Annotated[int | None, typer.Option("--sim-scans", help="Simulated scans (default: the route).")] = None,
+    sim_scans: Annotated[
+        int | None, typer.Option("--sim-scans", help="Simulated scans (default: the route).")
+    ] = None,
     seed: Annotated[int, typer.Option(help="Simulator seed.")] = 0,
     voxel_size: Annotated[float, typer.Option(help="Map cell size (m).")] = 0.25,
     max_range: Annotated[float, typer.Option(help="Intensity range cut-off (m).")] = 30.0,
@@ -333,7 +342,9 @@ def calibrate(
         t0 = time.perf_counter()
         with Progress(transient=True) as bar:
             task = bar.add_task("reading scans", total=None)
-            table = calibrate_sequence(seq, params, lambda done, total: bar.update(task, completed=done, total=total))
+            table = calibrate_sequence(
+                seq, params, lambda done, total: bar.update(task, completed=done, total=total)
+            )
         table.save(out)
     except PlacerecError as exc:
         _fail(exc)

@@ -13,7 +13,9 @@ REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "re
 def real_data() -> Path:
     """The real LiDAR samples in ``../shared/data/real`` (skips the test when that folder is absent)."""
     if not REAL_DATA.is_dir():
-        pytest.skip(f"real sample data not found at {REAL_DATA} (it lives outside the repository, in ../shared)")
+        pytest.skip(
+            f"real sample data not found at {REAL_DATA} (it lives outside the repository, in ../shared)"
+        )
     return REAL_DATA
 
 

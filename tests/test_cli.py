@@ -81,7 +81,9 @@ def test_info_on_real_kitti(real_data, name):
 
 def test_simulate_writes_a_kitti_folder_placerec_reads_back(tmp_path):
     out = tmp_path / "sim"
-    result = runner.invoke(app, ["simulate", "--preset", "town", "--sensor", "vlp16", "--scans", "3", "--out", str(out)])
+    result = runner.invoke(
+        app, ["simulate", "--preset", "town", "--sensor", "vlp16", "--scans", "3", "--out", str(out)]
+    )
     assert result.exit_code == 0, result.output
     from placerec.io import open_sequence
 

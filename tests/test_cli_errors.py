@@ -45,12 +45,24 @@ def _ros2_bag(path: Path) -> Path:
 
     ts = get_typestore(Stores.ROS2_HUMBLE)
     T = ts.types
-    fields = [T["sensor_msgs/msg/PointField"](name=n, offset=4 * k, datatype=7, count=1) for k, n in enumerate("xyz")]
-    header = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="lidar")
+    fields = [
+        T["sensor_msgs/msg/PointField"](name=n, offset=4 * k, datatype=7, count=1)
+        for k, n in enumerate("xyz")
+    ]
+    header = T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="lidar"
+    )
     data = np.frombuffer(np.arange(30, dtype="<f4").tobytes(), np.uint8).copy()
     msg = T["sensor_msgs/msg/PointCloud2"](
-        header=header, height=1, width=10, fields=fields, is_bigendian=False, point_step=12, row_step=120,
-        data=data, is_dense=True,
+        header=header,
+        height=1,
+        width=10,
+        fields=fields,
+        is_bigendian=False,
+        point_step=12,
+        row_step=120,
+        data=data,
+        is_dense=True,
     )
     with Writer(path) as w:
         conn = w.add_connection("/points", "sensor_msgs/msg/PointCloud2", typestore=ts)

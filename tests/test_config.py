@@ -30,8 +30,14 @@ def test_nested_typo_and_bad_value():
 
 
 def test_overrides_parse_yaml_values():
-    cfg = load_config(None, ["dataset.simulator.n_scans=50", "preprocess.intensity.mode=linear",
-                             "preprocess.intensity.saturation=100"])
+    cfg = load_config(
+        None,
+        [
+            "dataset.simulator.n_scans=50",
+            "preprocess.intensity.mode=linear",
+            "preprocess.intensity.saturation=100",
+        ],
+    )
     assert cfg.dataset.simulator.n_scans == 50 and cfg.preprocess.intensity.saturation == 100.0
     with pytest.raises(ConfigError, match="key.path=value"):
         apply_overrides({}, ["novalue"])

@@ -112,7 +112,9 @@ def test_mask_and_input_validation():
 def test_config_errors_name_the_allowed_values():
     with pytest.raises(ConfigError, match=r"unknown extractor 'sift'.*'brisk'.*'fast-surf'.*'orb'.*'surf'"):
         make_extractor("sift")
-    with pytest.raises(ConfigError, match=r"features\.orb: nfeature: unknown key; allowed keys there:.* nfeatures"):
+    with pytest.raises(
+        ConfigError, match=r"features\.orb: nfeature: unknown key; allowed keys there:.* nfeatures"
+    ):
         make_extractor("orb", nfeature=100)
     with pytest.raises(ConfigError, match=r"features\.surf: n_octaves: .*valid integer"):
         make_extractor("surf", n_octaves=2.5)

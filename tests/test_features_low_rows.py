@@ -85,7 +85,9 @@ def _vlp16_scan(image: np.ndarray) -> Scan:
     theta = np.pi * (1 - 2 * (cols + 0.5) / 1800)  # eq. 2 inverted at the column centres
     phi = np.radians(elev)[rows]
     xyz = 10 * np.stack([np.cos(phi) * np.cos(theta), np.cos(phi) * np.sin(theta), np.sin(phi)], -1)
-    return Scan(xyz.reshape(-1, 3), image.reshape(-1).astype(np.float32), ring=rows.reshape(-1), sensor=sensor)
+    return Scan(
+        xyz.reshape(-1, 3), image.reshape(-1).astype(np.float32), ring=rows.reshape(-1), sensor=sensor
+    )
 
 
 def test_orb_hbst_recognises_a_vlp16_place():

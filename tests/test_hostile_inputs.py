@@ -204,11 +204,15 @@ def test_compressed_pcd_expanding_beyond_the_scan_cap_is_refused_before_decompre
 
     n = 100_000  # 1.6 MB of x, y, z, intensity once decompressed; LZF shrinks the zeros ~80 times
     path = tmp_path / "zeros.pcd"
-    write_pcd(path, Scan(xyz=np.zeros((n, 3), np.float32), intensity=np.zeros(n, np.float32)), "binary_compressed")
+    write_pcd(
+        path, Scan(xyz=np.zeros((n, 3), np.float32), intensity=np.zeros(n, np.float32)), "binary_compressed"
+    )
     assert len(read_scan(path)) == n
     monkeypatch.setenv(ENV_VARS["scan"], str(1 << 20))
     assert path.stat().st_size < 1 << 20
-    with pytest.raises(ScanFormatError, match="binary_compressed uncompressed size declares 1600000 bytes, over"):
+    with pytest.raises(
+        ScanFormatError, match="binary_compressed uncompressed size declares 1600000 bytes, over"
+    ):
         read_scan(path)
 
 
@@ -222,7 +226,9 @@ def test_a_corrupt_descriptor_cache_is_recomputed_not_used(tmp_path):
         pts = np.c_[rng.normal(0, 10, (5000, 3)), rng.uniform(0, 1, 5000)].astype(np.float32)
         (folder / f"{i:06d}.bin").write_bytes(pts.tobytes())
     datasets = [{"source": "path", "path": str(folder)}]
-    cfg = VocabTrainingConfig(simulator=None, datasets=datasets, descriptor_cache=str(tmp_path / "c"), n_images=2)
+    cfg = VocabTrainingConfig(
+        simulator=None, datasets=datasets, descriptor_cache=str(tmp_path / "c"), n_images=2
+    )
     fresh, labels = cached_descriptors(cfg)
     (cache,) = (tmp_path / "c").iterdir()
     with np.load(cache) as z:

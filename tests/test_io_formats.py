@@ -129,29 +129,48 @@ def test_pcd_organised_nan_and_empty(tmp_path: Path) -> None:
         assert len(read_scan(tmp_path / "e.pcd")) == 0
 
 
-def _pcd_bytes(fields, sizes, types, counts, rows: np.ndarray, data: str = "binary", width=None, height=1,
-               points=None) -> bytes:
+def _pcd_bytes(
+    fields, sizes, types, counts, rows: np.ndarray, data: str = "binary", width=None, height=1, points=None
+) -> bytes:
     n = rows.shape[0]
-    head = (f"VERSION 0.7\nFIELDS {' '.join(fields)}\nSIZE {' '.join(map(str, sizes))}\n"
-            f"TYPE {' '.join(types)}\nCOUNT {' '.join(map(str, counts))}\nWIDTH {width or n}\nHEIGHT {height}\n"
-            f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n if points is None else points}\nDATA {data}\n")
+    head = (
+        f"VERSION 0.7\nFIELDS {' '.join(fields)}\nSIZE {' '.join(map(str, sizes))}\n"
+        f"TYPE {' '.join(types)}\nCOUNT {' '.join(map(str, counts))}\nWIDTH {width or n}\nHEIGHT {height}\n"
+        f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n if points is None else points}\nDATA {data}\n"
+    )
     return head.encode() + (rows.tobytes() if data == "binary" else b"")
 
 
 def test_pcd_field_order_types_and_names(tmp_path: Path) -> None:
     n = 50
     rng = np.random.default_rng(1)
-    dt = np.dtype([("reflectivity", "<u2"), ("_", "u1", (3,)), ("z", "<f8"), ("ring", "<u1"), ("y", "<f4"),
-                   ("x", "<f4"), ("t", "<u4"), ("normal", "<f4", (3,))])
+    dt = np.dtype(
+        [
+            ("reflectivity", "<u2"),
+            ("_", "u1", (3,)),
+            ("z", "<f8"),
+            ("ring", "<u1"),
+            ("y", "<f4"),
+            ("x", "<f4"),
+            ("t", "<u4"),
+            ("normal", "<f4", (3,)),
+        ]
+    )
     rows = np.zeros(n, dtype=dt)
     rows["x"], rows["y"], rows["z"] = rng.normal(size=(3, n))
     rows["reflectivity"] = rng.integers(0, 65535, n)
     rows["ring"] = rng.integers(0, 128, n)
     rows["t"] = rng.integers(0, 10**8, n)
     path = tmp_path / "f.pcd"
-    path.write_bytes(_pcd_bytes(["reflectivity", "_", "z", "ring", "y", "x", "t", "normal"],
-                                [2, 1, 8, 1, 4, 4, 4, 4], ["U", "U", "F", "U", "F", "F", "U", "F"],
-                                [1, 3, 1, 1, 1, 1, 1, 3], rows))
+    path.write_bytes(
+        _pcd_bytes(
+            ["reflectivity", "_", "z", "ring", "y", "x", "t", "normal"],
+            [2, 1, 8, 1, 4, 4, 4, 4],
+            ["U", "U", "F", "U", "F", "F", "U", "F"],
+            [1, 3, 1, 1, 1, 1, 1, 3],
+            rows,
+        )
+    )
     s = read_scan(path)
     np.testing.assert_allclose(s.xyz, np.stack([rows["x"], rows["y"], rows["z"]], 1).astype(np.float32))
     np.testing.assert_array_equal(s.intensity, rows["reflectivity"])
@@ -178,8 +197,13 @@ def test_pcd_field_order_types_and_names(tmp_path: Path) -> None:
     ],
 )
 def test_pcd_lying_headers(tmp_path: Path, mutation: dict, message: str) -> None:
-    kw = dict(fields=["x", "y", "z", "intensity"], sizes=[4, 4, 4, 4], types=["F", "F", "F", "F"],
-              counts=[1, 1, 1, 1], rows=np.zeros((10, 4), np.float32))
+    kw = dict(
+        fields=["x", "y", "z", "intensity"],
+        sizes=[4, 4, 4, 4],
+        types=["F", "F", "F", "F"],
+        counts=[1, 1, 1, 1],
+        rows=np.zeros((10, 4), np.float32),
+    )
     kw.update(mutation)
     path = tmp_path / "bad.pcd"
     path.write_bytes(_pcd_bytes(**kw))
@@ -206,21 +230,37 @@ def test_ply_formats(tmp_path: Path, endian: str) -> None:
     rng = np.random.default_rng(3)
     n = 40
     e = ">" if endian.endswith("big_endian") else "<"
-    dt = np.dtype([("x", e + "f4"), ("y", e + "f4"), ("z", e + "f8"), ("scalar_Intensity", e + "u2"),
-                   ("ring", e + "u1")])
+    dt = np.dtype(
+        [
+            ("x", e + "f4"),
+            ("y", e + "f4"),
+            ("z", e + "f8"),
+            ("scalar_Intensity", e + "u2"),
+            ("ring", e + "u1"),
+        ]
+    )
     v = np.zeros(n, dtype=dt)
     v["x"], v["y"], v["z"] = rng.normal(size=(3, n)).round(3)
     v["scalar_Intensity"] = rng.integers(0, 3000, n)
     v["ring"] = rng.integers(0, 16, n)
-    head = (f"ply\nformat {endian} 1.0\ncomment test\nelement camera 1\nproperty float fx\n"
-            f"element vertex {n}\nproperty float x\nproperty float y\nproperty double z\n"
-            "property ushort scalar_Intensity\nproperty uchar ring\nelement face 1\n"
-            "property list uchar int vertex_indices\nend_header\n")
+    head = (
+        f"ply\nformat {endian} 1.0\ncomment test\nelement camera 1\nproperty float fx\n"
+        f"element vertex {n}\nproperty float x\nproperty float y\nproperty double z\n"
+        "property ushort scalar_Intensity\nproperty uchar ring\nelement face 1\n"
+        "property list uchar int vertex_indices\nend_header\n"
+    )
     if endian == "ascii":
-        lines = "\n".join(" ".join(repr(float(r[k])) if k < 3 else str(int(r[k])) for k in range(5)) for r in v)
+        lines = "\n".join(
+            " ".join(repr(float(r[k])) if k < 3 else str(int(r[k])) for k in range(5)) for r in v
+        )
         body = b"1.5\n" + lines.encode() + b"\n3 0 1 2\n"
     else:
-        body = np.array([1.5], e + "f4").tobytes() + v.tobytes() + b"\x03" + np.array([0, 1, 2], e + "i4").tobytes()
+        body = (
+            np.array([1.5], e + "f4").tobytes()
+            + v.tobytes()
+            + b"\x03"
+            + np.array([0, 1, 2], e + "i4").tobytes()
+        )
     path = tmp_path / "c.ply"
     path.write_bytes(head.encode() + body)
     s = read_scan(path)
@@ -237,10 +277,14 @@ def test_ply_writer_round_trip_and_errors(tmp_path: Path) -> None:
     path.write_bytes(path.read_bytes()[:-10])
     with pytest.raises(ScanFormatError, match="truncated"):
         read_scan(path)
-    path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty list uchar int x\nend_header\n")
+    path.write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty list uchar int x\nend_header\n"
+    )
     with pytest.raises(ScanFormatError, match="list properties"):
         read_scan(path)
-    path.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n")
+    path.write_bytes(
+        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n"
+    )
     with pytest.raises(ScanFormatError, match=r"no field\(s\) \['z'\]"):
         read_scan(path)
 
@@ -274,8 +318,15 @@ def test_npy_variants(tmp_path: Path) -> None:
 def test_npz_round_trip(tmp_path: Path) -> None:
     sensor = SensorInfo(name="sim", beam_elevations_deg=(2.0, 0.0, -2.0), columns=8, intensity_max=255.0)
     base = make_scan(24, shape=(3, 8))
-    scan = Scan(xyz=base.xyz, intensity=base.intensity, ring=base.ring, time=base.time, shape=(3, 8),
-                sensor=sensor, timestamp=12.5)
+    scan = Scan(
+        xyz=base.xyz,
+        intensity=base.intensity,
+        ring=base.ring,
+        time=base.time,
+        shape=(3, 8),
+        sensor=sensor,
+        timestamp=12.5,
+    )
     write_scan(tmp_path / "s.npz", scan)
     back = read_scan(tmp_path / "s.npz", organized=True)
     assert_same_points(scan, back)
@@ -292,8 +343,14 @@ def test_npz_round_trip(tmp_path: Path) -> None:
 
 
 def test_missing_and_empty_files(tmp_path: Path) -> None:
-    for fmt, suffix in [("kitti", ".bin"), ("nclt", ".bin"), ("pcd", ".pcd"), ("ply", ".ply"), ("npy", ".npy"),
-                        ("npz", ".npz")]:
+    for fmt, suffix in [
+        ("kitti", ".bin"),
+        ("nclt", ".bin"),
+        ("pcd", ".pcd"),
+        ("ply", ".ply"),
+        ("npy", ".npy"),
+        ("npz", ".npz"),
+    ]:
         with pytest.raises(ScanFormatError, match="no such"):
             read_scan(tmp_path / f"missing{suffix}", format=fmt)
         (tmp_path / f"empty{suffix}").write_bytes(b"")
@@ -316,9 +373,15 @@ def test_writes_are_atomic(tmp_path: Path) -> None:
 
 def test_lzf_round_trip_and_known_stream() -> None:
     rng = np.random.default_rng(5)
-    samples = [b"", b"x", b"abcabcabcabcabcabc", bytes(9000), rng.bytes(5000),
-               np.repeat(rng.integers(0, 4, 3000, dtype=np.uint8), 5).tobytes(),
-               (rng.bytes(100) + bytes(3000)) * 7]
+    samples = [
+        b"",
+        b"x",
+        b"abcabcabcabcabcabc",
+        bytes(9000),
+        rng.bytes(5000),
+        np.repeat(rng.integers(0, 4, 3000, dtype=np.uint8), 5).tobytes(),
+        (rng.bytes(100) + bytes(3000)) * 7,
+    ]
     for data in samples:
         comp = lzf_compress(data)
         assert lzf_decompress(comp, len(data)) == data
@@ -381,12 +444,19 @@ def test_lzf_decoder_matches_reference_on_random_streams() -> None:
                 stream += bytes([n - 1]) + rng.bytes(n)
                 size += n
             else:
-                d = int(rng.integers(1, min(size, 8192) + 1)) if rng.random() < 0.7 else int(rng.integers(1, 4))
+                d = (
+                    int(rng.integers(1, min(size, 8192) + 1))
+                    if rng.random() < 0.7
+                    else int(rng.integers(1, 4))
+                )
                 d = min(d, size)
                 n = int(rng.choice([3, 8, 9, 264])) if rng.random() < 0.5 else int(rng.integers(3, 265))
                 off, code = d - 1, n - 2
-                stream += bytes([code << 5 | off >> 8, off & 255]) if code < 7 else bytes([224 | off >> 8, code - 7,
-                                                                                          off & 255])
+                stream += (
+                    bytes([code << 5 | off >> 8, off & 255])
+                    if code < 7
+                    else bytes([224 | off >> 8, code - 7, off & 255])
+                )
                 size += n
         assert lzf_decompress(bytes(stream), size) == _reference_lzf_decode(bytes(stream))
 
@@ -396,7 +466,9 @@ def test_import_is_light() -> None:
     import subprocess
     import sys
 
-    code = ("import sys, placerec.io; heavy = [m for m in ('ouster', 'rosbags', 'open3d', 'scipy.spatial') "
-            "if m in sys.modules]; print(heavy)")
+    code = (
+        "import sys, placerec.io; heavy = [m for m in ('ouster', 'rosbags', 'open3d', 'scipy.spatial') "
+        "if m in sys.modules]; print(heavy)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

@@ -29,7 +29,9 @@ def _binary_pcd(path: Path, ring_dtype: str, rings: np.ndarray) -> Path:
         f"VERSION 0.7\nFIELDS x y z intensity ring\nSIZE 4 4 4 4 {size}\nTYPE F F F F {kind}\nCOUNT 1 1 1 1 1\n"
         f"WIDTH {n}\nHEIGHT 1\nPOINTS {n}\nDATA binary\n"
     )
-    rec = np.zeros(n, [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("i", "<f4"), ("ring", "<" + ring_dtype[-2:])])
+    rec = np.zeros(
+        n, [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("i", "<f4"), ("ring", "<" + ring_dtype[-2:])]
+    )
     rec["x"], rec["ring"] = 1.0, rings
     path.write_bytes(header.encode() + rec.tobytes())
     return path
@@ -83,8 +85,14 @@ def test_binary_pcd_ring_that_does_not_fit_int16(tmp_path, dtype, value):
 
 
 def test_binary_pcd_rings_that_fit_are_read(tmp_path):
-    assert read_scan(_binary_pcd(tmp_path / "u2.pcd", "<u2", np.array([0, 63], "<u2"))).ring.tolist() == [0, 63]
-    assert read_scan(_binary_pcd(tmp_path / "f4.pcd", "<f4", np.array([0, 31], "<f4"))).ring.tolist() == [0, 31]
+    assert read_scan(_binary_pcd(tmp_path / "u2.pcd", "<u2", np.array([0, 63], "<u2"))).ring.tolist() == [
+        0,
+        63,
+    ]
+    assert read_scan(_binary_pcd(tmp_path / "f4.pcd", "<f4", np.array([0, 31], "<f4"))).ring.tolist() == [
+        0,
+        31,
+    ]
 
 
 @pytest.mark.parametrize("binary", [False, True])

@@ -27,8 +27,13 @@ def _scan() -> Scan:
     rng = np.random.default_rng(0)
     xyz = np.round(rng.normal(0, 10, (N, 3)), 2)
     xyz[3] = np.nan  # readers must live with NaN points
-    return Scan(xyz=xyz, intensity=rng.integers(0, 255, N), ring=rng.integers(0, 32, N),
-                time=np.linspace(0, 0.1, N), shape=(4, 12))
+    return Scan(
+        xyz=xyz,
+        intensity=rng.integers(0, 255, N),
+        ring=rng.integers(0, 32, N),
+        time=np.linspace(0, 0.1, N),
+        shape=(4, 12),
+    )
 
 
 def _via(writer: Callable[[Path, Scan], None], suffix: str) -> bytes:
@@ -53,8 +58,10 @@ def _npy() -> bytes:
 
 def _ply_ascii() -> bytes:
     s = _scan()
-    head = f"ply\nformat ascii 1.0\nelement vertex {N}\nproperty float x\nproperty float y\nproperty float z\n" \
-           "property uchar intensity\nend_header\n"
+    head = (
+        f"ply\nformat ascii 1.0\nelement vertex {N}\nproperty float x\nproperty float y\nproperty float z\n"
+        "property uchar intensity\nend_header\n"
+    )
     rows = "".join(f"{x} {y} {z} {int(i)}\n" for (x, y, z), i in zip(s.xyz, s.intensity, strict=True))
     return (head + rows).encode()
 
@@ -63,8 +70,9 @@ def _poses(fmt: str) -> bytes:
     rng = np.random.default_rng(1)
     if fmt == "kitti":
         return "".join(" ".join(f"{v:.6e}" for v in row) + "\n" for row in rng.normal(size=(6, 12))).encode()
-    return "".join(f"{k * 0.1:.3f} " + " ".join(f"{v:.5f}" for v in rng.normal(size=7)) + "\n"
-                   for k in range(6)).encode()
+    return "".join(
+        f"{k * 0.1:.3f} " + " ".join(f"{v:.5f}" for v in rng.normal(size=7)) + "\n" for k in range(6)
+    ).encode()
 
 
 SAMPLES: dict[str, tuple[Callable[[], bytes], str, str | None]] = {
@@ -72,8 +80,11 @@ SAMPLES: dict[str, tuple[Callable[[], bytes], str, str | None]] = {
     "nclt": (_nclt, ".bin", "nclt"),
     "pcd_ascii": (lambda: _via(lambda p, s: write_pcd(p, s, "ascii"), ".pcd"), ".pcd", None),
     "pcd_binary": (lambda: _via(lambda p, s: write_pcd(p, s, "binary"), ".pcd"), ".pcd", None),
-    "pcd_binary_compressed": (lambda: _via(lambda p, s: write_pcd(p, s, "binary_compressed"), ".pcd"), ".pcd",
-                              None),
+    "pcd_binary_compressed": (
+        lambda: _via(lambda p, s: write_pcd(p, s, "binary_compressed"), ".pcd"),
+        ".pcd",
+        None,
+    ),
     "ply_ascii": (_ply_ascii, ".ply", None),
     "ply_binary": (lambda: _via(write_ply, ".ply"), ".ply", None),
     "npy": (_npy, ".npy", None),

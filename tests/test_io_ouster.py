@@ -14,7 +14,8 @@ from placerec.errors import ScanFormatError
 from placerec.io import open_sequence, read_poses
 
 pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("ouster") is None, reason="ouster-sdk not installed (pip install placerec[ouster])"
+    importlib.util.find_spec("ouster") is None,
+    reason="ouster-sdk not installed (pip install placerec[ouster])",
 )
 
 STEM = "OS-1-128_v2.3.0_1024x10_lb_n3"
@@ -57,7 +58,11 @@ def test_truncated_capture_warns(capture: Path, caplog, keep: float) -> None:
     with caplog.at_level(logging.WARNING, logger="placerec.io.ouster"):
         seq = open_sequence(capture)
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
-    assert len(warnings) == 1 and "truncated" in warnings[0] and f"frame {len(seq) - 1} of {len(seq)}" in warnings[0]
+    assert (
+        len(warnings) == 1
+        and "truncated" in warnings[0]
+        and f"frame {len(seq) - 1} of {len(seq)}" in warnings[0]
+    )
     assert "of 1024 columns" in warnings[0]
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="placerec.io.ouster"):

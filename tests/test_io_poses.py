@@ -44,7 +44,9 @@ def test_tum_quaternions_are_normalised_and_comments_skipped(tmp_path: Path) -> 
     path.write_text("# timestamp tx ty tz qx qy qz qw\n\n0.0 1 2 3 0 0 0 2\n0.1 1 2 3 0 0 3 3\n")
     P, t = read_poses(path)
     np.testing.assert_allclose(P[0], [[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])
-    np.testing.assert_allclose(P[1, :3, :3], Rotation.from_euler("z", 90, degrees=True).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(
+        P[1, :3, :3], Rotation.from_euler("z", 90, degrees=True).as_matrix(), atol=1e-12
+    )
     np.testing.assert_allclose(t, [0.0, 0.1])
     q = np.random.default_rng(2).normal(size=(50, 4))
     np.testing.assert_allclose(quat_to_matrix(q), Rotation.from_quat(q).as_matrix(), atol=1e-12)

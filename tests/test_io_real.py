@@ -35,8 +35,9 @@ def test_kitti_poses_and_sequence_layout(real_data: Path, tmp_path: Path) -> Non
     P, t = read_poses(real_data / "kitti00_frames" / "poses_00.txt")
     assert P.shape == (4541, 4, 4) and t is None
     np.testing.assert_allclose(P[0], np.eye(4), atol=1e-6)
-    np.testing.assert_allclose(P[:, :3, :3] @ P[:, :3, :3].transpose(0, 2, 1), np.tile(np.eye(3), (4541, 1, 1)),
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        P[:, :3, :3] @ P[:, :3, :3].transpose(0, 2, 1), np.tile(np.eye(3), (4541, 1, 1)), atol=1e-5
+    )
     # a two-frame KITTI layout made of the real frames 94 and 95 with their ground-truth poses
     (tmp_path / "velodyne").mkdir()
     for k, name in enumerate(("000094.bin", "000095.bin")):
@@ -74,8 +75,9 @@ def test_nclt_frame(real_data: Path) -> None:
 
 def test_os1_64_organised_pair(real_data: Path) -> None:
     for name in ("32line_1.bin", "32line_2.bin"):
-        s = read_scan(real_data / "ouster_os1_64_revisit_pair" / name, organized=True,
-                      layout=(64, 1024, "column-major"))
+        s = read_scan(
+            real_data / "ouster_os1_64_revisit_pair" / name, organized=True, layout=(64, 1024, "column-major")
+        )
         assert s.shape == (64, 1024) and len(s) == 65_536
         np.testing.assert_array_equal(s.organized("ring")[:, 0], np.arange(64))
         el = _row_elevations(s)
@@ -89,7 +91,8 @@ def test_os1_64_organised_pair(real_data: Path) -> None:
 
 
 ouster_required = pytest.mark.skipif(
-    importlib.util.find_spec("ouster") is None, reason="ouster-sdk not installed (pip install placerec[ouster])"
+    importlib.util.find_spec("ouster") is None,
+    reason="ouster-sdk not installed (pip install placerec[ouster])",
 )
 
 

@@ -20,9 +20,14 @@ PF_FLOAT32, PF_UINT16, PF_UINT8, PF_UINT32, PF_FLOAT64 = 7, 4, 2, 6, 8
 
 
 def _cloud(rng: np.random.Generator, n: int) -> np.ndarray:
-    dt = np.dtype({"names": ["x", "y", "z", "intensity", "ring", "t"],
-                   "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<u4"],
-                   "offsets": [0, 4, 8, 16, 20, 24], "itemsize": 32})  # padding at 12..16 and 28..32
+    dt = np.dtype(
+        {
+            "names": ["x", "y", "z", "intensity", "ring", "t"],
+            "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<u4"],
+            "offsets": [0, 4, 8, 16, 20, 24],
+            "itemsize": 32,
+        }
+    )  # padding at 12..16 and 28..32
     a = np.zeros(n, dtype=dt)
     for c in "xyz":
         a[c] = rng.normal(0, 20, n)
@@ -34,9 +39,17 @@ def _cloud(rng: np.random.Generator, n: int) -> np.ndarray:
 
 def _msg(ts, arr: np.ndarray, sec: int, nsec: int, height: int = 1):
     T = ts.types
-    fields = [T["sensor_msgs/msg/PointField"](name=name, offset=arr.dtype.fields[name][1], datatype=dt, count=1)
-              for name, dt in [("x", PF_FLOAT32), ("y", PF_FLOAT32), ("z", PF_FLOAT32),
-                               ("intensity", PF_FLOAT32), ("ring", PF_UINT16), ("t", PF_UINT32)]]
+    fields = [
+        T["sensor_msgs/msg/PointField"](name=name, offset=arr.dtype.fields[name][1], datatype=dt, count=1)
+        for name, dt in [
+            ("x", PF_FLOAT32),
+            ("y", PF_FLOAT32),
+            ("z", PF_FLOAT32),
+            ("intensity", PF_FLOAT32),
+            ("ring", PF_UINT16),
+            ("t", PF_UINT32),
+        ]
+    ]
     stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec)
     header_kw = {"stamp": stamp, "frame_id": "lidar"}
     if "seq" in T["std_msgs/msg/Header"].__dataclass_fields__:
@@ -44,24 +57,37 @@ def _msg(ts, arr: np.ndarray, sec: int, nsec: int, height: int = 1):
     header = T["std_msgs/msg/Header"](**header_kw)
     width = arr.size // height
     return T["sensor_msgs/msg/PointCloud2"](
-        header=header, height=height, width=width, fields=fields, is_bigendian=False,
-        point_step=arr.dtype.itemsize, row_step=arr.dtype.itemsize * width,
-        data=np.frombuffer(arr.tobytes(), dtype=np.uint8).copy(), is_dense=False)
+        header=header,
+        height=height,
+        width=width,
+        fields=fields,
+        is_bigendian=False,
+        point_step=arr.dtype.itemsize,
+        row_step=arr.dtype.itemsize * width,
+        data=np.frombuffer(arr.tobytes(), dtype=np.uint8).copy(),
+        is_dense=False,
+    )
 
 
-def _write_bag(path: Path, ros2: bool, clouds: list[np.ndarray], topic: str = "/points", extra_topic: bool = False):
+def _write_bag(
+    path: Path, ros2: bool, clouds: list[np.ndarray], topic: str = "/points", extra_topic: bool = False
+):
     if ros2:
         from rosbags.rosbag2 import Writer
+
         ts = get_typestore(Stores.ROS2_HUMBLE)
         ser = ts.serialize_cdr
     else:
         from rosbags.rosbag1 import Writer
+
         ts = get_typestore(Stores.ROS1_NOETIC)
         ser = ts.serialize_ros1
     stamps = []
     with Writer(path) as w:
         conn = w.add_connection(topic, "sensor_msgs/msg/PointCloud2", typestore=ts)
-        conn2 = w.add_connection("/other", "sensor_msgs/msg/PointCloud2", typestore=ts) if extra_topic else None
+        conn2 = (
+            w.add_connection("/other", "sensor_msgs/msg/PointCloud2", typestore=ts) if extra_topic else None
+        )
         for k, arr in enumerate(clouds):
             sec, nsec = 1_700_000_000 + k, 123_000_000 * (k % 3)
             stamps.append(sec + nsec * 1e-9)
@@ -128,8 +154,15 @@ def _fake_msg(arr: np.ndarray, fields, *, big: bool = False, height: int = 1, ro
     rows = arr.reshape(height, width)
     data = b"".join(r.tobytes() + b"\xee" * row_pad for r in rows)
     pf = [SimpleNamespace(name=n, offset=o, datatype=d, count=1) for n, o, d in fields]
-    return SimpleNamespace(height=height, width=width, fields=pf, is_bigendian=big, point_step=step,
-                           row_step=step * width + row_pad, data=np.frombuffer(data, np.uint8))
+    return SimpleNamespace(
+        height=height,
+        width=width,
+        fields=pf,
+        is_bigendian=big,
+        point_step=step,
+        row_step=step * width + row_pad,
+        data=np.frombuffer(data, np.uint8),
+    )
 
 
 def test_pointcloud2_decoding_variants() -> None:
@@ -137,14 +170,26 @@ def test_pointcloud2_decoding_variants() -> None:
     n = 60
     for big in (False, True):
         e = ">" if big else "<"
-        dt = np.dtype([("reflectivity", e + "u2"), ("z", e + "f8"), ("x", e + "f4"), ("y", e + "f4"),
-                       ("time", e + "f4")])
+        dt = np.dtype(
+            [
+                ("reflectivity", e + "u2"),
+                ("z", e + "f8"),
+                ("x", e + "f4"),
+                ("y", e + "f4"),
+                ("time", e + "f4"),
+            ]
+        )
         a = np.zeros(n, dtype=dt)
         a["x"], a["y"], a["z"] = rng.normal(size=(3, n))
         a["reflectivity"] = rng.integers(0, 65535, n)
         a["time"] = rng.uniform(0, 0.1, n)
-        fields = [("reflectivity", 0, PF_UINT16), ("z", 2, PF_FLOAT64), ("x", 10, PF_FLOAT32),
-                  ("y", 14, PF_FLOAT32), ("time", 18, PF_FLOAT32)]
+        fields = [
+            ("reflectivity", 0, PF_UINT16),
+            ("z", 2, PF_FLOAT64),
+            ("x", 10, PF_FLOAT32),
+            ("y", 14, PF_FLOAT32),
+            ("time", 18, PF_FLOAT32),
+        ]
         scan = pointcloud2_to_scan(_fake_msg(a, fields, big=big, height=3, row_pad=5), "m", organized=True)
         assert scan.shape == (3, 20)
         np.testing.assert_allclose(scan.xyz, np.stack([a["x"], a["y"], a["z"]], 1).astype(np.float32))

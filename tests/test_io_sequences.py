@@ -96,8 +96,14 @@ def test_kitti_sequence_errors(tmp_path: Path) -> None:
 def test_simulator_layout_sensor_yaml_and_ring(tmp_path: Path) -> None:
     scans = _kitti_folder(tmp_path, n=3, ring=True)
     write_kitti_poses(tmp_path / "poses.txt", random_poses(3))
-    sensor = {"name": "sim-vlp16", "beam_elevations_deg": np.linspace(15, -15, 16).tolist(), "columns": 1800,
-              "intensity_max": 255.0, "min_range": 0.5, "max_range": 100.0}
+    sensor = {
+        "name": "sim-vlp16",
+        "beam_elevations_deg": np.linspace(15, -15, 16).tolist(),
+        "columns": 1800,
+        "intensity_max": 255.0,
+        "min_range": 0.5,
+        "max_range": 100.0,
+    }
     (tmp_path / "sensor.yaml").write_text(yaml.safe_dump(sensor))
     seq = open_sequence(tmp_path)
     assert isinstance(seq, KittiSequence)

@@ -143,7 +143,9 @@ def test_no_import_cycles():
     for cycle in cycles:
         lines.append(" <-> ".join(cycle))
         for m in cycle:
-            lines += [f"    {m} -> {t}{' (lazy)' if lazy else ''}" for t, lazy in sorted(graph[m]) if t in cycle]
+            lines += [
+                f"    {m} -> {t}{' (lazy)' if lazy else ''}" for t, lazy in sorted(graph[m]) if t in cycle
+            ]
     assert not cycles, "import cycles:\n" + "\n".join(lines)
 
 
@@ -209,13 +211,19 @@ def test_dependencies_match_what_the_code_imports():
     tomllib = pytest.importorskip("tomllib", reason="reading pyproject.toml needs Python >= 3.11")
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     core = {_distribution(r) for r in project["dependencies"]}
-    extras = {k: {_distribution(r) for r in v} for k, v in project["optional-dependencies"].items() if k != "dev"}
+    extras = {
+        k: {_distribution(r) for r in v} for k, v in project["optional-dependencies"].items() if k != "dev"
+    }
     assert "faiss-cpu" in core
-    provides = {m: {_distribution(d) for d in ds} for m, ds in importlib.metadata.packages_distributions().items()}
+    provides = {
+        m: {_distribution(d) for d in ds} for m, ds in importlib.metadata.packages_distributions().items()
+    }
     declared = core.union(*extras.values())
     undeclared = {m for m in _third_party_imports(PACKAGE) if m in provides and not provides[m] & declared}
     assert not undeclared, f"placerec imports packages no dependency declares: {sorted(undeclared)}"
-    used = set().union(*(provides.get(m, set()) for m in _third_party_imports(PACKAGE, ROOT / "tests", ROOT / "tools")))
+    used = set().union(
+        *(provides.get(m, set()) for m in _third_party_imports(PACKAGE, ROOT / "tests", ROOT / "tools"))
+    )
     unused = {k: sorted(v - used) for k, v in extras.items() if v - used}
     assert not unused, f"extras listing packages nothing imports: {unused}"
 
@@ -230,7 +238,18 @@ def test_wheel_carries_the_vocabularies_and_finds_them(tmp_path):
     shutil.copytree(PACKAGE, src / "placerec", ignore=shutil.ignore_patterns("__pycache__"))
     wheels = tmp_path / "wheels"
     subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(wheels), str(src)],
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            "-w",
+            str(wheels),
+            str(src),
+        ],
         check=True,
         cwd=tmp_path,
     )

@@ -82,14 +82,18 @@ def test_preprocess_scan_applies_params():
     assert np.isfinite(out.xyz).all() and out.intensity.max() <= 1.0
     assert np.linalg.norm(out.xyz, axis=1).max() <= 20.0 + 1e-3
     assert len(out) < len(s)
-    plain = preprocess_scan(s)  # no params: invalid points removed, the sensor's intensity default (raw / 100)
+    plain = preprocess_scan(
+        s
+    )  # no params: invalid points removed, the sensor's intensity default (raw / 100)
     assert len(plain) == len(s) - 10 and plain.intensity.max() == 1.0
 
 
 def test_config_section_becomes_preprocess_params():
     """The experiment layer converts its config section; ``auto`` intensity means the sensor's default."""
     cfg = PreprocessConfig(min_range=1.0, max_z=3.0, voxel_size=0.5, intensity={"calibration": "t.npz"})
-    assert preprocess_params(cfg) == PreprocessParams(min_range=1.0, max_z=3.0, voxel_size=0.5, calibration="t.npz")
+    assert preprocess_params(cfg) == PreprocessParams(
+        min_range=1.0, max_z=3.0, voxel_size=0.5, calibration="t.npz"
+    )
     linear = preprocess_params(PreprocessConfig(intensity={"mode": "linear", "saturation": 50.0}))
     assert linear.intensity == IntensitySpec("linear", saturation=50.0) and linear.min_range == 0.5
     s = Scan([[1, 0, 0], [2, 0, 0]], [25.0, 100.0], sensor=SensorInfo("vlp16"))

@@ -138,9 +138,7 @@ def _degenerate(case: str) -> Scan:
 
 
 @pytest.mark.parametrize("mode", ["auto", "uniform", "per-beam"])
-@pytest.mark.parametrize(
-    "case", ["origin", "far", "outside-fov", "ten-points", "empty", "organised-origin"]
-)
+@pytest.mark.parametrize("case", ["origin", "far", "outside-fov", "ten-points", "empty", "organised-origin"])
 def test_degenerate_scans_give_a_blank_or_sparse_image(case, mode):
     scan = _degenerate(case)
     if mode == "per-beam" and scan.ring is None:

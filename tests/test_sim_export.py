@@ -34,7 +34,14 @@ def test_kitti_folder(tmp_path: Path, sensor: str) -> None:
     assert [b.name for b in bins] == ["000000.bin", "000001.bin", "000002.bin"]
     info = SensorInfo.from_dict(yaml.safe_load((out / "sensor.yaml").read_text()))
     assert info == seq.sensor_info
-    assert set(yaml.safe_load((out / "sensor.yaml").read_text())) == {"name", "beam_elevations_deg", "columns", "intensity_max", "min_range", "max_range"}
+    assert set(yaml.safe_load((out / "sensor.yaml").read_text())) == {
+        "name",
+        "beam_elevations_deg",
+        "columns",
+        "intensity_max",
+        "min_range",
+        "max_range",
+    }
     for i, b in enumerate(bins):
         ring = np.load(out / "ring" / f"{i:06d}.npy")
         col = np.load(out / "column" / f"{i:06d}.npy")

@@ -25,7 +25,9 @@ def test_surface_response_reflectance_and_incidence() -> None:
     retro = surface_response(np.full(4, 200.0), cos)
     assert np.all(retro > 5.0) and retro[-1] / retro[0] > 0.2  # retro-reflectors stay bright when oblique
     spec = surface_response(np.full(2, 0.2), np.array([1.0, 0.8]), specular=0.5)
-    assert spec[0] > surface_response(np.array([0.2]), np.array([1.0]))[0]  # specular lobe at normal incidence
+    assert (
+        spec[0] > surface_response(np.array([0.2]), np.array([1.0]))[0]
+    )  # specular lobe at normal incidence
 
 
 def test_range_compensation_and_degradation_beyond_30m() -> None:
@@ -43,7 +45,9 @@ def test_range_compensation_and_degradation_beyond_30m() -> None:
 
 def test_detection_falls_with_range_and_darkness() -> None:
     m = IntensityModel.for_sensor(get_sensor("os1-64"))
-    assert m.detection_probability(np.array([0.1]), np.array([m.range_10pct]))[0] == pytest.approx(0.5, abs=0.01)
+    assert m.detection_probability(np.array([0.1]), np.array([m.range_10pct]))[0] == pytest.approx(
+        0.5, abs=0.01
+    )
     p = m.detection_probability(np.array([0.1, 0.1, 0.8, 0.03]), np.array([10.0, 80.0, 80.0, 60.0]))
     assert p[0] > 0.99 and p[1] < 0.05 and p[2] > 0.5 and p[3] < 0.01
 
@@ -55,7 +59,9 @@ def test_beam_response_ground_truth(name: str) -> None:
     x = np.linspace(0.0, 1.0, 50)
     curves = np.stack([resp.expected_raw(x, b) for b in range(s.n_beams)])
     steps = np.diff(curves[:, 5:], axis=1)
-    assert np.all(steps >= 0) and np.all(steps[curves[:, 6:] < s.intensity_max] > 0)  # monotone until saturation
+    assert np.all(steps >= 0) and np.all(
+        steps[curves[:, 6:] < s.intensity_max] > 0
+    )  # monotone until saturation
     assert np.ptp(curves[:, -1]) > 0.05 * s.intensity_scale  # beams differ (ISHOT Fig. 7)
     assert np.ptp(resp.gamma) > 0.1
     inside = (curves > 1.0) & (curves < s.intensity_max - 1)
@@ -70,7 +76,13 @@ def test_measure_quantises_and_clips() -> None:
     s = get_sensor("vlp16")
     resp = BeamResponse.draw(s, 0)
     m = IntensityModel.for_sensor(s)
-    raw = m.measure(np.array([0.0, 0.3, 0.6, 50.0]), np.full(4, 10.0), np.array([0, 1, 2, 3]), resp, np.random.default_rng(0))
+    raw = m.measure(
+        np.array([0.0, 0.3, 0.6, 50.0]),
+        np.full(4, 10.0),
+        np.array([0, 1, 2, 3]),
+        resp,
+        np.random.default_rng(0),
+    )
     assert np.array_equal(raw, np.rint(raw)) and raw.min() >= 0 and raw.max() <= 255
     assert raw[3] == 255 and 10 < raw[1] < raw[2] < 100
 
@@ -82,13 +94,20 @@ def test_measure_quantises_and_clips() -> None:
 def _walls(specs: list[tuple[float, float, float, float, int, float]]) -> tuple[World, Route]:
     """specs: (azimuth deg, distance m, wall yaw offset deg, reflectance, material, width m)."""
     b = MeshBuilder()
-    b.add_mesh(np.array([[-500, -500, 0], [500, -500, 0], [500, 500, 0], [-500, 500, 0]]), np.array([[0, 1, 2], [0, 2, 3]]), M.GROUND, b.add_objects(np.zeros((1, 3)))[0])
+    b.add_mesh(
+        np.array([[-500, -500, 0], [500, -500, 0], [500, 500, 0], [-500, 500, 0]]),
+        np.array([[0, 1, 2], [0, 2, 3]]),
+        M.GROUND,
+        b.add_objects(np.zeros((1, 3)))[0],
+    )
     for az, dist, tilt, refl, mat, width in specs:
         a = np.radians(az)
         centre = dist * np.array([np.cos(a), np.sin(a)])
         facing = a + np.pi + np.radians(tilt)  # local +x looks back towards the sensor (tilted by `tilt`)
         style = 3 if mat == M.SIGN else 0
-        b.add_boxes(np.r_[centre, 0.0], [0.2, width, 6.0], facing, mat, params=[[refl, 0, 0, 0, 0, style]], seed=1)
+        b.add_boxes(
+            np.r_[centre, 0.0], [0.2, width, 6.0], facing, mat, params=[[refl, 0, 0, 0, 0, style]], seed=1
+        )
     world = world_from_mesh(b.build())
     pose = poses_from_xy_yaw(np.zeros((1, 2)), np.array([1.8]), np.zeros(1))
     return world, Route(poses=pose, timestamps=np.zeros(1), name="static")
@@ -98,7 +117,13 @@ def _wall_intensity(scan, az: float, half_width_deg: float = 2.0, rows: slice = 
     xyz = scan.xyz
     theta = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
     ring = scan.ring
-    sel = (np.abs(theta - az) < half_width_deg) & np.any(xyz != 0, axis=1) & (ring >= rows.start) & (ring < rows.stop) & (xyz[:, 2] > -1.5)
+    sel = (
+        (np.abs(theta - az) < half_width_deg)
+        & np.any(xyz != 0, axis=1)
+        & (ring >= rows.start)
+        & (ring < rows.stop)
+        & (xyz[:, 2] > -1.5)
+    )
     return scan.intensity[sel]
 
 
@@ -125,7 +150,10 @@ def wall_scene():
 def test_constructed_scene_directions(wall_scene, name: str) -> None:
     scan = wall_scene[name]
     rows = slice(20, 44) if name == "os1-64" else slice(4, 12)
-    med = {az: np.median(_wall_intensity(scan, az, rows=rows)) for az in (30.0, 60.0, -30.0, -60.0, 150.0, -150.0)}
+    med = {
+        az: np.median(_wall_intensity(scan, az, rows=rows))
+        for az in (30.0, 60.0, -30.0, -60.0, 150.0, -150.0)
+    }
     assert med[60.0] > 1.8 * med[30.0]  # reflectance
     assert med[-60.0] < 0.6 * med[-30.0]  # incidence
     assert med[-150.0] < 0.8 * med[150.0]  # range (degraded beyond 30 m)
@@ -140,7 +168,12 @@ def test_beam_response_truth_calibrates_simulated_scans(wall_scene) -> None:
     scan = wall_scene["os1-64"]
     xyz = scan.xyz
     theta = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
-    sel = (np.abs(theta + 30.0) < 6.0) & (scan.intensity > 0) & (xyz[:, 2] > -1.5) & (scan.intensity < scan.sensor.intensity_max)
+    sel = (
+        (np.abs(theta + 30.0) < 6.0)
+        & (scan.intensity > 0)
+        & (xyz[:, 2] > -1.5)
+        & (scan.intensity < scan.sensor.intensity_max)
+    )
     ring = scan.ring[sel]
     raw = scan.intensity[sel]
     seq_resp = BeamResponse.draw(get_sensor("os1-64"), 5)  # the wall scene's unit_seed is its seed (5)
@@ -153,4 +186,6 @@ def test_beam_response_truth_calibrates_simulated_scans(wall_scene) -> None:
     assert cv(med_cal) < 0.6 * cv(med_raw)
     rng = np.linalg.norm(xyz[sel], axis=1)
     expected = IntensityModel.for_sensor(get_sensor("os1-64")).apparent(np.full(len(rng), 0.4), rng)
-    assert np.median(cal) == pytest.approx(np.median(expected), rel=0.15)  # cos(incidence) ~ 1 across the wall
+    assert np.median(cal) == pytest.approx(
+        np.median(expected), rel=0.15
+    )  # cos(incidence) ~ 1 across the wall

@@ -64,7 +64,8 @@ def test_fbm_is_a_normalised_octave_sum() -> None:
     expected = (
         (noise.value_noise2(x, y, 11 + 977) - 0.5)
         + 0.5 * (noise.value_noise2(x * np.float32(2.03), y * np.float32(2.03), 11 + 2 * 977) - 0.5)
-        + 0.25 * (noise.value_noise2(x * np.float32(2.03 * 2.03), y * np.float32(2.03 * 2.03), 11 + 3 * 977) - 0.5)
+        + 0.25
+        * (noise.value_noise2(x * np.float32(2.03 * 2.03), y * np.float32(2.03 * 2.03), 11 + 3 * 977) - 0.5)
     ) * (2.0 / 1.75)
     assert np.allclose(three, expected, atol=1e-5)
 
@@ -106,7 +107,9 @@ def test_material_dropout_and_tone_and_foliage_depth() -> None:
     assert np.all(drop == pytest.approx(MATERIAL_TABLE[2, M.GLASS])) and np.all(depth == 0)
     base, _, _ = shade(int(M.ASPHALT), pw)
     toned, _, _ = shade(int(M.ASPHALT), pw, params=_hits(len(pw), M.ASPHALT, tone=0.2)["params"])
-    assert np.allclose(toned / base, 0.2 / MATERIAL_TABLE[1, M.ASPHALT], rtol=1e-5)  # the texture scales the tone
+    assert np.allclose(
+        toned / base, 0.2 / MATERIAL_TABLE[1, M.ASPHALT], rtol=1e-5
+    )  # the texture scales the tone
     assert 0.08 < base.mean() < 0.12  # asphalt is dark in the near infrared
     rho, drop, depth = shade(int(M.FOLIAGE), pw, seed=5)
     assert depth.min() >= 0 and depth.max() <= 0.6 and depth.std() > 0.02  # returns from inside the crown
@@ -132,4 +135,6 @@ def test_kernel_cache_is_keyed_on_all_kernel_sources() -> None:
     stamp = jit._kernel_sources_stamp()
     for kernel in (render._shade_rays, noise._hash_u32_n):
         cache_file = kernel._cache._cache_file
-        assert cache_file._source_stamp[1] == stamp, "numba's cache layout changed: update placerec.sim.jit._stamped"
+        assert cache_file._source_stamp[1] == stamp, (
+            "numba's cache layout changed: update placerec.sim.jit._stamped"
+        )

@@ -25,7 +25,9 @@ def test_presets_match_real_layouts() -> None:
     assert {"vlp16", "hdl64", "os1-64", "os1-64-gen2", "os1-128"} <= set(sensor_names())
     vlp = get_sensor("vlp16")
     assert vlp.n_beams == 16 and vlp.columns == 1800 and vlp.intensity_max == 255
-    assert vlp.beam_elevations_deg[0] == pytest.approx(15.0) and vlp.beam_elevations_deg[-1] == pytest.approx(-15.0)
+    assert vlp.beam_elevations_deg[0] == pytest.approx(15.0) and vlp.beam_elevations_deg[-1] == pytest.approx(
+        -15.0
+    )
     assert np.allclose(np.diff(vlp.beam_elevations_deg), -2.0)
     hdl = get_sensor("hdl64")
     e = np.asarray(hdl.beam_elevations_deg)

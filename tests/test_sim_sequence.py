@@ -106,7 +106,9 @@ def _orb_matches(a: Scan, b: Scan) -> int:
     _, da = orb.detectAndCompute(img8(a), None)
     _, db = orb.detectAndCompute(img8(b), None)
     pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(da, db, k=2)
-    return sum(1 for p in pairs if len(p) == 2 and p[0].distance < 0.75 * p[1].distance and p[0].distance < 50)
+    return sum(
+        1 for p in pairs if len(p) == 2 and p[0].distance < 0.75 * p[1].distance and p[0].distance < 50
+    )
 
 
 def test_revisited_place_looks_alike(town: SimulatedSequence) -> None:
@@ -115,7 +117,9 @@ def test_revisited_place_looks_alike(town: SimulatedSequence) -> None:
     xy = town.poses[:, :2, 3]
     pair = far = 0
     for i in (same.start + 5, (same.start + same.stop) // 2):
-        j = same.ref_start + int(np.argmin(np.linalg.norm(xy[same.ref_start : same.ref_stop] - xy[i], axis=1)))
+        j = same.ref_start + int(
+            np.argmin(np.linalg.norm(xy[same.ref_start : same.ref_stop] - xy[i], axis=1))
+        )
         pair += _orb_matches(town[i], town[j])
         far += _orb_matches(town[i], town[(i + 150) % len(town)])
     assert pair > 2 * far + 10

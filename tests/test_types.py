@@ -76,16 +76,21 @@ def test_candidate_and_protocol_shape():
         name = "scan-only"
 
         def add(self, scan_id, scan, pose=None): ...
-        def query(self, scan, k=1, max_id=None, query_id=-1): return []
+        def query(self, scan, k=1, max_id=None, query_id=-1):
+            return []
+
         def save(self, path): ...
         def load(self, path): ...
 
     class Full(ScanOnly):
         frontend_key = "full"
 
-        def describe(self, scan): return {}
+        def describe(self, scan):
+            return {}
+
         def add_description(self, scan_id, description, pose=None): ...
-        def query_description(self, description, k=1, max_id=None, query_id=-1): return []
+        def query_description(self, description, k=1, max_id=None, query_id=-1):
+            return []
 
     assert isinstance(Full(), PlaceRecognizer)
     assert not isinstance(ScanOnly(), PlaceRecognizer)  # the one protocol includes the front end split

@@ -53,24 +53,33 @@ def main() -> int:
     scan = read_scan(kitti)
     res["kitti_bin_fromfile_floor_ms"] = median_ms(lambda: np.fromfile(kitti, dtype="<f4").reshape(-1, 4), r)
     res["kitti_bin_load_ms"] = median_ms(lambda: read_scan(kitti), r)
-    rows += [("np.fromfile of the KITTI frame (floor)", res["kitti_bin_fromfile_floor_ms"], f"{len(scan)} pts"),
-             ("read_scan KITTI .bin", res["kitti_bin_load_ms"], f"{len(scan)} pts")]
+    rows += [
+        ("np.fromfile of the KITTI frame (floor)", res["kitti_bin_fromfile_floor_ms"], f"{len(scan)} pts"),
+        ("read_scan KITTI .bin", res["kitti_bin_load_ms"], f"{len(scan)} pts"),
+    ]
     n_pcd = len(read_scan(pcd))
     res["pcd_binary_load_ms"] = median_ms(lambda: read_scan(pcd), r)
     rows.append(("read_scan binary PCD", res["pcd_binary_load_ms"], f"{n_pcd} pts"))
     with tempfile.TemporaryDirectory() as d:
         comp = Path(d) / "frame.pcd"
-        res["pcd_compressed_write_ms"] = median_ms(lambda: write_scan(comp, scan, data="binary_compressed"), r)
+        res["pcd_compressed_write_ms"] = median_ms(
+            lambda: write_scan(comp, scan, data="binary_compressed"), r
+        )
         ratio = comp.stat().st_size / kitti.stat().st_size
         res["pcd_compressed_load_ms"] = median_ms(lambda: read_scan(comp), r)
         assert np.array_equal(read_scan(comp).xyz, scan.xyz)
-    rows += [("write binary_compressed PCD", res["pcd_compressed_write_ms"], f"size {ratio:.2f} x raw"),
-             ("read_scan binary_compressed PCD", res["pcd_compressed_load_ms"], "LZF + column blocks")]
+    rows += [
+        ("write binary_compressed PCD", res["pcd_compressed_write_ms"], f"size {ratio:.2f} x raw"),
+        ("read_scan binary_compressed PCD", res["pcd_compressed_load_ms"], "LZF + column blocks"),
+    ]
     res["nclt_load_ms"] = median_ms(lambda: read_scan(nclt, format="nclt"), r)
     rows.append(("read_scan NCLT velodyne_sync", res["nclt_load_ms"], "23,546 pts"))
     res["os1_organised_load_ms"] = median_ms(
-        lambda: read_scan(os1, organized=True, layout=(64, 1024, "column-major")), r)
-    rows.append(("read_scan OS1-64 organised 64x1024", res["os1_organised_load_ms"], "column-major -> row-major"))
+        lambda: read_scan(os1, organized=True, layout=(64, 1024, "column-major")), r
+    )
+    rows.append(
+        ("read_scan OS1-64 organised 64x1024", res["os1_organised_load_ms"], "column-major -> row-major")
+    )
     try:
         from placerec.preprocess import voxel_downsample
     except ImportError:

@@ -31,7 +31,12 @@ def main() -> None:
     ap.add_argument("--scans", type=int, default=40)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--sensors", nargs="*", default=["vlp16", "hdl64", "os1-64", "os1-64-gen2", "os1-128"])
-    ap.add_argument("--presets", nargs="*", default=["town", "campus", "industrial"], help="worlds whose build time to measure")
+    ap.add_argument(
+        "--presets",
+        nargs="*",
+        default=["town", "campus", "industrial"],
+        help="worlds whose build time to measure",
+    )
     args = ap.parse_args()
 
     import open3d  # noqa: F401  (import once, outside the timings)
@@ -74,7 +79,13 @@ def main() -> None:
         label = name if threads is None else f"{name}_{threads}thread"
         headline[f"{label}_scans_per_s"] = round(float(rate), 2)
         headline[f"{label}_cpu_ms_per_scan"] = round(cpu_ms, 1)
-        rows.append((label, f"{rate:.1f} scans/s", f"median {1000 * np.median(times):.1f} ms, p90 {1000 * np.percentile(times, 90):.1f} ms, CPU {cpu_ms:.0f} ms (all threads), {int(np.mean(n_pts))} points/scan, {seq.sensor.n_rays} rays"))
+        rows.append(
+            (
+                label,
+                f"{rate:.1f} scans/s",
+                f"median {1000 * np.median(times):.1f} ms, p90 {1000 * np.percentile(times, 90):.1f} ms, CPU {cpu_ms:.0f} ms (all threads), {int(np.mean(n_pts))} points/scan, {seq.sensor.n_rays} rays",
+            )
+        )
     if "os1-64_scans_per_s" in headline:
         headline["os1-64_target_met"] = bool(headline["os1-64_scans_per_s"] >= 20.0)
         rows.append(("target", ">= 20 OS1-64 scans/s", "met" if headline["os1-64_target_met"] else "NOT met"))
@@ -84,7 +95,9 @@ def main() -> None:
         from rich.console import Console
         from rich.table import Table
 
-        table = Table(title=f"placerec simulator benchmark ({args.preset}, {args.scans} scans per sensor, {platform.processor() or platform.machine()})")
+        table = Table(
+            title=f"placerec simulator benchmark ({args.preset}, {args.scans} scans per sensor, {platform.processor() or platform.machine()})"
+        )
         for col in ("what", "speed", "details"):
             table.add_column(col)
         for r in rows:

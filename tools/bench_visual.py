@@ -58,23 +58,44 @@ def main() -> None:
         t2 = time.perf_counter()
         rec.add_description(i, desc)
         t3 = time.perf_counter()
-        for key, dt in (("image+features", t1 - t0), ("query", t2 - t1), ("insert", t3 - t2), ("total", t3 - t0)):
+        for key, dt in (
+            ("image+features", t1 - t0),
+            ("query", t2 - t1),
+            ("insert", t3 - t2),
+            ("total", t3 - t0),
+        ):
             stages[key].append(dt * 1e3)
 
-    print(f"{args.pipeline} on simulated {args.sensor} ({scan.shape or len(scan)}), database {args.db} scans "
-          f"({len(rec.tree) if hasattr(rec, 'tree') else '?'} descriptors), filled in {fill_s:.1f} s")
+    print(
+        f"{args.pipeline} on simulated {args.sensor} ({scan.shape or len(scan)}), database {args.db} scans "
+        f"({len(rec.tree) if hasattr(rec, 'tree') else '?'} descriptors), filled in {fill_s:.1f} s"
+    )
     print(f"{'stage':<16}{'median ms':>10}{'p95 ms':>10}")
     for key, vals in stages.items():
         print(f"{key:<16}{np.median(vals):>10.2f}{np.percentile(vals, 95):>10.2f}")
     median = float(np.median(stages["total"]))
     print(f"target <= 25 ms: {'met' if median <= 25 else 'NOT met'}")
-    print(json.dumps({
-        "bench": "visual", "pipeline": args.pipeline, "sensor": args.sensor, "db_scans": args.db,
-        "queries": args.queries, "machine": platform.machine(),
-        "median_ms": round(median, 2), "p95_ms": round(float(np.percentile(stages["total"], 95)), 2),
-        **{f"{k.replace('+', '_')}_median_ms": round(float(np.median(v)), 2) for k, v in stages.items() if k != "total"},
-        "target_ms": 25, "target_met": median <= 25,
-    }))
+    print(
+        json.dumps(
+            {
+                "bench": "visual",
+                "pipeline": args.pipeline,
+                "sensor": args.sensor,
+                "db_scans": args.db,
+                "queries": args.queries,
+                "machine": platform.machine(),
+                "median_ms": round(median, 2),
+                "p95_ms": round(float(np.percentile(stages["total"], 95)), 2),
+                **{
+                    f"{k.replace('+', '_')}_median_ms": round(float(np.median(v)), 2)
+                    for k, v in stages.items()
+                    if k != "total"
+                },
+                "target_ms": 25,
+                "target_met": median <= 25,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

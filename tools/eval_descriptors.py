@@ -278,7 +278,9 @@ def main() -> None:
     ap.add_argument(
         "--window-m", type=float, default=0.0, help="0: one sweep per place; 10: Sec. IV-B places"
     )
-    ap.add_argument("--member-spacing", type=float, default=PlacesParams.model_fields["member_spacing"].default)
+    ap.add_argument(
+        "--member-spacing", type=float, default=PlacesParams.model_fields["member_spacing"].default
+    )
     ap.add_argument("--bootstrap", type=int, default=300, help="query resamples for intervals (0: none)")
     ap.add_argument("--query-mode", choices=("single", "actuated"), default="single")
     ap.add_argument("--calibration-step", type=int, default=2, help="calibrate on every n-th map scan")

@@ -91,10 +91,16 @@ def main() -> None:
     results = {}
     for name, overrides in OPTIONS.items():
         r = results[name] = evaluate(scans, positions, overrides)
-        figures = f"{r['features']:>8.1f} {r['recall_at_1']:>9.3f} {r['max_f1']:>7.3f} {r['ms_per_scan']:>8.1f}"
+        figures = (
+            f"{r['features']:>8.1f} {r['recall_at_1']:>9.3f} {r['max_f1']:>7.3f} {r['ms_per_scan']:>8.1f}"
+        )
         print(f"{name:<28} {figures}")
     default = results["rows x8 (128, default)"]
-    print(json.dumps({"scans": len(scans), "revisits": default["revisits"], "default": default, "options": results}))
+    print(
+        json.dumps(
+            {"scans": len(scans), "revisits": default["revisits"], "default": default, "options": results}
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -32,7 +32,14 @@ OUT = ROOT / "docs" / "figures"
 def _panel(images: list[tuple[str, np.ndarray]], path: Path, crop: int | None = 512) -> None:
     fig, axes = plt.subplots(len(images), 1, figsize=(12, 1.35 * len(images) + 0.3), dpi=110)
     for ax, (title, img) in zip(np.atleast_1d(axes), images, strict=True):
-        ax.imshow(img[:, :crop] if crop else img, cmap="gray", vmin=0, vmax=255, aspect="auto", interpolation="nearest")
+        ax.imshow(
+            img[:, :crop] if crop else img,
+            cmap="gray",
+            vmin=0,
+            vmax=255,
+            aspect="auto",
+            interpolation="nearest",
+        )
         ax.set_title(title, fontsize=9, loc="left")
         ax.axis("off")
     fig.tight_layout()
@@ -49,7 +56,10 @@ def hdl64_simulated() -> None:
     beam = make_image(scan, ImageParams(mode="per-beam", width=1024))
     _panel(
         [
-            (f"simulated HDL-64, uniform projection (eq. 2): {int((~raw.valid).all(axis=1).sum())} empty rows", raw.image),
+            (
+                f"simulated HDL-64, uniform projection (eq. 2): {int((~raw.valid).all(axis=1).sum())} empty rows",
+                raw.image,
+            ),
             (f"after empty-row interpolation ({int(filled.filled_rows.sum())} rows filled)", filled.image),
             ("per-beam projection from the ring index (no empty rows by construction)", beam.image),
         ],
@@ -65,9 +75,18 @@ def hdl64_kitti() -> None:
     holes = make_image(scan, ImageParams(**base))  # the default for uniform images: fill_holes_max_gap=2
     _panel(
         [
-            ("real KITTI 00 frame 94 (HDL-64), uniform projection: partly empty rows from the uneven beams", raw.image),
-            (f"paper's empty-row interpolation ({int(rows.filled_rows.sum())} whole rows below 5 % fill)", rows.image),
-            ("plus vertical interpolation of holes up to 2 rows (placerec's default for uniform images)", holes.image),
+            (
+                "real KITTI 00 frame 94 (HDL-64), uniform projection: partly empty rows from the uneven beams",
+                raw.image,
+            ),
+            (
+                f"paper's empty-row interpolation ({int(rows.filled_rows.sum())} whole rows below 5 % fill)",
+                rows.image,
+            ),
+            (
+                "plus vertical interpolation of holes up to 2 rows (placerec's default for uniform images)",
+                holes.image,
+            ),
         ],
         OUT / "images_hdl64_kitti.png",
     )
@@ -96,7 +115,10 @@ def os1_pair() -> None:
     ax.imshow(stacked, aspect="auto", interpolation="nearest")
     ax.set_title(
         f"real OS1-64 revisit pair (MulRan), organised 64 x 1024: {len(result)} HBST matches, {inl} agree on a yaw of "
-        f"{360 * shift / 1024:.1f} deg (green), score {score:.2f}", fontsize=9, loc="left")
+        f"{360 * shift / 1024:.1f} deg (green), score {score:.2f}",
+        fontsize=9,
+        loc="left",
+    )
     ax.axis("off")
     fig.tight_layout()
     path = OUT / "images_os1_64_pair_matches.png"

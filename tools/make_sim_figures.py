@@ -50,7 +50,9 @@ def ring_image(scan: Scan, field: str = "intensity") -> np.ndarray:
     return img
 
 
-def uniform_image(xyz: np.ndarray, value: np.ndarray, fov_up: float, fov_down: float, rows: int = 64, cols: int = 2048) -> np.ndarray:
+def uniform_image(
+    xyz: np.ndarray, value: np.ndarray, fov_up: float, fov_down: float, rows: int = 64, cols: int = 2048
+) -> np.ndarray:
     """The VPR paper's eq. 2 projection, assuming uniformly spaced beams (nearest return per pixel)."""
     rng = np.linalg.norm(xyz, axis=1)
     ok = rng > 0
@@ -109,10 +111,15 @@ def fig_sensors(out: Path, seed: int) -> dict:
         img = ring_image(scan)
         bits = seq.sensor.intensity_bits
         ax.imshow(show(img), cmap="gray", aspect="auto", interpolation="nearest")
-        ax.set_title(f"{name}: {seq.sensor.n_beams} beams x {seq.sensor.columns} columns, {bits}-bit intensity (shown to its 99th percentile)", fontsize=9)
+        ax.set_title(
+            f"{name}: {seq.sensor.n_beams} beams x {seq.sensor.columns} columns, {bits}-bit intensity (shown to its 99th percentile)",
+            fontsize=9,
+        )
         ax.set_yticks([])
         stats[name] = {"valid_points": int(np.count_nonzero(scan.ranges > 0))}
-    fig.suptitle(f"Same place (town, default route scan {i}) seen by each sensor preset (rows = rings)", fontsize=11)
+    fig.suptitle(
+        f"Same place (town, default route scan {i}) seen by each sensor preset (rows = rings)", fontsize=11
+    )
     fig.tight_layout()
     fig.savefig(out / "sim_sensors_same_place.png", dpi=90)
     plt.close(fig)
@@ -133,7 +140,10 @@ def fig_revisit(out: Path, seed: int) -> dict:
         axes[2 * k + 1].imshow(show(b), cmap="gray", aspect="auto", interpolation="nearest")
         d = float(np.linalg.norm(xy[i] - xy[j]))
         axes[2 * k].set_title(f"scan {j} (first visit)", fontsize=9)
-        axes[2 * k + 1].set_title(f"scan {i}: {kind}-direction revisit, {d:.1f} m away, {seq.timestamps[i] - seq.timestamps[j]:.0f} s later", fontsize=9)
+        axes[2 * k + 1].set_title(
+            f"scan {i}: {kind}-direction revisit, {d:.1f} m away, {seq.timestamps[i] - seq.timestamps[j]:.0f} s later",
+            fontsize=9,
+        )
         res[kind] = {"i": i, "j": j, "distance_m": round(d, 2)}
     for ax in axes:
         ax.set_yticks([])
@@ -152,9 +162,14 @@ def fig_hdl64(out: Path, seed: int, real: Path | None) -> dict:
     fig, axes = plt.subplots(rows, 1, figsize=(16, 2.6 * rows))
     axes[0].imshow(show(uni), cmap="gray", aspect="auto", interpolation="nearest")
     empty = np.flatnonzero(hit.mean(axis=1) < 0.05)
-    axes[0].set_title(f"simulated HDL-64, uniform projection (VPR eq. 2): empty rows {empty.tolist()}", fontsize=9)
+    axes[0].set_title(
+        f"simulated HDL-64, uniform projection (VPR eq. 2): empty rows {empty.tolist()}", fontsize=9
+    )
     axes[1].imshow(hit, cmap="gray", aspect="auto", interpolation="nearest")
-    axes[1].set_title("pixels hit (white) under the uniform projection: the lower block's 0.52 deg spacing skips rows", fontsize=9)
+    axes[1].set_title(
+        "pixels hit (white) under the uniform projection: the lower block's 0.52 deg spacing skips rows",
+        fontsize=9,
+    )
     axes[2].imshow(show(ring_image(scan)), cmap="gray", aspect="auto", interpolation="nearest")
     axes[2].set_title("the same scan projected per beam from the ring index: no empty rows", fontsize=9)
     res = {"sim_empty_rows": empty.tolist()}
@@ -163,12 +178,16 @@ def fig_hdl64(out: Path, seed: int, real: Path | None) -> dict:
         kimg, khit = uniform_image(k[:, :3], k[:, 3], up, down)
         kempty = np.flatnonzero(khit.mean(axis=1) < 0.05)
         axes[3].imshow(show(kimg, scale=0.6), cmap="gray", aspect="auto", interpolation="nearest")
-        axes[3].set_title(f"real KITTI 00 frame 94 (HDL-64E), same projection: empty rows {kempty.tolist()}", fontsize=9)
+        axes[3].set_title(
+            f"real KITTI 00 frame 94 (HDL-64E), same projection: empty rows {kempty.tolist()}", fontsize=9
+        )
         res["kitti_empty_rows"] = kempty.tolist()
         pct = [5, 25, 50, 75, 95]
         res["kitti_bin_intensity_pct"] = np.percentile(k[:, 3], pct).round(3).tolist()
         res["kitti_zero_fraction"] = round(float(np.mean(k[:, 3] == 0)), 3)
-        res["sim_bin_intensity_pct"] = np.percentile(scan.intensity / scan.sensor.intensity_max, pct).round(3).tolist()
+        res["sim_bin_intensity_pct"] = (
+            np.percentile(scan.intensity / scan.sensor.intensity_max, pct).round(3).tolist()
+        )
     for ax in axes:
         ax.set_yticks([])
     fig.tight_layout()
@@ -201,11 +220,20 @@ def fig_route(out: Path, seed: int) -> dict:
         xy = route.poses[:, :2, 3]
         ax.plot(xy[:, 0], xy[:, 1], "-", color="tab:blue", lw=1.2, label="route")
         for rv in route.revisits:
-            ax.plot(xy[rv.start : rv.stop, 0], xy[rv.start : rv.stop, 1], "-", color=colors[rv.kind], lw=3.5, alpha=0.8)
+            ax.plot(
+                xy[rv.start : rv.stop, 0],
+                xy[rv.start : rv.stop, 1],
+                "-",
+                color=colors[rv.kind],
+                lw=3.5,
+                alpha=0.8,
+            )
         ax.plot(*xy[0], "k^", ms=9)
         for kind, c in colors.items():
             ax.plot([], [], "-", color=c, lw=3.5, label=f"revisit: {kind}")
-        ax.set_title(f"town, {title}: {len(route)} scans at 1 m, {len(route.revisits)} revisit segments", fontsize=10)
+        ax.set_title(
+            f"town, {title}: {len(route)} scans at 1 m, {len(route.revisits)} revisit segments", fontsize=10
+        )
         if route is d:
             pad = 40
             ax.set_xlim(xy[:, 0].min() - pad, xy[:, 0].max() + pad)
@@ -242,12 +270,34 @@ def fig_real(out: Path, seed: int, real: Path) -> dict:
     campus_ref = SimulatedSequence("campus", "os1-64", seed=seed, n_scans=120)
     campus_sig = SimulatedSequence(campus_ref.world, sig_sensor, seed=seed, route=campus_ref.route)[60]
     imgs = [
-        ("real", "real OS1-64 (MulRan, 16-bit intensity = signal, not range compensated; raw column order, staggered)", rint, rrng),
-        ("sim town signal", "simulated OS1-64, town, signal channel (range_compensated=False, like the real file)", ring_image(town_sig), ring_image(town_sig, "range")),
-        ("sim town reflectivity", "simulated OS1-64, town, reflectivity channel (range compensated, the default)", ring_image(town), ring_image(town, "range")),
-        ("sim campus signal", "simulated OS1-64, campus, signal channel", ring_image(campus_sig), ring_image(campus_sig, "range")),
+        (
+            "real",
+            "real OS1-64 (MulRan, 16-bit intensity = signal, not range compensated; raw column order, staggered)",
+            rint,
+            rrng,
+        ),
+        (
+            "sim town signal",
+            "simulated OS1-64, town, signal channel (range_compensated=False, like the real file)",
+            ring_image(town_sig),
+            ring_image(town_sig, "range"),
+        ),
+        (
+            "sim town reflectivity",
+            "simulated OS1-64, town, reflectivity channel (range compensated, the default)",
+            ring_image(town),
+            ring_image(town, "range"),
+        ),
+        (
+            "sim campus signal",
+            "simulated OS1-64, campus, signal channel",
+            ring_image(campus_sig),
+            ring_image(campus_sig, "range"),
+        ),
     ]
-    fig, axes = plt.subplots(len(imgs), 2, figsize=(20, 2.4 * len(imgs)), gridspec_kw={"width_ratios": [1, 1]})
+    fig, axes = plt.subplots(
+        len(imgs), 2, figsize=(20, 2.4 * len(imgs)), gridspec_kw={"width_ratios": [1, 1]}
+    )
     stats: dict = {}
     for (key, title, it, rg), row in zip(imgs, axes, strict=True):
         v = rg > 0
@@ -271,8 +321,18 @@ def fig_real(out: Path, seed: int, real: Path) -> dict:
     bins = np.linspace(0, 5, 61)
     for (key, _, it, rg), color in zip(imgs, ("k", "tab:blue", "tab:green", "tab:orange"), strict=True):
         v = rg > 0
-        axes[0].hist(np.log10(np.maximum(it[v], 1.0)), bins=bins, histtype="step", density=True, color=color, lw=1.5, label=key)
-        axes[1].hist(rg[v], bins=np.linspace(0, 80, 81), histtype="step", density=True, color=color, lw=1.5, label=key)
+        axes[0].hist(
+            np.log10(np.maximum(it[v], 1.0)),
+            bins=bins,
+            histtype="step",
+            density=True,
+            color=color,
+            lw=1.5,
+            label=key,
+        )
+        axes[1].hist(
+            rg[v], bins=np.linspace(0, 80, 81), histtype="step", density=True, color=color, lw=1.5, label=key
+        )
     axes[0].set_xlabel("log10 raw intensity (16-bit units)")
     axes[1].set_xlabel("range (m)")
     for a in axes:
@@ -288,9 +348,15 @@ def fig_real(out: Path, seed: int, real: Path) -> dict:
     prof = {}
     for key, _, it, rg in imgs:
         v = rg > 0
-        prof[key] = [float(np.median(it[v & (rg >= a) & (rg < b)])) if np.any(v & (rg >= a) & (rg < b)) else None for a, b in zip(edges[:-1], edges[1:], strict=True)]
+        prof[key] = [
+            float(np.median(it[v & (rg >= a) & (rg < b)])) if np.any(v & (rg >= a) & (rg < b)) else None
+            for a, b in zip(edges[:-1], edges[1:], strict=True)
+        ]
     stats["median_intensity_by_range"] = {"edges_m": edges, **prof}
-    stats["real_valid_top_bottom_rows"] = [round(float(rvalid[:8].mean()), 2), round(float(rvalid[-8:].mean()), 2)]
+    stats["real_valid_top_bottom_rows"] = [
+        round(float(rvalid[:8].mean()), 2),
+        round(float(rvalid[-8:].mean()), 2),
+    ]
     return stats
 
 

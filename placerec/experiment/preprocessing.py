@@ -12,7 +12,11 @@ __all__ = ["preprocess_params"]
 def preprocess_params(cfg: PreprocessConfig) -> PreprocessParams:
     """`PreprocessParams` for a validated config section (intensity mode ``auto``: the sensor's default)."""
     ic = cfg.intensity
-    spec = None if ic.mode == "auto" else IntensitySpec(ic.mode, saturation=ic.saturation, percentile=ic.percentile)
+    spec = (
+        None
+        if ic.mode == "auto"
+        else IntensitySpec(ic.mode, saturation=ic.saturation, percentile=ic.percentile)
+    )
     return PreprocessParams(
         min_range=cfg.min_range,
         max_range=cfg.max_range,

@@ -254,7 +254,9 @@ def run_localize(cfg: ExperimentConfig) -> tuple[Sequence, Sequence, list[Pipeli
                 except ScanDataError as exc:
                     log.warning("%s: map scan %d not added: %s", record.label, i, exc)
                 progress.advance(task)
-        tasks = [progress.add_task(f"{record.label} (queries)", total=len(query_seq)) for record, _ in pipelines]
+        tasks = [
+            progress.add_task(f"{record.label} (queries)", total=len(query_seq)) for record, _ in pipelines
+        ]
         for q in range(len(query_seq)):
             scan, pre_ms = _preprocessed(query_seq, q, cfg.preprocess)
             for (record, rec), task in zip(pipelines, tasks, strict=True):

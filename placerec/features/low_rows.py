@@ -18,7 +18,15 @@ import math
 import cv2
 import numpy as np
 
-__all__ = ["LOW_ROWS", "UPSAMPLED_ROWS", "FEW_FEATURES", "row_factor", "upsample_rows", "rows_back", "warn_few_features"]
+__all__ = [
+    "LOW_ROWS",
+    "UPSAMPLED_ROWS",
+    "FEW_FEATURES",
+    "row_factor",
+    "upsample_rows",
+    "rows_back",
+    "warn_few_features",
+]
 
 log = logging.getLogger("placerec.features")
 

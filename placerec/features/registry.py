@@ -177,7 +177,9 @@ class ExtractorParams(Params):
     wrap_pad: bool = Field(True, description="pad the 360 degree panorama with the opposite side's columns")
     pad: int = Field(64, ge=0, description="px of wrap-around padding (a multiple of 8 keeps SURF aligned)")
     row_upsample: int | None = Field(
-        None, ge=1, description="row upsampling before extraction (1 = off; None = images < 64 rows to >= 128)"
+        None,
+        ge=1,
+        description="row upsampling before extraction (1 = off; None = images < 64 rows to >= 128)",
     )
 
 

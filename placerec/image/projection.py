@@ -71,12 +71,18 @@ class ImageParams(Params):
     )
     width: int | None = Field(None, gt=0, description="px; None = the sensor's columns, else 1024")
     height: int | None = Field(None, gt=0, description="px; None = the sensor's beams, else 64")
-    fov_up_deg: float | None = Field(None, description="deg above the horizon; None = from the sensor or scan")
-    fov_down_deg: float | None = Field(None, description="deg below the horizon; None = from the sensor or scan")
+    fov_up_deg: float | None = Field(
+        None, description="deg above the horizon; None = from the sensor or scan"
+    )
+    fov_down_deg: float | None = Field(
+        None, description="deg below the horizon; None = from the sensor or scan"
+    )
     fill_empty_rows: bool = Field(True, description="VPR paper Sec. IV-A: interpolate empty rows")
     empty_row_threshold: float = Field(0.05, ge=0, le=1, description="valid-pixel fraction of an empty row")
     fill_holes_max_gap: int | None = Field(
-        None, ge=0, description="rows; fill empty pixels vertically (0 = off, None = 2 for uniform images, else 0)"
+        None,
+        ge=0,
+        description="rows; fill empty pixels vertically (0 = off, None = 2 for uniform images, else 0)",
     )
     clip: Literal["percentile", "saturation"] = Field("percentile", description="what maps to 255")
     percentile: float = Field(99.0, gt=0, le=100, description="of the valid intensities, for clip=percentile")

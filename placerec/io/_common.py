@@ -62,7 +62,9 @@ def check_file(path: str | Path, what: str) -> Path:
 def check_count(count: int, item_bytes: int, available: int, where: str | Path, what: str) -> int:
     """``count`` if ``count`` items of ``item_bytes`` each fit in the ``available`` bytes of the file and in the
     scan load cap (`placerec.io.limits`); ScanFormatError naming the file and ``what`` declared the count otherwise."""
-    need = check_size(count * item_bytes, where, f"{what} ({count} x {item_bytes} bytes)", ScanFormatError, "scan")
+    need = check_size(
+        count * item_bytes, where, f"{what} ({count} x {item_bytes} bytes)", ScanFormatError, "scan"
+    )
     if count < 0 or need > available:
         raise ScanFormatError(
             f"{where}: {what} declares {count} items of {item_bytes} bytes ({need} bytes), the file holds {available}"
@@ -89,7 +91,9 @@ def guard(what: str) -> Callable[[_F], _F]:
             except (ScanFormatError, ConfigError, DependencyError):
                 raise
             except _DECODE_ERRORS as exc:
-                raise ScanFormatError(f"{path}: not a valid {what} file ({type(exc).__name__}: {exc})") from exc
+                raise ScanFormatError(
+                    f"{path}: not a valid {what} file ({type(exc).__name__}: {exc})"
+                ) from exc
 
         return wrapper  # type: ignore[return-value]
 
@@ -104,11 +108,15 @@ def header_lines(buf: bytes, where: Path, kind: str, end: str, max_lines: int) -
     for _ in range(max_lines):
         nl = buf.find(b"\n", pos)
         if nl < 0:
-            raise ScanFormatError(f"{where}: {kind} header has no {end} line (truncated or not a {kind} file)")
+            raise ScanFormatError(
+                f"{where}: {kind} header has no {end} line (truncated or not a {kind} file)"
+            )
         try:
             line = buf[pos:nl].decode("ascii").strip()
         except UnicodeDecodeError:
-            raise ScanFormatError(f"{where}: {kind} header line at byte {pos} is not ASCII; not a {kind} file?") from None
+            raise ScanFormatError(
+                f"{where}: {kind} header line at byte {pos} is not ASCII; not a {kind} file?"
+            ) from None
         pos = nl + 1
         yield line, pos
 
@@ -144,7 +152,9 @@ def _ring(name: str, col: np.ndarray, where: str | Path) -> np.ndarray:
     """A ring column as placerec's int16; ScanFormatError when a value does not fit (or is not an integer)."""
     if col.dtype.kind in "iu" and np.can_cast(col.dtype, np.int16):
         return col.astype(np.int16)
-    return checked_ints(np.asarray(col, np.float64), np.int16, where, f"ring field {name!r} ({col.dtype.name})")
+    return checked_ints(
+        np.asarray(col, np.float64), np.int16, where, f"ring field {name!r} ({col.dtype.name})"
+    )
 
 
 def intensity_max_of(dtype: np.dtype) -> float | None:
@@ -202,7 +212,13 @@ def columns_to_scan(
     if sensor is None:
         sensor = SensorInfo(intensity_max=imax, columns=None if shape is None else shape[1])
     return Scan(
-        xyz=xyz, intensity=intensity, ring=ring, time=time, shape=shape, sensor=sensor, timestamp=timestamp,
+        xyz=xyz,
+        intensity=intensity,
+        ring=ring,
+        time=time,
+        shape=shape,
+        sensor=sensor,
+        timestamp=timestamp,
         source=str(where),
     )
 

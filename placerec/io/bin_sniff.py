@@ -45,7 +45,9 @@ def _nclt_plausible(head: bytes, size: int) -> bool:
     if size % NCLT_RECORD_SIZE:
         return False
     n = len(head) // NCLT_RECORD_SIZE
-    laser = np.frombuffer(head, np.uint8, count=n * NCLT_RECORD_SIZE)[NCLT_RECORD_SIZE - 1 :: NCLT_RECORD_SIZE]
+    laser = np.frombuffer(head, np.uint8, count=n * NCLT_RECORD_SIZE)[
+        NCLT_RECORD_SIZE - 1 :: NCLT_RECORD_SIZE
+    ]
     return bool(laser.size) and int(laser.max()) < 32
 
 

@@ -107,7 +107,11 @@ def read_kitti_bin(
     rows, cols, _ = lay
     sensor = SensorInfo(name="organised-bin", columns=cols)
     return Scan(
-        xyz=xyz, intensity=vals["i"], ring=ring, shape=(rows, cols) if organized else None, sensor=sensor,
+        xyz=xyz,
+        intensity=vals["i"],
+        ring=ring,
+        shape=(rows, cols) if organized else None,
+        sensor=sensor,
         source=str(p),
     )
 

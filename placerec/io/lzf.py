@@ -122,8 +122,9 @@ def lzf_decompress(src: bytes | bytearray | memoryview, out_size: int) -> bytes:
     bad = ref & (dist > op)
     if bad.any():
         k = int(np.argmax(bad))
-        raise LZFError(f"back-reference {int(dist[k])} bytes before output offset {int(op[k])} points before "
-                       "the start")
+        raise LZFError(
+            f"back-reference {int(dist[k])} bytes before output offset {int(op[k])} points before the start"
+        )
     payload = np.ones(n, dtype=bool)  # input bytes that are literal data
     payload[tok] = False
     payload[tok[ref] + 1] = False

@@ -31,7 +31,10 @@ def _hdl32e_elevations() -> tuple[float, ...]:
 
 HDL32E_ELEVATIONS_DEG = _hdl32e_elevations()
 NCLT_SENSOR = SensorInfo(
-    name="velodyne-hdl32e (nclt)", beam_elevations_deg=HDL32E_ELEVATIONS_DEG, columns=None, intensity_max=255.0
+    name="velodyne-hdl32e (nclt)",
+    beam_elevations_deg=HDL32E_ELEVATIONS_DEG,
+    columns=None,
+    intensity_max=255.0,
 )
 
 

@@ -52,8 +52,9 @@ def find_ouster_metadata(pcap: str | Path) -> Path:
     cands = [j for j, s in scores.items() if s == best]
     if best == 0 or len(cands) != 1:
         found = [j.name for j in jsons] or "none"
-        raise ScanFormatError(f"{pcap}: cannot tell which metadata .json belongs to it (found: {found}); "
-                              "pass metadata=")
+        raise ScanFormatError(
+            f"{pcap}: cannot tell which metadata .json belongs to it (found: {found}); pass metadata="
+        )
     return cands[0]
 
 
@@ -77,17 +78,22 @@ class OusterSequence:
     ) -> None:
         open_source, core = _sdk()
         self._pcap = check_file(pcap, "Ouster .pcap")
-        self._meta = check_file(metadata if metadata is not None else find_ouster_metadata(self._pcap),
-                                "Ouster metadata .json")
+        self._meta = check_file(
+            metadata if metadata is not None else find_ouster_metadata(self._pcap), "Ouster metadata .json"
+        )
         self._core = core
         try:
             self._src = open_source(str(self._pcap), meta=[str(self._meta)], sensor_idx=0, index=True)
             self._n = len(self._src)
         except Exception as exc:  # the sdk raises its own exception types for unreadable captures/metadata
-            raise ScanFormatError(f"{self._pcap}: cannot decode with metadata {self._meta.name} ({exc})") from exc
+            raise ScanFormatError(
+                f"{self._pcap}: cannot decode with metadata {self._meta.name} ({exc})"
+            ) from exc
         if self._n == 0:
-            raise ScanFormatError(f"{self._pcap}: no frame decoded with metadata {self._meta.name}; the metadata "
-                                  "does not match the capture (other sensor, lidar mode or data profile?)")
+            raise ScanFormatError(
+                f"{self._pcap}: no frame decoded with metadata {self._meta.name}; the metadata "
+                "does not match the capture (other sensor, lidar mode or data profile?)"
+            )
         self._info = self._src.sensor_info[0]
         lut_cls = getattr(core, "XYZLutFloat", core.XYZLut)
         self._lut = lut_cls(self._info)
@@ -121,7 +127,12 @@ class OusterSequence:
             got = int(np.count_nonzero(np.asarray(frame.status) & 1))
             log.warning(
                 "%s: frame %d of %d is incomplete (%d of %d columns decoded): the capture is truncated or lost "
-                "packets; its missing columns are empty", self._pcap, index, self._n, got, int(frame.w),
+                "packets; its missing columns are empty",
+                self._pcap,
+                index,
+                self._n,
+                got,
+                int(frame.w),
             )
         return frame
 
@@ -155,9 +166,14 @@ class OusterSequence:
         col_t = np.where(valid, (ts - t0) * 1e-9, 0.0).astype(np.float32)
         time = destagger(self._info, np.ascontiguousarray(np.broadcast_to(col_t, (h, w))))
         return Scan(
-            xyz=xyz.reshape(-1, 3), intensity=inten.reshape(-1), ring=np.repeat(np.arange(h, dtype=np.int16), w),
-            time=time.reshape(-1), shape=(h, w), sensor=self._sensor_info(dtype),
-            timestamp=t0 * 1e-9 if valid.any() else None, source=f"{self._pcap}#{index}",
+            xyz=xyz.reshape(-1, 3),
+            intensity=inten.reshape(-1),
+            ring=np.repeat(np.arange(h, dtype=np.int16), w),
+            time=time.reshape(-1),
+            shape=(h, w),
+            sensor=self._sensor_info(dtype),
+            timestamp=t0 * 1e-9 if valid.any() else None,
+            source=f"{self._pcap}#{index}",
         )
 
     @property

@@ -45,10 +45,25 @@ _MAX_HEADER_LINES = 200
 class PcdHeader:
     """The parsed header of a PCD file."""
 
-    def __init__(self, fields: list[str], dtypes: list[np.dtype], counts: list[int], width: int, height: int,
-                 points: int, data: str, data_offset: int) -> None:
+    def __init__(
+        self,
+        fields: list[str],
+        dtypes: list[np.dtype],
+        counts: list[int],
+        width: int,
+        height: int,
+        points: int,
+        data: str,
+        data_offset: int,
+    ) -> None:
         self.fields, self.dtypes, self.counts = fields, dtypes, counts
-        self.width, self.height, self.points, self.data, self.data_offset = width, height, points, data, data_offset
+        self.width, self.height, self.points, self.data, self.data_offset = (
+            width,
+            height,
+            points,
+            data,
+            data_offset,
+        )
 
     def point_dtype(self) -> np.dtype:
         """Packed structured dtype of one point (unique names; PCL's ``_`` padding fields renamed)."""
@@ -90,7 +105,9 @@ def parse_pcd_header(buf: bytes, where: Path) -> PcdHeader:
         if key.upper() == "DATA":
             break
     else:
-        raise ScanFormatError(f"{where}: no DATA line in the first {_MAX_HEADER_LINES} lines; not a PCD file?")
+        raise ScanFormatError(
+            f"{where}: no DATA line in the first {_MAX_HEADER_LINES} lines; not a PCD file?"
+        )
     for key in ("FIELDS", "SIZE", "TYPE", "WIDTH"):
         if key not in entries:
             raise ScanFormatError(f"{where}: PCD header lacks {key}")
@@ -106,8 +123,10 @@ def parse_pcd_header(buf: bytes, where: Path) -> PcdHeader:
     dtypes = []
     for f, t, s, c in zip(fields, types, sizes, counts, strict=True):
         if (t, s) not in _KINDS:
-            raise ScanFormatError(f"{where}: PCD field {f!r} has unsupported TYPE {t} SIZE {s} "
-                                  "(supported: F 4/8, I 1/2/4/8, U 1/2/4/8)")
+            raise ScanFormatError(
+                f"{where}: PCD field {f!r} has unsupported TYPE {t} SIZE {s} "
+                "(supported: F 4/8, I 1/2/4/8, U 1/2/4/8)"
+            )
         if c == 0:
             raise ScanFormatError(f"{where}: PCD field {f!r} has COUNT 0")
         dtypes.append(np.dtype(_KINDS[(t, s)]))
@@ -115,10 +134,14 @@ def parse_pcd_header(buf: bytes, where: Path) -> PcdHeader:
     height = _one(entries, "HEIGHT", 1, where)
     points = _one(entries, "POINTS", width * height, where)
     if points != width * height:
-        raise ScanFormatError(f"{where}: PCD header says POINTS {points} but WIDTH x HEIGHT = {width} x {height}")
+        raise ScanFormatError(
+            f"{where}: PCD header says POINTS {points} but WIDTH x HEIGHT = {width} x {height}"
+        )
     data = (entries["DATA"][:1] or [""])[0].lower()
     if data not in _DATA_KINDS:
-        raise ScanFormatError(f"{where}: PCD DATA {data!r} not supported (expected one of {list(_DATA_KINDS)})")
+        raise ScanFormatError(
+            f"{where}: PCD DATA {data!r} not supported (expected one of {list(_DATA_KINDS)})"
+        )
     return PcdHeader(fields, dtypes, counts, width, height, points, data, pos)
 
 
@@ -127,8 +150,10 @@ def _binary(buf: bytes, h: PcdHeader, where: Path) -> np.ndarray:
     need = h.points * dt.itemsize
     have = len(buf) - h.data_offset
     if have < need:
-        raise ScanFormatError(f"{where}: PCD binary data has {have} bytes, expected {need} "
-                              f"({h.points} points x {dt.itemsize} bytes)")
+        raise ScanFormatError(
+            f"{where}: PCD binary data has {have} bytes, expected {need} "
+            f"({h.points} points x {dt.itemsize} bytes)"
+        )
     if have > need:  # PCL pads binary files to the page size; the padding is not data
         log.debug("%s: %d bytes after the %d declared points ignored", where, have - need, h.points)
     return np.frombuffer(buf, dtype=dt, count=h.points, offset=h.data_offset)
@@ -142,12 +167,16 @@ def _compressed(buf: bytes, h: PcdHeader, where: Path) -> dict[str, np.ndarray]:
     comp, raw = struct.unpack_from("<II", buf, off)
     need = h.points * dt.itemsize
     if raw != need:
-        raise ScanFormatError(f"{where}: PCD binary_compressed uncompressed size {raw} bytes, expected {need} "
-                              f"({h.points} points x {dt.itemsize} bytes)")
+        raise ScanFormatError(
+            f"{where}: PCD binary_compressed uncompressed size {raw} bytes, expected {need} "
+            f"({h.points} points x {dt.itemsize} bytes)"
+        )
     check_size(raw, where, "PCD binary_compressed uncompressed size", ScanFormatError, "scan")
     if len(buf) < off + 8 + comp:
-        raise ScanFormatError(f"{where}: PCD binary_compressed data truncated: {len(buf) - off - 8} of "
-                              f"{comp} compressed bytes present")
+        raise ScanFormatError(
+            f"{where}: PCD binary_compressed data truncated: {len(buf) - off - 8} of "
+            f"{comp} compressed bytes present"
+        )
     try:
         data = lzf_decompress(memoryview(buf)[off + 8 : off + 8 + comp], raw)
     except LZFError as exc:
@@ -156,7 +185,9 @@ def _compressed(buf: bytes, h: PcdHeader, where: Path) -> dict[str, np.ndarray]:
     o = 0
     for name in dt.names or ():
         fdt = dt.fields[name][0]
-        cols[name] = np.frombuffer(data, dtype=fdt, count=h.points, offset=o) if h.points else np.empty(0, fdt)
+        cols[name] = (
+            np.frombuffer(data, dtype=fdt, count=h.points, offset=o) if h.points else np.empty(0, fdt)
+        )
         o += h.points * fdt.itemsize
     return cols
 
@@ -168,8 +199,10 @@ def _ascii(buf: bytes, h: PcdHeader, where: Path) -> dict[str, np.ndarray]:
         raise ScanFormatError(f"{where}: PCD ascii data is not ASCII text") from None
     per_point = sum(h.counts)
     if len(tokens) != h.points * per_point:
-        raise ScanFormatError(f"{where}: PCD ascii data has {len(tokens)} values, expected {h.points} points x "
-                              f"{per_point} values")
+        raise ScanFormatError(
+            f"{where}: PCD ascii data has {len(tokens)} values, expected {h.points} points x "
+            f"{per_point} values"
+        )
     try:
         vals = np.array(tokens, dtype=np.float64).reshape(h.points, per_point)
     except ValueError as exc:
@@ -238,7 +271,9 @@ def write_pcd(path: str | Path, scan: Scan, data: str = "binary") -> None:
             rec[name] = arr
         body = rec.tobytes()
     elif data == "binary_compressed":
-        raw = b"".join(np.ascontiguousarray(arr, dtype=dt.fields[name][0]).tobytes() for name, arr, _, _ in fields)
+        raw = b"".join(
+            np.ascontiguousarray(arr, dtype=dt.fields[name][0]).tobytes() for name, arr, _, _ in fields
+        )
         comp = lzf_compress(raw)
         body = struct.pack("<II", len(comp), len(raw)) + comp
     else:

@@ -27,9 +27,22 @@ from placerec.types import Scan
 __all__ = ["read_ply", "write_ply"]
 
 _TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 _FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
 _MAX_HEADER_LINES = 1000
@@ -56,11 +69,15 @@ def _parse_header(buf: bytes, where: Path) -> tuple[str, list[_Element], int]:
             break
         if parts[0] == "format":
             if len(parts) < 2 or parts[1] not in _FORMATS:
-                raise ScanFormatError(f"{where}: PLY format {line!r} not supported (expected {list(_FORMATS)})")
+                raise ScanFormatError(
+                    f"{where}: PLY format {line!r} not supported (expected {list(_FORMATS)})"
+                )
             fmt = parts[1]
         elif parts[0] == "element":
             if len(parts) != 3 or not parts[2].isdigit():
-                raise ScanFormatError(f"{where}: bad PLY element line {line!r} (expected 'element NAME COUNT')")
+                raise ScanFormatError(
+                    f"{where}: bad PLY element line {line!r} (expected 'element NAME COUNT')"
+                )
             elements.append(_Element(parts[1], int(parts[2])))
         elif parts[0] == "property":
             if not elements:
@@ -122,14 +139,18 @@ def read_ply(path: str | Path, *, organized: bool = False) -> Scan:
     else:
         for e in elements[:idx]:
             if e.has_list:
-                raise ScanFormatError(f"{p}: PLY element {e.name!r} before 'vertex' has a list property; "
-                                      "cannot skip it in binary data")
+                raise ScanFormatError(
+                    f"{p}: PLY element {e.name!r} before 'vertex' has a list property; "
+                    "cannot skip it in binary data"
+                )
             off += e.count * _dtype(e, order, p).itemsize
         dt = _dtype(vertex, order, p)
         need = n * dt.itemsize
         if len(buf) - off < need:
-            raise ScanFormatError(f"{p}: PLY binary vertex data truncated: {max(len(buf) - off, 0)} bytes, "
-                                  f"expected {need} ({n} vertices x {dt.itemsize} bytes)")
+            raise ScanFormatError(
+                f"{p}: PLY binary vertex data truncated: {max(len(buf) - off, 0)} bytes, "
+                f"expected {need} ({n} vertices x {dt.itemsize} bytes)"
+            )
         arr = np.frombuffer(buf, dtype=dt, count=n, offset=off)
         cols = {k: v.astype(v.dtype.newbyteorder("=")) for k, v in structured_columns(arr).items()}
     return columns_to_scan(cols, p)
@@ -137,7 +158,9 @@ def read_ply(path: str | Path, *, organized: bool = False) -> Scan:
 
 def write_ply(path: str | Path, scan: Scan) -> None:
     """Write ``scan`` as binary little-endian PLY (float x y z intensity, [ushort ring], [float t]); atomic."""
-    fields: list[tuple[str, str, str, np.ndarray]] = [(c, "float", "<f4", scan.xyz[:, j]) for j, c in enumerate("xyz")]
+    fields: list[tuple[str, str, str, np.ndarray]] = [
+        (c, "float", "<f4", scan.xyz[:, j]) for j, c in enumerate("xyz")
+    ]
     fields.append(("intensity", "float", "<f4", scan.intensity))
     if scan.ring is not None:
         fields.append(("ring", "short", "<i2", scan.ring))

@@ -57,8 +57,10 @@ def _rows(path: Path, fmt: str | None) -> tuple[str, np.ndarray, list[int]]:
             width = len(parts)
             fmt = next((k for k, v in POSE_FORMATS.items() if v == width), None)
             if fmt is None:
-                raise ScanFormatError(f"{p}:{no}: {width} columns; expected 12 (KITTI 3x4) or 8 (TUM "
-                                      "'timestamp tx ty tz qx qy qz qw')")
+                raise ScanFormatError(
+                    f"{p}:{no}: {width} columns; expected 12 (KITTI 3x4) or 8 (TUM "
+                    "'timestamp tx ty tz qx qy qz qw')"
+                )
         elif len(parts) != width:
             raise ScanFormatError(f"{p}:{no}: {len(parts)} columns, expected {width} ({fmt} poses)")
         tokens.extend(parts)

@@ -61,7 +61,9 @@ def scan_format_of(path: str | Path, format: str | None, table: dict[str, Any] |
     fmt = EXTENSIONS.get(Path(path).suffix.lower())
     if fmt is None or fmt not in table:
         known = sorted(k for k, v in EXTENSIONS.items() if v in table)
-        raise ScanFormatError(f"{path}: cannot tell the scan format from the suffix (known: {known}); pass format=")
+        raise ScanFormatError(
+            f"{path}: cannot tell the scan format from the suffix (known: {known}); pass format="
+        )
     return fmt
 
 
@@ -80,7 +82,9 @@ def _check_options(fn: Callable[..., Any], options: dict[str, Any], fmt: str) ->
     allowed.discard("organized")
     unknown = set(options) - allowed
     if unknown:
-        raise ConfigError(f"format {fmt!r} does not take option(s) {sorted(unknown)}; it takes {sorted(allowed)}")
+        raise ConfigError(
+            f"format {fmt!r} does not take option(s) {sorted(unknown)}; it takes {sorted(allowed)}"
+        )
 
 
 def read_scan(

@@ -32,7 +32,9 @@ POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
 
-def pointcloud2_to_scan(msg: Any, where: str, *, organized: bool = False, timestamp: float | None = None) -> Scan:
+def pointcloud2_to_scan(
+    msg: Any, where: str, *, organized: bool = False, timestamp: float | None = None
+) -> Scan:
     """Decode a PointCloud2 message (any object with its fields) into a `Scan`, vectorised."""
     order = ">" if msg.is_bigendian else "<"
     step, row_step = int(msg.point_step), int(msg.row_step)
@@ -44,8 +46,10 @@ def pointcloud2_to_scan(msg: Any, where: str, *, organized: bool = False, timest
         dt = np.dtype(order + _DATATYPES[f.datatype])
         count = max(int(f.count), 1)
         if f.offset < 0 or f.offset + dt.itemsize * count > step:
-            raise ScanFormatError(f"{where}: PointCloud2 field {f.name!r} (offset {f.offset}, {count} x "
-                                  f"{dt.itemsize} bytes) does not fit in point_step {step}")
+            raise ScanFormatError(
+                f"{where}: PointCloud2 field {f.name!r} (offset {f.offset}, {count} x "
+                f"{dt.itemsize} bytes) does not fit in point_step {step}"
+            )
         names.append(f.name)
         formats.append(dt if count == 1 else (dt, (count,)))
         offsets.append(int(f.offset))
@@ -54,8 +58,10 @@ def pointcloud2_to_scan(msg: Any, where: str, *, organized: bool = False, timest
     data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
     need = (h - 1) * row_step + w * step if h * w else 0
     if data.size < need:
-        raise ScanFormatError(f"{where}: PointCloud2 data has {data.size} bytes, expected {need} "
-                              f"({h} x {w} points, point_step {step}, row_step {row_step})")
+        raise ScanFormatError(
+            f"{where}: PointCloud2 data has {data.size} bytes, expected {need} "
+            f"({h} x {w} points, point_step {step}, row_step {row_step})"
+        )
     try:
         dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": max(step, 1)})
     except ValueError as exc:
@@ -91,8 +97,9 @@ def _rosbags() -> tuple[Any, Any, Any]:
         from rosbags.highlevel import AnyReader, AnyReaderError
         from rosbags.typesys import Stores, get_typestore
     except ImportError as exc:
-        raise DependencyError(f"reading rosbags needs the rosbags package ({exc}); install it with: "
-                              "pip install placerec[ros]") from exc
+        raise DependencyError(
+            f"reading rosbags needs the rosbags package ({exc}); install it with: pip install placerec[ros]"
+        ) from exc
     return AnyReader, AnyReaderError, get_typestore(Stores.LATEST)
 
 
@@ -125,7 +132,9 @@ class RosbagSequence:
             self._reader = AnyReader([self._path], default_typestore=typestore)
             self._reader.open()
         except (AnyReaderError, *_BAG_ERRORS) as exc:
-            raise ScanFormatError(f"{self._path}: cannot open as a rosbag ({type(exc).__name__}: {exc})") from exc
+            raise ScanFormatError(
+                f"{self._path}: cannot open as a rosbag ({type(exc).__name__}: {exc})"
+            ) from exc
         clouds = [c for c in self._reader.connections if c.msgtype == POINTCLOUD2]
         topics = sorted({c.topic for c in clouds})
         if topic is None:
@@ -136,7 +145,9 @@ class RosbagSequence:
         self._conns = [c for c in clouds if c.topic == topic]
         if not self._conns:
             self.close()
-            raise ScanFormatError(f"{self._path}: no PointCloud2 topic {topic!r} (PointCloud2 topics: {topics})")
+            raise ScanFormatError(
+                f"{self._path}: no PointCloud2 topic {topic!r} (PointCloud2 topics: {topics})"
+            )
         self._topic = topic
         log_times, stamps = [], []
         try:
@@ -168,14 +179,18 @@ class RosbagSequence:
                 self._reader.open()
             found = [
                 (conn, raw)
-                for k, (conn, _, raw) in enumerate(self._reader.messages(connections=self._conns, start=t, stop=t + 1))
+                for k, (conn, _, raw) in enumerate(
+                    self._reader.messages(connections=self._conns, start=t, stop=t + 1)
+                )
                 if k == self._rank[index]
             ]
             msg = self._reader.deserialize(found[0][1], found[0][0].msgtype) if found else None
         except self._read_errors as exc:
             raise ScanFormatError(f"{where}: cannot read PointCloud2 ({type(exc).__name__}: {exc})") from exc
         if msg is not None:
-            return pointcloud2_to_scan(msg, where, organized=self._organized, timestamp=float(self._stamps[index]))
+            return pointcloud2_to_scan(
+                msg, where, organized=self._organized, timestamp=float(self._stamps[index])
+            )
         raise ScanFormatError(f"{where}: message not found again in the bag")  # pragma: no cover
 
     @property

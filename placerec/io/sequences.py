@@ -105,7 +105,9 @@ class _FileSequence:
 
     def _set_poses(self, poses: np.ndarray | None, source: Path | str) -> None:
         if poses is not None and poses.shape[0] != len(self._files):
-            raise ScanFormatError(f"{source}: {poses.shape[0]} poses for {len(self._files)} scans in {self._root}")
+            raise ScanFormatError(
+                f"{source}: {poses.shape[0]} poses for {len(self._files)} scans in {self._root}"
+            )
         self._poses = None if poses is None else check_poses(poses, len(self._files), str(source))
 
     def __len__(self) -> int:
@@ -117,7 +119,11 @@ class _FileSequence:
         changes: dict[str, Any] = {}
         if self._sensor is not None:
             changes["sensor"] = self._sensor
-            if self._sensor.intensity_max and self._options.get("format", "kitti") == "kitti" and path.suffix == ".bin":
+            if (
+                self._sensor.intensity_max
+                and self._options.get("format", "kitti") == "kitti"
+                and path.suffix == ".bin"
+            ):
                 changes["intensity"] = scan.intensity * np.float32(self._sensor.intensity_max)
         if self._timestamps is not None:
             changes["timestamp"] = float(self._timestamps[index])
@@ -132,8 +138,9 @@ class _FileSequence:
         p, buf = read_bytes(path, "ring .npy")
         ring = parse_npy(buf, p, ScanFormatError)
         if ring.dtype.kind not in "iu" or ring.size != n:
-            raise ScanFormatError(f"{p}: ring file must hold {n} integers (one per point), got {ring.shape} "
-                                  f"{ring.dtype}")
+            raise ScanFormatError(
+                f"{p}: ring file must hold {n} integers (one per point), got {ring.shape} {ring.dtype}"
+            )
         return ring.reshape(-1)
 
     @property
@@ -226,14 +233,20 @@ class FolderSequence(_FileSequence):
             files = [f for f in root.iterdir() if f.is_file() and f.suffix.lower() in EXTENSIONS]
             suffixes = sorted({f.suffix.lower() for f in files})
             if len(suffixes) > 1:
-                raise ScanFormatError(f"{root}: scan files of several kinds {suffixes}; pass pattern= (e.g. '*.pcd')")
+                raise ScanFormatError(
+                    f"{root}: scan files of several kinds {suffixes}; pass pattern= (e.g. '*.pcd')"
+                )
         else:
             files = [f for f in root.glob(pattern) if f.is_file()]
         files.sort(key=natural_key)
         bad = set(read_options) - {"organized", "layout", "sensor"}
         if bad:
-            raise ConfigError(f"FolderSequence got unknown option(s) {sorted(bad)}; allowed: organized, layout, sensor")
-        if files:  # decided once from the first file; an unknown suffix or format fails now, not on the first scan
+            raise ConfigError(
+                f"FolderSequence got unknown option(s) {sorted(bad)}; allowed: organized, layout, sensor"
+            )
+        if (
+            files
+        ):  # decided once from the first file; an unknown suffix or format fails now, not on the first scan
             format = read_format_of(files[0], format, read_options)
         super().__init__(root, files, root.name, {"format": format, **read_options})
         if poses is None and (root / "poses.txt").is_file():

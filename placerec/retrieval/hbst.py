@@ -232,7 +232,9 @@ class HBST:
         arrays, header = load_artifact(path, ARTIFACT_KIND, (FORMAT_VERSION,), _SCHEMA)
         meta = header["meta"]
         present = [k for k in _TREE_MEMBERS if k in arrays]
-        if (present and len(present) != len(_TREE_MEMBERS)) or bool(present) != (meta.get("n_bytes") is not None):
+        if (present and len(present) != len(_TREE_MEMBERS)) or bool(present) != (
+            meta.get("n_bytes") is not None
+        ):
             raise ArtifactError(
                 f"{path}: corrupt hbst artifact: a saved tree needs all of {list(_TREE_MEMBERS)} and the header's "
                 f"n_bytes, an empty one none of them; found {present} and n_bytes={short_repr(meta.get('n_bytes'))}"

@@ -66,7 +66,9 @@ class _Templates:
             used, inv = np.unique(tris[i], return_inverse=True)
             verts.append(m.vertices[used])
             local.append(inv.reshape(-1, 3))
-        return cls(np.stack(verts).astype(np.float64), np.stack(local), mats, m.obj_origin, m.obj_params, m.obj_seed)
+        return cls(
+            np.stack(verts).astype(np.float64), np.stack(local), mats, m.obj_origin, m.obj_params, m.obj_seed
+        )
 
     def place(self, b: MeshBuilder, idx: np.ndarray, xy: np.ndarray, z: np.ndarray, yaw: np.ndarray) -> None:
         k = len(idx)
@@ -79,11 +81,20 @@ class _Templates:
         out[..., 1] = s * v[..., 0] + c * v[..., 1] + xy[:, 1:2]
         out[..., 2] = v[..., 2] + z[:, None]
         o = self.origin[idx]
-        origin = np.c_[c[:, 0] * o[:, 0] - s[:, 0] * o[:, 1] + xy[:, 0], s[:, 0] * o[:, 0] + c[:, 0] * o[:, 1] + xy[:, 1], o[:, 2] + z]
+        origin = np.c_[
+            c[:, 0] * o[:, 0] - s[:, 0] * o[:, 1] + xy[:, 0],
+            s[:, 0] * o[:, 0] + c[:, 0] * o[:, 1] + xy[:, 1],
+            o[:, 2] + z,
+        ]
         ids = b.add_objects(origin, yaw, self.params[idx], self.seeds[idx])
         nv = v.shape[1]
         tris = self.tris[idx] + (nv * np.arange(k))[:, None, None]
-        b.add_mesh(out.reshape(-1, 3), tris.reshape(-1, 3), self.mats[idx].reshape(-1), np.repeat(ids, self.tris.shape[1]))
+        b.add_mesh(
+            out.reshape(-1, 3),
+            tris.reshape(-1, 3),
+            self.mats[idx].reshape(-1),
+            np.repeat(ids, self.tris.shape[1]),
+        )
 
 
 _VARIANTS = 32  # looks of the cars that park in free slots
@@ -104,16 +115,27 @@ def _agents(world: World, cfg: ClutterConfig) -> dict:
             _, _, length = _segments(seg)
             n = rng.poisson(density * length / 1000.0)
         lane = np.repeat(np.arange(len(n)), n)
-        out[name] = np.c_[lane, rng.random(len(lane)) * (length[lane] if len(lane) else 0.0), rng.uniform(vlo, vhi, len(lane))]
+        out[name] = np.c_[
+            lane,
+            rng.random(len(lane)) * (length[lane] if len(lane) else 0.0),
+            rng.uniform(vlo, vhi, len(lane)),
+        ]
         u = rng.random((len(lane), 7))
         if len(lane) == 0:
             out[name + "_tmpl"] = None
         elif name == "car":
-            out[name + "_tmpl"] = _Templates.build(lambda b, k, u=u: add_cars(b, np.zeros((k, 2)), 0.0, np.zeros(k), attrs=car_attributes(u)), len(lane))
+            out[name + "_tmpl"] = _Templates.build(
+                lambda b, k, u=u: add_cars(b, np.zeros((k, 2)), 0.0, np.zeros(k), attrs=car_attributes(u)),
+                len(lane),
+            )
         else:
-            out[name + "_tmpl"] = _Templates.build(lambda b, k, u=u: add_people(b, np.zeros((k, 2)), 0.0, u[:, :4]), len(lane))
+            out[name + "_tmpl"] = _Templates.build(
+                lambda b, k, u=u: add_people(b, np.zeros((k, 2)), 0.0, u[:, :4]), len(lane)
+            )
     uv = np.stack([hash_unit(np.arange(_VARIANTS), c, world.seed, 0x52) for c in range(7)], axis=1)
-    out["parked_tmpl"] = _Templates.build(lambda b, k: add_cars(b, np.zeros((k, 2)), 0.0, np.zeros(k), attrs=car_attributes(uv)), _VARIANTS)
+    out["parked_tmpl"] = _Templates.build(
+        lambda b, k: add_cars(b, np.zeros((k, 2)), 0.0, np.zeros(k), attrs=car_attributes(uv)), _VARIANTS
+    )
     world.cache[key] = out
     return out
 
@@ -140,12 +162,24 @@ def _occluders(b: MeshBuilder, world: World, pose: np.ndarray, rng: np.random.Ge
             dist = rng.uniform(1.0, 2.5)
             xy = to_world(dist * np.cos(ang), dist * np.sin(ang))
             z = world.ground_height(xy[0], xy[1])
-            b.add_boxes(np.r_[xy, z], [rng.uniform(0.3, 0.8), rng.uniform(0.3, 0.8), rng.uniform(2.5, 4.0)], yaw + ang, M.CONCRETE, seed=int(rng.integers(2**31)))
+            b.add_boxes(
+                np.r_[xy, z],
+                [rng.uniform(0.3, 0.8), rng.uniform(0.3, 0.8), rng.uniform(2.5, 4.0)],
+                yaw + ang,
+                M.CONCRETE,
+                seed=int(rng.integers(2**31)),
+            )
         elif kind == "wall":
             dist = rng.uniform(2.0, 4.0)
             xy = to_world(dist * np.cos(ang), dist * np.sin(ang))
             z = world.ground_height(xy[0], xy[1])
-            b.add_boxes(np.r_[xy, z], [0.25, rng.uniform(3.0, 7.0), rng.uniform(1.8, 3.0)], yaw + ang, M.STONE, seed=int(rng.integers(2**31)))
+            b.add_boxes(
+                np.r_[xy, z],
+                [0.25, rng.uniform(3.0, 7.0), rng.uniform(1.8, 3.0)],
+                yaw + ang,
+                M.STONE,
+                seed=int(rng.integers(2**31)),
+            )
         elif kind == "van":
             side = rng.choice([-1.0, 1.0])
             xy = to_world(rng.uniform(-2.0, 2.0), side * rng.uniform(2.4, 3.2))
@@ -154,7 +188,14 @@ def _occluders(b: MeshBuilder, world: World, pose: np.ndarray, rng: np.random.Ge
             add_cars(b, xy[None], z, np.array([yaw]), attrs=attrs)
         else:  # a carport roof above the sensor on two posts
             h = o[2] + rng.uniform(0.6, 1.5)
-            b.add_boxes(np.r_[o[:2], h], [6.0, 5.0, 0.25], yaw + ang, M.CORRUGATED, params=[[0.25, 0.12]], seed=int(rng.integers(2**31)))
+            b.add_boxes(
+                np.r_[o[:2], h],
+                [6.0, 5.0, 0.25],
+                yaw + ang,
+                M.CORRUGATED,
+                params=[[0.25, 0.12]],
+                seed=int(rng.integers(2**31)),
+            )
             for lx in (-2.8, 2.8):
                 xy = to_world(lx * np.cos(ang) - 2.3 * np.sin(ang), lx * np.sin(ang) + 2.3 * np.cos(ang))
                 z = world.ground_height(xy[0], xy[1])
@@ -177,7 +218,10 @@ def build_clutter(
     p = pose[:2, 3]
     if config is not None:
         ag = _agents(world, config)
-        for name, seg, dz in (("car", world.lanes, 0.0), ("ped", world.walkways, float(world.info.get("walkway_z", 0.0)))):
+        for name, seg, dz in (
+            ("car", world.lanes, 0.0),
+            ("ped", world.walkways, float(world.info.get("walkway_z", 0.0))),
+        ):
             if ag[name + "_tmpl"] is None:
                 continue
             xy, yaw = _positions(seg, ag[name], float(timestamp))
@@ -197,7 +241,9 @@ def build_clutter(
                 variant = hash_u32(sel, epoch, world.seed, 0x53) % np.uint32(_VARIANTS)
                 flip = hash_unit(sel, epoch, world.seed, 0x54) < 0.5
                 z = world.ground_height(slots[sel, 0], slots[sel, 1])
-                ag["parked_tmpl"].place(b, variant.astype(np.int64), slots[sel, :2], z, slots[sel, 2] + np.pi * flip)
+                ag["parked_tmpl"].place(
+                    b, variant.astype(np.int64), slots[sel, :2], z, slots[sel, 2] + np.pi * flip
+                )
     if occluders:
         _occluders(b, world, pose, np.random.default_rng([int(seed), int(index), 0x0CC]))
     mesh = b.build()

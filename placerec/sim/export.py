@@ -90,7 +90,9 @@ def write_kitti_sequence(seq: Sequence, out_dir: str | Path, progress: bool = Tr
             col = np.tile(np.arange(scan.shape[1], dtype=np.uint16), scan.shape[0])[valid]
         elif scan.sensor.columns:  # the simulator's rays lie exactly on their column's azimuth
             az = np.arctan2(scan.xyz[valid, 1], scan.xyz[valid, 0]).astype(np.float64)
-            col = (np.floor((np.pi - az) / (2 * np.pi) * scan.sensor.columns) % scan.sensor.columns).astype(np.uint16)
+            col = (np.floor((np.pi - az) / (2 * np.pi) * scan.sensor.columns) % scan.sensor.columns).astype(
+                np.uint16
+            )
         else:
             col = None
         if col is not None:
@@ -130,15 +132,25 @@ def _simulation_meta(seq: SimulatedSequence) -> dict:
         "generator": "placerec.sim",
         "spec": seq.spec.as_dict(),
         "bin_intensity": "raw / intensity_max (multiply by sensor.yaml intensity_max for raw units)",
-        "sensor_preset": {"family": seq.sensor.family, "intensity_bits": seq.sensor.intensity_bits,
-                          "range_compensated": seq.sensor.range_compensated, "organized": seq.sensor.organized},  # fmt: skip
+        "sensor_preset": {
+            "family": seq.sensor.family,
+            "intensity_bits": seq.sensor.intensity_bits,
+            "range_compensated": seq.sensor.range_compensated,
+            "organized": seq.sensor.organized,
+        },  # fmt: skip
         "route": seq.route.describe(),
-        "beam_response": {"model": "raw = S(gain * f(x)) + offset, f(x) = x**gamma (x<=1) else 1+gamma*(x-1); see placerec.sim.intensity", "gain": r.gain.round(6).tolist(),
-                          "gamma": r.gamma.round(6).tolist(), "offset": r.offset.round(6).tolist()},  # fmt: skip
+        "beam_response": {
+            "model": "raw = S(gain * f(x)) + offset, f(x) = x**gamma (x<=1) else 1+gamma*(x-1); see placerec.sim.intensity",
+            "gain": r.gain.round(6).tolist(),
+            "gamma": r.gamma.round(6).tolist(),
+            "offset": r.offset.round(6).tolist(),
+        },  # fmt: skip
     }
 
 
-def simulate(preset: str, sensor: str, n_scans: int | None, seed: int, out_dir: str | Path, progress: bool = True) -> Path:
+def simulate(
+    preset: str, sensor: str, n_scans: int | None, seed: int, out_dir: str | Path, progress: bool = True
+) -> Path:
     """Simulate ``n_scans`` scans of ``sensor`` along the default route of world ``preset`` and write them to
     ``out_dir`` (the ``placerec simulate --preset P --sensor S --scans N --seed K --out DIR`` command)."""
     seq = SimulatedSequence(world=preset, sensor=sensor, n_scans=n_scans, seed=seed)

@@ -121,7 +121,9 @@ class MeshBuilder:
         self._nobj += k
         return ids
 
-    def add_mesh(self, verts: np.ndarray, tris: np.ndarray, material: np.ndarray | int, obj: np.ndarray | int) -> None:
+    def add_mesh(
+        self, verts: np.ndarray, tris: np.ndarray, material: np.ndarray | int, obj: np.ndarray | int
+    ) -> None:
         """Add raw triangles (``tris`` index into ``verts``)."""
         tris = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
         n = tris.shape[0]
@@ -163,7 +165,10 @@ class MeshBuilder:
                 prm[:, 3 : 3 + p.shape[1]] = p
             obj = self.add_objects(base, yaw, prm, seed)
         obj = np.broadcast_to(np.asarray(obj, dtype=np.int32), (k,))
-        local = _BOX_CORNERS[None, :, :] * np.stack([size[:, 0] / 2, size[:, 1] / 2, size[:, 2]], axis=1)[:, None, :]
+        local = (
+            _BOX_CORNERS[None, :, :]
+            * np.stack([size[:, 0] / 2, size[:, 1] / 2, size[:, 2]], axis=1)[:, None, :]
+        )
         R = yaw_matrices(yaw)
         verts = np.einsum("kij,kvj->kvi", R, local) + base[:, None, :]
         faces = _BOX_TRIS if bottom else _BOX_TRIS[_BOX_TRI_FACE != 0]
@@ -196,7 +201,9 @@ class MeshBuilder:
         a = 2 * np.pi * np.arange(sides) / sides
         ca, sa = np.cos(a), np.sin(a)
         ring0 = np.stack([ca[None] * r0[:, None], sa[None] * r0[:, None], np.zeros((k, sides))], -1)
-        ring1 = np.stack([ca[None] * r1[:, None], sa[None] * r1[:, None], np.repeat(h[:, None], sides, 1)], -1)
+        ring1 = np.stack(
+            [ca[None] * r1[:, None], sa[None] * r1[:, None], np.repeat(h[:, None], sides, 1)], -1
+        )
         top_c = np.stack([np.zeros(k), np.zeros(k), h], -1)[:, None, :]
         verts = np.concatenate([ring0, ring1, top_c], axis=1) + base[:, None, :]
         i = np.arange(sides)
@@ -206,8 +213,12 @@ class MeshBuilder:
         nv = 2 * sides + 1
         tris = np.concatenate([side_tris, cap])[None] + nv * np.arange(k)[:, None, None]
         mat = np.broadcast_to(np.asarray(material, dtype=np.uint8), (k,))
-        capm = mat if cap_material is None else np.broadcast_to(np.asarray(cap_material, dtype=np.uint8), (k,))
-        mats = np.concatenate([np.repeat(mat[:, None], 2 * sides, 1), np.repeat(capm[:, None], sides, 1)], axis=1)
+        capm = (
+            mat if cap_material is None else np.broadcast_to(np.asarray(cap_material, dtype=np.uint8), (k,))
+        )
+        mats = np.concatenate(
+            [np.repeat(mat[:, None], 2 * sides, 1), np.repeat(capm[:, None], sides, 1)], axis=1
+        )
         objs = np.repeat(np.broadcast_to(np.asarray(obj, dtype=np.int32), (k,))[:, None], 3 * sides, 1)
         self.add_mesh(verts.reshape(-1, 3), tris.reshape(-1, 3), mats.reshape(-1), objs.reshape(-1))
 
@@ -224,7 +235,12 @@ class MeshBuilder:
         """K irregular ellipsoids (tree crowns, bushes, heaps): icospheres with radially jittered vertices."""
         center = np.atleast_2d(np.asarray(center, dtype=np.float64))
         k = center.shape[0]
-        radii = np.broadcast_to(np.asarray(radii, dtype=np.float64).reshape(-1, 3) if np.ndim(radii) > 1 else np.asarray(radii, dtype=np.float64), (k, 3))
+        radii = np.broadcast_to(
+            np.asarray(radii, dtype=np.float64).reshape(-1, 3)
+            if np.ndim(radii) > 1
+            else np.asarray(radii, dtype=np.float64),
+            (k, 3),
+        )
         uv, uf = _icosphere(subdiv)
         scale = 1.0 + jitter * (rng.random((k, uv.shape[0])) - 0.5) * 2.0
         verts = uv[None] * scale[:, :, None] * radii[:, None, :] + center[:, None, :]

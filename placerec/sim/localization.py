@@ -56,7 +56,9 @@ def make_localization_split(
     """Build the map sequence and ``n_queries`` query scans per condition (see the module docstring)."""
     unknown = set(conditions) - set(CONDITIONS)
     if unknown:
-        raise ConfigError(f"sim.localization.conditions: unknown {sorted(unknown)}; allowed: {list(CONDITIONS)}")
+        raise ConfigError(
+            f"sim.localization.conditions: unknown {sorted(unknown)}; allowed: {list(CONDITIONS)}"
+        )
     mapping = SimulatedSequence(world=preset, sensor=sensor, n_scans=n_map, seed=seed, route=map_route)
     world = mapping.world
     mxy = mapping.poses[:, :2, 3]
@@ -80,7 +82,11 @@ def make_localization_split(
             raise ConfigError(f"sim.localization: found only {len(xy)} free query spots for {cond}")
         pts = np.stack(xy)
         yaw = rng.uniform(-np.pi, np.pi, n_queries)
-        height = rng.uniform(0.8, 2.5, n_queries) if cond == "pole" else np.full(n_queries, mapping.sensor.mount_height)
+        height = (
+            rng.uniform(0.8, 2.5, n_queries)
+            if cond == "pole"
+            else np.full(n_queries, mapping.sensor.mount_height)
+        )
         poses = poses_from_xy_yaw(pts, world.ground_height(pts[:, 0], pts[:, 1]) + height, yaw)
         times = 86400.0 * (c_idx + 1) + 601.0 * np.arange(n_queries)
         route = Route(poses=poses, timestamps=times, name=cond)

@@ -34,11 +34,23 @@ class OdometryDrift:
         if isinstance(value, OdometryDrift):
             return value
         f = float(value) / cls.translation
-        return cls(translation=float(value), rotation_deg=cls.rotation_deg * f, yaw_bias_deg_per_100m=cls.yaw_bias_deg_per_100m * f, scale_bias=cls.scale_bias * f)
+        return cls(
+            translation=float(value),
+            rotation_deg=cls.rotation_deg * f,
+            yaw_bias_deg_per_100m=cls.yaw_bias_deg_per_100m * f,
+            scale_bias=cls.scale_bias * f,
+        )
 
 
 def _rot(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    cy, sy, cp, sp, cr, sr = (
+        np.cos(yaw),
+        np.sin(yaw),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(roll),
+        np.sin(roll),
+    )
     return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
                      [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
                      [-sp, cp * sr, cp * cr]])  # fmt: skip
@@ -58,7 +70,9 @@ def drift_poses(poses: np.ndarray, drift: OdometryDrift, seed: int) -> np.ndarra
         delta = np.linalg.solve(poses[k - 1], poses[k])
         step = float(np.linalg.norm(delta[:3, 3]))
         d = delta.copy()
-        d[:3, 3] = delta[:3, 3] * (1.0 + drift.scale_bias) + noise[k, :3] * drift.translation * step * np.array([1.0, 1.0, 0.3])
+        d[:3, 3] = delta[:3, 3] * (1.0 + drift.scale_bias) + noise[
+            k, :3
+        ] * drift.translation * step * np.array([1.0, 1.0, 0.3])
         rs = np.radians(drift.rotation_deg) * np.sqrt(step)
         yaw = np.radians(drift.yaw_bias_deg_per_100m) * step / 100.0 + noise[k, 3] * rs
         d[:3, :3] = _rot(yaw, noise[k, 4] * rs * 0.3, noise[k, 5] * rs * 0.3) @ delta[:3, :3]

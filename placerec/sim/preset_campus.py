@@ -95,7 +95,9 @@ def build_campus(seed: int) -> PresetResult:
                 poly = _bezier(nodes[a], nodes[e], bend)
                 edges[(a, e)] = poly
                 main = (j == aj and di == 1) or (i == ai + 1 and dj == 1)
-                ground.polygons(strip_polys(poly[:-1], poly[1:], 3.6 if main else 2.6), M.ASPHALT if main else M.GRAVEL)
+                ground.polygons(
+                    strip_polys(poly[:-1], poly[1:], 3.6 if main else 2.6), M.ASPHALT if main else M.GRAVEL
+                )
                 corridor.polygons(strip_polys(poly[:-1], poly[1:], 2 * _CORRIDOR), 1)
                 walk.append(np.stack([poly[:-1], poly[1:]], 1))
                 walk.append(np.stack([poly[1:], poly[:-1]], 1))
@@ -137,10 +139,20 @@ def build_campus(seed: int) -> PresetResult:
                 pitch = 1.8 if style == 2 else rng.uniform(2.6, 3.6)
                 prm = [rng.uniform(0.25, 0.55), floor_h, pitch - 0.2 if style == 2 else rng.uniform(1.0, 1.6),
                        floor_h - 1.0 if style == 2 else rng.uniform(1.4, 2.0), pitch, style, 2 * (rng.random() < 0.3)]  # fmt: skip
-                corners = c + np.array([[L, W], [-L, W], [L, -W], [-L, -W]]) / 2 @ np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+                corners = c + np.array([[L, W], [-L, W], [L, -W], [-L, -W]]) / 2 @ np.array(
+                    [[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]]
+                )
                 zb = float(h(corners[:, 0], corners[:, 1]).min()) - 0.3
                 H += float(h(c[0], c[1])) - zb
-                b.add_boxes(np.r_[c, zb], [L, W, H + 0.3], yaw, M.FACADE, top_mat=M.ROOF, params=[prm], seed=int(rng.integers(2**31)))
+                b.add_boxes(
+                    np.r_[c, zb],
+                    [L, W, H + 0.3],
+                    yaw,
+                    M.FACADE,
+                    top_mat=M.ROOF,
+                    params=[prm],
+                    seed=int(rng.integers(2**31)),
+                )
                 ground.boxes(c, L + 8, W + 8, yaw, M.PAVING)
                 free.boxes(c, L, W, yaw, 0, margin=0.5)
                 bldg_tree_block.boxes(c, L + 8, W + 8, yaw, 1)
@@ -172,7 +184,9 @@ def build_campus(seed: int) -> PresetResult:
         return canvas.img[iy, ix] == 0
 
     trees = cand[keep & clear(cand, corridor) & clear(cand, bldg_tree_block)]
-    add_trees(b, trees, h(trees[:, 0], trees[:, 1]) - 0.1, rng, conifer=rng.random(len(trees)) < 0.35, free=free)
+    add_trees(
+        b, trees, h(trees[:, 0], trees[:, 1]) - 0.1, rng, conifer=rng.random(len(trees)) < 0.35, free=free
+    )
     bush = np.c_[rng.uniform(x0, x1, 900), rng.uniform(y0, y1, 900)]
     near_path = ~clear(bush, corridor)
     bush = bush[clear(bush, bldg_tree_block) & (near_path | (rng.random(900) < 0.3))]
@@ -195,7 +209,14 @@ def build_campus(seed: int) -> PresetResult:
         if not clear(along, inner).all():
             continue
         yaw = np.arctan2(d[1], d[0])
-        b.add_boxes(np.r_[mid, h(mid[0], mid[1]) - 0.1], [np.linalg.norm(d), 1.0, rng.uniform(1.1, 1.8)], yaw, M.FOLIAGE, params=[[0.45]], seed=int(rng.integers(2**31)))
+        b.add_boxes(
+            np.r_[mid, h(mid[0], mid[1]) - 0.1],
+            [np.linalg.norm(d), 1.0, rng.uniform(1.1, 1.8)],
+            yaw,
+            M.FOLIAGE,
+            params=[[0.45]],
+            seed=int(rng.integers(2**31)),
+        )
         free.boxes(mid, np.linalg.norm(d), 1.0, yaw, 0, margin=0.5)
 
     if lamp_xy:
@@ -207,7 +228,14 @@ def build_campus(seed: int) -> PresetResult:
     pick = rng.random(_N * _N) < 0.35
     diag = rng.choice([-1.0, 1.0], (int(pick.sum()), 2)) * 5.0  # between the paths, clear of the lanes
     junctions = nodes.reshape(-1, 2)[pick] + diag
-    add_signs(b, junctions, h(junctions[:, 0], junctions[:, 1]), rng.uniform(-np.pi, np.pi, len(junctions)), rng, free)
+    add_signs(
+        b,
+        junctions,
+        h(junctions[:, 0], junctions[:, 1]),
+        rng.uniform(-np.pi, np.pi, len(junctions)),
+        rng,
+        free,
+    )
     if car_xy:
         cxy = np.concatenate(car_xy)
         add_cars(b, cxy, h(cxy[:, 0], cxy[:, 1]), np.concatenate(car_yaw), rng, free)
@@ -217,7 +245,13 @@ def build_campus(seed: int) -> PresetResult:
         if not clear(p[None], corridor)[0]:
             continue
         L, yaw = rng.uniform(6, 20), rng.uniform(-np.pi, np.pi)
-        b.add_boxes(np.r_[p, h(p[0], p[1]) - 0.2], [L, 0.5, rng.uniform(0.8, 1.4)], yaw, M.STONE, seed=int(rng.integers(2**31)))
+        b.add_boxes(
+            np.r_[p, h(p[0], p[1]) - 0.2],
+            [L, 0.5, rng.uniform(0.8, 1.4)],
+            yaw,
+            M.STONE,
+            seed=int(rng.integers(2**31)),
+        )
         free.boxes(p, L, 0.5, yaw, 0, margin=0.5)
 
     roads = RoadGraph(nodes=nodes, edges=edges, lane_width=3.0, anchor=_ANCHOR)
@@ -229,7 +263,7 @@ def build_campus(seed: int) -> PresetResult:
         roads=roads,
         free=FreeSpace(free.img.astype(bool), free.x0, free.y0, free.res),
         lanes=np.zeros((0, 2, 2)),
-        walkways=walkways[:: 4],
+        walkways=walkways[::4],
         parking_slots=np.concatenate(slots) if slots else np.zeros((0, 3)),
         bounds=(x0, y0, x1, y1),
         info={"n_trees": int(len(trees)), "n_bushes": int(len(bush))},

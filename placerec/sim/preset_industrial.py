@@ -32,15 +32,39 @@ def _trucks(b: MeshBuilder, xy: np.ndarray, yaw: np.ndarray, rng: np.random.Gene
     c, s = np.cos(yaw), np.sin(yaw)
     fwd = np.c_[c, s]
     cab = xy + fwd * 6.8
-    b.add_boxes(np.c_[cab, np.full(k, 0.5)], [2.3, 2.45, 2.6], yaw, M.CAR, params=rng.uniform(0.3, 0.7, (k, 1)), seed=rng.integers(0, 2**31, k))
-    b.add_boxes(np.c_[xy, np.full(k, 1.1)], [12.5, 2.5, 2.7], yaw, M.CORRUGATED, params=np.c_[rng.uniform(0.2, 0.7, k), np.full(k, 0.3), np.zeros((k, 3)), np.ones(k)], seed=rng.integers(0, 2**31, k))
+    b.add_boxes(
+        np.c_[cab, np.full(k, 0.5)],
+        [2.3, 2.45, 2.6],
+        yaw,
+        M.CAR,
+        params=rng.uniform(0.3, 0.7, (k, 1)),
+        seed=rng.integers(0, 2**31, k),
+    )
+    b.add_boxes(
+        np.c_[xy, np.full(k, 1.1)],
+        [12.5, 2.5, 2.7],
+        yaw,
+        M.CORRUGATED,
+        params=np.c_[rng.uniform(0.2, 0.7, k), np.full(k, 0.3), np.zeros((k, 3)), np.ones(k)],
+        seed=rng.integers(0, 2**31, k),
+    )
     for off in (-4.5, -3.3, 5.8, 7.0):
         w = xy + fwd * off
         b.add_boxes(np.c_[w, np.zeros(k)], [1.0, 2.4, 1.0], yaw, M.RUBBER, seed=1)
     free.boxes(xy + fwd * 1.0, 16.0, 2.6, yaw, 0, margin=0.5)
 
 
-def _plot(b: MeshBuilder, ground: Canvas, free: Canvas, rng: np.random.Generator, x0: float, y0: float, x1: float, y1: float, gate_side: int) -> np.ndarray:
+def _plot(
+    b: MeshBuilder,
+    ground: Canvas,
+    free: Canvas,
+    rng: np.random.Generator,
+    x0: float,
+    y0: float,
+    x1: float,
+    y1: float,
+    gate_side: int,
+) -> np.ndarray:
     """Fill one fenced plot; returns free parking slots (x, y, yaw)."""
     kind = rng.choice(["shed", "containers", "yard", "tanks"], p=[0.4, 0.25, 0.2, 0.15])
     ground.rect(x0, y0, x1, y1, M.GRAVEL if (kind == "yard" and rng.random() < 0.5) else M.CONCRETE)
@@ -55,7 +79,9 @@ def _plot(b: MeshBuilder, ground: Canvas, free: Canvas, rng: np.random.Generator
             m = (p + q) / 2
             d = (q - p) / np.linalg.norm(q - p)
             gate = rng.uniform(8.0, 12.0) / 2
-            add_fence(b, np.stack([p, m + d * gate]), np.stack([m - d * gate, q]), KERB_H, 2.2, style, rng, free)
+            add_fence(
+                b, np.stack([p, m + d * gate]), np.stack([m - d * gate, q]), KERB_H, 2.2, style, rng, free
+            )
         else:
             add_fence(b, p[None], q[None], KERB_H, 2.2, style, rng, free)
     slots = np.zeros((0, 3))
@@ -68,7 +94,15 @@ def _plot(b: MeshBuilder, ground: Canvas, free: Canvas, rng: np.random.Generator
             H = rng.uniform(6.0, 12.0)
             px = cx + (0 if n == 1 else (k - 0.5) * (w - 2 * inner) * 0.5)
             params = [[rng.uniform(0.2, 0.5), rng.uniform(0.15, 0.25), 0, 0, 0, 0, float(rng.random() < 0.5)]]
-            b.add_boxes([px, cy, KERB_H], [L, W, H], 0.0, M.CORRUGATED, top_mat=M.ROOF, params=params, seed=int(rng.integers(2**31)))
+            b.add_boxes(
+                [px, cy, KERB_H],
+                [L, W, H],
+                0.0,
+                M.CORRUGATED,
+                top_mat=M.ROOF,
+                params=params,
+                seed=int(rng.integers(2**31)),
+            )
             free.boxes(np.array([px, cy]), L, W, 0.0, 0, margin=0.5)
         if rng.random() < 0.6:
             _trucks(b, np.array([[cx, y0 + 4.0]]), np.array([0.0]), rng, free)
@@ -84,11 +118,20 @@ def _plot(b: MeshBuilder, ground: Canvas, free: Canvas, rng: np.random.Generator
                 Lc = length[k % 64]
                 levels = int(rng.integers(1, 4))
                 if rng.random() < 0.85:
-                    base = np.c_[np.full(levels, xs + Lc / 2), np.full(levels, ry), KERB_H + 2.59 * np.arange(levels)]
+                    base = np.c_[
+                        np.full(levels, xs + Lc / 2), np.full(levels, ry), KERB_H + 2.59 * np.arange(levels)
+                    ]
                     tone = rng.choice([0.1, 0.2, 0.35, 0.5, 0.6], levels) * rng.uniform(0.9, 1.1, levels)
                     prm = np.c_[tone, np.full(levels, 0.28), np.zeros((levels, 3)), np.ones(levels)]
                     yaw = 0.0 if rng.random() < 0.5 else np.pi
-                    b.add_boxes(base, [Lc, 2.44, 2.59], yaw, M.CORRUGATED, params=prm, seed=rng.integers(0, 2**31, levels))
+                    b.add_boxes(
+                        base,
+                        [Lc, 2.44, 2.59],
+                        yaw,
+                        M.CORRUGATED,
+                        params=prm,
+                        seed=rng.integers(0, 2**31, levels),
+                    )
                     free.boxes(np.array([xs + Lc / 2, ry]), Lc, 2.44, 0.0, 0, margin=0.4)
                 xs += Lc + rng.uniform(0.3, 1.5)
                 k += 1
@@ -96,12 +139,31 @@ def _plot(b: MeshBuilder, ground: Canvas, free: Canvas, rng: np.random.Generator
         nh = int(rng.integers(1, 4))
         hc = np.c_[rng.uniform(x0 + 12, x1 - 12, nh), rng.uniform(y0 + 12, y1 - 12, nh)]
         r = rng.uniform(3.0, 6.0, nh)
-        obj = b.add_objects(np.c_[hc, np.zeros(nh)], 0.0, np.c_[np.zeros((nh, 3)), rng.uniform(0.15, 0.35, nh)], rng.integers(0, 2**31, nh))
-        b.add_blobs(np.c_[hc, np.zeros(nh)], np.c_[r, r * rng.uniform(0.7, 1.3, nh), r * rng.uniform(0.35, 0.6, nh)], M.DIRT, obj, rng, jitter=0.2, subdiv=1)
+        obj = b.add_objects(
+            np.c_[hc, np.zeros(nh)],
+            0.0,
+            np.c_[np.zeros((nh, 3)), rng.uniform(0.15, 0.35, nh)],
+            rng.integers(0, 2**31, nh),
+        )
+        b.add_blobs(
+            np.c_[hc, np.zeros(nh)],
+            np.c_[r, r * rng.uniform(0.7, 1.3, nh), r * rng.uniform(0.35, 0.6, nh)],
+            M.DIRT,
+            obj,
+            rng,
+            jitter=0.2,
+            subdiv=1,
+        )
         free.circles(hc, r + 1.0, 0)
         npal = int(rng.integers(6, 20))
         pxy = np.c_[rng.uniform(x0 + 5, x1 - 5, npal), rng.uniform(y0 + 5, y1 - 5, npal)]
-        b.add_boxes(np.c_[pxy, np.full(npal, KERB_H)], np.c_[np.full(npal, 1.2), np.full(npal, 1.0), rng.uniform(0.2, 1.6, npal)], rng.uniform(0, np.pi, npal), M.WOOD, seed=rng.integers(0, 2**31, npal))
+        b.add_boxes(
+            np.c_[pxy, np.full(npal, KERB_H)],
+            np.c_[np.full(npal, 1.2), np.full(npal, 1.0), rng.uniform(0.2, 1.6, npal)],
+            rng.uniform(0, np.pi, npal),
+            M.WOOD,
+            seed=rng.integers(0, 2**31, npal),
+        )
         free.circles(pxy, 1.2, 0)
         _trucks(b, np.array([[cx, y1 - 6.0]]), np.array([np.pi]), rng, free)
         sxy = np.c_[np.linspace(x0 + 5, x1 - 5, 8), np.full(8, y0 + 4.0)]
@@ -112,8 +174,15 @@ def _plot(b: MeshBuilder, ground: Canvas, free: Canvas, rng: np.random.Generator
     else:
         nt = int(rng.integers(2, 5))
         r = rng.uniform(3.0, 7.0, nt)
-        tc = np.c_[np.linspace(x0 + inner + r[0], x1 - inner - r[-1], nt), np.full(nt, cy) + rng.uniform(-5, 5, nt)]
-        obj = b.add_objects(np.c_[tc, np.zeros(nt)], 0.0, np.c_[np.zeros((nt, 3)), rng.uniform(0.4, 0.65, nt)], rng.integers(0, 2**31, nt))
+        tc = np.c_[
+            np.linspace(x0 + inner + r[0], x1 - inner - r[-1], nt), np.full(nt, cy) + rng.uniform(-5, 5, nt)
+        ]
+        obj = b.add_objects(
+            np.c_[tc, np.zeros(nt)],
+            0.0,
+            np.c_[np.zeros((nt, 3)), rng.uniform(0.4, 0.65, nt)],
+            rng.integers(0, 2**31, nt),
+        )
         b.add_prisms(np.c_[tc, np.full(nt, KERB_H)], r, rng.uniform(6.0, 15.0, nt), M.METAL, obj, sides=20)
         free.circles(tc, r + 1.0, 0)
     return slots
@@ -143,7 +212,19 @@ def build_industrial(seed: int) -> PresetResult:
     free = Canvas(x0, y0, x1, y1, 0.5, 1)
     b = MeshBuilder()
     gobj = b.add_objects(np.zeros((1, 3)))[0]
-    b.add_mesh(np.array([[x0 - 400, y0 - 400, 0], [x1 + 400, y0 - 400, 0], [x1 + 400, y1 + 400, 0], [x0 - 400, y1 + 400, 0]]), np.array([[0, 1, 2], [0, 2, 3]]), M.GROUND, gobj)
+    b.add_mesh(
+        np.array(
+            [
+                [x0 - 400, y0 - 400, 0],
+                [x1 + 400, y0 - 400, 0],
+                [x1 + 400, y1 + 400, 0],
+                [x0 - 400, y1 + 400, 0],
+            ]
+        ),
+        np.array([[0, 1, 2], [0, 2, 3]]),
+        M.GROUND,
+        gobj,
+    )
     for xi, hv in zip(X, half_v, strict=True):
         ground.rect(xi - hv, Y[0] - half_h[0], xi + hv, Y[-1] + half_h[-1], M.ASPHALT)
     for yj, hh in zip(Y, half_h, strict=True):
@@ -155,10 +236,32 @@ def build_industrial(seed: int) -> PresetResult:
     segs = []  # (a node, e node, p0, p1, lanes, half, half of the crossing street at p0, at p1)
     for j, yj in enumerate(Y):
         for i in range(len(X) - 1):
-            segs.append(((i, j), (i + 1, j), np.array([X[i], yj]), np.array([X[i + 1], yj]), n_h[j], half_h[j], half_v[i], half_v[i + 1]))
+            segs.append(
+                (
+                    (i, j),
+                    (i + 1, j),
+                    np.array([X[i], yj]),
+                    np.array([X[i + 1], yj]),
+                    n_h[j],
+                    half_h[j],
+                    half_v[i],
+                    half_v[i + 1],
+                )
+            )
     for i, xi in enumerate(X):
         for j in range(len(Y) - 1):
-            segs.append(((i, j), (i, j + 1), np.array([xi, Y[j]]), np.array([xi, Y[j + 1]]), n_v[i], half_v[i], half_h[j], half_h[j + 1]))
+            segs.append(
+                (
+                    (i, j),
+                    (i, j + 1),
+                    np.array([xi, Y[j]]),
+                    np.array([xi, Y[j + 1]]),
+                    n_v[i],
+                    half_v[i],
+                    half_h[j],
+                    half_h[j + 1],
+                )
+            )
     for na, ne, p0, p1, nl, half, c0, c1 in segs:
         edges[(na, ne)] = np.stack([p0, p1])
         lane_count[(na, ne)] = int(nl)
@@ -194,17 +297,42 @@ def build_industrial(seed: int) -> PresetResult:
         for j in range(_N):
             kx0, kx1 = X[i] + half_v[i], X[i + 1] - half_v[i + 1]
             ky0, ky1 = Y[j] + half_h[j], Y[j + 1] - half_h[j + 1]
-            b.add_boxes([(kx0 + kx1) / 2, (ky0 + ky1) / 2, 0.0], [kx1 - kx0, ky1 - ky0, KERB_H], 0.0, M.CURB, top_mat=M.GROUND, seed=int(rng.integers(2**31)))
-            slots.append(_plot(b, ground, free, np.random.default_rng(int(rng.integers(2**31))), kx0 + 2.0, ky0 + 2.0, kx1 - 2.0, ky1 - 2.0, int(rng.integers(4))))
+            b.add_boxes(
+                [(kx0 + kx1) / 2, (ky0 + ky1) / 2, 0.0],
+                [kx1 - kx0, ky1 - ky0, KERB_H],
+                0.0,
+                M.CURB,
+                top_mat=M.GROUND,
+                seed=int(rng.integers(2**31)),
+            )
+            slots.append(
+                _plot(
+                    b,
+                    ground,
+                    free,
+                    np.random.default_rng(int(rng.integers(2**31))),
+                    kx0 + 2.0,
+                    ky0 + 2.0,
+                    kx1 - 2.0,
+                    ky1 - 2.0,
+                    int(rng.integers(4)),
+                )
+            )
     add_lamps(b, np.concatenate(lamp_xy), KERB_H, np.concatenate(lamp_yaw), rng, free)
     if tree_xy:
         add_trees(b, np.concatenate(tree_xy), KERB_H, rng, free=free)
     add_signs(b, np.stack(sign_xy), KERB_H, np.array(sign_yaw), rng, free)
     masts = np.c_[X[:-1] + half_v[:-1] + 3.0, Y[:-1] + half_h[:-1] + 3.0]
-    mobj = b.add_objects(np.c_[masts, np.zeros(len(masts))], 0.0, np.c_[np.zeros((len(masts), 3)), np.full(len(masts), 0.3)], 7)
-    b.add_prisms(np.c_[masts, np.full(len(masts), KERB_H)], 0.25, 16.0, M.METAL, mobj, sides=8, top_radius=0.12)
+    mobj = b.add_objects(
+        np.c_[masts, np.zeros(len(masts))], 0.0, np.c_[np.zeros((len(masts), 3)), np.full(len(masts), 0.3)], 7
+    )
+    b.add_prisms(
+        np.c_[masts, np.full(len(masts), KERB_H)], 0.25, 16.0, M.METAL, mobj, sides=8, top_radius=0.12
+    )
     b.add_boxes(np.c_[masts, np.full(len(masts), 16.0)], [1.6, 1.6, 0.6], 0.0, M.METAL, obj=mobj)
-    per = np.c_[rng.uniform(x0 + 5, x1 - 5, 120), rng.choice([y0 + 10, y1 - 10], 120)] + rng.normal(0, 2.5, (120, 2))
+    per = np.c_[rng.uniform(x0 + 5, x1 - 5, 120), rng.choice([y0 + 10, y1 - 10], 120)] + rng.normal(
+        0, 2.5, (120, 2)
+    )
     add_trees(b, per, 0.0, rng, conifer=rng.random(120) < 0.5, free=free)
     nodes = np.stack(np.meshgrid(X, Y, indexing="ij"), -1)
     return PresetResult(

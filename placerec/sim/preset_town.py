@@ -53,7 +53,11 @@ def _facade_params(rng: np.random.Generator, n: int, shop_p: float) -> tuple[np.
     style = rng.choice([0, 1, 2], n, p=[0.4, 0.45, 0.15])
     floors = rng.integers(2, 7, n)
     floor_h = rng.uniform(3.0, 3.6, n)
-    tone = np.where(style == 0, rng.uniform(0.26, 0.42, n), np.where(style == 1, rng.uniform(0.35, 0.62, n), rng.uniform(0.18, 0.45, n)))
+    tone = np.where(
+        style == 0,
+        rng.uniform(0.26, 0.42, n),
+        np.where(style == 1, rng.uniform(0.35, 0.62, n), rng.uniform(0.18, 0.45, n)),
+    )
     pitch = np.where(style == 2, rng.uniform(1.5, 2.0, n), rng.uniform(2.3, 3.6, n))
     win_w = np.where(style == 2, pitch - 0.2, rng.uniform(0.9, 1.5, n))
     win_h = np.where(style == 2, floor_h - 1.0, rng.uniform(1.3, 1.8, n))
@@ -83,7 +87,15 @@ def _row(rng: np.random.Generator, length: float, depth_max: float, shop_p: floa
     return specs
 
 
-def _place_row(b: MeshBuilder, specs: list[dict], origin: np.ndarray, along: np.ndarray, inward: np.ndarray, limit: float, free: Canvas) -> None:
+def _place_row(
+    b: MeshBuilder,
+    specs: list[dict],
+    origin: np.ndarray,
+    along: np.ndarray,
+    inward: np.ndarray,
+    limit: float,
+    free: Canvas,
+) -> None:
     """Instantiate row-house specs along a lot side (origin = lot corner, ``along`` unit, ``inward`` unit)."""
     yaw_row = np.arctan2(along[1], along[0])
     for s in specs:
@@ -93,7 +105,15 @@ def _place_row(b: MeshBuilder, specs: list[dict], origin: np.ndarray, along: np.
         h = s["floors"] * s["params"][1] + 0.8
         centre = origin + along * (s["off"] + w / 2) + inward * (s["d"] / 2)
         prm = s["params"]
-        b.add_boxes(np.r_[centre, KERB_H], np.array([w, s["d"], h]), yaw_row, M.FACADE, top_mat=M.ROOF, params=prm[None, :], seed=s["seed"])
+        b.add_boxes(
+            np.r_[centre, KERB_H],
+            np.array([w, s["d"], h]),
+            yaw_row,
+            M.FACADE,
+            top_mat=M.ROOF,
+            params=prm[None, :],
+            seed=s["seed"],
+        )
         free.boxes(centre, w, s["d"], yaw_row, 0, margin=0.3)
         if s["balcony"]:
             pitch, win_w = prm[4], prm[2]
@@ -112,7 +132,9 @@ def _place_row(b: MeshBuilder, specs: list[dict], origin: np.ndarray, along: np.
             bw = win_w + 0.8
             b.add_boxes(np.c_[pos, z], np.array([bw, 1.0, 0.15]), yaw_row, M.STONE, seed=s["seed"])
             rail = pos - inward[None, :] * 0.48
-            b.add_boxes(np.c_[rail, z + 0.15], np.array([bw, 0.05, 1.0]), yaw_row, M.METAL, seed=s["seed"] + 1)
+            b.add_boxes(
+                np.c_[rail, z + 0.15], np.array([bw, 0.05, 1.0]), yaw_row, M.METAL, seed=s["seed"] + 1
+            )
 
 
 def build_town(seed: int) -> PresetResult:
@@ -139,7 +161,19 @@ def build_town(seed: int) -> PresetResult:
     free = Canvas(x0, y0, x1, y1, 0.5, 1)
     b = MeshBuilder()
     ground_obj = b.add_objects(np.zeros((1, 3)))
-    b.add_mesh(np.array([[x0 - 400, y0 - 400, 0], [x1 + 400, y0 - 400, 0], [x1 + 400, y1 + 400, 0], [x0 - 400, y1 + 400, 0]]), np.array([[0, 1, 2], [0, 2, 3]]), M.GROUND, ground_obj[0])
+    b.add_mesh(
+        np.array(
+            [
+                [x0 - 400, y0 - 400, 0],
+                [x1 + 400, y0 - 400, 0],
+                [x1 + 400, y1 + 400, 0],
+                [x0 - 400, y1 + 400, 0],
+            ]
+        ),
+        np.array([[0, 1, 2], [0, 2, 3]]),
+        M.GROUND,
+        ground_obj[0],
+    )
 
     # carriageways
     for i, st in enumerate(vs):
@@ -164,7 +198,11 @@ def build_town(seed: int) -> PresetResult:
         for _ in range(rng.poisson(1.0)):
             c = a + d * rng.uniform(3, length - 3) + n * rng.uniform(-st.half + 1, st.half - 1)
             ground.boxes(c, rng.uniform(2, 9), rng.uniform(1, 3), np.arctan2(d[1], d[0]), M.ASPHALT_PATCH)
-        ground.circles(a + d[None] * rng.uniform(5, length - 5, 2)[:, None] + n * rng.uniform(-2, 2, (2, 1)), 0.32, M.MANHOLE)
+        ground.circles(
+            a + d[None] * rng.uniform(5, length - 5, 2)[:, None] + n * rng.uniform(-2, 2, (2, 1)),
+            0.32,
+            M.MANHOLE,
+        )
         cw0 = rng.random() < 0.55
         cw1 = rng.random() < 0.55
         m0 = a + d * (6.5 if cw0 else 1.0)
@@ -184,10 +222,20 @@ def build_town(seed: int) -> PresetResult:
             if not flag:
                 continue
             offs = np.arange(-st.lanes * LANE_W + 0.5, st.lanes * LANE_W - 0.3, 1.0)
-            ground.polygons(strip_polys(base + d * sgn * 1.0 + n * offs[:, None], base + d * sgn * 5.0 + n * offs[:, None], 0.5), M.MARKING)
+            ground.polygons(
+                strip_polys(
+                    base + d * sgn * 1.0 + n * offs[:, None], base + d * sgn * 5.0 + n * offs[:, None], 0.5
+                ),
+                M.MARKING,
+            )
             # stop line across the lanes that approach this end
             side = 1.0 if sgn > 0 else -1.0  # traffic approaching p0 drives on the left of d
-            ground.strip(base + d * sgn * 5.8 + n * side * 0.2, base + d * sgn * 5.8 + n * side * st.lanes * LANE_W, 0.4, M.MARKING)
+            ground.strip(
+                base + d * sgn * 5.8 + n * side * 0.2,
+                base + d * sgn * 5.8 + n * side * st.lanes * LANE_W,
+                0.4,
+                M.MARKING,
+            )
         # lanes (right-hand traffic) and edges of the road graph
         for k in range(st.lanes):
             off = (k + 0.5) * LANE_W
@@ -195,7 +243,9 @@ def build_town(seed: int) -> PresetResult:
             lanes.append(np.array([p1 + n * off, p0 + n * off]))
         for side in (1.0, -1.0):
             kerb = st.half
-            walk.append(np.array([a + n * side * (kerb + st.sidewalk / 2), e + n * side * (kerb + st.sidewalk / 2)]))
+            walk.append(
+                np.array([a + n * side * (kerb + st.sidewalk / 2), e + n * side * (kerb + st.sidewalk / 2)])
+            )
             # lamps, trees
             pitch = rng.uniform(24, 34)
             pos = np.arange(rng.uniform(4, 12) if side > 0 else pitch / 2, length - 3, pitch)
@@ -203,7 +253,11 @@ def build_town(seed: int) -> PresetResult:
             lamp_yaw.append(np.full(len(pos), np.arctan2(-n[1] * side, -n[0] * side)))
             if st.trees:
                 tp = np.arange(rng.uniform(3, 8), length - 3, rng.uniform(8.5, 12))
-                tp = tp[np.min(np.abs(tp[:, None] - pos[None, :]), axis=1, initial=99) > 2.5] if len(pos) else tp
+                tp = (
+                    tp[np.min(np.abs(tp[:, None] - pos[None, :]), axis=1, initial=99) > 2.5]
+                    if len(pos)
+                    else tp
+                )
                 tree_xy.append(a + d * tp[:, None] + n * side * (kerb + min(1.3, st.sidewalk - 0.8)))
             if st.parking:
                 sp = np.arange(rng.uniform(2, 6), length - 8, 6.0) + 3.0
@@ -252,7 +306,14 @@ def build_town(seed: int) -> PresetResult:
             bseed = int(rng.integers(0, 2**31))
             brng = np.random.default_rng(bseed)
             if kind == "buildings":
-                b.add_boxes([(cx0 + cx1) / 2, (cy0 + cy1) / 2, 0.0], [cx1 - cx0, cy1 - cy0, KERB_H], 0.0, M.CURB, top_mat=M.PAVING, seed=bseed)
+                b.add_boxes(
+                    [(cx0 + cx1) / 2, (cy0 + cy1) / 2, 0.0],
+                    [cx1 - cx0, cy1 - cy0, KERB_H],
+                    0.0,
+                    M.CURB,
+                    top_mat=M.PAVING,
+                    seed=bseed,
+                )
                 lx0, lx1, ly0, ly1 = cx0 + sw, cx1 - sw, cy0 + sw, cy1 - sw
                 W, H = lx1 - lx0, ly1 - ly0
                 shop_p = 0.7 if j in (aj, aj - 1) else 0.3
@@ -267,40 +328,93 @@ def build_town(seed: int) -> PresetResult:
                     dn2 = max((s["d"] for s in rows[1]), default=10.0)
                     side_len = H - dn - dn2
                     dw = min(12.0, W / 2 - 1)
-                    rows += [_row(brng, side_len, dw, 0.2), _row(brng, side_len, dw, 0.2)] if side_len > 8 else [[], []]
+                    rows += (
+                        [_row(brng, side_len, dw, 0.2), _row(brng, side_len, dw, 0.2)]
+                        if side_len > 8
+                        else [[], []]
+                    )
                     rows.append([dn, dn2])
                     templates.append((W, H, rows))
                 dn, dn2 = rows[4]
-                _place_row(b, rows[0], np.array([lx0, ly0]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), W, free)
-                _place_row(b, rows[1], np.array([lx1, ly1]), np.array([-1.0, 0.0]), np.array([0.0, -1.0]), W, free)
-                _place_row(b, rows[2], np.array([lx1, ly0 + dn]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), H - dn - dn2, free)
-                _place_row(b, rows[3], np.array([lx0, ly1 - dn2]), np.array([0.0, -1.0]), np.array([1.0, 0.0]), H - dn - dn2, free)
+                _place_row(
+                    b, rows[0], np.array([lx0, ly0]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), W, free
+                )
+                _place_row(
+                    b, rows[1], np.array([lx1, ly1]), np.array([-1.0, 0.0]), np.array([0.0, -1.0]), W, free
+                )
+                _place_row(
+                    b,
+                    rows[2],
+                    np.array([lx1, ly0 + dn]),
+                    np.array([0.0, 1.0]),
+                    np.array([-1.0, 0.0]),
+                    H - dn - dn2,
+                    free,
+                )
+                _place_row(
+                    b,
+                    rows[3],
+                    np.array([lx0, ly1 - dn2]),
+                    np.array([0.0, -1.0]),
+                    np.array([1.0, 0.0]),
+                    H - dn - dn2,
+                    free,
+                )
                 n_ct = brng.integers(0, 3)
-                park_tree_xy.append(np.c_[brng.uniform(lx0 + 15, lx1 - 15, n_ct), brng.uniform(ly0 + 15, ly1 - 15, n_ct)] if W > 32 and H > 32 else np.zeros((0, 2)))
+                park_tree_xy.append(
+                    np.c_[brng.uniform(lx0 + 15, lx1 - 15, n_ct), brng.uniform(ly0 + 15, ly1 - 15, n_ct)]
+                    if W > 32 and H > 32
+                    else np.zeros((0, 2))
+                )
             else:
                 ring = [((cx0 + cx1) / 2, cy0 + sw / 2, cx1 - cx0, sw), ((cx0 + cx1) / 2, cy1 - sw / 2, cx1 - cx0, sw),
                         (cx0 + sw / 2, (cy0 + cy1) / 2, sw, cy1 - cy0 - 2 * sw), (cx1 - sw / 2, (cy0 + cy1) / 2, sw, cy1 - cy0 - 2 * sw)]  # fmt: skip
                 for rx, ry, rw, rh in ring:
                     b.add_boxes([rx, ry, 0.0], [rw, rh, KERB_H], 0.0, M.CURB, top_mat=M.PAVING, seed=bseed)
                 ix0, ix1, iy0, iy1 = cx0 + sw, cx1 - sw, cy0 + sw, cy1 - sw
-                corners = np.array([[ix0, iy0], [ix1, iy0], [ix1, iy1], [ix0, iy1]]) + 0.3 * np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]])
+                corners = np.array([[ix0, iy0], [ix1, iy0], [ix1, iy1], [ix0, iy1]]) + 0.3 * np.array(
+                    [[1, 1], [-1, 1], [-1, -1], [1, -1]]
+                )
                 fence_style = int(brng.choice([0, 2])) if kind == "parking" else int(brng.choice([1, 2]))
                 sides = np.array([k for k in range(4) if brng.random() < 0.7], dtype=int)
-                add_fence(b, corners[sides], corners[(sides + 1) % 4], 0.0, 1.5 if fence_style else 2.0, fence_style, brng, free)
+                add_fence(
+                    b,
+                    corners[sides],
+                    corners[(sides + 1) % 4],
+                    0.0,
+                    1.5 if fence_style else 2.0,
+                    fence_style,
+                    brng,
+                    free,
+                )
                 if kind == "park":
                     ground.rect(ix0, iy0, ix1, iy1, M.GRASS)
                     ground.strip(np.array([ix0, iy0]), np.array([ix1, iy1]), 2.5, M.GRAVEL)
-                    ground.strip(np.array([ix0, (iy0 + iy1) / 2]), np.array([ix1, (iy0 + iy1) / 2]), 2.5, M.GRAVEL)
+                    ground.strip(
+                        np.array([ix0, (iy0 + iy1) / 2]), np.array([ix1, (iy0 + iy1) / 2]), 2.5, M.GRAVEL
+                    )
                     n_t = int((ix1 - ix0) * (iy1 - iy0) / 150)
                     txy = np.c_[brng.uniform(ix0 + 2, ix1 - 2, n_t), brng.uniform(iy0 + 2, iy1 - 2, n_t)]
                     park_tree_xy.append(txy)
-                    add_benches(b, np.array([[(ix0 + ix1) / 2 + 3, (iy0 + iy1) / 2 + 2.2]]), 0.0, np.zeros(1), brng, free)
+                    add_benches(
+                        b,
+                        np.array([[(ix0 + ix1) / 2 + 3, (iy0 + iy1) / 2 + 2.2]]),
+                        0.0,
+                        np.zeros(1),
+                        brng,
+                        free,
+                    )
                 else:
                     ground.rect(ix0, iy0, ix1, iy1, M.ASPHALT)
                     rows_y = np.arange(iy0 + 3.0, iy1 - 5.5, 13.0)
                     xs = np.arange(ix0 + 3.0, ix1 - 3.0, 2.6)
                     for ry in rows_y:
-                        ground.polygons(strip_polys(np.c_[xs, np.full(len(xs), ry)], np.c_[xs, np.full(len(xs), ry + 5.0)], 0.12), M.MARKING)
+                        ground.polygons(
+                            strip_polys(
+                                np.c_[xs, np.full(len(xs), ry)], np.c_[xs, np.full(len(xs), ry + 5.0)], 0.12
+                            ),
+                            M.MARKING,
+                        )
                         c = np.c_[xs[:-1] + 1.3, np.full(len(xs) - 1, ry + 2.5)]
                         occ = brng.random(len(c)) < 0.6
                         car_xy.append(c[occ])
@@ -336,5 +450,11 @@ def build_town(seed: int) -> PresetResult:
         walkways=walk_arr,
         parking_slots=cat(slots, 3),
         bounds=(x0, y0, x1, y1),
-        info={"walkway_z": KERB_H, "block_x": bx.tolist(), "block_y": by.tolist(), "n_building_blocks": len(templates) + n_reused, "n_reused_blocks": n_reused},
+        info={
+            "walkway_z": KERB_H,
+            "block_x": bx.tolist(),
+            "block_y": by.tolist(),
+            "n_building_blocks": len(templates) + n_reused,
+            "n_reused_blocks": n_reused,
+        },
     )

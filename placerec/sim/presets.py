@@ -54,7 +54,9 @@ def canonical_preset(name: str) -> str:
     key = str(name).lower()
     key = _ALIASES.get(key, key)
     if key not in PRESETS:
-        raise ConfigError(f"sim.world: unknown world preset {name!r}; allowed: {preset_names() + sorted(_ALIASES)}")
+        raise ConfigError(
+            f"sim.world: unknown world preset {name!r}; allowed: {preset_names() + sorted(_ALIASES)}"
+        )
     return key
 
 

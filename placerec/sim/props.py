@@ -48,7 +48,9 @@ class Canvas:
     def polygons(self, polys: np.ndarray, value: int) -> None:
         """Fill K polygons given as (K, n, 2)."""
         if len(polys):
-            cv2.fillPoly(self.img, [self._px(p) for p in polys], int(value), lineType=cv2.LINE_8, shift=_SHIFT)
+            cv2.fillPoly(
+                self.img, [self._px(p) for p in polys], int(value), lineType=cv2.LINE_8, shift=_SHIFT
+            )
 
     def rect(self, x0: float, y0: float, x1: float, y1: float, value: int) -> None:
         self.polygon(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]), value)
@@ -57,7 +59,16 @@ class Canvas:
         """A line of ``width`` metres from p0 to p1."""
         self.polygons(strip_polys(np.atleast_2d(p0), np.atleast_2d(p1), width), value)
 
-    def dashed(self, p0: np.ndarray, p1: np.ndarray, width: float, dash: float, gap: float, value: int, phase: float = 0.0) -> None:
+    def dashed(
+        self,
+        p0: np.ndarray,
+        p1: np.ndarray,
+        width: float,
+        dash: float,
+        gap: float,
+        value: int,
+        phase: float = 0.0,
+    ) -> None:
         p0 = np.asarray(p0, float)
         p1 = np.asarray(p1, float)
         length = float(np.linalg.norm(p1 - p0))
@@ -72,9 +83,25 @@ class Canvas:
         centers = np.atleast_2d(centers)
         radius = np.broadcast_to(np.asarray(radius, dtype=np.float64), (len(centers),))
         for c, r in zip(self._px(centers).reshape(-1, 2), radius, strict=True):
-            cv2.circle(self.img, (int(c[0]), int(c[1])), int(round(r / self.res * (1 << _SHIFT))), int(value), -1, cv2.LINE_8, _SHIFT)
+            cv2.circle(
+                self.img,
+                (int(c[0]), int(c[1])),
+                int(round(r / self.res * (1 << _SHIFT))),
+                int(value),
+                -1,
+                cv2.LINE_8,
+                _SHIFT,
+            )
 
-    def boxes(self, center: np.ndarray, length: np.ndarray, width: np.ndarray, yaw: np.ndarray, value: int, margin: float = 0.0) -> None:
+    def boxes(
+        self,
+        center: np.ndarray,
+        length: np.ndarray,
+        width: np.ndarray,
+        yaw: np.ndarray,
+        value: int,
+        margin: float = 0.0,
+    ) -> None:
         """Fill K oriented rectangles (footprints)."""
         center = np.atleast_2d(center)
         k = len(center)
@@ -85,7 +112,10 @@ class Canvas:
         corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], float)
         lx = corners[None, :, 0] * hl[:, None]
         ly = corners[None, :, 1] * hw[:, None]
-        pts = np.stack([c[:, None] * lx - s[:, None] * ly, s[:, None] * lx + c[:, None] * ly], -1) + center[:, None, :2]
+        pts = (
+            np.stack([c[:, None] * lx - s[:, None] * ly, s[:, None] * lx + c[:, None] * ly], -1)
+            + center[:, None, :2]
+        )
         self.polygons(pts, value)
 
 
@@ -101,7 +131,15 @@ def _z(z: np.ndarray | float, k: int) -> np.ndarray:
     return np.broadcast_to(np.asarray(z, dtype=np.float64), (k,))
 
 
-def add_trees(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, rng: np.random.Generator, conifer: np.ndarray | None = None, scale: float = 1.0, free: Canvas | None = None) -> None:
+def add_trees(
+    b: MeshBuilder,
+    xy: np.ndarray,
+    z: np.ndarray | float,
+    rng: np.random.Generator,
+    conifer: np.ndarray | None = None,
+    scale: float = 1.0,
+    free: Canvas | None = None,
+) -> None:
     """Deciduous trees (trunk + jittered crown) or conifers (trunk + cone), vectorised."""
     xy = np.atleast_2d(xy)
     k = len(xy)
@@ -124,25 +162,55 @@ def add_trees(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, rng: np.ran
         n = conifer.sum()
         h = rng.uniform(6.0, 14.0, n) * scale
         r = h * rng.uniform(0.22, 0.32, n)
-        b.add_prisms(np.c_[xy[conifer], z[conifer] + trunk_h[conifer] * 0.5], r, h, M.FOLIAGE, ids[conifer], sides=10, top_radius=0.0)
+        b.add_prisms(
+            np.c_[xy[conifer], z[conifer] + trunk_h[conifer] * 0.5],
+            r,
+            h,
+            M.FOLIAGE,
+            ids[conifer],
+            sides=10,
+            top_radius=0.0,
+        )
     if free is not None:
         free.circles(xy, trunk_r + 0.6, 0)
 
 
-def add_bushes(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, rng: np.random.Generator, free: Canvas | None = None) -> None:
+def add_bushes(
+    b: MeshBuilder,
+    xy: np.ndarray,
+    z: np.ndarray | float,
+    rng: np.random.Generator,
+    free: Canvas | None = None,
+) -> None:
     xy = np.atleast_2d(xy)
     k = len(xy)
     if k == 0:
         return
     z = _z(z, k)
     r = rng.uniform(0.5, 1.4, k)
-    ids = b.add_objects(np.c_[xy, z], 0.0, np.c_[np.zeros((k, 3)), rng.uniform(0.35, 0.5, k)], rng.integers(0, 2**31, k))
-    b.add_blobs(np.c_[xy, z + r * 0.5], np.c_[r, r * rng.uniform(0.8, 1.2, k), r * 0.8], M.FOLIAGE, ids, rng, jitter=0.35)
+    ids = b.add_objects(
+        np.c_[xy, z], 0.0, np.c_[np.zeros((k, 3)), rng.uniform(0.35, 0.5, k)], rng.integers(0, 2**31, k)
+    )
+    b.add_blobs(
+        np.c_[xy, z + r * 0.5],
+        np.c_[r, r * rng.uniform(0.8, 1.2, k), r * 0.8],
+        M.FOLIAGE,
+        ids,
+        rng,
+        jitter=0.35,
+    )
     if free is not None:
         free.circles(xy, r + 0.4, 0)
 
 
-def add_lamps(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, arm_yaw: np.ndarray, rng: np.random.Generator, free: Canvas | None = None) -> None:
+def add_lamps(
+    b: MeshBuilder,
+    xy: np.ndarray,
+    z: np.ndarray | float,
+    arm_yaw: np.ndarray,
+    rng: np.random.Generator,
+    free: Canvas | None = None,
+) -> None:
     """Street lamps: a metal pole with an arm towards ``arm_yaw`` and a lamp head."""
     xy = np.atleast_2d(xy)
     k = len(xy)
@@ -150,23 +218,46 @@ def add_lamps(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, arm_yaw: np
         return
     z = _z(z, k)
     h = rng.uniform(5.5, 8.0, k)
-    ids = b.add_objects(np.c_[xy, z], arm_yaw, np.c_[np.zeros((k, 3)), np.full(k, 0.3)], rng.integers(0, 2**31, k))
+    ids = b.add_objects(
+        np.c_[xy, z], arm_yaw, np.c_[np.zeros((k, 3)), np.full(k, 0.3)], rng.integers(0, 2**31, k)
+    )
     b.add_prisms(np.c_[xy, z], 0.09, h, M.METAL, ids, sides=6)
     d = np.c_[np.cos(arm_yaw), np.sin(arm_yaw)]
-    b.add_boxes(np.c_[xy + d * 0.8, z + h - 0.1], np.c_[np.full(k, 1.6), np.full(k, 0.08), np.full(k, 0.1)], arm_yaw, M.METAL, obj=ids)
-    b.add_boxes(np.c_[xy + d * 1.5, z + h - 0.35], np.c_[np.full(k, 0.7), np.full(k, 0.3), np.full(k, 0.25)], arm_yaw, M.METAL, obj=ids)
+    b.add_boxes(
+        np.c_[xy + d * 0.8, z + h - 0.1],
+        np.c_[np.full(k, 1.6), np.full(k, 0.08), np.full(k, 0.1)],
+        arm_yaw,
+        M.METAL,
+        obj=ids,
+    )
+    b.add_boxes(
+        np.c_[xy + d * 1.5, z + h - 0.35],
+        np.c_[np.full(k, 0.7), np.full(k, 0.3), np.full(k, 0.25)],
+        arm_yaw,
+        M.METAL,
+        obj=ids,
+    )
     if free is not None:
         free.circles(xy, 0.5, 0)
 
 
-def add_signs(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, facing_yaw: np.ndarray, rng: np.random.Generator, free: Canvas | None = None) -> None:
+def add_signs(
+    b: MeshBuilder,
+    xy: np.ndarray,
+    z: np.ndarray | float,
+    facing_yaw: np.ndarray,
+    rng: np.random.Generator,
+    free: Canvas | None = None,
+) -> None:
     """Traffic signs on poles; the retro-reflective face looks along ``facing_yaw``."""
     xy = np.atleast_2d(xy)
     k = len(xy)
     if k == 0:
         return
     z = _z(z, k)
-    pid = b.add_objects(np.c_[xy, z], 0.0, np.c_[np.zeros((k, 3)), np.full(k, 0.3)], rng.integers(0, 2**31, k))
+    pid = b.add_objects(
+        np.c_[xy, z], 0.0, np.c_[np.zeros((k, 3)), np.full(k, 0.3)], rng.integers(0, 2**31, k)
+    )
     pole_h = rng.uniform(2.6, 3.2, k)
     b.add_prisms(np.c_[xy, z], 0.04, pole_h, M.METAL, pid, sides=6)
     style = rng.choice([0, 0, 1, 2, 3], k)
@@ -175,7 +266,14 @@ def add_signs(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, facing_yaw:
     d = np.c_[np.cos(facing_yaw), np.sin(facing_yaw)]
     retro = rng.uniform(100.0, 400.0, k)  # retro sheeting: 100-1000x a white Lambertian surface
     params = np.c_[retro, np.zeros((k, 4)), style]
-    b.add_boxes(np.c_[xy + d * 0.06, z + pole_h - height], np.c_[np.full(k, 0.04), width, height], facing_yaw, M.SIGN, params=params, seed=rng.integers(0, 2**31, k))
+    b.add_boxes(
+        np.c_[xy + d * 0.06, z + pole_h - height],
+        np.c_[np.full(k, 0.04), width, height],
+        facing_yaw,
+        M.SIGN,
+        params=params,
+        seed=rng.integers(0, 2**31, k),
+    )
     if free is not None:
         free.circles(xy, 0.4, 0)
 
@@ -205,7 +303,15 @@ def car_attributes(u: np.ndarray, van_fraction: float = 0.15) -> np.ndarray:
     return np.c_[length, width, body_h, paint, cabin_f, cabin_h, seed]
 
 
-def add_cars(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, yaw: np.ndarray, rng: np.random.Generator | None = None, free: Canvas | None = None, attrs: np.ndarray | None = None) -> np.ndarray:
+def add_cars(
+    b: MeshBuilder,
+    xy: np.ndarray,
+    z: np.ndarray | float,
+    yaw: np.ndarray,
+    rng: np.random.Generator | None = None,
+    free: Canvas | None = None,
+    attrs: np.ndarray | None = None,
+) -> np.ndarray:
     """Cars and vans: painted body with licence plates and rear reflectors, glass cabin, wheels.
 
     Shapes come from ``attrs`` (see `car_attributes`) or are drawn from ``rng``.
@@ -221,18 +327,37 @@ def add_cars(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, yaw: np.ndar
         attrs = car_attributes(rng.random((k, 7)))
     length, width, body_h, paint, cabin_f, cabin_h, seed = attrs.T
     base = np.c_[xy, z + 0.3]
-    ids = b.add_boxes(base, np.c_[length, width, body_h], yaw, M.CAR, params=paint[:, None], seed=seed.astype(np.int64))
+    ids = b.add_boxes(
+        base, np.c_[length, width, body_h], yaw, M.CAR, params=paint[:, None], seed=seed.astype(np.int64)
+    )
     c, s = np.cos(yaw), np.sin(yaw)
-    car = cabin_h > 0  # vans get a zero-size cabin, so every vehicle has the same mesh layout (see clutter.py)
+    car = (
+        cabin_h > 0
+    )  # vans get a zero-size cabin, so every vehicle has the same mesh layout (see clutter.py)
     cl = np.where(car, length * cabin_f, 0.0)
     back = -0.08 * length
     cab_base = np.c_[xy + np.c_[c, s] * back[:, None], z + 0.3 + body_h]
-    b.add_boxes(cab_base, np.c_[cl, np.where(car, width - 0.16, 0.0), cabin_h], yaw, M.CAR_GLASS, top_mat=M.CAR, obj=ids)
+    b.add_boxes(
+        cab_base,
+        np.c_[cl, np.where(car, width - 0.16, 0.0), cabin_h],
+        yaw,
+        M.CAR_GLASS,
+        top_mat=M.CAR,
+        obj=ids,
+    )
     off = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], float)
     wl = (length / 2 - 0.75)[:, None] * off[None, :, 0]
     ww = (width / 2 - 0.2)[:, None] * off[None, :, 1]
-    wxy = np.stack([c[:, None] * wl - s[:, None] * ww, s[:, None] * wl + c[:, None] * ww], -1) + xy[:, None, :]
-    b.add_boxes(np.c_[wxy.reshape(-1, 2), np.repeat(z, 4)], np.array([0.62, 0.22, 0.6]), np.repeat(yaw, 4), M.RUBBER, obj=np.repeat(ids, 4))
+    wxy = (
+        np.stack([c[:, None] * wl - s[:, None] * ww, s[:, None] * wl + c[:, None] * ww], -1) + xy[:, None, :]
+    )
+    b.add_boxes(
+        np.c_[wxy.reshape(-1, 2), np.repeat(z, 4)],
+        np.array([0.62, 0.22, 0.6]),
+        np.repeat(yaw, 4),
+        M.RUBBER,
+        obj=np.repeat(ids, 4),
+    )
     if free is not None:
         free.boxes(xy, length, width, yaw, 0, margin=0.4)
     return ids
@@ -248,11 +373,23 @@ def add_people(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, u: np.ndar
     u = np.atleast_2d(u)
     tops = 0.1 + 0.5 * u[:, 0]
     legs = 0.08 + 0.32 * u[:, 1]
-    ids = b.add_objects(np.c_[xy, z], 0.0, np.c_[np.zeros((k, 3)), tops, legs], np.floor(u[:, 3] * 2**31).astype(np.int64))
+    ids = b.add_objects(
+        np.c_[xy, z], 0.0, np.c_[np.zeros((k, 3)), tops, legs], np.floor(u[:, 3] * 2**31).astype(np.int64)
+    )
     b.add_prisms(np.c_[xy, z], 0.2 + 0.08 * u[:, 2], 1.55 + 0.35 * u[:, 3], M.PERSON, ids, sides=8)
 
 
-def add_fence(b: MeshBuilder, p0: np.ndarray, p1: np.ndarray, z: np.ndarray | float, height: float, style: int, rng: np.random.Generator, free: Canvas | None = None, tone: float = 0.0) -> None:
+def add_fence(
+    b: MeshBuilder,
+    p0: np.ndarray,
+    p1: np.ndarray,
+    z: np.ndarray | float,
+    height: float,
+    style: int,
+    rng: np.random.Generator,
+    free: Canvas | None = None,
+    tone: float = 0.0,
+) -> None:
     """Straight fence panels from p0 to p1 (K each): 0 chain-link, 1 wooden planks, 2 metal palisade."""
     p0 = np.atleast_2d(p0)
     p1 = np.atleast_2d(p1)
@@ -265,7 +402,14 @@ def add_fence(b: MeshBuilder, p0: np.ndarray, p1: np.ndarray, z: np.ndarray | fl
     yaw = np.arctan2(d[:, 1], d[:, 0])
     mid = (p0 + p1) / 2
     params = np.c_[np.full(k, tone), np.zeros((k, 4)), np.full(k, style)]
-    b.add_boxes(np.c_[mid, z], np.c_[length, np.full(k, 0.05), np.full(k, height)], yaw, M.FENCE, params=params, seed=rng.integers(0, 2**31, k))
+    b.add_boxes(
+        np.c_[mid, z],
+        np.c_[length, np.full(k, 0.05), np.full(k, height)],
+        yaw,
+        M.FENCE,
+        params=params,
+        seed=rng.integers(0, 2**31, k),
+    )
     # posts every ~3 m
     n = np.maximum(np.ceil(length / 3.0).astype(int), 1)
     t = np.concatenate([np.linspace(0, 1, m + 1) for m in n])
@@ -276,7 +420,14 @@ def add_fence(b: MeshBuilder, p0: np.ndarray, p1: np.ndarray, z: np.ndarray | fl
         free.polygons(strip_polys(p0, p1, 0.8), 0)
 
 
-def add_benches(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, yaw: np.ndarray, rng: np.random.Generator, free: Canvas | None = None) -> None:
+def add_benches(
+    b: MeshBuilder,
+    xy: np.ndarray,
+    z: np.ndarray | float,
+    yaw: np.ndarray,
+    rng: np.random.Generator,
+    free: Canvas | None = None,
+) -> None:
     xy = np.atleast_2d(xy)
     k = len(xy)
     if k == 0:
@@ -285,7 +436,9 @@ def add_benches(b: MeshBuilder, xy: np.ndarray, z: np.ndarray | float, yaw: np.n
     b.add_boxes(np.c_[xy, z + 0.4], np.array([1.8, 0.5, 0.08]), yaw, M.WOOD, seed=rng.integers(0, 2**31, k))
     c, s = np.cos(yaw), np.sin(yaw)
     back = xy - 0.22 * np.c_[-s, c]
-    b.add_boxes(np.c_[back, z + 0.5], np.array([1.8, 0.06, 0.45]), yaw, M.WOOD, seed=rng.integers(0, 2**31, k))
+    b.add_boxes(
+        np.c_[back, z + 0.5], np.array([1.8, 0.06, 0.45]), yaw, M.WOOD, seed=rng.integers(0, 2**31, k)
+    )
     b.add_boxes(np.c_[xy, z], np.array([1.5, 0.4, 0.4]), yaw, M.METAL, seed=rng.integers(0, 2**31, k))
     if free is not None:
         free.circles(xy, 1.0, 0)

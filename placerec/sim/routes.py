@@ -87,12 +87,25 @@ class Route:
                 "revisits": [r.as_dict() for r in self.revisits]}  # fmt: skip
 
 
-def poses_from_xy_yaw(xy: np.ndarray, z: np.ndarray, yaw: np.ndarray, pitch: np.ndarray | None = None, roll: np.ndarray | None = None) -> np.ndarray:
+def poses_from_xy_yaw(
+    xy: np.ndarray,
+    z: np.ndarray,
+    yaw: np.ndarray,
+    pitch: np.ndarray | None = None,
+    roll: np.ndarray | None = None,
+) -> np.ndarray:
     """(N, 4, 4) poses from positions and Z-Y-X Euler angles (yaw about z, then pitch about y, roll about x)."""
     n = len(xy)
     pitch = np.zeros(n) if pitch is None else pitch
     roll = np.zeros(n) if roll is None else roll
-    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    cy, sy, cp, sp, cr, sr = (
+        np.cos(yaw),
+        np.sin(yaw),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(roll),
+        np.sin(roll),
+    )
     T = np.zeros((n, 4, 4))
     T[:, 0, 0] = cy * cp
     T[:, 0, 1] = cy * sp * sr - sy * cr
@@ -131,7 +144,9 @@ def _bfs(roads: RoadGraph, start: Node, goal_fn) -> list[Node]:
     return [start]
 
 
-def _extend(roads: RoadGraph, nodes: list[Node], lanes: list[int], metres: float, rng: np.random.Generator) -> None:
+def _extend(
+    roads: RoadGraph, nodes: list[Node], lanes: list[int], metres: float, rng: np.random.Generator
+) -> None:
     """Continue over unvisited edges (preferring straight on) for about ``metres``."""
     visited = {_edge_key(a, b) for a, b in zip(nodes[:-1], nodes[1:], strict=True)}
     added = 0.0
@@ -139,11 +154,17 @@ def _extend(roads: RoadGraph, nodes: list[Node], lanes: list[int], metres: float
         cur, prev = nodes[-1], nodes[-2] if len(nodes) > 1 else None
         options = [m for m in roads.neighbours(cur) if _edge_key(cur, m) not in visited]
         if options:
-            straight = [m for m in options if prev is not None and (m[0] - cur[0], m[1] - cur[1]) == (cur[0] - prev[0], cur[1] - prev[1])]
+            straight = [
+                m
+                for m in options
+                if prev is not None and (m[0] - cur[0], m[1] - cur[1]) == (cur[0] - prev[0], cur[1] - prev[1])
+            ]
             nxt = straight[0] if straight and rng.random() < 0.6 else options[int(rng.integers(len(options)))]
             step = [cur, nxt]
         else:
-            step = _bfs(roads, cur, lambda n: any(_edge_key(n, m) not in visited for m in roads.neighbours(n)))
+            step = _bfs(
+                roads, cur, lambda n: any(_edge_key(n, m) not in visited for m in roads.neighbours(n))
+            )
             if len(step) < 2:
                 break
         for a, b in zip(step[:-1], step[1:], strict=True):
@@ -190,7 +211,9 @@ def _join(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     m = min(len(a), 15)  # only the ends of the two legs may be cut, never earlier passes
     tail = a[-m:]
     head = b[:15]
-    return np.concatenate([a[:-m], tail[(tail - x) @ d1 < -1e-6], x[None], head[(head - x) @ d2 > 1e-6], b[15:]])
+    return np.concatenate(
+        [a[:-m], tail[(tail - x) @ d1 < -1e-6], x[None], head[(head - x) @ d2 > 1e-6], b[15:]]
+    )
 
 
 def _smooth(p: np.ndarray, window: int, passes: int = 2) -> np.ndarray:
@@ -272,7 +295,13 @@ def make_route(
             samples = np.interp(np.arange(0.0, t_of_s[-1], 1.0 / rate_hz), t_of_s, s)
         if n_scans is None or len(samples) >= n_scans:
             break
-        _extend(roads, nodes, lanes, (n_scans - len(samples)) * (spacing if rate_hz is None else speed / rate_hz) + 50.0, rng)
+        _extend(
+            roads,
+            nodes,
+            lanes,
+            (n_scans - len(samples)) * (spacing if rate_hz is None else speed / rate_hz) + 50.0,
+            rng,
+        )
     if n_scans is not None:
         samples = samples[:n_scans]
     px = np.interp(samples, s, xy[:, 0])
@@ -282,17 +311,36 @@ def make_route(
     pxy = np.c_[px, py]
     z = world.ground_height(px, py)
     e = 0.5
-    fx = (world.ground_height(px + e * np.cos(yaw), py + e * np.sin(yaw)) - world.ground_height(px - e * np.cos(yaw), py - e * np.sin(yaw))) / (2 * e)
-    fy = (world.ground_height(px - e * np.sin(yaw), py + e * np.cos(yaw)) - world.ground_height(px + e * np.sin(yaw), py - e * np.cos(yaw))) / (2 * e)
+    fx = (
+        world.ground_height(px + e * np.cos(yaw), py + e * np.sin(yaw))
+        - world.ground_height(px - e * np.cos(yaw), py - e * np.sin(yaw))
+    ) / (2 * e)
+    fy = (
+        world.ground_height(px - e * np.sin(yaw), py + e * np.cos(yaw))
+        - world.ground_height(px + e * np.sin(yaw), py - e * np.cos(yaw))
+    ) / (2 * e)
     wob = np.random.default_rng([int(seed), 0x3B0B])
     phase = wob.uniform(0, 2 * np.pi, 4)
-    pitch = -np.arctan(fx) + np.radians(0.3) * np.sin(samples / 7.0 + phase[0]) * np.sin(samples / 23.0 + phase[1])
-    roll = np.arctan(fy) + np.radians(0.3) * np.sin(samples / 5.0 + phase[2]) * np.sin(samples / 17.0 + phase[3])
+    pitch = -np.arctan(fx) + np.radians(0.3) * np.sin(samples / 7.0 + phase[0]) * np.sin(
+        samples / 23.0 + phase[1]
+    )
+    roll = np.arctan(fy) + np.radians(0.3) * np.sin(samples / 5.0 + phase[2]) * np.sin(
+        samples / 17.0 + phase[3]
+    )
     poses = poses_from_xy_yaw(pxy, z + sensor_height, yaw, pitch, roll)
-    return Route(poses=poses, timestamps=times, name=kind, revisits=find_revisits(poses, samples), arc_length=samples, plan=nodes)
+    return Route(
+        poses=poses,
+        timestamps=times,
+        name=kind,
+        revisits=find_revisits(poses, samples),
+        arc_length=samples,
+        plan=nodes,
+    )
 
 
-def _sample_path(roads: RoadGraph, nodes: list[Node], lanes: list[int], speed: float) -> tuple[np.ndarray, ...]:
+def _sample_path(
+    roads: RoadGraph, nodes: list[Node], lanes: list[int], speed: float
+) -> tuple[np.ndarray, ...]:
     xy = _path(roads, nodes, lanes)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
     d = np.gradient(xy, axis=0)
@@ -300,7 +348,13 @@ def _sample_path(roads: RoadGraph, nodes: list[Node], lanes: list[int], speed: f
     return xy, s, heading, _speed_profile(s, heading, speed)
 
 
-def find_revisits(poses: np.ndarray, arc_length: np.ndarray | None = None, radius: float = 6.0, min_gap: float = 50.0, min_scans: int = 3) -> list[Revisit]:
+def find_revisits(
+    poses: np.ndarray,
+    arc_length: np.ndarray | None = None,
+    radius: float = 6.0,
+    min_gap: float = 50.0,
+    min_scans: int = 3,
+) -> list[Revisit]:
     """Revisit segments: runs of scans whose nearest earlier scan (at least ``min_gap`` metres of travel back) lies
     within ``radius`` metres, split where the kind or the reference pass changes."""
     xy = poses[:, :2, 3]
@@ -332,6 +386,8 @@ def find_revisits(poses: np.ndarray, arc_length: np.ndarray | None = None, radiu
             j += 1
         if j - i >= min_scans:
             r = ref[i:j]
-            out.append(Revisit(i, j, int(r.min()), int(r.max()) + 1, names[int(kind[i])], float(dist[i:j].mean())))
+            out.append(
+                Revisit(i, j, int(r.min()), int(r.max()) + 1, names[int(kind[i])], float(dist[i:j].mean()))
+            )
         i = j
     return out

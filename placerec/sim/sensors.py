@@ -178,7 +178,13 @@ SENSORS: dict[str, SensorModel] = {
     "os1-128": dataclasses.replace(_OS1_GEN2, name="os1-128", beam_elevations_deg=_uniform(22.5, -22.5, 128)),
 }
 
-_ALIASES = {"os1-64-gen1": "os1-64", "vlp-16": "vlp16", "hdl-64": "hdl64", "hdl64e": "hdl64", "os1-128-gen2": "os1-128"}
+_ALIASES = {
+    "os1-64-gen1": "os1-64",
+    "vlp-16": "vlp16",
+    "hdl-64": "hdl64",
+    "hdl64e": "hdl64",
+    "os1-128-gen2": "os1-128",
+}
 
 
 def sensor_names() -> list[str]:

@@ -94,9 +94,28 @@ class SimulatedSequence:
         self._sensor = get_sensor(sensor)
         height = self._sensor.mount_height if sensor_height is None else float(sensor_height)
         if isinstance(route, Route):
-            self._route = route if n_scans is None else Route(route.poses[:n_scans], route.timestamps[:n_scans], route.name, [r for r in route.revisits if r.stop <= n_scans], None if route.arc_length is None else route.arc_length[:n_scans], route.plan)
+            self._route = (
+                route
+                if n_scans is None
+                else Route(
+                    route.poses[:n_scans],
+                    route.timestamps[:n_scans],
+                    route.name,
+                    [r for r in route.revisits if r.stop <= n_scans],
+                    None if route.arc_length is None else route.arc_length[:n_scans],
+                    route.plan,
+                )
+            )
         else:
-            self._route = make_route(self._world, route, n_scans=n_scans, spacing=spacing, rate_hz=rate_hz, sensor_height=height, seed=self._seed)
+            self._route = make_route(
+                self._world,
+                route,
+                n_scans=n_scans,
+                spacing=spacing,
+                rate_hz=rate_hz,
+                sensor_height=height,
+                seed=self._seed,
+            )
         if len(self._route) == 0:
             raise ConfigError("sim: the route has no scans")
         cfg = ClutterConfig() if clutter is True else (clutter or None)
@@ -107,7 +126,9 @@ class SimulatedSequence:
         self._model = IntensityModel.for_sensor(self._sensor)
         self._renderer = Renderer(self._world, self._sensor, self._response, self._model, cfg)
         self._drift = OdometryDrift.coerce(odometry_drift)
-        self._odometry = None if self._drift is None else drift_poses(self._route.poses, self._drift, self._seed)
+        self._odometry = (
+            None if self._drift is None else drift_poses(self._route.poses, self._drift, self._seed)
+        )
         self._poses = np.ascontiguousarray(self._route.poses, dtype=np.float64)
         self._times = np.ascontiguousarray(self._route.timestamps, dtype=np.float64)
         for arr in (self._poses, self._times):
@@ -130,7 +151,9 @@ class SimulatedSequence:
             i += n
         if not 0 <= i < n:
             raise IndexError(f"{self._name}: scan index {index} out of range for {n} scans")
-        return self._renderer.render(self._poses[i], float(self._times[i]), self._seed, i, self._occluders, source=f"{self._name}[{i}]")
+        return self._renderer.render(
+            self._poses[i], float(self._times[i]), self._seed, i, self._occluders, source=f"{self._name}[{i}]"
+        )
 
     def __iter__(self):
         for i in range(len(self)):
@@ -189,10 +212,19 @@ class SimulatedSequence:
     def seed(self) -> int:
         return self._seed
 
-    def scan_at(self, pose: np.ndarray, timestamp: float = 0.0, index: int = 0, occluders: bool | None = None) -> Scan:
+    def scan_at(
+        self, pose: np.ndarray, timestamp: float = 0.0, index: int = 0, occluders: bool | None = None
+    ) -> Scan:
         """Render a scan at an arbitrary pose with this sequence's world, sensor and unit."""
         occ = self._occluders if occluders is None else occluders
-        return self._renderer.render(np.asarray(pose, dtype=np.float64), float(timestamp), self._seed, int(index), occ, source=f"{self._name}@pose")
+        return self._renderer.render(
+            np.asarray(pose, dtype=np.float64),
+            float(timestamp),
+            self._seed,
+            int(index),
+            occ,
+            source=f"{self._name}@pose",
+        )
 
     def __getstate__(self) -> dict:
         """Pickle the constructor arguments only; the scans are regenerated identically after unpickling."""

@@ -31,7 +31,9 @@ __all__ = ["FeatureParams", "LocalFeatures", "extract_features", "prepare_cloud"
 class FeatureParams(Params):
     """The 3D modality's feature settings (defaults: ISHOT paper Sec. V-B; ``max_keypoints`` ~ its 296 per scan)."""
 
-    max_range: float | None = Field(40.0, gt=0, description="m; points beyond are dropped (ISHOT paper Sec. V-B)")
+    max_range: float | None = Field(
+        40.0, gt=0, description="m; points beyond are dropped (ISHOT paper Sec. V-B)"
+    )
     voxel_size: float = Field(0.4, gt=0, description="m; voxel grid (ISHOT paper Sec. V-B)")
     normals: NormalParams = Field(default_factory=NormalParams)
     iss: ISSParams = Field(default_factory=lambda: ISSParams(max_keypoints=300))

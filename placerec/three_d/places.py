@@ -292,9 +292,13 @@ def _check_layout(arrays: dict[str, np.ndarray], meta: dict[str, Any], path: str
     check_counts(arrays["source_counts"], arrays["sources"].shape[0], path, "source_counts")
     for name in ("ids", "sources"):
         if arrays[name].size and arrays[name].max() >= n_scans:
-            raise ArtifactError(f"{path}: {name!r} refers to scan {arrays[name].max()}, the map has {n_scans}")
+            raise ArtifactError(
+                f"{path}: {name!r} refers to scan {arrays[name].max()}, the map has {n_scans}"
+            )
     if not np.array_equal(arrays["poses"], arrays["scan_poses"][arrays["ids"]]):
-        raise ArtifactError(f"{path}: place 'poses' differ from the 'scan_poses' of their centre scans ('ids')")
+        raise ArtifactError(
+            f"{path}: place 'poses' differ from the 'scan_poses' of their centre scans ('ids')"
+        )
     if meta.get("dim") != arrays["descriptors"].shape[1]:
         raise ArtifactError(
             f"{path}: descriptors have {arrays['descriptors'].shape[1]} columns, the header says dim="
@@ -302,7 +306,9 @@ def _check_layout(arrays: dict[str, np.ndarray], meta: dict[str, Any], path: str
         )
     cloud = [k for k in ("cloud_counts", "cloud_xyz", "cloud_intensity") if k in arrays]
     if cloud and len(cloud) != 3:
-        raise ArtifactError(f"{path}: place clouds need cloud_counts, cloud_xyz and cloud_intensity, found {cloud}")
+        raise ArtifactError(
+            f"{path}: place clouds need cloud_counts, cloud_xyz and cloud_intensity, found {cloud}"
+        )
     if cloud:
         check_counts(arrays["cloud_counts"], arrays["cloud_xyz"].shape[0], path, "cloud_counts")
 

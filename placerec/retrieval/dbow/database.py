@@ -239,12 +239,16 @@ class BowDatabase:
             )
         levels_up = meta.get("levels_up")
         if levels_up is not None and (type(levels_up) is not int or not 0 <= levels_up <= vocabulary.L):
-            raise ArtifactError(f"{path}: levels_up must be None or 0..{vocabulary.L}, got {short_repr(levels_up)}")
+            raise ArtifactError(
+                f"{path}: levels_up must be None or 0..{vocabulary.L}, got {short_repr(levels_up)}"
+            )
         check_unique(arrays["ids"], path, "ids")
         check_counts(arrays["bow_lens"], arrays["bow_words"].shape[0], path, "bow_lens")
         check_counts(arrays["node_lens"], arrays["nodes"].shape[0], path, "node_lens")
         if arrays["bow_words"].size and arrays["bow_words"].max() >= vocabulary.n_words:
-            raise ArtifactError(f"{path}: 'bow_words' refer to words beyond the vocabulary's {vocabulary.n_words}")
+            raise ArtifactError(
+                f"{path}: 'bow_words' refer to words beyond the vocabulary's {vocabulary.n_words}"
+            )
         db = cls(vocabulary, levels_up)
         b_off = np.r_[0, np.cumsum(arrays["bow_lens"])]
         n_off = np.r_[0, np.cumsum(arrays["node_lens"])]
