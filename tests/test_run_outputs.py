@@ -7,7 +7,7 @@ import pytest
 
 from placerec.baselines.scan_context import ScanContext
 from placerec.config import load_config
-from placerec.errors import ScanDataError, ScanFormatError
+from placerec.errors import ConfigError, ScanDataError, ScanFormatError
 from placerec.eval import ExclusionWindow, loop_ground_truth
 from placerec.experiment import run_experiment
 from placerec.experiment.candidates import read_candidates, write_candidates
@@ -48,7 +48,9 @@ def sequence_dir(tmp_path_factory):
     return root
 
 
-def config(sequence_dir, out, pipeline="scan-context", exclusion=("evaluation.exclusion.frames=6",)):
+def config(
+    sequence_dir, out, pipeline="scan-context", exclusion=("evaluation.exclusion.frames=6",), extra=()
+):
     return load_config(
         None,
         [
@@ -62,6 +64,7 @@ def config(sequence_dir, out, pipeline="scan-context", exclusion=("evaluation.ex
             "output.cache_dir=null",
             "output.progress=false",
             "output.figures=false",
+            *extra,
         ],
     )
 
@@ -156,3 +159,43 @@ def test_failed_run_does_not_repoint_latest(sequence_dir, tmp_path):
     )  # the failed run's folder stays
     again, _ = run_experiment(config(sequence_dir, tmp_path))
     assert latest.resolve() == again.resolve() != good.resolve()
+
+
+@pytest.mark.parametrize(
+    "pipeline, extra, message",
+    [
+        ("subprocess:run", (), "subprocess:run is a function, not a class"),
+        ("no-such-pipeline", (), "unknown pipeline 'no-such-pipeline'"),
+        ("placerec.no_such_module:X", (), "cannot import 'placerec.no_such_module'"),
+        (
+            "scan-context",
+            ("pipelines=[{name: scan-context, params: {rings: 0}}]",),
+            r"pipelines\[0\]\.params\.rings",
+        ),
+        ("scan-context", ("pipelines=[{name: scan-context, params: {ringz: 20}}]",), "unknown key"),
+        ("scan-context", ("evaluation.mode=localize",), "localize mode on a path dataset needs"),
+    ],
+)
+def test_a_config_that_cannot_run_leaves_no_run_folder(sequence_dir, tmp_path, pipeline, extra, message):
+    cfg = config(sequence_dir, tmp_path / "results", pipeline, extra=extra)
+    with pytest.raises(ConfigError, match=message):
+        run_experiment(cfg)
+    assert not (tmp_path / "results").exists()
+
+
+def test_a_dataset_without_poses_fails_before_the_run_folder_is_made(sequence_dir, tmp_path):
+    bare = tmp_path / "bare"
+    (bare / "velodyne").mkdir(parents=True)
+    for i in range(3):
+        (bare / "velodyne" / f"{i:06d}.bin").write_bytes(
+            (sequence_dir / "velodyne" / f"{i:06d}.bin").read_bytes()
+        )
+    with pytest.raises(ConfigError, match="has no poses"):
+        run_experiment(config(bare, tmp_path / "results"))
+    assert not (tmp_path / "results").exists()
+
+
+def test_a_results_root_that_is_a_file_is_a_config_error(sequence_dir, tmp_path):
+    (tmp_path / "results").write_text("not a folder")
+    with pytest.raises(ConfigError, match="output.dir: cannot make the results folder"):
+        run_experiment(config(sequence_dir, tmp_path / "results"))

@@ -22,15 +22,28 @@ __all__ = ["run_experiment"]
 
 
 def run_experiment(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> tuple[Path, dict[str, Any]]:
-    """Run ``cfg`` (loop or localize mode) and write its results folder; returns (folder, metrics dict)."""
-    from placerec.experiment.report import make_run_dir, report_localize, report_loop
-    from placerec.experiment.runner import run_localize, run_loop
+    """Run ``cfg`` (loop or localize mode) and write its results folder; returns (folder, metrics dict).
 
-    run = make_run_dir(cfg, out_dir)
+    The pipelines are built and the datasets opened and checked (poses for the evaluation, what the exclusion
+    window needs) before the results folder is made, so a config that cannot run leaves no folder behind."""
+    from placerec.experiment.report import make_run_dir, report_localize, report_loop, require_poses
+    from placerec.experiment.runner import (
+        build_pipelines,
+        localize_sequences,
+        loop_sequence,
+        run_localize,
+        run_loop,
+    )
+
+    pipelines = build_pipelines(cfg)
     if cfg.evaluation.mode == "loop":
-        seq, records = run_loop(cfg)
+        seq = require_poses(loop_sequence(cfg))
+        run = make_run_dir(cfg, out_dir)
+        seq, records = run_loop(cfg, seq, pipelines)
         payload = report_loop(cfg, run, seq, records)
     else:
-        map_seq, query_seq, records = run_localize(cfg)
+        sequences = localize_sequences(cfg)
+        run = make_run_dir(cfg, out_dir)
+        map_seq, query_seq, records = run_localize(cfg, sequences, pipelines)
         payload = report_localize(cfg, run, map_seq, query_seq, records)
     return run, payload

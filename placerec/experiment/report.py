@@ -34,6 +34,7 @@ import numpy as np
 import yaml
 
 from placerec.config import ExperimentConfig, config_to_yaml
+from placerec.errors import ConfigError
 from placerec.eval import ExclusionWindow, evaluate_loop, localization_metrics, timing_summary
 from placerec.experiment import figures
 from placerec.experiment.candidates import read_candidates, write_candidates
@@ -45,6 +46,7 @@ from placerec.types import Sequence
 __all__ = [
     "make_run_dir",
     "point_latest",
+    "require_poses",
     "report_loop",
     "report_localize",
     "recompute_loop_metrics",
@@ -58,7 +60,7 @@ def _slug(label: str) -> str:
 
 def make_run_dir(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> Path:
     """A new timestamped folder for this run with the config written into it (``latest`` is moved to it only
-    when its report is complete, by `point_latest`)."""
+    when its report is complete, by `point_latest`); `ConfigError` when the results root cannot hold it."""
     root = Path(out_dir or cfg.output.dir)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     run = root / f"{_slug(cfg.name)}_{stamp}"
@@ -66,7 +68,11 @@ def make_run_dir(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> Pa
     while run.exists():
         n += 1
         run = root / f"{_slug(cfg.name)}_{stamp}-{n}"
-    run.mkdir(parents=True)
+    try:
+        run.mkdir(parents=True)
+    except OSError as exc:
+        where = "--out" if out_dir else "output.dir"
+        raise ConfigError(f"{where}: cannot make the results folder {run}: {exc.strerror or exc}") from None
     with atomic_write(run / "config.yaml", "w") as fh:
         fh.write(config_to_yaml(cfg))
     return run
@@ -126,9 +132,7 @@ def report_loop(
     cfg: ExperimentConfig, run: Path, seq: Sequence, records: list[PipelineRecord]
 ) -> dict[str, Any]:
     """Loop-mode metrics and all outputs; returns the metrics dict written to ``metrics.json``."""
-    poses = seq.poses
-    if poses is None:
-        raise_no_poses(seq)
+    poses = require_poses(seq).poses
     write_kitti_poses(run / "poses.txt", poses)
     if seq.timestamps is not None:
         with atomic_write(run / "times.txt", "w") as fh:
@@ -225,10 +229,11 @@ def report_localize(
     return payload
 
 
-def raise_no_poses(seq: Sequence) -> None:
-    from placerec.errors import ConfigError
-
-    raise ConfigError(f"dataset {seq.name} has no poses: loop-mode evaluation needs ground-truth poses")
+def require_poses(seq: Sequence) -> Sequence:
+    """``seq``, or `ConfigError` when it has no poses: loop-mode evaluation needs ground-truth poses."""
+    if seq.poses is None:
+        raise ConfigError(f"dataset {seq.name} has no poses: loop-mode evaluation needs ground-truth poses")
+    return seq
 
 
 def _finish(

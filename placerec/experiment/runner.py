@@ -31,7 +31,15 @@ from placerec.types import Candidate, Description, PlaceRecognizer, Scan, Sequen
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PipelineRecord", "run_loop", "run_localize", "progress_bars"]
+__all__ = [
+    "PipelineRecord",
+    "build_pipelines",
+    "loop_sequence",
+    "localize_sequences",
+    "run_loop",
+    "run_localize",
+    "progress_bars",
+]
 
 STAGES = ("preprocess", "describe", "query", "insert", "verify")
 
@@ -144,8 +152,12 @@ class _Frontends:
         return found
 
 
-def _build_pipelines(cfg: ExperimentConfig) -> list[tuple[PipelineRecord, PlaceRecognizer]]:
-    """Every pipeline of the config with an empty record holding its resolved parameters."""
+Pipelines = list[tuple[PipelineRecord, PlaceRecognizer]]
+
+
+def build_pipelines(cfg: ExperimentConfig) -> Pipelines:
+    """Every pipeline of the config with an empty record holding its resolved parameters (`ConfigError` for an
+    unknown name, a ``module:Class`` that is no recognizer, or a bad parameter)."""
     out = []
     for i, spec in enumerate(cfg.pipelines):
         rec = make_pipeline(spec.name, spec.params, path=f"pipelines[{i}].params")
@@ -166,10 +178,27 @@ def _data_key(cfg: ExperimentConfig, dataset_cfg: Any) -> str:
     )
 
 
-def run_loop(cfg: ExperimentConfig, seq: Sequence | None = None) -> tuple[Sequence, list[PipelineRecord]]:
-    """Loop mode: every scan queries (exclusion window applied) and is then added, for every pipeline."""
-    pipelines = _build_pipelines(cfg)
+def loop_sequence(cfg: ExperimentConfig, seq: Sequence | None = None) -> Sequence:
+    """The loop-mode sequence (``cfg.dataset`` unless ``seq`` is given), checked against the exclusion window:
+    `ConfigError` when a limit in metres has no poses or one in seconds no timestamps to apply to."""
     seq = open_dataset(cfg.dataset) if seq is None else seq
+    ex = cfg.evaluation.exclusion
+    if ex.metres is not None and seq.poses is None:
+        raise ConfigError("evaluation.exclusion.metres needs a dataset with poses")
+    if ex.seconds is not None and seq.timestamps is None:
+        raise ConfigError("evaluation.exclusion.seconds needs a dataset with timestamps")
+    return seq
+
+
+def run_loop(
+    cfg: ExperimentConfig, seq: Sequence | None = None, pipelines: Pipelines | None = None
+) -> tuple[Sequence, list[PipelineRecord]]:
+    """Loop mode: every scan queries (exclusion window applied) and is then added, for every pipeline.
+
+    ``seq`` defaults to the config's dataset, ``pipelines`` to `build_pipelines`. A sequence with no scans, or
+    one shorter than the exclusion window, gives every query no candidates."""
+    pipelines = build_pipelines(cfg) if pipelines is None else pipelines
+    seq = loop_sequence(cfg, seq)
     ex = cfg.evaluation.exclusion
     detectors = [
         LoopClosureDetector(
@@ -183,10 +212,6 @@ def run_loop(cfg: ExperimentConfig, seq: Sequence | None = None) -> tuple[Sequen
         for _, rec in pipelines
     ]
     poses, stamps = seq.poses, seq.timestamps
-    if ex.metres is not None and poses is None:
-        raise ConfigError("evaluation.exclusion.metres needs a dataset with poses")
-    if ex.seconds is not None and stamps is None:
-        raise ConfigError("evaluation.exclusion.seconds needs a dataset with timestamps")
     frontends = _Frontends(DescriptionCache(cfg.output.cache_dir, _data_key(cfg, cfg.dataset)))
     with progress_bars(cfg.output.progress) as progress:
         tasks = [progress.add_task(record.label, total=len(seq)) for record, _ in pipelines]
@@ -212,12 +237,14 @@ def run_loop(cfg: ExperimentConfig, seq: Sequence | None = None) -> tuple[Sequen
     return seq, [record for record, _ in pipelines]
 
 
-def _localize_sequences(cfg: ExperimentConfig) -> tuple[Sequence, Sequence]:
+def localize_sequences(cfg: ExperimentConfig) -> tuple[Sequence, Sequence]:
+    """(map, queries) of localize mode: ``evaluation.localize``'s datasets or a simulator split; `ConfigError`
+    when they are incomplete or lack poses."""
     loc = cfg.evaluation.localize
     if loc.map is not None or loc.queries is not None:
         if loc.map is None or loc.queries is None:
             raise ConfigError("evaluation.localize needs both 'map' and 'queries' datasets (or neither)")
-        return open_dataset(loc.map), open_dataset(loc.queries)
+        return _with_poses(open_dataset(loc.map), open_dataset(loc.queries))
     if cfg.dataset.source != "simulator":
         raise ConfigError("localize mode on a path dataset needs evaluation.localize.map and .queries")
     from placerec.sim import make_localization_split
@@ -231,15 +258,27 @@ def _localize_sequences(cfg: ExperimentConfig) -> tuple[Sequence, Sequence]:
         n_map=sim.n_scans,
         conditions=(loc.condition,),
     )
-    return split.map, split.queries[loc.condition]
+    return _with_poses(split.map, split.queries[loc.condition])
 
 
-def run_localize(cfg: ExperimentConfig) -> tuple[Sequence, Sequence, list[PipelineRecord]]:
-    """Localize mode: build each pipeline's database from the map sequence, then query every query scan."""
-    map_seq, query_seq = _localize_sequences(cfg)
-    if map_seq.poses is None or query_seq.poses is None:
-        raise ConfigError("localize mode needs poses for the map and the query sequences")
-    pipelines = _build_pipelines(cfg)
+def _with_poses(map_seq: Sequence, query_seq: Sequence) -> tuple[Sequence, Sequence]:
+    for what, seq in (("map", map_seq), ("query", query_seq)):
+        if seq.poses is None:
+            raise ConfigError(f"localize mode needs poses: the {what} sequence {seq.name} has none")
+    return map_seq, query_seq
+
+
+def run_localize(
+    cfg: ExperimentConfig,
+    sequences: tuple[Sequence, Sequence] | None = None,
+    pipelines: Pipelines | None = None,
+) -> tuple[Sequence, Sequence, list[PipelineRecord]]:
+    """Localize mode: build each pipeline's database from the map sequence, then query every query scan.
+
+    ``sequences`` (map, queries) default to `localize_sequences`, ``pipelines`` to `build_pipelines`. An empty
+    map gives every query no candidates; no queries give no records' rows."""
+    pipelines = build_pipelines(cfg) if pipelines is None else pipelines
+    map_seq, query_seq = localize_sequences(cfg) if sequences is None else _with_poses(*sequences)
     map_front = _Frontends(
         DescriptionCache(cfg.output.cache_dir, _data_key(cfg, cfg.evaluation.localize.map or cfg.dataset))
     )
