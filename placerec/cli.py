@@ -118,9 +118,9 @@ def pipelines(
     from placerec.recognizer import PIPELINES, pipeline_params
 
     if name is None:
-        table = Table(
-            "pipeline", "description", title="registered pipelines (placerec pipelines NAME: parameters)"
-        )
+        table = Table(title="registered pipelines (placerec pipelines NAME: parameters)")
+        table.add_column("pipeline", no_wrap=True)
+        table.add_column("description", overflow="fold")
         for key, entry in PIPELINES.items():
             table.add_row(key, entry.summary)
         Console().print(table)
@@ -130,7 +130,11 @@ def pipelines(
     except PlacerecError as exc:
         _fail(exc)
         return
-    table = Table("parameter", "default", "type", "what / where from", title=f"{name} parameters")
+    table = Table(title=f"{name} parameters")
+    table.add_column("parameter", no_wrap=True)  # a dotted name is never cut; the other columns wrap
+    table.add_column("default", overflow="fold", max_width=16)
+    table.add_column("type", overflow="fold", max_width=16)
+    table.add_column("what / where from", overflow="fold")
     for key, value, kind, description in param_rows(params):
         table.add_row(key, repr(value), kind, description)
     Console().print(table)

@@ -107,3 +107,16 @@ def test_simulated_export_round_trips_raw_intensity(tmp_path):
     valid = np.any(original.xyz != 0, axis=1)
     assert loaded.sensor.intensity_max == original.sensor.intensity_max == 255
     assert np.allclose(np.sort(loaded.intensity), np.sort(original.intensity[valid]), atol=0.01)
+
+
+@pytest.mark.parametrize("name", ["orb-dbow", "ishot-votes", "surf-dbow"])
+def test_pipeline_parameter_names_are_never_cut_on_an_80_column_terminal(name):
+    from placerec.params import param_rows
+    from placerec.recognizer import pipeline_params
+
+    result = runner.invoke(app, ["pipelines", name], env={"COLUMNS": "80"})
+    assert result.exit_code == 0, result.output
+    assert max(map(len, result.output.splitlines())) <= 80
+    assert "…" not in result.output
+    names = {line.split("│")[1].strip() for line in result.output.splitlines() if line.count("│") == 5}
+    assert {row[0] for row in param_rows(pipeline_params(name))} <= names
