@@ -21,7 +21,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from placerec.errors import ConfigError, ScanDataError
+from placerec.errors import ConfigError, ScanDataError, short_repr
 from placerec.hashing import stable_hash
 from placerec.params import Params, deep_merge, resolve
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan
@@ -200,7 +200,8 @@ _PROTOCOL_METHODS = (
 def pipeline_class(name: str) -> type:
     """The class of a registered pipeline, or of a ``"package.module:Class"`` path.
 
-    The path must name a class that implements `placerec.types.PlaceRecognizer` (a `Recognizer` subclass, or
+    A path imports its module (running that module's code: name trusted packages only); a module that fails to
+    import is a `ConfigError` naming it. The path must name a class that implements `placerec.types.PlaceRecognizer` (a `Recognizer` subclass, or
     a class with every protocol method, ``name`` and ``frontend_key``); anything else is a `ConfigError`, raised
     before anything is called.
     """
@@ -213,8 +214,11 @@ def pipeline_class(name: str) -> type:
         )
     try:
         module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise ConfigError(f"pipeline {name!r}: cannot import {module_name!r} ({exc})") from exc
+    except Exception as exc:  # a plugin module may fail to import with any error (SyntaxError, its own)
+        reason = short_repr(str(exc), 200)
+        raise ConfigError(
+            f"pipeline {name!r}: cannot import module {module_name!r} ({type(exc).__name__}: {reason})"
+        ) from exc
     obj = inspect.getattr_static(module, attr, None)
     if not inspect.isclass(obj):
         kind = "nothing" if obj is None else f"a {type(obj).__name__}"

@@ -32,8 +32,8 @@ def test_preset_and_overrides_merge_deeply():
     assert p.image.width == 512 and p.image.percentile == 99.0
 
 
-def _config(tmp_path, *pipelines):
-    overrides = [f"output.dir={tmp_path}", "output.cache_dir=null", "output.progress=false"]
+def _config(tmp_path, *pipelines, overrides=()):
+    overrides = [f"output.dir={tmp_path}", "output.cache_dir=null", "output.progress=false", *overrides]
     cfg = load_config(None, overrides)
     return cfg.model_copy(update={"pipelines": [type(cfg.pipelines[0])(**p) for p in pipelines]})
 
@@ -110,6 +110,23 @@ def test_config_classes_must_implement_the_protocol_before_anything_runs(tmp_pat
     with pytest.raises(ConfigError, match="PlaceRecognizer|not a class|nothing"):
         run_loop(cfg, ListSequence([]))
     assert not os.path.exists(tmp_path / "x")
+
+
+@pytest.mark.parametrize(
+    "source, error",
+    [
+        ("raise RuntimeError('plugin set-up failed')\n", "RuntimeError: 'plugin set-up failed'"),
+        ("def broken(:\n", "SyntaxError"),
+        ("import placerec_no_such_dependency\n", "ModuleNotFoundError"),
+    ],
+)
+def test_a_config_module_that_fails_to_import_is_a_config_error_naming_it(
+    tmp_path, monkeypatch, source, error
+):
+    (tmp_path / "bad_plugin.py").write_text(source)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(ConfigError, match=f"cannot import module 'bad_plugin' \\({error}"):
+        make_pipeline("bad_plugin:Recognizer")
 
 
 def test_resolved_parameters_are_written_to_the_run_folder(tmp_path):
@@ -197,8 +214,7 @@ def test_runner_keeps_scan_indices_when_a_pipeline_refuses_a_scan(tmp_path):
     scans = [seq[i] for i in range(len(seq))]
     scans[5] = Scan(np.zeros((1000, 3)), np.zeros(1000))  # a blank frame (every return invalid)
     seq = ListSequence(scans, seq.poses, seq.timestamps, name="poles-with-a-blank")
-    cfg = _config(tmp_path, {"name": "scan-context"})
-    cfg.evaluation.exclusion.frames = 20
+    cfg = _config(tmp_path, {"name": "scan-context"}, overrides=["evaluation.exclusion.frames=20"])
     _, (record,) = run_loop(cfg, seq)
     assert record.query_ids == list(range(len(seq))) and record.candidates[5] == []
     assert all(c.match_id != 5 for cands in record.candidates for c in cands)

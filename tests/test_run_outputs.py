@@ -166,7 +166,7 @@ def test_failed_run_does_not_repoint_latest(sequence_dir, tmp_path):
     [
         ("subprocess:run", (), "subprocess:run is a function, not a class"),
         ("no-such-pipeline", (), "unknown pipeline 'no-such-pipeline'"),
-        ("placerec.no_such_module:X", (), "cannot import 'placerec.no_such_module'"),
+        ("placerec.no_such_module:X", (), "cannot import module 'placerec.no_such_module'"),
         (
             "scan-context",
             ("pipelines=[{name: scan-context, params: {rings: 0}}]",),
