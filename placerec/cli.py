@@ -318,22 +318,20 @@ def calibrate(
     """
     import time
 
-    from pydantic import ValidationError
     from rich.progress import Progress
 
     from placerec.calibration import CalibrationParams, calibrate_sequence
     from placerec.config import apply_overrides
     from placerec.errors import ConfigError, PlacerecError
+    from placerec.params import resolve
 
     try:
         if (sequence is None) == (sim_world is None):
             raise ConfigError("give either a SEQUENCE path or --sim-world (not both)")
         values = {"voxel_size": voxel_size, "max_range": max_range, "iterations": iterations, "step": step}
-        try:
-            params = CalibrationParams(**apply_overrides(values, set_ or []))
-        except ValidationError as exc:
-            bad = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-            raise ConfigError(f"calibration parameters: {bad}") from None
+        params = resolve(
+            CalibrationParams, apply_overrides(values, set_ or []), where="calibration parameters"
+        )
         if sim_world is not None:
             from placerec.sim import SimulatedSequence
 

@@ -1,23 +1,25 @@
-"""Experiment configuration: pydantic models with ``extra="forbid"`` on every section, loaded from YAML.
+"""Experiment configuration: every section is a `placerec.params.Params` model (strict, ``extra="forbid"``,
+immutable), loaded from YAML.
 
 `load_config` is the one entry point: YAML file (or none) + ``key.path=value`` overrides -> validated
-`ExperimentConfig`. Any unknown key or bad value raises `ConfigError` naming the key path, what was wrong and
-the allowed keys. `dump_default_config` writes the defaults as YAML.
+`ExperimentConfig`. Any unknown key or bad value raises `ConfigError` naming the dotted key path, what was wrong
+and the allowed keys (`placerec.params.format_errors`). `dump_default_config` writes the defaults as YAML.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal, get_args
+from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, model_validator
 
 from placerec.errors import ConfigError, short_repr
+from placerec.intensity import IntensitySpec
+from placerec.params import Params, resolve
 from placerec.safe_yaml import load_yaml, load_yaml_file
 
 __all__ = [
-    "Section",
     "SimulatorConfig",
     "DatasetConfig",
     "IntensityConfig",
@@ -35,13 +37,7 @@ __all__ = [
 ]
 
 
-class Section(BaseModel):
-    """Base of every config section: unknown keys are errors, values are validated on assignment too."""
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
-
-
-class SimulatorConfig(Section):
+class SimulatorConfig(Params):
     """The built-in LiDAR simulator used as dataset (see `placerec.sim`)."""
 
     world: str = "town"
@@ -55,7 +51,7 @@ class SimulatorConfig(Section):
     sensor_height: float | None = Field(None, gt=0)
 
 
-class DatasetConfig(Section):
+class DatasetConfig(Params):
     """Where scans and poses come from: the simulator (default) or a path readable by `placerec.io.open_sequence`."""
 
     source: Literal["simulator", "path"] = "simulator"
@@ -74,21 +70,22 @@ class DatasetConfig(Section):
         return self
 
 
-class IntensityConfig(Section):
-    """Intensity normalisation (`placerec.intensity.INTENSITY_NORMALIZERS`); ``auto`` = per-sensor default.
+class IntensityConfig(IntensitySpec):
+    """Intensity normalisation: a `placerec.intensity.IntensitySpec` whose ``mode`` may also be ``auto`` (the
+    per-sensor default).
 
     ``calibration``: path of a per-beam calibration table (``placerec calibrate``); when set, each point's raw
     intensity is mapped through its beam's table (already in [0, 1], so ``mode`` is not applied) and points beyond
     the table's intensity range cut-off (30 m) are dropped (zeroed in organised scans).
     """
 
-    mode: Literal["auto", "raw", "linear", "percentile"] = "auto"
-    saturation: float | None = Field(None, gt=0)
-    percentile: float = Field(99.0, gt=0, le=100)
-    calibration: str | None = None
+    mode: Literal["auto", "raw", "linear", "percentile"] = Field(  # type: ignore[assignment]
+        "auto", description="auto (the sensor's default), raw, linear or percentile"
+    )
+    calibration: str | None = Field(None, description="per-beam calibration table file")
 
 
-class PreprocessConfig(Section):
+class PreprocessConfig(Params):
     """Point filtering applied to every scan before any pipeline sees it (None = no limit)."""
 
     min_range: float | None = Field(0.5, ge=0)
@@ -99,7 +96,7 @@ class PreprocessConfig(Section):
     intensity: IntensityConfig = Field(default_factory=IntensityConfig)
 
 
-class PipelineSpec(Section):
+class PipelineSpec(Params):
     """One pipeline to run: a registry name (see ``placerec.recognizer.PIPELINES``) or ``module:Class``,
     a display label, and parameter overrides validated by the pipeline itself."""
 
@@ -112,7 +109,7 @@ class PipelineSpec(Section):
         return self.label or self.name
 
 
-class ExclusionConfig(Section):
+class ExclusionConfig(Params):
     """Loop mode: a database scan is eligible for a query only when it is older than EVERY limit set here —
     at least ``frames`` frames, ``seconds`` seconds (needs timestamps) and ``metres`` travelled (needs poses)
     before it; ``null`` = no limit of that kind. ``frames`` stays 120 (VPR paper) when the others are set: write
@@ -124,7 +121,7 @@ class ExclusionConfig(Section):
     metres: float | None = Field(None, ge=0)
 
 
-class LocalizeConfig(Section):
+class LocalizeConfig(Params):
     """Localize mode: a map sequence and a query sequence. ``condition`` picks a simulated query set
     (gator, pole, occlusion); ``map``/``queries`` give real sequences instead."""
 
@@ -135,7 +132,7 @@ class LocalizeConfig(Section):
     success_distance: float = Field(3.0, gt=0)
 
 
-class EvaluationConfig(Section):
+class EvaluationConfig(Params):
     """How pipelines are evaluated (loop: VPR paper protocol; localize: ISHOT paper protocol)."""
 
     mode: Literal["loop", "localize"] = "loop"
@@ -148,7 +145,7 @@ class EvaluationConfig(Section):
     localize: LocalizeConfig = Field(default_factory=LocalizeConfig)
 
 
-class OutputConfig(Section):
+class OutputConfig(Params):
     """Where results go: ``dir/<name>_<timestamp>/`` with a ``latest`` link."""
 
     dir: str = "results"
@@ -159,7 +156,7 @@ class OutputConfig(Section):
     progress: bool = True
 
 
-class ExperimentConfig(Section):
+class ExperimentConfig(Params):
     """The root of a placerec experiment config."""
 
     name: str = "experiment"
@@ -180,58 +177,13 @@ class ExperimentConfig(Section):
         return self
 
 
-def _model_in(annotation: Any) -> Any:
-    """The pydantic model inside an annotation like ``X``, ``X | None`` or ``list[X]`` (else the annotation)."""
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    for arg in get_args(annotation):
-        found = _model_in(arg)
-        if isinstance(found, type) and issubclass(found, BaseModel):
-            return found
-    return annotation
-
-
-def _allowed_keys(model: type[BaseModel], loc: tuple[Any, ...]) -> list[str]:
-    """Field names of the section that ``loc`` (a pydantic error location, minus the bad key) points into."""
-    current: Any = model
-    for part in loc:
-        if isinstance(part, int):  # list index: stay on the list's item model
-            continue
-        if not (isinstance(current, type) and issubclass(current, BaseModel)):
-            return []
-        field = current.model_fields.get(str(part))
-        if field is None:
-            return []
-        current = _model_in(field.annotation)
-    if isinstance(current, type) and issubclass(current, BaseModel):
-        return sorted(current.model_fields)
-    return []
-
-
-def _format_errors(exc: ValidationError, model: type[BaseModel], origin: str) -> str:
-    lines = []
-    for err in exc.errors():
-        loc = tuple(err["loc"])
-        key = ".".join(str(p) for p in loc) or "<root>"
-        if err["type"] == "extra_forbidden":
-            allowed = _allowed_keys(model, loc[:-1])
-            section = ".".join(str(p) for p in loc[:-1]) or "the top level"
-            lines.append(f"unknown key '{key}'; allowed keys in {section}: {', '.join(allowed)}")
-        else:
-            lines.append(f"'{key}': {err['msg']} (got {short_repr(err.get('input'))})")
-    return f"{origin}: invalid configuration:\n  " + "\n  ".join(lines)
-
-
 def parse_config(data: dict[str, Any] | None, origin: str = "<config>") -> ExperimentConfig:
     """Validate a plain dict as an `ExperimentConfig`; raises `ConfigError`."""
     if data is None:
         data = {}
     if not isinstance(data, dict):
         raise ConfigError(f"{origin}: the top level of a config must be a mapping, got {type(data).__name__}")
-    try:
-        return ExperimentConfig.model_validate(data)
-    except ValidationError as exc:
-        raise ConfigError(_format_errors(exc, ExperimentConfig, origin)) from None
+    return resolve(ExperimentConfig, data, where=f"{origin}: invalid configuration")
 
 
 def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:

@@ -7,11 +7,12 @@ calibration tables (`placerec.calibration`) replace this mapping when a sensor h
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
+from pydantic import Field, model_validator
 
-from placerec.errors import ConfigError
+from placerec.params import Params
 from placerec.types import Scan
 
 __all__ = [
@@ -23,17 +24,22 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class IntensitySpec:
+class IntensitySpec(Params):
     """How to map raw intensity to [0, 1]: ``mode`` is a key of `INTENSITY_NORMALIZERS`.
 
     ``saturation``: raw value mapped to 1 by ``linear`` (values above are clipped); ``percentile``: the
     percentile of the scan's own intensities mapped to 1 by ``percentile``.
     """
 
-    mode: str = "raw"
-    saturation: float | None = None
-    percentile: float = 99.0
+    mode: Literal["raw", "linear", "percentile"] = Field("raw", description="raw, linear or percentile")
+    saturation: float | None = Field(None, gt=0, description="raw value mapped to 1 (mode linear)")
+    percentile: float = Field(99.0, gt=0, le=100, description="percentile mapped to 1 (mode percentile)")
+
+    @model_validator(mode="after")
+    def _saturation_for_linear(self) -> IntensitySpec:
+        if self.mode == "linear" and self.saturation is None:
+            raise ValueError("mode 'linear' needs a 'saturation' value")
+        return self
 
 
 def _raw(values: np.ndarray, spec: IntensitySpec) -> np.ndarray:
@@ -41,14 +47,10 @@ def _raw(values: np.ndarray, spec: IntensitySpec) -> np.ndarray:
 
 
 def _linear(values: np.ndarray, spec: IntensitySpec) -> np.ndarray:
-    if spec.saturation is None or spec.saturation <= 0:
-        raise ConfigError("intensity mode 'linear' needs a positive 'saturation' value")
     return np.clip(values / np.float32(spec.saturation), 0.0, 1.0).astype(np.float32)
 
 
 def _percentile(values: np.ndarray, spec: IntensitySpec) -> np.ndarray:
-    if not 0 < spec.percentile <= 100:
-        raise ConfigError(f"intensity 'percentile' must be in (0, 100], got {spec.percentile}")
     if values.size == 0:
         return values
     top = float(np.percentile(values, spec.percentile))
@@ -67,11 +69,11 @@ INTENSITY_NORMALIZERS: dict[str, Callable[[np.ndarray, IntensitySpec], np.ndarra
 #: KITTI's HDL-64 reflectance is already in [0, 1]. Ouster 16-bit reflectivity and 8-bit Velodyne HDL sensors
 #: are scaled by a high percentile of each scan, which is robust to retro-reflector outliers.
 SENSOR_INTENSITY_DEFAULTS: dict[str, IntensitySpec] = {
-    "vlp16": IntensitySpec("linear", saturation=100.0),
-    "hdl64": IntensitySpec("percentile", percentile=99.0),
-    "hdl32": IntensitySpec("percentile", percentile=99.0),
-    "kitti": IntensitySpec("linear", saturation=1.0),
-    "os": IntensitySpec("percentile", percentile=99.0),
+    "vlp16": IntensitySpec(mode="linear", saturation=100.0),
+    "hdl64": IntensitySpec(mode="percentile", percentile=99.0),
+    "hdl32": IntensitySpec(mode="percentile", percentile=99.0),
+    "kitti": IntensitySpec(mode="linear", saturation=1.0),
+    "os": IntensitySpec(mode="percentile", percentile=99.0),
 }
 
 
@@ -81,16 +83,10 @@ def default_intensity_spec(sensor_name: str) -> IntensitySpec:
     for prefix, spec in SENSOR_INTENSITY_DEFAULTS.items():
         if name.startswith(prefix):
             return spec
-    return IntensitySpec("percentile", percentile=99.0)
+    return IntensitySpec(mode="percentile", percentile=99.0)
 
 
 def normalize_intensity(scan: Scan, spec: IntensitySpec | None = None) -> Scan:
     """Map the scan's intensity to [0, 1] with ``spec`` (default: the sensor's default spec)."""
     spec = spec or default_intensity_spec(scan.sensor.name)
-    try:
-        fn = INTENSITY_NORMALIZERS[spec.mode]
-    except KeyError:
-        raise ConfigError(
-            f"unknown intensity mode {spec.mode!r}; allowed: {sorted(INTENSITY_NORMALIZERS)}"
-        ) from None
-    return scan.with_intensity(fn(scan.intensity, spec))
+    return scan.with_intensity(INTENSITY_NORMALIZERS[spec.mode](scan.intensity, spec))

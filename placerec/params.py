@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import contextvars
 from collections.abc import Mapping
-from typing import Any, get_args
+from typing import Any, TypeVar, get_args
 
 from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
 
@@ -73,7 +73,10 @@ def deep_merge(base: Mapping[str, Any], *overrides: Mapping[str, Any] | None) ->
     return out
 
 
-def resolve(cls: type[Params], *layers: Mapping[str, Any] | None, where: str = "", path: str = "") -> Params:
+P = TypeVar("P", bound="Params")
+
+
+def resolve(cls: type[P], *layers: Mapping[str, Any] | None, where: str = "", path: str = "") -> P:
     """``cls`` built from ``layers`` (presets, then overrides) merged deeply; `ConfigError` otherwise.
 
     ``where`` names what is configured (e.g. a pipeline), ``path`` the config location of the parameters (e.g.
@@ -148,7 +151,7 @@ def error_lines(exc: ValidationError, model: type[BaseModel], path: str = "") ->
         else:
             msg = err["msg"].removeprefix("Value error, ")
             got = "" if err["type"] == "value_error" else f" (got {short_repr(err.get('input'), _MAX_REPR)})"
-            lines.append(f"{key or '<parameters>'}: {msg}{got}")
+            lines.append(f"{key}: {msg}{got}" if key else f"{msg}{got}")
     return lines
 
 

@@ -7,13 +7,15 @@ All functions are vectorised, return new `Scan` objects and never modify their i
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from pydantic import Field
 
 from placerec.errors import ScanDataError
 from placerec.intensity import IntensitySpec, normalize_intensity
+from placerec.params import Params
 from placerec.types import Scan
 
 log = logging.getLogger(__name__)
@@ -124,8 +126,7 @@ def voxel_downsample(scan: Scan, voxel_size: float) -> Scan:
     )
 
 
-@dataclass(frozen=True)
-class PreprocessParams:
+class PreprocessParams(Params):
     """What `preprocess_scan` does (None = no limit / not applied).
 
     Points are kept within ``[min_range, max_range]`` and ``[min_z, max_z]``. Intensity: a per-beam
@@ -133,13 +134,13 @@ class PreprocessParams:
     (None: the sensor's default, `placerec.intensity.default_intensity_spec`). ``voxel_size``: voxel downsampling.
     """
 
-    min_range: float | None = None
-    max_range: float | None = None
-    min_z: float | None = None
-    max_z: float | None = None
-    voxel_size: float | None = None
-    intensity: IntensitySpec | None = None
-    calibration: str | Path | None = None
+    min_range: float | None = Field(None, ge=0, description="m; nearer points are dropped")
+    max_range: float | None = Field(None, gt=0, description="m; farther points are dropped")
+    min_z: float | None = Field(None, description="m; lower points are dropped")
+    max_z: float | None = Field(None, description="m; higher points are dropped")
+    voxel_size: float | None = Field(None, gt=0, description="m; voxel downsampling (None = off)")
+    intensity: IntensitySpec | None = Field(None, description="None = the sensor's default normalisation")
+    calibration: Path | None = Field(None, strict=False, description="per-beam calibration table file")
 
 
 def preprocess_scan(scan: Scan, params: PreprocessParams | None = None, keep_organized: bool = False) -> Scan:

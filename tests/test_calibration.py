@@ -265,3 +265,23 @@ def test_calibration_params_use_the_strict_parameter_mechanism():
     with pytest.raises(ConfigError, match="levels"):
         CalibrationParams(levels=2)
     assert CalibrationParams(max_range=20).max_range == 20.0
+
+
+def test_calibrate_command_reports_bad_parameters_with_the_one_formatter(tmp_path):
+    """``placerec calibrate`` checks its parameters before reading any scan; errors name the key and the
+    allowed keys (`placerec.params.format_errors`), on one line with status 2."""
+    from typer.testing import CliRunner
+
+    from placerec.cli import app
+
+    out = tmp_path / "t.npz"
+    args = ["calibrate", "--sim-world", "town", "--out", str(out)]
+    result = CliRunner().invoke(app, [*args, "--set", "levls=64"])
+    assert result.exit_code == 2, result.output
+    assert (
+        "calibration parameters: levls: unknown key; allowed keys there: estimate, fit_range" in result.output
+    )
+    result = CliRunner().invoke(app, [*args, "--voxel-size", "-1"])
+    assert result.exit_code == 2, result.output
+    assert "calibration parameters: voxel_size: Input should be greater than 0 (got -1.0)" in result.output
+    assert not out.exists()

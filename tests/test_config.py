@@ -25,8 +25,14 @@ def test_nested_typo_and_bad_value():
         load_config(None, ["dataset.simulator.sede=3"])
     with pytest.raises(ConfigError, match="voxel_size"):
         load_config(None, ["preprocess.voxel_size=-1"])
-    with pytest.raises(ConfigError, match="unknown key 'bogus'"):
+    with pytest.raises(
+        ConfigError, match="bogus: unknown key; allowed keys there: dataset, evaluation, name"
+    ):
         load_config(None, ["bogus=1"])
+    with pytest.raises(ConfigError, match=r"preprocess\.intensity: mode 'linear' needs a 'saturation'"):
+        load_config(None, ["preprocess.intensity.mode=linear"])
+    with pytest.raises(ConfigError, match=r"preprocess\.intensity\.percentile: .*less than or equal to 100"):
+        load_config(None, ["preprocess.intensity.percentile=101"])
 
 
 def test_overrides_parse_yaml_values():
@@ -64,7 +70,9 @@ def test_path_source_needs_path():
 def test_errors_inside_lists_and_optional_sections(tmp_path):
     path = tmp_path / "p.yaml"
     path.write_text("pipelines:\n  - name: scan-context\n    lable: sc\n")
-    with pytest.raises(ConfigError, match=r"pipelines\.0\.lable.*label"):
+    with pytest.raises(
+        ConfigError, match=r"pipelines\[0\]\.lable: unknown key; allowed keys there: label, name, params"
+    ):
         load_config(path)
     with pytest.raises(ConfigError, match=r"evaluation\.localize\.map\.pth.*path"):
         load_config(None, ["evaluation.localize.map.pth=x"])

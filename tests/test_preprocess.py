@@ -1,10 +1,17 @@
+from typing import get_args
+
 import numpy as np
 import pytest
 
 from placerec.config import PreprocessConfig
 from placerec.errors import ConfigError, ScanDataError
 from placerec.experiment.preprocessing import preprocess_params
-from placerec.intensity import IntensitySpec, default_intensity_spec, normalize_intensity
+from placerec.intensity import (
+    INTENSITY_NORMALIZERS,
+    IntensitySpec,
+    default_intensity_spec,
+    normalize_intensity,
+)
 from placerec.preprocess import PreprocessParams, crop, preprocess_scan, remove_invalid, voxel_downsample
 from placerec.types import Scan, SensorInfo
 
@@ -63,13 +70,39 @@ def test_voxel_downsample_negative_coordinates_and_count():
 def test_intensity_normalisers():
     s = Scan(np.ones((4, 3)), [0, 50, 100, 200], sensor=SensorInfo("vlp16"))
     assert normalize_intensity(s).intensity.tolist() == [0, 0.5, 1, 1]  # VLP-16: raw >= 100 -> 1
-    p = normalize_intensity(s, IntensitySpec("percentile", percentile=50))
+    p = normalize_intensity(s, IntensitySpec(mode="percentile", percentile=50))
     assert p.intensity.max() == 1.0 and np.isclose(p.intensity[1], 50 / 75)
-    assert normalize_intensity(s, IntensitySpec("raw")).intensity.tolist() == [0, 50, 100, 200]
-    with pytest.raises(ConfigError, match="allowed"):
-        normalize_intensity(s, IntensitySpec("bogus"))
-    with pytest.raises(ConfigError, match="saturation"):
-        normalize_intensity(s, IntensitySpec("linear"))
+    assert normalize_intensity(s, IntensitySpec(mode="raw")).intensity.tolist() == [0, 50, 100, 200]
+    assert set(get_args(IntensitySpec.model_fields["mode"].annotation)) == set(INTENSITY_NORMALIZERS)
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"mode": "bogus"}, r"IntensitySpec: mode: Input should be 'raw', 'linear' or 'percentile'"),
+        ({"mode": "linear"}, r"IntensitySpec: mode 'linear' needs a 'saturation' value"),
+        (
+            {"mode": "percentile", "percentile": 0},
+            r"IntensitySpec: percentile: Input should be greater than 0",
+        ),
+        ({"saturation": -1.0}, r"IntensitySpec: saturation: Input should be greater than 0"),
+        ({"mode": "raw", "gain": 2}, r"gain: unknown key; allowed keys there: mode, percentile, saturation"),
+    ],
+)
+def test_intensity_spec_is_checked_when_built(values, message):
+    with pytest.raises(ConfigError, match=message):
+        IntensitySpec(**values)
+
+
+def test_preprocess_params_are_checked_when_built():
+    with pytest.raises(ConfigError, match=r"PreprocessParams: voxel_size: Input should be greater than 0"):
+        PreprocessParams(voxel_size=0.0)
+    with pytest.raises(ConfigError, match=r"intensity\.mode: Input should be"):
+        PreprocessParams(intensity={"mode": "bogus"})
+    with pytest.raises(
+        ConfigError, match=r"min_rnage: unknown key; allowed keys there: calibration, intensity"
+    ):
+        PreprocessParams(min_rnage=1.0)
     assert default_intensity_spec("OS1-64").mode == "percentile"
 
 
@@ -95,7 +128,7 @@ def test_config_section_becomes_preprocess_params():
         min_range=1.0, max_z=3.0, voxel_size=0.5, calibration="t.npz"
     )
     linear = preprocess_params(PreprocessConfig(intensity={"mode": "linear", "saturation": 50.0}))
-    assert linear.intensity == IntensitySpec("linear", saturation=50.0) and linear.min_range == 0.5
+    assert linear.intensity == IntensitySpec(mode="linear", saturation=50.0) and linear.min_range == 0.5
     s = Scan([[1, 0, 0], [2, 0, 0]], [25.0, 100.0], sensor=SensorInfo("vlp16"))
     assert preprocess_scan(s, linear).intensity.tolist() == [0.5, 1.0]
 

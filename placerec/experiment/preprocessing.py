@@ -15,7 +15,7 @@ def preprocess_params(cfg: PreprocessConfig) -> PreprocessParams:
     spec = (
         None
         if ic.mode == "auto"
-        else IntensitySpec(ic.mode, saturation=ic.saturation, percentile=ic.percentile)
+        else IntensitySpec(mode=ic.mode, saturation=ic.saturation, percentile=ic.percentile)
     )
     return PreprocessParams(
         min_range=cfg.min_range,

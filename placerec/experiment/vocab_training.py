@@ -30,13 +30,13 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, ValidationError
+from pydantic import Field
 
-from placerec.config import DatasetConfig, PreprocessConfig, Section
+from placerec.config import DatasetConfig, PreprocessConfig
 from placerec.errors import ArtifactError, ConfigError
 from placerec.hashing import stable_hash
 from placerec.io.npz import read_npz_arrays
-from placerec.params import format_errors, resolve
+from placerec.params import Params, resolve
 from placerec.safe_yaml import load_yaml_file
 
 log = logging.getLogger(__name__)
@@ -55,7 +55,7 @@ __all__ = [
 EVALUATION_SEEDS = tuple(range(10))
 
 
-class TrainingSimulator(Section):
+class TrainingSimulator(Params):
     """Simulated sequences to draw training images from: every (world, sensor, seed) combination."""
 
     worlds: list[str] = Field(default_factory=lambda: ["campus", "industrial", "town"])
@@ -66,7 +66,7 @@ class TrainingSimulator(Section):
     clutter: bool = True
 
 
-class VocabTrainingConfig(Section):
+class VocabTrainingConfig(Params):
     """What ``placerec train-vocab`` trains (see the module docstring)."""
 
     features: str = "orb"
@@ -102,10 +102,7 @@ def load_training_config(path: str | Path | None, **overrides: Any) -> VocabTrai
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: a training config must be a mapping")
     data.update({k: v for k, v in overrides.items() if v is not None})
-    try:
-        return VocabTrainingConfig.model_validate(data)
-    except ValidationError as exc:
-        raise ConfigError(format_errors(exc, VocabTrainingConfig, str(path or "training config"))) from None
+    return resolve(VocabTrainingConfig, data, where=str(path or "training config"))
 
 
 def image_params_of(cfg: VocabTrainingConfig) -> Any:
