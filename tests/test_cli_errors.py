@@ -105,7 +105,7 @@ def test_multi_line_messages_become_one_line(tmp_path):
     cfg = tmp_path / "c.yaml"
     cfg.write_text("evaluation:\n  gt_distnace: 3\n  top_n: -1\n")
     line = _fails_cleanly(["run", str(cfg)], "gt_distnace", "top_n")
-    assert "; unknown key" in line
+    assert "; evaluation.gt_distnace: unknown key" in line
 
 
 def test_an_error_no_command_catches_still_ends_in_one_line():

@@ -8,8 +8,9 @@ from hypothesis import strategies as st
 
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.io.atomic import save_artifact
+from placerec.recognizer import pipeline_params
 from placerec.retrieval.bits import hamming, popcount, to_words, unpack_bits
-from placerec.retrieval.hbst import HBST
+from placerec.retrieval.hbst import HBST, HBSTParams, default_threshold
 from placerec.retrieval.hbst_tree import choose_split_bits, segment_bit_counts
 
 
@@ -334,11 +335,36 @@ def test_bad_descriptors_raise_scan_data_error():
 
 
 @pytest.mark.parametrize(
-    "kwargs", [{"delta_max": 0.6}, {"delta_max": -0.1}, {"leaf_size": 0}, {"max_depth": -1}, {"threshold": 0}]
+    ("kwargs", "message"),
+    [
+        ({"delta_max": 0.6}, "hbst: delta_max: Input should be less than or equal to 0.5 (got 0.6)"),
+        ({"delta_max": -0.1}, "hbst: delta_max: Input should be greater than or equal to 0"),
+        ({"leaf_size": 0}, "hbst: leaf_size: Input should be greater than or equal to 1 (got 0)"),
+        ({"max_depth": -1}, "hbst: max_depth: Input should be greater than or equal to 0"),
+        ({"threshold": 0}, "hbst: threshold: Input should be greater than or equal to 1"),
+        ({"delta_mx": 0.2}, "hbst: delta_mx: unknown key; allowed keys there: delta_max, leaf_size"),
+    ],
 )
-def test_bad_parameters_raise_config_error(kwargs):
-    with pytest.raises(ConfigError):
+def test_bad_parameters_raise_config_error(kwargs, message):
+    """HBSTParams owns the checks: the tree and the visual pipeline's ``hbst`` section report the same error."""
+    with pytest.raises(ConfigError) as err:
         HBST(**kwargs)
+    assert message in str(err.value)
+    with pytest.raises(ConfigError) as err:
+        pipeline_params("orb-hbst", {"hbst": kwargs})
+    assert message.removeprefix("hbst: ") in str(err.value) and "hbst." in str(err.value)
+
+
+def test_parameters_as_a_model_with_overrides_and_the_default_threshold():
+    params = HBSTParams(leaf_size=8)
+    h = HBST(params, delta_max=0.2)
+    assert (h.leaf_size, h.delta_max, h.max_depth, h.threshold) == (8, 0.2, 75, None)
+    assert params.delta_max == 0.1  # the model given is not changed
+    h.add(0, np.zeros((3, 64), np.uint8))
+    assert h.threshold == default_threshold(64) == 50  # srrg's 25 per 256 bits, for 512-bit BRISK
+    assert HBST(threshold=30).threshold == 30
+    with pytest.raises(ConfigError, match="HBSTParams"):
+        HBST({"leaf_size": 8})
 
 
 # ------------------------------------------------------------------------------------------------ persistence

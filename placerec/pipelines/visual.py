@@ -30,7 +30,7 @@ from placerec.io.artifact_schema import Member, check_counts, check_members, che
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params, SectionError
 from placerec.recognizer import Recognizer, params_key, require_points
-from placerec.retrieval.hbst import HBST
+from placerec.retrieval.hbst import HBST, HBSTParams, default_threshold
 from placerec.types import Candidate, Description, Scan
 
 __all__ = [
@@ -51,17 +51,6 @@ __all__ = [
 
 _KIND = "visual-hbst-db"
 _VERSION = 1
-
-
-class HBSTParams(Params):
-    """HBST settings (VPR paper: delta_max 0.1, N_max 50)."""
-
-    delta_max: float = Field(0.1, ge=0, le=0.5, description="split balance bound (VPR paper: 0.1)")
-    leaf_size: int = Field(50, ge=1, description="N_max, descriptors per leaf (VPR paper: 50)")
-    max_depth: int = Field(75, ge=0, description="tree depth limit (srrg_hbst default)")
-    threshold: int | None = Field(
-        None, ge=1, description="max Hamming distance of a match; None = srrg's 25 per 256 bits"
-    )
 
 
 class VisualFrontendParams(Params):
@@ -200,8 +189,7 @@ class VisualHBST(VisualFrontend, Recognizer):
 
     def _new_tree(self) -> HBST:
         hb = self.params.hbst
-        threshold = hb.threshold or round(25 * self.extractor.descriptor_size * 8 / 256)
-        return HBST(hb.delta_max, hb.leaf_size, hb.max_depth, threshold)
+        return HBST(hb, threshold=hb.threshold or default_threshold(self.extractor.descriptor_size))
 
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
         scan_id = int(scan_id)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["HBST", "HBSTResult", "ImageScores"]
+__all__ = ["HBST", "HBSTParams", "HBSTResult", "ImageScores"]
 
 
 def __getattr__(name: str) -> Any:

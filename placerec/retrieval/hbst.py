@@ -22,15 +22,18 @@ import logging
 import operator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from pydantic import Field
 
 from placerec.errors import ArtifactError, ConfigError, ScanDataError, short_repr
 from placerec.io.artifact_schema import Member, check_unique
+from placerec.params import Params, resolve
 from placerec.retrieval.bits import to_words, unpack_bits
 from placerec.retrieval.hbst_tree import FlatTree
 
-__all__ = ["HBST", "HBSTResult", "ImageScores"]
+__all__ = ["HBST", "HBSTParams", "HBSTResult", "ImageScores", "default_threshold"]
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +51,22 @@ _SCHEMA = {
     "image_id": Member("iu", ("n_descriptors",), optional=True, min_value=0),
     "keypoint_id": Member("iu", ("n_descriptors",), optional=True),
 }
+
+
+class HBSTParams(Params):
+    """HBST settings (VPR paper: delta_max 0.1, N_max 50; see `HBST`)."""
+
+    delta_max: float = Field(0.1, ge=0, le=0.5, description="split balance bound (VPR paper: 0.1)")
+    leaf_size: int = Field(50, ge=1, description="N_max, descriptors per leaf (VPR paper: 50)")
+    max_depth: int = Field(75, ge=0, description="tree depth limit (srrg_hbst default)")
+    threshold: int | None = Field(
+        None, ge=1, description="max Hamming distance of a match; None = srrg's 25 per 256 bits"
+    )
+
+
+def default_threshold(n_bytes: int) -> int:
+    """srrg_hbst's match threshold, 25 for 256-bit descriptors, scaled to ``n_bytes``-byte descriptors."""
+    return round(25 * n_bytes * 8 / 256)
 
 
 @dataclass(frozen=True)
@@ -99,27 +118,21 @@ class HBSTResult:
 class HBST:
     """Incremental Hamming binary search tree over packed binary descriptors.
 
-    Parameters: ``delta_max`` (split only if the best bit's ``|0.5 - fraction| < delta_max``), ``leaf_size``
-    (N_max: a leaf with at least this many descriptors tries to split), ``max_depth`` (leaves at this depth never
-    split; srrg's code default is the descriptor length, 75 bounds it for long descriptors), ``threshold``
-    (a match needs Hamming distance ``< threshold``). The descriptor length is fixed by the first descriptors added.
+    Parameters (`HBSTParams`, given as a model and/or keyword overrides): ``delta_max`` (split only if the best
+    bit's ``|0.5 - fraction| < delta_max``), ``leaf_size`` (N_max: a leaf with at least this many descriptors
+    tries to split), ``max_depth`` (leaves at this depth never split; srrg's code default is the descriptor
+    length, 75 bounds it for long descriptors), ``threshold`` (a match needs Hamming distance ``< threshold``;
+    None: `default_threshold` of the descriptor length). The descriptor length is fixed by the first descriptors
+    added.
     """
 
-    def __init__(
-        self, delta_max: float = 0.1, leaf_size: int = 50, max_depth: int = 75, threshold: int = 25
-    ) -> None:
-        if not 0.0 <= float(delta_max) <= 0.5:
-            raise ConfigError(f"hbst.delta_max must be in [0, 0.5], got {delta_max}")
-        if int(leaf_size) < 1:
-            raise ConfigError(f"hbst.leaf_size must be >= 1, got {leaf_size}")
-        if int(max_depth) < 0:
-            raise ConfigError(f"hbst.max_depth must be >= 0, got {max_depth}")
-        if int(threshold) < 1:
-            raise ConfigError(f"hbst.threshold must be >= 1, got {threshold}")
-        self.delta_max = float(delta_max)
-        self.leaf_size = int(leaf_size)
-        self.max_depth = int(max_depth)
-        self.threshold = int(threshold)
+    def __init__(self, params: HBSTParams | None = None, **overrides: Any) -> None:
+        if params is not None and not isinstance(params, HBSTParams):
+            raise ConfigError(f"hbst: params must be an HBSTParams, got {type(params).__name__}")
+        base = None if params is None else params.model_dump()
+        self.params = (
+            resolve(HBSTParams, base, overrides, where="hbst") if overrides else params or HBSTParams()
+        )
         self._tree: FlatTree | None = None
         self._slots: dict[int, int] = {}  # image id -> dense insertion index stored in the tree
         self._ids = np.zeros(64, dtype=np.int64)  # insertion index -> image id
@@ -134,6 +147,26 @@ class HBST:
             f"threshold={self.threshold}; {len(self)} descriptors, {self.n_images} images, "
             f"{self.n_leaves} leaves, depth {self.depth})"
         )
+
+    @property
+    def delta_max(self) -> float:
+        return self.params.delta_max
+
+    @property
+    def leaf_size(self) -> int:
+        return self.params.leaf_size
+
+    @property
+    def max_depth(self) -> int:
+        return self.params.max_depth
+
+    @property
+    def threshold(self) -> int | None:
+        """The match threshold: ``params.threshold``, else `default_threshold` of the descriptor length (None
+        while no descriptor has been added)."""
+        if self.params.threshold is not None:
+            return self.params.threshold
+        return None if self._tree is None else default_threshold(self._tree.n_bytes)
 
     @property
     def n_images(self) -> int:
@@ -241,7 +274,7 @@ class HBST:
             )
         check_unique(arrays["images"], path, "images")
         try:
-            hbst = cls(meta["delta_max"], meta["leaf_size"], meta["max_depth"], meta["threshold"])
+            hbst = cls(**{k: meta[k] for k in ("delta_max", "leaf_size", "max_depth", "threshold")})
             for image_id in np.asarray(arrays["images"], dtype=np.int64).tolist():
                 hbst._slot(image_id)
             if hbst.n_images != len(arrays["images"]):
@@ -261,9 +294,10 @@ class HBST:
     # ---------------------------------------------------------------------------------------------- internals
     def _match(self, words: np.ndarray, leaves: np.ndarray, max_image_id: int | None) -> HBSTResult:
         tree = self._tree
-        assert tree is not None
+        threshold = self.threshold
+        assert tree is not None and threshold is not None
         query, pos, dist = tree.leaf_distances(words, leaves)
-        keep = np.flatnonzero(dist < self.threshold)
+        keep = np.flatnonzero(dist < threshold)
         query, pos, dist = query[keep], pos[keep], dist[keep]
         slot = tree.image[pos]  # the reference image's insertion index
         ids = self._ids[: self.n_images]
@@ -273,8 +307,8 @@ class HBST:
         # best match per (query, image): one stable sort on (query, image, distance); ties keep the reference
         # descriptor inserted first
         n_slots = max(self.n_images, 1)
-        if (words.shape[0] + 1) * n_slots * self.threshold < 2**62:
-            order = np.argsort((query * n_slots + slot) * self.threshold + dist, kind="stable")
+        if (words.shape[0] + 1) * n_slots * threshold < 2**62:
+            order = np.argsort((query * n_slots + slot) * threshold + dist, kind="stable")
         else:  # pragma: no cover - astronomically large databases
             order = np.lexsort((dist, slot, query))
         query, pos, dist, slot = query[order], pos[order], dist[order], slot[order]
