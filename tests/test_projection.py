@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from placerec.errors import ScanDataError
+from placerec.errors import ConfigError, ScanDataError
 from placerec.image import (
     ImageParams,
     detect_empty_rows,
@@ -9,6 +9,7 @@ from placerec.image import (
     make_image,
     project_per_beam,
     project_uniform,
+    to_uint8,
 )
 from placerec.types import Scan, SensorInfo
 
@@ -217,3 +218,30 @@ def test_default_hole_filling_is_only_for_uniform_images():
         _scan(pts, [1, 3], sensor=sensor), ImageParams(mode="uniform", height=3, fill_empty_rows=False)
     )
     assert uniform.valid.sum() == 3 and uniform.intensity[1, 4] == pytest.approx(2)
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"clip": "saturation"}, "ImageParams: clip 'saturation' needs a 'saturation' value"),
+        (
+            {"fov_up_deg": 2.0, "fov_down_deg": -3.0},
+            "fov_up_deg + fov_down_deg must be positive, got 2.0 + -3.0",
+        ),
+        (
+            {"mode": "spherical"},
+            "ImageParams: mode: Input should be 'auto', 'uniform', 'per-beam' or 'organized'",
+        ),
+    ],
+)
+def test_image_params_refuse_inconsistent_settings_when_built(values, message):
+    """What `make_image` cannot use is refused by `ImageParams` itself, before any scan is projected."""
+    with pytest.raises(ConfigError) as err:
+        ImageParams(**values)
+    assert message in str(err.value)
+
+
+def test_clip_at_a_saturation_value():
+    intensity = np.array([[0.0, 50.0, 200.0, 400.0]])
+    img = to_uint8(intensity, np.ones_like(intensity, bool), ImageParams(clip="saturation", saturation=100.0))
+    assert img.tolist() == [[0, 127, 255, 255]]

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.params import Params
@@ -88,6 +88,20 @@ class ImageParams(Params):
     percentile: float = Field(99.0, gt=0, le=100, description="of the valid intensities, for clip=percentile")
     saturation: float | None = Field(None, gt=0, description="intensity mapped to 255, for clip=saturation")
     equalize: bool = Field(False, description="histogram equalisation after clipping")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ImageParams:
+        if self.clip == "saturation" and self.saturation is None:
+            raise ValueError("clip 'saturation' needs a 'saturation' value")
+        if (
+            self.fov_up_deg is not None
+            and self.fov_down_deg is not None
+            and self.fov_up_deg + self.fov_down_deg <= 0
+        ):
+            raise ValueError(
+                f"fov_up_deg + fov_down_deg must be positive, got {self.fov_up_deg} + {self.fov_down_deg}"
+            )
+        return self
 
 
 _DEFAULT_PARAMS = ImageParams()
@@ -276,14 +290,10 @@ def fill_vertical_holes(image: np.ndarray, valid: np.ndarray, max_gap: int) -> t
 def to_uint8(intensity: np.ndarray, valid: np.ndarray, params: ImageParams = _DEFAULT_PARAMS) -> np.ndarray:
     """Map intensities to 0..255: clip at a percentile of the valid pixels or at a saturation value."""
     if params.clip == "saturation":
-        if not params.saturation or params.saturation <= 0:
-            raise ConfigError("image clip 'saturation' needs a positive 'saturation' value")
-        top = float(params.saturation)
-    elif params.clip == "percentile":
+        top = float(params.saturation)  # type: ignore[arg-type]  # set whenever clip is saturation
+    else:
         vals = intensity[valid]
         top = float(np.percentile(vals, params.percentile)) if vals.size else 1.0
-    else:
-        raise ConfigError(f"unknown image clip {params.clip!r}; allowed: percentile, saturation")
     scale = 255.0 / top if top > 0 else 0.0
     img = np.clip(intensity * scale, 0, 255).astype(np.uint8)
     img[~valid] = 0
@@ -309,10 +319,8 @@ def make_image(scan: Scan, params: ImageParams = _DEFAULT_PARAMS) -> IntensityIm
         inten, rng, pidx = from_organized(scan)
     elif mode == "per-beam":
         inten, rng, pidx = project_per_beam(scan, params)
-    elif mode == "uniform":
-        inten, rng, pidx = project_uniform(scan, params)
     else:
-        raise ConfigError(f"unknown image mode {params.mode!r}; allowed: auto, uniform, per-beam, organized")
+        inten, rng, pidx = project_uniform(scan, params)
     valid = pidx >= 0
     filled = np.zeros(inten.shape[0], bool)
     if params.fill_empty_rows:
