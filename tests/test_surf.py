@@ -195,8 +195,27 @@ def test_deterministic_and_mask_and_bad_inputs():
         surf.detect_and_compute(img, np.ones((3, 3), np.uint8))
     with pytest.raises(ScanDataError):
         surf.compute(img, [cv2.KeyPoint(500.0, 10.0, 9.0)])
-    with pytest.raises(ConfigError):
+    with pytest.raises(ConfigError, match="surf: n_octaves: Input should be greater than or equal to 1"):
         SURF(n_octaves=0)
+
+
+def test_surf_parameters_have_one_owner():
+    """`SURFParams` checks SURF's settings for the class and for the registered extractor alike."""
+    from placerec.features import make_extractor
+    from placerec.features.surf import SURFParams
+
+    for bad, message in [
+        ({"hessian_threshold": float("inf")}, "hessian_threshold: Input should be a finite number"),
+        ({"n_octave_layers": 0}, "n_octave_layers: Input should be greater than or equal to 1"),
+        ({"n_octaves": 2.5}, "n_octaves: Input should be a valid integer"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            SURF(**bad)
+        with pytest.raises(ConfigError, match=message):
+            make_extractor("surf", **bad)
+    surf = make_extractor("surf", hessian_threshold=0.0, n_octaves=2, extended=True)._surf
+    assert (surf.hessian_threshold, surf.n_octaves, surf.n_octave_layers, surf.extended) == (0.0, 2, 3, True)
+    assert SURF(SURFParams(n_octaves=3), upright=True).n_octaves == 3
 
 
 # --------------------------------------------------------------------------------------- SURF vs SIFT

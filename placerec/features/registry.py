@@ -40,7 +40,7 @@ from pydantic import Field
 from placerec.errors import ConfigError, ScanDataError
 from placerec.features import compat
 from placerec.features.low_rows import row_factor, rows_back, upsample_rows, warn_few_features
-from placerec.features.surf import SURF
+from placerec.features.surf import SURF, SURFParams
 from placerec.params import Params, resolve
 
 __all__ = [
@@ -210,18 +210,12 @@ class FastSurfParams(ExtractorParams):
     """FAST keypoints described by our SURF (VPR paper Table I)."""
 
     fast_threshold: int = Field(40, gt=0, description="FAST threshold (VPR paper Table I)")
-    extended: bool = Field(False, description="128-d instead of 64-d descriptors")
-    upright: bool = Field(False, description="no orientation (U-SURF)")
+    extended: bool = SURFParams.model_fields["extended"]
+    upright: bool = SURFParams.model_fields["upright"]
 
 
-class SurfParams(ExtractorParams):
-    """Our SURF detector and descriptor (VPR paper Table I)."""
-
-    hessian_threshold: float = Field(400.0, gt=0, description="VPR paper Table I")
-    n_octaves: int = Field(4, gt=0, description="VPR paper Table I")
-    n_octave_layers: int = Field(3, gt=0, description="layers per octave (VPR paper Table I)")
-    extended: bool = Field(False, description="128-d instead of 64-d descriptors")
-    upright: bool = Field(False, description="no orientation (U-SURF)")
+class SurfParams(SURFParams, ExtractorParams):
+    """Our SURF detector and descriptor (`placerec.features.surf.SURFParams`; VPR paper Table I)."""
 
 
 class FeatureExtractor:
@@ -397,7 +391,7 @@ class FastSurfExtractor(_SurfDescribed):
 
     def _setup(self) -> None:
         self._fast = compat.fast_create(self.params.fast_threshold)
-        self._surf = SURF(extended=self.params.extended, upright=self.params.upright)
+        self._surf = SURF(extended=self.params.extended, upright=self.params.upright)  # describing only
 
     def _run(self, image: np.ndarray, mask: np.ndarray) -> tuple[_Keypoints, np.ndarray]:
         kps = _Keypoints.from_cv(self._fast_keypoints(image, mask, self.params.nfeatures))
@@ -412,8 +406,7 @@ class SurfExtractor(_SurfDescribed):
     Params = SurfParams
 
     def _setup(self) -> None:
-        p = self.params
-        self._surf = SURF(p.hessian_threshold, p.n_octaves, p.n_octave_layers, p.extended, p.upright)
+        self._surf = SURF(self.params)  # type: ignore[arg-type]  # a SurfParams is a SURFParams
 
     def _run(self, image: np.ndarray, mask: np.ndarray) -> tuple[_Keypoints, np.ndarray]:
         det = self._surf.detect_arrays(image, mask)

@@ -17,9 +17,11 @@ Float images are used as they are (no rescaling), so ``hessian_threshold`` assum
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import cv2
 import numpy as np
+from pydantic import Field
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.features.surf_describe import (
@@ -29,8 +31,9 @@ from placerec.features.surf_describe import (
     surf_descriptors,
 )
 from placerec.features.surf_detect import Detections, detect_keypoints, integral_image
+from placerec.params import Params, resolve
 
-__all__ = ["SURF", "MIN_SCALE", "as_gray"]
+__all__ = ["SURF", "SURFParams", "MIN_SCALE", "as_gray"]
 
 log = logging.getLogger(__name__)
 
@@ -56,31 +59,34 @@ def as_gray(image: np.ndarray) -> np.ndarray:
     return out
 
 
+class SURFParams(Params):
+    """SURF's own settings (OpenCV's parameters; defaults: VPR paper Table I)."""
+
+    hessian_threshold: float = Field(
+        400.0, ge=0, allow_inf_nan=False, description="det(H) threshold on 0..255 images (VPR paper Table I)"
+    )
+    n_octaves: int = Field(4, ge=1, description="VPR paper Table I")
+    n_octave_layers: int = Field(3, ge=1, description="layers per octave (VPR paper Table I)")
+    extended: bool = Field(False, description="128-d instead of 64-d descriptors")
+    upright: bool = Field(False, description="no orientation (U-SURF)")
+
+
 class SURF:
-    """SURF detector and descriptor with OpenCV's parameters (VPR paper Table I defaults).
+    """SURF detector and descriptor with OpenCV's parameters (`SURFParams`, a model and/or keyword overrides).
 
     >>> kps, desc = SURF().detect_and_compute(img)   # desc: float32 (K, 64), unit rows
     """
 
-    def __init__(
-        self,
-        hessian_threshold: float = 400.0,
-        n_octaves: int = 4,
-        n_octave_layers: int = 3,
-        extended: bool = False,
-        upright: bool = False,
-    ):
-        if not np.isfinite(hessian_threshold) or hessian_threshold < 0:
-            raise ConfigError(f"surf.hessian_threshold must be a finite value >= 0, got {hessian_threshold}")
-        if int(n_octaves) != n_octaves or n_octaves < 1:
-            raise ConfigError(f"surf.n_octaves must be an integer >= 1, got {n_octaves}")
-        if int(n_octave_layers) != n_octave_layers or n_octave_layers < 1:
-            raise ConfigError(f"surf.n_octave_layers must be an integer >= 1, got {n_octave_layers}")
-        self.hessian_threshold = float(hessian_threshold)
-        self.n_octaves = int(n_octaves)
-        self.n_octave_layers = int(n_octave_layers)
-        self.extended = bool(extended)
-        self.upright = bool(upright)
+    def __init__(self, params: SURFParams | None = None, **overrides: Any) -> None:
+        if params is not None and not isinstance(params, SURFParams):
+            raise ConfigError(f"surf: params must be a SURFParams, got {type(params).__name__}")
+        base = None if params is None else params.model_dump(include=set(SURFParams.model_fields))
+        p = resolve(SURFParams, base, overrides, where="surf") if overrides else params or SURFParams()
+        self.hessian_threshold = p.hessian_threshold
+        self.n_octaves = p.n_octaves
+        self.n_octave_layers = p.n_octave_layers
+        self.extended = p.extended
+        self.upright = p.upright
 
     @property
     def descriptor_size(self) -> int:
