@@ -308,6 +308,33 @@ def test_extract_features_end_to_end():
     assert shot.descriptors.shape[1] == 352
 
 
+def test_descriptor_settings_reach_the_descriptor():
+    """``FeatureParams.shot`` / ``fpfh`` are typed sections passed to the descriptor (no loose keyword options)."""
+    from placerec.three_d import describe
+    from placerec.three_d.descriptors import FPFHOptions
+
+    pts = scene() + [0.0, 0.0, -1.7]
+    rng = np.random.default_rng(0)
+    scan = Scan(
+        np.repeat(pts, 3, axis=0) + rng.normal(0, 0.05, (3 * len(pts), 3)), np.full(3 * len(pts), 0.5)
+    )
+    base = {"descriptor": "ishot", "iss": {"max_keypoints": 20}}
+    joint = extract_features(scan, FeatureParams(**base))
+    per_part = extract_features(scan, FeatureParams(**base, shot={"normalization": "per_part"}))
+    np.testing.assert_allclose(np.linalg.norm(joint.descriptors, axis=1), 1.0, atol=1e-5)
+    assert not np.allclose(np.linalg.norm(joint.descriptors[:, :352], axis=1), 0.5**0.5, atol=1e-3)
+    np.testing.assert_allclose(np.linalg.norm(per_part.descriptors[:, :352], axis=1), 0.5**0.5, atol=1e-5)
+    fpfh = {"descriptor": "fpfh", "iss": {"max_keypoints": 20}}
+    few = extract_features(scan, FeatureParams(**fpfh, fpfh={"max_nn": 5})).descriptors
+    assert not np.allclose(few, extract_features(scan, FeatureParams(**fpfh)).descriptors)
+    with pytest.raises(
+        ConfigError, match=r"FeatureParams: shot\.normalisation: unknown key; allowed keys there"
+    ):
+        FeatureParams(shot={"normalisation": "per_part"})
+    with pytest.raises(ConfigError, match="'shot' takes SHOTOptions options, got FPFHOptions"):
+        describe("shot", joint.points, joint.normals, None, joint.keypoint_indices, 7.0, FPFHOptions())
+
+
 def test_errors_and_small_inputs():
     pts = bumps(sheet(3.0), [(0.0, 0.0)])
     with pytest.raises(ScanDataError, match="normals"):

@@ -124,3 +124,35 @@ def test_save_load_identity_and_config_checks(small_db, tmp_path):
     with pytest.raises(ArtifactError, match="expected a 'places-db'"):
         PlacesDatabase.load(tmp_path / "other.npz")
     assert not list(tmp_path.glob(".*.tmp"))  # atomic writes leave no temporary files
+
+
+def test_a_version_1_file_is_read_and_its_descriptor_options_must_be_empty(small_db, tmp_path):
+    """Version 1 stored the descriptors' settings as an ``descriptor_options`` list (always empty in practice);
+    version 2 stores the ``shot`` / ``fpfh`` sections."""
+    from placerec.io.atomic import load_artifact
+
+    _, db = small_db
+    db.save(tmp_path / "v2.npz")
+    arrays, header = load_artifact(tmp_path / "v2.npz", "places-db", (2,))
+    meta = header["meta"]
+    assert meta["params"]["features"]["shot"] == {
+        "lrf_radius": None,
+        "normalization": "joint",
+        "pcl_bin_wrap": False,
+    }
+    features = {k: v for k, v in meta["params"]["features"].items() if k not in ("shot", "fpfh")}
+    for options, ok in (([], True), ([["max_nn", 30]], False)):
+        v1 = {**meta, "params": {**meta["params"], "features": {**features, "descriptor_options": options}}}
+        save_artifact(tmp_path / "v1.npz", "places-db", 1, arrays, v1)
+        if ok:
+            assert PlacesDatabase.load(tmp_path / "v1.npz", features=FAST).params == db.params
+        else:
+            with pytest.raises(ArtifactError, match="descriptor_options other than"):
+                PlacesDatabase.load(tmp_path / "v1.npz")
+    bad = {
+        **meta,
+        "params": {**meta["params"], "features": {**meta["params"]["features"], "shot": {"lrf": 1}}},
+    }
+    save_artifact(tmp_path / "bad.npz", "places-db", 2, arrays, bad)
+    with pytest.raises(ArtifactError, match=r"features\.shot\.lrf: unknown key"):
+        PlacesDatabase.load(tmp_path / "bad.npz")

@@ -1,35 +1,49 @@
 """A registry of 3D local descriptors behind one call signature.
 
-Every entry is ``describe(points, normals, intensity, keypoint_indices, support_radius, **options)
--> (descriptors (K, D) float32, valid (K,) bool)``; rows with ``valid=False`` are all zero.
+Every entry is ``describe(points, normals, intensity, keypoint_indices, support_radius, options)
+-> (descriptors (K, D) float32, valid (K,) bool)``; rows with ``valid=False`` are all zero. ``options`` is the
+descriptor's own settings model (`DESCRIPTOR_OPTIONS`; None = its defaults).
 
-* ``"shot"``  — SHOT, 352-d (`placerec.three_d.shot`), intensity ignored.
-* ``"ishot"`` — ISHOT, 1344-d: SHOT + 31-bin intensity-difference signature (Guo et al. 2019).
+* ``"shot"``  — SHOT, 352-d (`placerec.three_d.shot`), intensity ignored; options `SHOTOptions`.
+* ``"ishot"`` — ISHOT, 1344-d: SHOT + 31-bin intensity-difference signature (Guo et al. 2019); `SHOTOptions`.
 * ``"fpfh"``  — FPFH, 33-d, Open3D's ``compute_fpfh_feature`` on the keypoints (geometric reference);
-  option ``max_nn`` (default None: pure radius search, as the paper's 7 m support).
+  options `FPFHOptions`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
+from pydantic import Field
 
 from placerec.errors import ConfigError, ScanDataError
+from placerec.params import Params
 from placerec.three_d._neighbors import check_points
-from placerec.three_d.shot import ISHOT_DIM, SHAPE_DIM, SHOTParams, compute_shot
+from placerec.three_d.shot import ISHOT_DIM, SHAPE_DIM, SHOTOptions, SHOTParams, compute_shot
 
-__all__ = ["DESCRIPTORS", "DESCRIPTOR_DIMS", "describe", "get_descriptor"]
+__all__ = [
+    "DESCRIPTORS",
+    "DESCRIPTOR_DIMS",
+    "DESCRIPTOR_OPTIONS",
+    "FPFHOptions",
+    "describe",
+    "get_descriptor",
+]
 
 Describer = Callable[..., tuple[np.ndarray, np.ndarray]]
 
 
-def _shot_params(support_radius: float, options: dict[str, Any]) -> SHOTParams:
-    try:
-        return SHOTParams(support_radius=support_radius, **options)
-    except TypeError as exc:
-        raise ConfigError(f"shot: invalid options {sorted(options)}: {exc}") from None
+class FPFHOptions(Params):
+    """FPFH settings besides the support radius."""
+
+    max_nn: int | None = Field(
+        None, ge=1, description="neighbours at most (None = every point within the support, as SHOT)"
+    )
+
+
+def _shot_params(support_radius: float, options: SHOTOptions | None) -> SHOTParams:
+    return SHOTParams(support_radius=support_radius, **(options or SHOTOptions()).model_dump())
 
 
 def describe_shot(
@@ -38,9 +52,9 @@ def describe_shot(
     intensity: np.ndarray | None,
     keypoint_indices: np.ndarray,
     support_radius: float = 7.0,
-    **options: Any,
+    options: SHOTOptions | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """SHOT (352-d); ``options``: fields of `SHOTParams` other than ``support_radius``."""
+    """SHOT (352-d)."""
     return compute_shot(points, normals, keypoint_indices, _shot_params(support_radius, options))
 
 
@@ -50,7 +64,7 @@ def describe_ishot(
     intensity: np.ndarray | None,
     keypoint_indices: np.ndarray,
     support_radius: float = 7.0,
-    **options: Any,
+    options: SHOTOptions | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """ISHOT (1344-d); needs ``intensity`` in [0, 1]."""
     if intensity is None:
@@ -66,11 +80,12 @@ def describe_fpfh(
     intensity: np.ndarray | None,
     keypoint_indices: np.ndarray,
     support_radius: float = 7.0,
-    max_nn: int | None = None,
+    options: FPFHOptions | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """FPFH (33-d) of the keypoints with Open3D; invalid where a keypoint has no neighbour."""
     import open3d as o3d
 
+    max_nn = (options or FPFHOptions()).max_nn
     P = check_points(points)
     Nrm = np.asarray(normals, dtype=np.float64)
     if Nrm.shape != P.shape:
@@ -100,6 +115,8 @@ DESCRIPTORS: dict[str, Describer] = {
     "fpfh": describe_fpfh,
 }
 DESCRIPTOR_DIMS: dict[str, int] = {"shot": SHAPE_DIM, "ishot": ISHOT_DIM, "fpfh": 33}
+#: the settings model of each descriptor (its ``options``)
+DESCRIPTOR_OPTIONS: dict[str, type[Params]] = {"shot": SHOTOptions, "ishot": SHOTOptions, "fpfh": FPFHOptions}
 
 
 def get_descriptor(name: str) -> Describer:
@@ -117,7 +134,16 @@ def describe(
     intensity: np.ndarray | None,
     keypoint_indices: np.ndarray,
     support_radius: float = 7.0,
-    **options: Any,
+    options: Params | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Describe the keypoints with the registered descriptor ``name``: ``(descriptors, valid)``."""
-    return get_descriptor(name)(points, normals, intensity, keypoint_indices, support_radius, **options)
+    """Describe the keypoints with the registered descriptor ``name``: ``(descriptors, valid)``.
+
+    ``options``: an instance of ``DESCRIPTOR_OPTIONS[name]`` (None = its defaults), else `ConfigError`.
+    """
+    fn = get_descriptor(name)
+    model = DESCRIPTOR_OPTIONS[name]
+    if options is not None and not isinstance(options, model):
+        raise ConfigError(
+            f"3D descriptor {name!r} takes {model.__name__} options, got {type(options).__name__}"
+        )
+    return fn(points, normals, intensity, keypoint_indices, support_radius, options)

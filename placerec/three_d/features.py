@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -18,9 +18,10 @@ from pydantic import Field
 from placerec.errors import ScanDataError
 from placerec.params import Params
 from placerec.preprocess import crop, remove_invalid, voxel_downsample
-from placerec.three_d.descriptors import describe
+from placerec.three_d.descriptors import FPFHOptions, describe
 from placerec.three_d.keypoints import ISSParams, detect_iss
 from placerec.three_d.normals import NormalParams, estimate_normals
+from placerec.three_d.shot import SHOTOptions
 from placerec.types import Scan
 
 log = logging.getLogger(__name__)
@@ -39,9 +40,12 @@ class FeatureParams(Params):
     iss: ISSParams = Field(default_factory=lambda: ISSParams(max_keypoints=300))
     descriptor: Literal["ishot", "shot", "fpfh"] = Field("ishot", description="ISHOT paper Sec. III")
     support_radius: float = Field(7.0, gt=0, description="m; descriptor support (ISHOT paper Sec. V-B)")
-    descriptor_options: tuple[tuple[str, Any], ...] = Field(
-        (), strict=False, description="extra keyword arguments of the descriptor"
-    )
+    shot: SHOTOptions = Field(default_factory=SHOTOptions)
+    fpfh: FPFHOptions = Field(default_factory=FPFHOptions)
+
+    def descriptor_options(self) -> SHOTOptions | FPFHOptions:
+        """The settings of the chosen descriptor: ``shot`` for SHOT and ISHOT, ``fpfh`` for FPFH."""
+        return self.fpfh if self.descriptor == "fpfh" else self.shot
 
 
 @dataclass(frozen=True)
@@ -93,7 +97,7 @@ def extract_features(scan: Scan, params: FeatureParams | None = None) -> LocalFe
         cloud.intensity,
         iss.indices,
         params.support_radius,
-        **dict(params.descriptor_options),
+        params.descriptor_options(),
     )
     kp = iss.indices[valid]
     return LocalFeatures(

@@ -16,8 +16,10 @@ three quarters.
 
 `PlacesDatabase` stores the place ids (= centre scan index in the mapping sequence, so the ids index into the
 map's poses), place poses, source scans, keypoints (place frame), descriptors and, optionally, the voxelised
-place clouds (for later verification), in an atomic versioned artifact (kind ``places-db``, version 1) with the
-parameters that made it; `PlacesDatabase.load` refuses a file made with other feature settings.
+place clouds (for later verification), in an atomic versioned artifact (kind ``places-db``, version 2) with the
+parameters that made it; `PlacesDatabase.load` refuses a file made with other feature settings. Version 1 files
+(whose feature settings hold an empty ``descriptor_options`` list instead of the ``shot`` / ``fpfh`` sections)
+are read too.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from placerec.errors import ArtifactError, ConfigError, ScanDataError, short_rep
 from placerec.intensity import normalize_intensity
 from placerec.io.artifact_schema import Member, check_counts, check_offsets, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
-from placerec.params import Params
+from placerec.params import Params, resolve
 from placerec.preprocess import crop, remove_invalid
 from placerec.three_d.features import FeatureParams, extract_features
 from placerec.types import Scan, Sequence
@@ -53,7 +55,8 @@ __all__ = [
 ]
 
 KIND = "places-db"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+_READ_VERSIONS = (1, 2)
 # the arrays of a saved database; n_places, n_rows (keypoints), n_sources and n_cloud (points) tie them together
 _SCHEMA = {
     "ids": Member("iu", ("n_places",), min_value=0),
@@ -243,11 +246,11 @@ class PlacesDatabase:
     ) -> PlacesDatabase:
         """Read a database; `ArtifactError` if the file is corrupt or inconsistent (`_check_layout`), or if
         ``features`` (or the ``intensity`` label) differ from the file's."""
-        arrays, header = load_artifact(path, KIND, (FORMAT_VERSION,), _SCHEMA)
+        arrays, header = load_artifact(path, KIND, _READ_VERSIONS, _SCHEMA)
         meta = header["meta"]
         _check_layout(arrays, meta, path)
         try:
-            params = PlacesParams.model_validate(meta["params"])
+            params = _read_params(meta["params"], header["format_version"])
             src = np.split(arrays["sources"], np.cumsum(arrays["source_counts"])[:-1])
             clouds = None
             if "cloud_counts" in arrays:
@@ -281,6 +284,17 @@ class PlacesDatabase:
                 f"{path}: places database has intensity {db.intensity!r}, expected {intensity!r}"
             )
         return db
+
+
+def _read_params(stored: Any, version: int) -> PlacesParams:
+    """The stored parameters as `PlacesParams`; a version 1 file's empty ``features.descriptor_options`` (the
+    descriptors' defaults) is dropped, anything else there is refused."""
+    if version == 1 and isinstance(stored, dict) and isinstance(stored.get("features"), dict):
+        features = dict(stored["features"])
+        if features.pop("descriptor_options", []) != []:
+            raise ValueError("version 1 descriptor_options other than [] cannot be read")
+        stored = {**stored, "features": features}
+    return resolve(PlacesParams, stored, where="stored parameters")
 
 
 def _check_layout(arrays: dict[str, np.ndarray], meta: dict[str, Any], path: str | Path) -> None:

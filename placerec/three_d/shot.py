@@ -43,7 +43,7 @@ from placerec.three_d.lrf import lrf_from_offsets
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SHOTParams", "compute_shot", "N_VOLUMES", "SHAPE_DIM", "ISHOT_DIM"]
+__all__ = ["SHOTOptions", "SHOTParams", "compute_shot", "N_VOLUMES", "SHAPE_DIM", "ISHOT_DIM"]
 
 N_VOLUMES = 32
 SHAPE_BINS = 11
@@ -53,17 +53,22 @@ ISHOT_DIM = SHAPE_DIM + N_VOLUMES * INTENSITY_BINS  # 1344
 _SECTOR = np.pi / 4
 
 
-class SHOTParams(Params):
-    """SHOT/ISHOT settings. ``lrf_radius`` None = ``support_radius`` (PCL default); 7 m = ISHOT paper."""
+class SHOTOptions(Params):
+    """SHOT/ISHOT settings besides the support radius (what `placerec.three_d.FeatureParams` exposes)."""
 
-    support_radius: float = Field(7.0, gt=0, description="m; descriptor support (ISHOT paper Sec. V-B)")
     lrf_radius: float | None = Field(
-        None, gt=0, description="m; local reference frame radius (None = support)"
+        None, gt=0, description="m; local reference frame radius (None = support; PCL default)"
     )
     normalization: Literal["joint", "per_part"] = Field(
         "joint", description="L2 over the whole descriptor or per part"
     )
     pcl_bin_wrap: bool = Field(False, description="PCL's wrapped neighbour bins (for comparisons with PCL)")
+
+
+class SHOTParams(SHOTOptions):
+    """Every SHOT/ISHOT setting: the support radius (7 m = ISHOT paper) and `SHOTOptions`."""
+
+    support_radius: float = Field(7.0, gt=0, description="m; descriptor support (ISHOT paper Sec. V-B)")
 
 
 def _value_bins(value: np.ndarray, n_bins: int, wrap: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
