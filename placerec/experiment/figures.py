@@ -1,4 +1,7 @@
-"""Figures of an experiment: PR curves, trajectories with loop closures, stage timings (matplotlib, Agg)."""
+"""Figures of an experiment: PR curves, trajectories with loop closures, stage timings (matplotlib, Agg).
+
+Every figure is drawn for any number of scans, queries or candidates, none included (an empty or one-point
+trajectory gets a 2 m frame around what there is)."""
 
 from __future__ import annotations
 
@@ -19,6 +22,17 @@ def _pyplot() -> Any:
     return plt
 
 
+def _frame(ax: Any, *points: np.ndarray) -> None:
+    """Square, equal-aspect limits around ``points`` (N, >=2) with a margin of at least 1 m, so that an empty or
+    one-point trajectory does not give a singular frame."""
+    xy = np.concatenate([np.asarray(p, np.float64).reshape(-1, p.shape[-1])[:, :2] for p in points])
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    lo, hi = (xy.min(axis=0), xy.max(axis=0)) if len(xy) else (np.zeros(2), np.zeros(2))
+    centre, half = (lo + hi) / 2, 0.525 * float(np.max(hi - lo)) + 1.0
+    ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half))
+    ax.set_aspect("equal", adjustable="box")
+
+
 def plot_pr_curves(curves: dict[str, dict[str, Any]], path: Path, title: str = "Precision-recall") -> Path:
     """``curves``: label -> {"precision": array, "recall": array, "max_f1": float}."""
     plt = _pyplot()
@@ -29,7 +43,7 @@ def plot_pr_curves(curves: dict[str, dict[str, Any]], path: Path, title: str = "
             ax.plot([c["best"][0]], [c["best"][1]], "o", color=ax.lines[-1].get_color(), ms=5)
     ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.02), ylim=(0, 1.02), title=title)
     ax.grid(alpha=0.3)
-    ax.legend(loc="lower left", fontsize=8)
+    _legend(ax, loc="lower left", fontsize=8)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -80,11 +94,12 @@ def plot_trajectory_closures(
             zorder=2,
             label=f"missed revisit ({q.size})",
         )
-    ax.plot(*positions[0, :2], "k^", ms=7, label="start")
+    if len(positions):
+        ax.plot(*positions[0, :2], "k^", ms=7, label="start")
     ax.set(xlabel="x [m]", ylabel="y [m]", title=title)
-    ax.set_aspect("equal", adjustable="datalim")
+    _frame(ax, positions)
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
+    _legend(ax, loc="best", fontsize=8)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -101,16 +116,21 @@ def plot_timing(timing: dict[str, dict[str, float]], path: Path) -> Path:
         if any(timing[lab].get(s, 0) for lab in labels)
     ]
     fig, ax = plt.subplots(figsize=(max(4.5, 1.3 * len(labels) + 2), 4), dpi=120)
+    x = np.arange(len(labels))
     bottom = np.zeros(len(labels))
     for stage in stages:
         vals = np.array([timing[lab].get(stage, 0.0) for lab in labels])
-        ax.bar(labels, vals, bottom=bottom, label=stage)
+        ax.bar(x, vals, bottom=bottom, label=stage)
         bottom += vals
-    for x, total in enumerate(bottom):
-        ax.text(x, total, f"{total:.1f}", ha="center", va="bottom", fontsize=8)
-    ax.set(ylabel="mean time per scan [ms]", title="Time per stage")
-    ax.legend(fontsize=8)
-    plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
+    for col, total in zip(x, bottom, strict=True):
+        ax.text(col, total, f"{total:.1f}", ha="center", va="bottom", fontsize=8)
+    ax.set_xticks(x, labels, rotation=20, ha="right")
+    ax.set(
+        ylabel="mean time per scan [ms]",
+        title="Time per stage",
+        ylim=(0, max(1.0, 1.1 * bottom.max(initial=0))),
+    )
+    _legend(ax, fontsize=8)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -144,10 +164,16 @@ def plot_localization(
                 label=f"{label} ({mask.sum()})",
             )
     ax.set(xlabel="x [m]", ylabel="y [m]", title=title)
-    ax.set_aspect("equal", adjustable="datalim")
+    _frame(ax, map_positions, query_positions, estimates)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    _legend(ax, fontsize=8)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def _legend(ax: Any, **kwargs: Any) -> None:
+    """A legend when something is labelled (matplotlib warns on an empty one)."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(**kwargs)

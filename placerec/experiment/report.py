@@ -7,7 +7,11 @@ Output folder ``<output.dir>/<name>_<timestamp>/`` (and a ``latest`` link beside
   preset and the config's overrides merged);
 * ``metrics.json`` — per pipeline: ``max_f1``, ``precision_at_max_f1``, ``recall_at_max_f1``, ``auc`` (average
   precision, see `placerec.eval.metrics`), ``recall_at_1``, ``recall_at_n``, ``success_rate`` (localize mode),
-  ``time_ms`` {mean, median, p95} per scan and per stage, ``n_queries``, ``n_revisits``; plus peak memory;
+  ``time_ms`` {mean, median, p95} per scan and per stage, ``n_queries``, ``n_revisits``; plus peak memory.
+  Strict JSON: a value that is undefined for the run is ``null`` (``threshold_at_max_f1`` with no candidate,
+  ``mean_error`` with no estimate, times with no scan). A sequence without revisits (too short, shorter than the
+  exclusion window) has ``no_revisits: true`` and recalls, F1 and AUC of 0; no scans at all give
+  ``n_queries: 0``;
 * ``candidates_<label>.csv`` — every candidate, one row per (query, rank): ``query_id,rank,match_id,score,inliers``
   (`placerec.experiment.candidates`);
 * ``poses.txt`` — the ground-truth poses (KITTI format) the ids index into (localize mode: ``map_poses.txt`` and
@@ -203,7 +207,7 @@ def report_localize(
                     else map_poses[c.match_id] @ c.relative_pose
                 )
                 estimates[row] = T[:3, 3]
-        metrics = localization_metrics(estimates, query_poses[np.asarray(record.query_ids)], success_distance)
+        metrics = localization_metrics(estimates, query_poses[np.asarray(record.query_ids, dtype=np.int64)], success_distance)
         summary = metrics.summary()
         summary["time_ms"] = _timing(record)
         results[record.label] = summary
@@ -244,7 +248,7 @@ def _finish(
     records: list[PipelineRecord],
 ) -> None:
     with atomic_write(run / "metrics.json", "w") as fh:
-        json.dump(payload, fh, indent=2, default=_json_default)
+        json.dump(_finite_or_null(payload), fh, indent=2, default=_json_default, allow_nan=False)
     with atomic_write(run / "pipelines.yaml", "w") as fh:  # resolved parameters: presets and defaults applied
         resolved = {r.label: {"pipeline": r.pipeline, "class": r.name, "params": r.params} for r in records}
         yaml.safe_dump(resolved, fh, sort_keys=False)
@@ -258,6 +262,17 @@ def _finish(
         figures.plot_timing(means, run / "timing.png")
         write_index_html(run, cfg, payload)
     point_latest(run)  # last: a run that failed before this point leaves latest where it was
+
+
+def _finite_or_null(value: Any) -> Any:
+    """``value`` with every NaN or infinite float (numpy ones included) replaced by None, recursively."""
+    if isinstance(value, dict):
+        return {k: _finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite_or_null(v) for v in value]
+    if isinstance(value, float | np.floating):
+        return float(value) if np.isfinite(value) else None
+    return value
 
 
 def _json_default(value: Any) -> Any:
