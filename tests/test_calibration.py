@@ -235,6 +235,19 @@ def test_simulator_calibration_tracks_the_true_response_curves(tmp_path):
     assert np.corrcoef(cal, target)[0, 1] > np.corrcoef(raw01, target)[0, 1] + 0.02
 
 
+def test_observations_take_their_settings_from_calibration_params():
+    """`collect_observations` reads `CalibrationParams` (no keyword options with defaults of their own)."""
+    from placerec.calibration import collect_observations
+    from placerec.sim import SimulatedSequence
+
+    seq = SimulatedSequence(world="town", sensor="vlp16", n_scans=6, seed=0, spacing=3.0)
+    obs = collect_observations(seq)
+    assert obs.n_inc == CalibrationParams().incidence_bins == 6
+    fewer = collect_observations(seq, CalibrationParams(incidence_bins=2, step=2, min_beams=3))
+    assert fewer.n_inc == 2 and fewer.n_points < obs.n_points and fewer.n_cells < obs.n_cells
+    assert collect_observations(seq, CalibrationParams(min_cos_incidence=None)).n_inc == 1
+
+
 def test_cli_calibrate_on_the_simulator(tmp_path):
     from placerec.cli import app
 

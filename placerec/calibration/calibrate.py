@@ -80,17 +80,7 @@ def calibrate_observations(
 def calibrate_points(pts: RegisteredPoints, params: CalibrationParams | None = None) -> CalibrationTable:
     """Calibrate from already gathered registered points (see `gather_points`)."""
     p = params or CalibrationParams()
-    obs = observations_from_points(
-        pts,
-        voxel_size=p.voxel_size,
-        min_cos_incidence=p.min_cos_incidence,
-        normal_cell=p.normal_cell,
-        range_band=p.range_band,
-        raw_bins=p.raw_bins,
-        min_beams=p.min_beams,
-        incidence_bins=p.incidence_bins,
-        lambert_exponent=p.lambert_exponent,
-    )
+    obs = observations_from_points(pts, p)
     table = calibrate_observations(obs, p, pts.sensor)
     table.meta["sequence"] = pts.name
     return table
@@ -106,4 +96,4 @@ def calibrate_sequence(
     This is what ``placerec calibrate`` runs; ``on_scan(done, total)`` reports progress while scans are read.
     """
     p = params or CalibrationParams()
-    return calibrate_points(gather_points(seq, p.min_range, p.max_range, p.step, p.max_scans, on_scan), p)
+    return calibrate_points(gather_points(seq, p, on_scan), p)

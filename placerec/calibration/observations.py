@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from placerec.calibration.params import CalibrationParams
 from placerec.errors import ScanDataError
 from placerec.types import Scan, Sequence, as_pose
 
@@ -231,20 +232,20 @@ class RegisteredPoints:
 
 def gather_points(
     seq: Sequence,
-    min_range: float = 1.0,
-    max_range: float | None = 30.0,
-    step: int = 1,
-    max_scans: int | None = None,
+    params: CalibrationParams | None = None,
     on_scan: Callable[[int, int], None] | None = None,
 ) -> RegisteredPoints:
-    """Every ``step``-th scan of ``seq`` moved into the world frame with its pose, cropped to the intensity range
-    ``[min_range, max_range]``; needs poses and per-point rings. ``on_scan(done, total)`` reports progress."""
+    """Every ``params.step``-th scan of ``seq`` (at most ``params.max_scans``) moved into the world frame with its
+    pose, cropped to the intensity range ``[min_range, max_range]``; needs poses and per-point rings.
+    ``on_scan(done, total)`` reports progress."""
+    p = params or CalibrationParams()
+    min_range, max_range = p.min_range, p.max_range
     poses = seq.poses
     if poses is None:
         raise ScanDataError(f"{seq.name}: intensity calibration needs poses (registered scans)")
-    idx = np.arange(0, len(seq), max(int(step), 1))
-    if max_scans is not None:
-        idx = idx[: int(max_scans)]
+    idx = np.arange(0, len(seq), p.step)
+    if p.max_scans is not None:
+        idx = idx[: p.max_scans]
     if idx.size == 0:
         raise ScanDataError(f"{seq.name}: no scans to calibrate on")
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("xyz", "scan", "range", "beam", "raw")}
@@ -278,28 +279,21 @@ def gather_points(
                             name=seq.name, **pts)  # fmt: skip
 
 
-def observations_from_points(
-    pts: RegisteredPoints,
-    voxel_size: float = 0.25,
-    min_cos_incidence: float | None = 0.5,
-    normal_cell: float = 0.5,
-    range_band: float | None = 1.3,
-    raw_bins: int | None = None,
-    min_beams: int = 2,
-    incidence_bins: int = 8,
-    lambert_exponent: float | None = 1.0,
-) -> Observations:
-    """Group registered points into map-cell `Observations`.
+def observations_from_points(pts: RegisteredPoints, params: CalibrationParams | None = None) -> Observations:
+    """Group registered points into map-cell `Observations` (settings: `CalibrationParams`).
 
     A cell is a ``voxel_size`` voxel of the world map, split by range band (ranges within a factor
     ``range_band``); ``min_cos_incidence`` keeps only points seen within ``arccos(min_cos_incidence)`` of their
     surface normal (`incidence_cosine`), split into ``incidence_bins`` bins whose expected reflectivity factor is
     ``cos ** lambert_exponent`` (None: incidence not modelled). None disables the range band / incidence filter.
     """
+    p = params or CalibrationParams()
+    voxel_size, min_cos_incidence, range_band = p.voxel_size, p.min_cos_incidence, p.range_band
+    incidence_bins, lambert_exponent, min_beams = p.incidence_bins, p.lambert_exponent, p.min_beams
     keep = np.ones(len(pts), dtype=bool)
     inc = inc_factor = None
     if min_cos_incidence is not None:
-        cos = incidence_cosine(pts.xyz, pts.origins[pts.scan], normal_cell)
+        cos = incidence_cosine(pts.xyz, pts.origins[pts.scan], p.normal_cell)
         keep = cos >= min_cos_incidence
         log.info("%s: %.1f%% of the points are seen within %.0f deg of their surface normal", pts.name,
                  100.0 * keep.mean(), np.degrees(np.arccos(min_cos_incidence)))  # fmt: skip
@@ -310,11 +304,9 @@ def observations_from_points(
             inc_factor = centres**lambert_exponent
     keys = _cell_keys(pts.xyz[keep], voxel_size, pts.name)
     if range_band is not None:
-        if not range_band > 1.0:
-            raise ScanDataError(f"range_band must be > 1, got {range_band}")
         band = np.floor(np.log(pts.range[keep]) / np.log(range_band)).astype(np.int64)
         keys = (keys << 6) | np.clip(band - band.min(initial=0), 0, 63)
-    binning = RawBinning.for_data(pts.intensity_max, float(pts.raw.max()), raw_bins)
+    binning = RawBinning.for_data(pts.intensity_max, float(pts.raw.max()), p.raw_bins)
     obs = group_observations(
         keys, pts.beam[keep], binning.index(pts.raw[keep]), pts.n_beams, binning, min_beams, inc, inc_factor
     )
@@ -324,7 +316,6 @@ def observations_from_points(
     return obs
 
 
-def collect_observations(seq: Sequence, min_range: float = 1.0, max_range: float | None = 30.0, step: int = 1,
-                         max_scans: int | None = None, **options: object) -> Observations:  # fmt: skip
-    """`gather_points` then `observations_from_points` (``options``: its keyword arguments)."""
-    return observations_from_points(gather_points(seq, min_range, max_range, step, max_scans), **options)  # type: ignore[arg-type]
+def collect_observations(seq: Sequence, params: CalibrationParams | None = None) -> Observations:
+    """`gather_points` then `observations_from_points`."""
+    return observations_from_points(gather_points(seq, params), params)
