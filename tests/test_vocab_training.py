@@ -3,7 +3,7 @@
 import pytest
 
 from placerec.errors import ConfigError
-from placerec.experiment.vocab_training import VocabTrainingConfig, image_params_of, load_training_config
+from placerec.experiment.vocab_training import VocabTrainingConfig, load_training_config
 
 
 def test_training_config_errors_name_the_key_and_the_allowed_keys(tmp_path):
@@ -16,7 +16,24 @@ def test_training_config_errors_name_the_key_and_the_allowed_keys(tmp_path):
     assert load_training_config(None, k=4).k == 4
 
 
-def test_training_image_section_is_validated_as_image_params():
+def test_training_front_end_sections_are_validated_when_the_config_is_read(tmp_path):
+    """``image`` and ``feature_params`` are the visual front end's models, checked with the rest of the config
+    (before any image is formed), and the vocabulary settings are `VocabularyParams`."""
+    from placerec.image import ImageParams
+    from placerec.retrieval.dbow.vocabulary import VocabularyParams
+
     with pytest.raises(ConfigError, match=r"image\.widht: unknown key; allowed keys there: .*width"):
-        image_params_of(VocabTrainingConfig(image={"widht": 512}))
-    assert image_params_of(VocabTrainingConfig(image={"width": 512})).width == 512
+        VocabTrainingConfig(image={"widht": 512})
+    cfg = tmp_path / "voc.yaml"
+    cfg.write_text("features: brisk\nfeature_params: {nfeatures: 0}\n")
+    with pytest.raises(
+        ConfigError, match=r"voc.yaml: feature_params\.nfeatures: Input should be greater than 0"
+    ):
+        load_training_config(cfg)
+    with pytest.raises(ConfigError, match=r"max_fit: Input should be greater than or equal to 100"):
+        load_training_config(None, max_fit=10)
+    read = VocabTrainingConfig(image={"width": 512}, features="brisk", feature_params={"octaves": 2})
+    assert (
+        isinstance(read.image, ImageParams) and read.image.width == 512 and read.feature_params.octaves == 2
+    )
+    assert isinstance(read, VocabularyParams) and (read.k, read.L, read.weighting) == (10, 5, "tf-idf")

@@ -37,6 +37,8 @@ from placerec.errors import ArtifactError, ConfigError
 from placerec.hashing import stable_hash
 from placerec.io.npz import read_npz_arrays
 from placerec.params import Params, resolve
+from placerec.pipelines.visual import VisualFrontendParams
+from placerec.retrieval.dbow.vocabulary import VocabularyParams
 from placerec.safe_yaml import load_yaml_file
 
 log = logging.getLogger(__name__)
@@ -66,22 +68,16 @@ class TrainingSimulator(Params):
     clutter: bool = True
 
 
-class VocabTrainingConfig(Params):
-    """What ``placerec train-vocab`` trains (see the module docstring)."""
+class VocabTrainingConfig(VisualFrontendParams, VocabularyParams):
+    """What ``placerec train-vocab`` trains (see the module docstring): the visual front end's ``features``,
+    ``feature_params`` and ``image`` (`placerec.pipelines.visual.VisualFrontendParams`), the vocabulary's
+    ``k``, ``L``, ``weighting``, ... (`placerec.retrieval.dbow.vocabulary.VocabularyParams`), and where the
+    training images come from."""
 
-    features: str = "orb"
-    feature_params: dict[str, Any] = Field(default_factory=dict)
-    image: dict[str, Any] = Field(default_factory=dict, description="placerec.image.ImageParams fields")
     preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
-    k: int = Field(10, ge=2)
-    L: int = Field(5, ge=1)
-    weighting: Literal["tf-idf", "tf", "idf", "binary"] = "tf-idf"
     n_images: int = Field(3000, ge=1)
     simulator: TrainingSimulator | None = Field(default_factory=TrainingSimulator)
     datasets: list[DatasetConfig] = Field(default_factory=list, description="extra sequences (e.g. recorded)")
-    seed: int = 0
-    max_iterations: int = Field(10, ge=1)
-    max_fit: int | None = Field(None, ge=100, description="fit nodes larger than this on a random subset")
     centre_dtype: Literal["auto", "float32", "float16", "int8"] = "auto"
     compress: bool = Field(False, description="zlib-compress the vocabulary file's arrays")
     workers: int = Field(1, ge=1, description="processes extracting features")
@@ -103,13 +99,6 @@ def load_training_config(path: str | Path | None, **overrides: Any) -> VocabTrai
             raise ConfigError(f"{path}: a training config must be a mapping")
     data.update({k: v for k, v in overrides.items() if v is not None})
     return resolve(VocabTrainingConfig, data, where=str(path or "training config"))
-
-
-def image_params_of(cfg: VocabTrainingConfig) -> Any:
-    """The config's ``image`` section as a validated `placerec.image.ImageParams`."""
-    from placerec.image import ImageParams
-
-    return resolve(ImageParams, cfg.image, where="training config", path="image")
 
 
 def _sequences(cfg: VocabTrainingConfig) -> list[tuple[str, dict[str, Any]]]:
@@ -152,14 +141,13 @@ def _extract(job: tuple[dict[str, Any], int, dict[str, Any]]) -> list[np.ndarray
     spec, count, c = job
     cfg = VocabTrainingConfig.model_validate(c)
     seq = open_dataset(DatasetConfig.model_validate(spec))
-    extractor = make_extractor(cfg.features, **cfg.feature_params)
-    image_params = image_params_of(cfg)
+    extractor = make_extractor(cfg.features, cfg.feature_params)
     preprocess = preprocess_params(cfg.preprocess)
     index = np.unique(np.linspace(0, len(seq) - 1, min(count, len(seq))).round().astype(int))
     out = []
     for i in index:
         scan = preprocess_scan(seq[int(i)], preprocess, keep_organized=True)
-        out.append(extractor.extract(make_image(scan, image_params).image).descriptors)
+        out.append(extractor.extract(make_image(scan, cfg.image).image).descriptors)
     return out
 
 
@@ -241,38 +229,25 @@ def train_vocabulary_from_config(
 ) -> Path:
     """Train the vocabulary a config describes and write it (plus ``<stem>.json``); returns the vocabulary path."""
     from placerec import __version__
-    from placerec.features import make_extractor
     from placerec.retrieval.dbow.io import save_vocabulary
     from placerec.retrieval.dbow.vocabulary import train_vocabulary
 
     cfg = config if isinstance(config, VocabTrainingConfig) else load_training_config(config)
     out = Path(output or cfg.output)
-    make_extractor(cfg.features, **cfg.feature_params)  # fail early on bad settings
-    image_params_of(cfg)
     t0 = time.perf_counter()
     parts, labels = cached_descriptors(cfg, progress)
     labels = list(dict.fromkeys(labels))
     t_features = time.perf_counter() - t0
     meta = {
         "features": cfg.features,
-        "feature_params": cfg.feature_params,
-        "image": cfg.image,
+        "feature_params": cfg.feature_params.model_dump(mode="json"),
+        "image": cfg.image.model_dump(mode="json"),
         "sequences": labels,
         "simulator": None if cfg.simulator is None else cfg.simulator.model_dump(mode="json"),
         "placerec_version": __version__,
         "feature_seconds": round(t_features, 1),
     }
-    voc = train_vocabulary(
-        parts,
-        k=cfg.k,
-        L=cfg.L,
-        weighting=cfg.weighting,
-        seed=cfg.seed,
-        max_iterations=cfg.max_iterations,
-        max_fit=cfg.max_fit,
-        progress=progress,
-        meta=meta,
-    )
+    voc = train_vocabulary(parts, cfg, progress=progress, meta=meta)
     centre_dtype = None if cfg.centre_dtype == "auto" else cfg.centre_dtype
     save_vocabulary(voc, out, None if voc.binary else centre_dtype, compress=cfg.compress)
     info = {

@@ -19,18 +19,21 @@ import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, NamedTuple
+from typing import Any, Literal, NamedTuple, get_args
 
 import numpy as np
+from pydantic import Field
 
-from placerec.errors import ArtifactError, ConfigError, ScanDataError
+from placerec.errors import ArtifactError, ScanDataError
+from placerec.params import Params, resolve
 from placerec.retrieval.bits import popcount, to_words
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BowVector", "Vocabulary", "l1_score", "train_vocabulary", "WEIGHTINGS"]
+__all__ = ["BowVector", "Vocabulary", "VocabularyParams", "l1_score", "train_vocabulary", "WEIGHTINGS"]
 
-WEIGHTINGS = ("tf-idf", "tf", "idf", "binary")
+Weighting = Literal["tf-idf", "tf", "idf", "binary"]
+WEIGHTINGS: tuple[str, ...] = get_args(Weighting)
 _CHUNK = 1 << 15
 
 
@@ -297,25 +300,41 @@ def _depths(parents: np.ndarray) -> np.ndarray:
     return depth
 
 
+class VocabularyParams(Params):
+    """How `train_vocabulary` builds the tree (DBoW2's defaults: k = 10, L = 5, TF-IDF)."""
+
+    k: int = Field(10, ge=2, description="children per node (DBoW2 default)")
+    L: int = Field(5, ge=1, description="levels below the root (DBoW2 default)")
+    weighting: Weighting = Field("tf-idf", description="word weights")
+    seed: int = Field(0, description="k-means++ seed")
+    max_iterations: int = Field(10, ge=1, description="k-means iterations per node")
+    max_fit: int | None = Field(
+        None, ge=100, description="fit nodes larger than this on a random subset (None = all descriptors)"
+    )
+
+
 def train_vocabulary(
     descriptors: Sequence[np.ndarray],
-    k: int = 10,
-    L: int = 5,
-    weighting: str = "tf-idf",
-    seed: int = 0,
-    max_iterations: int = 10,
-    max_fit: int | None = None,
+    params: VocabularyParams | None = None,
     progress: bool = False,
     meta: dict[str, Any] | None = None,
+    **overrides: Any,
 ) -> Vocabulary:
     """Train a vocabulary on the descriptors of training images (one (n_i, B) uint8 or (n_i, D) float array per
-    image; the IDF counts images). See `placerec.retrieval.dbow.kmeans` for the clustering."""
+    image; the IDF counts images) with ``params`` and/or keyword overrides of its fields (`ConfigError` for bad
+    ones). See `placerec.retrieval.dbow.kmeans` for the clustering."""
     from placerec.retrieval.dbow.kmeans import DescriptorSpace, build_tree
 
-    if k < 2 or L < 1:
-        raise ConfigError(f"vocabulary: k must be >= 2 and L >= 1, got k={k}, L={L}")
-    if weighting not in WEIGHTINGS:
-        raise ConfigError(f"vocabulary: unknown weighting {weighting!r}; allowed: {', '.join(WEIGHTINGS)}")
+    base = None if params is None else params.model_dump(include=set(VocabularyParams.model_fields))
+    p = resolve(VocabularyParams, base, overrides, where="vocabulary")
+    k, L, weighting, seed, max_iterations, max_fit = (
+        p.k,
+        p.L,
+        p.weighting,
+        p.seed,
+        p.max_iterations,
+        p.max_fit,
+    )
     parts = [np.asarray(p) for p in descriptors]
     if not parts or sum(p.shape[0] for p in parts) == 0:
         raise ScanDataError("vocabulary: no training descriptors")
