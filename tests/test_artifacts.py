@@ -22,6 +22,7 @@ import pytest
 from placerec.calibration.table import CalibrationTable
 from placerec.errors import ArtifactError
 from placerec.io.atomic import atomic_write, load_artifact, save_artifact
+from placerec.recognizer import PIPELINES, make_pipeline
 from placerec.retrieval.dbow.database import BowDatabase
 from placerec.retrieval.dbow.io import load_vocabulary, save_vocabulary
 from placerec.retrieval.dbow.vocabulary import Vocabulary, train_vocabulary
@@ -253,6 +254,19 @@ def test_corrupted_artifacts_raise_artifact_error(tmp_path, kind):
     make, load, save = KINDS[kind]
     good = tmp_path / "good.npz"
     make(good)
+    _fuzz(tmp_path, good, load, save, lambda arrays, header: SPECIFIC[kind], kind)
+
+
+def _fuzz(
+    tmp_path: Path,
+    good: Path,
+    load: Callable[[Path], object],
+    save: Callable[[object, Path], None],
+    specific: Callable[[dict[str, np.ndarray], dict], dict[str, Edit]],
+    kind: str,
+) -> None:
+    """Corrupt the artifact ``good`` every way (truncation, generic and ``specific`` edits, flipped bytes): each
+    copy must raise `ArtifactError` or load as the same artifact (its re-save equal to ``good``)."""
     load(good)  # the uncorrupted file loads
     data = good.read_bytes()
     members = _members(good)
@@ -260,7 +274,7 @@ def test_corrupted_artifacts_raise_artifact_error(tmp_path, kind):
     cases: dict[str, bytes | dict[str, bytes]] = {}
     for cut in (0, 1, 30, len(data) // 3, len(data) // 2, len(data) - 30, len(data) - 1):
         cases[f"truncated-at-{cut}"] = data[:cut]
-    for name, edit in {**_generic_edits(arrays), **SPECIFIC[kind]}.items():
+    for name, edit in {**_generic_edits(arrays), **specific(arrays, header)}.items():
         a, h = {k: v.copy() for k, v in arrays.items()}, json.loads(json.dumps(header))
         edit(a, h)
         cases[name] = _encode(a, h)
@@ -303,6 +317,104 @@ def test_corrupted_artifacts_raise_artifact_error(tmp_path, kind):
         f"{len(failures)} of {len(cases) + len(flips)} corruptions of a {kind}:\n" + "\n".join(failures)
     )
     assert loaded_flips < len(flips) // 2  # most flipped bytes are content, and caught
+
+
+# ---------------------------------------------------------------------------------- every pipeline's database
+@functools.cache
+def _sim_scans() -> tuple:
+    from placerec.sim import SimulatedSequence
+
+    seq = SimulatedSequence(world="town", sensor="vlp16", n_scans=3, seed=5, clutter=False)
+    return tuple(seq[i] for i in range(3)), seq.poses
+
+
+def _pipeline_edits(arrays: dict[str, np.ndarray], header: dict) -> dict[str, Edit]:
+    """Edits of a pipeline database: counts, widths and offsets x1000, NaN in every float array, repeated ids,
+    a header made with other parameters or with other values (strings, NaN) for its other metadata."""
+    edits: dict[str, Edit] = {"other-params": _meta("params", {"x": 1})}
+    for key in set(header["meta"]) - {"params"}:
+        edits[f"{key}-string"] = _meta(key, "x")
+        edits[f"{key}-nan"] = _meta(key, float("nan"))
+    for name, arr in arrays.items():
+        if arr.dtype.kind in "iu" and arr.size and any(w in name for w in ("count", "width", "offset")):
+            edits[f"{name}-x1000"] = _scaled(name, 1000)
+        if arr.dtype.kind == "f" and arr.size:
+            edits[f"{name}-nan"] = _nan_at(name)
+    if arrays["ids"].size > 1:
+        edits["ids-duplicated"] = lambda a, h: a.__setitem__("ids", np.full_like(a["ids"], a["ids"][0]))
+    return edits
+
+
+@pytest.mark.parametrize("name", sorted(PIPELINES))
+def test_corrupted_pipeline_databases_raise_artifact_error(tmp_path, name):
+    if name == "map-closures":
+        pytest.importorskip("map_closures", reason="the optional peer 'map-closures' is not installed")
+    scans, poses = _sim_scans()
+    rec = make_pipeline(name)
+    for i, scan in enumerate(scans):
+        rec.add(i, scan, poses[i])
+    good = tmp_path / "good.npz"
+    rec.save(good)
+
+    def load(path: Path) -> object:
+        fresh = make_pipeline(name)
+        fresh.load(path)
+        return fresh
+
+    _fuzz(tmp_path, good, load, lambda obj, p: obj.save(p), _pipeline_edits, name)
+
+
+# ------------------------------------------------------------------------------------------ description cache
+def _cache_edits() -> dict[str, Edit]:
+    return {
+        "values-changed": lambda a, h: a.__setitem__("descriptors", a["descriptors"] + 1),
+        "keypoints-cut": lambda a, h: a.__setitem__("keypoints", a["keypoints"][:-1]),
+        "array-dropped": lambda a, h: a.pop("width"),
+        "array-added": lambda a, h: a.__setitem__("extra", np.zeros(2)),
+        "dtype-changed": lambda a, h: a.__setitem__("descriptors", a["descriptors"].astype(np.float32)),
+        "describe_ms-nan": _meta("describe_ms", float("nan")),
+        "describe_ms-negative": _meta("describe_ms", -1.0),
+        "describe_ms-string": _meta("describe_ms", "7"),
+        "describe_ms-missing": lambda a, h: h["meta"].pop("describe_ms"),
+        "other-frontend": _meta("frontend", "orb-other"),
+        "no-digest": lambda a, h: h["meta"].pop("sha1"),
+        "version-2": lambda a, h: h.__setitem__("format_version", 2),
+    }
+
+
+def test_corrupt_description_cache_entries_are_recomputed_never_used(tmp_path, caplog):
+    from placerec.experiment.cache import DescriptionCache
+
+    rng = np.random.default_rng(7)
+    desc = {
+        "keypoints": rng.uniform(0, 500, (40, 2)).astype(np.float32),
+        "descriptors": rng.integers(0, 256, (40, 32), dtype=np.uint8),
+        "width": np.array(512, np.int64),
+    }
+    cache = DescriptionCache(tmp_path, "data")
+    cache.put("orb-front", 0, desc, 12.5)
+    path = tmp_path / "data" / "orb-front" / "000000.npz"
+    got, ms = cache.get("orb-front", 0)
+    assert ms == 12.5 and all(np.array_equal(got[k], desc[k]) for k in desc)
+    good = path.read_bytes()
+    arrays, header = _decode(_members(path))
+    cases = {"truncated": good[: len(good) // 2]}
+    for name, edit in _cache_edits().items():
+        a, h = {k: v.copy() for k, v in arrays.items()}, json.loads(json.dumps(header))
+        edit(a, h)
+        cases[name] = _encode(a, h)
+    used = []
+    for name, content in cases.items():
+        if isinstance(content, bytes):
+            path.write_bytes(content)
+        else:
+            _write_members(path, content)
+        caplog.clear()
+        if cache.get("orb-front", 0) is not None:
+            used.append(name)
+        elif "recomputing the unusable cache entry" not in caplog.text:
+            used.append(f"{name}: no warning")
+    assert not used, f"corrupt cache entries used: {used}"
 
 
 # -------------------------------------------------------------------------------------------- vocabularies

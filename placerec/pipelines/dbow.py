@@ -336,7 +336,7 @@ class VisualDBoW(VisualFrontend, Recognizer):
                 f"not {self.vocabulary_path} ({self.vocabulary.fingerprint})"
             )
         check_members(arrays, features_schema(self.vocabulary.descriptor_size, self.vocabulary.binary), path)
-        stored = stored_features(path, arrays)
+        stored = stored_features(path, arrays, self.params.image)
         self._reset()
         for scan_id, desc in stored:
             self.add_description(scan_id, desc)

@@ -45,7 +45,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from placerec.errors import ArtifactError, DependencyError, ScanDataError
+from placerec.errors import ArtifactError, DependencyError, ScanDataError, short_repr
 from placerec.intensity import normalize_intensity
 from placerec.io.artifact_schema import Member, check_counts, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
@@ -400,7 +400,7 @@ class KeypointVoting(Recognizer):
             raise ArtifactError(
                 f"{path}: database was made with other parameters: {header['meta'].get('params')}"
             )
-        _check_saved(path, arrays)
+        travelled = _check_saved(path, arrays, header["meta"])
         self._reset()
         self._places = None
         kp = np.split(arrays["keypoints"], np.cumsum(arrays["counts"])[:-1]) if len(arrays["ids"]) else []
@@ -422,7 +422,7 @@ class KeypointVoting(Recognizer):
                 strict=False,
             )
         )
-        self._travelled = float(header["meta"].get("travelled", 0.0))
+        self._travelled = travelled
         if self.params.places_db is not None:
             self._places = PlacesDatabase.load(self.params.places_db, features=self._features)
 
@@ -452,9 +452,23 @@ def _schema(dim: int) -> dict[str, Member]:
     }
 
 
-def _check_saved(path: str | Path, arrays: Mapping[str, np.ndarray]) -> None:
-    """What `_schema` cannot state: unique ids, counts adding up to their rows."""
+def _check_saved(path: str | Path, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> float:
+    """What `_schema` cannot state: unique ids, counts adding up to their rows, the distance travelled (a finite
+    number >= 0, reached by the buffer's non-decreasing distances); returns that distance."""
     check_unique(arrays["ids"], path, "ids")
     check_unique(arrays["buffer_ids"], path, "buffer_ids")
     check_counts(arrays["counts"], arrays["descriptors"].shape[0], path, "counts")
     check_counts(arrays["buffer_counts"], arrays["buffer_xyz"].shape[0], path, "buffer_counts")
+    travelled = meta.get("travelled", 0.0)
+    along = arrays["buffer_travelled"]
+    if (
+        not isinstance(travelled, int | float)
+        or isinstance(travelled, bool)
+        or not 0 <= travelled < np.inf
+        or (along.size and (along.min() < 0 or along.max() > travelled or (np.diff(along) < 0).any()))
+    ):
+        raise ArtifactError(
+            f"{path}: 'travelled' {short_repr(travelled)} and 'buffer_travelled' must be distances: finite, "
+            ">= 0, non-decreasing along the buffer and at most 'travelled'"
+        )
+    return float(travelled)

@@ -47,10 +47,14 @@ __all__ = [
     "features_schema",
     "stored_features",
     "check_saved_params",
+    "MAX_IMAGE_WIDTH",
 ]
 
 _KIND = "visual-hbst-db"
 _VERSION = 1
+#: Widest intensity image (px) a visual front end makes and a saved database may record (LiDARs have at most a
+#: few thousand columns); a wider one is a `ScanDataError` when described, an `ArtifactError` when loaded.
+MAX_IMAGE_WIDTH = 1 << 15
 
 
 class VisualFrontendParams(Params):
@@ -127,6 +131,11 @@ def describe_visual(scan: Scan, image_params: ImageParams, extractor: Any) -> De
             f"({inten.min()}..{inten.max()}); intensity images need varying intensity"
         )
     img = make_image(scan, image_params)
+    if img.image.shape[1] > MAX_IMAGE_WIDTH:
+        raise ScanDataError(
+            f"{scan.source or 'scan'}: visual front end: an intensity image {img.image.shape[1]} px wide is "
+            f"over {MAX_IMAGE_WIDTH} px (set image.width)"
+        )
     feats = extractor.extract(img.image)
     return {
         "keypoints": np.asarray(feats.keypoints, np.float32).reshape(-1, 2),
@@ -268,7 +277,7 @@ class VisualHBST(VisualFrontend, Recognizer):
         arrays, header = load_artifact(path, _KIND, (_VERSION,))
         check_saved_params(path, header, self.params)
         check_members(arrays, features_schema(self.extractor.descriptor_size, binary=True), path)
-        stored = stored_features(path, arrays)
+        stored = stored_features(path, arrays, self.params.image)
         self.tree = self._new_tree()
         self._keypoints, self._descriptors, self._width, self._order = {}, {}, {}, []
         for scan_id, desc in stored:
@@ -311,12 +320,19 @@ def features_schema(dim: int, binary: bool) -> dict[str, Member]:
     }
 
 
-def stored_features(path: str | Path, arrays: Mapping[str, np.ndarray]) -> list[tuple[int, Description]]:
+def stored_features(
+    path: str | Path, arrays: Mapping[str, np.ndarray], image: ImageParams
+) -> list[tuple[int, Description]]:
     """(id, description) of every image of a saved visual database whose arrays passed `features_schema`, after
-    checking that ids are unique, counts add up and keypoints lie in their images (`ArtifactError` otherwise)."""
+    checking that ids are unique, counts add up, widths are ``image.width`` (when set; else at most
+    `MAX_IMAGE_WIDTH`) and keypoints lie in their images (`ArtifactError` otherwise)."""
     ids, counts, widths, kp = arrays["ids"], arrays["counts"], arrays["widths"], arrays["keypoints"]
     check_unique(ids, path, "ids")
     check_counts(counts, kp.shape[0], path, "counts")
+    bad = widths != image.width if image.width is not None else widths > MAX_IMAGE_WIDTH
+    if bad.any():
+        expected = f"{image.width} (image.width)" if image.width is not None else f"at most {MAX_IMAGE_WIDTH}"
+        raise ArtifactError(f"{path}: 'widths' holds {int(widths[bad][0])} px; expected {expected}")
     u = kp[:, 0]  # sub-pixel positions may reach half a pixel past the border
     if ((u < -1) | (u > np.repeat(widths, counts))).any():
         raise ArtifactError(f"{path}: 'keypoints' lie outside their images ('widths')")
