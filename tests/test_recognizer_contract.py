@@ -15,8 +15,10 @@ from placerec.sim import SimulatedSequence
 from placerec.types import PlaceRecognizer, Scan
 
 NAMES = sorted(PIPELINES)
-#: Pipelines whose front end reads intensity only (geometry-only ones may match a scan with flat intensity).
-INTENSITY_ONLY = {"orb-hbst", "brisk-hbst", "orb-dbow", "surf-dbow"}
+#: Pipelines that use intensity: a scan whose valid points all have one intensity is a `ScanDataError` in them.
+#: The geometry-only ones (scan-context, shot-votes, fpfh-votes, map-closures) ignore intensity and match such a
+#: scan on its geometry, as any other.
+USES_INTENSITY = {"orb-hbst", "brisk-hbst", "orb-dbow", "surf-dbow", "ishot-votes"}
 
 
 def _make(name):
@@ -133,10 +135,19 @@ def test_degenerate_scans_give_no_candidates(built, scans):
     name, rec, _ = built
     for what, bad in _degenerate(scans[0]).items():
         assert _no_candidates(rec, bad), f"{name}: a {what} scan matched"
-    if name in INTENSITY_ONLY:
-        for value in (0.0, 0.5):
-            flat = replace(scans[1], intensity=np.full(len(scans[1]), value, np.float32))
-            assert _no_candidates(rec, flat), f"{name}: a scan of constant intensity {value} matched"
+
+
+def test_flat_intensity_is_refused_where_intensity_is_used_and_ignored_elsewhere(built, scans):
+    name, rec, _ = built
+    for value in (0.0, 0.5):
+        flat = replace(scans[1], intensity=np.full(len(scans[1]), value, np.float32))
+        if name in USES_INTENSITY:
+            with pytest.raises(ScanDataError, match="intensity of the valid points is constant"):
+                rec.query(flat, k=3)
+        else:
+            assert rec.query(flat, k=3)[0].match_id == 1, (
+                f"{name}: flat intensity changed the geometry's match"
+            )
 
 
 @pytest.mark.parametrize("name", ["scan-context", "orb-hbst", "ishot-votes", "map-closures"])

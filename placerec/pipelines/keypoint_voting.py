@@ -55,7 +55,7 @@ from placerec.three_d.descriptors import DESCRIPTOR_DIMS
 from placerec.three_d.features import FeatureParams, extract_features
 from placerec.three_d.keypoints import ISSParams
 from placerec.three_d.normals import NormalParams
-from placerec.three_d.places import PlacesDatabase
+from placerec.three_d.places import PlacesDatabase, merge_clouds
 from placerec.types import Candidate, Description, Scan, as_pose
 
 log = logging.getLogger(__name__)
@@ -232,8 +232,16 @@ class KeypointVoting(Recognizer):
 
     def describe(self, scan: Scan) -> Description:
         """Keypoints (K, 3), descriptors (K, D); with place aggregation also the voxelised cloud.
-        `ScanDataError` for a scan with too few valid points (`placerec.recognizer.require_points`)."""
-        require_points(scan, self.name)
+
+        `ScanDataError` for a scan with too few valid points (`placerec.recognizer.require_points`) and, with the
+        ISHOT descriptor, for one whose valid points all have the same intensity (or a non-finite one): every
+        intensity difference would be 0, so the intensity half of each descriptor would only repeat the geometry
+        and its scores would not be comparable with those of scans with intensity (a scan matched against itself
+        with flat intensity scores 0.3-0.4 instead of 1.0 on the simulator). SHOT and FPFH ignore intensity and
+        take such scans."""
+        ok = require_points(scan, self.name)
+        if self.params.descriptor == "ishot":
+            _require_intensity(scan, ok, self.name)
         scan = self._normalised(scan)
         try:
             lf = extract_features(scan, self._features)
@@ -315,13 +323,9 @@ class KeypointVoting(Recognizer):
             self._buffer.pop(0)
 
     def _describe_buffer(self, T_world_place: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        T_place_world = np.linalg.inv(T_world_place)
-        xyz, inten = [], []
-        for _, T, _, pts, it in self._buffer:
-            R = T_place_world @ T
-            xyz.append(pts.astype(np.float64) @ R[:3, :3].T + R[:3, 3])
-            inten.append(it)
-        cloud = Scan(np.concatenate(xyz), np.concatenate(inten), source="place")
+        cloud = merge_clouds(
+            T_world_place, [(T, Scan(pts, it)) for _, T, _, pts, it in self._buffer], "place"
+        )
         try:
             lf = extract_features(cloud, self._features)
         except ScanDataError as exc:
@@ -428,6 +432,18 @@ class KeypointVoting(Recognizer):
 
     def __len__(self) -> int:
         return len(self._ids)
+
+
+def _require_intensity(scan: Scan, valid: np.ndarray, where: str) -> None:
+    """`ScanDataError` unless the valid points' intensities are finite and not all equal."""
+    inten = scan.intensity[valid]
+    if not np.isfinite(inten).all() or float(inten.max()) == float(inten.min()):
+        src = f"{scan.source}: " if scan.source else ""
+        raise ScanDataError(
+            f"{src}{where}: the intensity of the valid points is constant or not finite "
+            f"({inten.min()}..{inten.max()}); ISHOT's intensity signature needs varying intensity "
+            "(use the 'shot' descriptor, pipeline shot-votes, for scans without it)"
+        )
 
 
 def _cat(parts: list[np.ndarray], empty: tuple[int, ...]) -> np.ndarray:
