@@ -58,18 +58,7 @@ class SlicedSequence:
 def _simulator(cfg: DatasetConfig) -> Sequence:
     from placerec.sim import SimulatedSequence
 
-    sim = cfg.simulator
-    return SimulatedSequence(
-        world=sim.world,
-        sensor=sim.sensor,
-        n_scans=sim.n_scans,
-        seed=sim.seed,
-        route=sim.route,
-        spacing=sim.spacing,
-        clutter=sim.clutter,
-        occluders=sim.occluders,
-        sensor_height=sim.sensor_height,
-    )
+    return SimulatedSequence(**cfg.simulator.model_dump())  # every simulator setting is a keyword of it
 
 
 def _path(cfg: DatasetConfig) -> Sequence:

@@ -13,16 +13,8 @@ def preprocess_params(cfg: PreprocessConfig) -> PreprocessParams:
     """`PreprocessParams` for a validated config section (intensity mode ``auto``: the sensor's default)."""
     ic = cfg.intensity
     spec = (
-        None
-        if ic.mode == "auto"
-        else IntensitySpec(mode=ic.mode, saturation=ic.saturation, percentile=ic.percentile)
+        None if ic.mode == "auto" else IntensitySpec(**ic.model_dump(include=set(IntensitySpec.model_fields)))
     )
     return PreprocessParams(
-        min_range=cfg.min_range,
-        max_range=cfg.max_range,
-        min_z=cfg.min_z,
-        max_z=cfg.max_z,
-        voxel_size=cfg.voxel_size,
-        intensity=spec,
-        calibration=ic.calibration,
+        **cfg.model_dump(exclude={"intensity"}), intensity=spec, calibration=ic.calibration
     )

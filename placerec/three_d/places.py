@@ -25,7 +25,7 @@ are read too.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -50,6 +50,7 @@ __all__ = [
     "PlacesDatabase",
     "partition_places",
     "place_cloud",
+    "merge_clouds",
     "build_places",
     "features_json",
 ]
@@ -147,25 +148,31 @@ def _prepared(scan: Scan, intensity: IntensityFn, max_range: float | None) -> Sc
     return scan if max_range is None else crop(scan, max_range=max_range)
 
 
+def merge_clouds(T_world_frame: np.ndarray, parts: Iterable[tuple[np.ndarray, Scan]], source: str) -> Scan:
+    """One cloud in the frame ``T_world_frame``: the points of every ``(T_world_scan, scan)`` pair (scans in their
+    sensor frames) mapped into it and concatenated, with their intensities (and rings when every scan has them);
+    the sensor is the first scan's."""
+    parts = list(parts)
+    if not parts:
+        raise ScanDataError(f"{source}: no scans to merge")
+    T_frame_world = np.linalg.inv(T_world_frame)
+    xyz = []
+    for T_world_scan, scan in parts:
+        T = T_frame_world @ T_world_scan
+        xyz.append(scan.xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3])
+    rings = [scan.ring for _, scan in parts]
+    return Scan(
+        np.concatenate(xyz),
+        np.concatenate([scan.intensity for _, scan in parts]),
+        ring=None if any(r is None for r in rings) else np.concatenate(rings),
+        sensor=parts[0][1].sensor,
+        source=source,
+    )
+
+
 def place_cloud(scans: dict[int, Scan], poses: np.ndarray, centre: int, members: np.ndarray) -> Scan:
     """The member scans' points (already prepared, sensor frames) mapped into the centre scan's frame."""
-    T_place_world = np.linalg.inv(poses[centre])
-    xyz, inten, rings = [], [], []
-    for j in members:
-        sc = scans[int(j)]
-        T = T_place_world @ poses[j]
-        xyz.append(sc.xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3])
-        inten.append(sc.intensity)
-        rings.append(sc.ring)
-    ring = None if any(r is None for r in rings) else np.concatenate(rings)
-    first = scans[int(members[0])]
-    return Scan(
-        np.concatenate(xyz).astype(np.float32),
-        np.concatenate(inten),
-        ring=ring,
-        sensor=first.sensor,
-        source=f"place@{centre}",
-    )
+    return merge_clouds(poses[centre], [(poses[j], scans[int(j)]) for j in members], f"place@{centre}")
 
 
 @dataclass
