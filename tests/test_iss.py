@@ -333,6 +333,10 @@ def test_descriptor_settings_reach_the_descriptor():
         FeatureParams(shot={"normalisation": "per_part"})
     with pytest.raises(ConfigError, match="'shot' takes SHOTOptions options, got FPFHOptions"):
         describe("shot", joint.points, joint.normals, None, joint.keypoint_indices, 7.0, FPFHOptions())
+    with pytest.raises(ScanDataError, match="ISHOT needs per-point intensity"):
+        describe("ishot", joint.points, joint.normals, None, joint.keypoint_indices)
+    shot, _ = describe("shot", joint.points, joint.normals, joint.intensity, joint.keypoint_indices)
+    assert shot.shape == (len(joint), 352)  # SHOT ignores the intensity it is given
 
 
 def test_errors_and_small_inputs():

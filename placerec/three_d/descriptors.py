@@ -13,6 +13,7 @@ descriptor's own settings model (`DESCRIPTOR_OPTIONS`; None = its defaults).
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 from pydantic import Field
@@ -42,10 +43,6 @@ class FPFHOptions(Params):
     )
 
 
-def _shot_params(support_radius: float, options: SHOTOptions | None) -> SHOTParams:
-    return SHOTParams(support_radius=support_radius, **(options or SHOTOptions()).model_dump())
-
-
 def describe_shot(
     points: np.ndarray,
     normals: np.ndarray,
@@ -53,25 +50,20 @@ def describe_shot(
     keypoint_indices: np.ndarray,
     support_radius: float = 7.0,
     options: SHOTOptions | None = None,
+    *,
+    with_intensity: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """SHOT (352-d)."""
-    return compute_shot(points, normals, keypoint_indices, _shot_params(support_radius, options))
-
-
-def describe_ishot(
-    points: np.ndarray,
-    normals: np.ndarray,
-    intensity: np.ndarray | None,
-    keypoint_indices: np.ndarray,
-    support_radius: float = 7.0,
-    options: SHOTOptions | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """ISHOT (1344-d); needs ``intensity`` in [0, 1]."""
-    if intensity is None:
+    """SHOT (352-d), or with ``with_intensity`` ISHOT (1344-d), which needs ``intensity`` in [0, 1]."""
+    if with_intensity and intensity is None:
         raise ScanDataError("ISHOT needs per-point intensity (calibrated, in [0, 1])")
+    params = SHOTParams(support_radius=support_radius, **(options or SHOTOptions()).model_dump())
     return compute_shot(
-        points, normals, keypoint_indices, _shot_params(support_radius, options), intensity=intensity
+        points, normals, keypoint_indices, params, intensity=intensity if with_intensity else None
     )
+
+
+#: ISHOT (1344-d): `describe_shot` with the intensity signature
+describe_ishot = partial(describe_shot, with_intensity=True)
 
 
 def describe_fpfh(
