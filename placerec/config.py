@@ -31,6 +31,7 @@ __all__ = [
     "OutputConfig",
     "ExperimentConfig",
     "load_config",
+    "read_config_file",
     "parse_config",
     "apply_overrides",
     "dump_default_config",
@@ -208,21 +209,22 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
     return data
 
 
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """The top-level mapping of a YAML config file (empty for an empty file), read with the limits of
+    `placerec.safe_yaml`; `ConfigError` naming the file if it is missing, not YAML or not a mapping."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    loaded = load_yaml_file(path)
+    if loaded is not None and not isinstance(loaded, dict):
+        raise ConfigError(f"{path}: the top level of a config must be a mapping, got {type(loaded).__name__}")
+    return loaded or {}
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> ExperimentConfig:
     """Load a YAML config (None = all defaults), apply overrides, validate. Raises `ConfigError`."""
-    data: dict[str, Any] = {}
-    origin = "<defaults>"
-    if path is not None:
-        path = Path(path)
-        origin = str(path)
-        if not path.is_file():
-            raise ConfigError(f"{path}: config file not found")
-        loaded = load_yaml_file(path)
-        if loaded is not None and not isinstance(loaded, dict):
-            raise ConfigError(
-                f"{path}: the top level of a config must be a mapping, got {type(loaded).__name__}"
-            )
-        data = loaded or {}
+    data = {} if path is None else read_config_file(path)
+    origin = "<defaults>" if path is None else str(path)
     if overrides:
         apply_overrides(data, overrides)
     return parse_config(data, origin)

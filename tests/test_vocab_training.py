@@ -37,3 +37,24 @@ def test_training_front_end_sections_are_validated_when_the_config_is_read(tmp_p
         isinstance(read.image, ImageParams) and read.image.width == 512 and read.feature_params.octaves == 2
     )
     assert isinstance(read, VocabularyParams) and (read.k, read.L, read.weighting) == (10, 5, "tf-idf")
+
+
+def test_training_configs_are_read_like_experiment_configs(tmp_path):
+    """One YAML config reader (`placerec.config.read_config_file`): same limits and messages for both kinds."""
+    from placerec.config import load_config
+
+    listed = tmp_path / "list.yaml"
+    listed.write_text("- features: orb\n")
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text(
+        "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(f"b{i}: &b{i} [*a, *a]\n" for i in range(200))
+    )
+    for load in (load_config, load_training_config):
+        with pytest.raises(
+            ConfigError, match="list.yaml: the top level of a config must be a mapping, got list"
+        ):
+            load(listed)
+        with pytest.raises(ConfigError, match="nope.yaml: config file not found"):
+            load(tmp_path / "nope.yaml")
+        with pytest.raises(ConfigError, match="bomb.yaml"):
+            load(bomb)

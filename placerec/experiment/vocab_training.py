@@ -32,14 +32,13 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from placerec.config import DatasetConfig, PreprocessConfig
+from placerec.config import DatasetConfig, PreprocessConfig, read_config_file
 from placerec.errors import ArtifactError, ConfigError
 from placerec.hashing import stable_hash
 from placerec.io.npz import read_npz_arrays
 from placerec.params import Params, resolve
 from placerec.pipelines.visual import VisualFrontendParams
 from placerec.retrieval.dbow.vocabulary import VocabularyParams
-from placerec.safe_yaml import load_yaml_file
 
 log = logging.getLogger(__name__)
 
@@ -89,14 +88,7 @@ class VocabTrainingConfig(VisualFrontendParams, VocabularyParams):
 
 def load_training_config(path: str | Path | None, **overrides: Any) -> VocabTrainingConfig:
     """Read a training config from YAML (None = defaults) with top-level overrides; `ConfigError` on bad keys."""
-    data: dict[str, Any] = {}
-    if path is not None:
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"{path}: no such config file")
-        data = load_yaml_file(path) or {}
-        if not isinstance(data, dict):
-            raise ConfigError(f"{path}: a training config must be a mapping")
+    data = {} if path is None else read_config_file(path)
     data.update({k: v for k, v in overrides.items() if v is not None})
     return resolve(VocabTrainingConfig, data, where=str(path or "training config"))
 
