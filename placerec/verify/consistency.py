@@ -1,0 +1,104 @@
+"""Geometric consistency grouping of 3D correspondences (ISHOT paper Sec. IV-F, V; PCL's
+``GeometricConsistencyGrouping``, recognition/impl/cg/geometric_consistency.hpp).
+
+A rigid motion keeps distances, so two correspondences ``(q_i, m_i)`` and ``(q_j, m_j)`` are consistent when
+``| |q_i - q_j| - |m_i - m_j| | <= consensus_resolution``. Correspondences are visited in order of quality
+(descriptor distance, best first). Each one not yet in a cluster seeds a cluster, which then takes, in the same
+order, every correspondence not yet in a cluster that is consistent with *all* its current members. A cluster is
+kept when it has at least ``min_cluster_size`` members (the paper's "minimum cluster size"); only then are its
+members taken, so those of a rejected cluster may still join a later one. PCL then runs a RANSAC on each kept
+cluster; here `placerec.verify.verify` runs `ransac_pose` on the largest cluster.
+
+The pairwise test is one vectorised (N, N) matrix; the greedy growth (inherently sequential: each new member
+narrows the set) is a Numba loop over its rows, O(N^2) in the worst case.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from placerec.errors import ScanDataError
+from placerec.verify.kabsch import check_pairs
+from placerec.verify.params import ConsistencyParams
+
+__all__ = ["consistency_matrix", "group_correspondences"]
+
+
+def consistency_matrix(src: np.ndarray, dst: np.ndarray, resolution: float) -> np.ndarray:
+    """(N, N) bool: pairs of correspondences whose source and destination distances differ by <= ``resolution``."""
+    s, d = check_pairs(src, dst)
+    ds = np.sqrt(np.maximum(_sqdist(s), 0.0))
+    dd = np.sqrt(np.maximum(_sqdist(d), 0.0))
+    return np.abs(ds - dd) <= resolution
+
+
+def _sqdist(p: np.ndarray) -> np.ndarray:
+    g = p @ p.T
+    n = np.diag(g)
+    return n[:, None] + n[None, :] - 2.0 * g
+
+
+@numba.njit(cache=True)
+def _grow(ok: np.ndarray, order: np.ndarray, min_size: int) -> np.ndarray:  # pragma: no cover - compiled
+    n = order.shape[0]
+    label = np.full(n, -1, dtype=np.int64)  # cluster id per correspondence (in input numbering)
+    alive = np.empty(n, dtype=np.bool_)
+    members = np.empty(n, dtype=np.int64)
+    n_clusters = 0
+    for a in range(n):
+        seed = order[a]
+        if label[seed] >= 0:
+            continue
+        for b in range(n):
+            alive[b] = ok[seed, b]
+        size = 1
+        members[0] = seed
+        for b in range(n):
+            j = order[b]
+            if j == seed or label[j] >= 0 or not alive[j]:
+                continue
+            members[size] = j
+            size += 1
+            for c in range(n):
+                alive[c] = alive[c] and ok[j, c]
+        if size >= min_size:
+            for k in range(size):
+                label[members[k]] = n_clusters
+            n_clusters += 1
+    return label
+
+
+def group_correspondences(
+    src: np.ndarray,
+    dst: np.ndarray,
+    quality: np.ndarray | None = None,
+    params: ConsistencyParams | None = None,
+) -> list[np.ndarray]:
+    """Consistent clusters of the pairs ``src[i] <-> dst[i]``: a list of index arrays (into the input, in visit
+    order), largest first; empty when no cluster reaches ``min_cluster_size``.
+
+    ``quality``: (N,) lower is better (descriptor distance); None visits the pairs in input order.
+    """
+    params = params or ConsistencyParams()
+    s, d = check_pairs(src, dst)
+    n = s.shape[0]
+    if quality is None:
+        order = np.arange(n, dtype=np.int64)
+    else:
+        q = np.asarray(quality, dtype=np.float64).reshape(-1)
+        if q.shape[0] != n or not np.isfinite(q).all():
+            raise ScanDataError(f"quality must hold {n} finite values, got shape {q.shape}")
+        order = np.argsort(q, kind="stable").astype(np.int64)
+    if n == 0:
+        return []
+    ok = consistency_matrix(s, d, params.consensus_resolution)
+    label = _grow(ok, order, params.min_cluster_size)
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n)
+    clusters = []
+    for c in range(int(label.max()) + 1):
+        idx = np.flatnonzero(label == c)
+        clusters.append(idx[np.argsort(rank[idx], kind="stable")])
+    clusters.sort(key=len, reverse=True)
+    return clusters

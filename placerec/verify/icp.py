@@ -1,0 +1,230 @@
+"""ICP refinement between two voxelised scans, through a well-kept library (small_gicp or Open3D).
+
+A scan is prepared once per role (`prepare_target` for the matched scan: voxel grid ``voxel_size``, normals /
+covariances, search tree; `prepare_source` for the query: the coarser ``source_voxel_size``, which sets the cost
+per candidate), so a pipeline that verifies k candidates prepares the query once and each database scan once.
+`refine` runs point-to-plane ICP (ISHOT paper Sec. IV-F; or small_gicp's GICP) from an initial ``T_target_source``
+and measures the result the same way for every backend (`alignment_stats`): the nearest target voxel of each
+transformed source voxel (``stats_points`` of them, evenly strided) gives the overlap ``fitness`` (share within ``fitness_distance``), the ``rmse`` of those
+distances, and the ISHOT paper's ICP residual (the mean squared nearest-neighbour distance, PCL's
+``getFitnessScore``) for the eps_ICP rule. ``docs/verification.md`` compares the backends.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from placerec.errors import DependencyError, ScanDataError
+from placerec.verify.params import IcpParams
+
+__all__ = [
+    "IcpCloud",
+    "IcpResult",
+    "prepare_source",
+    "prepare_target",
+    "refine",
+    "alignment_stats",
+    "as_points",
+]
+
+
+@dataclass(frozen=True)
+class IcpCloud:
+    """A voxelised scan ready for ICP: ``points`` (M, 3) float64, the backend's own cloud (and tree), the role
+    (``source`` or ``target``), the parameters it was made with and, for a target, a SciPy tree for the stats."""
+
+    points: np.ndarray
+    role: str
+    backend: str
+    voxel_size: float
+    native: Any
+    native_tree: Any = None
+    tree: cKDTree | None = None
+    prepare_ms: float = 0.0
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+@dataclass(frozen=True)
+class IcpResult:
+    """``T`` = T_target_source after ICP; overlap ``fitness`` in [0, 1], ``rmse`` (m) of the overlapping voxels,
+    ``residual`` (m^2, the eps_ICP quantity), iterations reported by the backend (-1 when it does not say)."""
+
+    T: np.ndarray
+    fitness: float
+    rmse: float
+    residual: float
+    iterations: int
+    ms: float
+
+
+def as_points(points: Any, what: str = "points") -> np.ndarray:
+    """(N, 3) float64 finite points from an array (extra columns such as intensity are dropped) or a `Scan`."""
+    xyz = getattr(points, "xyz", points)
+    p = np.asarray(xyz, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] < 3:
+        raise ScanDataError(f"{what} must be an (N, 3) array, got shape {p.shape}")
+    p = p[:, :3]
+    keep = np.isfinite(p).all(axis=1) & (np.abs(p).sum(axis=1) > 0)  # zeros are the invalid returns
+    return np.ascontiguousarray(p[keep])
+
+
+def _crop(p: np.ndarray, params: IcpParams) -> np.ndarray:
+    if params.max_range is None:
+        return p
+    return p[np.einsum("ni,ni->n", p, p) <= params.max_range**2]
+
+
+def _prepare(points: Any, params: IcpParams, voxel: float, role: str) -> IcpCloud:
+    t0 = time.perf_counter()
+    p = _crop(as_points(points, f"{role} scan"), params)
+    if p.shape[0] < params.normal_neighbors:
+        raise ScanDataError(
+            f"{role} scan: {p.shape[0]} valid points, at least {params.normal_neighbors} needed"
+        )
+    native_tree = None
+    if params.backend == "small_gicp":
+        sg = _small_gicp()
+        native, native_tree = sg.preprocess_points(
+            p,
+            downsampling_resolution=voxel,
+            num_neighbors=params.normal_neighbors,
+            num_threads=params.num_threads,
+        )
+        vox = np.asarray(native.points())[:, :3]
+    else:
+        o3d = _open3d()
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p)).voxel_down_sample(voxel)
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(params.normal_neighbors))
+        vox = np.asarray(pcd.points)
+        native = pcd
+        if params.backend == "open3d_t":
+            native = o3d.t.geometry.PointCloud.from_legacy(pcd)
+    vox = np.ascontiguousarray(vox, dtype=np.float64)
+    tree = cKDTree(vox) if role == "target" else None
+    ms = (time.perf_counter() - t0) * 1e3
+    return IcpCloud(vox, role, params.backend, voxel, native, native_tree, tree, ms)
+
+
+def prepare_target(points: Any, params: IcpParams | None = None) -> IcpCloud:
+    """The matched scan voxelised at ``voxel_size`` with normals and search trees."""
+    params = params or IcpParams()
+    return _prepare(points, params, params.voxel_size, "target")
+
+
+def prepare_source(points: Any, params: IcpParams | None = None) -> IcpCloud:
+    """The query scan voxelised at ``source_voxel_size`` (with normals / covariances for GICP)."""
+    params = params or IcpParams()
+    return _prepare(points, params, params.source_voxel_size, "source")
+
+
+def alignment_stats(
+    source: np.ndarray,
+    target: IcpCloud,
+    T: np.ndarray,
+    fitness_distance: float,
+    residual_max_range: float | None,
+    max_points: int | None = None,
+) -> tuple[float, float, float]:
+    """(fitness, rmse, residual) of ``source`` points moved by ``T`` against ``target`` (see module docstring),
+    measured on at most ``max_points`` of them (evenly strided; None = all)."""
+    if target.tree is None:
+        raise ScanDataError("alignment_stats needs a cloud made by prepare_target")
+    if max_points is not None and len(source) > max_points:
+        source = source[:: -(-len(source) // max_points)]
+    moved = source @ T[:3, :3].T + T[:3, 3]
+    d, _ = target.tree.query(moved, k=1)
+    close = d <= fitness_distance
+    n = max(len(d), 1)
+    fitness = float(close.sum()) / n
+    rmse = float(np.sqrt(np.mean(d[close] ** 2))) if close.any() else float("inf")
+    dr = d if residual_max_range is None else d[d <= residual_max_range]
+    residual = float(np.mean(dr**2)) if dr.size else float("inf")
+    return fitness, rmse, residual
+
+
+def refine(
+    source: IcpCloud,
+    target: IcpCloud,
+    init: np.ndarray,
+    params: IcpParams | None = None,
+    fitness_distance: float = 0.5,
+    residual_max_range: float | None = None,
+) -> IcpResult:
+    """ICP of ``source`` onto ``target`` from ``init`` (T_target_source, 4x4); see the module docstring."""
+    params = params or IcpParams()
+    if source.role != "source" or target.role != "target":
+        raise ScanDataError(f"refine needs a source and a target cloud, got {source.role} and {target.role}")
+    if source.backend != params.backend or target.backend != params.backend:
+        raise ScanDataError(
+            f"clouds prepared for {source.backend}/{target.backend}, ICP backend is {params.backend}"
+        )
+    T0 = np.asarray(init, dtype=np.float64)
+    if T0.shape != (4, 4) or not np.isfinite(T0).all():
+        raise ScanDataError(f"initial pose must be a finite 4x4 matrix, got shape {T0.shape}")
+    t0 = time.perf_counter()
+    if params.backend == "small_gicp":
+        sg = _small_gicp()
+        res = sg.align(
+            target.native,
+            source.native,
+            target.native_tree,
+            init_T_target_source=T0,
+            registration_type="PLANE_ICP" if params.method == "plane" else "GICP",
+            max_correspondence_distance=params.max_correspondence_distance,
+            num_threads=params.num_threads,
+            max_iterations=params.max_iterations,
+        )
+        T, iters = np.asarray(res.T_target_source, dtype=np.float64), int(res.iterations)
+    elif params.backend == "open3d":
+        reg = _open3d().pipelines.registration
+        res = reg.registration_icp(
+            source.native,
+            target.native,
+            params.max_correspondence_distance,
+            T0,
+            reg.TransformationEstimationPointToPlane(),
+            reg.ICPConvergenceCriteria(max_iteration=params.max_iterations),
+        )
+        T, iters = np.asarray(res.transformation, dtype=np.float64), -1
+    else:
+        o3d = _open3d()
+        treg = o3d.t.pipelines.registration
+        res = treg.icp(
+            source.native,
+            target.native,
+            params.max_correspondence_distance,
+            o3d.core.Tensor(T0),
+            treg.TransformationEstimationPointToPlane(),
+            treg.ICPConvergenceCriteria(max_iteration=params.max_iterations),
+        )
+        T, iters = res.transformation.numpy().astype(np.float64), int(res.num_iterations)
+    fitness, rmse, residual = alignment_stats(
+        source.points, target, T, fitness_distance, residual_max_range, params.stats_points
+    )
+    ms = (time.perf_counter() - t0) * 1e3  # ICP and its statistics
+    return IcpResult(T, fitness, rmse, residual, iters, ms)
+
+
+def _small_gicp() -> Any:
+    try:
+        import small_gicp
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise DependencyError(
+            "ICP backend 'small_gicp' needs the small_gicp package: pip install small_gicp"
+        ) from exc
+    return small_gicp
+
+
+def _open3d() -> Any:
+    try:
+        import open3d
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise DependencyError("ICP backend 'open3d' needs the open3d package: pip install open3d") from exc
+    return open3d

@@ -1,0 +1,126 @@
+"""Parameters of the verification stage: one strict `Params` model per step, composed in `VerifyParams`.
+
+Defaults come from the ISHOT paper (Guo et al. 2019, Sec. V: minimum cluster size 8, consensus resolution 7 m,
+eps_ICP 7 m^2, voxel 0.4 m) where it gives a value, otherwise from the measurements in ``docs/verification.md``.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from placerec.params import Params
+
+__all__ = ["RansacParams", "ConsistencyParams", "IcpParams", "ScoreParams", "VerifyParams"]
+
+
+class RansacParams(Params):
+    """RANSAC over minimal samples with closed-form Kabsch (6-DoF, 3 points) or yaw (4-DoF, 2 points) solutions."""
+
+    mode: Literal["6dof", "4dof"] = Field(
+        "6dof", description="6dof: full rigid pose; 4dof: x, y, z and yaw only (gravity-aligned sensors)"
+    )
+    inlier_threshold: float = Field(
+        0.6, gt=0, description="m; residual |T src - dst| of an inlier (ours: 1.5 x the paper's 0.4 m voxel)"
+    )
+    confidence: float = Field(
+        0.999, gt=0, lt=1, description="probability of drawing one all-inlier sample before stopping"
+    )
+    max_iterations: int = Field(2000, ge=1, description="most hypotheses drawn")
+    batch_size: int = Field(128, ge=1, description="hypotheses evaluated at once (vectorised)")
+    min_inliers: int = Field(3, ge=2, description="fewer inliers than this: no pose")
+    seed: int = Field(0, description="random generator seed (runs are deterministic)")
+
+
+class ConsistencyParams(Params):
+    """Geometric consistency grouping (ISHOT paper Sec. IV-F / PCL ``GeometricConsistencyGrouping``)."""
+
+    enabled: bool = Field(
+        False, description="group the correspondences before RANSAC (the ISHOT paper's 3D pipelines do)"
+    )
+    consensus_resolution: float = Field(
+        7.0, gt=0, description="m; ISHOT paper Sec. V ('consensus set resolution')"
+    )
+    min_cluster_size: int = Field(8, ge=1, description="ISHOT paper Sec. V ('minimum cluster size')")
+
+
+class IcpParams(Params):
+    """Point-to-plane ICP between the voxelised scans (``docs/verification.md`` says why small_gicp)."""
+
+    backend: Literal["small_gicp", "open3d", "open3d_t"] = Field(
+        "small_gicp",
+        description="small_gicp (measured fastest), open3d (legacy pipelines), open3d_t (tensor)",
+    )
+    method: Literal["plane", "gicp"] = Field(
+        "plane",
+        description="plane: point-to-plane (ISHOT paper Sec. IV-F); gicp: small_gicp's generalised ICP",
+    )
+    voxel_size: float = Field(
+        0.4, gt=0, description="m; voxel grid of the match (target) scan, ISHOT paper Sec. V-B"
+    )
+    source_voxel_size: float = Field(
+        1.0,
+        gt=0,
+        description="m; voxel grid of the query (source) scan: its size sets the ICP cost per candidate",
+    )
+    max_range: float | None = Field(
+        None,
+        gt=0,
+        description="m; points farther from the sensor are dropped before voxelising (None keeps all)",
+    )
+    normal_neighbors: int = Field(10, ge=3, description="neighbours for normals / covariances")
+    max_correspondence_distance: float = Field(1.0, gt=0, description="m; ICP correspondence gate")
+    max_iterations: int = Field(30, ge=1, description="ICP iterations at most")
+    num_threads: int = Field(1, ge=1, description="threads of the ICP backend")
+    stats_points: int = Field(
+        1000,
+        ge=1,
+        description="query voxels (evenly strided) on which fitness, RMSE and residual are measured",
+    )
+
+
+class ScoreParams(Params):
+    """The verified score and the acceptance rule (``docs/verification.md``, 'The verified score')."""
+
+    inlier_scale: float = Field(
+        10.0, gt=0, description="inlier term 1 - exp(-inliers / scale): 0.63 at 10 inliers, 0.95 at 30"
+    )
+    fitness_distance: float = Field(
+        0.5,
+        gt=0,
+        description="m; a query voxel overlaps when its nearest match voxel is this close after ICP",
+    )
+    min_score: float = Field(0.25, ge=0, le=1, description="accept when score >= min_score (measured)")
+    acceptance: Literal["score", "eps_icp", "both"] = Field(
+        "score", description="score: min_score; eps_icp: the ISHOT paper's rule; both: both must hold"
+    )
+    eps_icp: float = Field(
+        7.0, gt=0, description="m^2; ISHOT paper Sec. V: accept when the ICP residual is below eps_ICP"
+    )
+    eps_icp_max_range: float | None = Field(
+        None,
+        gt=0,
+        description="m; nearest-neighbour distances beyond this are left out of the eps_ICP residual (None: PCL's"
+        " getFitnessScore default, all points)",
+    )
+
+
+class VerifyParams(Params):
+    """All parameters of `placerec.verify.verify`."""
+
+    ransac: RansacParams = Field(default_factory=RansacParams, description="robust pose from correspondences")
+    consistency: ConsistencyParams = Field(
+        default_factory=ConsistencyParams, description="consistency grouping"
+    )
+    icp: IcpParams = Field(default_factory=IcpParams, description="refinement")
+    score: ScoreParams = Field(default_factory=ScoreParams, description="acceptance")
+    min_correspondences: int = Field(
+        3, ge=2, description="fewer correspondences (after grouping) than this: rejected without ICP"
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> VerifyParams:
+        if self.icp.method == "gicp" and self.icp.backend != "small_gicp":
+            raise ValueError("icp.method 'gicp' needs icp.backend 'small_gicp'")
+        return self

@@ -1,0 +1,46 @@
+"""The verified score: one number in [0, 1] with the same meaning in every pipeline, and the acceptance rule.
+
+    score = (1 - exp(-inliers / inlier_scale)) * fitness * (1 - rmse / fitness_distance)
+
+* the inlier term saturates: 0.63 at ``inlier_scale`` (10) RANSAC inliers, 0.95 at 3x; it is 1 when the
+  candidate is verified by ICP alone (no correspondences, e.g. Scan Context's yaw as the initial guess);
+* ``fitness``: the share of the query's voxels with a match voxel within ``fitness_distance`` after ICP (overlap);
+* the RMSE term: 1 for a perfect fit, 0 when the overlapping voxels are on average ``fitness_distance`` away (the
+  RMSE is over those voxels, so it never exceeds that distance).
+
+Each term is in [0, 1] and a candidate scores high only when all three agree. ``acceptance="eps_icp"`` applies
+the ISHOT paper's rule instead (ICP residual < eps_ICP = 7 m^2), ``"both"`` requires both.
+"""
+
+from __future__ import annotations
+
+import math
+
+from placerec.verify.params import ScoreParams
+
+__all__ = ["verified_score", "is_accepted"]
+
+
+def verified_score(
+    inliers: int | None, fitness: float, rmse: float, params: ScoreParams | None = None
+) -> float:
+    """The score of the module docstring; ``inliers=None`` (ICP only) makes the inlier term 1; NaN inputs give 0."""
+    params = params or ScoreParams()
+    if not (math.isfinite(fitness) and math.isfinite(rmse)):
+        return 0.0
+    inlier_term = 1.0 if inliers is None else 1.0 - math.exp(-max(inliers, 0) / params.inlier_scale)
+    fit_term = min(max(fitness, 0.0), 1.0)
+    rmse_term = min(max(1.0 - rmse / params.fitness_distance, 0.0), 1.0)
+    return inlier_term * fit_term * rmse_term
+
+
+def is_accepted(score: float, residual: float, params: ScoreParams | None = None) -> bool:
+    """The acceptance rule chosen by ``params.acceptance`` (see the module docstring)."""
+    params = params or ScoreParams()
+    by_score = score >= params.min_score and score > 0.0
+    by_eps = math.isfinite(residual) and residual < params.eps_icp
+    if params.acceptance == "score":
+        return by_score
+    if params.acceptance == "eps_icp":
+        return by_eps
+    return by_score and by_eps

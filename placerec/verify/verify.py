@@ -1,0 +1,200 @@
+"""`verify`: the one verification stage every pipeline calls for a retrieved candidate.
+
+correspondences (query keypoints <-> match keypoints)
+  -> optional geometric consistency grouping (ISHOT paper; the largest cluster is kept)
+  -> RANSAC (6-DoF or 4-DoF) -> ``T_match_query`` initial guess
+  -> ICP between the voxelised scans (small_gicp point-to-plane by default)
+  -> verified score in [0, 1] and acceptance (`placerec.verify.score`).
+
+Without correspondences (`verify_icp`), ICP starts from the given initial guess (e.g. Scan Context's yaw).
+``T_match_query`` maps query points into the match scan's frame (`placerec.types` conventions), so that
+``T_world_query ~= T_world_match @ T_match_query``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from placerec.errors import ScanDataError
+from placerec.verify.consistency import group_correspondences
+from placerec.verify.icp import IcpCloud, prepare_source, prepare_target, refine
+from placerec.verify.kabsch import check_pairs
+from placerec.verify.params import VerifyParams
+from placerec.verify.ransac import ransac_pose
+from placerec.verify.score import is_accepted, verified_score
+
+__all__ = ["Verification", "verify", "verify_icp", "as_source", "as_target"]
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The outcome of verifying one candidate.
+
+    ``T_match_query``: 4x4 (the ICP result; the RANSAC pose, or the initial guess, when rejected before ICP).
+    ``score`` in [0, 1] (0 when rejected before ICP), ``accepted`` by ``params.score.acceptance``.
+    ``inliers``: RANSAC inliers (None for ICP-only), ``correspondences``: pairs given (after grouping: in the
+    largest cluster). ``fitness``, ``rmse`` (m), ``residual`` (m^2, the eps_ICP quantity): ICP statistics (NaN
+    when ICP did not run). ``rejected_at``: the stage that ended it early (``grouping``, ``ransac``) or None.
+    ``timings_ms``: per stage (``prepare``, ``grouping``, ``ransac``, ``icp``, ``total``).
+    """
+
+    T_match_query: np.ndarray
+    score: float
+    accepted: bool
+    inliers: int | None
+    correspondences: int
+    fitness: float
+    rmse: float
+    residual: float
+    ransac_iterations: int = 0
+    icp_iterations: int = 0
+    rejected_at: str | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Scalars only (for a Candidate's ``extra`` or a CSV row)."""
+        return {
+            "score": self.score,
+            "accepted": self.accepted,
+            "inliers": self.inliers,
+            "correspondences": self.correspondences,
+            "fitness": self.fitness,
+            "rmse": self.rmse,
+            "residual": self.residual,
+            "ransac_iterations": self.ransac_iterations,
+            "icp_iterations": self.icp_iterations,
+            "rejected_at": self.rejected_at,
+            **{f"ms_{k}": v for k, v in self.timings_ms.items()},
+        }
+
+
+def as_source(query: Any, params: VerifyParams | None = None) -> IcpCloud:
+    """The query scan prepared for ICP (pass the result to several `verify` calls to prepare it once)."""
+    params = params or VerifyParams()
+    if isinstance(query, IcpCloud):
+        _check_cloud(query, "source", params)
+        return query
+    return prepare_source(query, params.icp)
+
+
+def as_target(match: Any, params: VerifyParams | None = None) -> IcpCloud:
+    """The matched scan prepared for ICP (cache it per database scan)."""
+    params = params or VerifyParams()
+    if isinstance(match, IcpCloud):
+        _check_cloud(match, "target", params)
+        return match
+    return prepare_target(match, params.icp)
+
+
+def _check_cloud(cloud: IcpCloud, role: str, params: VerifyParams) -> None:
+    voxel = params.icp.voxel_size if role == "target" else params.icp.source_voxel_size
+    if cloud.role != role or cloud.backend != params.icp.backend or cloud.voxel_size != voxel:
+        raise ScanDataError(
+            f"a {cloud.role} cloud for {cloud.backend} at {cloud.voxel_size} m was given where a {role} cloud for"
+            f" {params.icp.backend} at {voxel} m is needed"
+        )
+
+
+def verify(
+    query_pts: Any,
+    match_pts: Any,
+    src_kp_xyz: np.ndarray | None,
+    dst_kp_xyz: np.ndarray | None,
+    init: np.ndarray | None = None,
+    params: VerifyParams | None = None,
+    quality: np.ndarray | None = None,
+) -> Verification:
+    """Verify a candidate: ``query_pts`` / ``match_pts`` are the two scans ((N, 3) arrays, `Scan` objects or
+    clouds from `as_source` / `as_target`); ``src_kp_xyz[i]`` (query frame) corresponds to ``dst_kp_xyz[i]``
+    (match frame). ``quality`` (lower is better, e.g. descriptor distance) orders the consistency grouping.
+    ``init`` (T_match_query) is the ICP start when no correspondences are given (None: identity); with
+    correspondences the RANSAC pose is the start.
+    """
+    params = params or VerifyParams()
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    source = as_source(query_pts, params)
+    target = as_target(match_pts, params)
+    timings["prepare"] = (time.perf_counter() - t_start) * 1e3
+    T0 = _initial(init)
+    inliers: int | None = None
+    n_corr, ransac_iters = 0, 0
+    if src_kp_xyz is not None or dst_kp_xyz is not None:
+        if src_kp_xyz is None or dst_kp_xyz is None:
+            raise ScanDataError("verify: give both keypoint arrays (src_kp_xyz and dst_kp_xyz) or neither")
+        src, dst = check_pairs(src_kp_xyz, dst_kp_xyz)
+        n_corr = src.shape[0]
+        t = time.perf_counter()
+        if params.consistency.enabled and n_corr:
+            clusters = group_correspondences(src, dst, quality, params.consistency)
+            keep = clusters[0] if clusters else np.zeros(0, dtype=np.int64)
+            src, dst, n_corr = src[keep], dst[keep], len(keep)
+        timings["grouping"] = (time.perf_counter() - t) * 1e3
+        if n_corr < params.min_correspondences:
+            return _rejected(T0, 0, n_corr, 0, "grouping", timings, t_start)
+        t = time.perf_counter()
+        rr = ransac_pose(src, dst, params.ransac)
+        timings["ransac"] = (time.perf_counter() - t) * 1e3
+        inliers, ransac_iters = rr.n_inliers, rr.iterations
+        if not rr.success:
+            return _rejected(T0, inliers, n_corr, ransac_iters, "ransac", timings, t_start)
+        T0 = rr.T
+    sp = params.score
+    icp = refine(source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range)
+    timings["icp"] = icp.ms
+    score = verified_score(inliers, icp.fitness, icp.rmse, sp)
+    timings["total"] = (time.perf_counter() - t_start) * 1e3
+    return Verification(
+        T_match_query=icp.T,
+        score=score,
+        accepted=is_accepted(score, icp.residual, sp),
+        inliers=inliers,
+        correspondences=n_corr,
+        fitness=icp.fitness,
+        rmse=icp.rmse,
+        residual=icp.residual,
+        ransac_iterations=ransac_iters,
+        icp_iterations=icp.iterations,
+        timings_ms=timings,
+    )
+
+
+def verify_icp(
+    query_pts: Any, match_pts: Any, init: np.ndarray | None = None, params: VerifyParams | None = None
+) -> Verification:
+    """Verify by ICP alone from ``init`` (T_match_query, e.g. Scan Context's yaw rotation); see `verify`."""
+    return verify(query_pts, match_pts, None, None, init=init, params=params)
+
+
+def _initial(init: np.ndarray | None) -> np.ndarray:
+    if init is None:
+        return np.eye(4)
+    T = np.asarray(init, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ScanDataError(f"init must be a finite 4x4 pose, got shape {T.shape}")
+    R = T[:3, :3]
+    if (
+        not np.allclose(T[3], [0, 0, 0, 1])
+        or not np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+        or np.linalg.det(R) < 0
+    ):
+        raise ScanDataError("init must be a rigid transform (orthonormal rotation, last row 0 0 0 1)")
+    return T
+
+
+def _rejected(
+    T: np.ndarray,
+    inliers: int,
+    n_corr: int,
+    iters: int,
+    stage: str,
+    timings: dict[str, float],
+    t_start: float,
+) -> Verification:
+    timings["total"] = (time.perf_counter() - t_start) * 1e3
+    nan = float("nan")
+    return Verification(T, 0.0, False, inliers, n_corr, nan, nan, nan, iters, 0, stage, timings)

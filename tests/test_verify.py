@@ -1,0 +1,308 @@
+"""Tests of placerec.verify: Kabsch/yaw closed forms, RANSAC, consistency grouping, ICP and the verified score."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from placerec.errors import ConfigError, ScanDataError
+from placerec.types import relative_pose
+from placerec.verify import (
+    ConsistencyParams,
+    RansacParams,
+    ScoreParams,
+    VerifyParams,
+    group_correspondences,
+    kabsch_batch,
+    ransac_pose,
+    required_iterations,
+    rigid_fit,
+    verified_score,
+    verify,
+    verify_icp,
+)
+
+
+def _pose(rotvec_deg, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.deg2rad(rotvec_deg)).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def _apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+# ---------------------------------------------------------------- Kabsch
+
+
+def test_kabsch_recovers_a_hand_made_transform():
+    src = np.array([[0.0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3], [1, 1, 1]])
+    # 90 deg about z, then translation (1, 2, 3): (x, y, z) -> (-y + 1, x + 2, z + 3)
+    dst = np.column_stack([-src[:, 1] + 1, src[:, 0] + 2, src[:, 2] + 3])
+    T = rigid_fit(src, dst)
+    expected = np.array([[0.0, -1, 0, 1], [1, 0, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])
+    np.testing.assert_allclose(T, expected, atol=1e-12)
+
+
+def test_kabsch_weights_select_the_trusted_pairs():
+    rng = np.random.default_rng(1)
+    src = rng.normal(size=(10, 3)) * 5
+    T_true = _pose([10, -20, 30], [1, -2, 0.5])
+    dst = _apply(T_true, src)
+    dst[7:] += 4.0  # three corrupted pairs, weight 0
+    w = np.r_[np.ones(7), np.zeros(3)]
+    np.testing.assert_allclose(rigid_fit(src, dst, w), T_true, atol=1e-10)
+    assert not np.allclose(rigid_fit(src, dst), T_true, atol=1e-3)
+
+
+def test_kabsch_never_returns_a_reflection():
+    # Planar points mirrored through z = 0 plus noise: the plain V U^T of the cross covariance is a reflection
+    # (det -1); the sign-corrected solution is the best proper rotation.
+    rng = np.random.default_rng(2)
+    src = np.column_stack([rng.normal(size=(20, 2)) * 3, rng.normal(size=20) * 0.3])
+    dst = src * np.array([1.0, 1.0, -1.0])
+    a, b = src - src.mean(0), dst - dst.mean(0)
+    U, _, Vt = np.linalg.svd(a.T @ b)
+    assert np.linalg.det(Vt.T @ U.T) < 0  # the naive answer is a reflection
+    R, _ = kabsch_batch(src[None], dst[None])
+    assert np.linalg.det(R[0]) == pytest.approx(1.0)
+    np.testing.assert_allclose(R[0] @ R[0].T, np.eye(3), atol=1e-12)
+    # it is the best proper rotation: SciPy's independent solver (quaternion method) agrees
+    ref, _ = Rotation.align_vectors(b, a)
+    np.testing.assert_allclose(R[0], ref.as_matrix(), atol=1e-8)
+
+
+def test_kabsch_batch_solves_every_hypothesis():
+    rng = np.random.default_rng(3)
+    Ts = [_pose(rng.normal(size=3) * 40, rng.normal(size=3) * 5) for _ in range(50)]
+    src = rng.normal(size=(50, 3, 3)) * 4
+    dst = np.stack([_apply(T, s) for T, s in zip(Ts, src, strict=True)])
+    R, t = kabsch_batch(src, dst)
+    for h, T in enumerate(Ts):
+        np.testing.assert_allclose(R[h], T[:3, :3], atol=1e-9)
+        np.testing.assert_allclose(t[h], T[:3, 3], atol=1e-9)
+
+
+def test_yaw_closed_form_is_the_least_squares_yaw():
+    rng = np.random.default_rng(4)
+    src = rng.normal(size=(40, 3)) * 6
+    T_true = _pose([0, 0, 73], [3, -1, 0.4])
+    dst = _apply(T_true, src) + rng.normal(size=(40, 3)) * 0.05
+    T = rigid_fit(src, dst, mode="4dof")
+    cost = lambda M: np.sum((_apply(M, src) - dst) ** 2)  # noqa: E731
+    for d in (-0.2, 0.2):  # a nearby yaw, each with its best translation, costs more
+        M = _pose([0, 0, np.rad2deg(np.arctan2(T[1, 0], T[0, 0])) + d], [0, 0, 0])
+        M[:3, 3] = dst.mean(0) - M[:3, :3] @ src.mean(0)
+        assert cost(M) > cost(T)
+    assert np.rad2deg(np.arctan2(T[1, 0], T[0, 0])) == pytest.approx(73, abs=0.2)
+
+
+def test_rigid_fit_rejects_bad_input():
+    with pytest.raises(ScanDataError):
+        rigid_fit(np.zeros((2, 3)), np.zeros((2, 3)))
+    with pytest.raises(ScanDataError):
+        rigid_fit(np.zeros((4, 3)), np.zeros((5, 3)))
+    with pytest.raises(ScanDataError):
+        rigid_fit(np.full((4, 3), np.nan), np.zeros((4, 3)))
+    with pytest.raises(ScanDataError):
+        rigid_fit(np.zeros((4, 2)), np.zeros((4, 2)))
+
+
+# ---------------------------------------------------------------- RANSAC
+
+
+def _outlier_set(n=200, outlier_ratio=0.7, T=None, noise=0.05, seed=5):
+    rng = np.random.default_rng(seed)
+    T = _pose([5, -3, 140], [4.0, -2.5, 0.3]) if T is None else T
+    src = rng.uniform(-30, 30, size=(n, 3)) * [1, 1, 0.15]
+    dst = _apply(T, src) + rng.normal(size=(n, 3)) * noise
+    bad = rng.permutation(n)[: int(outlier_ratio * n)]
+    dst[bad] = rng.uniform(-30, 30, size=(len(bad), 3)) * [1, 1, 0.15]
+    good = np.ones(n, dtype=bool)
+    good[bad] = False
+    return src, dst, T, good
+
+
+def test_ransac_recovers_a_pose_with_70_percent_outliers():
+    src, dst, T, good = _outlier_set()
+    r = ransac_pose(src, dst, RansacParams(inlier_threshold=0.3))
+    assert r.success
+    np.testing.assert_allclose(r.T[:3, 3], T[:3, 3], atol=0.05)
+    angle = np.rad2deg(Rotation.from_matrix(r.T[:3, :3] @ T[:3, :3].T).magnitude())
+    assert angle < 0.3
+    assert (r.inliers == good).mean() > 0.98
+    # adaptive stop: far fewer hypotheses than the cap at w = 0.3 (about 253 for s = 3, confidence 0.999)
+    assert r.iterations <= 2 * 128 + required_iterations(0.3, 3, 0.999)
+    assert r.iterations < RansacParams().max_iterations
+
+
+def test_required_iterations_formula():
+    assert required_iterations(0.5, 3, 0.99) == pytest.approx(np.log(0.01) / np.log(1 - 0.125))
+    assert required_iterations(1.0, 3, 0.99) == 1.0
+    assert required_iterations(0.0, 3, 0.99) == float("inf")
+
+
+def test_ransac_4dof_keeps_roll_and_pitch_exactly_zero():
+    T = _pose([0, 0, -35], [2.0, 1.0, -0.2])
+    src, dst, _, _ = _outlier_set(T=T, outlier_ratio=0.5, seed=6)
+    tilted = _pose([2.0, -1.5, 0], [0, 0, 0])  # a small tilt the 4-DoF model must not follow
+    dst = _apply(tilted, dst)
+    r = ransac_pose(src, dst, RansacParams(mode="4dof", inlier_threshold=1.0))
+    assert r.success
+    R = r.T[:3, :3]
+    assert R[2, 0] == 0.0 and R[2, 1] == 0.0 and R[0, 2] == 0.0 and R[1, 2] == 0.0 and R[2, 2] == 1.0
+    assert np.rad2deg(np.arctan2(R[1, 0], R[0, 0])) == pytest.approx(-35, abs=1.0)
+
+
+def test_ransac_without_a_consistent_set_fails_cleanly():
+    rng = np.random.default_rng(7)
+    r = ransac_pose(rng.normal(size=(2, 3)), rng.normal(size=(2, 3)))
+    assert not r.success and r.n_inliers == 0
+    with pytest.raises(ScanDataError):
+        ransac_pose(np.zeros((5, 3)), np.zeros((4, 3)))
+
+
+def test_ransac_params_are_strict():
+    with pytest.raises(ConfigError):
+        RansacParams(inlier_threshold=-1.0)
+    with pytest.raises(ConfigError):
+        RansacParams(mode="5dof")
+    with pytest.raises(ConfigError):
+        VerifyParams(ransac={"inlier_treshold": 0.3})
+    with pytest.raises(ConfigError):
+        VerifyParams(icp={"backend": "open3d", "method": "gicp"})
+
+
+# ---------------------------------------------------------------- consistency grouping
+
+
+def test_consistency_grouping_on_a_hand_made_case():
+    # Four correspondences move rigidly (a translation by (10, 0, 0)); two are wrong: their distances to the
+    # others change by more than the resolution. Min cluster 3, resolution 1 m.
+    src = np.array([[0.0, 0, 0], [4, 0, 0], [0, 4, 0], [4, 4, 0], [2, 2, 0], [0, 8, 0]])
+    dst = src + [10.0, 0, 0]
+    dst[4] = [30.0, 2, 0]  # far from where it should be
+    dst[5] = [10.0, 30, 0]
+    params = ConsistencyParams(consensus_resolution=1.0, min_cluster_size=3)
+    clusters = group_correspondences(src, dst, params=params)
+    assert len(clusters) == 1
+    assert sorted(clusters[0].tolist()) == [0, 1, 2, 3]
+    # the quality order decides the visit order (best first) and the order inside the cluster
+    clusters = group_correspondences(src, dst, quality=[4.0, 3, 2, 1, 0.5, 0.1], params=params)
+    assert clusters[0].tolist() == [3, 2, 1, 0]
+    # minimum size: a 4-member cluster is rejected when 5 are needed
+    big = ConsistencyParams(consensus_resolution=1.0, min_cluster_size=5)
+    assert group_correspondences(src, dst, params=big) == []
+
+
+def test_consistency_grouping_growth_needs_all_members():
+    src = np.array([[0.0, 0, 0], [3, 0, 0], [0, 3, 0]])
+    one = ConsistencyParams(consensus_resolution=1.0, min_cluster_size=3)
+    # c moved off the plane: |a-c| 3 -> 3.23, |b-c| 4.24 -> 4.41, both within 1 m: one cluster of three
+    dst = np.array([[0.0, 0, 0], [3, 0, 0], [0, 3, 1.2]])
+    assert [sorted(c.tolist()) for c in group_correspondences(src, dst, params=one)] == [[0, 1, 2]]
+    # c consistent with a (3 -> 3.35) but not with b (4.24 -> 5.41): the cluster grown from a, b leaves c out
+    dst = np.array([[0.0, 0, 0], [3, 0, 0], [-1.5, 3, 0]])
+    two = ConsistencyParams(consensus_resolution=1.0, min_cluster_size=2)
+    assert [c.tolist() for c in group_correspondences(src, dst, params=two)] == [[0, 1]]
+    assert group_correspondences(src, dst, params=one) == []
+
+
+def test_consistency_grouping_paper_defaults():
+    p = ConsistencyParams()
+    assert p.min_cluster_size == 8 and p.consensus_resolution == 7.0
+    assert ScoreParams().eps_icp == 7.0
+
+
+# ---------------------------------------------------------------- score
+
+
+def test_verified_score_formula():
+    p = ScoreParams(inlier_scale=10.0, fitness_distance=0.5)
+    assert verified_score(10, 0.8, 0.1, p) == pytest.approx((1 - np.exp(-1)) * 0.8 * 0.8)
+    assert verified_score(None, 0.5, 0.25, p) == pytest.approx(0.25)
+    assert verified_score(0, 0.9, 0.1, p) == 0.0
+    assert verified_score(50, float("nan"), 0.1, p) == 0.0
+    assert 0.0 <= verified_score(10**6, 1.0, 0.0, p) <= 1.0
+
+
+# ---------------------------------------------------------------- ICP and verify on simulated scans
+
+
+@pytest.fixture(scope="module")
+def sim_scans():
+    from placerec.sim import SimulatedSequence
+
+    seq = SimulatedSequence("town", "os1-64", seed=0, n_scans=40)
+    return seq, {i: seq[i].xyz for i in (10, 13, 36)}
+
+
+def test_icp_converges_within_5cm_and_the_pose_convention_holds(sim_scans):
+    seq, scans = sim_scans
+    T_gt = relative_pose(
+        seq.poses[10], seq.poses[13]
+    )  # query 13, match 10: maps query points into the match frame
+    assert np.linalg.norm(T_gt[:3, 3]) > 2.0  # a real translation, so a swapped convention cannot pass
+    init = _pose([0.5, -0.5, 3.0], [0.4, -0.3, 0.1]) @ T_gt
+    v = verify_icp(scans[13], scans[10], init=init)
+    err = np.linalg.inv(T_gt) @ v.T_match_query
+    assert np.linalg.norm(err[:3, 3]) < 0.05
+    assert np.rad2deg(Rotation.from_matrix(err[:3, :3]).magnitude()) < 0.5
+    # T_world_query ~= T_world_match @ T_match_query
+    np.testing.assert_allclose(seq.poses[10] @ v.T_match_query, seq.poses[13], atol=0.05)
+    assert v.accepted and 0.0 < v.score <= 1.0 and v.inliers is None
+    # the inverse direction would be wrong by twice the translation
+    assert np.linalg.norm(np.linalg.inv(T_gt)[:3, 3] - v.T_match_query[:3, 3]) > 4.0
+
+
+def test_verify_with_correspondences_recovers_the_pose(sim_scans):
+    seq, scans = sim_scans
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    rng = np.random.default_rng(8)
+    q = scans[13][rng.choice(len(scans[13]), 300, replace=False)].astype(np.float64)
+    q = q[np.abs(q).sum(1) > 0]
+    m = _apply(T_gt, q) + rng.normal(size=q.shape) * 0.1
+    bad = rng.random(len(q)) < 0.6
+    m[bad] = rng.permutation(m[bad])  # 60 % wrong matches
+    v = verify(scans[13], scans[10], q, m)
+    err = np.linalg.inv(T_gt) @ v.T_match_query
+    assert np.linalg.norm(err[:3, 3]) < 0.05
+    assert v.accepted and v.inliers >= 0.3 * len(q)
+    assert set(v.timings_ms) >= {"prepare", "ransac", "icp", "total"}
+
+
+def test_verify_rejects_a_wrong_candidate(sim_scans):
+    seq, scans = sim_scans
+    # scans 10 and 36 are ~26 m apart on the route: different places; give RANSAC random correspondences
+    assert np.linalg.norm(seq.poses[10][:3, 3] - seq.poses[36][:3, 3]) > 20
+    rng = np.random.default_rng(9)
+    q = scans[36][rng.choice(len(scans[36]), 200)].astype(np.float64)
+    m = scans[10][rng.choice(len(scans[10]), 200)].astype(np.float64)
+    v = verify(scans[36], scans[10], q, m)
+    assert not v.accepted
+    # ICP alone from the identity does not accept it either
+    assert not verify_icp(scans[36], scans[10]).accepted
+
+
+def test_verify_rejects_early_without_a_consistent_cluster(sim_scans):
+    _, scans = sim_scans
+    rng = np.random.default_rng(10)
+    q, m = rng.uniform(-40, 40, (30, 3)), rng.uniform(-40, 40, (30, 3))
+    params = VerifyParams(consistency={"enabled": True, "consensus_resolution": 0.5})
+    v = verify(scans[13], scans[10], q, m, params=params)
+    assert not v.accepted and v.rejected_at == "grouping" and v.score == 0.0
+
+
+def test_verify_rejects_bad_input(sim_scans):
+    _, scans = sim_scans
+    with pytest.raises(ScanDataError):
+        verify(scans[13], scans[10], np.zeros((5, 3)), None)
+    with pytest.raises(ScanDataError):
+        verify_icp(scans[13], scans[10], init=np.eye(3))
+    with pytest.raises(ScanDataError):
+        verify_icp(scans[13], scans[10], init=np.diag([1.0, 1.0, -1.0, 1.0]))
+    with pytest.raises(ScanDataError):
+        verify_icp(np.zeros((5, 3)), scans[10])
