@@ -21,7 +21,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from placerec.errors import ConfigError, ScanDataError, short_repr
+from placerec.errors import ArtifactError, ConfigError, ScanDataError, short_repr
 from placerec.hashing import stable_hash
 from placerec.params import Params, deep_merge, resolve
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan
@@ -35,8 +35,10 @@ __all__ = [
     "pipeline_params",
     "make_pipeline",
     "params_key",
+    "check_saved_params",
     "valid_points",
     "require_points",
+    "require_varying_intensity",
     "MIN_POINTS",
     "MAX_RANGE_M",
 ]
@@ -66,6 +68,25 @@ def require_points(scan: Scan, where: str, minimum: int = MIN_POINTS) -> np.ndar
             f"than {MAX_RANGE_M:g} m); at least {minimum} are needed to describe a place"
         )
     return ok
+
+
+def require_varying_intensity(scan: Scan, valid: np.ndarray, where: str, why: str) -> None:
+    """`ScanDataError` naming ``where`` and ``why`` unless the intensities of the ``valid`` points are finite and
+    not all equal (a flat intensity carries nothing for a front end that reads it)."""
+    inten = scan.intensity[valid]
+    if not np.isfinite(inten).all() or float(inten.max()) == float(inten.min()):
+        src = f"{scan.source}: " if scan.source else ""
+        raise ScanDataError(
+            f"{src}{where}: the intensity of the valid points is constant or not finite "
+            f"({inten.min()}..{inten.max()}); {why}"
+        )
+
+
+def check_saved_params(path: str | Path, header: dict[str, Any], params: Params) -> None:
+    """`ArtifactError` unless a saved database's header records exactly ``params`` (it was made with them)."""
+    saved = (header.get("meta") or {}).get("params")
+    if saved != params.model_dump(mode="json"):
+        raise ArtifactError(f"{path}: database was made with other parameters: {short_repr(saved, 200)}")
 
 
 def params_key(name: str, params: Any) -> str:

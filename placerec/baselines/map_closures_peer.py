@@ -31,11 +31,11 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import Field
 
-from placerec.errors import ArtifactError, DependencyError, ScanDataError
+from placerec.errors import DependencyError, ScanDataError
 from placerec.io.artifact_schema import Member, check_counts, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
-from placerec.recognizer import Recognizer, params_key, require_points
+from placerec.recognizer import Recognizer, check_saved_params, params_key, require_points
 from placerec.types import Candidate, Description, Scan
 
 __all__ = ["MapClosuresPeer", "MapClosuresParams"]
@@ -171,9 +171,7 @@ class MapClosuresPeer(Recognizer):
 
     def load(self, path: str | Path) -> None:
         arrays, header = load_artifact(path, _KIND, (_VERSION,), _SCHEMA)
-        saved = (header.get("meta") or {}).get("params")
-        if saved != self.params.model_dump(mode="json"):
-            raise ArtifactError(f"{path}: database was made with other parameters: {saved}")
+        check_saved_params(path, header, self.params)
         ids, counts, points = arrays["ids"], arrays["counts"], arrays["points"]
         check_unique(ids, path, "ids")
         check_counts(counts, points.shape[0], path, "counts")

@@ -44,14 +44,13 @@ from placerec.params import Params
 from placerec.pipelines.visual import (
     VisualFrontend,
     VisualFrontendParams,
-    check_saved_params,
     features_schema,
     pack_features,
     shift_consensus,
     stored_features,
     yaw_pose,
 )
-from placerec.recognizer import Recognizer
+from placerec.recognizer import Recognizer, check_saved_params
 from placerec.retrieval.bits import hamming, to_words
 from placerec.retrieval.dbow.database import BowDatabase, candidate_pairs
 from placerec.retrieval.dbow.loop_detector import LoopDetectorParams, LoopFilter

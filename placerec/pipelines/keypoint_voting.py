@@ -50,7 +50,13 @@ from placerec.intensity import normalize_intensity
 from placerec.io.artifact_schema import Member, check_counts, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
-from placerec.recognizer import Recognizer, params_key, require_points
+from placerec.recognizer import (
+    Recognizer,
+    check_saved_params,
+    params_key,
+    require_points,
+    require_varying_intensity,
+)
 from placerec.three_d.descriptors import DESCRIPTOR_DIMS
 from placerec.three_d.features import FeatureParams, extract_features
 from placerec.three_d.keypoints import ISSParams
@@ -241,7 +247,8 @@ class KeypointVoting(Recognizer):
         take such scans."""
         ok = require_points(scan, self.name)
         if self.params.descriptor == "ishot":
-            _require_intensity(scan, ok, self.name)
+            why = "ISHOT's intensity signature needs varying intensity (pipeline shot-votes takes scans without it)"
+            require_varying_intensity(scan, ok, self.name, why)
         scan = self._normalised(scan)
         try:
             lf = extract_features(scan, self._features)
@@ -400,10 +407,7 @@ class KeypointVoting(Recognizer):
 
     def load(self, path: str | Path) -> None:
         arrays, header = load_artifact(path, _KIND, (_VERSION,), _schema(self._dim))
-        if header["meta"].get("params") != self.params.model_dump(mode="json"):
-            raise ArtifactError(
-                f"{path}: database was made with other parameters: {header['meta'].get('params')}"
-            )
+        check_saved_params(path, header, self.params)
         travelled = _check_saved(path, arrays, header["meta"])
         self._reset()
         self._places = None
@@ -432,18 +436,6 @@ class KeypointVoting(Recognizer):
 
     def __len__(self) -> int:
         return len(self._ids)
-
-
-def _require_intensity(scan: Scan, valid: np.ndarray, where: str) -> None:
-    """`ScanDataError` unless the valid points' intensities are finite and not all equal."""
-    inten = scan.intensity[valid]
-    if not np.isfinite(inten).all() or float(inten.max()) == float(inten.min()):
-        src = f"{scan.source}: " if scan.source else ""
-        raise ScanDataError(
-            f"{src}{where}: the intensity of the valid points is constant or not finite "
-            f"({inten.min()}..{inten.max()}); ISHOT's intensity signature needs varying intensity "
-            "(use the 'shot' descriptor, pipeline shot-votes, for scans without it)"
-        )
 
 
 def _cat(parts: list[np.ndarray], empty: tuple[int, ...]) -> np.ndarray:

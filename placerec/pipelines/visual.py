@@ -29,7 +29,13 @@ from placerec.image import ImageParams, make_image
 from placerec.io.artifact_schema import Member, check_counts, check_members, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params, SectionError
-from placerec.recognizer import Recognizer, params_key, require_points
+from placerec.recognizer import (
+    Recognizer,
+    check_saved_params,
+    params_key,
+    require_points,
+    require_varying_intensity,
+)
 from placerec.retrieval.hbst import HBST, HBSTParams, default_threshold
 from placerec.types import Candidate, Description, Scan
 
@@ -46,7 +52,6 @@ __all__ = [
     "pack_features",
     "features_schema",
     "stored_features",
-    "check_saved_params",
     "MAX_IMAGE_WIDTH",
 ]
 
@@ -123,13 +128,7 @@ def describe_visual(scan: Scan, image_params: ImageParams, extractor: Any) -> De
     points all have the same intensity: its image would show only where returns are missing, not the place.
     """
     ok = require_points(scan, "visual front end")
-    inten = scan.intensity[ok]
-    if not np.isfinite(inten).all() or float(inten.max()) == float(inten.min()):
-        src = f"{scan.source}: " if scan.source else ""
-        raise ScanDataError(
-            f"{src}visual front end: the intensity of the valid points is constant or not finite "
-            f"({inten.min()}..{inten.max()}); intensity images need varying intensity"
-        )
+    require_varying_intensity(scan, ok, "visual front end", "intensity images need varying intensity")
     img = make_image(scan, image_params)
     if img.image.shape[1] > MAX_IMAGE_WIDTH:
         raise ScanDataError(
@@ -300,13 +299,6 @@ def pack_features(
         "keypoints": _stack([keypoints[i] for i in order], (0, 2), np.float32),
         "descriptors": _stack([descriptors[i] for i in order], (0, dim), dtype),
     }
-
-
-def check_saved_params(path: str | Path, header: dict[str, Any], params: Params) -> None:
-    """`ArtifactError` unless the artifact's header records exactly ``params``."""
-    saved = (header.get("meta") or {}).get("params")
-    if saved != params.model_dump(mode="json"):
-        raise ArtifactError(f"{path}: database was made with other parameters: {saved}")
 
 
 def features_schema(dim: int, binary: bool) -> dict[str, Member]:
