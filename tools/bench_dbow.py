@@ -170,7 +170,7 @@ def run_f1(pipelines: list[dict], seeds: list[int], cache_dir: Path) -> dict[str
         )
         seq, records = run_loop(cfg)
         for rec in records:
-            q, m, s = rec.top1()
+            q, m, s = rec.table().top1()
             metrics, _ = evaluate_loop(q, m, s, seq.poses, gt_distance=5.0, frames=120)
             out.setdefault(rec.label, []).append(round(float(metrics.max_f1), 4))
             print(f"seed {seed} {rec.label}: max F1 {metrics.max_f1:.4f}", file=sys.stderr)

@@ -35,6 +35,21 @@ class CandidateTable:
     scores: np.ndarray
     inliers: np.ndarray
 
+    @classmethod
+    def from_candidates(
+        cls, query_ids: Sequence[int], candidates: Sequence[list[Candidate]]
+    ) -> CandidateTable:
+        """The table of a run's candidate lists (best first), as `read_candidates` gives it back."""
+        n = max((len(c) for c in candidates), default=1) or 1
+        match = np.full((len(candidates), n), -1, dtype=np.int64)
+        score = np.full((len(candidates), n), np.nan)
+        inliers = np.full((len(candidates), n), -1, dtype=np.int64)
+        for row, cands in enumerate(candidates):
+            for rank, c in enumerate(cands):
+                match[row, rank], score[row, rank] = c.match_id, c.score
+                inliers[row, rank] = -1 if c.inliers is None else c.inliers
+        return cls(np.asarray(query_ids, dtype=np.int64), match, score, inliers)
+
     def top1(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(query_ids, match_ids, scores) of the best candidate (-1 / NaN where none)."""
         return self.query_ids, self.match_ids[:, 0], self.scores[:, 0]

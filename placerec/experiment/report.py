@@ -145,9 +145,10 @@ def report_loop(
     curves: dict[str, dict[str, Any]] = {}
     for record in records:
         write_candidates(run / f"candidates_{_slug(record.label)}.csv", record.query_ids, record.candidates)
-        q, m, s = record.top1()
+        table = record.table()
+        q, m, s = table.top1()
         metrics, gt = evaluate_loop(
-            q, m, s, poses, record.topn(cfg.evaluation.top_n), **_gt_options(cfg, seq.timestamps)
+            q, m, s, poses, table.topn(cfg.evaluation.top_n), **_gt_options(cfg, seq.timestamps)
         )
         summary = metrics.summary()
         summary["auc"] = summary.pop("average_precision")
@@ -207,7 +208,9 @@ def report_localize(
                     else map_poses[c.match_id] @ c.relative_pose
                 )
                 estimates[row] = T[:3, 3]
-        metrics = localization_metrics(estimates, query_poses[np.asarray(record.query_ids, dtype=np.int64)], success_distance)
+        metrics = localization_metrics(
+            estimates, query_poses[np.asarray(record.query_ids, dtype=np.int64)], success_distance
+        )
         summary = metrics.summary()
         summary["time_ms"] = _timing(record)
         results[record.label] = summary

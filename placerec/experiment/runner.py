@@ -21,6 +21,7 @@ import numpy as np
 from placerec.config import ExperimentConfig, PreprocessConfig
 from placerec.errors import ConfigError, ScanDataError
 from placerec.experiment.cache import DescriptionCache, config_hash
+from placerec.experiment.candidates import CandidateTable
 from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint, open_dataset
 from placerec.experiment.preprocessing import preprocess_params
 from placerec.loop_closure import LoopClosureDetector, split_verify_time
@@ -57,31 +58,14 @@ class PipelineRecord:
     candidates: list[list[Candidate]] = field(default_factory=list)
     timing_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
 
-    def top1(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(query_ids, match_ids with -1 for none, scores with -inf for none)."""
-        match = np.array([c[0].match_id if c else -1 for c in self.candidates], dtype=np.int64)
-        score = np.array([c[0].score if c else -np.inf for c in self.candidates], dtype=np.float64)
-        return np.asarray(self.query_ids, dtype=np.int64), match, score
-
-    def topn(self, n: int) -> np.ndarray:
-        """(Q, n) match ids, -1 padded."""
-        out = np.full((len(self.candidates), n), -1, dtype=np.int64)
-        for row, cands in enumerate(self.candidates):
-            ids = [c.match_id for c in cands[:n]]
-            out[row, : len(ids)] = ids
-        return out
+    def table(self) -> CandidateTable:
+        """The candidates as a `placerec.experiment.candidates.CandidateTable` (top-1, top-N, scores)."""
+        return CandidateTable.from_candidates(self.query_ids, self.candidates)
 
     def per_scan_ms(self) -> np.ndarray:
         """Total pipeline time per processed scan (describe + query + insert + verify; preprocessing excluded)."""
-        parts = [
-            np.asarray(self.timing_ms[s])
-            for s in ("describe", "query", "insert", "verify")
-            if self.timing_ms[s]
-        ]
-        if not parts:
-            return np.zeros(0)
-        n = max(p.size for p in parts)
-        return sum(np.pad(p, (0, n - p.size)) for p in parts)
+        stages = [self.timing_ms[s] for s in ("describe", "query", "insert", "verify")]
+        return np.sum(np.asarray(stages, dtype=np.float64).reshape(len(stages), -1), axis=0)
 
 
 @contextmanager
