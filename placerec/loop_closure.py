@@ -11,8 +11,9 @@ Scans get consecutive ids from 0 in the order they are fed. Each scan first quer
 scans older than the exclusion window, then is added. A scan the recognizer cannot describe (blank, a few points)
 raises `ScanDataError` and takes no id; `skip` records a frame that is no place, so ids can follow frame numbers.
 Candidates with ``score >= threshold`` are accepted and returned; the threshold is applied here, inside the
-library. ``relative_pose`` (when the pipeline estimates one)
-is ``T_match_query``: it maps points of the new scan into the frame of the matched older scan.
+library. ``relative_pose`` (when the pipeline estimates one) is ``T_match_query``: it maps points of the new scan
+into the frame of the matched older scan. A stream shorter than the exclusion window queries nothing: every scan
+gets no candidates (``last_max_id`` -1).
 """
 
 from __future__ import annotations
