@@ -364,6 +364,23 @@ def test_corrupted_pipeline_databases_raise_artifact_error(tmp_path, name):
     _fuzz(tmp_path, good, load, lambda obj, p: obj.save(p), _pipeline_edits, name)
 
 
+def test_visual_image_widths_are_bounded_on_describe_and_on_load(tmp_path):
+    from placerec.errors import ScanDataError
+    from placerec.pipelines.visual import MAX_IMAGE_WIDTH
+
+    scans, _ = _sim_scans()
+    with pytest.raises(ScanDataError, match=f"over {MAX_IMAGE_WIDTH} px"):
+        make_pipeline("orb-hbst", {"image": {"width": MAX_IMAGE_WIDTH + 8}}).describe(scans[0])
+    rec = make_pipeline("orb-hbst", {"image": {"width": 512}})
+    rec.add(0, scans[0])
+    rec.save(tmp_path / "db.npz")
+    arrays, header = _decode(_members(tmp_path / "db.npz"))
+    arrays["widths"] = arrays["widths"] * 2  # within the bound, but not the configured width
+    _write_members(tmp_path / "wide.npz", _encode(arrays, header))
+    with pytest.raises(ArtifactError, match=r"'widths' holds 1024 px; expected 512 \(image.width\)"):
+        make_pipeline("orb-hbst", {"image": {"width": 512}}).load(tmp_path / "wide.npz")
+
+
 # ------------------------------------------------------------------------------------------ description cache
 def _cache_edits() -> dict[str, Edit]:
     return {
