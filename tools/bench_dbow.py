@@ -151,6 +151,7 @@ def bench_load_1m(cache_dir: Path) -> dict:
 def run_f1(pipelines: list[dict], seeds: list[int], cache_dir: Path) -> dict[str, list[float]]:
     """Max F1 per pipeline label on simulated town sequences (one run per seed, pipelines in lockstep)."""
     from placerec.config import parse_config
+    from placerec.eval import ExclusionWindow
     from placerec.eval.metrics import evaluate_loop
     from placerec.experiment.runner import run_loop
 
@@ -171,7 +172,7 @@ def run_f1(pipelines: list[dict], seeds: list[int], cache_dir: Path) -> dict[str
         seq, records = run_loop(cfg)
         for rec in records:
             q, m, s = rec.table().top1()
-            metrics, _ = evaluate_loop(q, m, s, seq.poses, gt_distance=5.0, frames=120)
+            metrics, _ = evaluate_loop(q, m, s, seq.poses, gt_distance=5.0, exclusion=ExclusionWindow(120))
             out.setdefault(rec.label, []).append(round(float(metrics.max_f1), 4))
             print(f"seed {seed} {rec.label}: max F1 {metrics.max_f1:.4f}", file=sys.stderr)
     return out
