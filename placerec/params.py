@@ -5,8 +5,8 @@
   ``Field(description=...)`` says what a parameter does and which paper table or section its default comes from.
 * A nested section given as a partial mapping is merged into that field's *default* (not the nested class's
   defaults): ``{"iss": {"salient_radius": 2.0}}`` keeps a pipeline's ``iss.max_keypoints`` of 300.
-* Building a `Params` (directly or with `resolve`) raises `ConfigError`; each message line names the dotted path
-  of the bad key and, for an unknown key, the keys allowed there.
+* Building a `Params` (directly, with ``model_validate`` or with `resolve`) raises `ConfigError`; each message
+  line names the dotted path of the bad key and, for an unknown key, the keys allowed there.
 * `param_rows` lists every parameter (dotted path, value, type, description), for ``placerec pipelines NAME``.
 """
 
@@ -41,6 +41,19 @@ class Params(BaseModel):
             if _DEPTH.get() > 1:
                 raise
             raise ConfigError(format_errors(exc, type(self), type(self).__name__)) from None
+        finally:
+            _DEPTH.reset(token)
+
+    @classmethod
+    def model_validate(cls, obj: Any, **kwargs: Any) -> Any:  # type: ignore[override]
+        """As pydantic's, but an invalid ``obj`` is a `ConfigError` (as when the model is built directly)."""
+        token = _DEPTH.set(_DEPTH.get() + 1)
+        try:
+            return super().model_validate(obj, **kwargs)
+        except ValidationError as exc:
+            if _DEPTH.get() > 1:
+                raise
+            raise ConfigError(format_errors(exc, cls, cls.__name__)) from None
         finally:
             _DEPTH.reset(token)
 

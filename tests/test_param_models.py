@@ -133,3 +133,22 @@ def test_the_walk_catches_a_section_on_another_base():
         _assert_strict(seen)
     with pytest.raises(AssertionError, match=r"loose dict fields \['extra_settings'\]"):
         _assert_strict({Outer: "outer"})
+
+
+def test_model_validate_reports_like_building_the_model():
+    """``Params.model_validate`` raises the same `ConfigError` as the constructor (no pydantic error wrapping the
+    formatted one), at any nesting."""
+    from placerec.config import ExperimentConfig
+    from placerec.errors import ConfigError
+
+    data = {"preprocess": {"intensity": {"mode": "linear"}}, "bogus": 1}
+    with pytest.raises(ConfigError) as built:
+        ExperimentConfig(**data)
+    with pytest.raises(ConfigError) as validated:
+        ExperimentConfig.model_validate(data)
+    assert str(built.value) == str(validated.value)
+    assert str(validated.value).splitlines() == [
+        "ExperimentConfig:",
+        "  preprocess.intensity: mode 'linear' needs a 'saturation' value",
+        "  bogus: unknown key; allowed keys there: dataset, evaluation, name, output, pipelines, preprocess",
+    ]
