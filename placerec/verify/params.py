@@ -27,9 +27,15 @@ class RansacParams(Params):
     confidence: float = Field(
         0.999, gt=0, lt=1, description="probability of drawing one all-inlier sample before stopping"
     )
-    max_iterations: int = Field(2000, ge=1, description="most hypotheses drawn")
+    max_iterations: int = Field(
+        1000, ge=1, description="most hypotheses drawn (enough for 99.9 % confidence down to 19 % inliers)"
+    )
     batch_size: int = Field(128, ge=1, description="hypotheses evaluated at once (vectorised)")
-    min_inliers: int = Field(3, ge=2, description="fewer inliers than this: no pose")
+    min_inliers: int = Field(
+        8,
+        ge=2,
+        description="fewer inliers: no pose, rejected before ICP (ours; the paper's minimum cluster 8)",
+    )
     seed: int = Field(0, description="random generator seed (runs are deterministic)")
 
 
@@ -60,7 +66,7 @@ class IcpParams(Params):
         0.4, gt=0, description="m; voxel grid of the match (target) scan, ISHOT paper Sec. V-B"
     )
     source_voxel_size: float = Field(
-        1.0,
+        1.5,
         gt=0,
         description="m; voxel grid of the query (source) scan: its size sets the ICP cost per candidate",
     )

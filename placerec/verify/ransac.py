@@ -52,32 +52,28 @@ def required_iterations(inlier_ratio: float, sample_size: int, confidence: float
 
 
 def _samples(rng: np.random.Generator, n: int, size: int, count: int) -> np.ndarray:
-    """``count`` rows of ``size`` distinct indices in [0, n) (rows with a repeat are redrawn)."""
+    """Up to ``count`` rows of ``size`` distinct indices in [0, n): rows with a repeated index are dropped."""
     out = rng.integers(0, n, size=(count, size))
-    for _ in range(8):
-        dup = np.zeros(count, dtype=bool)
-        for i in range(size):
-            for j in range(i + 1, size):
-                dup |= out[:, i] == out[:, j]
-        if not dup.any():
-            break
-        out[dup] = rng.integers(0, n, size=(int(dup.sum()), size))
-    return out
+    srt = np.sort(out, axis=1)
+    return out[(srt[:, 1:] != srt[:, :-1]).all(axis=1)]
 
 
 def _plausible(ps: np.ndarray, pd: np.ndarray, thr: float, mode: str) -> np.ndarray:
-    """Samples (H, s, 3) whose pairwise lengths agree on both sides and, for 6-DoF, span a triangle."""
-    ok = np.ones(ps.shape[0], dtype=bool)
-    s = ps.shape[1]
+    """Samples (H, s, 3) whose pairwise lengths agree on both sides within 2 ``thr``, whose source points are at
+    least 2 ``thr`` apart and, for 6-DoF, span a triangle of at least that height."""
+    a, b = np.triu_indices(ps.shape[1], 1)
+    es, ed = ps[:, a] - ps[:, b], pd[:, a] - pd[:, b]
+    ls = np.sqrt(np.einsum("hpi,hpi->hp", es, es))
+    ld = np.sqrt(np.einsum("hpi,hpi->hp", ed, ed))
     min_len = 2.0 * thr
-    for i in range(s):
-        for j in range(i + 1, s):
-            ls = np.linalg.norm(ps[:, i] - ps[:, j], axis=1)
-            ld = np.linalg.norm(pd[:, i] - pd[:, j], axis=1)
-            ok &= (np.abs(ls - ld) <= 2.0 * thr) & (ls >= min_len)
+    ok = ((np.abs(ls - ld) <= min_len) & (ls >= min_len)).all(axis=1)
     if mode == "6dof":
-        area2 = np.linalg.norm(np.cross(ps[:, 1] - ps[:, 0], ps[:, 2] - ps[:, 0]), axis=1)
-        ok &= area2 >= min_len * min_len
+        u, v = es[:, 0], es[:, 1]  # p0 - p1, p0 - p2: |u x v| is twice the triangle's area
+        cx = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
+        cy = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
+        cz = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+        area2 = np.sqrt(cx * cx + cy * cy + cz * cz)
+        ok &= area2 >= min_len * ls.max(axis=1)
     return ok
 
 
@@ -103,12 +99,14 @@ def ransac_pose(src: np.ndarray, dst: np.ndarray, params: RansacParams | None = 
         count = min(params.batch_size, params.max_iterations - drawn)
         idx = _samples(rng, n, size, count)
         drawn += count
+        if idx.shape[0] == 0:
+            continue
         ps, pd = s_all[idx], d_all[idx]
         keep = _plausible(ps, pd, params.inlier_threshold, params.mode)
         if not keep.any():
             continue
         R, t = solve(ps[keep], pd[keep])
-        res = np.einsum("hij,nj->hni", R, s_all) + t[:, None] - d_all[None]
+        res = s_all @ np.swapaxes(R, 1, 2) + (t[:, None] - d_all[None])  # (H, N, 3): R s + t - d
         r2 = np.einsum("hni,hni->hn", res, res)
         inl = r2 <= thr2
         counts = inl.sum(axis=1)
