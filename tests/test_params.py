@@ -16,7 +16,7 @@ from placerec.experiment.report import make_run_dir, report_loop
 from placerec.experiment.runner import run_loop
 from placerec.recognizer import PIPELINES, make_pipeline, pipeline_params
 from placerec.sim import SimulatedSequence
-from placerec.types import ListSequence
+from placerec.types import ListSequence, Scan
 
 
 def test_a_partial_nested_section_keeps_the_pipeline_defaults():
@@ -165,22 +165,38 @@ def sim_scans():
     return ListSequence([seq[i] for i in range(len(seq))], seq.poses, seq.timestamps, name="sim4")
 
 
-def _describe_ms(tmp_path, seq, names):
+def _describe_ms(tmp_path, names, seq=None):
+    sim = "dataset.simulator={world: town, sensor: vlp16, n_scans: 4, seed: 5, clutter: false}"
     cfg = load_config(
-        None, [f"output.dir={tmp_path}", f"output.cache_dir={tmp_path / 'cache'}", "output.progress=false"]
+        None,
+        [f"output.dir={tmp_path}", f"output.cache_dir={tmp_path / 'cache'}", "output.progress=false", sim],
     )
     cfg = cfg.model_copy(update={"pipelines": [type(cfg.pipelines[0])(name=n) for n in names]})
     _, records = run_loop(cfg, seq)
     return {r.label: r.timing_ms["describe"] for r in records}
 
 
-def test_describe_times_do_not_depend_on_the_cache_or_the_order(tmp_path, sim_scans):
-    cold = _describe_ms(tmp_path, sim_scans, ["orb-hbst", "orb-dbow"])
+def test_describe_times_do_not_depend_on_the_cache_or_the_order(tmp_path):
+    cold = _describe_ms(tmp_path, ["orb-hbst", "orb-dbow"])
     assert cold["orb-hbst"] == cold["orb-dbow"] and min(cold["orb-hbst"]) > 0  # one front end, one time
-    warm = _describe_ms(tmp_path, sim_scans, ["orb-hbst", "orb-dbow"])
-    swapped = _describe_ms(tmp_path, sim_scans, ["orb-dbow", "orb-hbst"])
+    warm = _describe_ms(tmp_path, ["orb-hbst", "orb-dbow"])
+    swapped = _describe_ms(tmp_path, ["orb-dbow", "orb-hbst"])
     assert warm == cold and swapped == cold
     assert np.all(np.isfinite(cold["orb-hbst"]))
+
+
+def test_a_sequence_given_to_run_loop_is_not_served_from_the_configs_cache(tmp_path, sim_scans):
+    """The cache is keyed by the config's dataset: other scans passed in must not get its descriptions."""
+    _describe_ms(tmp_path, ["scan-context"])  # fills the cache for the config's dataset
+    blank = ListSequence([Scan(np.zeros((1000, 3)), np.zeros(1000))] * 4, sim_scans.poses, name="blank")
+    sim = "dataset.simulator={world: town, sensor: vlp16, n_scans: 4, seed: 5, clutter: false}"
+    cfg = load_config(
+        None,
+        [f"output.dir={tmp_path}", f"output.cache_dir={tmp_path / 'cache'}", "output.progress=false", sim]
+        + ["pipelines=[{name: scan-context}]", "evaluation.exclusion.frames=0"],
+    )
+    _, (record,) = run_loop(cfg, blank)
+    assert record.timing_ms["describe"] == [0.0] * 4  # every blank scan refused, none found in the cache
 
 
 @pytest.mark.parametrize("path", ["configs/demo.yaml", "configs/vpr_os1_64.yaml", "configs/vpr_hdl64.yaml"])

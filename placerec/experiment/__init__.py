@@ -25,7 +25,9 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> 
     """Run ``cfg`` (loop or localize mode) and write its results folder; returns (folder, metrics dict).
 
     The pipelines are built and the datasets opened and checked (poses for the evaluation, what the exclusion
-    window needs) before the results folder is made, so a config that cannot run leaves no folder behind."""
+    window needs) before the results folder is made, so a config that cannot run leaves no folder behind. The run
+    opens them again (the simulator and file sequences open in milliseconds once built), so that its description
+    cache is keyed by the config's dataset."""
     from placerec.experiment.report import make_run_dir, report_localize, report_loop, require_poses
     from placerec.experiment.runner import (
         build_pipelines,
@@ -37,13 +39,13 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> 
 
     pipelines = build_pipelines(cfg)
     if cfg.evaluation.mode == "loop":
-        seq = require_poses(loop_sequence(cfg))
+        require_poses(loop_sequence(cfg))
         run = make_run_dir(cfg, out_dir)
-        seq, records = run_loop(cfg, seq, pipelines)
+        seq, records = run_loop(cfg, None, pipelines)
         payload = report_loop(cfg, run, seq, records)
     else:
-        sequences = localize_sequences(cfg)
+        localize_sequences(cfg)
         run = make_run_dir(cfg, out_dir)
-        map_seq, query_seq, records = run_localize(cfg, sequences, pipelines)
+        map_seq, query_seq, records = run_localize(cfg, None, pipelines)
         payload = report_localize(cfg, run, map_seq, query_seq, records)
     return run, payload

@@ -179,9 +179,11 @@ def run_loop(
 ) -> tuple[Sequence, list[PipelineRecord]]:
     """Loop mode: every scan queries (exclusion window applied) and is then added, for every pipeline.
 
-    ``seq`` defaults to the config's dataset, ``pipelines`` to `build_pipelines`. A sequence with no scans, or
-    one shorter than the exclusion window, gives every query no candidates."""
+    ``seq`` defaults to the config's dataset, ``pipelines`` to `build_pipelines`. The on-disk description cache
+    (``output.cache_dir``) is keyed by the config's dataset, so it is used only when ``seq`` is not given. A
+    sequence with no scans, or one shorter than the exclusion window, gives every query no candidates."""
     pipelines = build_pipelines(cfg) if pipelines is None else pipelines
+    cache_dir = cfg.output.cache_dir if seq is None else None
     seq = loop_sequence(cfg, seq)
     ex = cfg.evaluation.exclusion
     detectors = [
@@ -196,7 +198,7 @@ def run_loop(
         for _, rec in pipelines
     ]
     poses, stamps = seq.poses, seq.timestamps
-    frontends = _Frontends(DescriptionCache(cfg.output.cache_dir, _data_key(cfg, cfg.dataset)))
+    frontends = _Frontends(DescriptionCache(cache_dir, _data_key(cfg, cfg.dataset)))
     with progress_bars(cfg.output.progress) as progress:
         tasks = [progress.add_task(record.label, total=len(seq)) for record, _ in pipelines]
         for i in range(len(seq)):
@@ -259,12 +261,14 @@ def run_localize(
 ) -> tuple[Sequence, Sequence, list[PipelineRecord]]:
     """Localize mode: build each pipeline's database from the map sequence, then query every query scan.
 
-    ``sequences`` (map, queries) default to `localize_sequences`, ``pipelines`` to `build_pipelines`. An empty
-    map gives every query no candidates; no queries give no records' rows."""
+    ``sequences`` (map, queries) default to `localize_sequences`, ``pipelines`` to `build_pipelines`; the map's
+    descriptions are cached on disk (``output.cache_dir``) only when ``sequences`` is not given. An empty map
+    gives every query no candidates; no queries give records with no rows."""
     pipelines = build_pipelines(cfg) if pipelines is None else pipelines
+    cache_dir = cfg.output.cache_dir if sequences is None else None
     map_seq, query_seq = localize_sequences(cfg) if sequences is None else _with_poses(*sequences)
     map_front = _Frontends(
-        DescriptionCache(cfg.output.cache_dir, _data_key(cfg, cfg.evaluation.localize.map or cfg.dataset))
+        DescriptionCache(cache_dir, _data_key(cfg, cfg.evaluation.localize.map or cfg.dataset))
     )
     query_front = _Frontends(DescriptionCache(None, "queries"))
     with progress_bars(cfg.output.progress) as progress:
