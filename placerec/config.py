@@ -15,6 +15,7 @@ import yaml
 from pydantic import BaseModel, Field, model_validator
 
 from placerec.errors import ConfigError, short_repr
+from placerec.eval.exclusion import ExclusionWindow
 from placerec.intensity import IntensitySpec
 from placerec.params import Params, resolve
 from placerec.safe_yaml import load_yaml, load_yaml_file
@@ -110,16 +111,12 @@ class PipelineSpec(Params):
         return self.label or self.name
 
 
-class ExclusionConfig(Params):
+class ExclusionConfig(ExclusionWindow):
     """Loop mode: a database scan is eligible for a query only when it is older than EVERY limit set here —
     at least ``frames`` frames, ``seconds`` seconds (needs timestamps) and ``metres`` travelled (needs poses)
     before it; ``null`` = no limit of that kind. ``frames`` stays 120 (VPR paper) when the others are set: write
     ``frames: null`` to use only seconds or metres. The detector and the ground truth apply this one rule
-    (`placerec.eval.exclusion.ExclusionWindow`)."""
-
-    frames: int | None = Field(120, ge=0)
-    seconds: float | None = Field(None, ge=0)
-    metres: float | None = Field(None, ge=0)
+    (`placerec.eval.exclusion.ExclusionWindow`, whose fields and checks these are)."""
 
 
 class LocalizeConfig(Params):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Any, get_args
 
+import numpy as np
 import pytest
 from pydantic import BaseModel
 
@@ -152,3 +153,25 @@ def test_model_validate_reports_like_building_the_model():
         "  preprocess.intensity: mode 'linear' needs a 'saturation' value",
         "  bogus: unknown key; allowed keys there: dataset, evaluation, name, output, pipelines, preprocess",
     ]
+
+
+def test_the_exclusion_window_is_one_model_for_the_config_the_detector_and_the_ground_truth():
+    from placerec.config import load_config
+    from placerec.errors import ConfigError
+    from placerec.eval.exclusion import ExclusionWindow
+
+    window = load_config(None, ["evaluation.exclusion.metres=40"]).evaluation.exclusion
+    assert (
+        isinstance(window, ExclusionWindow)
+        and window.model_dump() == ExclusionWindow(120, None, 40.0).model_dump()
+    )
+    positions = np.c_[np.arange(130.0) * 0.5, np.zeros((130, 2))]  # 0.5 m per frame: 80 frames make 40 m
+    assert window.sequence_bounds(130, positions=positions)[-1] == 129 - 120  # both limits apply; frames bind
+    with pytest.raises(
+        ConfigError, match=r"evaluation\.exclusion\.frames: Input should be greater than or equal"
+    ):
+        load_config(None, ["evaluation.exclusion.frames=-1"])
+    with pytest.raises(
+        ConfigError, match=r"ExclusionWindow: frames: Input should be greater than or equal to 0"
+    ):
+        ExclusionWindow(-1)

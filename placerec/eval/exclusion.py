@@ -18,12 +18,13 @@ was allowed to find.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from pydantic import Field
 
-from placerec.errors import ConfigError, ScanDataError
+from placerec.errors import ScanDataError
+from placerec.params import Params
 
 __all__ = ["DEFAULT_EXCLUSION_FRAMES", "ExclusionWindow", "path_length"]
 
@@ -39,34 +40,29 @@ def path_length(positions: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(steps)])
 
 
-@dataclass(frozen=True)
-class ExclusionWindow:
+class ExclusionWindow(Params):
     """Limits of the exclusion window (see the module docstring); all the limits that are set apply together.
 
     ``frames`` >= 0 or None, ``seconds`` >= 0 or None (needs timestamps), ``metres`` >= 0 or None (needs
-    positions). A negative or NaN limit raises `ConfigError`.
+    positions); anything else is a `ConfigError`. The limits may be given by position, in that order.
     """
 
-    frames: int | None = DEFAULT_EXCLUSION_FRAMES
-    seconds: float | None = None
-    metres: float | None = None
+    frames: int | None = Field(
+        DEFAULT_EXCLUSION_FRAMES,
+        ge=0,
+        description="frames before the query (VPR paper: the last 120 ignored)",
+    )
+    seconds: float | None = Field(None, ge=0, description="s before the query (needs timestamps)")
+    metres: float | None = Field(None, ge=0, description="m travelled before the query (needs poses)")
 
-    def __post_init__(self) -> None:
-        for key, unit in (("frames", "frames"), ("seconds", "s"), ("metres", "m")):
-            value = getattr(self, key)
-            if value is None:
-                continue
-            try:
-                number = float(value)
-            except (TypeError, ValueError):
-                raise ConfigError(
-                    f"exclusion window {key} must be a number or None, got {value!r:.40}"
-                ) from None
-            if not number >= 0:
-                raise ConfigError(f"exclusion window {key} must be >= 0 {unit} or None, got {value}")
-            if key == "frames" and not (math.isfinite(number) and number == int(number)):
-                raise ConfigError(f"exclusion window frames must be a whole number of frames, got {value}")
-            object.__setattr__(self, key, int(number) if key == "frames" else number)
+    def __init__(
+        self,
+        frames: int | None = DEFAULT_EXCLUSION_FRAMES,
+        seconds: float | None = None,
+        metres: float | None = None,
+        **data: Any,
+    ) -> None:
+        super().__init__(frames=frames, seconds=seconds, metres=metres, **data)
 
     def max_eligible(
         self,
