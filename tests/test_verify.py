@@ -306,3 +306,42 @@ def test_verify_rejects_bad_input(sim_scans):
         verify_icp(scans[13], scans[10], init=np.diag([1.0, 1.0, -1.0, 1.0]))
     with pytest.raises(ScanDataError):
         verify_icp(np.zeros((5, 3)), scans[10])
+
+
+@pytest.mark.parametrize(
+    "icp", [{"backend": "open3d"}, {"backend": "open3d_t"}, {"backend": "small_gicp", "method": "gicp"}]
+)
+def test_every_icp_backend_converges(sim_scans, icp):
+    seq, scans = sim_scans
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    params = VerifyParams(icp=icp)
+    v = verify_icp(scans[13], scans[10], init=_pose([0, 0, 2.0], [0.3, 0.2, 0.0]) @ T_gt, params=params)
+    assert np.linalg.norm((np.linalg.inv(T_gt) @ v.T_match_query)[:3, 3]) < 0.05
+    assert v.accepted
+
+
+def test_prepared_clouds_are_reused_and_checked(sim_scans):
+    from placerec.verify import as_source, as_target
+
+    seq, scans = sim_scans
+    params = VerifyParams()
+    src, tgt = as_source(scans[13], params), as_target(scans[10], params)
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    v = verify_icp(src, tgt, init=T_gt, params=params)
+    assert v.timings_ms["prepare"] < 5.0  # nothing prepared again
+    with pytest.raises(ScanDataError):
+        verify_icp(tgt, src, init=T_gt, params=params)  # roles swapped
+    with pytest.raises(ScanDataError):
+        verify_icp(src, tgt, params=VerifyParams(icp={"backend": "open3d"}))
+
+
+def test_eps_icp_acceptance_rule(sim_scans):
+    seq, scans = sim_scans
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    paper = VerifyParams(score={"acceptance": "eps_icp"})
+    good = verify_icp(scans[13], scans[10], init=T_gt, params=paper)
+    assert good.accepted and good.residual < 7.0
+    bad = verify_icp(scans[36], scans[10], params=paper)
+    assert not bad.accepted and bad.residual >= 7.0
+    strict = VerifyParams(score={"acceptance": "eps_icp", "eps_icp": good.residual * 0.5})
+    assert not verify_icp(scans[13], scans[10], init=T_gt, params=strict).accepted
