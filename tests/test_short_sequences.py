@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from placerec.cli import app
 from placerec.config import load_config
-from placerec.experiment.report import make_run_dir, report_localize, report_loop
+from placerec.experiment.report import make_run_dir, recompute_loop_metrics, report_localize, report_loop
 from placerec.experiment.runner import build_pipelines, run_localize, run_loop
 from placerec.recognizer import PIPELINES
 from placerec.sim import SimulatedSequence
@@ -58,6 +58,8 @@ def test_a_sequence_shorter_than_the_window_gives_no_candidates_and_says_no_revi
         assert (m["n_queries"], m["n_revisits"], m["n_candidates"], m["no_revisits"]) == (n, 0, 0, True)
         assert (m["max_f1"], m["recall_at_1"], m["auc"], m["threshold_at_max_f1"]) == (0.0, 0.0, 0.0, None)
         assert (run / f"trajectory_{name}.png").is_file()
+        again = recompute_loop_metrics(run, name)  # from the folder alone, as for any run
+        assert (again["n_queries"], again["no_revisits"], again["max_f1"]) == (n, True, 0.0)
     assert (run / "index.html").is_file() and (run / "timing.png").is_file()
 
 

@@ -123,13 +123,21 @@ def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
 
     run_dir = Path(run_dir)
     cfg = load_config(run_dir / "config.yaml")
-    poses, _ = read_poses(run_dir / "poses.txt")
-    stamps = np.loadtxt(run_dir / "times.txt", ndmin=1) if (run_dir / "times.txt").is_file() else None
+    poses = _read_or_empty(run_dir / "poses.txt", lambda p: read_poses(p)[0], (0, 4, 4))
+    times = run_dir / "times.txt"
+    stamps = _read_or_empty(times, lambda p: np.loadtxt(p, ndmin=1), (0,)) if times.is_file() else None
     table = read_candidates(run_dir / f"candidates_{_slug(label)}.csv")
     q, m, s = table.top1()
     topn = table.topn(cfg.evaluation.top_n)
     metrics, _ = evaluate_loop(q, m, s, poses, topn, **_gt_options(cfg, stamps))
     return metrics.summary()
+
+
+def _read_or_empty(path: Path, read: Any, empty_shape: tuple[int, ...]) -> np.ndarray:
+    """``read(path)``, or an empty array for the empty file a run of no scans writes."""
+    if path.is_file() and path.stat().st_size == 0:
+        return np.zeros(empty_shape)
+    return read(path)
 
 
 def report_loop(
