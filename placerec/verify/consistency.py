@@ -5,9 +5,12 @@ A rigid motion keeps distances, so two correspondences ``(q_i, m_i)`` and ``(q_j
 ``| |q_i - q_j| - |m_i - m_j| | <= consensus_resolution``. Correspondences are visited in order of quality
 (descriptor distance, best first). Each one not yet in a cluster seeds a cluster, which then takes, in the same
 order, every correspondence not yet in a cluster that is consistent with *all* its current members. A cluster is
-kept when it has at least ``min_cluster_size`` members (the paper's "minimum cluster size"); only then are its
-members taken, so those of a rejected cluster may still join a later one. PCL then runs a RANSAC on each kept
-cluster; here `placerec.verify.verify` runs `ransac_pose` on the largest cluster.
+kept when it has at least ``min_cluster_size`` members (the paper's "minimum cluster size"; PCL keeps clusters
+with *more than* its ``gc_threshold``); only then are its members taken, so those of a rejected cluster may still
+join a later one. A candidate is tested against the cluster's current members (PCL 1.x compares it with the
+first correspondences of the sorted list instead, ``at (k)`` for ``at (consensus_set[k])``; we follow the
+documented intent). PCL then runs a RANSAC on each kept cluster (inlier threshold = the resolution); here
+`placerec.verify.verify` runs `ransac_pose` with its own metric threshold on the largest cluster.
 
 The pairwise test is one vectorised (N, N) matrix; the greedy growth (inherently sequential: each new member
 narrows the set) is a Numba loop over its rows, O(N^2) in the worst case.
