@@ -345,3 +345,60 @@ def test_eps_icp_acceptance_rule(sim_scans):
     assert not bad.accepted and bad.residual >= 7.0
     strict = VerifyParams(score={"acceptance": "eps_icp", "eps_icp": good.residual * 0.5})
     assert not verify_icp(scans[13], scans[10], init=T_gt, params=strict).accepted
+
+
+def _greedy_reference(src, dst, order, res, min_size):
+    """PCL's clustering written plainly (members checked one by one), for comparison."""
+    n = len(src)
+    taken = np.zeros(n, dtype=bool)
+    clusters = []
+    for seed in order:
+        if taken[seed]:
+            continue
+        members = [seed]
+        for j in order:
+            if j == seed or taken[j]:
+                continue
+            if all(
+                abs(np.linalg.norm(src[j] - src[k]) - np.linalg.norm(dst[j] - dst[k])) <= res for k in members
+            ):
+                members.append(j)
+        if len(members) >= min_size:
+            taken[members] = True
+            clusters.append(members)
+    return sorted((sorted(c) for c in clusters), key=lambda c: (-len(c), c))
+
+
+def test_consistency_grouping_matches_a_plain_reference():
+    from placerec.verify import consistency_matrix
+
+    rng = np.random.default_rng(11)
+    src = rng.uniform(-20, 20, (90, 3))
+    dst = src + [5.0, -3.0, 0.0]
+    dst[30:] = rng.uniform(-20, 20, (60, 3))  # two thirds wrong
+    q = rng.random(90)
+    q[:30] *= 0.3  # true matches tend to have the better descriptor distances
+    ok = consistency_matrix(src, dst, 3.0)
+    brute = np.abs(
+        np.linalg.norm(src[:, None] - src[None], axis=2) - np.linalg.norm(dst[:, None] - dst[None], axis=2)
+    )
+    np.testing.assert_array_equal(ok, brute <= 3.0)
+    params = ConsistencyParams(consensus_resolution=3.0, min_cluster_size=4)
+    got = group_correspondences(src, dst, quality=q, params=params)
+    want = _greedy_reference(src, dst, np.argsort(q, kind="stable"), 3.0, 4)
+    assert sorted((sorted(c.tolist()) for c in got), key=lambda c: (-len(c), c)) == want
+    assert len(set(range(30)) & set(got[0].tolist())) >= 28  # the true matches form the largest cluster
+
+
+def test_verify_with_grouping_reports_the_inlier_mask(sim_scans):
+    seq, scans = sim_scans
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    rng = np.random.default_rng(12)
+    q = scans[13][np.abs(scans[13]).sum(1) > 0][::200].astype(np.float64)[:200]
+    m = _apply(T_gt, q) + rng.normal(size=q.shape) * 0.05
+    bad = rng.random(len(q)) < 0.5
+    m[bad] = rng.uniform(-30, 30, (int(bad.sum()), 3))
+    v = verify(scans[13], scans[10], q, m, params=VerifyParams(consistency={"enabled": True}))
+    assert v.accepted and v.inlier_mask.shape == (len(q),)
+    assert v.inlier_mask.sum() == v.inliers
+    assert (v.inlier_mask & bad).sum() <= 2 and v.inlier_mask[~bad].mean() > 0.9

@@ -12,8 +12,8 @@ first correspondences of the sorted list instead, ``at (k)`` for ``at (consensus
 documented intent). PCL then runs a RANSAC on each kept cluster (inlier threshold = the resolution); here
 `placerec.verify.verify` runs `ransac_pose` with its own metric threshold on the largest cluster.
 
-The pairwise test is one vectorised (N, N) matrix; the greedy growth (inherently sequential: each new member
-narrows the set) is a Numba loop over its rows, O(N^2) in the worst case.
+The pairwise test fills (N, N) bitsets (64 pairs a word) and the greedy growth (inherently sequential: each
+new member narrows the set) ANDs them, both in Numba: O(N^2) distance pairs, O(N^2 / 64) words per seed at most.
 """
 
 from __future__ import annotations
@@ -31,40 +31,51 @@ __all__ = ["consistency_matrix", "group_correspondences"]
 def consistency_matrix(src: np.ndarray, dst: np.ndarray, resolution: float) -> np.ndarray:
     """(N, N) bool: pairs of correspondences whose source and destination distances differ by <= ``resolution``."""
     s, d = check_pairs(src, dst)
-    ds = np.sqrt(np.maximum(_sqdist(s), 0.0))
-    dd = np.sqrt(np.maximum(_sqdist(d), 0.0))
-    return np.abs(ds - dd) <= resolution
-
-
-def _sqdist(p: np.ndarray) -> np.ndarray:
-    g = p @ p.T
-    n = np.diag(g)
-    return n[:, None] + n[None, :] - 2.0 * g
+    bits = _consistency_bits(s, d, float(resolution))
+    return np.unpackbits(bits.view(np.uint8), axis=1, count=s.shape[0], bitorder="little").astype(bool)
 
 
 @numba.njit(cache=True)
-def _grow(ok: np.ndarray, order: np.ndarray, min_size: int) -> np.ndarray:  # pragma: no cover - compiled
-    n = order.shape[0]
+def _consistency_bits(s: np.ndarray, d: np.ndarray, res: float) -> np.ndarray:  # pragma: no cover - compiled
+    """`consistency_matrix` as row bitsets: (N, ceil(N / 64)) uint64, bit j of row i set when i, j agree."""
+    n = s.shape[0]
+    bits = np.zeros((n, (n + 63) // 64), dtype=np.uint64)
+    one = np.uint64(1)
+    for i in range(n):
+        bits[i, i >> 6] |= one << np.uint64(i & 63)
+        for j in range(i + 1, n):
+            ls = np.sqrt((s[i, 0] - s[j, 0]) ** 2 + (s[i, 1] - s[j, 1]) ** 2 + (s[i, 2] - s[j, 2]) ** 2)
+            ld = np.sqrt((d[i, 0] - d[j, 0]) ** 2 + (d[i, 1] - d[j, 1]) ** 2 + (d[i, 2] - d[j, 2]) ** 2)
+            if abs(ls - ld) <= res:
+                bits[i, j >> 6] |= one << np.uint64(j & 63)
+                bits[j, i >> 6] |= one << np.uint64(i & 63)
+    return bits
+
+
+@numba.njit(cache=True)
+def _grow(bits: np.ndarray, order: np.ndarray, min_size: int) -> np.ndarray:  # pragma: no cover - compiled
+    n, words = bits.shape
     label = np.full(n, -1, dtype=np.int64)  # cluster id per correspondence (in input numbering)
-    alive = np.empty(n, dtype=np.bool_)
+    alive = np.empty(words, dtype=np.uint64)  # bitset: consistent with every member so far
     members = np.empty(n, dtype=np.int64)
+    one = np.uint64(1)
     n_clusters = 0
     for a in range(n):
         seed = order[a]
         if label[seed] >= 0:
             continue
-        for b in range(n):
-            alive[b] = ok[seed, b]
+        for w in range(words):
+            alive[w] = bits[seed, w]
         size = 1
         members[0] = seed
         for b in range(n):
             j = order[b]
-            if j == seed or label[j] >= 0 or not alive[j]:
+            if j == seed or label[j] >= 0 or not (alive[j >> 6] >> np.uint64(j & 63)) & one:
                 continue
             members[size] = j
             size += 1
-            for c in range(n):
-                alive[c] = alive[c] and ok[j, c]
+            for w in range(words):
+                alive[w] &= bits[j, w]
         if size >= min_size:
             for k in range(size):
                 label[members[k]] = n_clusters
@@ -95,8 +106,8 @@ def group_correspondences(
         order = np.argsort(q, kind="stable").astype(np.int64)
     if n == 0:
         return []
-    ok = consistency_matrix(s, d, params.consensus_resolution)
-    label = _grow(ok, order, params.min_cluster_size)
+    bits = _consistency_bits(s, d, float(params.consensus_resolution))
+    label = _grow(bits, order, params.min_cluster_size)
     rank = np.empty(n, dtype=np.int64)
     rank[order] = np.arange(n)
     clusters = []

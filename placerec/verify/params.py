@@ -49,6 +49,11 @@ class ConsistencyParams(Params):
         7.0, gt=0, description="m; ISHOT paper Sec. V ('consensus set resolution')"
     )
     min_cluster_size: int = Field(8, ge=1, description="ISHOT paper Sec. V ('minimum cluster size')")
+    max_clusters: int = Field(
+        1,
+        ge=1,
+        description="RANSAC runs on each of the largest clusters, up to this many; the best pose is kept",
+    )
 
 
 class IcpParams(Params):

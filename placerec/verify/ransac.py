@@ -20,7 +20,7 @@ import numpy as np
 from placerec.verify.kabsch import check_pairs, kabsch_batch, rigid_fit, yaw_batch
 from placerec.verify.params import RansacParams
 
-__all__ = ["RansacResult", "ransac_pose", "required_iterations"]
+__all__ = ["RansacResult", "ransac_pose", "refit", "required_iterations"]
 
 _MAX_REFITS = 5
 
@@ -121,6 +121,20 @@ def ransac_pose(src: np.ndarray, dst: np.ndarray, params: RansacParams | None = 
         return RansacResult(np.eye(4), np.zeros(n, dtype=bool), 0, drawn, False)
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = best_R, best_t
+    T, mask = refit(T, s_all, d_all, params)
+    n_in = int(mask.sum())
+    return RansacResult(T, mask, n_in, drawn, n_in >= params.min_inliers)
+
+
+def refit(
+    T: np.ndarray, src: np.ndarray, dst: np.ndarray, params: RansacParams | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares refit of ``T`` on its inliers among ``src[i] <-> dst[i]``, inliers re-selected, until the set
+    is stable (at most 5 times; a refit that loses inliers is not taken). Returns (T, inlier mask)."""
+    params = params or RansacParams()
+    s_all, d_all = check_pairs(src, dst)
+    thr2 = params.inlier_threshold**2
+    size = 3 if params.mode == "6dof" else 2
     mask = _inliers(T, s_all, d_all, thr2)
     for _ in range(_MAX_REFITS):
         if mask.sum() < size:
@@ -132,8 +146,7 @@ def ransac_pose(src: np.ndarray, dst: np.ndarray, params: RansacParams | None = 
         T, done, mask = T_new, np.array_equal(new_mask, mask), new_mask
         if done:
             break
-    n_in = int(mask.sum())
-    return RansacResult(T, mask, n_in, drawn, n_in >= params.min_inliers)
+    return T, mask
 
 
 def _inliers(T: np.ndarray, src: np.ndarray, dst: np.ndarray, thr2: float) -> np.ndarray:

@@ -14,7 +14,7 @@ Without correspondences (`verify_icp`), ICP starts from the given initial guess 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -24,7 +24,7 @@ from placerec.verify.consistency import group_correspondences
 from placerec.verify.icp import IcpCloud, prepare_source, prepare_target, refine
 from placerec.verify.kabsch import check_pairs
 from placerec.verify.params import VerifyParams
-from placerec.verify.ransac import ransac_pose
+from placerec.verify.ransac import RansacResult, ransac_pose, refit
 from placerec.verify.score import is_accepted, verified_score
 
 __all__ = ["Verification", "verify", "verify_icp", "as_source", "as_target"]
@@ -36,10 +36,11 @@ class Verification:
 
     ``T_match_query``: 4x4 (the ICP result; the RANSAC pose, or the initial guess, when rejected before ICP).
     ``score`` in [0, 1] (0 when rejected before ICP), ``accepted`` by ``params.score.acceptance``.
-    ``inliers``: RANSAC inliers (None for ICP-only), ``correspondences``: pairs given (after grouping: in the
-    largest cluster). ``fitness``, ``rmse`` (m), ``residual`` (m^2, the eps_ICP quantity): ICP statistics (NaN
-    when ICP did not run). ``rejected_at``: the stage that ended it early (``grouping``, ``ransac``) or None.
-    ``timings_ms``: per stage (``prepare``, ``grouping``, ``ransac``, ``icp``, ``total``).
+    ``inliers``: RANSAC inliers among all given pairs (with grouping: of the best cluster's pose, refit on them;
+    None for ICP-only), ``correspondences``: pairs given. ``fitness``, ``rmse`` (m), ``residual`` (m^2, the eps_ICP
+    quantity): ICP statistics (NaN when ICP did not run). ``rejected_at``: the stage that ended it early (``grouping``, ``ransac``) or None.
+    ``timings_ms``: per stage (``prepare``, ``grouping``, ``ransac``, ``icp``, ``total``). ``inlier_mask``: over
+    the given correspondences, those RANSAC kept (None for ICP-only).
     """
 
     T_match_query: np.ndarray
@@ -54,6 +55,7 @@ class Verification:
     icp_iterations: int = 0
     rejected_at: str | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
+    inlier_mask: np.ndarray | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """Scalars only (for a Candidate's ``extra`` or a CSV row)."""
@@ -122,6 +124,7 @@ def verify(
     timings["prepare"] = (time.perf_counter() - t_start) * 1e3
     T0 = _initial(init)
     inliers: int | None = None
+    inlier_mask: np.ndarray | None = None
     n_corr, ransac_iters = 0, 0
     if src_kp_xyz is not None or dst_kp_xyz is not None:
         if src_kp_xyz is None or dst_kp_xyz is None:
@@ -129,19 +132,30 @@ def verify(
         src, dst = check_pairs(src_kp_xyz, dst_kp_xyz)
         n_corr = src.shape[0]
         t = time.perf_counter()
+        subsets = [np.arange(n_corr)]
         if params.consistency.enabled and n_corr:
             clusters = group_correspondences(src, dst, quality, params.consistency)
-            keep = clusters[0] if clusters else np.zeros(0, dtype=np.int64)
-            src, dst, n_corr = src[keep], dst[keep], len(keep)
+            subsets = [
+                c for c in clusters[: params.consistency.max_clusters] if len(c) >= params.min_correspondences
+            ]
         timings["grouping"] = (time.perf_counter() - t) * 1e3
-        if n_corr < params.min_correspondences:
+        if not subsets or n_corr < params.min_correspondences:
             return _rejected(T0, 0, n_corr, 0, "grouping", timings, t_start)
         t = time.perf_counter()
-        rr = ransac_pose(src, dst, params.ransac)
+        results = [(ransac_pose(src[c], dst[c], params.ransac), c) for c in subsets]
+        rr, chosen = max(results, key=lambda r: (r[0].n_inliers, -len(r[1])))
         timings["ransac"] = (time.perf_counter() - t) * 1e3
-        inliers, ransac_iters = rr.n_inliers, rr.iterations
+        ransac_iters = sum(r.iterations for r, _ in results)
+        if len(chosen) < n_corr and rr.success:  # a cluster's pose: its inliers among all correspondences
+            T_all, inlier_mask = refit(rr.T, src, dst, params.ransac)
+            rr = RansacResult(T_all, inlier_mask, int(inlier_mask.sum()), rr.iterations, True)
+        else:
+            inlier_mask = np.zeros(n_corr, dtype=bool)
+            inlier_mask[chosen[rr.inliers]] = True
+        inliers = rr.n_inliers
+        rr = replace(rr, success=inliers >= params.ransac.min_inliers)
         if not rr.success:
-            return _rejected(T0, inliers, n_corr, ransac_iters, "ransac", timings, t_start)
+            return _rejected(T0, inliers, n_corr, ransac_iters, "ransac", timings, t_start, inlier_mask)
         T0 = rr.T
     sp = params.score
     icp = refine(source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range)
@@ -160,6 +174,7 @@ def verify(
         ransac_iterations=ransac_iters,
         icp_iterations=icp.iterations,
         timings_ms=timings,
+        inlier_mask=inlier_mask,
     )
 
 
@@ -194,7 +209,8 @@ def _rejected(
     stage: str,
     timings: dict[str, float],
     t_start: float,
+    inlier_mask: np.ndarray | None = None,
 ) -> Verification:
     timings["total"] = (time.perf_counter() - t_start) * 1e3
     nan = float("nan")
-    return Verification(T, 0.0, False, inliers, n_corr, nan, nan, nan, iters, 0, stage, timings)
+    return Verification(T, 0.0, False, inliers, n_corr, nan, nan, nan, iters, 0, stage, timings, inlier_mask)
