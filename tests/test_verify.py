@@ -135,7 +135,7 @@ def test_ransac_recovers_a_pose_with_70_percent_outliers():
     assert angle < 0.3
     assert (r.inliers == good).mean() > 0.98
     # adaptive stop: far fewer hypotheses than the cap at w = 0.3 (about 253 for s = 3, confidence 0.999)
-    assert r.iterations <= 2 * 128 + required_iterations(0.3, 3, 0.999)
+    assert r.iterations <= 2 * RansacParams().batch_size + required_iterations(0.3, 3, 0.999)
     assert r.iterations < RansacParams().max_iterations
 
 
