@@ -146,7 +146,8 @@ def verify(
         rr, chosen = max(results, key=lambda r: (r[0].n_inliers, -len(r[1])))
         timings["ransac"] = (time.perf_counter() - t) * 1e3
         ransac_iters = sum(r.iterations for r, _ in results)
-        if len(chosen) < n_corr and rr.success:  # a cluster's pose: its inliers among all correspondences
+        sample = 3 if params.ransac.mode == "6dof" else 2
+        if len(chosen) < n_corr and rr.n_inliers >= sample:  # a cluster's pose: its inliers among all pairs
             T_all, inlier_mask = refit(rr.T, src, dst, params.ransac)
             rr = RansacResult(T_all, inlier_mask, int(inlier_mask.sum()), rr.iterations, True)
         else:
