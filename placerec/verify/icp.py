@@ -5,9 +5,10 @@ covariances, search tree; `prepare_source` for the query: the coarser ``source_v
 per candidate), so a pipeline that verifies k candidates prepares the query once and each database scan once.
 `refine` runs point-to-plane ICP (ISHOT paper Sec. IV-F; or small_gicp's GICP) from an initial ``T_target_source``
 and measures the result the same way for every backend (`alignment_stats`): the nearest target voxel of each
-transformed source voxel (``stats_points`` of them, evenly strided) gives the overlap ``fitness`` (share within ``fitness_distance``), the ``rmse`` of those
-distances, and the ISHOT paper's ICP residual (the mean squared nearest-neighbour distance, PCL's
-``getFitnessScore``) for the eps_ICP rule. ``docs/verification.md`` compares the backends.
+transformed source voxel (``stats_points`` of them, evenly strided) gives the overlap ``fitness`` (the share
+within ``fitness_distance``), the ``rmse`` of those distances, and the ISHOT paper's ICP residual (the mean
+squared nearest-neighbour distance, PCL's ``getFitnessScore``) for the eps_ICP rule. ``docs/verification.md``
+compares the backends.
 """
 
 from __future__ import annotations
