@@ -402,3 +402,17 @@ def test_verify_with_grouping_reports_the_inlier_mask(sim_scans):
     assert v.accepted and v.inlier_mask.shape == (len(q),)
     assert v.inlier_mask.sum() == v.inliers
     assert (v.inlier_mask & bad).sum() <= 2 and v.inlier_mask[~bad].mean() > 0.9
+
+
+def test_icp_only_from_a_yaw_only_guess_converges(sim_scans):
+    # Scan Context gives a yaw and no translation: the guess is ~3 m off; the coarse stage brings it in
+    seq, scans = sim_scans
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    init = np.eye(4)
+    init[:3, :3] = T_gt[:3, :3]
+    assert np.linalg.norm(T_gt[:3, 3]) > 2.5
+    v = verify_icp(scans[13], scans[10], init=init)
+    assert np.linalg.norm((np.linalg.inv(T_gt) @ v.T_match_query)[:3, 3]) < 0.05
+    assert v.accepted
+    with pytest.raises(ConfigError):
+        VerifyParams(icp_only_coarse_distances=[0.0])

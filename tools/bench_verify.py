@@ -12,7 +12,9 @@ against a fine reference ICP). Needs ``../shared/data/real`` for the KITTI part 
    random match voxel (all random for wrong pairs): ms per stage, error, verified score, acceptance.
 3. The same with real descriptor matches: Open3D FPFH on 1500 random 0.4 m voxels per scan, mutual nearest
    neighbours, ordered by feature distance; without and with the ISHOT paper's consistency grouping.
-4. MapClosures (PyPI ``map-closures``) on the same pairs: the match scan is added, then the time of
+4. ICP alone (`verify_icp`, the Scan Context path) from the true yaw with no translation (wrong pairs: from the
+   identity): ms, acceptance, error.
+5. MapClosures (PyPI ``map-closures``) on the same pairs: the match scan is added, then the time of
    ``get_top_k_closures`` for the query (its closure search plus its RANSAC alignment) is measured.
 
 Prints readable lines, then exactly one JSON line of headline figures.
@@ -177,6 +179,17 @@ def run_pairs(name, pairs, rng, reps, mc=True):
             "rmse": v.rmse,
             "residual": v.residual,
         }
+        yaw_only = np.eye(4)  # Scan Context's guess: the yaw, no translation (wrong pairs: the identity)
+        if is_true:
+            yaw = np.arctan2(ref[1, 0], ref[0, 0])
+            yaw_only[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        v = verify_icp(src, tgt, yaw_only, default)
+        row["icp_only"] = {
+            "ms": v.timings_ms["icp"],
+            "t_err": pose_error(v.T_match_query, ref)[0] if v.accepted else None,
+            "accepted": v.accepted,
+            "score": v.score,
+        }
         fq, fm, fd = fpfh_correspondences(q_xyz, m_xyz, rng)
         true_ratio = float(np.mean(np.linalg.norm(fq @ ref[:3, :3].T + ref[:3, 3] - fm, axis=1) < 0.6))
         for key, cons in (("fpfh", False), ("fpfh_grouping", True)):
@@ -208,6 +221,11 @@ def run_pairs(name, pairs, rng, reps, mc=True):
                 for b in BACKENDS
             )
             + (f" | mapclosures {row['map_closures']['ms']:.1f} ms" if mc else "")
+        )
+        io = row["icp_only"]
+        print(
+            f"      icp_only from {'yaw' if is_true else 'identity'}: {io['ms']:.1f} ms, score {io['score']:.2f},"
+            f" accepted={io['accepted']}" + (f", err {io['t_err']:.3f} m" if io["t_err"] is not None else "")
         )
         for key in ("fpfh", "fpfh_grouping"):
             f = row[key]
@@ -325,6 +343,14 @@ def main() -> None:
             k = b.replace(" ", "_").replace(".", "")
             head[f"{name}_{k}_icp_ms"] = summary(gt, b, "icp_ms")
             head[f"{name}_{k}_t_err"] = summary(gt, b, "t_err")
+        head[f"{name}_icp_only_yaw_ms_median"] = float(np.median([r["icp_only"]["ms"] for r in gt]))
+        head[f"{name}_icp_only_wrong_ms_median"] = (
+            float(np.median([r["icp_only"]["ms"] for r in wrong])) if wrong else None
+        )
+        head[f"{name}_icp_only_true_accepted"] = f"{sum(r['icp_only']['accepted'] for r in gt)}/{len(gt)}"
+        head[f"{name}_icp_only_wrong_accepted"] = (
+            f"{sum(r['icp_only']['accepted'] for r in wrong)}/{len(wrong)}"
+        )
         for key in ("fpfh", "fpfh_grouping"):
             head[f"{name}_{key}_ms_median"] = float(np.median([r[key]["ms"] for r in rs]))
             head[f"{name}_{key}_true_accepted"] = f"{sum(r[key]['accepted'] for r in gt)}/{len(gt)}"

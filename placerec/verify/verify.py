@@ -159,8 +159,14 @@ def verify(
             return _rejected(T0, inliers, n_corr, ransac_iters, "ransac", timings, t_start, inlier_mask)
         T0 = rr.T
     sp = params.score
+    coarse_ms = 0.0
+    if inliers is None:  # a rough initial guess: coarse gates first
+        for gate in params.icp_only_coarse_distances:
+            coarse = params.icp.model_copy(update={"max_correspondence_distance": gate})
+            step = refine(source, target, T0, coarse, sp.fitness_distance, sp.eps_icp_max_range)
+            T0, coarse_ms = step.T, coarse_ms + step.ms
     icp = refine(source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range)
-    timings["icp"] = icp.ms
+    timings["icp"] = icp.ms + coarse_ms
     score = verified_score(inliers, icp.fitness, icp.rmse, sp)
     timings["total"] = (time.perf_counter() - t_start) * 1e3
     return Verification(
@@ -182,7 +188,8 @@ def verify(
 def verify_icp(
     query_pts: Any, match_pts: Any, init: np.ndarray | None = None, params: VerifyParams | None = None
 ) -> Verification:
-    """Verify by ICP alone from ``init`` (T_match_query, e.g. Scan Context's yaw rotation); see `verify`."""
+    """Verify by ICP alone from ``init`` (T_match_query, e.g. Scan Context's yaw rotation), coarse to fine
+    (``params.icp_only_coarse_distances``, then the ICP's own gate); see `verify`."""
     return verify(query_pts, match_pts, None, None, init=init, params=params)
 
 

@@ -1,0 +1,198 @@
+"""The candidate-verification step every pipeline shares (issue #12 item 5).
+
+::
+
+    from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
+
+    description["cloud"] = scan_cloud(scan, params.verify.verify)       # in describe(): cached with the rest
+    store.add(scan_id, description["cloud"])                            # in add_description(): the database's
+    retrieved = [Retrieved(match_id, retrieval_score, src_kp, dst_kp)]  # or init=T_guess for ICP only
+    cands = verify_candidates(description["cloud"], retrieved, store, params.verify, query_id, k)
+
+* `VerifiedParams` is the ``verify`` section of a pipeline's Params: ``enabled``, ``top_k`` and the
+  `placerec.verify.VerifyParams` of the stage.
+* `scan_cloud` voxelises a scan at the ICP target voxel (``icp.voxel_size``), float32: what a description keeps
+  so the description cache holds it; the query is prepared from it once per query (`as_source`, at the coarser
+  source voxel), each database cloud once (`CloudStore.target`, kept for later queries).
+* `verify_candidates` verifies the first ``top_k`` retrieved candidates (in the order given: best retrieval
+  first) with `placerec.verify.verify` (keypoint correspondences) or `verify_icp` (an initial guess ``init``),
+  and returns `placerec.types.Candidate`\\ s with ``relative_pose = T_match_query`` (the ICP pose), ``score`` = the
+  verified score, ``inliers`` (RANSAC inliers; None for ICP only), ``extra["verify"]`` =
+  `Verification.as_dict`, ``extra["retrieval_score"]``, ``extra["accepted"]`` and ``extra["verify_ms"]`` (the
+  candidate's verification time plus its share of preparing the clouds: the runner's 'verify' stage,
+  `placerec.loop_closure.split_verify_time`), sorted by verified score (ties: retrieval score), at most ``k``.
+
+Rejected candidates are **kept**, ranked below the accepted ones of equal score, so PR curves stay continuous:
+with ``acceptance = "score"`` a rejected candidate keeps its verified score (below ``min_score`` by definition);
+with ``"eps_icp"`` or ``"both"`` a candidate the rule rejects scores 0 (its overlap score does not carry that
+rule). A threshold of ``min_score`` on ``Candidate.score`` thus never accepts a rejected candidate. Retrieved
+candidates beyond ``top_k`` are dropped: their retrieval scores are on another scale than verified scores.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from placerec.errors import ArtifactError, ScanDataError
+from placerec.params import Params
+from placerec.types import Candidate
+from placerec.verify.icp import IcpCloud, as_points
+from placerec.verify.params import VerifyParams
+from placerec.verify.verify import Verification, as_source, as_target, verify
+
+__all__ = ["VerifiedParams", "Retrieved", "CloudStore", "scan_cloud", "verify_candidates"]
+
+
+class VerifiedParams(Params):
+    """The ``verify`` section of a pipeline: whether and how many retrieved candidates are verified."""
+
+    enabled: bool = Field(
+        True, description="verify the retrieved candidates geometrically (RANSAC / ICP, placerec.verify)"
+    )
+    top_k: int = Field(
+        3, ge=1, description="retrieved candidates verified per query (best retrieval first); the rest dropped"
+    )
+    verify: VerifyParams = Field(
+        default_factory=VerifyParams, description="the verification stage (docs/verification.md)"
+    )
+
+
+@dataclass
+class Retrieved:
+    """One retrieved candidate to verify: ``src_kp`` (query frame) corresponds row by row to ``dst_kp`` (match
+    frame), ``quality`` orders them for the consistency grouping (lower is better, e.g. descriptor distance);
+    without keypoints, ICP starts from ``init`` (``T_match_query``; None: identity). ``extra`` is copied into the
+    candidate."""
+
+    match_id: int
+    retrieval_score: float
+    src_kp: np.ndarray | None = None
+    dst_kp: np.ndarray | None = None
+    quality: np.ndarray | None = None
+    init: np.ndarray | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def scan_cloud(scan: Any, params: VerifyParams | None = None) -> np.ndarray:
+    """The scan's valid points (a `Scan` or (N, 3+) array) cropped to ``icp.max_range`` and voxelised at
+    ``icp.voxel_size``: (M, 3) float32, to keep in a description."""
+    import small_gicp
+
+    icp = (params or VerifyParams()).icp
+    p = as_points(scan, "scan")
+    if icp.max_range is not None:
+        p = p[np.einsum("ni,ni->n", p, p) <= icp.max_range**2]
+    if p.shape[0] == 0:
+        return np.zeros((0, 3), np.float32)
+    vox = small_gicp.voxelgrid_sampling(np.ascontiguousarray(p), icp.voxel_size)
+    return np.asarray(vox.points(), dtype=np.float32)[:, :3].copy()
+
+
+class CloudStore:
+    """Each database entry's cloud (from `scan_cloud`), prepared as an ICP target on first use; the last
+    ``max_prepared`` prepared clouds are kept (least recently used dropped). ``arrays`` / `from_arrays` give
+    the clouds for a pipeline's saved database."""
+
+    def __init__(self, params: VerifyParams | None = None, max_prepared: int = 512) -> None:
+        self.params = params or VerifyParams()
+        self.max_prepared = max_prepared
+        self._clouds: dict[int, np.ndarray] = {}
+        self._prepared: OrderedDict[int, IcpCloud] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._clouds)
+
+    def __contains__(self, scan_id: object) -> bool:
+        return scan_id in self._clouds
+
+    def add(self, scan_id: int, cloud: np.ndarray) -> None:
+        c = np.asarray(cloud, dtype=np.float32)
+        if c.ndim != 2 or c.shape[1] != 3:
+            raise ScanDataError(f"cloud of entry {scan_id} must have shape (M, 3), got {c.shape}")
+        self._clouds[int(scan_id)] = c
+        self._prepared.pop(int(scan_id), None)
+
+    def cloud(self, scan_id: int) -> np.ndarray:
+        try:
+            return self._clouds[int(scan_id)]
+        except KeyError:
+            raise ScanDataError(f"no cloud stored for entry {scan_id}") from None
+
+    def target(self, scan_id: int) -> IcpCloud:
+        """Entry ``scan_id``'s cloud prepared for ICP (`as_target`), cached."""
+        sid = int(scan_id)
+        if sid in self._prepared:
+            self._prepared.move_to_end(sid)
+            return self._prepared[sid]
+        tgt = as_target(self.cloud(sid), self.params)
+        self._prepared[sid] = tgt
+        while len(self._prepared) > self.max_prepared:
+            self._prepared.popitem(last=False)
+        return tgt
+
+    def arrays(self, ids: Iterable[int]) -> dict[str, np.ndarray]:
+        """``cloud_counts`` and ``cloud_xyz`` of the entries ``ids`` (in that order), for saving."""
+        parts = [self.cloud(i) for i in ids]
+        return {
+            "cloud_counts": np.asarray([len(c) for c in parts], np.int64),
+            "cloud_xyz": np.concatenate(parts).astype(np.float32) if parts else np.zeros((0, 3), np.float32),
+        }
+
+    def from_arrays(self, ids: Sequence[int], arrays: Mapping[str, np.ndarray], path: Any = "") -> None:
+        """Replace the clouds by those of `arrays` (saved for ``ids``); `ArtifactError` when they disagree."""
+        counts, xyz = np.asarray(arrays["cloud_counts"]), np.asarray(arrays["cloud_xyz"], np.float32)
+        if counts.shape != (len(ids),) or (counts < 0).any() or int(counts.sum()) != xyz.shape[0]:
+            raise ArtifactError(f"{path}: cloud_counts do not match the entries and cloud_xyz")
+        self._clouds.clear()
+        self._prepared.clear()
+        for i, c in zip(ids, np.split(xyz, np.cumsum(counts)[:-1]) if len(ids) else [], strict=True):
+            self._clouds[int(i)] = c
+
+
+def _score(v: Verification, params: VerifyParams) -> float:
+    if v.accepted or params.score.acceptance == "score":
+        return float(v.score)
+    return 0.0
+
+
+def verify_candidates(
+    query_cloud: np.ndarray | IcpCloud,
+    retrieved: Sequence[Retrieved],
+    store: CloudStore,
+    params: VerifiedParams,
+    query_id: int = -1,
+    k: int | None = None,
+) -> list[Candidate]:
+    """Verify the first ``params.top_k`` of ``retrieved`` against ``store``'s clouds (see the module docstring);
+    returns at most ``k`` (None: all verified) candidates, best verified first."""
+    todo = list(retrieved)[: params.top_k]
+    if not todo:
+        return []
+    vp = params.verify
+    t0 = time.perf_counter()
+    source = as_source(query_cloud, vp)
+    shared = (time.perf_counter() - t0) * 1e3 / len(todo)
+    out: list[tuple[Candidate, float]] = []
+    for r in todo:
+        t1 = time.perf_counter()
+        target = store.target(r.match_id)
+        v = verify(source, target, r.src_kp, r.dst_kp, init=r.init, params=vp, quality=r.quality)
+        ms = (time.perf_counter() - t1) * 1e3 + shared
+        extra = {
+            **r.extra,
+            "retrieval_score": float(r.retrieval_score),
+            "accepted": bool(v.accepted),
+            "verify": v.as_dict(),
+            "verify_ms": ms,
+        }
+        cand = Candidate(query_id, int(r.match_id), _score(v, vp), v.T_match_query, v.inliers, extra)
+        out.append((cand, float(r.retrieval_score)))
+    out.sort(key=lambda cr: (-cr[0].score, not cr[0].extra["accepted"], -cr[1]))
+    return [c for c, _ in out][: k if k is not None else len(out)]
