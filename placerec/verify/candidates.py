@@ -57,7 +57,9 @@ class VerifiedParams(Params):
         True, description="verify the retrieved candidates geometrically (RANSAC / ICP, placerec.verify)"
     )
     top_k: int = Field(
-        3, ge=1, description="retrieved candidates verified per query (best retrieval first); the rest dropped"
+        3,
+        ge=1,
+        description="retrieved candidates verified per query (best retrieval first); the rest dropped",
     )
     verify: VerifyParams = Field(
         default_factory=VerifyParams, description="the verification stage (docs/verification.md)"
