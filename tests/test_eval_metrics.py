@@ -266,6 +266,30 @@ def test_no_revisits_flagged():
     assert m.max_f1 == 0.0 and m.recall_at_1 == 0.0
 
 
+def test_recall_at_100_precision_and_extended_precision_hand_computed():
+    gt = hand_gt()
+    # the PR example: precision 1 only at the first point (R 0.2), then a false positive
+    m = loop_metrics(Q, M, S, gt)
+    assert (m.recall_at_100_precision, m.precision_at_min_recall) == pytest.approx((0.2, 1.0))
+    assert m.extended_precision == pytest.approx(0.6)
+    # 4 revisits (q5, q6, q7, q9), three true closures before the first false one: R_P100 = 3/4, EP = 0.875
+    m = loop_metrics([5, 6, 7, 9, 10], [0, 1, 2, 0, 1], [0.9, 0.85, 0.8, 0.7, 0.75], gt)
+    assert m.precision.tolist() == pytest.approx([1.0, 1.0, 1.0, 0.75, 0.6])
+    assert m.recall.tolist() == pytest.approx([0.25, 0.5, 0.75, 0.75, 0.75])
+    assert (m.recall_at_100_precision, m.precision_at_min_recall) == pytest.approx((0.75, 1.0))
+    assert m.extended_precision == pytest.approx(0.875)
+    # the best-scored candidate is wrong: no point at precision 1, P_R0 = 0
+    m = loop_metrics([5, 10], [0, 1], [0.5, 0.9], gt)
+    assert (m.recall_at_100_precision, m.precision_at_min_recall, m.extended_precision) == (0.0, 0.0, 0.0)
+    # a tie at the top score between a true and a false closure: P_R0 = 1/2, R_P100 = 0
+    m = loop_metrics([5, 10], [0, 1], [0.9, 0.9], gt)
+    assert (m.recall_at_100_precision, m.precision_at_min_recall, m.extended_precision) == (0.0, 0.5, 0.25)
+    summary = m.summary()
+    assert (summary["recall_at_100_precision"], summary["extended_precision"]) == (0.0, 0.25)
+    none = loop_metrics(Q, [-1] * 7, [np.nan] * 7, gt)
+    assert (none.recall_at_100_precision, none.precision_at_min_recall, none.extended_precision) == (0, 0, 0)
+
+
 def test_bad_inputs_raise_placerec_errors():
     gt = hand_gt()
     with pytest.raises(ScanDataError, match="NaN"):

@@ -1,4 +1,5 @@
-"""Evaluation: loop-closure ground truth and metrics (VPR paper protocol), localisation success (ISHOT paper).
+"""Evaluation: loop-closure ground truth and metrics (VPR paper protocol), localisation success (ISHOT paper),
+errors of the closures' relative poses.
 
 Only NumPy and SciPy are imported here.
 """
@@ -18,6 +19,13 @@ from placerec.eval.metrics import (
     loop_metrics,
     timing_summary,
 )
+from placerec.eval.pose_error import (
+    ClosurePoseErrors,
+    closure_pose_errors,
+    error_stats,
+    full_pose_mask,
+    pose_errors,
+)
 
 __all__ = [
     "DEFAULT_EXCLUSION_FRAMES",
@@ -33,4 +41,9 @@ __all__ = [
     "LocalizationMetrics",
     "localization_metrics",
     "timing_summary",
+    "ClosurePoseErrors",
+    "closure_pose_errors",
+    "error_stats",
+    "full_pose_mask",
+    "pose_errors",
 ]

@@ -1,5 +1,5 @@
 """Evaluation metrics: loop-closure precision/recall (VPR paper protocol), localisation success (ISHOT paper),
-timing summaries.
+timing summaries. Pose errors of closures: `placerec.eval.pose_error`.
 
 Loop mode definitions
 ---------------------
@@ -22,6 +22,12 @@ the fraction of revisit queries whose top candidate is a true match at any thres
 fraction with a true match among their first ``n`` candidates. With no revisit query, recalls are reported as 0 and
 ``no_revisits`` is set.
 
+``recall_at_100_precision`` (R_P100) is the highest recall of a curve point with no false positive (0 when the
+best-scored candidate is already wrong); ``precision_at_min_recall`` (P_R0) the precision of the first curve point
+(the highest threshold); ``extended_precision`` EP = (P_R0 + R_P100) / 2 (Ferrarini et al., "Exploring
+Performance Bounds of Visual Place Recognition Using Extended Precision", IEEE RA-L 2020). All three are 0 with no
+candidate.
+
 The same functions serve live runs and recomputation from a ``query_id,match_id,score`` CSV plus the poses.
 """
 
@@ -36,6 +42,7 @@ import numpy as np
 
 from placerec.errors import ScanDataError
 from placerec.eval.ground_truth import LoopGroundTruth, loop_ground_truth
+from placerec.eval.pose_error import pose_errors
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +75,9 @@ class LoopMetrics:
     recall_at_max_f1: float
     threshold_at_max_f1: float
     average_precision: float
+    recall_at_100_precision: float
+    precision_at_min_recall: float
+    extended_precision: float
     recall_at_1: float
     recall_at_n: np.ndarray | None
     no_revisits: bool
@@ -110,6 +120,9 @@ class LoopMetrics:
             "recall_at_max_f1": self.recall_at_max_f1,
             "threshold_at_max_f1": self.threshold_at_max_f1,
             "average_precision": self.average_precision,
+            "recall_at_100_precision": self.recall_at_100_precision,
+            "precision_at_min_recall": self.precision_at_min_recall,
+            "extended_precision": self.extended_precision,
             "recall_at_1": self.recall_at_1,
             "recall_at_n": None if self.recall_at_n is None else [float(v) for v in self.recall_at_n],
             "no_revisits": self.no_revisits,
@@ -187,6 +200,9 @@ def loop_metrics(
     else:
         max_f1, p_best, r_best, t_best = 0.0, 0.0, 0.0, float("nan")
     ap = float(np.sum(np.diff(np.r_[0.0, recall]) * precision))
+    clean = fp == 0  # a prefix of the curve: precision 1 (every point holds at least one candidate)
+    r_p100 = float(recall[clean][-1]) if clean.any() else 0.0
+    p_r0 = float(precision[0]) if precision.size else 0.0
     r1 = float(correct.sum() / n_rev) if n_rev else 0.0
 
     r_at_n = None
@@ -217,6 +233,9 @@ def loop_metrics(
         recall_at_max_f1=r_best,
         threshold_at_max_f1=t_best,
         average_precision=ap,
+        recall_at_100_precision=r_p100,
+        precision_at_min_recall=p_r0,
+        extended_precision=(p_r0 + r_p100) / 2,
         recall_at_1=r1,
         recall_at_n=None if r_at_n is None else np.asarray(r_at_n, dtype=np.float64),
         no_revisits=n_rev == 0,
@@ -246,8 +265,12 @@ def evaluate_loop(
 class LocalizationMetrics:
     """Localize-mode metrics (ISHOT paper): a query succeeds when its position error is <= ``success_distance``.
 
-    ``errors`` (Q,) metres (inf where no estimate was given), ``success`` (Q,) bool. ``mean_error`` and
-    ``median_error`` are over queries with an estimate (NaN if none).
+    ``basis`` says what the estimate is: ``"pose"`` (the matched map pose composed with the candidate's 6-DoF
+    relative pose) or ``"retrieval"`` (the matched map scan's position: place retrieval only). ``errors`` (Q,)
+    metres (inf where no estimate was given), ``success`` (Q,) bool. ``rotation_errors`` (Q,) degrees where a
+    pose was estimated (NaN elsewhere). ``fine_success`` (Q,): within ``fine_distance`` and ``fine_rotation_deg``
+    (1 m / 5 deg); defined only for pose estimates (None, and ``fine_success_rate`` NaN, for ``retrieval``).
+    ``mean_error``, ``median_error`` and ``median_rotation_error`` are over queries with an estimate (NaN if none).
     """
 
     errors: np.ndarray
@@ -259,6 +282,13 @@ class LocalizationMetrics:
     mean_error: float
     median_error: float
     success_distance: float
+    basis: str = "retrieval"
+    rotation_errors: np.ndarray | None = None
+    fine_success: np.ndarray | None = None
+    fine_success_rate: float = float("nan")
+    median_rotation_error: float = float("nan")
+    fine_distance: float = 1.0
+    fine_rotation_deg: float = 5.0
 
     def summary(self) -> dict[str, Any]:
         """The scalar metrics as a JSON-friendly dict."""
@@ -266,10 +296,15 @@ class LocalizationMetrics:
             "n_queries": self.n_queries,
             "n_success": self.n_success,
             "n_no_estimate": self.n_no_estimate,
+            "success_basis": self.basis,
             "success_rate": self.success_rate,
             "mean_error": self.mean_error,
             "median_error": self.median_error,
+            "median_rotation_error_deg": self.median_rotation_error,
             "success_distance": self.success_distance,
+            "fine_success_rate": self.fine_success_rate,
+            "fine_distance": self.fine_distance,
+            "fine_rotation_deg": self.fine_rotation_deg,
         }
 
 
@@ -287,10 +322,19 @@ def localization_metrics(
     truth: np.ndarray,
     success_distance: float = 3.0,
     planar: bool = False,
+    basis: str = "retrieval",
+    fine_distance: float = 1.0,
+    fine_rotation_deg: float = 5.0,
 ) -> LocalizationMetrics:
-    """Success rate of localisation: ``estimated`` and ``truth`` are (Q, 2|3) positions or (Q, 4, 4) poses
-    (e.g. the matched place's position as estimate). Rows of ``estimated`` with NaN mean "no answer" and fail.
-    The error is 3D Euclidean (xy with ``planar=True``)."""
+    """Success rate of localisation: ``estimated`` and ``truth`` are (Q, 2|3) positions or (Q, 4, 4) poses.
+    Rows of ``estimated`` with NaN mean "no answer" and fail. The error is 3D Euclidean (xy with ``planar=True``).
+
+    ``basis="pose"``: the rows are estimated query poses (map pose @ relative pose); with (Q, 4, 4) poses on both
+    sides the rotation error and the fine success (``fine_distance`` m and ``fine_rotation_deg``) are computed too.
+    ``basis="retrieval"``: the rows are the matched map scans' positions; no fine success (it is not a pose).
+    """
+    if basis not in ("pose", "retrieval"):
+        raise ScanDataError(f"basis must be 'pose' or 'retrieval', got {basis!r}")
     est = _as_positions(estimated, "estimated")
     gt = _as_positions(truth, "truth")
     if est.shape[0] != gt.shape[0]:
@@ -299,15 +343,28 @@ def localization_metrics(
         raise ScanDataError(f"estimated and truth differ in dimension: {est.shape[1]} vs {gt.shape[1]}")
     if not np.all(np.isfinite(gt)):
         raise ScanDataError("ground-truth positions contain NaN or inf")
-    if not success_distance > 0:
-        raise ScanDataError(f"success_distance must be > 0, got {success_distance}")
+    if not (success_distance > 0 and fine_distance > 0 and fine_rotation_deg > 0):
+        raise ScanDataError(
+            f"success_distance, fine_distance, fine_rotation_deg must be > 0, got {success_distance},"
+            f" {fine_distance}, {fine_rotation_deg}"
+        )
     dims = 2 if planar else est.shape[1]
+    n = int(est.shape[0])
     answered = np.all(np.isfinite(est), axis=1)
-    errors = np.full(est.shape[0], np.inf)
+    errors = np.full(n, np.inf)
     errors[answered] = np.linalg.norm(est[answered, :dims] - gt[answered, :dims], axis=1)
     success = errors <= success_distance
-    n = int(est.shape[0])
     fin = errors[answered]
+    rot, fine, fine_rate, med_rot = None, None, float("nan"), float("nan")
+    if basis == "pose" and np.ndim(estimated) == 3 and np.ndim(truth) == 3:
+        E = np.asarray(estimated, dtype=np.float64)
+        ok = answered & np.isfinite(E).all(axis=(1, 2))
+        rot = np.full(n, np.nan)
+        if ok.any():
+            rot[ok] = pose_errors(E[ok], np.asarray(truth, dtype=np.float64)[ok])[1]
+            med_rot = float(np.median(rot[ok]))
+        fine = ok & (errors <= fine_distance) & (np.nan_to_num(rot, nan=np.inf) <= fine_rotation_deg)
+        fine_rate = float(fine.mean()) if n else 0.0
     return LocalizationMetrics(
         errors=errors,
         success=success,
@@ -318,6 +375,13 @@ def localization_metrics(
         mean_error=float(fin.mean()) if fin.size else float("nan"),
         median_error=float(np.median(fin)) if fin.size else float("nan"),
         success_distance=float(success_distance),
+        basis=basis,
+        rotation_errors=rot,
+        fine_success=fine,
+        fine_success_rate=fine_rate,
+        median_rotation_error=med_rot,
+        fine_distance=float(fine_distance),
+        fine_rotation_deg=float(fine_rotation_deg),
     )
 
 
