@@ -1,19 +1,29 @@
 """What `run_experiment` leaves on disk: every candidate in the CSV, and ``latest`` only on a complete run."""
 
 import csv
+import json
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from placerec.baselines.scan_context import ScanContext
 from placerec.config import load_config
 from placerec.errors import ConfigError, ScanDataError, ScanFormatError
 from placerec.eval import ExclusionWindow, loop_ground_truth
 from placerec.experiment import run_experiment
-from placerec.experiment.candidates import read_candidates, write_candidates
-from placerec.experiment.report import recompute_loop_metrics
+from placerec.experiment.candidates import CandidateTable, read_candidates, write_candidates
+from placerec.experiment.report import (
+    make_run_dir,
+    recompute_loop_metrics,
+    report_localize,
+    report_loop,
+    table_rows,
+)
+from placerec.experiment.runner import STAGES, PipelineRecord
 from placerec.io import read_poses, write_kitti_poses
-from placerec.types import Candidate
+from placerec.loop_closure import split_verify_time
+from placerec.types import Candidate, ListSequence, Scan, relative_pose
 
 N_SCANS = 24
 
@@ -73,7 +83,23 @@ def test_candidates_csv_holds_the_top_n_per_query_and_recomputes_recall_at_n(seq
     run, payload = run_experiment(config(sequence_dir, tmp_path))
     with (run / "candidates_scan-context.csv").open() as fh:
         rows = list(csv.DictReader(fh))
-    assert list(rows[0]) == ["query_id", "rank", "match_id", "score", "inliers"]
+    assert list(rows[0]) == [
+        "query_id",
+        "rank",
+        "match_id",
+        "score",
+        "inliers",
+        "x",
+        "y",
+        "z",
+        "roll",
+        "pitch",
+        "yaw",
+        "verified_score",
+        "fitness",
+        "rmse",
+        "accepted",
+    ]
     per_query = {}
     for r in rows:
         per_query.setdefault(int(r["query_id"]), []).append(r)
@@ -126,8 +152,51 @@ def test_candidates_round_trip_with_inliers(tmp_path):
 def test_top1_files_of_earlier_runs_still_read(tmp_path):
     path = tmp_path / "candidates_old.csv"
     path.write_text("query_id,match_id,score\n0,-1,\n1,0,0.75\n")
-    q, m, s = read_candidates(path).top1()
+    table = read_candidates(path)
+    q, m, s = table.top1()
     assert q.tolist() == [0, 1] and m.tolist() == [-1, 0] and np.isnan(s[0]) and s[1] == 0.75
+    assert np.isnan(table.relative_poses).all() and table.accepted.tolist() == [[-1], [-1]]
+    ranked = tmp_path / "candidates_ranked.csv"  # the five columns written before poses were added
+    ranked.write_text("query_id,rank,match_id,score,inliers\n0,1,2,0.5,7\n0,2,1,0.25,\n")
+    table = read_candidates(ranked)
+    assert table.match_ids.tolist() == [[2, 1]] and table.inliers.tolist() == [[7, -1]]
+    assert np.isnan(table.relative_poses).all() and np.isnan(table.fitness).all()
+
+
+def _pose(xyz, rpy_deg):
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", rpy_deg, degrees=True).as_matrix()
+    T[:3, 3] = xyz
+    return T
+
+
+def test_candidates_round_trip_with_relative_poses_and_verification(tmp_path):
+    T = _pose((1.5, -2.0, 0.25), (2.0, -3.0, 120.0))
+    verified = {"accepted": True, "verify": {"score": 0.8, "fitness": 0.9, "rmse": 0.05}, "verify_ms": 3.0}
+    rejected = {"accepted": False, "verify": {"score": 0.0, "fitness": float("nan"), "rmse": float("nan")}}
+    cands = [[Candidate(0, 4, 0.8, T, 40, verified), Candidate(0, 2, 0.0, np.eye(4), 3, rejected)]]
+    path = tmp_path / "c.csv"
+    write_candidates(path, [0], cands)
+    with path.open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [float(rows[0][k]) for k in ("x", "y", "z", "roll", "pitch", "yaw")] == pytest.approx(
+        [1.5, -2.0, 0.25, 2.0, -3.0, 120.0]
+    )
+    assert (rows[0]["verified_score"], rows[0]["accepted"], rows[1]["fitness"], rows[1]["accepted"]) == (
+        "0.8",
+        "1",
+        "",
+        "0",
+    )
+    table = read_candidates(path)
+    np.testing.assert_allclose(table.relative_poses[0, 0], T, atol=1e-12)
+    np.testing.assert_allclose(table.relative_poses[0, 1], np.eye(4), atol=1e-12)
+    assert table.verified_scores.tolist() == [[0.8, 0.0]] and table.inliers.tolist() == [[40, 3]]
+    assert table.fitness[0, 0] == 0.9 and np.isnan(table.fitness[0, 1]) and table.rmse[0, 0] == 0.05
+    assert table.accepted.tolist() == [[1, 0]]
+    again = CandidateTable.from_candidates([0], cands)  # what the run evaluates equals what the file holds
+    np.testing.assert_allclose(again.relative_poses, table.relative_poses, atol=1e-12)
+    assert again.accepted.tolist() == [[1, 0]] and np.array_equal(again.rmse, table.rmse, equal_nan=True)
 
 
 @pytest.mark.parametrize(
@@ -137,6 +206,9 @@ def test_top1_files_of_earlier_runs_still_read(tmp_path):
         ("query_id,rank,match_id,score,inliers\n0,2,1,0.5,\n", "rank 2 after 0"),
         ("query_id,rank,match_id,score,inliers\n0,1,x,0.5,\n", "line 2: match_id must be an integer"),
         ("query_id,rank,match_id,score,inliers\n0,1,-1,0.5,\n", "single row with -1"),
+        ("query_id,rank,match_id,score,x,y\n0,1,2,0.5,1.0,\n", "give all of x,y,z,roll,pitch,yaw or none"),
+        ("query_id,rank,match_id,score,fitness\n0,1,2,0.5,high\n", "line 2: fitness must be a number"),
+        ("query_id,rank,match_id,score,accepted\n0,1,2,0.5,yes\n", "accepted must be 1, 0 or empty"),
     ],
 )
 def test_malformed_candidates_file_names_file_and_line(tmp_path, text, message):
@@ -199,3 +271,150 @@ def test_a_results_root_that_is_a_file_is_a_config_error(sequence_dir, tmp_path)
     (tmp_path / "results").write_text("not a folder")
     with pytest.raises(ConfigError, match="output.dir: cannot make the results folder"):
         run_experiment(config(sequence_dir, tmp_path / "results"))
+
+
+def _hand_run(tmp_path, mode="loop"):
+    """Poses and a config for hand-made records: scans 0..4 100 m apart, 5..9 revisit scan i-5 from 1 m on with
+    a 90 deg turn, 10, 11 far away (the world of tests/test_pose_metrics.py)."""
+    x = np.r_[np.arange(5) * 100.0, np.arange(5) * 100.0 + 1.0, 1000.0, 2000.0]
+    poses = np.stack([_pose((xi, 0, 0), (0, 0, 90.0 if i >= 5 else 0.0)) for i, xi in enumerate(x)])
+    scans = [Scan(np.zeros((1, 3)), np.zeros(1)) for _ in x]
+    cfg = load_config(
+        None,
+        [
+            "name=hand",
+            f"evaluation.mode={mode}",
+            "evaluation.exclusion.frames=5",
+            "evaluation.top_n=2",
+            f"output.dir={tmp_path}",
+            "output.cache_dir=null",
+            "output.progress=false",
+        ],
+    )
+    return cfg, ListSequence(scans, poses, name="hand"), poses
+
+
+def _record(label, query_ids, candidates, verify_ms=0.0):
+    record = PipelineRecord(label, "Hand", "hand", {}, list(query_ids), candidates)
+    for stage in STAGES:
+        record.timing_ms[stage] = [verify_ms if stage == "verify" else 1.0] * len(query_ids)
+    return record
+
+
+def _flat(d, prefix=""):
+    out = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def test_loop_report_holds_pose_errors_extended_precision_and_recomputes_them(tmp_path):
+    cfg, seq, P = _hand_run(tmp_path)
+    rel = lambda m, q: relative_pose(P[m], P[q])  # noqa: E731
+    top = {  # query: (match, score, relative pose); q5, q7, q9 true, q6, q10 false; max F1 at 0.5
+        5: (0, 0.9, rel(0, 5) @ _pose((0.1, 0, 0), (0, 0, 0))),
+        6: (0, 0.8, _pose((0.5, 0, 0), (0, 0, 90))),
+        7: (2, 0.7, rel(2, 7) @ _pose((0, 0.3, 0), (0, 0, 2))),
+        9: (4, 0.5, rel(4, 9)),
+        10: (1, 0.1, None),
+    }
+    ids = list(range(12))
+    verified = [[Candidate(q, *top[q], 30, {"verify_ms": 2.0})] if q in top else [] for q in ids]
+    yaw_only = [
+        [Candidate(q, top[q][0], top[q][1], _pose((0, 0, 0), (0, 0, 90)))] if q in top else [] for q in ids
+    ]
+    records = [_record("verified", ids, verified, 2.0), _record("yaw-only", ids, yaw_only)]
+    run = make_run_dir(cfg)
+    payload = report_loop(cfg, run, seq, records)
+    m = payload["pipelines"]["verified"]
+    assert (m["max_f1"], m["threshold_at_max_f1"]) == (pytest.approx(2 / 3), 0.5)  # 3 TP, 1 FP, 5 revisits
+    assert (m["recall_at_100_precision"], m["precision_at_min_recall"], m["extended_precision"]) == (
+        0.2,
+        1,
+        0.6,
+    )
+    e = m["pose_error"]
+    assert (e["n_tp"], e["n_tp_with_pose"], e["n_accepted"], e["n_accepted_with_pose"]) == (3, 3, 4, 4)
+    assert e["tp_translation_m"] == pytest.approx({"median": 0.1, "p95": 0.28, "max": 0.3})
+    assert e["tp_rotation_deg"] == pytest.approx({"median": 0.0, "p95": 1.8, "max": 2.0}, abs=1e-6)
+    assert e["accepted_max_translation_m"] == pytest.approx(100.5)  # the false closure of q6
+    on_disk = json.loads((run / "metrics.json").read_text())["pipelines"]
+    assert on_disk["yaw-only"]["pose_error"]["tp_translation_m"] == {"median": None, "p95": None, "max": None}
+    assert on_disk["yaw-only"]["pose_error"]["accepted_max_translation_m"] is None
+    assert on_disk["verified"]["time_ms"]["stages"]["verify"]["mean"] == 2.0
+    for label in ("verified", "yaw-only"):
+        again = recompute_loop_metrics(run, label)  # the CSV carries the poses
+        want = payload["pipelines"][label]["pose_error"]
+        assert _flat(again["pose_error"]) == pytest.approx(_flat(want), nan_ok=True)
+        assert again["extended_precision"] == payload["pipelines"][label]["extended_precision"]
+    header, rows = table_rows(payload)
+    row = dict(zip(header, rows[0], strict=False))
+    assert (row["R@P100"], row["EP"], row["TP t err med [m]"], row["max accepted t err [m]"]) == (
+        "0.200",
+        "0.600",
+        "0.100",
+        "100.500",
+    )
+    assert (
+        row["verify mean"] == "2.000" and dict(zip(header, rows[1], strict=False))["TP t err med [m]"] == "-"
+    )
+    page = (run / "index.html").read_text()
+    assert "TP t err med [m]" in page and "100.500" in page
+
+
+def test_localize_counts_success_from_the_estimated_pose_and_labels_retrieval(tmp_path):
+    cfg, seq, P = _hand_run(tmp_path, "localize")
+    map_seq = ListSequence([seq[i] for i in range(5)], P[:5], name="map")
+    query_seq = ListSequence([seq[i] for i in range(5, 9)], P[5:9], name="queries")  # 1 m from map scan i-5
+    rel = lambda m, q: relative_pose(P[m], P[q + 5])  # noqa: E731
+    posed = [
+        [Candidate(0, 0, 1.0, rel(0, 0) @ _pose((0.2, 0, 0), (0, 0, 3)))],  # 0.2 m, 3 deg: fine
+        [Candidate(1, 1, 1.0, rel(1, 1) @ _pose((0, 2.0, 0), (0, 0, 0)))],  # 2 m: success, not fine
+        [Candidate(2, 2, 1.0, rel(2, 2) @ _pose((5.0, 0, 0), (0, 0, 0)))],  # the right place, but 5 m off
+        [Candidate(3, 3, 1.0, None)],  # the right place without a pose: no estimate
+    ]
+    retrieval = [[Candidate(q, q, 1.0, _pose((0, 0, 0), (0, 0, 90)))] for q in range(4)]  # yaw only
+    records = [_record("posed", range(4), posed), _record("retrieval", range(4), retrieval)]
+    run = make_run_dir(cfg)
+    payload = report_localize(cfg, run, map_seq, query_seq, records)
+    p, r = payload["pipelines"]["posed"], payload["pipelines"]["retrieval"]
+    assert (p["success_basis"], p["n_success"], p["n_no_estimate"], p["fine_success_rate"]) == (
+        "pose",
+        2,
+        1,
+        0.25,
+    )
+    assert p["median_error"] == pytest.approx(2.0)
+    assert (r["success_basis"], r["n_success"], r["median_error"]) == ("retrieval", 4, pytest.approx(1.0))
+    assert np.isnan(r["fine_success_rate"])
+    header, rows = table_rows(payload)
+    assert dict(zip(header, rows[1], strict=False))["basis"] == "retrieval"
+
+
+def test_split_verify_time_moves_verification_out_of_the_query_stage():
+    timing = {"query": 10.0}
+    split_verify_time([Candidate(0, 1, 0.5, extra={"verify_ms": 3.0}), Candidate(0, 2, 0.4)], timing)
+    assert timing == {"query": 7.0, "verify": 3.0}
+    timing = {"query": 10.0}
+    split_verify_time([Candidate(0, 1, 0.5)], timing)
+    assert timing == {"query": 10.0}
+
+
+class TimedScanContext(ScanContext):
+    """Scan Context whose candidates say they took 1.5 ms of verification each."""
+
+    def query_description(self, description, k=1, max_id=None, query_id=-1):
+        cands = super().query_description(description, k=k, max_id=max_id, query_id=query_id)
+        for c in cands:
+            c.extra["verify_ms"] = 1.5
+        return cands
+
+
+def test_the_run_reports_a_verify_stage(sequence_dir, tmp_path):
+    run, payload = run_experiment(config(sequence_dir, tmp_path, f"{__name__}:TimedScanContext"))
+    record = payload["pipelines"][f"{__name__}:TimedScanContext"]
+    table = read_candidates(run / f"candidates_{__name__}_TimedScanContext.csv")
+    per_scan = 1.5 * (table.match_ids >= 0).sum(axis=1)
+    stages = record["time_ms"]["stages"]
+    assert stages["verify"]["mean"] == pytest.approx(per_scan.mean())
+    assert stages["verify"]["max"] == pytest.approx(per_scan.max())

@@ -39,9 +39,17 @@ import yaml
 
 from placerec.config import ExperimentConfig, config_to_yaml
 from placerec.errors import ConfigError
-from placerec.eval import ExclusionWindow, evaluate_loop, localization_metrics, timing_summary
+from placerec.eval import (
+    ExclusionWindow,
+    LoopMetrics,
+    closure_pose_errors,
+    evaluate_loop,
+    full_pose_mask,
+    localization_metrics,
+    timing_summary,
+)
 from placerec.experiment import figures
-from placerec.experiment.candidates import read_candidates, write_candidates
+from placerec.experiment.candidates import CandidateTable, read_candidates, write_candidates
 from placerec.experiment.runner import STAGES, PipelineRecord
 from placerec.io import read_poses, write_kitti_poses
 from placerec.io.atomic import atomic_write
@@ -117,8 +125,8 @@ def _gt_options(cfg: ExperimentConfig, timestamps: np.ndarray | None) -> dict[st
 
 
 def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
-    """Recompute a pipeline's loop metrics (recall@N included) from the run folder alone (config, poses,
-    candidates CSV)."""
+    """Recompute a pipeline's loop metrics (recall@N and the closures' pose errors included) from the run folder
+    alone (config, poses, candidates CSV): ``metrics.json``'s entry for ``label`` without the times."""
     from placerec.config import load_config
 
     run_dir = Path(run_dir)
@@ -127,10 +135,20 @@ def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
     times = run_dir / "times.txt"
     stamps = _read_or_empty(times, lambda p: np.loadtxt(p, ndmin=1), (0,)) if times.is_file() else None
     table = read_candidates(run_dir / f"candidates_{_slug(label)}.csv")
+    return _loop_summary(cfg, table, poses, stamps)[1]
+
+
+def _loop_summary(
+    cfg: ExperimentConfig, table: CandidateTable, poses: np.ndarray, stamps: np.ndarray | None
+) -> tuple[LoopMetrics, dict[str, Any]]:
+    """A pipeline's loop metrics and their ``metrics.json`` entry (without times): PR metrics of the top
+    candidates, recall@N, and the pose errors of the closures accepted at the max-F1 threshold."""
     q, m, s = table.top1()
-    topn = table.topn(cfg.evaluation.top_n)
-    metrics, _ = evaluate_loop(q, m, s, poses, topn, **_gt_options(cfg, stamps))
-    return metrics.summary()
+    metrics, _ = evaluate_loop(q, m, s, poses, table.topn(cfg.evaluation.top_n), **_gt_options(cfg, stamps))
+    summary = metrics.summary()
+    summary["auc"] = summary.pop("average_precision")
+    summary["pose_error"] = closure_pose_errors(metrics, table.relative_poses[:, 0], poses).summary()
+    return metrics, summary
 
 
 def _read_or_empty(path: Path, read: Any, empty_shape: tuple[int, ...]) -> np.ndarray:
@@ -153,13 +171,8 @@ def report_loop(
     curves: dict[str, dict[str, Any]] = {}
     for record in records:
         write_candidates(run / f"candidates_{_slug(record.label)}.csv", record.query_ids, record.candidates)
-        table = record.table()
-        q, m, s = table.top1()
-        metrics, gt = evaluate_loop(
-            q, m, s, poses, table.topn(cfg.evaluation.top_n), **_gt_options(cfg, seq.timestamps)
-        )
-        summary = metrics.summary()
-        summary["auc"] = summary.pop("average_precision")
+        metrics, summary = _loop_summary(cfg, record.table(), poses, seq.timestamps)
+        q, m = metrics.query_ids, metrics.match_ids
         summary["time_ms"] = _timing(record)
         results[record.label] = summary
         curves[record.label] = {
@@ -206,18 +219,12 @@ def report_localize(
     results: dict[str, Any] = {}
     for record in records:
         write_candidates(run / f"candidates_{_slug(record.label)}.csv", record.query_ids, record.candidates)
-        estimates = np.full((len(record.candidates), 3), np.nan)
-        for row, cands in enumerate(record.candidates):
-            if cands:
-                c = cands[0]
-                T = (
-                    map_poses[c.match_id]
-                    if c.relative_pose is None
-                    else map_poses[c.match_id] @ c.relative_pose
-                )
-                estimates[row] = T[:3, 3]
+        estimates, basis = _localize_estimates(record.table(), map_poses)
         metrics = localization_metrics(
-            estimates, query_poses[np.asarray(record.query_ids, dtype=np.int64)], success_distance
+            estimates,
+            query_poses[np.asarray(record.query_ids, dtype=np.int64)],
+            success_distance,
+            basis=basis,
         )
         summary = metrics.summary()
         summary["time_ms"] = _timing(record)
@@ -226,10 +233,10 @@ def report_localize(
             figures.plot_localization(
                 map_poses[:, :3, 3],
                 query_poses[:, :3, 3],
-                np.where(np.isfinite(estimates), estimates, query_poses[:, :3, 3]),
+                np.where(np.isfinite(estimates[:, :3, 3]), estimates[:, :3, 3], query_poses[:, :3, 3]),
                 metrics.success,
                 run / f"localization_{_slug(record.label)}.png",
-                f"{record.label}: success {metrics.success_rate:.1%} (<= {success_distance} m)",
+                f"{record.label}: success {metrics.success_rate:.1%} (<= {success_distance} m, {basis})",
             )
     payload = {
         "mode": "localize",
@@ -242,6 +249,20 @@ def report_localize(
     }
     _finish(cfg, run, payload, {}, records)
     return payload
+
+
+def _localize_estimates(table: CandidateTable, map_poses: np.ndarray) -> tuple[np.ndarray, str]:
+    """(Q, 4, 4) estimated query poses from the top candidates (NaN: no estimate) and their basis: ``"pose"``
+    (``T_world_match @ T_match_query``) when any top candidate carries a 6-DoF relative pose, a top candidate
+    without one then giving no estimate; else ``"retrieval"``, the matched map scan's pose."""
+    top, rel = table.match_ids[:, 0], table.relative_poses[:, 0]
+    full = full_pose_mask(rel) & (top >= 0)
+    estimates = np.full((top.size, 4, 4), np.nan)
+    if full.any():
+        estimates[full] = map_poses[top[full]] @ rel[full]
+        return estimates, "pose"
+    estimates[top >= 0] = map_poses[top[top >= 0]]
+    return estimates, "retrieval"
 
 
 def require_poses(seq: Sequence) -> Sequence:
@@ -300,35 +321,57 @@ def _fmt(value: Any) -> str:
     return "-" if value is None else str(value)
 
 
+_LOOP_COLUMNS = (
+    ("max F1", ("max_f1",)),
+    ("P@maxF1", ("precision_at_max_f1",)),
+    ("R@maxF1", ("recall_at_max_f1",)),
+    ("AUC", ("auc",)),
+    ("R@P100", ("recall_at_100_precision",)),
+    ("EP", ("extended_precision",)),
+    ("R@1", ("recall_at_1",)),
+    ("TP t err med [m]", ("pose_error", "tp_translation_m", "median")),
+    ("p95", ("pose_error", "tp_translation_m", "p95")),
+    ("TP rot err med [deg]", ("pose_error", "tp_rotation_deg", "median")),
+    ("p95", ("pose_error", "tp_rotation_deg", "p95")),
+    ("max accepted t err [m]", ("pose_error", "accepted_max_translation_m")),
+)
+_LOCALIZE_COLUMNS = (
+    ("basis", ("success_basis",)),
+    ("success", ("success_rate",)),
+    ("success 1 m/5 deg", ("fine_success_rate",)),
+    ("median err [m]", ("median_error",)),
+    ("median rot err [deg]", ("median_rotation_error_deg",)),
+)
+_TIME_COLUMNS = (
+    ("mean", ("time_ms", "mean")),
+    ("median", ("time_ms", "median")),
+    ("p95", ("time_ms", "p95")),
+    ("verify mean", ("time_ms", "stages", "verify", "mean")),
+)
+
+
+def _get(entry: dict[str, Any], path: tuple[str, ...]) -> Any:
+    for key in path:
+        if not isinstance(entry, dict) or key not in entry:
+            return None
+        entry = entry[key]
+    return entry
+
+
 def table_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
-    """Header and rows of the results table (shared by the console and the HTML report)."""
-    if payload["mode"] == "loop":
-        header = [
-            "pipeline",
-            "max F1",
-            "P@maxF1",
-            "R@maxF1",
-            "AUC",
-            "R@1",
-            "ms/scan mean",
-            "median",
-            "p95",
-            "revisits",
-        ]
-        keys = ["max_f1", "precision_at_max_f1", "recall_at_max_f1", "auc", "recall_at_1"]
-    else:
-        header = ["pipeline", "success", "median err [m]", "ms/query mean", "median", "p95", "queries"]
-        keys = ["success_rate", "median_error"]
-    rows = []
-    for label, m in payload["pipelines"].items():
-        t = m["time_ms"]
-        tail = [m.get("n_revisits")] if payload["mode"] == "loop" else [m.get("n_queries")]
-        rows.append(
-            [label]
-            + [_fmt(m[k]) for k in keys]
-            + [_fmt(t["mean"]), _fmt(t["median"]), _fmt(t["p95"])]
-            + [_fmt(v) for v in tail]
-        )
+    """Header and rows of the results table (shared by the console and the HTML report). Pose errors are those
+    of the closures accepted at the max-F1 threshold; ``-`` marks a value that is undefined (no 6-DoF pose, no
+    verification stage)."""
+    loop = payload["mode"] == "loop"
+    columns = (_LOOP_COLUMNS if loop else _LOCALIZE_COLUMNS) + tuple(
+        (f"ms/{'scan' if loop else 'query'} {h}" if h == "mean" else h, k) for h, k in _TIME_COLUMNS
+    )
+    tail = ("revisits", ("n_revisits",)) if loop else ("queries", ("n_queries",))
+    header = ["pipeline"] + [h for h, _ in columns] + [tail[0]]
+    rows = [
+        [label] + [_fmt(_get(m, k)) for _, k in columns] + [_fmt(_get(m, tail[1]))]
+        for label, m in payload["pipelines"].items()
+    ]
     return header, rows
 
 
@@ -345,7 +388,7 @@ def print_table(payload: dict[str, Any], title: str) -> None:
         table.add_row(*row)
     console = Console()
     if not console.is_terminal:  # logs and pipes: wide enough that no column is cut
-        console = Console(width=140)
+        console = Console(width=200)
     console.print(table)
 
 
