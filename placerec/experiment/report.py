@@ -6,14 +6,16 @@ Output folder ``<output.dir>/<name>_<timestamp>/`` (and a ``latest`` link beside
 * ``pipelines.yaml`` — per pipeline label: registry name, class and resolved parameters (defaults, the registry
   preset and the config's overrides merged);
 * ``metrics.json`` — per pipeline: ``max_f1``, ``precision_at_max_f1``, ``recall_at_max_f1``, ``auc`` (average
-  precision, see `placerec.eval.metrics`), ``recall_at_1``, ``recall_at_n``, ``success_rate`` (localize mode),
-  ``time_ms`` {mean, median, p95} per scan and per stage, ``n_queries``, ``n_revisits``; plus peak memory.
-  Strict JSON: a value that is undefined for the run is ``null`` (``threshold_at_max_f1`` with no candidate,
-  ``mean_error`` with no estimate, times with no scan). A sequence without revisits (too short, shorter than the
-  exclusion window) has ``no_revisits: true`` and recalls, F1 and AUC of 0; no scans at all give
-  ``n_queries: 0``;
-* ``candidates_<label>.csv`` — every candidate, one row per (query, rank): ``query_id,rank,match_id,score,inliers``
-  (`placerec.experiment.candidates`);
+  precision, see `placerec.eval.metrics`), ``recall_at_100_precision``, ``precision_at_min_recall``,
+  ``extended_precision``, ``recall_at_1``, ``recall_at_n``, ``pose_error`` (the closures accepted at the max-F1
+  threshold, `placerec.eval.pose_error`), ``success_rate``, ``success_basis`` and ``fine_success_rate``
+  (localize mode), ``time_ms`` {mean, median, p95} per scan and per stage, ``n_queries``, ``n_revisits``; plus peak
+  memory. Strict JSON: a value that is undefined for the run is ``null`` (``threshold_at_max_f1`` with no
+  candidate, ``mean_error`` with no estimate, times with no scan, pose errors with no 6-DoF pose). A sequence
+  without revisits (too short, shorter than the exclusion window) has ``no_revisits: true`` and recalls, F1 and
+  AUC of 0; no scans at all give ``n_queries: 0``;
+* ``candidates_<label>.csv`` — every candidate, one row per (query, rank), with its relative pose and
+  verification statistics (`placerec.experiment.candidates`);
 * ``poses.txt`` — the ground-truth poses (KITTI format) the ids index into (localize mode: ``map_poses.txt`` and
   ``query_poses.txt``), so the metrics can be recomputed from the folder alone (`recompute_loop_metrics`);
 * ``pr_curves.png``, ``trajectory_<label>.png`` (or ``localization_<label>.png``), ``timing.png``, ``index.html``.
