@@ -19,6 +19,10 @@ def unit_rows(rng: np.random.Generator, n: int, dim: int = D) -> np.ndarray:
     return x / np.linalg.norm(x, axis=1, keepdims=True)
 
 
+#: planted descriptors have no scan to verify with: retrieval alone
+OFF = {"verify": {"enabled": False}}
+
+
 def desc(rows: np.ndarray) -> dict[str, np.ndarray]:
     return {"keypoints": np.zeros((rows.shape[0], 3), np.float32), "descriptors": rows}
 
@@ -57,7 +61,7 @@ def planted(rng, n_entries=6, per=80):
 def test_planted_duplicates_win_and_max_id_is_respected():
     rng = np.random.default_rng(1)
     rows, target, query = planted(rng)
-    rec = KeypointVoting()
+    rec = KeypointVoting(**OFF)
     for i, r in enumerate(rows):
         rec.add_description(10 * i, desc(r), np.eye(4))
     cands = rec.query_description(desc(query), k=3, query_id=7)
@@ -76,7 +80,7 @@ def test_max_id_with_ids_added_out_of_order():
     rng = np.random.default_rng(2)
     rows, target, query = planted(rng)
     ids = [50, 10, 40, 20, 60, 30]  # target (index 3) gets id 20, the runner-up (index 1) id 10
-    rec = KeypointVoting(score="votes")
+    rec = KeypointVoting(score="votes", **OFF)
     for i, r in zip(ids, rows, strict=True):
         rec.add_description(i, desc(r))
     best = rec.query_description(desc(query))[0]
@@ -89,16 +93,16 @@ def test_max_id_with_ids_added_out_of_order():
 def test_save_load_round_trip_and_parameter_check(tmp_path):
     rng = np.random.default_rng(3)
     rows, _, query = planted(rng)
-    rec = KeypointVoting(tau_max=0.8)
+    rec = KeypointVoting(tau_max=0.8, **OFF)
     for i, r in enumerate(rows):
         rec.add_description(i, desc(r), np.eye(4))
     rec.save(tmp_path / "db.npz")
-    again = KeypointVoting(tau_max=0.8)
+    again = KeypointVoting(tau_max=0.8, **OFF)
     again.load(tmp_path / "db.npz")
     a, b = rec.query_description(desc(query), k=4), again.query_description(desc(query), k=4)
     assert [(c.match_id, c.score) for c in a] == [(c.match_id, c.score) for c in b]
     with pytest.raises(ArtifactError, match="other parameters"):
-        KeypointVoting(tau_max=0.9).load(tmp_path / "db.npz")
+        KeypointVoting(tau_max=0.9, **OFF).load(tmp_path / "db.npz")
 
 
 def test_registry_presets_and_bad_parameters():

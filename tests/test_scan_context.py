@@ -13,6 +13,11 @@ from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.types import PlaceRecognizer, Scan
 
 
+def plain(**overrides) -> ScanContext:
+    """Scan Context as the reference has it: no verification (these tests check its retrieval and yaw)."""
+    return ScanContext(verify={"enabled": False}, **overrides)
+
+
 def rot_z(deg):
     a = np.radians(deg)
     return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
@@ -114,7 +119,7 @@ def test_distance_definition_on_hand_case():
 def test_rotation_by_whole_sectors():
     rng = np.random.default_rng(2)
     pts = make_place(rng)
-    sc = ScanContext()
+    sc = plain()
     sc.add(0, scan_of(pts))
     for k in (1, 5, 29, 44):
         c = sc.query(scan_of(pts @ rot_z(k * 6.0).T))[0]  # the scene turns by k sectors
@@ -126,7 +131,7 @@ def test_rotation_by_whole_sectors():
 def test_relative_pose_maps_query_into_match_frame(yaw):
     rng = np.random.default_rng(3)
     pts = make_place(rng)
-    sc = ScanContext(full_shift_search=True)
+    sc = plain(full_shift_search=True)
     sc.add(7, scan_of(pts))
     query = observe(pts, rng, yaw_deg=yaw)
     c = sc.query(query, query_id=99)[0]
@@ -142,7 +147,7 @@ def test_relative_pose_maps_query_into_match_frame(yaw):
 def test_default_search_recovers_yaw_too():
     rng = np.random.default_rng(4)
     pts = make_place(rng)
-    sc = ScanContext()
+    sc = plain()
     sc.add(0, scan_of(pts))
     c = sc.query(observe(pts, rng, yaw_deg=-80.0))[0]
     assert abs((c.extra["yaw_deg"] + 80.0 + 180) % 360 - 180) <= 6.0
@@ -154,7 +159,7 @@ def test_default_search_recovers_yaw_too():
 def test_synthetic_place_recognition():
     rng = np.random.default_rng(5)
     places = [make_place(rng) for _ in range(20)]
-    sc = ScanContext(tree_rebuild_every=8)
+    sc = plain(tree_rebuild_every=8)
     assert isinstance(sc, PlaceRecognizer) and sc.name == "scan-context"
     for i, p in enumerate(places):
         sc.add(100 + i, scan_of(p))
@@ -169,7 +174,7 @@ def test_synthetic_place_recognition():
 def test_max_id_filtering():
     rng = np.random.default_rng(6)
     places = [make_place(rng) for _ in range(10)]
-    sc = ScanContext(tree_rebuild_every=3)  # some entries in the tree, some brute-forced
+    sc = plain(tree_rebuild_every=3)  # some entries in the tree, some brute-forced
     for i, p in enumerate(places):
         sc.add(i, scan_of(p))
     q = observe(places[7], rng)
@@ -177,7 +182,7 @@ def test_max_id_filtering():
     cands = sc.query(q, k=10, max_id=5)
     assert len(cands) == 6 and all(c.match_id <= 5 for c in cands)
     assert sc.query(q, max_id=-1) == []
-    assert ScanContext().query(q) == []  # empty database
+    assert plain().query(q) == []  # empty database
 
 
 def test_retrieval_is_exact_between_tree_rebuilds():
@@ -186,7 +191,7 @@ def test_retrieval_is_exact_between_tree_rebuilds():
     n = 60
     descs = (rng.random((n, 20, 60)) * (rng.random((n, 1, 60)) > 0.3)).astype(np.float32)
     ids = rng.permutation(1000)[:n]  # not in insertion order
-    sc = ScanContext(num_candidates=4, tree_rebuild_every=16)
+    sc = plain(num_candidates=4, tree_rebuild_every=16)
     for i in range(n):
         sc.add_description(int(ids[i]), descs[i])
     keys = descs.mean(axis=2)
@@ -202,7 +207,7 @@ def test_retrieval_is_exact_between_tree_rebuilds():
 
 
 def test_add_rejects_duplicates_and_bad_descriptors():
-    sc = ScanContext()
+    sc = plain()
     sc.add_description(1, np.zeros((20, 60)))
     with pytest.raises(ScanDataError):
         sc.add_description(1, np.zeros((20, 60)))
@@ -212,9 +217,9 @@ def test_add_rejects_duplicates_and_bad_descriptors():
 
 def test_params_validation():
     with pytest.raises(ConfigError, match="allowed"):
-        ScanContext(num_ringz=10)
+        plain(num_ringz=10)
     with pytest.raises(ConfigError):
-        ScanContext(num_sectors=0)
+        plain(num_sectors=0)
     assert ScanContext({"num_rings": 10}).params.num_rings == 10
     assert ScanContextParams().search_radius == 3
 
@@ -222,12 +227,12 @@ def test_params_validation():
 def test_save_load_identity(tmp_path):
     rng = np.random.default_rng(8)
     places = [make_place(rng) for _ in range(6)]
-    sc = ScanContext(tree_rebuild_every=4)
+    sc = plain(tree_rebuild_every=4)
     for i, p in enumerate(places):
         sc.add(10 * i, scan_of(p))
     path = tmp_path / "db" / "sc.npz"
     sc.save(path)
-    other = ScanContext(num_candidates=3)  # query-time parameters may differ
+    other = plain(num_candidates=3)  # query-time parameters may differ
     other.load(path)
     assert other.ids.tolist() == sc.ids.tolist()
     np.testing.assert_array_equal(other._desc[: len(other)], sc._desc[: len(sc)])
@@ -241,30 +246,30 @@ def test_save_load_identity(tmp_path):
 
 
 def test_load_refuses_other_parameters_and_corrupt_files(tmp_path):
-    sc = ScanContext()
+    sc = plain()
     sc.add_description(0, np.ones((20, 60)))
     path = tmp_path / "sc.npz"
     sc.save(path)
     with pytest.raises(ArtifactError, match="parameters"):
-        ScanContext(num_rings=10).load(path)
+        plain(num_rings=10).load(path)
     with pytest.raises(ArtifactError):
-        ScanContext(lidar_height=1.73).load(path)
+        plain(lidar_height=1.73).load(path)
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip")
     with pytest.raises(ArtifactError):
-        ScanContext().load(bad)
+        plain().load(bad)
     with pytest.raises(ArtifactError):
-        ScanContext().load(tmp_path / "missing.npz")
+        plain().load(tmp_path / "missing.npz")
 
 
 def test_describe_split_and_frontend_key():
     rng = np.random.default_rng(9)
     scan = scan_of(make_place(rng))
-    a, b = ScanContext(), ScanContext(num_candidates=5, full_shift_search=True)
+    a, b = plain(), plain(num_candidates=5, full_shift_search=True)
     desc = a.describe(scan)
     assert set(desc) == {"scan_context"} and desc["scan_context"].shape == (20, 60)
     assert a.frontend_key == b.frontend_key  # query-time parameters do not change descriptions
-    assert a.frontend_key != ScanContext(lidar_height=1.73).frontend_key
+    assert a.frontend_key != plain(lidar_height=1.73).frontend_key
     b.add_description(3, desc)
     assert b.query_description(desc)[0].match_id == 3
     assert ScanContext({"num_rings": 10}).params.num_rings == 10

@@ -101,3 +101,114 @@ def test_cloud_store_round_trip_and_errors(clouds):
         other.add(1, np.zeros((4, 2)))
     with pytest.raises(ConfigError):
         VerifiedParams(top_k=0)
+
+
+# ---------------------------------------------------------------- the 3D pipelines
+
+
+@pytest.fixture(scope="module")
+def voting(sim):
+    from placerec.pipelines.keypoint_voting import KeypointVoting
+
+    seq, scans = sim
+    rec = KeypointVoting(descriptor="ishot", iss={"max_keypoints": 150})
+    descs = {i: rec.describe(s) for i, s in scans.items()}
+    for i in (WRONG, TRUE):
+        rec.add_description(i, descs[i], seq.poses[i])
+    return rec, descs
+
+
+def test_keypoint_voting_verifies_with_grouping_ransac_and_icp(sim, voting):
+    seq, _ = sim
+    rec, descs = voting
+    p = rec.params.verify.verify
+    assert rec.params.verify.enabled and p.consistency.enabled and p.score.acceptance == "both"
+    assert (p.consistency.min_cluster_size, p.consistency.consensus_resolution, p.score.eps_icp) == (
+        8,
+        7.0,
+        7.0,
+    )
+    got = rec.query_description(descs[QUERY], k=2, query_id=QUERY)
+    assert [c.match_id for c in got] == [TRUE, WRONG]
+    best, wrong = got
+    T_gt = relative_pose(seq.poses[TRUE], seq.poses[QUERY])
+    assert _t_err(best.relative_pose, T_gt) < 0.3
+    np.testing.assert_allclose(seq.poses[TRUE] @ best.relative_pose, seq.poses[QUERY], atol=0.3)
+    assert best.extra["accepted"] and best.inliers >= 8 and best.inliers == best.extra["verify"]["inliers"]
+    assert best.extra["verify"]["residual"] < 7.0 and best.extra["votes"] > 0 and best.extra["matches"] >= 8
+    assert not wrong.extra["accepted"] and wrong.score < best.score
+
+
+def test_keypoint_voting_save_load_keeps_the_clouds(sim, voting, tmp_path):
+    from placerec.pipelines.keypoint_voting import KeypointVoting
+
+    rec, descs = voting
+    rec.save(tmp_path / "db.npz")
+    again = KeypointVoting(rec.params)
+    again.load(tmp_path / "db.npz")
+    a = rec.query_description(descs[QUERY], k=2)
+    b = again.query_description(descs[QUERY], k=2)
+    assert [(c.match_id, c.score) for c in a] == [(c.match_id, c.score) for c in b]
+    np.testing.assert_allclose(a[0].relative_pose, b[0].relative_pose)
+    off = KeypointVoting(rec.params.model_dump() | {"verify": {"enabled": False}})
+    off.add_description(1, descs[TRUE])
+    off.save(tmp_path / "off.npz")
+    with pytest.raises(ArtifactError):  # saved without clouds: cannot verify
+        KeypointVoting(rec.params).load(tmp_path / "off.npz")
+    with pytest.raises(ScanDataError, match="cloud"):
+        KeypointVoting(rec.params).add_description(5, {k: v for k, v in descs[TRUE].items() if k != "cloud"})
+
+
+# ---------------------------------------------------------------- Scan Context
+
+
+@pytest.fixture(scope="module")
+def scan_context(sim):
+    from placerec.baselines.scan_context import ScanContext
+
+    seq, scans = sim
+    sc = ScanContext()
+    descs = {i: sc.describe(s) for i, s in scans.items()}
+    for i in (WRONG, TRUE):
+        sc.add_description(i, descs[i], seq.poses[i])
+    return sc, descs
+
+
+def test_scan_context_yaw_seeds_icp_for_a_6dof_pose(sim, scan_context):
+    from placerec.baselines.scan_context import ScanContext
+
+    seq, _ = sim
+    sc, descs = scan_context
+    assert sc.params.verify.enabled and "cloud" in descs[QUERY]
+    T_gt = relative_pose(seq.poses[TRUE], seq.poses[QUERY])
+    got = sc.query_description(descs[QUERY], k=2, query_id=QUERY)
+    assert [c.match_id for c in got] == [TRUE, WRONG]
+    best, wrong = got
+    assert _t_err(best.relative_pose, T_gt) < 0.3  # the yaw-only pose was off by the whole offset
+    np.testing.assert_allclose(seq.poses[TRUE] @ best.relative_pose, seq.poses[QUERY], atol=0.3)
+    assert best.extra["accepted"] and not wrong.extra["accepted"] and best.score > wrong.score
+    assert best.score == best.extra["verify"]["score"] and best.inliers is None
+    assert -1.0 <= best.extra["retrieval_score"] <= 1.0 and "yaw_deg" in best.extra
+    plain = ScanContext(verify={"enabled": False})
+    assert plain.frontend_key != sc.frontend_key  # its descriptions carry no cloud
+    plain.add_description(TRUE, plain.describe(sim[1][TRUE]))
+    yaw_only = plain.query_description(plain.describe(sim[1][QUERY]))[0]
+    assert _t_err(yaw_only.relative_pose, T_gt) > 2.0
+
+
+def test_scan_context_save_load_keeps_the_clouds(scan_context, tmp_path):
+    from placerec.baselines.scan_context import ScanContext
+
+    sc, descs = scan_context
+    sc.save(tmp_path / "sc.npz")
+    again = ScanContext()
+    again.load(tmp_path / "sc.npz")
+    a, b = sc.query_description(descs[QUERY], k=2), again.query_description(descs[QUERY], k=2)
+    assert [(c.match_id, c.score) for c in a] == [(c.match_id, c.score) for c in b]
+    plain = ScanContext(verify={"enabled": False})
+    plain.load(tmp_path / "sc.npz")  # the clouds are not needed without verification
+    plain.save(tmp_path / "plain.npz")
+    with pytest.raises(ArtifactError, match="clouds"):
+        ScanContext().load(tmp_path / "plain.npz")
+    with pytest.raises(ScanDataError, match="cloud"):
+        ScanContext().add_description(3, descs[TRUE]["scan_context"])

@@ -28,6 +28,13 @@ i.e. score > 0.87; no threshold is applied here). ``shift`` is the column shift 
 ``np.roll(match_descriptor, s, axis=1)`` best matches the query: the scene appears rotated by ``+s`` sectors in
 the query, so ``relative_pose = T_match_query`` is a rotation about z by ``-s * 360 / num_sectors`` degrees,
 reported as ``extra["yaw_deg"]`` (wrapped to (-180, 180]).
+
+Verification (``verify.enabled``; `placerec.verify.candidates`): the description also keeps the scan voxelised
+for ICP (``cloud``), the database each entry's cloud. The ``verify.top_k`` best candidates by Scan Context
+distance are verified by ICP alone (`placerec.verify.verify_icp`) from their yaw rotation: ``relative_pose``
+becomes the full 6-DoF ICP pose, ``score`` the verified score in [0, 1] (the Scan Context score moves to
+``extra["retrieval_score"]``, ``yaw_deg``/``shift`` stay), and the candidates are re-ranked by it. Off, the
+candidates are the reference's (yaw-only pose, ``score = 1 - distance``).
 """
 
 from __future__ import annotations
@@ -47,6 +54,7 @@ from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
 from placerec.recognizer import Recognizer, params_key, require_points
 from placerec.types import Candidate, Scan
+from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +73,8 @@ _DESCRIPTOR_PARAMS = ("num_rings", "num_sectors", "max_radius", "lidar_height")
 _SCHEMA = {
     "descriptors": Member("f", ("n_entries", None, None), finite=True),
     "ids": Member("iu", ("n_entries",)),
+    "cloud_counts": Member("iu", ("n_entries",), optional=True, min_value=0),
+    "cloud_xyz": Member("f", ("n_points", 3), optional=True, finite=True),
 }
 
 
@@ -72,7 +82,8 @@ class ScanContextParams(Params):
     """Scan Context parameters (defaults: the paper / reference implementation).
 
     The descriptor parameters (``num_rings``, ``num_sectors``, ``max_radius``, ``lidar_height``) are stored with a
-    saved database and must match on load; the others only affect queries.
+    saved database and must match on load; the others only affect queries (a database saved without clouds
+    cannot be loaded with ``verify.enabled``).
     """
 
     num_rings: int = Field(20, ge=1, description="rings N_r (Scan Context paper; reference PC_NUM_RING)")
@@ -95,6 +106,10 @@ class ScanContextParams(Params):
     tree_rebuild_every: int = Field(
         50, ge=1, description="additions between KD-tree rebuilds (reference: 50)"
     )
+    verify: VerifiedParams = Field(
+        default_factory=VerifiedParams,
+        description="ICP from the Scan Context yaw on the top-k candidates (placerec.verify.candidates)",
+    )
 
     @property
     def search_radius(self) -> int:
@@ -103,6 +118,11 @@ class ScanContextParams(Params):
 
     def descriptor_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in _DESCRIPTOR_PARAMS}
+
+    def cloud_dict(self) -> dict[str, Any] | None:
+        """What the description's ICP cloud depends on (None without verification)."""
+        icp = self.verify.verify.icp
+        return {"voxel_size": icp.voxel_size, "max_range": icp.max_range} if self.verify.enabled else None
 
 
 def make_descriptor(scan: Scan | np.ndarray, params: ScanContextParams | None = None) -> np.ndarray:
@@ -220,6 +240,7 @@ class ScanContext(Recognizer):
         self._n = 0
         self._tree: cKDTree | None = None
         self._n_tree = 0
+        self._clouds = CloudStore(self.params.verify.verify)
 
     def __len__(self) -> int:
         return self._n
@@ -232,13 +253,29 @@ class ScanContext(Recognizer):
     @property
     def frontend_key(self) -> str:
         """Identifies the descriptor and its parameters (equal keys give identical descriptions)."""
-        return params_key(self.name, self.params.descriptor_dict())
+        cloud = self.params.cloud_dict()
+        extra = {} if cloud is None else {"cloud": cloud}
+        return params_key(self.name, {**self.params.descriptor_dict(), **extra})
 
     def describe(self, scan: Scan) -> dict[str, np.ndarray]:
-        """``{"scan_context": descriptor}`` of the scan with this recognizer's parameters; `ScanDataError` for a
-        scan with too few valid points (a blank scan would otherwise match every other blank scan)."""
+        """``{"scan_context": descriptor}`` of the scan with this recognizer's parameters (and ``cloud``, the scan
+        voxelised for ICP, with verification); `ScanDataError` for a scan with too few valid points (a blank scan
+        would otherwise match every other blank scan)."""
         require_points(scan, self.name)
-        return {"scan_context": make_descriptor(scan, self.params)}
+        out = {"scan_context": make_descriptor(scan, self.params)}
+        if self.params.verify.enabled:
+            out["cloud"] = scan_cloud(scan, self.params.verify.verify)
+        return out
+
+    def _cloud(self, description: Mapping[str, np.ndarray] | np.ndarray) -> np.ndarray | None:
+        if not self.params.verify.enabled:
+            return None
+        if not isinstance(description, Mapping) or "cloud" not in description:
+            raise ScanDataError(
+                "scan-context: verification needs the description's 'cloud' (describe() gives it); "
+                "set verify.enabled to false to use bare descriptors"
+            )
+        return description["cloud"]
 
     def _unwrap(self, description: Mapping[str, np.ndarray] | np.ndarray) -> np.ndarray:
         d = description["scan_context"] if isinstance(description, Mapping) else description
@@ -255,11 +292,15 @@ class ScanContext(Recognizer):
         description: Mapping[str, np.ndarray] | np.ndarray,
         pose: np.ndarray | None = None,
     ) -> None:
-        """Insert a precomputed description (``describe``'s dict or the bare (R, S) array) under ``scan_id``."""
+        """Insert a precomputed description (``describe``'s dict, or the bare (R, S) array without verification)
+        under ``scan_id``."""
         sid = int(scan_id)
         if sid in self._index:
             raise ScanDataError(f"scan-context: id {sid} is already in the database")
         d = self._unwrap(description)
+        cloud = self._cloud(description)
+        if cloud is not None:
+            self._clouds.add(sid, cloud)
         if self._n == self._desc.shape[0]:
             self._grow(max(64, 2 * self._n))
         self._desc[self._n] = d
@@ -321,19 +362,23 @@ class ScanContext(Recognizer):
     ) -> list[Candidate]:
         """Up to ``k`` candidates, best (highest score) first, among entries with ``id <= max_id``, for a
         description (``describe``'s dict or the bare (R, S) array): ``max(k, num_candidates)`` ring-key
-        neighbours re-ranked by the Scan Context distance."""
+        neighbours re-ranked by the Scan Context distance; with verification the ``verify.top_k`` best of them
+        verified by ICP and re-ranked by verified score (module docstring)."""
         if k < 1:
             raise ScanDataError(f"scan-context: k must be >= 1, got {k}")
         q = self._unwrap(description)
+        query_cloud = self._cloud(description)
         if self._n == 0:
             return []
-        want = max(k, self.params.num_candidates)
+        vp = self.params.verify
+        n_out = max(k, vp.top_k) if vp.enabled else k
+        want = max(n_out, self.params.num_candidates)
         rows, key_d = self._nearest_keys(ring_key(q).astype(np.float64), want, max_id)
         if rows.size == 0:
             return []
         radius = None if self.params.full_shift_search else self.params.search_radius
         dist, shift = scan_context_distance(q, self._desc[rows], radius)
-        order = np.argsort(dist, kind="stable")[:k]
+        order = np.argsort(dist, kind="stable")[:n_out]
         S = self.params.num_sectors
         out = []
         for i in order:
@@ -355,19 +400,21 @@ class ScanContext(Recognizer):
                     },
                 )
             )
-        return out
+        if query_cloud is None:
+            return out
+        retrieved = [Retrieved(c.match_id, c.score, init=c.relative_pose, extra=c.extra) for c in out]
+        return verify_candidates(query_cloud, retrieved, self._clouds, vp, int(query_id), k)
 
     # ------------------------------------------------------------------ persistence
 
     def save(self, path: str | Path) -> None:
         """Write the database atomically (kind ``scan-context-db``, format version 1, parameters in the header)."""
         n = self._n
+        arrays = {"descriptors": self._desc[:n], "ids": self._ids[:n]}
+        if self.params.verify.enabled:
+            arrays.update(self._clouds.arrays(self._ids[:n].tolist()))
         save_artifact(
-            path,
-            ARTIFACT_KIND,
-            FORMAT_VERSION,
-            {"descriptors": self._desc[:n], "ids": self._ids[:n]},
-            meta={"params": self.params.model_dump(mode="json")},
+            path, ARTIFACT_KIND, FORMAT_VERSION, arrays, meta={"params": self.params.model_dump(mode="json")}
         )
 
     def load(self, path: str | Path) -> None:
@@ -386,11 +433,26 @@ class ScanContext(Recognizer):
         if desc.shape[1:] != (self.params.num_rings, self.params.num_sectors):
             raise ArtifactError(f"{path}: descriptors of shape {desc.shape[1:]} for parameters {mine}")
         check_unique(ids, path, "ids")
+        saved_cloud = (saved.get("verify") or {}).get("enabled") and {
+            "voxel_size": saved["verify"]["verify"]["icp"]["voxel_size"],
+            "max_range": saved["verify"]["verify"]["icp"]["max_range"],
+        }
+        if self.params.verify.enabled and (
+            saved_cloud != self.params.cloud_dict() or "cloud_xyz" not in arrays
+        ):
+            raise ArtifactError(
+                f"{path}: database saved without the clouds verification needs (or with other voxel "
+                f"parameters): {saved_cloud}"
+            )
+        clouds = CloudStore(self.params.verify.verify)
+        if self.params.verify.enabled:
+            clouds.from_arrays(ids.tolist(), arrays, path)
         n = int(ids.size)
         self._desc = np.ascontiguousarray(desc, dtype=np.float32)
         self._keys = ring_key(self._desc).astype(np.float64)
         self._ids = ids.astype(np.int64)
         self._index = {int(v): i for i, v in enumerate(self._ids)}
         self._n = n
+        self._clouds = clouds
         self._rebuild_tree()
         log.debug("loaded a scan-context database of %d entries from %s", n, path)

@@ -12,8 +12,17 @@ OpenMP thread by default (``nn_threads``; on the shared 2-core machine one faiss
 
 Score (documented, what thresholds apply to): ``score="fraction"`` (default) is votes / number of query
 descriptors, in [0, 1], so one threshold works for scans with many or few keypoints; ``score="votes"`` is the raw
-vote count. ``relative_pose`` is None: this pipeline does not verify candidates geometrically (the paper's
-probabilistic voting, geometric consistency and ICP are not implemented).
+vote count; with verification (below) the score is the verified score instead.
+
+Verification (``verify.enabled``, ISHOT paper Sec. IV-F; `placerec.verify.candidates`): the description also
+keeps the scan voxelised for ICP (``cloud``), the database each entry's cloud. For each of the ``verify.top_k``
+most-voted entries the query descriptors are matched against that entry's descriptors alone (2-NN, ratio
+``< tau_max``, the ratio ordering the pairs), the matches go through the paper's geometric consistency grouping
+(consensus resolution 7 m, minimum cluster 8), RANSAC and point-to-plane ICP; ``relative_pose`` is the 6-DoF
+``T_match_query``, ``score`` the verified score (``extra["retrieval_score"]`` the vote score) and the candidates
+are re-ranked by it. A candidate is accepted when its ICP residual is below the paper's eps_ICP (7 m^2) and its
+verified score reaches ``min_score`` (``acceptance = "both"``, measured in docs/verification.md). Off,
+``relative_pose`` is None (the paper's probabilistic voting is not implemented).
 
 Entries ("places"):
 
@@ -63,6 +72,8 @@ from placerec.three_d.keypoints import ISSParams
 from placerec.three_d.normals import NormalParams
 from placerec.three_d.places import PlacesDatabase, merge_clouds
 from placerec.types import Candidate, Description, Scan, as_pose
+from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
+from placerec.verify.params import VerifyParams
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +109,12 @@ class VotingParams(Params):
         0.0, ge=0, description="m; accumulate scans over this path as a place (Sec. IV-B)"
     )
     places_db: str | None = Field(None, description="a PlacesDatabase file replacing the entries")
+    verify: VerifiedParams = Field(
+        default_factory=lambda: VerifiedParams(
+            verify=VerifyParams(consistency={"enabled": True}, score={"acceptance": "both"})
+        ),
+        description="consistency grouping, RANSAC and ICP on the top-k voted entries (ISHOT paper Sec. IV-F)",
+    )
 
     def features(self) -> FeatureParams:
         return FeatureParams(
@@ -183,6 +200,7 @@ class KeypointVoting(Recognizer):
         self._poses: list[np.ndarray] = []
         self._counts: list[int] = []
         self._keypoints: list[np.ndarray] = []
+        self._clouds = CloudStore(self.params.verify.verify)
         self._sorted = True
         # trailing window of (id, pose, travelled distance, cloud xyz, cloud intensity) for place aggregation
         self._buffer: list[tuple[int, np.ndarray, float, np.ndarray, np.ndarray]] = []
@@ -217,15 +235,28 @@ class KeypointVoting(Recognizer):
         self._poses = [np.asarray(T) for T in db.poses]
         self._counts = [int(c) for c in counts]
         self._keypoints = [db.place_features(p)[0] for p in range(len(db))]
+        if self.params.verify.enabled:
+            if db.clouds is None:
+                raise ArtifactError(
+                    f"{self.name}: the places database has no clouds to verify with (build it with "
+                    "store_clouds, or set verify.enabled to false)"
+                )
+            for i, (xyz, _) in zip(self._ids, db.clouds, strict=True):
+                self._clouds.add(i, scan_cloud(xyz, self.params.verify.verify))
         self._places = db
 
     # -- front end -------------------------------------------------------------------------------------------
     @property
     def frontend_key(self) -> str:
         p = self.params
+        icp = p.verify.verify.icp
         return params_key(
             "keypoint-voting",
-            {"features": self._features.model_dump(mode="json"), "cloud": p.place_window_m > 0},
+            {
+                "features": self._features.model_dump(mode="json"),
+                "cloud": p.place_window_m > 0,
+                "icp_cloud": [icp.voxel_size, icp.max_range],
+            },
         )
 
     def _normalised(self, scan: Scan) -> Scan:
@@ -237,7 +268,8 @@ class KeypointVoting(Recognizer):
         return scan
 
     def describe(self, scan: Scan) -> Description:
-        """Keypoints (K, 3), descriptors (K, D); with place aggregation also the voxelised cloud.
+        """Keypoints (K, 3), descriptors (K, D), ``cloud`` (the scan voxelised for ICP, `scan_cloud`); with
+        place aggregation also the front end's voxelised cloud and its intensity.
 
         `ScanDataError` for a scan with too few valid points (`placerec.recognizer.require_points`) and, with the
         ISHOT descriptor, for one whose valid points all have the same intensity (or a non-finite one): every
@@ -250,6 +282,7 @@ class KeypointVoting(Recognizer):
             why = "ISHOT's intensity signature needs varying intensity (pipeline shot-votes takes scans without it)"
             require_varying_intensity(scan, ok, self.name, why)
         scan = self._normalised(scan)
+        cloud = scan_cloud(scan, self.params.verify.verify)
         try:
             lf = extract_features(scan, self._features)
         except ScanDataError as exc:
@@ -257,8 +290,13 @@ class KeypointVoting(Recognizer):
             return {
                 "keypoints": np.zeros((0, 3), np.float32),
                 "descriptors": np.zeros((0, self._dim), np.float32),
+                "cloud": cloud,
             }
-        out = {"keypoints": lf.keypoints.astype(np.float32), "descriptors": lf.descriptors.astype(np.float32)}
+        out = {
+            "keypoints": lf.keypoints.astype(np.float32),
+            "descriptors": lf.descriptors.astype(np.float32),
+            "cloud": cloud,
+        }
         if self.params.place_window_m > 0:
             out["cloud_xyz"] = lf.points.astype(np.float32)
             out["cloud_intensity"] = lf.intensity.astype(np.float32)
@@ -277,9 +315,21 @@ class KeypointVoting(Recognizer):
         self._n_rows += n
 
     def _add_entry(
-        self, scan_id: int, keypoints: np.ndarray, desc: np.ndarray, pose: np.ndarray | None
+        self,
+        scan_id: int,
+        keypoints: np.ndarray,
+        desc: np.ndarray,
+        pose: np.ndarray | None,
+        cloud: np.ndarray | None,
     ) -> None:
         desc = np.asarray(desc, np.float32).reshape(-1, self._dim)
+        if self.params.verify.enabled:
+            if cloud is None:
+                raise ScanDataError(
+                    f"{self.name}: verification needs the description's 'cloud' (describe() gives it); set "
+                    "verify.enabled to false to add bare descriptors"
+                )
+            self._clouds.add(scan_id, cloud)
         if self._ids and scan_id <= self._ids[-1]:
             self._sorted = False
         self._append_rows(desc, np.full(desc.shape[0], len(self._ids)))
@@ -298,7 +348,9 @@ class KeypointVoting(Recognizer):
         if scan_id in self._idset:
             raise ScanDataError(f"{self.name}: id {scan_id} was added already")
         if p.place_window_m <= 0 and p.place_spacing_m <= 0:
-            self._add_entry(scan_id, description["keypoints"], description["descriptors"], pose)
+            self._add_entry(
+                scan_id, description["keypoints"], description["descriptors"], pose, description.get("cloud")
+            )
             return
         if pose is None:
             raise ScanDataError(
@@ -312,10 +364,10 @@ class KeypointVoting(Recognizer):
             if np.min(np.linalg.norm(centres - T[:3, 3], axis=1)) < p.place_spacing_m:
                 return
         if p.place_window_m > 0:
-            kp, desc = self._describe_buffer(T)
+            kp, desc, cloud = self._describe_buffer(T)
         else:
-            kp, desc = description["keypoints"], description["descriptors"]
-        self._add_entry(scan_id, kp, desc, T)
+            kp, desc, cloud = description["keypoints"], description["descriptors"], description.get("cloud")
+        self._add_entry(scan_id, kp, desc, T, cloud)
 
     def _push_buffer(self, scan_id: int, T: np.ndarray, description: Description) -> None:
         if "cloud_xyz" not in description:
@@ -329,16 +381,18 @@ class KeypointVoting(Recognizer):
         while self._buffer and self._travelled - self._buffer[0][2] > w:
             self._buffer.pop(0)
 
-    def _describe_buffer(self, T_world_place: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _describe_buffer(self, T_world_place: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Keypoints, descriptors and ICP cloud of the place accumulated in the buffer, in its frame."""
         cloud = merge_clouds(
             T_world_place, [(T, Scan(pts, it)) for _, T, _, pts, it in self._buffer], "place"
         )
+        icp_cloud = scan_cloud(cloud, self.params.verify.verify)
         try:
             lf = extract_features(cloud, self._features)
         except ScanDataError as exc:
             log.warning("%s", exc)
-            return np.zeros((0, 3), np.float32), np.zeros((0, self._dim), np.float32)
-        return lf.keypoints, lf.descriptors
+            return np.zeros((0, 3), np.float32), np.zeros((0, self._dim), np.float32), icp_cloud
+        return lf.keypoints, lf.descriptors, icp_cloud
 
     def _check_map_scan(self, scan_id: int, pose: np.ndarray | None) -> None:
         sp = self._places.scan_poses
@@ -370,20 +424,41 @@ class KeypointVoting(Recognizer):
             return []
         dist, idx = knn2(q, rows, self.params.backend, self.params.nn_threads)
         votes = ratio_votes(dist, idx, entry, n_ent, self.params.tau_max)
+        vp = self.params.verify
         top = np.flatnonzero(votes)
-        top = top[np.lexsort((np.asarray(self._ids)[top], -votes[top]))][:k]
+        top = top[np.lexsort((np.asarray(self._ids)[top], -votes[top]))][: vp.top_k if vp.enabled else k]
         scale = 1.0 / q.shape[0] if self.params.score == "fraction" else 1.0
-        return [
-            Candidate(
-                query_id,
-                self._ids[e],
-                float(votes[e] * scale),
-                None,
-                None,
-                {"votes": int(votes[e]), "n_query": int(q.shape[0])},
-            )
-            for e in top
+        extra = [{"votes": int(votes[e]), "n_query": int(q.shape[0])} for e in top]
+        if not vp.enabled:
+            return [
+                Candidate(query_id, self._ids[e], float(votes[e] * scale), None, None, x)
+                for e, x in zip(top, extra, strict=True)
+            ]
+        if "cloud" not in description:
+            raise ScanDataError(f"{self.name}: verification needs the query description's 'cloud'")
+        qkp = np.asarray(description["keypoints"], np.float32).reshape(-1, 3)
+        starts = np.concatenate([[0], np.cumsum(self._counts)])
+        retrieved = [
+            self._matches(e, q, qkp, starts, float(votes[e] * scale), x)
+            for e, x in zip(top, extra, strict=True)
         ]
+        return verify_candidates(description["cloud"], retrieved, self._clouds, vp, query_id, k)
+
+    def _matches(
+        self, e: int, q: np.ndarray, qkp: np.ndarray, starts: np.ndarray, score: float, extra: dict[str, Any]
+    ) -> Retrieved:
+        """Entry ``e``'s correspondences with the query: 2-NN among its descriptors, ratio ``< tau_max``."""
+        rows = self._desc[starts[e] : starts[e + 1]]
+        if rows.shape[0] < 2:
+            return Retrieved(self._ids[e], score, np.zeros((0, 3)), np.zeros((0, 3)), extra=extra)
+        dist, idx = knn2(q, rows, self.params.backend, self.params.nn_threads)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tau = np.where(dist[:, 1] > 0, dist[:, 0] / dist[:, 1], 1.0)
+        ok = tau < self.params.tau_max
+        dst = self._keypoints[e][idx[ok, 0]]
+        return Retrieved(
+            self._ids[e], score, qkp[ok], dst, tau[ok], extra={**extra, "matches": int(ok.sum())}
+        )
 
     # -- persistence ----------------------------------------------------------------------------------------
     def save(self, path: str | Path) -> None:
@@ -402,6 +477,8 @@ class KeypointVoting(Recognizer):
             "buffer_xyz": _cat([b[3] for b in buf], (0, 3)),
             "buffer_intensity": _cat([b[4] for b in buf], (0,)),
         }
+        if self.params.verify.enabled:
+            arrays.update(self._clouds.arrays(self._ids))
         meta = {"params": self.params.model_dump(mode="json"), "travelled": self._travelled}
         save_artifact(path, _KIND, _VERSION, arrays, meta)
 
@@ -419,6 +496,10 @@ class KeypointVoting(Recognizer):
         self._poses = list(arrays["poses"])
         self._counts = [int(c) for c in arrays["counts"]]
         self._keypoints = list(kp)
+        if self.params.verify.enabled:
+            if "cloud_xyz" not in arrays:
+                raise ArtifactError(f"{path}: database saved without the clouds verification needs")
+            self._clouds.from_arrays(self._ids, arrays, path)
         cuts = np.cumsum(arrays["buffer_counts"])[:-1]
         self._buffer = list(
             zip(
@@ -457,6 +538,8 @@ def _schema(dim: int) -> dict[str, Member]:
         "buffer_counts": Member("iu", ("n_buffer",), min_value=0),
         "buffer_xyz": Member("f", ("n_points", 3), finite=True),
         "buffer_intensity": Member("f", ("n_points",), finite=True),
+        "cloud_counts": Member("iu", ("n_entries",), optional=True, min_value=0),
+        "cloud_xyz": Member("f", ("n_cloud", 3), optional=True, finite=True),
     }
 
 
