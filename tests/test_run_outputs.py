@@ -15,6 +15,7 @@ from placerec.experiment import run_experiment
 from placerec.experiment.candidates import CandidateTable, read_candidates, write_candidates
 from placerec.experiment.report import (
     make_run_dir,
+    print_table,
     recompute_loop_metrics,
     report_localize,
     report_loop,
@@ -308,7 +309,7 @@ def _flat(d, prefix=""):
     return out
 
 
-def test_loop_report_holds_pose_errors_extended_precision_and_recomputes_them(tmp_path):
+def test_loop_report_holds_pose_errors_extended_precision_and_recomputes_them(tmp_path, capsys):
     cfg, seq, P = _hand_run(tmp_path)
     rel = lambda m, q: relative_pose(P[m], P[q])  # noqa: E731
     top = {  # query: (match, score, relative pose); q5, q7, q9 true, q6, q10 false; max F1 at 0.5
@@ -349,17 +350,21 @@ def test_loop_report_holds_pose_errors_extended_precision_and_recomputes_them(tm
         assert again["extended_precision"] == payload["pipelines"][label]["extended_precision"]
     header, rows = table_rows(payload)
     row = dict(zip(header, rows[0], strict=False))
-    assert (row["R@P100"], row["EP"], row["TP t err med [m]"], row["max accepted t err [m]"]) == (
+    assert (row["R@P100"], row["EP"], row["TP t err [m] median"], row["max accepted t err [m]"]) == (
         "0.200",
         "0.600",
         "0.100",
         "100.500",
     )
     assert (
-        row["verify mean"] == "2.000" and dict(zip(header, rows[1], strict=False))["TP t err med [m]"] == "-"
+        row["verify mean"] == "2.000"
+        and dict(zip(header, rows[1], strict=False))["TP t err [m] median"] == "-"
     )
     page = (run / "index.html").read_text()
-    assert "TP t err med [m]" in page and "100.500" in page
+    assert "TP t err [m] median" in page and "100.500" in page
+    print_table(payload, "hand [loop]")
+    printed = capsys.readouterr().out
+    assert "hand [loop]" in printed and "[m]" in printed and "100.500" in printed  # units are no rich markup
 
 
 def test_localize_counts_success_from_the_estimated_pose_and_labels_retrieval(tmp_path):

@@ -331,9 +331,9 @@ _LOOP_COLUMNS = (
     ("R@P100", ("recall_at_100_precision",)),
     ("EP", ("extended_precision",)),
     ("R@1", ("recall_at_1",)),
-    ("TP t err med [m]", ("pose_error", "tp_translation_m", "median")),
+    ("TP t err [m] median", ("pose_error", "tp_translation_m", "median")),
     ("p95", ("pose_error", "tp_translation_m", "p95")),
-    ("TP rot err med [deg]", ("pose_error", "tp_rotation_deg", "median")),
+    ("TP rot err [deg] median", ("pose_error", "tp_rotation_deg", "median")),
     ("p95", ("pose_error", "tp_rotation_deg", "p95")),
     ("max accepted t err [m]", ("pose_error", "accepted_max_translation_m")),
 )
@@ -381,13 +381,14 @@ def print_table(payload: dict[str, Any], title: str) -> None:
     """The results as a rich console table."""
     from rich.console import Console
     from rich.table import Table
+    from rich.text import Text
 
     header, rows = table_rows(payload)
-    table = Table(title=title)
-    for i, h in enumerate(header):
-        table.add_column(h, justify="left" if i == 0 else "right", style="bold" if i == 0 else None)
+    table = Table(title=Text(title))
+    for i, h in enumerate(header):  # Text: "[m]" is a unit, not rich markup
+        table.add_column(Text(h), justify="left" if i == 0 else "right", style="bold" if i == 0 else None)
     for row in rows:
-        table.add_row(*row)
+        table.add_row(*(Text(c) for c in row))
     console = Console()
     if not console.is_terminal:  # logs and pipes: wide enough that no column is cut
         console = Console(width=200)
