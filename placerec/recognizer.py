@@ -172,23 +172,23 @@ PIPELINES: dict[str, PipelineEntry] = {
     ),
     "orb-hbst": PipelineEntry(
         "placerec.pipelines.visual:VisualHBST",
-        "VPR paper: intensity image, ORB features, HBST retrieval, column-shift check",
-        {"features": "orb"},
+        "VPR paper: intensity image, ORB features, HBST retrieval; RANSAC + ICP verification",
+        {"features": "orb", "hbst": {"threshold": 50}, "verify": {"top_k": 5}},
     ),
     "brisk-hbst": PipelineEntry(
         "placerec.pipelines.visual:VisualHBST",
-        "VPR paper: intensity image, FAST + BRISK features, HBST retrieval, column-shift check",
-        {"features": "brisk"},
+        "VPR paper: intensity image, FAST + BRISK features, HBST retrieval; RANSAC + ICP verification",
+        {"features": "brisk", "hbst": {"threshold": 100}, "verify": {"top_k": 5}},
     ),
     "orb-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
-        "VPR paper: intensity image, ORB features, DBoW2 bag of words, column-shift check",
-        {"features": "orb"},
+        "VPR paper: intensity image, ORB features, DBoW2 bag of words; RANSAC + ICP verification",
+        {"features": "orb", "verify": {"top_k": 5}},
     ),
     "surf-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
-        "VPR paper: intensity image, FAST + SURF features, DBoW2 bag of words, column-shift check",
-        {"features": "fast-surf"},
+        "VPR paper: intensity image, FAST + SURF features, DBoW2 bag of words; RANSAC + ICP verification",
+        {"features": "fast-surf", "verify": {"top_k": 5}},
     ),
     "ishot-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",

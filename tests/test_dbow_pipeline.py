@@ -71,7 +71,9 @@ def test_dbow_finds_the_place_and_its_yaw(trained, scans, yaw_deg):
 
 
 def test_bow_score_and_exclusion(trained, scans):
-    rec = make_pipeline("orb-dbow", {"vocabulary": str(trained), "verify": "none"})
+    rec = make_pipeline(
+        "orb-dbow", {"vocabulary": str(trained), "verify": {"enabled": False}, "check": "none"}
+    )
     for i, s in enumerate(scans):
         rec.add(10 + i, s)
     (c,) = rec.query(scans[1], k=1)
@@ -79,7 +81,12 @@ def test_bow_score_and_exclusion(trained, scans):
     assert [x.match_id for x in rec.query(scans[1], k=2, max_id=10)] == [10]
     looped = make_pipeline(
         "orb-dbow",
-        {"vocabulary": str(trained), "verify": "none", "loop": {"use_nss": True, "islands": True}},
+        {
+            "vocabulary": str(trained),
+            "verify": {"enabled": False},
+            "check": "none",
+            "loop": {"use_nss": True, "islands": True},
+        },
     )
     looped.add(0, scans[0])
     looped.add(1, scans[1])
@@ -111,7 +118,7 @@ def test_save_load_gives_identical_answers(tmp_path, trained, scans):
         (c.match_id, c.score, c.inliers) for c in after
     ]
     with pytest.raises(ArtifactError, match="other parameters"):
-        make_pipeline("orb-dbow", {"vocabulary": str(trained), "n_verify": 3}).load(tmp_path / "db.npz")
+        make_pipeline("orb-dbow", {"vocabulary": str(trained), "n_check": 3}).load(tmp_path / "db.npz")
 
 
 def test_missing_or_mismatched_vocabulary(tmp_path, trained):

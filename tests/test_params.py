@@ -152,7 +152,7 @@ def test_placerec_pipelines_lists_pipelines_and_parameters():
         "feature_params.fast_threshold",
         "VPR paper Table I",
         "loop.use_nss",
-        "n_verify",
+        "n_check",
         "image.mode",
     ):
         assert text in detail.output

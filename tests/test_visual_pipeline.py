@@ -70,6 +70,11 @@ def test_save_load_gives_identical_answers(tmp_path, scans):
 
 def test_presets_and_thresholds():
     orb, brisk = make_pipeline("orb-hbst"), make_pipeline("brisk-hbst")
-    assert isinstance(orb, VisualHBST) and orb.tree.threshold == 25 and brisk.tree.threshold == 50
+    # the registered pipelines match at 50 bits per 256 (docs/vpr_results.md); the class keeps srrg's 25
+    assert isinstance(orb, VisualHBST) and orb.tree.threshold == 50 and brisk.tree.threshold == 100
+    assert VisualHBST().tree.threshold == 25
     assert orb.frontend_key != brisk.frontend_key
-    assert make_pipeline("orb-hbst", {"verify": "none"}).frontend_key == orb.frontend_key
+    assert make_pipeline("orb-hbst", {"check": "none"}).frontend_key == orb.frontend_key
+    assert make_pipeline("orb-dbow").frontend_key == orb.frontend_key  # one description for both
+    unverified = make_pipeline("orb-hbst", {"verify": {"enabled": False}})
+    assert unverified.frontend_key != orb.frontend_key  # its descriptions hold no ICP cloud

@@ -224,7 +224,7 @@ def main() -> None:
             {
                 "name": "orb-dbow",
                 "label": "ORB-DBoW (BoW score)",
-                "params": {"vocabulary": str(vocab_all), "verify": "none"},
+                "params": {"vocabulary": str(vocab_all), "verify": {"enabled": False}, "check": "none"},
             },
             {"name": "surf-dbow", "label": "SURF-DBoW"},
         ]
@@ -241,7 +241,7 @@ def main() -> None:
                     {
                         "name": "orb-dbow",
                         "label": f"voc {world}{tag}",
-                        "params": {"vocabulary": str(path), "verify": verify},
+                        "params": {"vocabulary": str(path), "verify": {"enabled": False}, "check": verify},
                     }
                 )
         for verify, tag in (("shift", ""), ("none", " BoW")):
@@ -249,7 +249,7 @@ def main() -> None:
                 {
                     "name": "orb-dbow",
                     "label": f"voc all{tag}",
-                    "params": {"vocabulary": str(vocab_all), "verify": verify},
+                    "params": {"vocabulary": str(vocab_all), "verify": {"enabled": False}, "check": verify},
                 }
             )
         result["cross_world_max_f1"] = run_f1(pipelines, args.seeds, args.cache_dir)

@@ -7,14 +7,18 @@ inverse-index database with a direct index; a query is one database query (DBoW2
 
 Score (what thresholds apply to):
 
-* ``verify="none"``: the DBoW2 L1 score ``s = 1 - 0.5 |v_q - v_m|_1`` in [0, 1] (divided by the score against the
-  previous frame when ``loop.use_nss``, as DLoopDetector's normalised similarity score).
-* ``verify="shift"`` (default, as VisualHBST): the ``n_verify`` best database results are checked geometrically:
+* ``verify.enabled`` (default): the ``verify.top_k`` best database results are verified as in
+  `placerec.pipelines.visual` (mutual nearest features, or with ``verify_matches="retrieval"`` the direct-index
+  matches below, as 3D points -> RANSAC -> ICP): verified score in [0, 1], 6-DoF ``relative_pose``, re-ranked;
+  ``extra["bow_score"]`` keeps the L1 score.
+* otherwise ``check="none"``: the DBoW2 L1 score ``s = 1 - 0.5 |v_q - v_m|_1`` in [0, 1] (divided by the score
+  against the previous frame when ``loop.use_nss``, as DLoopDetector's normalised similarity score).
+* otherwise ``check="shift"``: the ``n_check`` best database results are checked geometrically:
   query features are matched to the candidate's features under the same vocabulary node at depth
-  ``L - levels_up`` (the direct index; default depth 2, as ORB-SLAM2's levelsup 4 with L = 6; nearest neighbour with ratio test ``nn_ratio`` and distance cap
-  ``max_distance``, one query feature per candidate feature, as DLoopDetector's ``GEOM_DI``), then the column-shift
-  consensus of VisualHBST (`shift_consensus`) counts the inliers and gives the yaw. Score
-  ``inliers / min(n_query_features, n_match_features)``; ``extra["bow_score"]`` keeps the L1 score.
+  ``L - levels_up`` (the direct index; default depth 2, as ORB-SLAM2's levelsup 4 with L = 6; nearest neighbour
+  with ratio test ``nn_ratio`` and distance cap ``max_distance``, one query feature per candidate feature, as
+  DLoopDetector's ``GEOM_DI``), then the column-shift consensus of VisualHBST (`shift_consensus`) counts the
+  inliers and gives the yaw. Score ``inliers / min(n_query_features, n_match_features)``.
 
 DLoopDetector's options (normalised score with ``alpha``, islands, temporal consistency: ``loop``) are off by
 default: the paper queries DBoW2's database as is. The temporal window lives in the recognizer (queries are assumed
@@ -32,7 +36,7 @@ import importlib.resources
 import logging
 import time
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import numpy as np
 from pydantic import Field
@@ -43,7 +47,7 @@ from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
 from placerec.pipelines.visual import (
     VisualFrontend,
-    VisualFrontendParams,
+    VisualPipelineParams,
     features_schema,
     pack_features,
     shift_consensus,
@@ -62,7 +66,7 @@ log = logging.getLogger(__name__)
 __all__ = ["DBoWParams", "VisualDBoW", "default_vocabulary_path", "resolve_vocabulary", "VOCAB_DIR"]
 
 _KIND = "visual-dbow-db"
-_VERSION = 1
+_VERSION = 2  # 2: keypoints' 3D points and ICP clouds
 #: The shipped vocabularies: package data, installed as files with the package (editable install or wheel).
 VOCAB_DIR = Path(importlib.resources.files("placerec").joinpath("vocab"))
 #: Shipped vocabulary per feature extractor (SURF's descriptor with FAST or SURF keypoints share one).
@@ -75,8 +79,9 @@ _TRAIN_CONFIG = {
 _CACHE: dict[tuple[str, int, int], Vocabulary] = {}
 
 
-class DBoWParams(VisualFrontendParams):
-    """Front end (as `VisualParams`), vocabulary, direct index depth, DLoopDetector options and verification."""
+class DBoWParams(VisualPipelineParams):
+    """Front end, verification and check (as `VisualParams`), vocabulary, direct index depth, DLoopDetector
+    options and direct-index matching."""
 
     vocabulary: str | None = Field(
         None, description="vocabulary file; None = the shipped one for the features"
@@ -87,16 +92,12 @@ class DBoWParams(VisualFrontendParams):
         description="direct index at depth L - levels_up (>= 1); None = depth 2 (ORB-SLAM2's 4, L=6)",
     )
     loop: LoopDetectorParams = Field(default_factory=LoopDetectorParams)
-    verify: Literal["shift", "none"] = Field("shift", description="column-shift consensus or the DBoW2 score")
-    n_verify: int = Field(10, ge=1, description="best database results checked geometrically")
     nn_ratio: float = Field(
         0.8, gt=0, le=1, description="nearest-neighbour ratio test (DLoopDetector GEOM_DI)"
     )
     max_distance: float | None = Field(
         None, gt=0, description="descriptor distance cap; None = 50 per 256 bits (binary), none (float)"
     )
-    shift_tolerance_px: int = Field(8, ge=0, description="px; column-shift bin half-width")
-    row_tolerance_px: int = Field(4, ge=0, description="px; row difference allowed in a match")
 
 
 def default_vocabulary_path(features: str) -> Path:
@@ -167,11 +168,13 @@ class VisualDBoW(VisualFrontend, Recognizer):
         self._keypoints: dict[int, np.ndarray] = {}
         self._descriptors: dict[int, np.ndarray] = {}
         self._width: dict[int, int] = {}
+        self._reset_verification()
 
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
         scan_id = int(scan_id)
         if scan_id in self._width:
             raise ScanDataError(f"{self.name}: id {scan_id} was added already")
+        self._add_verification(scan_id, description)
         desc = np.ascontiguousarray(description["descriptors"])
         self.db.add_descriptors(desc, scan_id)
         self._keypoints[scan_id] = np.asarray(description["keypoints"], np.float32).reshape(-1, 2)
@@ -189,9 +192,8 @@ class VisualDBoW(VisualFrontend, Recognizer):
         if desc.shape[0] == 0 or len(self.db) == 0:
             return []
         bow, nodes = self.vocabulary.transform(desc, self.levels_up)
-        n_res = max(
-            k, p.n_verify if p.verify == "shift" else k, p.loop.max_db_results if self._loop_on else 0
-        )
+        n_check = p.verify.top_k if p.verify.enabled else p.n_check if p.check == "shift" else k
+        n_res = max(k, n_check, p.loop.max_db_results if self._loop_on else 0)
         res = self.db.query(bow, n_res, max_id)
         ids, scores, status = res.ids, res.scores, "ok"
         if self._loop_on:
@@ -199,15 +201,18 @@ class VisualDBoW(VisualFrontend, Recognizer):
             eta = l1_score(bow, self.db.bow(last)) if p.loop.use_nss and last is not None else None
             lr = self.loop_filter.apply(query_id if query_id >= 0 else len(self.db), ids, scores, eta)
             ids, scores, status = lr.ids, lr.scores, lr.status
-        if p.verify == "none":
+        if p.verify.enabled:
+            top = [int(i) for i in ids[: p.verify.top_k]]
+            return self._verify_matches(description, top, scores, nodes, query_id, k)
+        if p.check == "none":
             return [
                 Candidate(query_id, int(i), float(s), None, None, {"bow_score": float(s), "status": status})
                 for i, s in zip(ids[:k], scores[:k], strict=True)
             ]
         kq = np.asarray(description["keypoints"], np.float32).reshape(-1, 2)
-        out = self._verify(
-            [int(i) for i in ids[: p.n_verify]],
-            scores[: p.n_verify],
+        out = self._check(
+            [int(i) for i in ids[: p.n_check]],
+            scores[: p.n_check],
             desc,
             nodes,
             kq,
@@ -217,7 +222,34 @@ class VisualDBoW(VisualFrontend, Recognizer):
         out.sort(key=lambda c: (-c.score, c.match_id))
         return out[:k]
 
-    def _verify(
+    def _verify_matches(
+        self,
+        description: Description,
+        image_ids: list[int],
+        scores: np.ndarray,
+        nodes: np.ndarray,
+        query_id: int,
+        k: int,
+    ) -> list[Candidate]:
+        """Direct-index matches with each of the best database results, verified (`VisualFrontend._verified`)."""
+        desc = np.ascontiguousarray(description["descriptors"])
+        empty = np.zeros(0, np.int64)
+        cand, qi, ri = self._match(desc, nodes, image_ids) if image_ids else (empty, empty, empty)
+        bounds = np.searchsorted(cand, np.arange(len(image_ids) + 1))
+        retrieved = [
+            self._retrieved(
+                description,
+                i,
+                float(s),
+                qi[bounds[c] : bounds[c + 1]],
+                ri[bounds[c] : bounds[c + 1]],
+                {"bow_score": float(s)},
+            )
+            for c, (i, s) in enumerate(zip(image_ids, scores, strict=False))
+        ]
+        return self._verified(description, retrieved, query_id, k)
+
+    def _check(
         self,
         image_ids: list[int],
         bow_scores: np.ndarray,
@@ -311,12 +343,7 @@ class VisualDBoW(VisualFrontend, Recognizer):
         """Store every added image's keypoints and descriptors (insertion order) with the parameters and the
         vocabulary's fingerprint; `load` re-adds them (the transform is deterministic)."""
         arrays = pack_features(
-            self.db.ids.tolist(),
-            self._keypoints,
-            self._descriptors,
-            self._width,
-            self.vocabulary.descriptor_size,
-            self._dtype,
+            self, self.db.ids.tolist(), self._descriptors, self.vocabulary.descriptor_size, self._dtype
         )
         meta = {"params": self.params.model_dump(mode="json"), "vocabulary": self.vocabulary.fingerprint}
         save_artifact(path, _KIND, _VERSION, arrays, meta)
@@ -334,7 +361,10 @@ class VisualDBoW(VisualFrontend, Recognizer):
                 f"{path}: database was made with vocabulary {saved_voc}, "
                 f"not {self.vocabulary_path} ({self.vocabulary.fingerprint})"
             )
-        check_members(arrays, features_schema(self.vocabulary.descriptor_size, self.vocabulary.binary), path)
+        voc = self.vocabulary
+        check_members(
+            arrays, features_schema(voc.descriptor_size, voc.binary, self.params.verify.enabled), path
+        )
         stored = stored_features(path, arrays, self.params.image)
         self._reset()
         for scan_id, desc in stored:

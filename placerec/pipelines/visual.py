@@ -1,17 +1,27 @@
-"""The 2D visual pipeline (VPR paper): intensity image -> features -> HBST retrieval -> optional yaw check.
+"""The 2D visual pipeline (VPR paper): intensity image -> features -> HBST retrieval -> verification.
 
-Score (documented, what thresholds apply to): HBST gives each stored image a vote count (one vote per query
-descriptor that has a match in it, `placerec.retrieval.hbst`); the ``n_verify`` images with most votes are
-checked geometrically. In a cylindrical image a revisit from (nearly) the same place differs by a yaw, i.e. a
-circular column shift, and by small row offsets. ``verify="shift"`` histograms the column shifts of the matches,
-takes the densest shift (within ``shift_tolerance_px``) among matches whose rows differ by at most
-``row_tolerance_px``, and counts those as inliers; the shift gives the relative yaw. The score is
-``inliers / min(n_query_features, n_match_features)`` — the fraction of the smaller feature set that agrees on one
-yaw — which makes one threshold work across places with many or few features. With ``verify="none"`` the score
-is HBST's matching ratio (votes / query features) and no relative pose is returned.
+Front end: the intensity image (`placerec.image`), features, and for verification each keypoint's 3D point
+(``keypoint_xyz``: the scan point the projection kept in its pixel, `keypoint_points`) and the scan voxelised for
+ICP (``cloud``); the description cache holds them all.
 
-Relative pose: ``T_match_query`` is a rotation about z by ``yaw = 2 pi * shift / W`` where ``shift`` is the query
-column minus the match column of the same landmark (eq. 2 columns decrease with azimuth).
+Retrieval: HBST gives each stored image a vote count (one vote per query descriptor that has a match in it,
+`placerec.retrieval.hbst`). The registered pipelines match at 50 bits per 256 (``hbst.threshold``) instead of
+srrg_hbst's 25: on intensity images the nearest descriptor of a revisit lies 50-70 bits away, and at 25 bits HBST
+proposes one image per revisit query (``docs/vpr_results.md``, 'Why ORB-HBST proposed so few candidates').
+
+Verification (``verify.enabled``, default; `placerec.verify.candidates`): the ``verify.top_k`` images with most
+votes are verified: correspondences are the mutual nearest features of query and candidate (``verify_matches``,
+or the retrieval's own matches), as 3D points -> RANSAC -> ICP (`placerec.verify.verify`). ``score`` is the
+verified score in [0, 1], ``relative_pose`` the 6-DoF ``T_match_query``, candidates are re-ranked by it; HBST's
+matching ratio moves to ``extra["retrieval_score"]``.
+
+Without verification, ``check="shift"`` checks the ``n_check`` images with most votes: in a cylindrical image a
+revisit from (nearly) the same place differs by a yaw, i.e. a circular column shift, and by small row offsets.
+It histograms the column shifts of the matches, takes the densest shift (within ``shift_tolerance_px``) among
+matches whose rows differ by at most ``row_tolerance_px``, and counts those as inliers; the shift gives the
+relative yaw. The score is ``inliers / min(n_query_features, n_match_features)``, and ``T_match_query`` a rotation
+about z by ``yaw = 2 pi * shift / W`` where ``shift`` is the query column minus the match column of the same
+landmark (eq. 2 columns decrease with azimuth). ``check="none"``: HBST's matching ratio, no relative pose.
 """
 
 from __future__ import annotations
@@ -36,12 +46,16 @@ from placerec.recognizer import (
     require_points,
     require_varying_intensity,
 )
+from placerec.retrieval.bits import hamming, to_words
 from placerec.retrieval.hbst import HBST, HBSTParams, default_threshold
 from placerec.types import Candidate, Description, Scan
+from placerec.verify import VerifyParams
+from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
 
 __all__ = [
     "HBSTParams",
     "VisualFrontendParams",
+    "VisualPipelineParams",
     "VisualParams",
     "VisualFrontend",
     "VisualHBST",
@@ -49,6 +63,8 @@ __all__ = [
     "shift_consensus",
     "visual_frontend_key",
     "describe_visual",
+    "mutual_nearest",
+    "keypoint_points",
     "pack_features",
     "features_schema",
     "stored_features",
@@ -56,7 +72,7 @@ __all__ = [
 ]
 
 _KIND = "visual-hbst-db"
-_VERSION = 1
+_VERSION = 2  # 2: keypoints' 3D points and ICP clouds
 #: Widest intensity image (px) a visual front end makes and a saved database may record (LiDARs have at most a
 #: few thousand columns); a wider one is a `ScanDataError` when described, an `ArtifactError` when loaded.
 MAX_IMAGE_WIDTH = 1 << 15
@@ -96,14 +112,32 @@ class VisualFrontendParams(Params):
             raise SectionError(exc, model, "feature_params") from None
 
 
-class VisualParams(VisualFrontendParams):
+class VisualPipelineParams(VisualFrontendParams):
+    """The front end plus what every visual pipeline shares: the verification stage (``verify``) or, without it,
+    the column-shift check (``check``, ``n_check`` and its tolerances)."""
+
+    verify: VerifiedParams = Field(
+        default_factory=VerifiedParams,
+        description="RANSAC on the feature matches' 3D points, then ICP, on the top-k retrieved candidates",
+    )
+    verify_matches: Literal["brute-force", "retrieval"] = Field(
+        "brute-force",
+        description="correspondences to verify: mutual nearest features of query and candidate, or the "
+        "retrieval's own matches (HBST leaves, DBoW direct index)",
+    )
+    check: Literal["shift", "none"] = Field(
+        "shift",
+        description="without verification: column-shift consensus (yaw) or the raw retrieval score",
+    )
+    n_check: int = Field(10, ge=1, description="best retrieved images checked by the column-shift consensus")
+    shift_tolerance_px: int = Field(8, ge=0, description="px; column-shift bin half-width")
+    row_tolerance_px: int = Field(4, ge=0, description="px; row difference allowed in a match")
+
+
+class VisualParams(VisualPipelineParams):
     """Image formation, features, HBST and verification (see the module docstring)."""
 
     hbst: HBSTParams = Field(default_factory=HBSTParams)
-    verify: Literal["shift", "none"] = Field("shift", description="column-shift consensus or HBST's ratio")
-    n_verify: int = Field(10, ge=1, description="best HBST images checked geometrically")
-    shift_tolerance_px: int = Field(8, ge=0, description="px; column-shift bin half-width")
-    row_tolerance_px: int = Field(4, ge=0, description="px; row difference allowed in a match")
 
 
 def yaw_pose(yaw_rad: float) -> np.ndarray:
@@ -114,15 +148,48 @@ def yaw_pose(yaw_rad: float) -> np.ndarray:
     return T
 
 
-def visual_frontend_key(params: VisualFrontendParams) -> str:
-    """Cache key of the intensity-image + features front end: equal for every visual pipeline with the same
-    front-end settings, so they share descriptions."""
+def visual_frontend_key(params: VisualPipelineParams) -> str:
+    """Cache key of the intensity-image + features front end (and, with verification, the ICP cloud's voxel grid
+    and range): equal for every visual pipeline with the same front-end settings, so they share descriptions."""
     front = params.model_dump(mode="json", include={"features", "feature_params", "image"})
+    if params.verify.enabled:
+        icp = params.verify.verify.icp
+        front["cloud"] = {"voxel_size": icp.voxel_size, "max_range": icp.max_range}
     return params_key("visual", front)
 
 
-def describe_visual(scan: Scan, image_params: ImageParams, extractor: Any) -> Description:
-    """The visual front end: intensity image, then features -> keypoints (K, 2), descriptors, image width.
+#: Pixel offsets (row, column) searched, nearest first, for a keypoint whose own pixel holds no scan point.
+_NEIGHBOURS = ((0, 0), (0, -1), (0, 1), (-1, 0), (1, 0), (-1, -1), (-1, 1), (1, -1), (1, 1))
+
+
+def keypoint_points(keypoints: np.ndarray, point_index: np.ndarray) -> np.ndarray:
+    """Index of the scan point behind each keypoint (K,): the point the projection kept in the keypoint's pixel
+    (OpenCV's pixel centres are integers), else in the nearest of its 8 neighbours that holds one (columns
+    wrap around); -1 where none does (an interpolated row or a hole)."""
+    h, w = point_index.shape
+    kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
+    u = np.rint(kp[:, 0]).astype(np.int64)
+    v = np.rint(kp[:, 1]).astype(np.int64)
+    out = np.full(kp.shape[0], -1, np.int64)
+    for dv, du in _NEIGHBOURS:
+        todo = out < 0
+        if not todo.any():
+            break
+        rows = v[todo] + dv
+        inside = (rows >= 0) & (rows < h)
+        found = np.full(rows.shape, -1, np.int64)
+        found[inside] = point_index[rows[inside], np.mod(u[todo][inside] + du, w)]
+        out[todo] = found
+    return out
+
+
+def describe_visual(
+    scan: Scan, image_params: ImageParams, extractor: Any, verify: VerifyParams | None = None
+) -> Description:
+    """The visual front end: intensity image, then features -> keypoints (K, 2), descriptors, image width and
+    ``keypoint_xyz`` (K, 3), the scan point of each keypoint's pixel (`keypoint_points`; NaN where there is none);
+    with ``verify`` (the verification stage's parameters) also ``cloud``, the scan voxelised for ICP
+    (`placerec.verify.candidates.scan_cloud`).
 
     `ScanDataError` for a scan with too few valid points (`placerec.recognizer.require_points`) or one whose valid
     points all have the same intensity: its image would show only where returns are missing, not the place.
@@ -136,11 +203,19 @@ def describe_visual(scan: Scan, image_params: ImageParams, extractor: Any) -> De
             f"over {MAX_IMAGE_WIDTH} px (set image.width)"
         )
     feats = extractor.extract(img.image)
-    return {
-        "keypoints": np.asarray(feats.keypoints, np.float32).reshape(-1, 2),
+    keypoints = np.asarray(feats.keypoints, np.float32).reshape(-1, 2)
+    idx = keypoint_points(keypoints, img.point_index)
+    kp_xyz = np.full((idx.size, 3), np.nan, np.float32)
+    kp_xyz[idx >= 0] = scan.xyz[idx[idx >= 0]]
+    out = {
+        "keypoints": keypoints,
         "descriptors": np.ascontiguousarray(feats.descriptors),
         "width": np.array(img.image.shape[1], np.int64),
+        "keypoint_xyz": kp_xyz,
     }
+    if verify is not None:
+        out["cloud"] = scan_cloud(scan.select(ok), verify)
+    return out
 
 
 def shift_consensus(
@@ -164,10 +239,13 @@ def shift_consensus(
 
 
 class VisualFrontend:
-    """The intensity-image front end shared by the visual pipelines: needs ``params`` (`VisualFrontendParams`)
-    and ``extractor``; scans with equal front-end settings share their descriptions."""
+    """The intensity-image front end and verification state shared by the visual pipelines: needs ``params``
+    (`VisualPipelineParams`) and ``extractor``; scans with equal front-end settings share their descriptions.
+    A subclass calls `_reset_verification` with its database, `_add_verification` in ``add_description``
+    and `_verified` for the candidates it retrieved."""
 
-    params: VisualFrontendParams
+    name: ClassVar[str]
+    params: VisualPipelineParams
     extractor: Any
 
     @property
@@ -175,7 +253,83 @@ class VisualFrontend:
         return visual_frontend_key(self.params)
 
     def describe(self, scan: Scan) -> Description:
-        return describe_visual(scan, self.params.image, self.extractor)
+        p = self.params
+        return describe_visual(scan, p.image, self.extractor, p.verify.verify if p.verify.enabled else None)
+
+    def _reset_verification(self) -> None:
+        self._kp_xyz: dict[int, np.ndarray] = {}
+        self._clouds = CloudStore(self.params.verify.verify)
+
+    def _add_verification(self, scan_id: int, description: Description) -> None:
+        """Keep the keypoints' 3D points and (with verification) the ICP cloud of a description being added."""
+        n = np.asarray(description["keypoints"]).reshape(-1, 2).shape[0]
+        self._kp_xyz[scan_id] = _keypoint_xyz(self.name, description, n)
+        if self.params.verify.enabled:
+            self._clouds.add(scan_id, _cloud(self.name, description))
+
+    def _verified(
+        self, description: Description, retrieved: list[Retrieved], query_id: int, k: int
+    ) -> list[Candidate]:
+        """`placerec.verify.candidates.verify_candidates` on ``retrieved`` (best retrieval first)."""
+        cloud = _cloud(self.name, description)
+        return verify_candidates(cloud, retrieved, self._clouds, self.params.verify, query_id, k)
+
+    def _retrieved(
+        self,
+        description: Description,
+        match_id: int,
+        score: float,
+        query_idx: np.ndarray,
+        match_idx: np.ndarray,
+        extra: dict[str, Any],
+    ) -> Retrieved:
+        """A candidate to verify: with ``verify_matches="retrieval"`` the retrieval's feature matches (query
+        feature ``query_idx[i]`` <-> the candidate's ``match_idx[i]``), else the `mutual_nearest` features; the
+        pairs whose keypoints both have a 3D point become correspondences (descriptor distance as quality)."""
+        desc = description["descriptors"]
+        quality = None
+        if self.params.verify_matches == "brute-force":
+            query_idx, match_idx, quality = mutual_nearest(desc, self._descriptors[match_id])  # type: ignore[attr-defined]
+        n = np.asarray(desc).shape[0]
+        src = _keypoint_xyz(self.name, description, n)[query_idx]
+        dst = self._kp_xyz[match_id][match_idx]
+        ok = np.isfinite(src).all(axis=1) & np.isfinite(dst).all(axis=1)
+        q = None if quality is None else quality[ok]
+        return Retrieved(match_id, score, src[ok], dst[ok], q, extra={**extra, "matches": int(ok.sum())})
+
+
+def mutual_nearest(dq: np.ndarray, dm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mutual nearest neighbours between two descriptor sets (Hamming for packed uint8, Euclidean for float):
+    (query rows, match rows, distances)."""
+    if dq.shape[0] == 0 or dm.shape[0] == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    if dq.dtype == np.uint8:
+        D = hamming(to_words(dq)[:, None, :], to_words(dm)[None, :, :]).astype(np.float64)
+    else:
+        q, m = dq.astype(np.float64), dm.astype(np.float64)
+        sq = np.einsum("ij,ij->i", q, q)[:, None] + np.einsum("ij,ij->i", m, m)[None, :] - 2.0 * q @ m.T
+        D = np.sqrt(np.maximum(sq, 0.0))
+    nn = D.argmin(axis=1)
+    qi = np.flatnonzero(D.argmin(axis=0)[nn] == np.arange(dq.shape[0]))
+    return qi, nn[qi], D[qi, nn[qi]]
+
+
+def _keypoint_xyz(name: str, description: Description, n: int) -> np.ndarray:
+    xyz = description.get("keypoint_xyz")
+    if xyz is None:
+        raise ScanDataError(f"{name}: the description has no 'keypoint_xyz' (describe() gives it)")
+    xyz = np.asarray(xyz, np.float32)
+    if xyz.shape != (n, 3):
+        raise ScanDataError(f"{name}: 'keypoint_xyz' has shape {xyz.shape} for {n} keypoints")
+    return xyz
+
+
+def _cloud(name: str, description: Description) -> np.ndarray:
+    if "cloud" not in description:
+        raise ScanDataError(
+            f"{name}: verification needs the description's 'cloud' (describe() gives it with verify.enabled)"
+        )
+    return description["cloud"]
 
 
 class VisualHBST(VisualFrontend, Recognizer):
@@ -189,20 +343,22 @@ class VisualHBST(VisualFrontend, Recognizer):
         from placerec.features import make_extractor
 
         self.extractor = make_extractor(self.params.features, self.params.feature_params)
-        self.tree = self._new_tree()
+        self._reset()
+
+    def _reset(self) -> None:
+        hb = self.params.hbst
+        self.tree = HBST(hb, threshold=hb.threshold or default_threshold(self.extractor.descriptor_size))
         self._keypoints: dict[int, np.ndarray] = {}
         self._descriptors: dict[int, np.ndarray] = {}
         self._width: dict[int, int] = {}
         self._order: list[int] = []
-
-    def _new_tree(self) -> HBST:
-        hb = self.params.hbst
-        return HBST(hb, threshold=hb.threshold or default_threshold(self.extractor.descriptor_size))
+        self._reset_verification()
 
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
         scan_id = int(scan_id)
         if scan_id in self._width:
             raise ScanDataError(f"{self.name}: id {scan_id} was added already")
+        self._add_verification(scan_id, description)
         self.tree.add(scan_id, description["descriptors"])
         self._keypoints[scan_id] = np.asarray(description["keypoints"], np.float32)
         self._descriptors[scan_id] = np.asarray(description["descriptors"], np.uint8)
@@ -220,7 +376,18 @@ class VisualHBST(VisualFrontend, Recognizer):
         votes = result.scores_per_image()
         if len(votes) == 0:
             return []
-        if self.params.verify == "none":
+        p = self.params
+        if p.verify.enabled:
+            retrieved = []
+            for image_id, n_votes, ratio in zip(
+                votes.image_ids[: p.verify.top_k], votes.n_matches, votes.matching_ratio, strict=False
+            ):
+                sel = result.image_id == image_id
+                extra = {"votes": int(n_votes)}
+                q, r = result.query_idx[sel], result.keypoint_idx[sel]
+                retrieved.append(self._retrieved(description, int(image_id), float(ratio), q, r, extra))
+            return self._verified(description, retrieved, query_id, k)
+        if p.check == "none":
             return [
                 Candidate(query_id, int(i), float(r), None, int(n), {"votes": int(n)})
                 for i, n, r in zip(
@@ -230,7 +397,7 @@ class VisualHBST(VisualFrontend, Recognizer):
         kq = np.asarray(description["keypoints"], np.float32)
         width = int(description["width"])
         out = []
-        for image_id, n_votes in zip(votes.image_ids[: self.params.n_verify], votes.n_matches, strict=False):
+        for image_id, n_votes in zip(votes.image_ids[: p.n_check], votes.n_matches, strict=False):
             sel = result.image_id == image_id
             kr = self._keypoints[int(image_id)]
             q_kp, r_kp = kq[result.query_idx[sel]], kr[result.keypoint_idx[sel]]
@@ -240,8 +407,8 @@ class VisualHBST(VisualFrontend, Recognizer):
                 r_kp[:, 0],
                 r_kp[:, 1],
                 width,
-                self.params.shift_tolerance_px,
-                self.params.row_tolerance_px,
+                p.shift_tolerance_px,
+                p.row_tolerance_px,
             )
             score = inliers / max(1, min(n_q, kr.shape[0]))
             yaw = 2.0 * np.pi * shift / width
@@ -260,56 +427,57 @@ class VisualHBST(VisualFrontend, Recognizer):
         return out[:k]
 
     def save(self, path: str | Path) -> None:
-        """Store every added image's keypoints and descriptors (in insertion order) with the parameters; `load`
-        re-inserts them, which rebuilds the identical tree (HBST is deterministic in the insertion order)."""
-        arrays = pack_features(
-            self._order,
-            self._keypoints,
-            self._descriptors,
-            self._width,
-            self.extractor.descriptor_size,
-            np.uint8,
-        )
+        """Store every added image's keypoints (with their 3D points), descriptors and, with verification, ICP
+        cloud (in insertion order) with the parameters; `load` re-inserts them, which rebuilds the identical tree
+        (HBST is deterministic in the insertion order)."""
+        arrays = pack_features(self, self._order, self._descriptors, self.extractor.descriptor_size, np.uint8)
         save_artifact(path, _KIND, _VERSION, arrays, {"params": self.params.model_dump(mode="json")})
 
     def load(self, path: str | Path) -> None:
         arrays, header = load_artifact(path, _KIND, (_VERSION,))
         check_saved_params(path, header, self.params)
-        check_members(arrays, features_schema(self.extractor.descriptor_size, binary=True), path)
+        schema = features_schema(self.extractor.descriptor_size, True, self.params.verify.enabled)
+        check_members(arrays, schema, path)
         stored = stored_features(path, arrays, self.params.image)
-        self.tree = self._new_tree()
-        self._keypoints, self._descriptors, self._width, self._order = {}, {}, {}, []
+        self._reset()
         for scan_id, desc in stored:
             self.add_description(scan_id, desc)
 
 
 def pack_features(
-    order: list[int],
-    keypoints: dict[int, np.ndarray],
-    descriptors: dict[int, np.ndarray],
-    widths: dict[int, int],
-    dim: int,
-    dtype: type,
+    rec: VisualFrontend, order: list[int], descriptors: dict[int, np.ndarray], dim: int, dtype: type
 ) -> dict[str, np.ndarray]:
-    """The arrays of a visual database: per-image counts and widths, stacked keypoints and descriptors."""
-    return {
+    """The arrays of a visual database ``rec``: per-image counts and widths, stacked keypoints, their 3D points
+    and descriptors; with verification the ICP clouds (`placerec.verify.candidates.CloudStore.arrays`)."""
+    kp = rec._keypoints  # type: ignore[attr-defined]  # every visual pipeline keeps these
+    arrays = {
         "ids": np.asarray(order, dtype=np.int64),
-        "counts": np.array([keypoints[i].shape[0] for i in order], dtype=np.int64),
-        "widths": np.array([widths[i] for i in order], dtype=np.int64),
-        "keypoints": _stack([keypoints[i] for i in order], (0, 2), np.float32),
+        "counts": np.array([kp[i].shape[0] for i in order], dtype=np.int64),
+        "widths": np.array([rec._width[i] for i in order], dtype=np.int64),  # type: ignore[attr-defined]
+        "keypoints": _stack([kp[i] for i in order], (0, 2), np.float32),
+        "keypoint_xyz": _stack([rec._kp_xyz[i] for i in order], (0, 3), np.float32),
         "descriptors": _stack([descriptors[i] for i in order], (0, dim), dtype),
     }
+    if rec.params.verify.enabled:
+        arrays.update(rec._clouds.arrays(order))
+    return arrays
 
 
-def features_schema(dim: int, binary: bool) -> dict[str, Member]:
-    """The arrays of a saved visual database (`pack_features`) with ``dim``-wide binary or float descriptors."""
-    return {
+def features_schema(dim: int, binary: bool, clouds: bool) -> dict[str, Member]:
+    """The arrays of a saved visual database (`pack_features`) with ``dim``-wide binary or float descriptors,
+    with ICP clouds when ``clouds``."""
+    schema = {
         "ids": Member("iu", ("n_images",)),
         "counts": Member("iu", ("n_images",), min_value=0),
         "widths": Member("iu", ("n_images",), min_value=1),
         "keypoints": Member("f", ("n_features", 2), finite=True),
+        "keypoint_xyz": Member("f", ("n_features", 3)),  # NaN: no scan point behind the keypoint
         "descriptors": Member("u" if binary else "f", ("n_features", dim), finite=True),
     }
+    if clouds:
+        schema["cloud_counts"] = Member("iu", ("n_images",), min_value=0)
+        schema["cloud_xyz"] = Member("f", ("n_points", 3), finite=True)
+    return schema
 
 
 def stored_features(
@@ -329,11 +497,20 @@ def stored_features(
     if ((u < -1) | (u > np.repeat(widths, counts))).any():
         raise ArtifactError(f"{path}: 'keypoints' lie outside their images ('widths')")
     offsets = np.r_[0, np.cumsum(counts)]
-    desc = arrays["descriptors"]
-    return [
-        (int(i), {"keypoints": kp[a:b], "descriptors": desc[a:b], "width": np.int64(w)})
+    desc, xyz = arrays["descriptors"], arrays["keypoint_xyz"]
+    out: list[tuple[int, Description]] = [
+        (
+            int(i),
+            {"keypoints": kp[a:b], "descriptors": desc[a:b], "width": np.int64(w), "keypoint_xyz": xyz[a:b]},
+        )
         for i, a, b, w in zip(ids, offsets[:-1], offsets[1:], widths, strict=True)
     ]
+    if "cloud_counts" in arrays:
+        check_counts(arrays["cloud_counts"], arrays["cloud_xyz"].shape[0], path, "cloud_counts")
+        bounds = np.r_[0, np.cumsum(arrays["cloud_counts"])]
+        for (_, d), a, b in zip(out, bounds[:-1], bounds[1:], strict=True):
+            d["cloud"] = arrays["cloud_xyz"][a:b]
+    return out
 
 
 def _stack(parts: list[np.ndarray], empty_shape: tuple[int, int], dtype: type) -> np.ndarray:

@@ -1,0 +1,108 @@
+"""Verified 2D visual pipelines (issue #12): keypoints' 3D points, RANSAC + ICP on feature matches, 6-DoF poses."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from placerec.errors import ScanDataError
+from placerec.image import make_image
+from placerec.pipelines.visual import keypoint_points, mutual_nearest
+from placerec.recognizer import make_pipeline
+from placerec.sim import SimulatedSequence
+from placerec.types import relative_pose
+
+
+@pytest.fixture(scope="module")
+def sim():
+    seq = SimulatedSequence(world="town", sensor="os1-64", n_scans=40, seed=5, clutter=False)
+    return {i: seq[i] for i in (0, 2, 30)}, seq.poses
+
+
+def _errors(T_est, T_gt):
+    E = np.linalg.inv(T_gt) @ T_est
+    angle = np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1)))
+    return float(np.linalg.norm(E[:3, 3])), float(angle)
+
+
+def test_keypoint_points_take_the_pixel_then_the_nearest_neighbour():
+    pidx = np.full((4, 6), -1, np.int32)
+    pidx[1, 2] = 7  # the keypoint's own pixel
+    pidx[2, 0] = 9  # left of (2, 1); (2, 5)'s right neighbour across the seam is (2, 0)
+    kp = np.array([[2.2, 0.8], [1.4, 2.0], [5.0, 2.0], [4.0, 0.0]], np.float32)  # (u, v)
+    assert keypoint_points(kp, pidx).tolist() == [7, 9, 9, -1]
+
+
+def test_keypoint_xyz_are_the_scan_points_of_their_pixels(sim):
+    scans, _ = sim
+    scan = replace(scans[0], shape=None)
+    rec = make_pipeline("orb-hbst")
+    desc = rec.describe(scan)
+    img = make_image(scan, rec.params.image)
+    kp, xyz = desc["keypoints"], desc["keypoint_xyz"]
+    assert xyz.shape == (kp.shape[0], 3) and kp.shape[0] > 50
+    found = np.isfinite(xyz).all(axis=1)
+    assert found.mean() > 0.9
+    idx = keypoint_points(kp, img.point_index)
+    np.testing.assert_array_equal(xyz[found], scan.xyz[idx[found]])
+    # the point lies in the keypoint's pixel or a neighbour: its azimuth column is within one of the keypoint's
+    w = img.shape[1]
+    p = xyz[found].astype(np.float64)
+    col = 0.5 * (1.0 - np.arctan2(p[:, 1], p[:, 0]) / np.pi) * w
+    dcol = np.abs((col - kp[found, 0] + w / 2) % w - w / 2)
+    assert dcol.max() <= 2.0
+    cloud = desc["cloud"]
+    assert cloud.dtype == np.float32 and 1000 < cloud.shape[0] < len(scan) // 2
+
+
+def test_mutual_nearest_matches_a_brute_force_reference():
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    b = np.concatenate(
+        [
+            a[:25] ^ (rng.random((25, 32)) < 0.05).astype(np.uint8),
+            rng.integers(0, 256, (30, 32), dtype=np.uint8),
+        ]
+    )
+    D = np.unpackbits(a[:, None, :] ^ b[None, :, :], axis=2).sum(2)
+    ref = [(i, int(D[i].argmin())) for i in range(40) if D[:, D[i].argmin()].argmin() == i]
+    qi, mi, dist = mutual_nearest(a, b)
+    assert list(zip(qi.tolist(), mi.tolist(), strict=True)) == ref
+    np.testing.assert_array_equal(dist, D[qi, mi])
+    f = rng.normal(size=(10, 8)).astype(np.float32)
+    qi, mi, dist = mutual_nearest(f, f[::-1] + 1e-3)
+    assert mi.tolist() == (9 - qi).tolist() and len(qi) == 10
+
+
+@pytest.mark.parametrize("name", ["orb-hbst", "orb-dbow"])
+def test_true_loop_gets_the_6dof_pose_and_a_wrong_place_ranks_lower(sim, name):
+    scans, poses = sim
+    rec = make_pipeline(name)
+    rec.add(0, scans[0])
+    rec.add(30, scans[30])  # ~30 m along the route: another place
+    cands = rec.query(scans[2], k=2, query_id=2)
+    assert [c.match_id for c in cands] == [0, 30]
+    best = cands[0]
+    assert best.extra["accepted"]
+    t_err, r_err = _errors(best.relative_pose, relative_pose(poses[0], poses[2]))
+    assert (
+        np.linalg.norm(relative_pose(poses[0], poses[2])[:3, 3]) > 1.5
+    )  # a translation a yaw-only pose misses
+    assert t_err < 0.3 and r_err < 2.0
+    assert best.inliers >= 8 and best.extra["verify"]["correspondences"] >= best.inliers
+    assert 0 < best.score <= 1 and best.score == best.extra["verify"]["score"]
+    min_score = rec.params.verify.verify.score.min_score
+    assert all(c.score < min_score and not c.extra["accepted"] for c in cands[1:])
+
+
+def test_verification_needs_the_descriptions_3d_parts(sim):
+    scans, _ = sim
+    rec = make_pipeline("orb-hbst")
+    desc = rec.describe(scans[0])
+    with pytest.raises(ScanDataError, match="keypoint_xyz"):
+        rec.add_description(0, {k: v for k, v in desc.items() if k != "keypoint_xyz"})
+    with pytest.raises(ScanDataError, match="cloud"):
+        rec.add_description(1, {k: v for k, v in desc.items() if k != "cloud"})
+    rec.add_description(2, desc)
+    with pytest.raises(ScanDataError, match="cloud"):
+        rec.query_description({k: v for k, v in desc.items() if k != "cloud"})
