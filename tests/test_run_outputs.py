@@ -175,7 +175,14 @@ def test_candidates_round_trip_with_relative_poses_and_verification(tmp_path):
     T = _pose((1.5, -2.0, 0.25), (2.0, -3.0, 120.0))
     verified = {"accepted": True, "verify": {"score": 0.8, "fitness": 0.9, "rmse": 0.05}, "verify_ms": 3.0}
     rejected = {"accepted": False, "verify": {"score": 0.0, "fitness": float("nan"), "rmse": float("nan")}}
-    cands = [[Candidate(0, 4, 0.8, T, 40, verified), Candidate(0, 2, 0.0, np.eye(4), 3, rejected)]]
+    other = {"verify": "column shift"}  # not the verification statistics: unknown
+    cands = [
+        [
+            Candidate(0, 4, 0.8, T, 40, verified),
+            Candidate(0, 2, 0.0, np.eye(4), 3, rejected),
+            Candidate(0, 1, 0.0, None, None, other),
+        ]
+    ]
     path = tmp_path / "c.csv"
     write_candidates(path, [0], cands)
     with path.open() as fh:
@@ -192,12 +199,13 @@ def test_candidates_round_trip_with_relative_poses_and_verification(tmp_path):
     table = read_candidates(path)
     np.testing.assert_allclose(table.relative_poses[0, 0], T, atol=1e-12)
     np.testing.assert_allclose(table.relative_poses[0, 1], np.eye(4), atol=1e-12)
-    assert table.verified_scores.tolist() == [[0.8, 0.0]] and table.inliers.tolist() == [[40, 3]]
+    assert np.isnan(table.relative_poses[0, 2]).all() and np.isnan(table.verified_scores[0, 2])
+    assert table.verified_scores[0, :2].tolist() == [0.8, 0.0] and table.inliers.tolist() == [[40, 3, -1]]
     assert table.fitness[0, 0] == 0.9 and np.isnan(table.fitness[0, 1]) and table.rmse[0, 0] == 0.05
-    assert table.accepted.tolist() == [[1, 0]]
+    assert table.accepted.tolist() == [[1, 0, -1]]
     again = CandidateTable.from_candidates([0], cands)  # what the run evaluates equals what the file holds
     np.testing.assert_allclose(again.relative_poses, table.relative_poses, atol=1e-12)
-    assert again.accepted.tolist() == [[1, 0]] and np.array_equal(again.rmse, table.rmse, equal_nan=True)
+    assert again.accepted.tolist() == [[1, 0, -1]] and np.array_equal(again.rmse, table.rmse, equal_nan=True)
 
 
 @pytest.mark.parametrize(

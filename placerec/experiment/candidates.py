@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -75,7 +75,8 @@ class _Row:
 
     @classmethod
     def of(cls, c: Candidate) -> _Row:
-        v = c.extra.get("verify") or {}
+        v = c.extra.get("verify")
+        v = v if isinstance(v, Mapping) else {}  # a pipeline's own "verify" entry that is no statistics
         acc = c.extra.get("accepted")
         return cls(
             int(c.match_id),
