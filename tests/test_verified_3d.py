@@ -51,7 +51,7 @@ def test_verify_candidates_reranks_and_returns_t_match_query(sim, clouds):
     # the wrong place is retrieved first; verification (ICP from the identity) must put the true one on top
     got = verify_candidates(
         clouds[QUERY],
-        [Retrieved(WRONG, 0.9), Retrieved(TRUE, 0.5, extra={"votes": 4})],
+        [Retrieved(WRONG, 0.9), Retrieved(TRUE, 0.5, extra={"votes": 4, "verify_ms": 500.0})],
         store,
         VerifiedParams(),
         7,
@@ -64,7 +64,7 @@ def test_verify_candidates_reranks_and_returns_t_match_query(sim, clouds):
     assert best.score == best.extra["verify"]["score"] > wrong.score
     assert best.extra["retrieval_score"] == 0.5 and best.extra["votes"] == 4
     assert best.inliers is None  # ICP only
-    assert all(c.extra["verify_ms"] > 0 for c in got)
+    assert all(c.extra["verify_ms"] > 0 for c in got) and best.extra["verify_ms"] > 500.0  # + its matching
     assert wrong.score < VerifiedParams().verify.score.min_score  # kept, below the acceptance threshold
 
 

@@ -19,7 +19,8 @@
   and returns `placerec.types.Candidate`\\ s with ``relative_pose = T_match_query`` (the ICP pose), ``score`` = the
   verified score, ``inliers`` (RANSAC inliers; None for ICP only), ``extra["verify"]`` =
   `Verification.as_dict`, ``extra["retrieval_score"]``, ``extra["accepted"]`` and ``extra["verify_ms"]`` (the
-  candidate's verification time plus its share of preparing the clouds: the runner's 'verify' stage,
+  candidate's verification time plus its share of preparing the clouds, plus any ``verify_ms`` the pipeline put
+  in `Retrieved.extra` for finding the correspondences: the runner's 'verify' stage,
   `placerec.loop_closure.split_verify_time`), sorted by verified score (ties: retrieval score), at most ``k``.
 
 Rejected candidates are **kept**, ranked below the accepted ones of equal score, so PR curves stay continuous:
@@ -192,7 +193,7 @@ def verify_candidates(
             "retrieval_score": float(r.retrieval_score),
             "accepted": bool(v.accepted),
             "verify": v.as_dict(),
-            "verify_ms": ms,
+            "verify_ms": ms + float(r.extra.get("verify_ms", 0.0)),
         }
         cand = Candidate(query_id, int(r.match_id), _score(v, vp), v.T_match_query, v.inliers, extra)
         out.append((cand, float(r.retrieval_score)))
