@@ -101,8 +101,7 @@ def scan_cloud(scan: Any, params: VerifyParams | None = None) -> np.ndarray:
 class CloudStore:
     """Each database entry's cloud (from `scan_cloud`), prepared as an ICP target on first use; the last
     ``max_prepared`` prepared clouds are kept (least recently used dropped; one takes ~3 MB for an OS1-64 scan at
-    0.4 m and 30-90 ms to prepare). ``arrays`` / `from_arrays` give
-    the clouds for a pipeline's saved database."""
+    0.4 m and 30-90 ms to prepare). ``arrays`` / `from_arrays` give the clouds for a pipeline's saved database."""
 
     def __init__(self, params: VerifyParams | None = None, max_prepared: int = 128) -> None:
         self.params = params or VerifyParams()
