@@ -122,7 +122,7 @@ def test_keypoint_voting_verifies_with_grouping_ransac_and_icp(sim, voting):
     seq, _ = sim
     rec, descs = voting
     p = rec.params.verify.verify
-    assert rec.params.verify.enabled and p.consistency.enabled and p.score.acceptance == "both"
+    assert rec.params.verify.enabled and p.consistency.enabled and p.score.acceptance == "eps_icp"
     assert (p.consistency.min_cluster_size, p.consistency.consensus_resolution, p.score.eps_icp) == (
         8,
         7.0,
