@@ -66,7 +66,7 @@ log = logging.getLogger(__name__)
 __all__ = ["DBoWParams", "VisualDBoW", "default_vocabulary_path", "resolve_vocabulary", "VOCAB_DIR"]
 
 _KIND = "visual-dbow-db"
-_VERSION = 2  # 2: keypoints' 3D points and ICP clouds
+_VERSION = 1
 #: The shipped vocabularies: package data, installed as files with the package (editable install or wheel).
 VOCAB_DIR = Path(importlib.resources.files("placerec").joinpath("vocab"))
 #: Shipped vocabulary per feature extractor (SURF's descriptor with FAST or SURF keypoints share one).

@@ -72,7 +72,7 @@ __all__ = [
 ]
 
 _KIND = "visual-hbst-db"
-_VERSION = 2  # 2: keypoints' 3D points and ICP clouds
+_VERSION = 1
 #: Widest intensity image (px) a visual front end makes and a saved database may record (LiDARs have at most a
 #: few thousand columns); a wider one is a `ScanDataError` when described, an `ArtifactError` when loaded.
 MAX_IMAGE_WIDTH = 1 << 15
@@ -455,7 +455,8 @@ def pack_features(
         "counts": np.array([kp[i].shape[0] for i in order], dtype=np.int64),
         "widths": np.array([rec._width[i] for i in order], dtype=np.int64),  # type: ignore[attr-defined]
         "keypoints": _stack([kp[i] for i in order], (0, 2), np.float32),
-        "keypoint_xyz": _stack([rec._kp_xyz[i] for i in order], (0, 3), np.float32),
+        # a keypoint without a 3D point is stored at the origin (never a scan point), NaN again when loaded
+        "keypoint_xyz": np.nan_to_num(_stack([rec._kp_xyz[i] for i in order], (0, 3), np.float32), nan=0.0),
         "descriptors": _stack([descriptors[i] for i in order], (0, dim), dtype),
     }
     if rec.params.verify.enabled:
@@ -471,7 +472,7 @@ def features_schema(dim: int, binary: bool, clouds: bool) -> dict[str, Member]:
         "counts": Member("iu", ("n_images",), min_value=0),
         "widths": Member("iu", ("n_images",), min_value=1),
         "keypoints": Member("f", ("n_features", 2), finite=True),
-        "keypoint_xyz": Member("f", ("n_features", 3)),  # NaN: no scan point behind the keypoint
+        "keypoint_xyz": Member("f", ("n_features", 3), finite=True),
         "descriptors": Member("u" if binary else "f", ("n_features", dim), finite=True),
     }
     if clouds:
@@ -497,7 +498,8 @@ def stored_features(
     if ((u < -1) | (u > np.repeat(widths, counts))).any():
         raise ArtifactError(f"{path}: 'keypoints' lie outside their images ('widths')")
     offsets = np.r_[0, np.cumsum(counts)]
-    desc, xyz = arrays["descriptors"], arrays["keypoint_xyz"]
+    desc, xyz = arrays["descriptors"], arrays["keypoint_xyz"].astype(np.float32)
+    xyz[~xyz.any(axis=1)] = np.nan  # the origin: no scan point behind the keypoint (`pack_features`)
     out: list[tuple[int, Description]] = [
         (
             int(i),
