@@ -231,10 +231,14 @@ class VisualDBoW(VisualFrontend, Recognizer):
         query_id: int,
         k: int,
     ) -> list[Candidate]:
-        """Direct-index matches with each of the best database results, verified (`VisualFrontend._verified`)."""
-        desc = np.ascontiguousarray(description["descriptors"])
+        """The best database results verified (`VisualFrontend._verified`) with their direct-index matches
+        (``verify_matches="retrieval"``) or mutual nearest features (`VisualFrontend._retrieved`)."""
+        t0 = time.perf_counter()
         empty = np.zeros(0, np.int64)
-        cand, qi, ri = self._match(desc, nodes, image_ids) if image_ids else (empty, empty, empty)
+        by_index = self.params.verify_matches == "retrieval" and image_ids
+        desc = np.ascontiguousarray(description["descriptors"])
+        cand, qi, ri = self._match(desc, nodes, image_ids) if by_index else (empty, empty, empty)
+        share = (time.perf_counter() - t0) * 1e3 / max(len(image_ids), 1)
         bounds = np.searchsorted(cand, np.arange(len(image_ids) + 1))
         retrieved = [
             self._retrieved(
@@ -243,7 +247,7 @@ class VisualDBoW(VisualFrontend, Recognizer):
                 float(s),
                 qi[bounds[c] : bounds[c + 1]],
                 ri[bounds[c] : bounds[c + 1]],
-                {"bow_score": float(s)},
+                {"bow_score": float(s), "verify_ms": share},
             )
             for c, (i, s) in enumerate(zip(image_ids, scores, strict=False))
         ]

@@ -26,6 +26,7 @@ landmark (eq. 2 columns decrease with azimuth). ``check="none"``: HBST's matchin
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -285,7 +286,9 @@ class VisualFrontend:
     ) -> Retrieved:
         """A candidate to verify: with ``verify_matches="retrieval"`` the retrieval's feature matches (query
         feature ``query_idx[i]`` <-> the candidate's ``match_idx[i]``), else the `mutual_nearest` features; the
-        pairs whose keypoints both have a 3D point become correspondences (descriptor distance as quality)."""
+        pairs whose keypoints both have a 3D point become correspondences (descriptor distance as quality). The
+        time taken is added to ``extra["verify_ms"]`` (the runner's verify stage)."""
+        t0 = time.perf_counter()
         desc = description["descriptors"]
         quality = None
         if self.params.verify_matches == "brute-force":
@@ -295,7 +298,10 @@ class VisualFrontend:
         dst = self._kp_xyz[match_id][match_idx]
         ok = np.isfinite(src).all(axis=1) & np.isfinite(dst).all(axis=1)
         q = None if quality is None else quality[ok]
-        return Retrieved(match_id, score, src[ok], dst[ok], q, extra={**extra, "matches": int(ok.sum())})
+        ms = float(extra.get("verify_ms", 0.0)) + (time.perf_counter() - t0) * 1e3
+        return Retrieved(
+            match_id, score, src[ok], dst[ok], q, extra={**extra, "matches": int(ok.sum()), "verify_ms": ms}
+        )
 
 
 def mutual_nearest(dq: np.ndarray, dm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
