@@ -210,5 +210,7 @@ def test_scan_context_save_load_keeps_the_clouds(scan_context, tmp_path):
     plain.save(tmp_path / "plain.npz")
     with pytest.raises(ArtifactError, match="clouds"):
         ScanContext().load(tmp_path / "plain.npz")
+    with pytest.raises(ArtifactError, match="voxel"):  # clouds made at another voxel size
+        ScanContext(verify={"verify": {"icp": {"voxel_size": 0.5}}}).load(tmp_path / "sc.npz")
     with pytest.raises(ScanDataError, match="cloud"):
         ScanContext().add_description(3, descs[TRUE]["scan_context"])

@@ -219,6 +219,13 @@ def scan_context_distance(
     return dist[rows, best], shifts[rows, best].astype(np.int64)
 
 
+def _walk(d: Any, *keys: str) -> Any:
+    """``d[k1][k2]...`` of a saved header's nested mappings, None where one is missing or not a mapping."""
+    for k in keys:
+        d = d.get(k) if isinstance(d, Mapping) else None
+    return d
+
+
 def _yaw_pose(yaw_deg: float) -> np.ndarray:
     a = np.radians(yaw_deg)
     T = np.eye(4)
@@ -440,10 +447,12 @@ class ScanContext(Recognizer):
         if desc.shape[1:] != (self.params.num_rings, self.params.num_sectors):
             raise ArtifactError(f"{path}: descriptors of shape {desc.shape[1:]} for parameters {mine}")
         check_unique(ids, path, "ids")
-        saved_cloud = (saved.get("verify") or {}).get("enabled") and {
-            "voxel_size": saved["verify"]["verify"]["icp"]["voxel_size"],
-            "max_range": saved["verify"]["verify"]["icp"]["max_range"],
-        }
+        icp = _walk(saved, "verify", "verify", "icp")
+        saved_cloud = (
+            {"voxel_size": icp.get("voxel_size"), "max_range": icp.get("max_range")}
+            if isinstance(icp, dict) and _walk(saved, "verify", "enabled") is True
+            else None
+        )
         if self.params.verify.enabled and (
             saved_cloud != self.params.cloud_dict() or "cloud_xyz" not in arrays
         ):
