@@ -106,3 +106,24 @@ def test_verification_needs_the_descriptions_3d_parts(sim):
     rec.add_description(2, desc)
     with pytest.raises(ScanDataError, match="cloud"):
         rec.query_description({k: v for k, v in desc.items() if k != "cloud"})
+
+
+def test_saved_database_keeps_the_3d_points_and_clouds(sim, tmp_path):
+    scans, _ = sim
+    rec = make_pipeline("orb-hbst")
+    descs = {i: rec.describe(scans[i]) for i in (0, 30)}
+    for i, d in descs.items():
+        rec.add_description(i, d)
+    rec.save(tmp_path / "db.npz")
+    arrays = np.load(tmp_path / "db.npz")
+    xyz = np.concatenate([descs[0]["keypoint_xyz"], descs[30]["keypoint_xyz"]])
+    assert np.isnan(xyz).any()  # some keypoints lie in interpolated pixels
+    np.testing.assert_array_equal(arrays["keypoint_xyz"], np.nan_to_num(xyz, nan=0.0))
+    assert arrays["cloud_counts"].tolist() == [len(descs[0]["cloud"]), len(descs[30]["cloud"])]
+    fresh = make_pipeline("orb-hbst")
+    fresh.load(tmp_path / "db.npz")
+    np.testing.assert_array_equal(fresh._kp_xyz[0], descs[0]["keypoint_xyz"])  # NaN again where it was NaN
+    q = rec.describe(scans[2])
+    before, after = rec.query_description(q, k=2), fresh.query_description(q, k=2)
+    assert [(c.match_id, c.score) for c in before] == [(c.match_id, c.score) for c in after]
+    np.testing.assert_array_equal(before[0].relative_pose, after[0].relative_pose)
