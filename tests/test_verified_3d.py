@@ -95,6 +95,8 @@ def test_cloud_store_round_trip_and_errors(clouds):
     np.testing.assert_array_equal(other.cloud(TRUE), clouds[TRUE])
     with pytest.raises(ArtifactError):
         other.from_arrays([TRUE], arrays)
+    with pytest.raises(ArtifactError, match="cloud_counts"):
+        other.from_arrays([WRONG, TRUE], {"cloud_xyz": arrays["cloud_xyz"]})
     with pytest.raises(ScanDataError):
         other.cloud(99)
     with pytest.raises(ScanDataError):

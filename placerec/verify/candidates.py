@@ -150,6 +150,11 @@ class CloudStore:
 
     def from_arrays(self, ids: Sequence[int], arrays: Mapping[str, np.ndarray], path: Any = "") -> None:
         """Replace the clouds by those of `arrays` (saved for ``ids``); `ArtifactError` when they disagree."""
+        missing = [k for k in ("cloud_counts", "cloud_xyz") if k not in arrays]
+        if missing:
+            raise ArtifactError(
+                f"{path}: the database has no {' / '.join(missing)} (the clouds verification needs)"
+            )
         counts, xyz = np.asarray(arrays["cloud_counts"]), np.asarray(arrays["cloud_xyz"], np.float32)
         if counts.shape != (len(ids),) or (counts < 0).any() or int(counts.sum()) != xyz.shape[0]:
             raise ArtifactError(f"{path}: cloud_counts do not match the entries and cloud_xyz")
