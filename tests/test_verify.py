@@ -416,3 +416,25 @@ def test_icp_only_from_a_yaw_only_guess_converges(sim_scans):
     assert v.accepted
     with pytest.raises(ConfigError):
         VerifyParams(icp_only_coarse_distances=[0.0])
+
+
+def test_a_lazy_match_is_prepared_only_when_icp_runs(sim_scans):
+    seq, scans = sim_scans
+    calls = []
+
+    def match(which):
+        def get():
+            calls.append(which)
+            return scans[which]
+
+        return get
+
+    rng = np.random.default_rng(11)
+    q, m = rng.uniform(-40, 40, (40, 3)), rng.uniform(-40, 40, (40, 3))
+    v = verify(scans[13], match(10), q, m)  # random pairs: RANSAC ends it
+    assert v.rejected_at == "ransac" and calls == []
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    eager = verify_icp(scans[13], scans[10], init=T_gt)
+    lazy = verify_icp(scans[13], match(10), init=T_gt)
+    assert calls == [10]
+    np.testing.assert_allclose(lazy.T_match_query, eager.T_match_query, atol=1e-9)

@@ -36,6 +36,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -190,7 +191,7 @@ def verify_candidates(
     out: list[tuple[Candidate, float]] = []
     for r in todo:
         t1 = time.perf_counter()
-        target = store.target(r.match_id)
+        target = partial(store.target, r.match_id)  # prepared (and cached) only when ICP runs
         v = verify(source, target, r.src_kp, r.dst_kp, init=r.init, params=vp, quality=r.quality)
         ms = (time.perf_counter() - t1) * 1e3 + shared
         extra = {

@@ -112,7 +112,8 @@ def verify(
 ) -> Verification:
     """Verify a candidate: ``query_pts`` / ``match_pts`` are the two scans ((N, 3) arrays, `Scan` objects or
     clouds from `as_source` / `as_target`); ``src_kp_xyz[i]`` (query frame) corresponds to ``dst_kp_xyz[i]``
-    (match frame). ``quality`` (lower is better, e.g. descriptor distance) orders the consistency grouping.
+    (match frame). ``match_pts`` may also be a zero-argument callable returning one of those, called only when
+    ICP runs, so a candidate rejected before ICP never prepares its scan. ``quality`` (lower is better, e.g. descriptor distance) orders the consistency grouping.
     ``init`` (T_match_query) is the ICP start when no correspondences are given (None: identity); with
     correspondences the RANSAC pose is the start.
     """
@@ -120,7 +121,8 @@ def verify(
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     source = as_source(query_pts, params)
-    target = as_target(match_pts, params)
+    # a callable match is prepared only when ICP runs: most wrong candidates end at RANSAC, before that cost
+    target = None if callable(match_pts) else as_target(match_pts, params)
     timings["prepare"] = (time.perf_counter() - t_start) * 1e3
     T0 = _initial(init)
     inliers: int | None = None
@@ -158,6 +160,10 @@ def verify(
         if not rr.success:
             return _rejected(T0, inliers, n_corr, ransac_iters, "ransac", timings, t_start, inlier_mask)
         T0 = rr.T
+    if target is None:
+        t = time.perf_counter()
+        target = as_target(match_pts(), params)
+        timings["prepare"] += (time.perf_counter() - t) * 1e3
     sp = params.score
     coarse_ms = 0.0
     if inliers is None:  # a rough initial guess: coarse gates first
