@@ -189,3 +189,17 @@ def test_clutter_changes_between_visits_but_occluders_are_near() -> None:
     occ = base.scan_at(pose, timestamp=10.0, index=2, occluders=True)
     near = lambda s: np.mean(np.linalg.norm(s.xyz, axis=1) < 4.5)  # noqa: E731
     assert near(occ) > near(a) + 0.05
+
+
+def test_euler_rotation_matches_zyx_convention():
+    from scipy.spatial.transform import Rotation
+
+    from placerec.sim.geometry import euler_rotation
+
+    rng = np.random.default_rng(0)
+    a = rng.uniform(-3, 3, (50, 3))
+    R = euler_rotation(a[:, 0], a[:, 1], a[:, 2])
+    np.testing.assert_allclose(R, Rotation.from_euler("ZYX", a).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(
+        euler_rotation(0.3, 0.0, 0.0), Rotation.from_euler("z", 0.3).as_matrix(), atol=1e-12
+    )

@@ -15,7 +15,7 @@ import numpy as np
 
 from placerec.sim.materials import PARAM_COUNT
 
-__all__ = ["MeshBuilder", "MeshArrays", "yaw_matrices"]
+__all__ = ["MeshBuilder", "MeshArrays", "yaw_matrices", "euler_rotation"]
 
 
 @dataclass
@@ -77,6 +77,27 @@ def _icosphere(subdiv: int) -> tuple[np.ndarray, np.ndarray]:
     return np.array(verts), np.array(faces)
 
 
+def euler_rotation(
+    yaw: np.ndarray | float, pitch: np.ndarray | float, roll: np.ndarray | float
+) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from Z-Y-X Euler angles in radians (yaw about z, then pitch about y, roll
+    about x); the angles broadcast against each other."""
+    yaw, pitch, roll = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (yaw, pitch, roll)))
+    cy, sy, cp, sp, cr, sr = (
+        np.cos(yaw),
+        np.sin(yaw),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(roll),
+        np.sin(roll),
+    )
+    R = np.empty(yaw.shape + (3, 3))
+    R[..., 0, :] = np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1)
+    R[..., 1, :] = np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1)
+    R[..., 2, :] = np.stack([-sp, cp * sr, cp * cr], -1)
+    return R
+
+
 class MeshBuilder:
     """Accumulates triangles, per-triangle material/object ids and object frames; `build` concatenates them."""
 
@@ -120,6 +141,18 @@ class MeshBuilder:
         ids = np.arange(self._nobj, self._nobj + k) + self.object_offset
         self._nobj += k
         return ids
+
+    def add_ground_plane(
+        self, x0: float, y0: float, x1: float, y1: float, material: int, margin: float = 400.0
+    ) -> int:
+        """A flat ground quad at z = 0 over the site's box grown by ``margin`` m (so the horizon is ground, not
+        sky), as one object at the origin; returns its id."""
+        obj = int(self.add_objects(np.zeros((1, 3)))[0])
+        corners = [[x0 - margin, y0 - margin], [x1 + margin, y0 - margin], [x1 + margin, y1 + margin]]
+        corners.append([x0 - margin, y1 + margin])
+        verts = np.c_[np.asarray(corners, dtype=np.float64), np.zeros(4)]
+        self.add_mesh(verts, np.array([[0, 1, 2], [0, 2, 3]]), material, obj)
+        return obj
 
     def add_mesh(
         self, verts: np.ndarray, tris: np.ndarray, material: np.ndarray | int, obj: np.ndarray | int

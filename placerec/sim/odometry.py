@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from placerec.sim.geometry import euler_rotation
+
 __all__ = ["OdometryDrift", "drift_poses"]
 
 
@@ -42,20 +44,6 @@ class OdometryDrift:
         )
 
 
-def _rot(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    cy, sy, cp, sp, cr, sr = (
-        np.cos(yaw),
-        np.sin(yaw),
-        np.cos(pitch),
-        np.sin(pitch),
-        np.cos(roll),
-        np.sin(roll),
-    )
-    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                     [-sp, cp * sr, cp * cr]])  # fmt: skip
-
-
 def drift_poses(poses: np.ndarray, drift: OdometryDrift, seed: int) -> np.ndarray:
     """Odometry poses (N, 4, 4) that drift away from the true ``poses`` as described in the module docstring."""
     poses = np.asarray(poses, dtype=np.float64)
@@ -75,6 +63,6 @@ def drift_poses(poses: np.ndarray, drift: OdometryDrift, seed: int) -> np.ndarra
         ] * drift.translation * step * np.array([1.0, 1.0, 0.3])
         rs = np.radians(drift.rotation_deg) * np.sqrt(step)
         yaw = np.radians(drift.yaw_bias_deg_per_100m) * step / 100.0 + noise[k, 3] * rs
-        d[:3, :3] = _rot(yaw, noise[k, 4] * rs * 0.3, noise[k, 5] * rs * 0.3) @ delta[:3, :3]
+        d[:3, :3] = euler_rotation(yaw, noise[k, 4] * rs * 0.3, noise[k, 5] * rs * 0.3) @ delta[:3, :3]
         out[k] = out[k - 1] @ d
     return out

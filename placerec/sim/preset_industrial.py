@@ -211,20 +211,7 @@ def build_industrial(seed: int) -> PresetResult:
     ground = Canvas(x0, y0, x1, y1, 0.1, int(M.DIRT))
     free = Canvas(x0, y0, x1, y1, 0.5, 1)
     b = MeshBuilder()
-    gobj = b.add_objects(np.zeros((1, 3)))[0]
-    b.add_mesh(
-        np.array(
-            [
-                [x0 - 400, y0 - 400, 0],
-                [x1 + 400, y0 - 400, 0],
-                [x1 + 400, y1 + 400, 0],
-                [x0 - 400, y1 + 400, 0],
-            ]
-        ),
-        np.array([[0, 1, 2], [0, 2, 3]]),
-        M.GROUND,
-        gobj,
-    )
+    b.add_ground_plane(x0, y0, x1, y1, M.GROUND)
     for xi, hv in zip(X, half_v, strict=True):
         ground.rect(xi - hv, Y[0] - half_h[0], xi + hv, Y[-1] + half_h[-1], M.ASPHALT)
     for yj, hh in zip(Y, half_h, strict=True):

@@ -160,20 +160,7 @@ def build_town(seed: int) -> PresetResult:
     ground = Canvas(x0, y0, x1, y1, 0.1, int(M.GRASS))
     free = Canvas(x0, y0, x1, y1, 0.5, 1)
     b = MeshBuilder()
-    ground_obj = b.add_objects(np.zeros((1, 3)))
-    b.add_mesh(
-        np.array(
-            [
-                [x0 - 400, y0 - 400, 0],
-                [x1 + 400, y0 - 400, 0],
-                [x1 + 400, y1 + 400, 0],
-                [x0 - 400, y1 + 400, 0],
-            ]
-        ),
-        np.array([[0, 1, 2], [0, 2, 3]]),
-        M.GROUND,
-        ground_obj[0],
-    )
+    b.add_ground_plane(x0, y0, x1, y1, M.GROUND)
 
     # carriageways
     for i, st in enumerate(vs):

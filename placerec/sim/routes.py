@@ -31,6 +31,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from placerec.errors import ConfigError
+from placerec.sim.geometry import euler_rotation
 from placerec.sim.site import RoadGraph
 from placerec.sim.world import World
 
@@ -98,24 +99,8 @@ def poses_from_xy_yaw(
     n = len(xy)
     pitch = np.zeros(n) if pitch is None else pitch
     roll = np.zeros(n) if roll is None else roll
-    cy, sy, cp, sp, cr, sr = (
-        np.cos(yaw),
-        np.sin(yaw),
-        np.cos(pitch),
-        np.sin(pitch),
-        np.cos(roll),
-        np.sin(roll),
-    )
     T = np.zeros((n, 4, 4))
-    T[:, 0, 0] = cy * cp
-    T[:, 0, 1] = cy * sp * sr - sy * cr
-    T[:, 0, 2] = cy * sp * cr + sy * sr
-    T[:, 1, 0] = sy * cp
-    T[:, 1, 1] = sy * sp * sr + cy * cr
-    T[:, 1, 2] = sy * sp * cr - cy * sr
-    T[:, 2, 0] = -sp
-    T[:, 2, 1] = cp * sr
-    T[:, 2, 2] = cp * cr
+    T[:, :3, :3] = euler_rotation(yaw, pitch, roll)
     T[:, 0, 3] = xy[:, 0]
     T[:, 1, 3] = xy[:, 1]
     T[:, 2, 3] = z
