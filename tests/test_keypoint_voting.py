@@ -179,3 +179,17 @@ def test_aggregated_places_and_places_database(sim_map, tmp_path):
     with pytest.raises(ArtifactError, match="other feature settings"):
         KeypointVoting(places_db=str(path), descriptor="shot")
     assert KeypointVoting.from_places(db).query(q, k=1)[0].match_id == c[0].match_id
+
+
+def test_voting_params_are_the_feature_params_plus_voting():
+    from placerec.recognizer import make_pipeline
+    from placerec.three_d.features import FeatureParams
+
+    rec = make_pipeline(
+        "ishot-votes", {"shot": {"normalization": "per_part"}, "iss": {"salient_radius": 2.0}}
+    )
+    feats = rec.params.features()
+    assert type(feats) is FeatureParams
+    assert feats.shot.normalization == "per_part" and feats.descriptor == "ishot"
+    assert feats.iss.salient_radius == 2.0 and feats.iss.max_keypoints == 300
+    assert set(FeatureParams.model_fields) <= set(type(rec.params).model_fields)

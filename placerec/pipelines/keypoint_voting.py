@@ -73,8 +73,6 @@ from placerec.recognizer import (
 )
 from placerec.three_d.descriptors import DESCRIPTOR_DIMS
 from placerec.three_d.features import FeatureParams, extract_features
-from placerec.three_d.keypoints import ISSParams
-from placerec.three_d.normals import NormalParams
 from placerec.three_d.places import PlacesDatabase, merge_clouds
 from placerec.types import Candidate, Description, Scan, as_pose
 from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
@@ -88,19 +86,10 @@ _KIND = "keypoint-voting-db"
 _VERSION = 1
 
 
-class VotingParams(Params):
-    """Front end (the ISHOT paper's feature settings), ratio test, score and place aggregation."""
+class VotingParams(FeatureParams):
+    """The front end (`FeatureParams`: the ISHOT paper's feature settings), ratio test, score, place aggregation
+    and verification."""
 
-    descriptor: Literal["ishot", "shot", "fpfh"] = Field(
-        "ishot", description="local descriptor (ISHOT paper; SHOT, FPFH baselines)"
-    )
-    max_range: float | None = Field(
-        40.0, gt=0, description="m; points beyond are dropped (ISHOT paper Sec. V-B)"
-    )
-    voxel_size: float = Field(0.4, gt=0, description="m; voxel grid (ISHOT paper Sec. V-B)")
-    support_radius: float = Field(7.0, gt=0, description="m; descriptor support (ISHOT paper Sec. V-B)")
-    iss: ISSParams = Field(default_factory=lambda: ISSParams(max_keypoints=300))
-    normals: NormalParams = Field(default_factory=NormalParams)
     tau_max: float = Field(
         0.9, gt=0, le=1, description="NN ratio d1/d2 below which a descriptor votes (eq. 4)"
     )
@@ -122,14 +111,8 @@ class VotingParams(Params):
     )
 
     def features(self) -> FeatureParams:
-        return FeatureParams(
-            max_range=self.max_range,
-            voxel_size=self.voxel_size,
-            normals=self.normals,
-            iss=self.iss,
-            descriptor=self.descriptor,
-            support_radius=self.support_radius,
-        )
+        """The front-end part of these parameters."""
+        return FeatureParams(**{name: getattr(self, name) for name in FeatureParams.model_fields})
 
 
 def knn2(
