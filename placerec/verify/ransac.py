@@ -55,16 +55,20 @@ def required_iterations(inlier_ratio: float, sample_size: int, confidence: float
 
 
 @njit(cache=True, nogil=True)
+def _centroids(s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    cs = np.zeros(3)
+    cd = np.zeros(3)
+    for i in range(s.shape[0]):
+        cs += s[i]
+        cd += d[i]
+    return cs / s.shape[0], cd / s.shape[0]
+
+
+@njit(cache=True, nogil=True)
 def _kabsch3(s: np.ndarray, d: np.ndarray, R: np.ndarray, t: np.ndarray) -> None:
     """Least-squares rotation R and translation t of k pairs (k, 3) (`placerec.verify.kabsch.kabsch_batch`)."""
     k = s.shape[0]
-    cs = np.zeros(3)
-    cd = np.zeros(3)
-    for i in range(k):
-        cs += s[i]
-        cd += d[i]
-    cs /= k
-    cd /= k
+    cs, cd = _centroids(s, d)
     H = np.zeros((3, 3))
     for i in range(k):
         for a in range(3):
@@ -83,13 +87,7 @@ def _kabsch3(s: np.ndarray, d: np.ndarray, R: np.ndarray, t: np.ndarray) -> None
 def _yaw2(s: np.ndarray, d: np.ndarray, R: np.ndarray, t: np.ndarray) -> None:
     """Least-squares rotation about z and translation of k pairs (`placerec.verify.kabsch.yaw_batch`)."""
     k = s.shape[0]
-    cs = np.zeros(3)
-    cd = np.zeros(3)
-    for i in range(k):
-        cs += s[i]
-        cd += d[i]
-    cs /= k
-    cd /= k
+    cs, cd = _centroids(s, d)
     cross = 0.0
     dot = 0.0
     for i in range(k):
