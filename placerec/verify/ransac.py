@@ -4,7 +4,8 @@ Each hypothesis draws a minimal sample (3 pairs for 6-DoF, 2 for 4-DoF: a rotati
 have 4 unknowns, two points give 6 equations), drops it when its pairwise distances disagree between the two
 sides by more than twice the inlier threshold (a rigid motion keeps distances; the pre-test of Open3D's
 edge-length checker and of PCL's sample consensus) or its source points are (nearly) collinear, solves it in
-closed form (Kabsch, or the yaw fit: `placerec.verify.kabsch`), and scores it on all correspondences with the
+closed form (the Kabsch rotation, computed in Horn's quaternion form; or the yaw fit: `placerec.verify.kabsch`),
+and scores it on all correspondences with the
 MSAC cost ``sum min(r^2, thr^2)`` (Torr & Zisserman 2000), which ranks hypotheses with equal inlier counts by
 their residuals. The number of hypotheses adapts to the best inlier ratio w seen so far: stop after
 ``log(1 - confidence) / log(1 - w^s)`` hypotheses (s = sample size) or ``max_iterations``. The pose is then
