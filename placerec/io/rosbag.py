@@ -20,7 +20,7 @@ from placerec.io._common import columns_to_scan, structured_columns
 from placerec.safe_yaml import load_yaml_file
 from placerec.types import Scan
 
-__all__ = ["RosbagSequence", "pointcloud2_to_scan", "POINTCLOUD2"]
+__all__ = ["RosbagSequence", "pointcloud2_to_scan", "header_stamp", "POINTCLOUD2"]
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,7 @@ def _rosbags() -> tuple[Any, Any, Any]:
     return AnyReader, AnyReaderError, get_typestore(Stores.LATEST)
 
 
-def _header_stamp(raw: bytes | memoryview, ros2: bool) -> float:
+def header_stamp(raw: bytes | memoryview, ros2: bool) -> float:
     """Header stamp (s) read straight from the serialized message (the header is its first field)."""
     if ros2:  # CDR: 4-byte encapsulation header (byte 1: 1 = little endian), then int32 sec, uint32 nanosec
         endian = "<" if raw[1] == 1 else ">"
@@ -153,7 +153,7 @@ class RosbagSequence:
         try:
             for _, t, raw in self._reader.messages(connections=self._conns):
                 log_times.append(t)
-                stamps.append(_header_stamp(raw, self._reader.is2))
+                stamps.append(header_stamp(raw, self._reader.is2))
         except (AnyReaderError, *_BAG_ERRORS) as exc:
             self.close()
             raise ScanFormatError(f"{self._path}: cannot index topic {topic} ({exc})") from exc
