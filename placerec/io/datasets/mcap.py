@@ -97,7 +97,7 @@ class McapSequence:
                     m.data
                     for k, (_, _, m) in enumerate(
                         self._make_reader(fh).iter_messages(
-                            topics=[self._topic], start_time=t, end_time=t + 1, log_time_order=True
+                            topics=[self._topic], starting_at=t, ending_before=t + 1, log_time_order=True
                         )
                     )
                     if k == self._rank[index]

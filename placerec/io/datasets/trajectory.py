@@ -34,7 +34,7 @@ def read_table(
 ) -> np.ndarray:
     """The rows of a numeric text table (CSV with ``delimiter=","``, whitespace with None) as (N, ncols) float64.
 
-    Blank lines and lines starting with ``#`` are skipped, and so is a first line holding a non-number (a
+    Blank lines and lines starting with ``#`` are skipped, and so is a first line of column names (a
     header). Any other row with another column count or a non-number is a `ScanFormatError` naming the file and
     line; so is a row with NaN/inf, unless ``drop_nan`` (then the row is skipped: NCLT's ground truth starts with
     NaN rows). ``what`` names the table in messages."""
@@ -53,8 +53,8 @@ def read_table(
         try:
             vals = [float(t) for t in parts]
         except ValueError:
-            if not seen_data and not rows:
-                seen_data = True  # a header line
+            if not seen_data and not any(_is_float(t) for t in parts):
+                seen_data = True  # a header line: column names, no number
                 continue
             bad = next(t for t in parts if not _is_float(t))
             raise ScanFormatError(f"{p}:{no}: {bad[:30]!r} is not a number ({what})") from None
