@@ -58,6 +58,13 @@ class DatasetConfig(Params):
 
     source: Literal["simulator", "path"] = "simulator"
     path: str | None = None
+    dataset: str | None = Field(
+        None, description="dataset layout (kitti, mulran, newer-college, helipr, nclt, mcap); None = detected"
+    )
+    options: dict[str, Any] = Field(
+        default_factory=dict,
+        description="loader options, e.g. sequence: '00' (kitti), sensor (helipr), topic",
+    )
     format: str | None = None
     poses: str | None = None
     simulator: SimulatorConfig = Field(default_factory=SimulatorConfig)

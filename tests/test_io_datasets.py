@@ -96,7 +96,7 @@ def _mulran_layout(real: Path, root: Path) -> Path:
     # a scan before the ground truth starts: left out
     shutil.copy(real / "ouster_os1_64_revisit_pair" / "32line_1.bin", ouster / f"{MULRAN_T0 - 10**9}.bin")
     rows = []
-    for k, t in enumerate([-0.05, 0.05, 0.15]):  # the base drives along +x at 10 m/s, UTM-sized coordinates
+    for t in [-0.05, 0.05, 0.15]:  # the base drives along +x at 10 m/s, UTM-sized coordinates
         pose = np.eye(4)[:3]
         pose[:, 3] = [353_000.0 + 10 * t, 4_026_000.0, 19.0]
         rows.append(f"{MULRAN_T0 + int(t * 1e9)}," + ",".join(f"{v:.6f}" for v in pose.ravel()))
@@ -180,10 +180,9 @@ def test_helipr_ouster_records(real_data, tmp_path):
     rec["intensity"] = ref.intensity * 1000
     rec["ring"] = np.arange(len(ref)) % 128
     t0 = 1_691_937_000_000_000_000
-    for k in range(3):
-        rec[: k + 1].tofile(folder / f"{t0 + k * 100_000_000}.bin") if k == 2 else rec.tofile(
-            folder / f"{t0 + k * 100_000_000}.bin"
-        )
+    for k in range(2):
+        rec.tofile(folder / f"{t0 + k * 100_000_000}.bin")
+    rec[:1].tofile(folder / f"{t0 + 5 * 10**9}.bin")  # no ground truth at its time: left out
     (tmp_path / "LiDAR_GT").mkdir()
     (tmp_path / "LiDAR_GT" / "Ouster_gt.txt").write_text(
         f"{t0} 100.0 200.0 3.0 0 0 0.7071067811865476 0.7071067811865476\n{t0 + 100_000_000} 101.0 200.0 3.0 0 0 0 1\n"
@@ -290,3 +289,15 @@ def test_mcap_without_metadata(real_data, tmp_path):
 
 def test_every_dataset_is_registered():
     assert list(DATASET_LOADERS) == ["mcap", "mulran", "newer-college", "helipr", "nclt", "kitti"]
+
+
+def test_a_config_opens_a_dataset_layout(real_data, tmp_path):
+    from placerec.config import DatasetConfig
+    from placerec.experiment.datasets import open_dataset
+
+    _kitti_layout(real_data, tmp_path)
+    cfg = DatasetConfig(source="path", path=str(tmp_path), dataset="kitti", options={"sequence": "00"})
+    seq = open_dataset(cfg)
+    assert len(seq) == 2 and seq.name == "00"
+    with pytest.raises(ConfigError, match="does not take option"):
+        open_dataset(cfg.model_copy(update={"options": {"sequence": "00", "topic": "/x"}}))

@@ -64,7 +64,9 @@ def _simulator(cfg: DatasetConfig) -> Sequence:
 def _path(cfg: DatasetConfig) -> Sequence:
     from placerec.io import open_sequence
 
-    kwargs = {}
+    kwargs = dict(cfg.options)
+    if cfg.dataset:
+        kwargs["dataset"] = cfg.dataset
     if cfg.format:
         kwargs["format"] = cfg.format
     if cfg.poses:
