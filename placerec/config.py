@@ -147,6 +147,14 @@ class EvaluationConfig(Params):
     )
     gt_yaw_deg: float | None = Field(None, gt=0, description="optional heading limit for a true match")
     top_n: int = Field(5, ge=1, description="candidates requested per query (recall@N)")
+    retrieval_distance: float = Field(
+        25.0,
+        gt=0,
+        description="retrieval protocol: a candidate within this distance (m) is a hit (recall@1, @1%)",
+    )
+    reverse_yaw_deg: float = Field(
+        90.0, gt=0, le=180, description="a revisit is reverse-direction beyond this heading difference (deg)"
+    )
     localize: LocalizeConfig = Field(default_factory=LocalizeConfig)
 
 

@@ -119,6 +119,11 @@ def test_candidates_csv_holds_the_top_n_per_query_and_recomputes_recall_at_n(seq
     again = recompute_loop_metrics(run, "scan-context")
     assert again["recall_at_n"] == pytest.approx(m["recall_at_n"])
     assert again["max_f1"] == pytest.approx(m["max_f1"])
+    # the retrieval protocol and the direction split sit beside the loop protocol, recomputed alike
+    assert set(m["retrieval"]) >= {"recall_at_1", "recall_at_1pct", "n_queries", "k_1pct_max"}
+    assert m["retrieval"]["n_queries"] >= m["n_revisits"]  # 25 m finds at least the revisits within 5 m
+    assert sum(m["directions"][d]["n_revisits"] for d in ("same", "reverse")) == m["n_revisits"]
+    assert again["retrieval"] == m["retrieval"] and again["directions"] == m["directions"]
 
 
 @pytest.mark.parametrize("frames", ["null", "2"])

@@ -45,9 +45,12 @@ from placerec.eval import (
     ExclusionWindow,
     LoopMetrics,
     closure_pose_errors,
+    direction_summary,
     evaluate_loop,
     full_pose_mask,
     localization_metrics,
+    loop_ground_truth,
+    retrieval_metrics,
     timing_summary,
 )
 from placerec.experiment import figures
@@ -146,9 +149,17 @@ def _loop_summary(
     """A pipeline's loop metrics and their ``metrics.json`` entry (without times): PR metrics of the top
     candidates, recall@N, and the pose errors of the closures accepted at the max-F1 threshold."""
     q, m, s = table.top1()
-    metrics, _ = evaluate_loop(q, m, s, poses, table.topn(cfg.evaluation.top_n), **_gt_options(cfg, stamps))
+    ev = cfg.evaluation
+    options = _gt_options(cfg, stamps)
+    topn = table.topn(ev.top_n)
+    metrics, gt = evaluate_loop(q, m, s, poses, topn, **options)
     summary = metrics.summary()
     summary["auc"] = summary.pop("average_precision")
+    summary["directions"] = direction_summary(metrics, gt, ev.reverse_yaw_deg)
+    retrieval_gt = loop_ground_truth(
+        poses, **{**options, "gt_distance": ev.retrieval_distance, "gt_yaw_deg": None}
+    )
+    summary["retrieval"] = retrieval_metrics(metrics.query_ids, topn, retrieval_gt).summary()
     summary["pose_error"] = closure_pose_errors(metrics, table.relative_poses[:, 0], poses).summary()
     return metrics, summary
 
@@ -331,6 +342,10 @@ _LOOP_COLUMNS = (
     ("R@P100", ("recall_at_100_precision",)),
     ("EP", ("extended_precision",)),
     ("R@1", ("recall_at_1",)),
+    ("R@1 same", ("directions", "same", "recall_at_1")),
+    ("R@1 reverse", ("directions", "reverse", "recall_at_1")),
+    ("R@1 25 m", ("retrieval", "recall_at_1")),
+    ("R@1% 25 m", ("retrieval", "recall_at_1pct")),
     ("TP t err [m] median", ("pose_error", "tp_translation_m", "median")),
     ("p95", ("pose_error", "tp_translation_m", "p95")),
     ("TP rot err [deg] median", ("pose_error", "tp_rotation_deg", "median")),
