@@ -214,10 +214,16 @@ def run(
         list[str] | None,
         typer.Option("--set", "-s", help="Override a config value: key.path=value (repeatable)."),
     ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            help="Describe scans in N processes (execution.workers; executor: dask uses a cluster)."
+        ),
+    ] = None,
 ) -> None:
     """Run an experiment: every pipeline of CONFIG on its dataset; metrics, figures and a report.
 
-    Example: placerec run configs/demo.yaml --set dataset.simulator.n_scans=200
+    Example: placerec run configs/demo.yaml --set dataset.simulator.n_scans=200 --workers 2
     """
     from placerec.config import load_config
     from placerec.errors import PlacerecError
@@ -225,7 +231,8 @@ def run(
     from placerec.experiment.report import print_table
 
     try:
-        cfg = load_config(config, set_ or [])
+        overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
+        cfg = load_config(config, overrides)
         run_dir, payload = run_experiment(cfg, out)
     except PlacerecError as exc:
         _fail(exc)

@@ -296,8 +296,10 @@ def test_a_config_opens_a_dataset_layout(real_data, tmp_path):
     from placerec.experiment.datasets import open_dataset
 
     _kitti_layout(real_data, tmp_path)
-    cfg = DatasetConfig(source="path", path=str(tmp_path), dataset="kitti", options={"sequence": "00"})
+    cfg = DatasetConfig(source="path", path=str(tmp_path), dataset="kitti", sequence="00")
     seq = open_dataset(cfg)
     assert len(seq) == 2 and seq.name == "00"
-    with pytest.raises(ConfigError, match="does not take option"):
-        open_dataset(cfg.model_copy(update={"options": {"sequence": "00", "topic": "/x"}}))
+    with pytest.raises(ConfigError, match=r"does not take option\(s\) \['topic'\]"):
+        open_dataset(
+            DatasetConfig(source="path", path=str(tmp_path), dataset="kitti", sequence="00", topic="/x")
+        )
