@@ -230,7 +230,7 @@ class BowDatabase:
     def load(cls, path: str | Path, vocabulary: Vocabulary) -> BowDatabase:
         """Read a database saved with ``vocabulary``; `ArtifactError` if the file is corrupt or inconsistent (counts
         that do not add up, repeated ids, words outside the vocabulary) or was built with another vocabulary."""
-        arrays, header = load_artifact(path, _KIND, (_VERSION,), _SCHEMA)
+        arrays, header = load_artifact(path, _KIND, (_VERSION,), _SCHEMA, mmap=True)
         meta = header["meta"]
         if meta.get("vocabulary") != vocabulary.fingerprint:
             raise ArtifactError(
