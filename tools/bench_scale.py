@@ -1,0 +1,250 @@
+"""Query time and memory of place-recognition databases against their size, and parallel description on Dask.
+
+Databases: the ORB-HBST and ORB-DBoW pipelines (`placerec.pipelines.visual.VisualHBST`,
+`placerec.pipelines.dbow.VisualDBoW`, retrieval only: ``verify.enabled: false, check: none``) and Scan Context
+(`placerec.baselines.scan_context.ScanContext`, ``verify.enabled: false``), at 1k, 10k and 100k scans. The ISHOT
+store is not measured here yet (its probabilistic voting is being reworked).
+
+Descriptions: ``--base`` scans of the simulator (town, OS1-64, 1 m apart) are described once by each front end;
+a database of N scans holds them replicated with perturbation, since simulating 100k scans would take hours: the
+r-th copy of a scan keeps a random 90 % of its ORB features with every descriptor bit flipped with probability
+``--flip`` (3 %: about 8 of 256 bits, within HBST's match threshold of 25, as a revisit's features are), its
+keypoints moved by up to 1 px; its Scan Context is scaled cell by cell by ``1 + N(0, 0.05)`` and turned by a
+random number of sectors. Queries are further perturbed copies of the base scans.
+
+Per database size and pipeline: bytes of anonymous memory per scan (``RssAnon`` growth while adding, so NumPy
+buffers, Python objects and allocator slack all count), add time, and the median / p95 time of
+``query_description(k=5)`` over ``--queries`` queries. Then, at the first size, the full ORB-HBST pipeline *with*
+verification (its ICP clouds make most of a scan's bytes) is saved and loaded again memory-mapped
+(`placerec.io.atomic.load_artifact` with ``mmap=True``) to show what a saved database costs in RAM.
+
+Last, description of ``--dask-scans`` simulated scans by every front end with 1 and with 2 Dask workers
+(`placerec.experiment.parallel.describe_in_parallel`, a LocalCluster, empty caches): the speed-up, with the load
+average (other processes share the machine).
+
+The last line printed is one JSON object with the headline figures. Example::
+
+    python tools/bench_scale.py --sizes 1000 10000 100000
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from placerec.config import PreprocessConfig, load_config
+from placerec.experiment.preprocessing import preprocessed_scan
+from placerec.recognizer import make_pipeline
+from placerec.sim import SimulatedSequence
+
+RETRIEVAL_ONLY = {"verify": {"enabled": False}, "check": "none"}
+PIPELINES = {
+    "orb-hbst": ("orb-hbst", RETRIEVAL_ONLY),
+    "orb-dbow": ("orb-dbow", RETRIEVAL_ONLY),
+    "scan-context": ("scan-context", {"verify": {"enabled": False}}),
+}
+
+
+def rss_anon_bytes() -> int:
+    """Anonymous resident memory of this process (Linux /proc), after a garbage collection."""
+    gc.collect()
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("RssAnon:"):
+                return int(line.split()[1]) * 1024
+    raise SystemExit("bench_scale needs Linux /proc/self/status (RssAnon)")
+
+
+def base_descriptions(n: int) -> tuple[list[dict], list[dict], list[dict]]:
+    """Visual descriptions (with verification clouds), retrieval-only visual ones and Scan Contexts of ``n``
+    simulated scans."""
+    seq = SimulatedSequence("town", "os1-64", seed=0, n_scans=n, spacing=1.0)
+    full = make_pipeline("orb-hbst", {})
+    sc = make_pipeline("scan-context", {"verify": {"enabled": False}})
+    visual, scs = [], []
+    for i in range(n):
+        scan, _ = preprocessed_scan(seq, i, PreprocessConfig())
+        visual.append(full.describe(scan))
+        scs.append(sc.describe(scan))
+    slim = [{k: v for k, v in d.items() if k != "cloud"} for d in visual]
+    return visual, slim, scs
+
+
+def perturb_visual(d: dict, rng: np.random.Generator, flip: float) -> dict:
+    n = d["descriptors"].shape[0]
+    keep = np.sort(rng.choice(n, size=max(1, int(round(0.9 * n))), replace=False)) if n else np.zeros(0, int)
+    desc = d["descriptors"][keep]
+    bits = np.unpackbits(desc, axis=1)
+    bits ^= (rng.random(bits.shape) < flip).astype(np.uint8)
+    out = dict(d)
+    out["descriptors"] = np.packbits(bits, axis=1)
+    out["keypoints"] = (d["keypoints"][keep] + rng.uniform(-1, 1, (keep.size, 2))).astype(np.float32)
+    out["keypoint_xyz"] = d["keypoint_xyz"][keep]
+    return out
+
+
+def perturb_sc(d: dict, rng: np.random.Generator) -> dict:
+    sc = d["scan_context"] * (1.0 + rng.normal(0.0, 0.05, d["scan_context"].shape)).astype(np.float32)
+    return {**d, "scan_context": np.roll(sc, int(rng.integers(sc.shape[1])), axis=1).astype(np.float32)}
+
+
+def bench_database(name: str, size: int, base: list[dict], n_queries: int, flip: float, seed: int) -> dict:
+    pipeline, params = PIPELINES[name]
+    rng = np.random.default_rng(seed)
+    perturb = (
+        (lambda d: perturb_sc(d, rng)) if name == "scan-context" else (lambda d: perturb_visual(d, rng, flip))
+    )
+    rec = make_pipeline(pipeline, params)
+    before = rss_anon_bytes()
+    t0 = time.perf_counter()
+    for i in range(size):
+        rec.add_description(i, perturb(base[i % len(base)]))
+    add_s = time.perf_counter() - t0
+    grown = rss_anon_bytes() - before
+    times = []
+    for q in range(n_queries):
+        d = perturb(base[q % len(base)])
+        t1 = time.perf_counter()
+        rec.query_description(d, k=5, query_id=size + q)
+        times.append((time.perf_counter() - t1) * 1e3)
+    del rec
+    gc.collect()
+    return {
+        "pipeline": name,
+        "scans": size,
+        "bytes_per_scan": grown / size,
+        "ram_mb": grown / 2**20,
+        "add_ms_per_scan": add_s * 1e3 / size,
+        "query_ms_median": float(np.median(times)),
+        "query_ms_p95": float(np.percentile(times, 95)),
+    }
+
+
+def bench_saved(full: list[dict], size: int, flip: float) -> dict:
+    """ORB-HBST with verification clouds: RAM while built, file size, RAM after a memory-mapped load."""
+    rng = np.random.default_rng(1)
+    rec = make_pipeline("orb-hbst", {})
+    before = rss_anon_bytes()
+    for i in range(size):
+        d = perturb_visual(full[i % len(full)], rng, flip)
+        cloud = full[i % len(full)]["cloud"]  # every copy its own cloud, as every scan has
+        d["cloud"] = (cloud + rng.normal(0.0, 0.01, cloud.shape)).astype(np.float32)
+        rec.add_description(i, d)
+    built = rss_anon_bytes() - before
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "orb-hbst.npz"
+        rec.save(path)
+        del rec
+        gc.collect()
+        before = rss_anon_bytes()
+        loaded = make_pipeline("orb-hbst", {})
+        loaded.load(path)
+        after = rss_anon_bytes() - before
+        file_mb = path.stat().st_size / 2**20
+        del loaded
+    return {
+        "scans": size,
+        "built_bytes_per_scan": built / size,
+        "file_mb": file_mb,
+        "loaded_mmap_bytes_per_scan": after / size,
+    }
+
+
+def bench_dask(n_scans: int) -> dict:
+    from placerec.experiment.parallel import describe_in_parallel
+
+    cfg_base = [
+        "dataset.simulator.world=town",
+        "dataset.simulator.sensor=os1-64",
+        f"dataset.simulator.n_scans={n_scans}",
+        "pipelines=[{name: orb-hbst}, {name: scan-context}]",
+        "execution.executor=dask",
+        "execution.chunk=2",
+    ]
+    out = {}
+    for workers in (1, 2):
+        cfg = load_config(None, [*cfg_base, f"execution.workers={workers}"])
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            describe_in_parallel(cfg, cfg.dataset, n_scans, tmp, "bench")
+            out[workers] = time.perf_counter() - t0
+    return {
+        "scans": n_scans,
+        "seconds_1_worker": out[1],
+        "seconds_2_workers": out[2],
+        "speedup": out[1] / out[2],
+        "load_average": os.getloadavg()[0],
+        "cpus": os.cpu_count(),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000])
+    ap.add_argument("--base", type=int, default=60, help="simulated scans replicated into the databases")
+    ap.add_argument("--queries", type=int, default=100)
+    ap.add_argument("--flip", type=float, default=0.03, help="probability of flipping a descriptor bit")
+    ap.add_argument("--pipelines", nargs="+", default=list(PIPELINES), choices=list(PIPELINES))
+    ap.add_argument("--dask-scans", type=int, default=40, help="0 = skip the Dask measurement")
+    args = ap.parse_args()
+    print(f"load average {os.getloadavg()}; describing {args.base} simulated scans ...", flush=True)
+    full, slim, scs = base_descriptions(args.base)
+    rows = []
+    for size in args.sizes:
+        for name in args.pipelines:
+            row = bench_database(
+                name, size, scs if name == "scan-context" else slim, args.queries, args.flip, size
+            )
+            rows.append(row)
+            print(
+                f"{name:>13} {size:>7} scans: {row['bytes_per_scan'] / 1024:8.1f} KiB/scan "
+                f"({row['ram_mb']:8.1f} MiB), add {row['add_ms_per_scan']:6.2f} ms/scan, query median "
+                f"{row['query_ms_median']:7.2f} ms, p95 {row['query_ms_p95']:7.2f} ms  (load {os.getloadavg()[0]:.1f})",
+                flush=True,
+            )
+    saved = bench_saved(full, args.sizes[0], args.flip)
+    print(
+        f"orb-hbst with verification clouds, {saved['scans']} scans: {saved['built_bytes_per_scan'] / 1024:.1f} "
+        f"KiB/scan built, file {saved['file_mb']:.0f} MiB, {saved['loaded_mmap_bytes_per_scan'] / 1024:.1f} KiB/scan "
+        "after a memory-mapped load",
+        flush=True,
+    )
+    dask = bench_dask(args.dask_scans) if args.dask_scans else None
+    if dask:
+        print(
+            f"Dask description of {dask['scans']} scans: 1 worker {dask['seconds_1_worker']:.1f} s, 2 workers "
+            f"{dask['seconds_2_workers']:.1f} s: speed-up {dask['speedup']:.2f}x (load average "
+            f"{dask['load_average']:.1f} on {dask['cpus']} CPUs)",
+            flush=True,
+        )
+    largest = {r["pipeline"]: r for r in rows if r["scans"] == max(args.sizes)}
+    print(
+        json.dumps(
+            {
+                "sizes": args.sizes,
+                "largest": max(args.sizes),
+                **{
+                    f"{n}_{k}": round(largest[n][k], 3)
+                    for n in largest
+                    for k in ("ram_mb", "bytes_per_scan", "query_ms_median")
+                },
+                "orb_hbst_verified_kib_per_scan_built": round(saved["built_bytes_per_scan"] / 1024, 1),
+                "orb_hbst_verified_kib_per_scan_mmap_loaded": round(
+                    saved["loaded_mmap_bytes_per_scan"] / 1024, 1
+                ),
+                "dask_speedup_2_workers": None if dask is None else round(dask["speedup"], 3),
+                "dask_load_average": None if dask is None else round(dask["load_average"], 2),
+            }
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()
