@@ -14,7 +14,7 @@ random number of sectors. Queries are further perturbed copies of the base scans
 
 Per database size and pipeline: bytes of anonymous memory per scan (``RssAnon`` growth while adding, so NumPy
 buffers, Python objects and allocator slack all count), add time, and the median / p95 time of
-``query_description(k=5)`` over ``--queries`` queries. Then, at the first size, the full ORB-HBST pipeline *with*
+``query_description(k=5)`` over ``--queries`` queries. Then, at ``--saved-scans`` scans, the full ORB-HBST pipeline *with*
 verification (its ICP clouds make most of a scan's bytes) is saved and loaded again memory-mapped
 (`placerec.io.atomic.load_artifact` with ``mmap=True``) to show what a saved database costs in RAM.
 
@@ -192,6 +192,7 @@ def main() -> None:
     ap.add_argument("--queries", type=int, default=100)
     ap.add_argument("--flip", type=float, default=0.03, help="probability of flipping a descriptor bit")
     ap.add_argument("--pipelines", nargs="+", default=list(PIPELINES), choices=list(PIPELINES))
+    ap.add_argument("--saved-scans", type=int, default=1000, help="ORB-HBST with clouds saved; 0 = skip")
     ap.add_argument("--dask-scans", type=int, default=40, help="0 = skip the Dask measurement")
     args = ap.parse_args()
     print(f"load average {os.getloadavg()}; describing {args.base} simulated scans ...", flush=True)
@@ -209,13 +210,14 @@ def main() -> None:
                 f"{row['query_ms_median']:7.2f} ms, p95 {row['query_ms_p95']:7.2f} ms  (load {os.getloadavg()[0]:.1f})",
                 flush=True,
             )
-    saved = bench_saved(full, args.sizes[0], args.flip)
-    print(
-        f"orb-hbst with verification clouds, {saved['scans']} scans: {saved['built_bytes_per_scan'] / 1024:.1f} "
-        f"KiB/scan built, file {saved['file_mb']:.0f} MiB, {saved['loaded_mmap_bytes_per_scan'] / 1024:.1f} KiB/scan "
-        "after a memory-mapped load",
-        flush=True,
-    )
+    saved = bench_saved(full, args.saved_scans, args.flip) if args.saved_scans else None
+    if saved:
+        print(
+            f"orb-hbst with verification clouds, {saved['scans']} scans: {saved['built_bytes_per_scan'] / 1024:.1f} "
+            f"KiB/scan built, file {saved['file_mb']:.0f} MiB, {saved['loaded_mmap_bytes_per_scan'] / 1024:.1f} "
+            "KiB/scan after a memory-mapped load",
+            flush=True,
+        )
     dask = bench_dask(args.dask_scans) if args.dask_scans else None
     if dask:
         print(
