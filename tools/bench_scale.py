@@ -6,14 +6,19 @@ Databases: the ORB-HBST and ORB-DBoW pipelines (`placerec.pipelines.visual.Visua
 store is not measured here yet (its probabilistic voting is being reworked).
 
 Descriptions: ``--base`` scans of the simulator (town, OS1-64, 1 m apart) are described once by each front end;
-a database of N scans holds them replicated with perturbation, since simulating 100k scans would take hours: the
-r-th copy of a scan keeps a random 90 % of its ORB features with every descriptor bit flipped with probability
-``--flip`` (3 %: about 8 of 256 bits, within HBST's match threshold of 25, as a revisit's features are), its
-keypoints moved by up to 1 px; its Scan Context is scaled cell by cell by ``1 + N(0, 0.05)`` and turned by a
-random number of sectors. Queries are further perturbed copies of the base scans.
+a database of N scans holds them replicated with perturbation, since simulating 100k scans would take hours. Copy
+``r`` of a base scan is a distinct place: all its ORB descriptors get the same ``--place-bits`` (40) of their 256
+bits flipped, chosen for that copy (copies of one scan are then further apart than HBST's match threshold of 25,
+as different places are, and fall into other DBoW words); then each keeps a random 90 % of its features, every
+bit flipped with probability ``--flip`` (3 %: about 8 bits, the noise of a revisit), keypoints moved by up to
+1 px. A copy's Scan Context is scaled cell by cell by a pattern ``1 + N(0, 0.3)`` of its own (the place), then by
+``1 + N(0, 0.05)`` (noise), and turned by a random number of sectors.
+Queries are revisits: a random copy of a base scan, with fresh noise; ``top1_hit`` is the fraction whose best
+candidate is that copy.
 
-Per database size and pipeline: bytes of anonymous memory per scan (``RssAnon`` growth while adding, so NumPy
-buffers, Python objects and allocator slack all count), add time, and the median / p95 time of
+Per database size and pipeline, each in a fresh process (so memory freed by an earlier measurement cannot be
+reused): bytes of anonymous memory per scan (``RssAnon`` growth while adding, so NumPy buffers, Python objects and
+allocator slack all count), add time, and the median / p95 time of
 ``query_description(k=5)`` over ``--queries`` queries. Then, at ``--saved-scans`` scans, the full ORB-HBST pipeline *with*
 verification (its ICP clouds make most of a scan's bytes) is saved and loaded again memory-mapped
 (`placerec.io.atomic.load_artifact` with ``mmap=True``) to show what a saved database costs in RAM.
@@ -77,12 +82,22 @@ def base_descriptions(n: int) -> tuple[list[dict], list[dict], list[dict]]:
     return visual, slim, scs
 
 
-def perturb_visual(d: dict, rng: np.random.Generator, flip: float) -> dict:
+def place_mask(copy: int, n_bits: int, place_bits: int) -> np.ndarray:
+    """The bits flipped in every descriptor of copy ``copy`` (copy 0: none)."""
+    mask = np.zeros(n_bits, np.uint8)
+    if copy:
+        mask[np.random.default_rng(10_000 + copy).choice(n_bits, place_bits, replace=False)] = 1
+    return mask
+
+
+def perturb_visual(d: dict, rng: np.random.Generator, flip: float, mask: np.ndarray | None = None) -> dict:
     n = d["descriptors"].shape[0]
     keep = np.sort(rng.choice(n, size=max(1, int(round(0.9 * n))), replace=False)) if n else np.zeros(0, int)
     desc = d["descriptors"][keep]
     bits = np.unpackbits(desc, axis=1)
     bits ^= (rng.random(bits.shape) < flip).astype(np.uint8)
+    if mask is not None:
+        bits ^= mask
     out = dict(d)
     out["descriptors"] = np.packbits(bits, axis=1)
     out["keypoints"] = (d["keypoints"][keep] + rng.uniform(-1, 1, (keep.size, 2))).astype(np.float32)
@@ -90,30 +105,40 @@ def perturb_visual(d: dict, rng: np.random.Generator, flip: float) -> dict:
     return out
 
 
-def perturb_sc(d: dict, rng: np.random.Generator) -> dict:
-    sc = d["scan_context"] * (1.0 + rng.normal(0.0, 0.05, d["scan_context"].shape)).astype(np.float32)
+def perturb_sc(d: dict, rng: np.random.Generator, copy: int) -> dict:
+    shape = d["scan_context"].shape
+    place = 1.0 + np.random.default_rng(20_000 + copy).normal(0.0, 0.3, shape) if copy else 1.0
+    sc = np.maximum(d["scan_context"] * place * (1.0 + rng.normal(0.0, 0.05, shape)), 0.0).astype(np.float32)
     return {**d, "scan_context": np.roll(sc, int(rng.integers(sc.shape[1])), axis=1).astype(np.float32)}
 
 
-def bench_database(name: str, size: int, base: list[dict], n_queries: int, flip: float, seed: int) -> dict:
+def bench_database(
+    name: str, size: int, base: list[dict], n_queries: int, flip: float, place_bits: int, seed: int
+) -> dict:
     pipeline, params = PIPELINES[name]
     rng = np.random.default_rng(seed)
-    perturb = (
-        (lambda d: perturb_sc(d, rng)) if name == "scan-context" else (lambda d: perturb_visual(d, rng, flip))
-    )
+    n_bits = 8 * base[0]["descriptors"].shape[1] if "descriptors" in base[0] else 0
+
+    def copy_of(i: int) -> dict:
+        d = base[i % len(base)]
+        if name == "scan-context":
+            return perturb_sc(d, rng, i // len(base))
+        return perturb_visual(d, rng, flip, place_mask(i // len(base), n_bits, place_bits))
+
     rec = make_pipeline(pipeline, params)
     before = rss_anon_bytes()
     t0 = time.perf_counter()
     for i in range(size):
-        rec.add_description(i, perturb(base[i % len(base)]))
+        rec.add_description(i, copy_of(i))
     add_s = time.perf_counter() - t0
     grown = rss_anon_bytes() - before
-    times = []
-    for q in range(n_queries):
-        d = perturb(base[q % len(base)])
+    times, hits = [], 0
+    for q in rng.integers(0, size, n_queries):
+        d = copy_of(int(q))
         t1 = time.perf_counter()
-        rec.query_description(d, k=5, query_id=size + q)
+        cands = rec.query_description(d, k=5, query_id=size)
         times.append((time.perf_counter() - t1) * 1e3)
+        hits += bool(cands) and cands[0].match_id == int(q)
     del rec
     gc.collect()
     return {
@@ -124,7 +149,23 @@ def bench_database(name: str, size: int, base: list[dict], n_queries: int, flip:
         "add_ms_per_scan": add_s * 1e3 / size,
         "query_ms_median": float(np.median(times)),
         "query_ms_p95": float(np.percentile(times, 95)),
+        "top1_hit": hits / n_queries,
     }
+
+
+def _bench_in_child(args: tuple) -> dict:
+    base_file, name, *rest = args
+    with np.load(base_file, allow_pickle=True) as z:
+        base = list(z[name if name == "scan-context" else "visual"])
+    return bench_database(name, rest[0], base, *rest[1:])
+
+
+def bench_database_fresh(base_file: str, name: str, size: int, *rest: object) -> dict:
+    """`bench_database` in a fresh spawned process (the base descriptions are read from ``base_file``)."""
+    import multiprocessing
+
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        return pool.apply(_bench_in_child, ((base_file, name, size, *rest),))
 
 
 def bench_saved(full: list[dict], size: int, flip: float) -> dict:
@@ -191,23 +232,28 @@ def main() -> None:
     ap.add_argument("--base", type=int, default=60, help="simulated scans replicated into the databases")
     ap.add_argument("--queries", type=int, default=100)
     ap.add_argument("--flip", type=float, default=0.03, help="probability of flipping a descriptor bit")
+    ap.add_argument(
+        "--place-bits", type=int, default=40, help="bits flipped to make each copy a distinct place"
+    )
     ap.add_argument("--pipelines", nargs="+", default=list(PIPELINES), choices=list(PIPELINES))
     ap.add_argument("--saved-scans", type=int, default=1000, help="ORB-HBST with clouds saved; 0 = skip")
     ap.add_argument("--dask-scans", type=int, default=40, help="0 = skip the Dask measurement")
     args = ap.parse_args()
     print(f"load average {os.getloadavg()}; describing {args.base} simulated scans ...", flush=True)
     full, slim, scs = base_descriptions(args.base)
+    tmp = tempfile.TemporaryDirectory()
+    base_file = str(Path(tmp.name) / "base.npz")
+    np.savez(base_file, visual=np.array(slim, dtype=object), **{"scan-context": np.array(scs, dtype=object)})
     rows = []
     for size in args.sizes:
         for name in args.pipelines:
-            row = bench_database(
-                name, size, scs if name == "scan-context" else slim, args.queries, args.flip, size
-            )
+            row = bench_database_fresh(base_file, name, size, args.queries, args.flip, args.place_bits, size)
             rows.append(row)
             print(
                 f"{name:>13} {size:>7} scans: {row['bytes_per_scan'] / 1024:8.1f} KiB/scan "
                 f"({row['ram_mb']:8.1f} MiB), add {row['add_ms_per_scan']:6.2f} ms/scan, query median "
-                f"{row['query_ms_median']:7.2f} ms, p95 {row['query_ms_p95']:7.2f} ms  (load {os.getloadavg()[0]:.1f})",
+                f"{row['query_ms_median']:7.2f} ms, p95 {row['query_ms_p95']:7.2f} ms, top-1 hit {row['top1_hit']:.2f}  "
+                f"(load {os.getloadavg()[0]:.1f})",
                 flush=True,
             )
     saved = bench_saved(full, args.saved_scans, args.flip) if args.saved_scans else None
@@ -235,12 +281,12 @@ def main() -> None:
                 **{
                     f"{n}_{k}": round(largest[n][k], 3)
                     for n in largest
-                    for k in ("ram_mb", "bytes_per_scan", "query_ms_median")
+                    for k in ("ram_mb", "bytes_per_scan", "query_ms_median", "top1_hit")
                 },
-                "orb_hbst_verified_kib_per_scan_built": round(saved["built_bytes_per_scan"] / 1024, 1),
-                "orb_hbst_verified_kib_per_scan_mmap_loaded": round(
-                    saved["loaded_mmap_bytes_per_scan"] / 1024, 1
-                ),
+                "orb_hbst_verified_kib_per_scan_built": saved
+                and round(saved["built_bytes_per_scan"] / 1024, 1),
+                "orb_hbst_verified_kib_per_scan_mmap_loaded": saved
+                and round(saved["loaded_mmap_bytes_per_scan"] / 1024, 1),
                 "dask_speedup_2_workers": None if dask is None else round(dask["speedup"], 3),
                 "dask_load_average": None if dask is None else round(dask["load_average"], 2),
             }
