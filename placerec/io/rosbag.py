@@ -20,7 +20,14 @@ from placerec.io._common import columns_to_scan, structured_columns
 from placerec.safe_yaml import load_yaml_file
 from placerec.types import Scan
 
-__all__ = ["RosbagSequence", "pointcloud2_to_scan", "header_stamp", "POINTCLOUD2"]
+__all__ = [
+    "RosbagSequence",
+    "pointcloud2_to_scan",
+    "header_stamp",
+    "same_time_ranks",
+    "message_index",
+    "POINTCLOUD2",
+]
 
 log = logging.getLogger(__name__)
 
@@ -113,6 +120,20 @@ def header_stamp(raw: bytes | memoryview, ros2: bool) -> float:
     return sec + nsec * 1e-9
 
 
+def same_time_ranks(log_times: np.ndarray) -> np.ndarray:
+    """Rank of each message among those sharing its (sorted) log time, to pick it out of a time-window query."""
+    return np.arange(log_times.size) - np.searchsorted(log_times, log_times, side="left")
+
+
+def message_index(index: int, n: int, topic: str) -> int:
+    """``index`` (negative counts from the end) checked against ``n`` messages; IndexError outside."""
+    if index < 0:
+        index += n
+    if not 0 <= index < n:
+        raise IndexError(f"message {index} out of range ({n} messages on {topic})")
+    return index
+
+
 class RosbagSequence:
     """PointCloud2 messages of one topic of a ROS1 ``.bag`` or rosbag2 folder, as a lazy `Sequence`.
 
@@ -159,19 +180,13 @@ class RosbagSequence:
             raise ScanFormatError(f"{self._path}: cannot index topic {topic} ({exc})") from exc
         self._log_times = np.asarray(log_times, dtype=np.int64)
         self._stamps = np.asarray(stamps, dtype=np.float64)
-        # rank of each message among those sharing its log time (to pick it out of a time-window query)
-        first = np.searchsorted(self._log_times, self._log_times, side="left")
-        self._rank = np.arange(len(log_times)) - first
+        self._rank = same_time_ranks(self._log_times)
 
     def __len__(self) -> int:
         return int(self._log_times.size)
 
     def __getitem__(self, index: int) -> Scan:
-        n = len(self)
-        if index < 0:
-            index += n
-        if not 0 <= index < n:
-            raise IndexError(f"message {index} out of range ({n} messages on {self._topic})")
+        index = message_index(index, len(self), self._topic)
         t = int(self._log_times[index])
         where = f"{self._path}:{self._topic}#{index}"
         try:

@@ -11,7 +11,13 @@ from typing import Any
 import numpy as np
 
 from placerec.errors import DependencyError, ScanFormatError
-from placerec.io.rosbag import POINTCLOUD2, header_stamp, pointcloud2_to_scan
+from placerec.io.rosbag import (
+    POINTCLOUD2,
+    header_stamp,
+    message_index,
+    pointcloud2_to_scan,
+    same_time_ranks,
+)
 from placerec.types import Scan
 
 __all__ = ["McapSequence", "detect_mcap"]
@@ -77,18 +83,13 @@ class McapSequence:
         self._topic = topic
         self._times = np.asarray(times, dtype=np.int64)
         self._stamps = np.asarray(stamps, dtype=np.float64)
-        first = np.searchsorted(self._times, self._times, side="left")
-        self._rank = np.arange(len(times)) - first
+        self._rank = same_time_ranks(self._times)
 
     def __len__(self) -> int:
         return int(self._times.size)
 
     def __getitem__(self, index: int) -> Scan:
-        n = len(self)
-        if index < 0:
-            index += n
-        if not 0 <= index < n:
-            raise IndexError(f"message {index} out of range ({n} messages on {self._topic})")
+        index = message_index(index, len(self), self._topic)
         t = int(self._times[index])
         where = f"{self._path}:{self._topic}#{index}"
         try:
