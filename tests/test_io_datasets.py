@@ -303,3 +303,19 @@ def test_a_config_opens_a_dataset_layout(real_data, tmp_path):
         open_dataset(
             DatasetConfig(source="path", path=str(tmp_path), dataset="kitti", sequence="00", topic="/x")
         )
+
+
+def test_info_reads_a_dataset_layout(real_data, tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from placerec.cli import app
+
+    seq_dir = _kitti_layout(real_data, tmp_path)
+    result = CliRunner().invoke(app, ["info", str(seq_dir), "--dataset", "kitti", "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output)
+    assert summary["scans"] == 2 and summary["poses"]["count"] == 2
+    bad = CliRunner().invoke(app, ["info", str(seq_dir), "--dataset", "nope"])
+    assert bad.exit_code != 0 and "unknown dataset 'nope'" in bad.output
