@@ -24,8 +24,9 @@ verification (its ICP clouds make most of a scan's bytes) is saved and loaded ag
 (`placerec.io.atomic.load_artifact` with ``mmap=True``) to show what a saved database costs in RAM.
 
 Last, description of ``--dask-scans`` simulated scans by every front end with 1 and with 2 Dask workers
-(`placerec.experiment.parallel.describe_in_parallel`, a LocalCluster, empty caches): the speed-up, with the load
-average (other processes share the machine).
+(`placerec.experiment.parallel.describe_chunk` tasks of two scans on a LocalCluster, empty caches, after a warm-up
+task per worker so that start-up is not timed): the speed-up, with the load average (other processes share the
+machine).
 
 The last line printed is one JSON object with the headline figures. Example::
 
@@ -168,8 +169,10 @@ def bench_database_fresh(base_file: str, name: str, size: int, *rest: object) ->
         return pool.apply(_bench_in_child, ((base_file, name, size, *rest),))
 
 
-def bench_saved(full: list[dict], size: int, flip: float) -> dict:
-    """ORB-HBST with verification clouds: RAM while built, file size, RAM after a memory-mapped load."""
+def _build_and_save(base_file: str, path: str, size: int, flip: float) -> tuple[float, float]:
+    """(bytes per scan while built, file MiB) of ORB-HBST with verification clouds, saved to ``path``."""
+    with np.load(base_file, allow_pickle=True) as z:
+        full = list(z["full"])
     rng = np.random.default_rng(1)
     rec = make_pipeline("orb-hbst", {})
     before = rss_anon_bytes()
@@ -178,43 +181,62 @@ def bench_saved(full: list[dict], size: int, flip: float) -> dict:
         cloud = full[i % len(full)]["cloud"]  # every copy its own cloud, as every scan has
         d["cloud"] = (cloud + rng.normal(0.0, 0.01, cloud.shape)).astype(np.float32)
         rec.add_description(i, d)
-    built = rss_anon_bytes() - before
+    built = (rss_anon_bytes() - before) / size
+    rec.save(path)
+    return built, Path(path).stat().st_size / 2**20
+
+
+def _load_saved(path: str) -> float:
+    """Anonymous memory growth (bytes) of loading ``path`` (memory-mapped) into an ORB-HBST pipeline."""
+    rec = make_pipeline("orb-hbst", {})
+    before = rss_anon_bytes()
+    rec.load(path)
+    return rss_anon_bytes() - before
+
+
+def bench_saved(base_file: str, size: int, flip: float) -> dict:
+    """ORB-HBST with verification clouds: RAM while built, file size, RAM after a memory-mapped load (each in a
+    fresh process)."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("spawn")
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "orb-hbst.npz"
-        rec.save(path)
-        del rec
-        gc.collect()
-        before = rss_anon_bytes()
-        loaded = make_pipeline("orb-hbst", {})
-        loaded.load(path)
-        after = rss_anon_bytes() - before
-        file_mb = path.stat().st_size / 2**20
-        del loaded
+        path = str(Path(tmp) / "orb-hbst.npz")
+        with ctx.Pool(1) as pool:
+            built, file_mb = pool.apply(_build_and_save, (base_file, path, size, flip))
+        with ctx.Pool(1) as pool:
+            loaded = pool.apply(_load_saved, (path,))
     return {
         "scans": size,
-        "built_bytes_per_scan": built / size,
+        "built_bytes_per_scan": built,
         "file_mb": file_mb,
-        "loaded_mmap_bytes_per_scan": after / size,
+        "loaded_mmap_bytes_per_scan": loaded / size,
     }
 
 
 def bench_dask(n_scans: int) -> dict:
-    from placerec.experiment.parallel import describe_in_parallel
+    """Wall time of describing ``n_scans`` simulated scans with 1 and 2 Dask workers (a LocalCluster each), after a
+    warm-up task per worker (start-up, imports, opening the dataset are not timed)."""
+    from placerec.experiment.parallel import _dask_pool, describe_chunk
 
-    cfg_base = [
-        "dataset.simulator.world=town",
-        "dataset.simulator.sensor=os1-64",
-        f"dataset.simulator.n_scans={n_scans}",
-        "pipelines=[{name: orb-hbst}, {name: scan-context}]",
-        "execution.executor=dask",
-        "execution.chunk=2",
-    ]
+    cfg = load_config(
+        None,
+        [
+            "dataset.simulator.world=town",
+            "dataset.simulator.sensor=os1-64",
+            f"dataset.simulator.n_scans={n_scans}",
+            "pipelines=[{name: orb-hbst}, {name: scan-context}]",
+        ],
+    )
+    cfg_json, ds_json = cfg.model_dump(mode="json"), cfg.dataset.model_dump(mode="json")
     out = {}
     for workers in (1, 2):
-        cfg = load_config(None, [*cfg_base, f"execution.workers={workers}"])
-        with tempfile.TemporaryDirectory() as tmp:
+        with tempfile.TemporaryDirectory() as tmp, _dask_pool(workers, None) as submit:
+            warm = [(cfg_json, ds_json, tmp, "warm", [w]) for w in range(workers)]
+            submit(describe_chunk, warm, lambda r: None)
+            chunks = [(cfg_json, ds_json, tmp, "bench", [i, i + 1]) for i in range(0, n_scans, 2)]
             t0 = time.perf_counter()
-            describe_in_parallel(cfg, cfg.dataset, n_scans, tmp, "bench")
+            submit(describe_chunk, chunks, lambda r: None)
             out[workers] = time.perf_counter() - t0
     return {
         "scans": n_scans,
@@ -228,7 +250,7 @@ def bench_dask(n_scans: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000])
+    ap.add_argument("--sizes", type=int, nargs="*", default=[1000, 10000, 100000], help="none: skip")
     ap.add_argument("--base", type=int, default=60, help="simulated scans replicated into the databases")
     ap.add_argument("--queries", type=int, default=100)
     ap.add_argument("--flip", type=float, default=0.03, help="probability of flipping a descriptor bit")
@@ -243,7 +265,12 @@ def main() -> None:
     full, slim, scs = base_descriptions(args.base)
     tmp = tempfile.TemporaryDirectory()
     base_file = str(Path(tmp.name) / "base.npz")
-    np.savez(base_file, visual=np.array(slim, dtype=object), **{"scan-context": np.array(scs, dtype=object)})
+    np.savez(
+        base_file,
+        full=np.array(full, dtype=object),
+        visual=np.array(slim, dtype=object),
+        **{"scan-context": np.array(scs, dtype=object)},
+    )
     rows = []
     for size in args.sizes:
         for name in args.pipelines:
@@ -256,7 +283,7 @@ def main() -> None:
                 f"(load {os.getloadavg()[0]:.1f})",
                 flush=True,
             )
-    saved = bench_saved(full, args.saved_scans, args.flip) if args.saved_scans else None
+    saved = bench_saved(base_file, args.saved_scans, args.flip) if args.saved_scans else None
     if saved:
         print(
             f"orb-hbst with verification clouds, {saved['scans']} scans: {saved['built_bytes_per_scan'] / 1024:.1f} "
@@ -272,12 +299,12 @@ def main() -> None:
             f"{dask['load_average']:.1f} on {dask['cpus']} CPUs)",
             flush=True,
         )
-    largest = {r["pipeline"]: r for r in rows if r["scans"] == max(args.sizes)}
+    largest = {r["pipeline"]: r for r in rows if r["scans"] == max(args.sizes, default=0)}
     print(
         json.dumps(
             {
                 "sizes": args.sizes,
-                "largest": max(args.sizes),
+                "largest": max(args.sizes, default=None),
                 **{
                     f"{n}_{k}": round(largest[n][k], 3)
                     for n in largest
