@@ -319,3 +319,12 @@ def test_info_reads_a_dataset_layout(real_data, tmp_path):
     assert summary["scans"] == 2 and summary["poses"]["count"] == 2
     bad = CliRunner().invoke(app, ["info", str(seq_dir), "--dataset", "nope"])
     assert bad.exit_code != 0 and "unknown dataset 'nope'" in bad.output
+
+
+def test_roll_pitch_yaw_poses_match_scipy():
+    from placerec.io.datasets.trajectory import pose_from_xyz_rpy
+
+    rpy = np.random.default_rng(0).uniform(-3, 3, (20, 3))
+    P = pose_from_xyz_rpy(np.arange(60.0).reshape(20, 3), rpy)
+    np.testing.assert_allclose(P[:, :3, :3], Rotation.from_euler("ZYX", rpy[:, ::-1]).as_matrix(), atol=1e-12)
+    np.testing.assert_array_equal(P[:, :3, 3], np.arange(60.0).reshape(20, 3))

@@ -90,12 +90,13 @@ def pose_from_xyz_quat(xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
 
 def pose_from_xyz_rpy(xyz: np.ndarray, rpy: np.ndarray) -> np.ndarray:
     """(N, 4, 4) poses from positions and (roll, pitch, yaw) in radians, ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
-    from scipy.spatial.transform import Rotation
-
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    rpy = np.asarray(rpy, dtype=np.float64).reshape(-1, 3)
+    cr, cp, cy = np.cos(np.asarray(rpy, dtype=np.float64).reshape(-1, 3)).T
+    sr, sp, sy = np.sin(np.asarray(rpy, dtype=np.float64).reshape(-1, 3)).T
     P = np.tile(np.eye(4), (xyz.shape[0], 1, 1))
-    P[:, :3, :3] = Rotation.from_euler("ZYX", rpy[:, ::-1]).as_matrix()
+    P[:, 0, :3] = np.c_[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr]
+    P[:, 1, :3] = np.c_[sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr]
+    P[:, 2, :3] = np.c_[-sp, cp * sr, cp * cr]
     P[:, :3, 3] = xyz
     return P
 
