@@ -328,3 +328,32 @@ def test_roll_pitch_yaw_poses_match_scipy():
     P = pose_from_xyz_rpy(np.arange(60.0).reshape(20, 3), rpy)
     np.testing.assert_allclose(P[:, :3, :3], Rotation.from_euler("ZYX", rpy[:, ::-1]).as_matrix(), atol=1e-12)
     np.testing.assert_array_equal(P[:, :3, 3], np.arange(60.0).reshape(20, 3))
+
+
+@pytest.mark.parametrize("sensor", ["Ouster", "Velodyne", "Aeva", "Avia"])
+def test_helipr_record_layouts(tmp_path, sensor):
+    from placerec.io.datasets.helipr import HELIPR_RECORDS, read_helipr_bin
+
+    dtype, field, _ = HELIPR_RECORDS[sensor]
+    assert dtype.itemsize == {"Ouster": 26, "Velodyne": 22, "Aeva": 29, "Avia": 19}[sensor]
+    rec = np.zeros(500, dtype=dtype)
+    rng = np.random.default_rng(0)
+    for c in "xyz":
+        rec[c] = rng.uniform(-50, 50, 500)
+    rec[field] = rng.integers(1, 200, 500)
+    path = tmp_path / "1700000000000000000.bin"  # after Aeva's change of format
+    rec.tofile(path)
+    scan = read_helipr_bin(path, sensor)
+    np.testing.assert_array_equal(scan.xyz, np.c_[rec["x"], rec["y"], rec["z"]])
+    np.testing.assert_array_equal(scan.intensity, rec[field].astype(np.float32))
+    if sensor == "Aeva":  # older Aeva scans have no intensity field: 25-byte records, reflectivity instead
+        from placerec.io.datasets.helipr import _AEVA_OLD
+
+        early = np.zeros(500, dtype=_AEVA_OLD)
+        for c in "xyz":
+            early[c] = rec[c]
+        early["reflectivity"] = np.arange(500)
+        early.tofile(tmp_path / "1691936557946849179.bin")
+        scan = read_helipr_bin(tmp_path / "1691936557946849179.bin", sensor)
+        assert _AEVA_OLD.itemsize == 25 and len(scan) == 500
+        np.testing.assert_array_equal(scan.intensity, np.arange(500, dtype=np.float32))
