@@ -54,3 +54,34 @@ def test_parallel_description_gives_the_serial_results(serial, tmp_path, executi
 def test_a_scheduler_needs_the_dask_executor():
     with pytest.raises(ConfigError, match="execution.scheduler needs execution.executor: dask"):
         load_config(None, ["execution.scheduler=tcp://127.0.0.1:8786"])
+
+
+def test_localize_map_described_in_worker_processes(real_data, tmp_path):
+    """Localize mode: the map (a KITTI layout of real frames) is described by 2 local processes into the cache;
+    the candidates are those of a serial run."""
+    import shutil
+
+    from placerec.experiment.runner import run_localize
+
+    seq = tmp_path / "seq"
+    (seq / "velodyne").mkdir(parents=True)
+    frames = sorted((real_data / "kitti00_frames").glob("*.bin"))
+    for k, f in enumerate(frames):
+        shutil.copy(f, seq / "velodyne" / f"{k:06d}.bin")
+    lines = (real_data / "kitti00_frames" / "poses_00.txt").read_text().splitlines()
+    (seq / "poses.txt").write_text("\n".join(lines[int(f.stem)] for f in frames) + "\n")
+    base = [
+        "evaluation.mode=localize",
+        f"evaluation.localize.map={{source: path, path: '{seq}'}}",
+        f"evaluation.localize.queries={{source: path, path: '{seq}'}}",
+        "pipelines=[{name: scan-context, params: {verify: {enabled: false}}}]",
+        "evaluation.top_n=2",
+        "output.progress=false",
+    ]
+    serial = run_localize(load_config(None, [*base, "output.cache_dir=null"]))[2]
+    parallel = run_localize(
+        load_config(None, [*base, f"output.cache_dir={tmp_path / 'cache'}", "execution.workers=2"])
+    )[2]
+    assert _candidates(parallel) == _candidates(serial)
+    assert [c[0][0] for c in _candidates(serial)[0]] == [0, 1, 2, 3]  # every real frame finds itself
+    assert len(list((tmp_path / "cache").rglob("*.npz"))) == len(frames)
