@@ -378,6 +378,7 @@ def test_loop_report_holds_pose_errors_extended_precision_and_recomputes_them(tm
     print_table(payload, "hand [loop]")
     printed = capsys.readouterr().out
     assert "hand [loop]" in printed and "[m]" in printed and "100.500" in printed  # units are no rich markup
+    assert "retrieval within 25 m, same- / reverse-direction revisits" in printed and "R@1% 25 m" in page
 
 
 def test_localize_counts_success_from_the_estimated_pose_and_labels_retrieval(tmp_path):

@@ -60,7 +60,8 @@ def retrieval_metrics(
     ``query_ids``; ``gt`` is the ground truth at the retrieval distance (`loop_ground_truth` with
     ``gt_distance=25``)."""
     q = np.asarray(query_ids, dtype=np.int64).reshape(-1)
-    top = np.asarray(topn_match_ids, dtype=np.int64).reshape(q.size, -1)
+    top = np.asarray(topn_match_ids, dtype=np.int64)
+    top = top.reshape(q.size, -1) if top.size else np.full((q.size, 1), -1, np.int64)
     evaluated = gt.is_revisit[q]
     q, top = q[evaluated], top[evaluated]
     n_db = gt.max_eligible[q] + 1
