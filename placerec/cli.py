@@ -148,13 +148,19 @@ def info(
     format: Annotated[
         str | None, typer.Option(help="Force a reader (.bin files are recognised as 'kitti' or 'nclt').")
     ] = None,
+    dataset: Annotated[
+        str | None,
+        typer.Option(
+            help="Dataset layout (kitti, mulran, newer-college, helipr, nclt, mcap); default: detected."
+        ),
+    ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
 ) -> None:
     """Summarise a scan or a sequence: points, fields, intensity and range percentiles, beams, poses."""
     from placerec.errors import PlacerecError
 
     try:
-        summary = _summarise(path, format)
+        summary = _summarise(path, format, dataset)
     except PlacerecError as exc:
         _fail(exc)
         return
@@ -164,12 +170,12 @@ def info(
         _print_summary(summary)
 
 
-def _summarise(path: Path, format: str | None) -> dict:
+def _summarise(path: Path, format: str | None, dataset: str | None = None) -> dict:
     from placerec.io import open_sequence, read_scan
     from placerec.summary import scan_summary, sequence_summary
 
-    if path.is_dir() or path.suffix.lower() in {".bag", ".db3", ".mcap", ".pcap"}:
-        kwargs = {"format": format} if format else {}
+    if dataset or path.is_dir() or path.suffix.lower() in {".bag", ".db3", ".mcap", ".pcap"}:
+        kwargs = {k: v for k, v in (("format", format), ("dataset", dataset)) if v}
         return sequence_summary(open_sequence(path, **kwargs))
     return scan_summary(read_scan(path, format=format))
 
@@ -208,10 +214,16 @@ def run(
         list[str] | None,
         typer.Option("--set", "-s", help="Override a config value: key.path=value (repeatable)."),
     ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            help="Describe scans in N processes (execution.workers; executor: dask uses a cluster)."
+        ),
+    ] = None,
 ) -> None:
     """Run an experiment: every pipeline of CONFIG on its dataset; metrics, figures and a report.
 
-    Example: placerec run configs/demo.yaml --set dataset.simulator.n_scans=200
+    Example: placerec run configs/demo.yaml --set dataset.simulator.n_scans=200 --workers 2
     """
     from placerec.config import load_config
     from placerec.errors import PlacerecError
@@ -219,7 +231,8 @@ def run(
     from placerec.experiment.report import print_table
 
     try:
-        cfg = load_config(config, set_ or [])
+        overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
+        cfg = load_config(config, overrides)
         run_dir, payload = run_experiment(cfg, out)
     except PlacerecError as exc:
         _fail(exc)

@@ -30,6 +30,7 @@ __all__ = [
     "LocalizeConfig",
     "EvaluationConfig",
     "OutputConfig",
+    "ExecutionConfig",
     "ExperimentConfig",
     "load_config",
     "read_config_file",
@@ -58,6 +59,12 @@ class DatasetConfig(Params):
 
     source: Literal["simulator", "path"] = "simulator"
     path: str | None = None
+    dataset: str | None = Field(
+        None, description="dataset layout (kitti, mulran, newer-college, helipr, nclt, mcap); None = detected"
+    )
+    sequence: str | None = Field(None, description="kitti: the sequence of a dataset root, e.g. '00'")
+    sensor: str | None = Field(None, description="helipr: Ouster, Velodyne, Aeva or Avia")
+    topic: str | None = Field(None, description="rosbag / mcap: the PointCloud2 topic")
     format: str | None = None
     poses: str | None = None
     simulator: SimulatorConfig = Field(default_factory=SimulatorConfig)
@@ -140,6 +147,14 @@ class EvaluationConfig(Params):
     )
     gt_yaw_deg: float | None = Field(None, gt=0, description="optional heading limit for a true match")
     top_n: int = Field(5, ge=1, description="candidates requested per query (recall@N)")
+    retrieval_distance: float = Field(
+        25.0,
+        gt=0,
+        description="retrieval protocol: a candidate within this distance (m) is a hit (recall@1, @1%)",
+    )
+    reverse_yaw_deg: float = Field(
+        90.0, gt=0, le=180, description="a revisit is reverse-direction beyond this heading difference (deg)"
+    )
     localize: LocalizeConfig = Field(default_factory=LocalizeConfig)
 
 
@@ -154,6 +169,33 @@ class OutputConfig(Params):
     progress: bool = True
 
 
+class ExecutionConfig(Params):
+    """Where scans are described: in the main process (``workers: 1``, local executor), in ``workers`` local
+    processes, or on a Dask distributed cluster (``executor: dask``: a LocalCluster of ``workers`` processes, or
+    the scheduler at ``scheduler``, e.g. ``tcp://10.0.0.5:8786``, whose workers must see the dataset and the
+    cache folder at the same paths). Descriptions go to the on-disk cache (``output.cache_dir``, or a temporary
+    folder for the run when it is off); the run then queries and inserts in scan order as usual, so results are
+    those of a serial run."""
+
+    workers: int = Field(1, ge=1, description="processes describing scans (1 = the main process)")
+    executor: Literal["local", "dask"] = "local"
+    scheduler: str | None = Field(
+        None, description="Dask scheduler address (tcp://host:port); None = LocalCluster"
+    )
+    chunk: int = Field(16, ge=1, description="scans per task")
+
+    @model_validator(mode="after")
+    def _scheduler_needs_dask(self) -> ExecutionConfig:
+        if self.scheduler is not None and self.executor != "dask":
+            raise ValueError("execution.scheduler needs execution.executor: dask")
+        return self
+
+    @property
+    def parallel(self) -> bool:
+        """Whether description runs outside the main process."""
+        return self.executor == "dask" or self.workers > 1
+
+
 class ExperimentConfig(Params):
     """The root of a placerec experiment config."""
 
@@ -163,6 +205,7 @@ class ExperimentConfig(Params):
     pipelines: list[PipelineSpec] = Field(default_factory=lambda: [PipelineSpec(name="scan-context")])
     evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    execution: ExecutionConfig = Field(default_factory=ExecutionConfig)
 
     @model_validator(mode="after")
     def _unique_labels(self) -> ExperimentConfig:

@@ -630,3 +630,33 @@ def test_a_crash_after_this_process_saved_into_the_folder_is_still_cleaned_up(tm
     assert temps()
     save_artifact(tmp_path / "20.npz", "k", 1, {"x": np.arange(3)})
     assert len(listed) == 2 and not temps()
+
+
+def _rss_anon_mb() -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("RssAnon:"):
+                return int(line.split()[1]) / 1024
+    pytest.skip("no /proc/self/status RssAnon on this system")
+
+
+def test_memory_mapped_artifacts_cost_no_anonymous_memory_and_stay_copy_on_write(tmp_path):
+    """``load_artifact(mmap=True)``: the arrays equal the saved ones, are writable without changing the file, and
+    a 200 MB member adds (almost) no anonymous memory; a flipped data byte is still an ArtifactError (CRC)."""
+    big = np.arange(25_000_000, dtype=np.float64)  # 200 MB
+    path = tmp_path / "big.npz"
+    save_artifact(path, "test", 1, {"big": big, "small": np.arange(5, dtype=np.int32)})
+    del big
+    before = _rss_anon_mb()
+    arrays, _ = load_artifact(path, "test", (1,), mmap=True)
+    grown = _rss_anon_mb() - before
+    assert grown < 20, f"{grown:.0f} MB of anonymous memory for a memory-mapped 200 MB member"
+    assert arrays["big"][12_345_678] == 12_345_678 and arrays["small"].tolist() == [0, 1, 2, 3, 4]
+    arrays["small"][0] = 99  # copy-on-write: the file keeps its bytes
+    assert load_artifact(path, "test", (1,), mmap=True)[0]["small"][0] == 0
+    del arrays
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    path.write_bytes(bytes(data))
+    with pytest.raises(ArtifactError, match="CRC-32 mismatch"):
+        load_artifact(path, "test", (1,), mmap=True)

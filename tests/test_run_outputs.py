@@ -119,6 +119,11 @@ def test_candidates_csv_holds_the_top_n_per_query_and_recomputes_recall_at_n(seq
     again = recompute_loop_metrics(run, "scan-context")
     assert again["recall_at_n"] == pytest.approx(m["recall_at_n"])
     assert again["max_f1"] == pytest.approx(m["max_f1"])
+    # the retrieval protocol and the direction split sit beside the loop protocol, recomputed alike
+    assert set(m["retrieval"]) >= {"recall_at_1", "recall_at_1pct", "n_queries", "k_1pct_max"}
+    assert m["retrieval"]["n_queries"] >= m["n_revisits"]  # 25 m finds at least the revisits within 5 m
+    assert sum(m["directions"][d]["n_revisits"] for d in ("same", "reverse")) == m["n_revisits"]
+    assert again["retrieval"] == m["retrieval"] and again["directions"] == m["directions"]
 
 
 @pytest.mark.parametrize("frames", ["null", "2"])
@@ -373,6 +378,7 @@ def test_loop_report_holds_pose_errors_extended_precision_and_recomputes_them(tm
     print_table(payload, "hand [loop]")
     printed = capsys.readouterr().out
     assert "hand [loop]" in printed and "[m]" in printed and "100.500" in printed  # units are no rich markup
+    assert "retrieval within 25 m, same- / reverse-direction revisits" in printed and "R@1% 25 m" in page
 
 
 def test_localize_counts_success_from_the_estimated_pose_and_labels_retrieval(tmp_path):

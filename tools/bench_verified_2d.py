@@ -21,7 +21,8 @@ from placerec.config import load_config
 from placerec.eval.exclusion import ExclusionWindow
 from placerec.eval.metrics import evaluate_loop
 from placerec.eval.pose_error import pose_errors
-from placerec.experiment.runner import _preprocessed, loop_sequence
+from placerec.experiment.preprocessing import preprocessed_scan
+from placerec.experiment.runner import loop_sequence
 from placerec.recognizer import make_pipeline
 from placerec.retrieval.hbst import HBST, HBSTParams
 from placerec.types import relative_pose
@@ -111,7 +112,7 @@ def main() -> None:
     cfg = load_config(args.config)
     seq = loop_sequence(cfg, None)
     front = make_pipeline("orb-hbst")  # the ORB front end every setting shares (same frontend_key)
-    descs = [front.describe(_preprocessed(seq, i, cfg.preprocess)[0]) for i in range(len(seq))]
+    descs = [front.describe(preprocessed_scan(seq, i, cfg.preprocess)[0]) for i in range(len(seq))]
     result = {"bench": "verified_2d", "hbst": [hbst_recall(descs, seq.poses, t) for t in args.thresholds]}
     for row in result["hbst"]:
         print(row)

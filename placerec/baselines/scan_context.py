@@ -434,7 +434,7 @@ class ScanContext(Recognizer):
     def load(self, path: str | Path) -> None:
         """Replace the database with a saved one; `ArtifactError` if it is corrupt or its descriptor parameters
         differ from this recognizer's."""
-        arrays, header = load_artifact(path, ARTIFACT_KIND, (FORMAT_VERSION,), _SCHEMA)
+        arrays, header = load_artifact(path, ARTIFACT_KIND, (FORMAT_VERSION,), _SCHEMA, mmap=True)
         saved = (header.get("meta") or {}).get("params") or {}
         mine = self.params.descriptor_dict()
         theirs = {k: saved.get(k) for k in _DESCRIPTOR_PARAMS}

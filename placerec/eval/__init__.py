@@ -1,5 +1,5 @@
-"""Evaluation: loop-closure ground truth and metrics (VPR paper protocol), localisation success (ISHOT paper),
-errors of the closures' relative poses.
+"""Evaluation: loop-closure ground truth and metrics (VPR paper protocol), retrieval recall@1 / @1% and the
+same- / reverse-direction split, localisation success (ISHOT paper), errors of the closures' relative poses.
 
 Only NumPy and SciPy are imported here.
 """
@@ -26,6 +26,12 @@ from placerec.eval.pose_error import (
     full_pose_mask,
     pose_errors,
 )
+from placerec.eval.retrieval import (
+    RetrievalMetrics,
+    direction_summary,
+    retrieval_metrics,
+    revisit_directions,
+)
 
 __all__ = [
     "DEFAULT_EXCLUSION_FRAMES",
@@ -46,4 +52,8 @@ __all__ = [
     "error_stats",
     "full_pose_mask",
     "pose_errors",
+    "RetrievalMetrics",
+    "retrieval_metrics",
+    "revisit_directions",
+    "direction_summary",
 ]

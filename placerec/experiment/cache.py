@@ -51,6 +51,10 @@ class DescriptionCache:
         assert self.root is not None
         return self.root / frontend_key / f"{index:06d}.npz"
 
+    def has(self, frontend_key: str, index: int) -> bool:
+        """Whether an entry is stored (not checked: `get` checks it)."""
+        return self.root is not None and self._path(frontend_key, index).is_file()
+
     def get(self, frontend_key: str, index: int) -> tuple[Description, float] | None:
         """(description, the milliseconds its front end took), or None when absent or unusable (with a warning;
         the caller recomputes it)."""

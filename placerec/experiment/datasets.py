@@ -64,7 +64,7 @@ def _simulator(cfg: DatasetConfig) -> Sequence:
 def _path(cfg: DatasetConfig) -> Sequence:
     from placerec.io import open_sequence
 
-    kwargs = {}
+    kwargs = {k: v for k in ("dataset", "sequence", "sensor", "topic") if (v := getattr(cfg, k)) is not None}
     if cfg.format:
         kwargs["format"] = cfg.format
     if cfg.poses:

@@ -45,9 +45,12 @@ from placerec.eval import (
     ExclusionWindow,
     LoopMetrics,
     closure_pose_errors,
+    direction_summary,
     evaluate_loop,
     full_pose_mask,
     localization_metrics,
+    loop_ground_truth,
+    retrieval_metrics,
     timing_summary,
 )
 from placerec.experiment import figures
@@ -146,9 +149,17 @@ def _loop_summary(
     """A pipeline's loop metrics and their ``metrics.json`` entry (without times): PR metrics of the top
     candidates, recall@N, and the pose errors of the closures accepted at the max-F1 threshold."""
     q, m, s = table.top1()
-    metrics, _ = evaluate_loop(q, m, s, poses, table.topn(cfg.evaluation.top_n), **_gt_options(cfg, stamps))
+    ev = cfg.evaluation
+    options = _gt_options(cfg, stamps)
+    topn = table.topn(ev.top_n)
+    metrics, gt = evaluate_loop(q, m, s, poses, topn, **options)
     summary = metrics.summary()
     summary["auc"] = summary.pop("average_precision")
+    summary["directions"] = direction_summary(metrics, gt, ev.reverse_yaw_deg)
+    retrieval_gt = loop_ground_truth(
+        poses, **{**options, "gt_distance": ev.retrieval_distance, "gt_yaw_deg": None}
+    )
+    summary["retrieval"] = retrieval_metrics(metrics.query_ids, topn, retrieval_gt).summary()
     summary["pose_error"] = closure_pose_errors(metrics, table.relative_poses[:, 0], poses).summary()
     return metrics, summary
 
@@ -337,6 +348,18 @@ _LOOP_COLUMNS = (
     ("p95", ("pose_error", "tp_rotation_deg", "p95")),
     ("max accepted t err [m]", ("pose_error", "accepted_max_translation_m")),
 )
+#: the protocols beside the loop protocol (`placerec.eval.retrieval`): a second table in loop mode
+_PROTOCOL_COLUMNS = (
+    ("R@1 25 m", ("retrieval", "recall_at_1")),
+    ("R@1% 25 m", ("retrieval", "recall_at_1pct")),
+    ("retrieval queries", ("retrieval", "n_queries")),
+    ("same: revisits", ("directions", "same", "n_revisits")),
+    ("R@1", ("directions", "same", "recall_at_1")),
+    ("R@maxF1", ("directions", "same", "recall_at_max_f1")),
+    ("reverse: revisits", ("directions", "reverse", "n_revisits")),
+    ("R@1", ("directions", "reverse", "recall_at_1")),
+    ("R@maxF1", ("directions", "reverse", "recall_at_max_f1")),
+)
 _LOCALIZE_COLUMNS = (
     ("basis", ("success_basis",)),
     ("success", ("success_rate",)),
@@ -377,29 +400,52 @@ def table_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     return header, rows
 
 
+def protocol_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]] | None:
+    """Header and rows of the loop-mode table of retrieval recalls (25 m) and same- / reverse-direction revisits
+    (None in localize mode)."""
+    if payload["mode"] != "loop":
+        return None
+    header = ["pipeline"] + [h for h, _ in _PROTOCOL_COLUMNS]
+    rows = [
+        [label] + [_fmt(_get(m, k)) for _, k in _PROTOCOL_COLUMNS]
+        for label, m in payload["pipelines"].items()
+    ]
+    return header, rows
+
+
 def print_table(payload: dict[str, Any], title: str) -> None:
     """The results as a rich console table."""
     from rich.console import Console
     from rich.table import Table
     from rich.text import Text
 
-    header, rows = table_rows(payload)
-    table = Table(title=Text(title))
-    for i, h in enumerate(header):  # Text: "[m]" is a unit, not rich markup
-        table.add_column(Text(h), justify="left" if i == 0 else "right", style="bold" if i == 0 else None)
-    for row in rows:
-        table.add_row(*(Text(c) for c in row))
     console = Console()
     if not console.is_terminal:  # logs and pipes: wide enough that no column is cut
         console = Console(width=200)
-    console.print(table)
+    tables = [(title, table_rows(payload))]
+    protocols = protocol_rows(payload)
+    if protocols is not None:
+        tables.append((f"{title}: retrieval within 25 m, same- / reverse-direction revisits", protocols))
+    for name, (header, rows) in tables:
+        table = Table(title=Text(name))
+        for i, h in enumerate(header):  # Text: "[m]" is a unit, not rich markup
+            table.add_column(Text(h), justify="left" if i == 0 else "right", style="bold" if i == 0 else None)
+        for row in rows:
+            table.add_row(*(Text(c) for c in row))
+        console.print(table)
 
 
 def write_index_html(run: Path, cfg: ExperimentConfig, payload: dict[str, Any]) -> Path:
     """A single page with the table and every figure of the run."""
-    header, rows = table_rows(payload)
-    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+    html_tables = [table_rows(payload)] + [t for t in [protocol_rows(payload)] if t is not None]
+    tables = "".join(
+        "<table><tr>"
+        + "".join(f"<th>{html.escape(h)}</th>" for h in header)
+        + "</tr>"
+        + "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+        + "</table>"
+        for header, rows in html_tables
+    )
     images = sorted(p.name for p in run.glob("*.png"))
     order = {"pr_curves.png": 0, "timing.png": 2}
     images.sort(key=lambda n: (order.get(n, 1), n))
@@ -408,10 +454,10 @@ def write_index_html(run: Path, cfg: ExperimentConfig, payload: dict[str, Any]) 
         for n in images
     )
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(cfg.name)}</title>
-<style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}
+<style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse;margin-bottom:1em}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}
 td:first-child{{text-align:left;font-weight:bold}}figure{{display:inline-block;margin:1em}}img{{max-width:560px}}</style></head><body>
 <h1>{html.escape(cfg.name)}</h1><p>mode: {html.escape(payload["mode"])} &middot; files: <a href="metrics.json">metrics.json</a>,
-<a href="config.yaml">config.yaml</a></p><table><tr>{head}</tr>{body}</table>{figs}</body></html>"""
+<a href="config.yaml">config.yaml</a></p>{tables}{figs}</body></html>"""
     path = run / "index.html"
     with atomic_write(path, "w") as fh:
         fh.write(page)

@@ -10,23 +10,23 @@ with it, so it does not depend on the cache or on which pipeline came first. A s
 from __future__ import annotations
 
 import logging
+import tempfile
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from placerec.config import ExperimentConfig, PreprocessConfig
+from placerec.config import ExperimentConfig
 from placerec.errors import ConfigError, ScanDataError
 from placerec.experiment.cache import DescriptionCache, config_hash
 from placerec.experiment.candidates import CandidateTable
 from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint, open_dataset
-from placerec.experiment.preprocessing import preprocess_params
+from placerec.experiment.preprocessing import preprocessed_scan
 from placerec.loop_closure import LoopClosureDetector, split_verify_time
 from placerec.params import Params
-from placerec.preprocess import preprocess_scan
 from placerec.recognizer import make_pipeline
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, Sequence
 
@@ -40,6 +40,7 @@ __all__ = [
     "run_loop",
     "run_localize",
     "progress_bars",
+    "description_cache",
 ]
 
 STAGES = ("preprocess", "describe", "query", "insert", "verify")
@@ -92,12 +93,6 @@ def progress_bars(enabled: bool) -> Iterator[Any]:
         transient=False,
     ) as progress:
         yield progress
-
-
-def _preprocessed(seq: Sequence, index: int, cfg: PreprocessConfig) -> tuple[Scan, float]:
-    t0 = time.perf_counter()
-    scan = preprocess_scan(seq[index], preprocess_params(cfg), keep_organized=True)
-    return scan, (time.perf_counter() - t0) * 1e3
 
 
 class _Frontends:
@@ -162,6 +157,25 @@ def _data_key(cfg: ExperimentConfig, dataset_cfg: Any) -> str:
     )
 
 
+@contextmanager
+def description_cache(
+    cfg: ExperimentConfig, dataset_cfg: Any, n_scans: int, cache_dir: str | None, progress: Any
+) -> Iterator[DescriptionCache]:
+    """The description cache of a config dataset; with ``execution`` parallel, filled first by
+    `placerec.experiment.parallel.describe_in_parallel` (into a temporary folder for the run when the cache is
+    off, ``cache_dir`` None)."""
+    key = _data_key(cfg, dataset_cfg)
+    if not cfg.execution.parallel:
+        yield DescriptionCache(cache_dir, key)
+        return
+    from placerec.experiment.parallel import describe_in_parallel
+
+    with ExitStack() as stack:
+        root = cache_dir or stack.enter_context(tempfile.TemporaryDirectory(prefix="placerec-descriptions-"))
+        describe_in_parallel(cfg, dataset_cfg, n_scans, root, key, progress)
+        yield DescriptionCache(root, key)
+
+
 def loop_sequence(cfg: ExperimentConfig, seq: Sequence | None = None) -> Sequence:
     """The loop-mode sequence (``cfg.dataset`` unless ``seq`` is given), checked against the exclusion window:
     `ConfigError` when a limit in metres has no poses or one in seconds no timestamps to apply to."""
@@ -183,7 +197,8 @@ def run_loop(
     (``output.cache_dir``) is keyed by the config's dataset, so it is used only when ``seq`` is not given. A
     sequence with no scans, or one shorter than the exclusion window, gives every query no candidates."""
     pipelines = build_pipelines(cfg) if pipelines is None else pipelines
-    cache_dir = cfg.output.cache_dir if seq is None else None
+    own_data = seq is None
+    cache_dir = cfg.output.cache_dir if own_data else None
     seq = loop_sequence(cfg, seq)
     ex = cfg.evaluation.exclusion
     detectors = [
@@ -198,11 +213,15 @@ def run_loop(
         for _, rec in pipelines
     ]
     poses, stamps = seq.poses, seq.timestamps
-    frontends = _Frontends(DescriptionCache(cache_dir, _data_key(cfg, cfg.dataset)))
-    with progress_bars(cfg.output.progress) as progress:
+    with progress_bars(cfg.output.progress) as progress, ExitStack() as stack:
+        if own_data and cfg.execution.parallel:
+            cache = stack.enter_context(description_cache(cfg, cfg.dataset, len(seq), cache_dir, progress))
+        else:
+            cache = DescriptionCache(cache_dir, _data_key(cfg, cfg.dataset))
+        frontends = _Frontends(cache)
         tasks = [progress.add_task(record.label, total=len(seq)) for record, _ in pipelines]
         for i in range(len(seq)):
-            scan, pre_ms = _preprocessed(seq, i, cfg.preprocess)
+            scan, pre_ms = preprocessed_scan(seq, i, cfg.preprocess)
             pose = None if poses is None else poses[i]
             stamp = None if stamps is None else float(stamps[i])
             for (record, rec), det, task in zip(pipelines, detectors, tasks, strict=True):
@@ -267,14 +286,17 @@ def run_localize(
     pipelines = build_pipelines(cfg) if pipelines is None else pipelines
     cache_dir = cfg.output.cache_dir if sequences is None else None
     map_seq, query_seq = localize_sequences(cfg) if sequences is None else _with_poses(*sequences)
-    map_front = _Frontends(
-        DescriptionCache(cache_dir, _data_key(cfg, cfg.evaluation.localize.map or cfg.dataset))
-    )
+    map_cfg = cfg.evaluation.localize.map or cfg.dataset
     query_front = _Frontends(DescriptionCache(None, "queries"))
-    with progress_bars(cfg.output.progress) as progress:
+    with progress_bars(cfg.output.progress) as progress, ExitStack() as stack:
+        if sequences is None and cfg.execution.parallel and cfg.evaluation.localize.map is not None:
+            cache = stack.enter_context(description_cache(cfg, map_cfg, len(map_seq), cache_dir, progress))
+        else:
+            cache = DescriptionCache(cache_dir, _data_key(cfg, map_cfg))
+        map_front = _Frontends(cache)
         tasks = [progress.add_task(f"{record.label} (map)", total=len(map_seq)) for record, _ in pipelines]
         for i in range(len(map_seq)):
-            scan, _ = _preprocessed(map_seq, i, cfg.preprocess)
+            scan, _ = preprocessed_scan(map_seq, i, cfg.preprocess)
             for (record, rec), task in zip(pipelines, tasks, strict=True):
                 try:
                     rec.add_description(i, map_front.describe(rec, i, scan)[0], map_seq.poses[i])
@@ -285,7 +307,7 @@ def run_localize(
             progress.add_task(f"{record.label} (queries)", total=len(query_seq)) for record, _ in pipelines
         ]
         for q in range(len(query_seq)):
-            scan, pre_ms = _preprocessed(query_seq, q, cfg.preprocess)
+            scan, pre_ms = preprocessed_scan(query_seq, q, cfg.preprocess)
             for (record, rec), task in zip(pipelines, tasks, strict=True):
                 timing = {"preprocess": pre_ms}
                 cands: list[Candidate] = []

@@ -163,8 +163,12 @@ def load_artifact(
     schema: Schema | None = None,
     *,
     limit: int | None = None,
+    mmap: bool = False,
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Read an artifact written by `save_artifact`. Returns (arrays, header); arrays are writable.
+
+    ``mmap``: the arrays are copy-on-write memory maps of the file (`placerec.io.npz.read_npz_arrays`): a large
+    database costs RAM only for the pages used, which the kernel can drop again.
 
     Checks, raising `ArtifactError` naming the file: the archive (file and declared member sizes within the
     artifact load cap, `placerec.io.limits`, or ``limit``; stored members only, as `save_artifact` writes them,
@@ -175,8 +179,11 @@ def load_artifact(
     path = Path(path)
     if not path.is_file():
         raise ArtifactError(f"{path}: no such artifact file")
-    check_size(path.stat().st_size, path, "file size", ArtifactError, "artifact", limit)
-    arrays = read_npz_arrays(path, path, ArtifactError, "artifact", allow_deflate=False, limit=limit)
+    if not mmap:
+        check_size(path.stat().st_size, path, "file size", ArtifactError, "artifact", limit)
+    arrays = read_npz_arrays(
+        path, path, ArtifactError, "artifact", allow_deflate=False, limit=limit, mmap=mmap
+    )
     header = _parse_header(arrays.pop(HEADER_KEY, None), path)
     if header["kind"] != kind:
         raise ArtifactError(f"{path}: artifact is a {short_repr(header['kind'])}, expected a {kind!r}")

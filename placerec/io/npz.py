@@ -25,6 +25,7 @@ from placerec.io.limits import FileClass, check_size
 __all__ = ["parse_npy", "read_npz_arrays"]
 
 _CODECS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflate"}
+_CRC_CHUNK = 64 << 20
 # what corrupt bytes can raise inside zipfile / zlib / numpy's header parser
 _ZIP_ERRORS = (
     zipfile.BadZipFile,
@@ -95,9 +96,14 @@ def read_npz_arrays(
     keys: Iterable[str] | None = None,
     allow_deflate: bool = True,
     limit: int | None = None,
+    mmap: bool = False,
 ) -> dict[str, np.ndarray]:
     """The arrays of an ``.npz`` archive (a path, or its bytes), by name without ``.npy``; with ``keys`` only
     those members are decoded (the others are still size-checked). Arrays are writable.
+
+    ``mmap`` (``source`` a path): stored members are memory-mapped copy-on-write instead of read, so their pages
+    are read once for their CRC-32 and can then be dropped by the kernel and paged in again on use (the load
+    cap, which bounds allocations, applies only to the members read).
 
     Checks, before any member is decompressed: unique ``.npy`` member names, known codecs (stored, and deflate
     if ``allow_deflate``; a stored member's declared size equal to its stored size), no encryption, total
@@ -131,11 +137,16 @@ def read_npz_arrays(
                     )
                 if info.flag_bits & 0x1:
                     raise error(f"{where}: .npz member {info.filename!r} is encrypted")
-            check_size(sum(info.file_size for info in infos), where, ".npz member table", error, cls, limit)
+            mapped = mmap and not isinstance(source, bytes)
+            read = [i for i in infos if not (mapped and i.compress_type == zipfile.ZIP_STORED)]
+            check_size(sum(info.file_size for info in read), where, ".npz member table", error, cls, limit)
             for info in infos:
                 key = info.filename[:-4]
                 if wanted is None or key in wanted:
-                    out[key] = _read_member(zf, info, f"{where}[{key}]", error)
+                    if info in read:
+                        out[key] = _read_member(zf, info, f"{where}[{key}]", error)
+                    else:
+                        out[key] = _map_member(Path(source), zf, info, f"{where}[{key}]", error)
     except PlacerecError:
         raise
     except _ZIP_ERRORS as exc:
@@ -159,4 +170,37 @@ def _read_member(
         if got != need:
             raise error(f"{where}: .npy data truncated: {got} bytes, expected {need}")
     arr = np.frombuffer(data, dtype=dtype, count=math.prod(shape))
+    return arr.reshape(shape, order="F" if fortran else "C")
+
+
+def _map_member(
+    path: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo, where: str, error: type[PlacerecError]
+) -> np.ndarray:
+    """A stored member as a view of a copy-on-write memory map of ``path``, after checking its CRC-32 on the
+    mapped bytes (read once, in chunks: the pages stay reclaimable page cache, nothing is allocated)."""
+    with zf.open(info) as fh:
+        shape, fortran, dtype = _read_header(fh, where, error)
+        header_len = fh.tell()
+    need = _nbytes(shape, dtype)
+    if header_len + need != info.file_size:
+        raise error(
+            f"{where}: .npy header declares shape {shape} of {dtype} ({need} bytes) but the member holds "
+            f"{info.file_size - header_len} data bytes"
+        )
+    with open(path, "rb") as raw:
+        raw.seek(info.header_offset)
+        local = raw.read(30)
+    if len(local) != 30 or local[:4] != b"PK\x03\x04":
+        raise error(f"{where}: no zip local header at offset {info.header_offset}")
+    name_len, extra_len = struct.unpack("<HH", local[26:30])
+    start = info.header_offset + 30 + name_len + extra_len
+    if start + info.file_size > path.stat().st_size:
+        raise error(f"{where}: .npy data truncated: the file ends before the member's {info.file_size} bytes")
+    member = np.memmap(path, dtype=np.uint8, mode="c", offset=start, shape=(info.file_size,))
+    crc = 0
+    for k in range(0, info.file_size, _CRC_CHUNK):
+        crc = zlib.crc32(member[k : k + _CRC_CHUNK], crc)
+    if crc != info.CRC:
+        raise error(f"{where}: CRC-32 mismatch (the member's bytes are corrupt)")
+    arr = np.frombuffer(member, dtype=dtype, count=math.prod(shape), offset=header_len)
     return arr.reshape(shape, order="F" if fortran else "C")

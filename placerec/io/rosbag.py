@@ -20,7 +20,14 @@ from placerec.io._common import columns_to_scan, structured_columns
 from placerec.safe_yaml import load_yaml_file
 from placerec.types import Scan
 
-__all__ = ["RosbagSequence", "pointcloud2_to_scan", "POINTCLOUD2"]
+__all__ = [
+    "RosbagSequence",
+    "pointcloud2_to_scan",
+    "header_stamp",
+    "same_time_ranks",
+    "message_index",
+    "POINTCLOUD2",
+]
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +110,7 @@ def _rosbags() -> tuple[Any, Any, Any]:
     return AnyReader, AnyReaderError, get_typestore(Stores.LATEST)
 
 
-def _header_stamp(raw: bytes | memoryview, ros2: bool) -> float:
+def header_stamp(raw: bytes | memoryview, ros2: bool) -> float:
     """Header stamp (s) read straight from the serialized message (the header is its first field)."""
     if ros2:  # CDR: 4-byte encapsulation header (byte 1: 1 = little endian), then int32 sec, uint32 nanosec
         endian = "<" if raw[1] == 1 else ">"
@@ -111,6 +118,20 @@ def _header_stamp(raw: bytes | memoryview, ros2: bool) -> float:
     else:  # ROS1: uint32 seq, uint32 secs, uint32 nsecs
         sec, nsec = struct.unpack_from("<II", raw, 4)
     return sec + nsec * 1e-9
+
+
+def same_time_ranks(log_times: np.ndarray) -> np.ndarray:
+    """Rank of each message among those sharing its (sorted) log time, to pick it out of a time-window query."""
+    return np.arange(log_times.size) - np.searchsorted(log_times, log_times, side="left")
+
+
+def message_index(index: int, n: int, topic: str) -> int:
+    """``index`` (negative counts from the end) checked against ``n`` messages; IndexError outside."""
+    if index < 0:
+        index += n
+    if not 0 <= index < n:
+        raise IndexError(f"message {index} out of range ({n} messages on {topic})")
+    return index
 
 
 class RosbagSequence:
@@ -153,25 +174,19 @@ class RosbagSequence:
         try:
             for _, t, raw in self._reader.messages(connections=self._conns):
                 log_times.append(t)
-                stamps.append(_header_stamp(raw, self._reader.is2))
+                stamps.append(header_stamp(raw, self._reader.is2))
         except (AnyReaderError, *_BAG_ERRORS) as exc:
             self.close()
             raise ScanFormatError(f"{self._path}: cannot index topic {topic} ({exc})") from exc
         self._log_times = np.asarray(log_times, dtype=np.int64)
         self._stamps = np.asarray(stamps, dtype=np.float64)
-        # rank of each message among those sharing its log time (to pick it out of a time-window query)
-        first = np.searchsorted(self._log_times, self._log_times, side="left")
-        self._rank = np.arange(len(log_times)) - first
+        self._rank = same_time_ranks(self._log_times)
 
     def __len__(self) -> int:
         return int(self._log_times.size)
 
     def __getitem__(self, index: int) -> Scan:
-        n = len(self)
-        if index < 0:
-            index += n
-        if not 0 <= index < n:
-            raise IndexError(f"message {index} out of range ({n} messages on {self._topic})")
+        index = message_index(index, len(self), self._topic)
         t = int(self._log_times[index])
         where = f"{self._path}:{self._topic}#{index}"
         try:

@@ -357,7 +357,7 @@ class VisualDBoW(VisualFrontend, Recognizer):
         return np.uint8 if self.vocabulary.binary else np.float32
 
     def load(self, path: str | Path) -> None:
-        arrays, header = load_artifact(path, _KIND, (_VERSION,))
+        arrays, header = load_artifact(path, _KIND, (_VERSION,), mmap=True)
         check_saved_params(path, header, self.params)
         saved_voc = header["meta"].get("vocabulary")
         if saved_voc != self.vocabulary.fingerprint:

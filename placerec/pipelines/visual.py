@@ -424,7 +424,7 @@ class VisualHBST(VisualFrontend, Recognizer):
         save_artifact(path, _KIND, _VERSION, arrays, {"params": self.params.model_dump(mode="json")})
 
     def load(self, path: str | Path) -> None:
-        arrays, header = load_artifact(path, _KIND, (_VERSION,))
+        arrays, header = load_artifact(path, _KIND, (_VERSION,), mmap=True)
         check_saved_params(path, header, self.params)
         schema = features_schema(self.extractor.descriptor_size, True, self.params.verify.enabled)
         check_members(arrays, schema, path)

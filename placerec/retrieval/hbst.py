@@ -262,7 +262,7 @@ class HBST:
         """Read a tree written by `save`; raises `ArtifactError` if the file is corrupt or of another version."""
         from placerec.io.atomic import load_artifact
 
-        arrays, header = load_artifact(path, ARTIFACT_KIND, (FORMAT_VERSION,), _SCHEMA)
+        arrays, header = load_artifact(path, ARTIFACT_KIND, (FORMAT_VERSION,), _SCHEMA, mmap=True)
         meta = header["meta"]
         present = [k for k in _TREE_MEMBERS if k in arrays]
         if (present and len(present) != len(_TREE_MEMBERS)) or bool(present) != (

@@ -7,8 +7,8 @@ number of steps), ``depth``, ``used`` (packed mask of the split bits on the path
 
 The pool keeps each leaf's descriptors contiguous (rows ``start .. start + count`` of ``words``/``image``/
 ``keypoint``), so the brute-force search in a leaf reads one contiguous run. A leaf that outgrows its block moves
-to a new block (twice the size) at the end of the pool; a split partitions the parent's block in place between
-its two children. The holes left behind are squeezed out when they exceed the live blocks.
+to a new block (1.5 times the size) at the end of the pool; a split partitions the parent's block in place between
+its two children. The holes left behind are squeezed out when they exceed half the live blocks.
 
 Every operation works on all descriptors (or all touched leaves) at once: no Python loop runs per descriptor.
 """
@@ -127,12 +127,12 @@ class FlatTree:
             return
         leaves = self._leaf_ids()
         live = int(self.cap[leaves].sum())
-        if self.top - live > live:
+        if 2 * (self.top - live) > live:
             self._compact(leaves)
-        # keep free room at least as large as the data, so that compactions (O(live)) stay rare: amortised O(1)
-        need = max(self.top + rows, 2 * self.top)
+        # keep free room of at least half the data, so that compactions (O(live)) stay rare: amortised O(1)
+        need = max(self.top + rows, self.top + self.top // 2)
         if need > self.words.shape[0]:
-            self._alloc_pool(max(2 * self.words.shape[0], need))
+            self._alloc_pool(max(self.words.shape[0] + self.words.shape[0] // 2, need))
 
     def _compact(self, leaves: np.ndarray) -> None:
         leaves = leaves[np.argsort(self.start[leaves], kind="stable")]
@@ -156,7 +156,7 @@ class FlatTree:
 
     def _relocate(self, leaves: np.ndarray, need: np.ndarray) -> None:
         """Move ``leaves`` to fresh blocks at the end of the pool with room for at least ``need`` rows."""
-        new_cap = np.maximum(2 * need, 8)
+        new_cap = np.maximum(need + need // 2, 8)
         self._reserve(int(new_cap.sum()))
         new_start = self.top + np.cumsum(new_cap) - new_cap
         src = segment_positions(self.start[leaves], self.count[leaves])

@@ -7,8 +7,8 @@ vectorised pass over the buffer.
 
 Query score (DBoW2's L1 scoring): for every entry sharing words with the query,
 ``s = -0.5 * sum_common(|q_i - d_i| - |q_i| - |d_i|)``, which equals ``1 - 0.5 |q - d|_1`` for L1-normalised
-vectors; accumulated with ``np.bincount`` over the postings of the query's words. Entries sharing no word score 0
-and are not returned. ``max_id`` keeps only entries whose caller id is ``<= max_id`` (the exclusion window).
+vectors; accumulated over the postings of the query's words in one compiled pass (Numba). Entries sharing no
+word score 0 and are not returned. ``max_id`` keeps only entries whose caller id is ``<= max_id`` (the exclusion window).
 
 Direct index: per entry, the vocabulary node at depth ``L - levels_up`` of every feature (DBoW2's FeatureVector),
 so that features are matched only against features under the same node (`candidate_pairs`).
@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 
 from placerec.errors import ArtifactError, ScanDataError, short_repr
 from placerec.io.artifact_schema import Member, check_counts, check_unique
@@ -174,27 +175,13 @@ class BowDatabase:
         if n_entries == 0 or qw.size == 0 or max_results <= 0:
             return QueryResults(np.zeros(0, np.int64), np.zeros(0))
         qv = np.asarray(bow.values, np.float64)
-        starts, ends = self._indptr[qw], self._indptr[qw + 1]
-        lens = ends - starts
-        total = int(lens.sum())
-        offsets = np.cumsum(lens) - lens
-        idx = np.repeat(starts - offsets, lens) + np.arange(total)
-        entries = self._entry[idx]
-        dvals = self._value[idx]
-        qvals = np.repeat(qv, lens)
+        acc = np.zeros(n_entries)
+        _accumulate_postings(self._indptr, self._entry, self._value, qw, qv, acc)
         if self._buf_n:
             dense = np.zeros(self.vocabulary.n_words)
             dense[qw] = qv
-            bw = self._buf_word[: self._buf_n]
-            hit = np.flatnonzero(dense[bw])
-            entries = np.concatenate([entries, self._buf_entry[hit]])
-            dvals = np.concatenate([dvals, self._buf_value[hit]])
-            qvals = np.concatenate([qvals, dense[bw[hit]]])
-        if entries.size == 0:
-            return QueryResults(np.zeros(0, np.int64), np.zeros(0))
-        acc = np.bincount(
-            entries, weights=np.abs(qvals - dvals) - np.abs(qvals) - np.abs(dvals), minlength=n_entries
-        )
+            n = self._buf_n
+            _accumulate_buffer(self._buf_word[:n], self._buf_entry[:n], self._buf_value[:n], dense, acc)
         ok = acc < 0
         if max_id is not None:
             ok &= self.ids <= max_id
@@ -230,7 +217,7 @@ class BowDatabase:
     def load(cls, path: str | Path, vocabulary: Vocabulary) -> BowDatabase:
         """Read a database saved with ``vocabulary``; `ArtifactError` if the file is corrupt or inconsistent (counts
         that do not add up, repeated ids, words outside the vocabulary) or was built with another vocabulary."""
-        arrays, header = load_artifact(path, _KIND, (_VERSION,), _SCHEMA)
+        arrays, header = load_artifact(path, _KIND, (_VERSION,), _SCHEMA, mmap=True)
         meta = header["meta"]
         if meta.get("vocabulary") != vocabulary.fingerprint:
             raise ArtifactError(
@@ -259,6 +246,32 @@ class BowDatabase:
             nodes = arrays["nodes"][n_off[i] : n_off[i + 1]] if arrays["has_nodes"][i] else None
             db.add(bow, nodes, int(eid))
         return db
+
+
+@njit(cache=True, nogil=True)
+def _accumulate_postings(
+    indptr: np.ndarray, entry: np.ndarray, value: np.ndarray, qw: np.ndarray, qv: np.ndarray, acc: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    """``acc[e] += |q - d| - |q| - |d|`` over the CSR postings of the query's words, in the order the words and
+    postings come (so the sums are those of one `np.bincount` over the gathered postings)."""
+    for k in range(qw.size):
+        q = qv[k]
+        aq = abs(q)
+        for p in range(indptr[qw[k]], indptr[qw[k] + 1]):
+            d = value[p]
+            acc[entry[p]] += abs(q - d) - aq - abs(d)
+
+
+@njit(cache=True, nogil=True)
+def _accumulate_buffer(
+    word: np.ndarray, entry: np.ndarray, value: np.ndarray, dense: np.ndarray, acc: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    """The same over the append buffer: postings whose word the query holds (``dense[word] != 0``)."""
+    for p in range(word.size):
+        q = dense[word[p]]
+        if q != 0.0:
+            d = value[p]
+            acc[entry[p]] += abs(q - d) - abs(q) - abs(d)
 
 
 def candidate_pairs(nodes_a: np.ndarray, nodes_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
