@@ -200,6 +200,11 @@ PIPELINES: dict[str, PipelineEntry] = {
         "ISHOT paper's baseline: ISS-BR keypoints, SHOT descriptors, ratio-tested NN votes",
         {"descriptor": "shot"},
     ),
+    "ishot-prob": PipelineEntry(
+        "placerec.pipelines.probabilistic_voting:ProbabilisticVoting",
+        "ISHOT paper Sec. IV: probabilistic keypoint voting (batches of 16, stop at 15 %), verification + ICP",
+        {"descriptor": "ishot"},
+    ),
     "fpfh-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",
         "ISHOT paper's baseline: ISS-BR keypoints, FPFH descriptors, ratio-tested NN votes",

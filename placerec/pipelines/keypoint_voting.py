@@ -80,10 +80,12 @@ from placerec.verify.params import VerifyParams
 
 log = logging.getLogger(__name__)
 
-__all__ = ["VotingParams", "KeypointVoting", "knn2", "ratio_votes"]
+__all__ = ["VotingParams", "KeypointVoting", "knn2", "nn_ratio", "ratio_votes"]
 
 _KIND = "keypoint-voting-db"
 _VERSION = 1
+#: The kind of a saved database (`KeypointVoting.save`), shared by its subclasses.
+ARTIFACT_KIND = _KIND
 
 
 class VotingParams(FeatureParams):
@@ -152,13 +154,17 @@ def knn2(
     return np.sqrt(np.maximum(d2, 0.0)), np.asarray(idx, dtype=np.int64)
 
 
+def nn_ratio(dist: np.ndarray) -> np.ndarray:
+    """``tau = d1 / d2`` (eq. 4) of `knn2` distances; 1 where ``d2 = 0`` (two identical neighbours)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(dist[:, 1] > 0, dist[:, 0] / dist[:, 1], 1.0)
+
+
 def ratio_votes(
     dist: np.ndarray, idx: np.ndarray, row_entry: np.ndarray, n_entries: int, tau_max: float
 ) -> np.ndarray:
     """Votes per entry: each query row votes for the entry of its 1st neighbour when ``d1 / d2 < tau_max``."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        tau = np.where(dist[:, 1] > 0, dist[:, 0] / dist[:, 1], 1.0)
-    ok = tau < tau_max
+    ok = nn_ratio(dist) < tau_max
     return np.bincount(row_entry[idx[ok, 0]], minlength=n_entries)
 
 
@@ -442,8 +448,7 @@ class KeypointVoting(Recognizer):
         if rows.shape[0] < 2:
             return Retrieved(self._ids[e], score, np.zeros((0, 3)), np.zeros((0, 3)), extra=extra)
         dist, idx = knn2(q, rows, self.params.backend, self.params.nn_threads)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tau = np.where(dist[:, 1] > 0, dist[:, 0] / dist[:, 1], 1.0)
+        tau = nn_ratio(dist)
         ok = tau < self.params.tau_max
         dst = self._keypoints[e][idx[ok, 0]]
         ms = (time.perf_counter() - t0) * 1e3
