@@ -144,7 +144,8 @@ class ProbabilisticVoting(KeypointVoting):
             if not p.early_stop or prob.max() <= p.xi_v:
                 continue
             stopped = True
-            source = source if source is not None else self._source(description)
+            if source is None and p.verify.enabled:
+                source = self._source(description)
             todo = [e for e in np.argsort(-prob, kind="stable") if prob[e] > 0 and int(e) not in verified]
             accepted = self._verify(
                 todo, prob, votes, q, qkp, starts, source, verified, query_id, consumed, True
@@ -155,7 +156,8 @@ class ProbabilisticVoting(KeypointVoting):
                 (-prob, -votes)
             )  # vote counts first (the paper's fallback), then the posterior
             todo = [e for e in ranked if eligible[e] and int(e) not in verified]
-            source = source if source is not None else self._source(description)
+            if source is None and p.verify.enabled:
+                source = self._source(description)
             self._verify(todo, prob, votes, q, qkp, starts, source, verified, query_id, consumed, False)
         out = sorted(
             verified.values(),
