@@ -203,7 +203,11 @@ PIPELINES: dict[str, PipelineEntry] = {
     "ishot-prob": PipelineEntry(
         "placerec.pipelines.probabilistic_voting:ProbabilisticVoting",
         "ISHOT paper Sec. IV: probabilistic keypoint voting (batches of 16, stop at 15 %), verification + ICP",
-        {"descriptor": "ishot"},
+        {
+            "descriptor": "ishot",
+            "verify_tau_max": 1.0,
+            "verify": {"verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 4}}},
+        },
     ),
     "fpfh-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",

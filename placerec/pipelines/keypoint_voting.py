@@ -95,6 +95,13 @@ class VotingParams(FeatureParams):
     tau_max: float = Field(
         0.9, gt=0, le=1, description="NN ratio d1/d2 below which a descriptor votes (eq. 4)"
     )
+    verify_tau_max: float | None = Field(
+        None,
+        gt=0,
+        le=1,
+        description="ratio d1/d2 below which a query descriptor is paired with a candidate's for verification "
+        "(None = tau_max; 1 keeps every nearest neighbour and leaves outliers to the consistency grouping)",
+    )
     score: Literal["fraction", "votes"] = Field("fraction", description="votes / query descriptors, or votes")
     backend: Literal["faiss", "numpy"] = Field("faiss", description="exact 2-NN search")
     nn_threads: int | None = Field(1, ge=1, description="faiss OpenMP threads (None = faiss's default)")
@@ -441,15 +448,15 @@ class KeypointVoting(Recognizer):
     def _matches(
         self, e: int, q: np.ndarray, qkp: np.ndarray, starts: np.ndarray, score: float, extra: dict[str, Any]
     ) -> Retrieved:
-        """Entry ``e``'s correspondences with the query: 2-NN among its descriptors, ratio ``< tau_max`` (the time
-        counts in the candidate's ``verify_ms``)."""
+        """Entry ``e``'s correspondences with the query: 2-NN among its descriptors, ratio ``< verify_tau_max``
+        (default ``tau_max``; the time counts in the candidate's ``verify_ms``)."""
         t0 = time.perf_counter()
         rows = self._desc[starts[e] : starts[e + 1]]
         if rows.shape[0] < 2:
             return Retrieved(self._ids[e], score, np.zeros((0, 3)), np.zeros((0, 3)), extra=extra)
         dist, idx = knn2(q, rows, self.params.backend, self.params.nn_threads)
         tau = nn_ratio(dist)
-        ok = tau < self.params.tau_max
+        ok = tau < (self.params.tau_max if self.params.verify_tau_max is None else self.params.verify_tau_max)
         dst = self._keypoints[e][idx[ok, 0]]
         ms = (time.perf_counter() - t0) * 1e3
         extra = {**extra, "matches": int(ok.sum()), "verify_ms": ms}
