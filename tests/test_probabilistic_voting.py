@@ -168,6 +168,7 @@ def test_localises_a_simulated_scan_with_a_6dof_pose():
     c = cands[0]
     gt = relative_pose(seq.poses[c.match_id], seq.poses[1])
     assert np.linalg.norm(c.relative_pose[:3, 3] - gt[:3, 3]) < 0.3
+    assert np.linalg.norm(c.extra["T_world_query"][:3, 3] - seq.poses[1][:3, 3]) < 0.3
     assert 0 < c.extra["keypoints_consumed"] <= c.extra["n_keypoints"]
 
 
@@ -190,3 +191,13 @@ def test_build_places_and_fit_votes_commands(tmp_path):
     res = runner.invoke(app, ["fit-votes", "--places", str(places), "--sim-world", "town", "--sim-scans", "20",
                               "--out", str(model)])  # fmt: skip
     assert res.exit_code == 2 and "another map" in res.output
+
+
+def test_training_draw_gives_other_query_spots_in_the_same_map():
+    from placerec.sim import make_localization_split
+
+    a = make_localization_split("town", "vlp16", 0, n_queries=3, n_map=20, conditions=("gator",))
+    b = make_localization_split("town", "vlp16", 0, n_queries=3, n_map=20, conditions=("gator",), draw=1)
+    assert np.array_equal(a.map.poses, b.map.poses)
+    assert not np.allclose(a.queries["gator"].poses, b.queries["gator"].poses)
+    assert b.queries["gator"].name.endswith("-draw1")

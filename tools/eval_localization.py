@@ -95,9 +95,23 @@ def query_figures(record: PipelineRecord) -> dict[str, Any]:
         "median_ms": round(float(np.median(per_scan)), 1) if per_scan.size else None,
         "mean_ms": round(float(np.mean(per_scan)), 1) if per_scan.size else None,
         "keypoints_consumed": round(float(np.mean(consumed)), 1) if consumed else None,
+        "keypoints_consumed_median": round(float(np.median(consumed)), 1) if consumed else None,
         "early_stop_rate": round(float(np.mean(stops)), 3) if stops else None,
         "match_ms": round(float(np.mean(match)), 1) if match else None,
     }
+
+
+def accepted_wrong(
+    record: PipelineRecord, map_poses: np.ndarray, query_poses: np.ndarray, radius: float
+) -> int:
+    """Queries whose top candidate was accepted by the verification with a pose more than ``radius`` off: false
+    localisations a user would act on."""
+    n = 0
+    for q, cands in zip(record.query_ids, record.candidates, strict=True):
+        if cands and cands[0].extra.get("accepted") and cands[0].relative_pose is not None:
+            T = map_poses[cands[0].match_id] @ cands[0].relative_pose
+            n += int(np.linalg.norm(T[:3, 3] - query_poses[q][:3, 3]) > radius)
+    return n
 
 
 def run_condition(config: str, overrides: list[str], condition: str, out: Path) -> dict[str, Any]:
@@ -116,6 +130,9 @@ def run_condition(config: str, overrides: list[str], condition: str, out: Path) 
             "success_3m": m["success_rate"],
             "success_1m_5deg": m["fine_success_rate"],
             **query_figures(record),
+            "accepted_wrong": accepted_wrong(
+                record, map_seq.poses, query_seq.poses, c.evaluation.localize.success_distance
+            ),
             "n_queries": m["n_queries"],
         }
     return {"run": str(run), "pipelines": rows}
@@ -157,7 +174,7 @@ def main() -> None:
         for label, r in res["pipelines"].items():
             table.add_row(cond, label, fmt(r["success_3m"]), fmt(r["success_1m_5deg"]), fmt(r["median_ms"], "{:.0f}"),
                           fmt(r["mean_ms"], "{:.0f}"), fmt(r["keypoints_consumed"], "{:.1f}"),
-                          fmt(r["early_stop_rate"]))  # fmt: skip
+                          fmt(r["early_stop_rate"]), str(r["accepted_wrong"]))  # fmt: skip
     Console().print(table)
     reduction = {}
     for cond, res in results.items():

@@ -18,7 +18,7 @@
    (``tau < tau_max``, the paper's fallback) and the top ones not yet verified are verified.
 
 Each returned candidate carries the 6-DoF ``relative_pose`` (``T_match_query``, from ICP) and in ``extra``:
-``keypoints_consumed`` (query descriptors matched against the whole database), ``n_keypoints``, ``early_stop``
+``T_world_query`` (the query's pose in the map: the place's pose composed with it), ``keypoints_consumed`` (query descriptors matched against the whole database), ``n_keypoints``, ``early_stop``
 (the threshold was reached before the accepted candidate's verification), ``posterior`` (the place's probability
 when it was verified) and ``votes``. ``early_stop = False`` matches every keypoint before ranking by the posterior
 (the exhaustive variant of the evaluation).
@@ -54,12 +54,16 @@ __all__ = ["InlineVoteModel", "ProbabilisticParams", "ProbabilisticVoting", "ART
 
 class InlineVoteModel(Params):
     """Vote model values used when no ``vote_model`` file is given: fitted by ``tools/eval_localization.py`` on the
-    simulator's town map (VLP-16, ISHOT, places 5 m apart; docs/localization.md)."""
+    simulator's town map (VLP-16, ISHOT, 121 places 2.5 m apart, 9132 training votes; docs/localization.md)."""
 
     tau_edges: list[float] = Field([0.0, 0.7, 0.8, 0.85, 0.9, 0.95, 1.0], description="tau range edges")
-    sigma: list[float] = Field([4.0, 4.0, 4.0, 4.0, 4.0, 4.0], description="m; half-normal scale per range")
-    lam: list[float] = Field([0.5, 0.4, 0.3, 0.2, 0.1, 0.05], description="half-normal weight per range")
-    d_max: float = Field(300.0, gt=0, description="m; extent of the uniform tail")
+    sigma: list[float] = Field(
+        [3.193, 5.182, 6.582, 9.886, 36.947, 43.746], description="m; half-normal scale per range"
+    )
+    lam: list[float] = Field(
+        [0.8886, 0.7239, 0.6197, 0.4683, 0.8014, 0.8367], description="half-normal weight per range"
+    )
+    d_max: float = Field(95.979, gt=0, description="m; extent of the uniform tail")
 
     def build(self) -> VoteModel:
         return VoteModel(self.tau_edges, self.sigma, self.lam, self.d_max, provenance={"source": "inline"})
@@ -159,6 +163,9 @@ class ProbabilisticVoting(KeypointVoting):
             if source is None and p.verify.enabled:
                 source = self._source(description)
             self._verify(todo, prob, votes, q, qkp, starts, source, verified, query_id, consumed, False)
+        for e, c in verified.items():
+            if c.relative_pose is not None:
+                c.extra["T_world_query"] = np.asarray(self._poses[e]) @ c.relative_pose
         out = sorted(
             verified.values(),
             key=lambda c: (-c.score, not c.extra["accepted"], -c.extra["retrieval_score"]),
