@@ -20,8 +20,8 @@
 Each returned candidate carries the 6-DoF ``relative_pose`` (``T_match_query``, from ICP) and in ``extra``:
 ``T_world_query`` (the query's pose in the map: the place's pose composed with it), ``keypoints_consumed`` (query descriptors matched against the whole database), ``n_keypoints``, ``early_stop``
 (the threshold was reached before the accepted candidate's verification), ``posterior`` (the place's probability
-when it was verified) and ``votes``. ``early_stop = False`` matches every keypoint before ranking by the posterior
-(the exhaustive variant of the evaluation).
+when it was verified) and ``votes``. ``early_stop = False`` matches every keypoint at once before ranking by the
+posterior (the exhaustive variant of the evaluation).
 
 Departure from the paper: descriptors are computed for all keypoints in ``describe`` (the description is shared
 and cached with ``ishot-votes``), so early stopping saves the matching against the database, not the description;
@@ -136,7 +136,8 @@ class ProbabilisticVoting(KeypointVoting):
         match_ms = 0.0
         while consumed < q.shape[0] and not accepted:
             t0 = time.perf_counter()
-            batch = order[consumed : consumed + p.batch_size]
+            # without early stopping every keypoint is matched at once (one BLAS search instead of many small ones)
+            batch = order[consumed : consumed + (p.batch_size if p.early_stop else q.shape[0])]
             dist, idx = knn2(q[batch], rows, p.backend, p.nn_threads)
             voted = entry[idx[:, 0]]
             tau = nn_ratio(dist)
