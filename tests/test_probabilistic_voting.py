@@ -201,3 +201,22 @@ def test_training_draw_gives_other_query_spots_in_the_same_map():
     assert np.array_equal(a.map.poses, b.map.poses)
     assert not np.allclose(a.queries["gator"].poses, b.queries["gator"].poses)
     assert b.queries["gator"].name.endswith("-draw1")
+
+
+def test_ivf_index_finds_the_exact_neighbours_of_near_duplicates_and_the_pipeline_agrees():
+    from placerec.pipelines.keypoint_voting import IvfIndex, knn2
+
+    rng = np.random.default_rng(6)
+    x = rng.normal(size=(3000, 64)).astype(np.float32)
+    q = x[:50] + 0.01 * rng.normal(size=(50, 64)).astype(np.float32)
+    d, i = IvfIndex(x, nlist=20, nprobe=4).knn2(q)
+    d0, i0 = knn2(q, x)
+    assert np.array_equal(i[:, 0], i0[:, 0]) and np.allclose(d[:, 0], d0[:, 0], atol=1e-4)
+    common = {"verify": {"enabled": False}, "model": {"tau_edges": [0, 0.8, 1], "sigma": [4, 8],
+              "lam": [0.8, 0.1], "d_max": 100}}  # fmt: skip
+    flat, ivf = ProbabilisticVoting(common), ProbabilisticVoting(common, index="ivf", ivf_nlist=8)
+    descs = _synthetic_db(flat, np.random.default_rng(4))
+    _synthetic_db(ivf, np.random.default_rng(4))
+    query = descs[3][:32] + 0.02 * rng.normal(size=(32, 1344)).astype(np.float32)
+    desc = {"keypoints": np.zeros((32, 3)), "descriptors": query}
+    assert flat.query_description(desc)[0].match_id == ivf.query_description(desc)[0].match_id == 3

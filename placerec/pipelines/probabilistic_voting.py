@@ -40,7 +40,7 @@ from pydantic import Field
 
 from placerec.errors import ScanDataError
 from placerec.params import Params
-from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams, knn2, nn_ratio
+from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams, nn_ratio
 from placerec.three_d.posterior import Posterior, PosteriorTable, density_weights
 from placerec.three_d.vote_model import VoteModel
 from placerec.types import Candidate, Description
@@ -138,9 +138,10 @@ class ProbabilisticVoting(KeypointVoting):
             t0 = time.perf_counter()
             # without early stopping every keypoint is matched at once (one BLAS search instead of many small ones)
             batch = order[consumed : consumed + (p.batch_size if p.early_stop else q.shape[0])]
-            dist, idx = knn2(q[batch], rows, p.backend, p.nn_threads)
-            voted = entry[idx[:, 0]]
-            tau = nn_ratio(dist)
+            dist, idx = self._search(q[batch], rows)
+            found = idx[:, 0] >= 0
+            voted = entry[idx[found, 0]]
+            tau = nn_ratio(dist[found])
             post.update(voted, self.vote_model.range_of(tau))
             votes += np.bincount(voted[tau < p.tau_max], minlength=votes.size)
             consumed += batch.size
