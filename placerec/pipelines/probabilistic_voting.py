@@ -15,18 +15,21 @@
    consensus 7 m, RANSAC, point-to-plane ICP, accepted by eps_ICP = 7 m^2). An accepted candidate ends the query.
    If none is accepted, voting goes on with the next batch (a place verified once is not verified again).
 4. When every keypoint is consumed without an accepted candidate, the places are ranked by their vote counts
-   (``tau < tau_max``, the paper's fallback) and the top ones not yet verified are verified.
+   (``tau < tau_max``, the paper's fallback) and the top ones not yet verified are verified. Without early
+   stopping (``early_stop = False``: every keypoint matched in one search, the exhaustive variant) the posterior
+   ranks them instead.
 
 Each returned candidate carries the 6-DoF ``relative_pose`` (``T_match_query``, from ICP) and in ``extra``:
-``T_world_query`` (the query's pose in the map: the place's pose composed with it), ``keypoints_consumed`` (query descriptors matched against the whole database), ``n_keypoints``, ``early_stop``
-(the threshold was reached before the accepted candidate's verification), ``posterior`` (the place's probability
-when it was verified) and ``votes``. ``early_stop = False`` matches every keypoint at once before ranking by the
-posterior (the exhaustive variant of the evaluation).
+``T_world_query`` (the query's pose in the map: the place's pose composed with it), ``keypoints_consumed``
+(query descriptors matched against the whole database), ``n_keypoints``, ``early_stop`` (the posterior passed
+``xi_v`` at least once), ``match_ms``, ``posterior`` (the place's probability when it was verified) and ``votes``.
 
-Departure from the paper: descriptors are computed for all keypoints in ``describe`` (the description is shared
-and cached with ``ishot-votes``), so early stopping saves the matching against the database, not the description;
-the paper also describes lazily, batch by batch. The paper verifies with SHOT; here the ISHOT descriptors already
-computed are matched with the candidate place's.
+Departures from the paper (measured in docs/localization.md): descriptors are computed for all keypoints in
+``describe`` (shared and cached with ``ishot-votes``), so early stopping saves the matching against the database,
+not the description, which the paper does batch by batch; the ISHOT descriptors already computed are matched with
+the candidate place's instead of SHOT; the registry preset verifies with every nearest neighbour
+(``verify_tau_max`` 1), ICP clouds cropped at 40 m like the places and RANSAC from 4 inliers. ``index: ivf``
+searches the database approximately (sub-linear in its size).
 """
 
 from __future__ import annotations
@@ -153,18 +156,16 @@ class ProbabilisticVoting(KeypointVoting):
             if source is None and p.verify.enabled:
                 source = self._source(description)
             todo = [e for e in np.argsort(-prob, kind="stable") if prob[e] > 0 and int(e) not in verified]
-            accepted = self._verify(
-                todo, prob, votes, q, qkp, starts, source, verified, query_id, consumed, True
-            )
+            accepted = self._verify(todo, prob, votes, q, qkp, starts, source, verified, query_id, True)
         if not accepted:
             prob = post.probabilities
-            ranked = np.lexsort(
-                (-prob, -votes)
-            )  # vote counts first (the paper's fallback), then the posterior
+            # the threshold never led to an accepted place: vote counts first (the paper's fallback), then the
+            # posterior; without early stopping (exhaustive matching) the posterior ranks
+            ranked = np.lexsort((-prob, -votes)) if p.early_stop else np.argsort(-prob, kind="stable")
             todo = [e for e in ranked if eligible[e] and int(e) not in verified]
             if source is None and p.verify.enabled:
                 source = self._source(description)
-            self._verify(todo, prob, votes, q, qkp, starts, source, verified, query_id, consumed, False)
+            self._verify(todo, prob, votes, q, qkp, starts, source, verified, query_id, not p.early_stop)
         for e, c in verified.items():
             if c.relative_pose is not None:
                 c.extra["T_world_query"] = np.asarray(self._poses[e]) @ c.relative_pose
@@ -197,11 +198,11 @@ class ProbabilisticVoting(KeypointVoting):
         source: Any,
         verified: dict[int, Candidate],
         query_id: int,
-        consumed: int,
         by_posterior: bool,
     ) -> bool:
         """Verify the first ``verify.top_k`` entries of ``todo`` (entry indices); store their candidates in
-        ``verified`` by entry; True when one is accepted."""
+        ``verified`` by entry; True when one is accepted. The retrieval score is the posterior
+        (``by_posterior``) or the vote fraction."""
         vp = self.params.verify
         picked = [int(e) for e in todo[: vp.top_k]]
         if not picked:
