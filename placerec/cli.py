@@ -372,6 +372,159 @@ def calibrate(
     typer.echo(f"wrote {out}")
 
 
+def _map_sequence(sequence: Path | None, format: str | None, poses: Path | None, sim_world: str | None,
+                  sim_sensor: str, sim_scans: int | None, seed: int):  # fmt: skip
+    """The map sequence of build-places / fit-votes: a path, or the simulator's localisation map route."""
+    from placerec.errors import ConfigError
+
+    if (sequence is None) == (sim_world is None):
+        raise ConfigError("give either a SEQUENCE path or --sim-world (not both)")
+    if sim_world is not None:
+        from placerec.sim import make_localization_split
+
+        return make_localization_split(
+            sim_world, sim_sensor, seed, n_queries=1, n_map=sim_scans, conditions=()
+        ).map
+    from placerec.io import open_sequence
+
+    kwargs = {k: v for k, v in (("format", format), ("poses", poses)) if v is not None}
+    return open_sequence(sequence, **kwargs)
+
+
+@app.command("build-places")
+def build_places_cmd(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Places database to write (.npz).")],
+    sequence: Annotated[
+        Path | None, typer.Argument(help="A map sequence with poses (anything `placerec info` reads).")
+    ] = None,
+    format: Annotated[str | None, typer.Option(help="Force a reader, e.g. 'kitti'.")] = None,
+    poses: Annotated[Path | None, typer.Option(help="Poses file (default: the sequence's own).")] = None,
+    sim_world: Annotated[
+        str | None,
+        typer.Option("--sim-world", help="Use the simulator's localisation map: town, campus, ..."),
+    ] = None,
+    sim_sensor: Annotated[str, typer.Option("--sim-sensor", help="Simulated sensor.")] = "vlp16",
+    sim_scans: Annotated[int | None, typer.Option("--sim-scans", help="Simulated map scans.")] = None,
+    seed: Annotated[int, typer.Option(help="Simulator seed.")] = 0,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", "-s", help="A PlacesParams field: key=value, e.g. window_m=0 (repeatable)."),
+    ] = None,
+) -> None:
+    """Cut a map sequence with poses into places and describe them (ISHOT paper Sec. IV-B).
+
+    Examples:
+
+      placerec build-places --sim-world town --set window_m=0 --out places_town.npz
+
+      placerec build-places sim/town_vlp16 --set place_spacing=5 --set features.descriptor=shot --out places.npz
+    """
+    from rich.progress import Progress
+
+    from placerec.config import apply_overrides
+    from placerec.errors import PlacerecError
+    from placerec.params import resolve
+    from placerec.three_d.places import PlacesParams, build_places
+
+    try:
+        params = resolve(PlacesParams, apply_overrides({}, set_ or []), where="places parameters")
+        seq = _map_sequence(sequence, format, poses, sim_world, sim_sensor, sim_scans, seed)
+        with Progress(transient=True) as bar:
+            task = bar.add_task("describing places", total=None)
+            db = build_places(seq, params, progress=lambda d, t: bar.update(task, completed=d, total=t))
+        db.save(out)
+    except PlacerecError as exc:
+        _fail(exc)
+        return
+    n_kp = int(db.kp_offsets[-1])
+    typer.echo(f"{seq.name}: {len(db)} places, {n_kp} keypoints ({n_kp / max(len(db), 1):.0f} per place)")
+    typer.echo(f"wrote {out}")
+
+
+@app.command("fit-votes")
+def fit_votes_cmd(
+    places: Annotated[Path, typer.Option("--places", help="Places database (placerec build-places).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Vote model to write (.npz).")],
+    training: Annotated[
+        list[Path] | None,
+        typer.Argument(help="Training sequences with ground-truth poses in the map's frame."),
+    ] = None,
+    format: Annotated[str | None, typer.Option(help="Force a reader for the training sequences.")] = None,
+    sim_world: Annotated[
+        str | None,
+        typer.Option("--sim-world", help="Train on the simulator: another draw of its localisation queries."),
+    ] = None,
+    sim_sensor: Annotated[str, typer.Option("--sim-sensor", help="Simulated sensor.")] = "vlp16",
+    sim_scans: Annotated[int | None, typer.Option("--sim-scans", help="Simulated map scans.")] = None,
+    seed: Annotated[int, typer.Option(help="Simulator seed (the map's).")] = 0,
+    n_training: Annotated[int, typer.Option(help="Simulated training scans per condition.")] = 30,
+    figure: Annotated[
+        Path | None, typer.Option(help="Also draw fitted vs empirical CDFs here (.png).")
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", "-s", help="A VoteModelParams field: key=value, e.g. min_votes=50."),
+    ] = None,
+) -> None:
+    """Fit the probabilistic-voting model (ISHOT paper Sec. IV-D, eq. 7) from training scans with ground truth.
+
+    Examples:
+
+      placerec fit-votes --places places_town.npz --sim-world town --out votes_town.npz --figure votes.png
+
+      placerec fit-votes --places places.npz train_seq_1 train_seq_2 --out votes.npz
+    """
+    import numpy as np
+    from rich.progress import Progress
+
+    from placerec.config import apply_overrides
+    from placerec.errors import ConfigError, PlacerecError
+    from placerec.params import resolve
+    from placerec.pipelines.vote_fitting import fit_votes
+    from placerec.three_d.places import PlacesDatabase
+    from placerec.three_d.vote_model import VoteModelParams, plot_vote_model
+
+    try:
+        params = resolve(VoteModelParams, apply_overrides({}, set_ or []), where="vote model parameters")
+        db = PlacesDatabase.load(places)
+        if bool(training) == (sim_world is not None):
+            raise ConfigError("give either TRAINING sequence paths or --sim-world (not both)")
+        if sim_world is not None:
+            from placerec.sim import make_localization_split
+
+            split = make_localization_split(sim_world, sim_sensor, seed, n_training, n_map=sim_scans, draw=1)
+            same = split.map.poses.shape == db.scan_poses.shape and np.allclose(
+                split.map.poses, db.scan_poses
+            )
+            if not same:
+                raise ConfigError(
+                    f"{places} was built from another map ({db.sequence}, {len(db.scan_poses)} scans) than the "
+                    f"simulated {split.map.name} ({len(split.map)} scans): check --sim-world/--sim-scans/--seed"
+                )
+            seqs = list(split.queries.values())
+        else:
+            from placerec.io import open_sequence
+
+            seqs = [open_sequence(p, **({"format": format} if format else {})) for p in training or []]
+        with Progress(transient=True) as bar:
+            task = bar.add_task("describing training scans", total=None)
+            model = fit_votes(db, seqs, params, progress=lambda d, t: bar.update(task, completed=d, total=t),
+                              provenance={"places_file": str(places)})  # fmt: skip
+        model.save(out)
+        if figure is not None:
+            plot_vote_model(
+                model, figure, f"vote model of {places.name} ({model.provenance['n_votes']} votes)"
+            )
+    except PlacerecError as exc:
+        _fail(exc)
+        return
+    for row in model.summary():
+        typer.echo(
+            f"tau {row['tau']}: sigma {row['sigma_m']} m, lambda {row['lambda']}, {row['n_votes']} votes"
+        )
+    typer.echo(f"wrote {out}" + (f" and {figure}" if figure else ""))
+
+
 def main() -> None:
     """The console script: a placerec error that a command let through still ends as one line, status 2."""
     from placerec.errors import PlacerecError

@@ -200,6 +200,15 @@ PIPELINES: dict[str, PipelineEntry] = {
         "ISHOT paper's baseline: ISS-BR keypoints, SHOT descriptors, ratio-tested NN votes",
         {"descriptor": "shot"},
     ),
+    "ishot-prob": PipelineEntry(
+        "placerec.pipelines.probabilistic_voting:ProbabilisticVoting",
+        "ISHOT paper Sec. IV: probabilistic keypoint voting (batches of 16, stop at 15 %), verification + ICP",
+        {
+            "descriptor": "ishot",
+            "verify_tau_max": 1.0,
+            "verify": {"verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 4}}},
+        },
+    ),
     "fpfh-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",
         "ISHOT paper's baseline: ISS-BR keypoints, FPFH descriptors, ratio-tested NN votes",

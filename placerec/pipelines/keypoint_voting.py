@@ -52,7 +52,8 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -80,10 +81,12 @@ from placerec.verify.params import VerifyParams
 
 log = logging.getLogger(__name__)
 
-__all__ = ["VotingParams", "KeypointVoting", "knn2", "ratio_votes"]
+__all__ = ["VotingParams", "KeypointVoting", "IvfIndex", "knn2", "nn_ratio", "ratio_votes"]
 
 _KIND = "keypoint-voting-db"
 _VERSION = 1
+#: The kind of a saved database (`KeypointVoting.save`), shared by its subclasses.
+ARTIFACT_KIND = _KIND
 
 
 class VotingParams(FeatureParams):
@@ -93,8 +96,21 @@ class VotingParams(FeatureParams):
     tau_max: float = Field(
         0.9, gt=0, le=1, description="NN ratio d1/d2 below which a descriptor votes (eq. 4)"
     )
+    verify_tau_max: float | None = Field(
+        None,
+        gt=0,
+        le=1,
+        description="ratio d1/d2 below which a query descriptor is paired with a candidate's for verification "
+        "(None = tau_max; 1 keeps every nearest neighbour and leaves outliers to the consistency grouping)",
+    )
     score: Literal["fraction", "votes"] = Field("fraction", description="votes / query descriptors, or votes")
     backend: Literal["faiss", "numpy"] = Field("faiss", description="exact 2-NN search")
+    index: Literal["flat", "ivf"] = Field(
+        "flat",
+        description="search over the whole database: exact brute force, or approximate (faiss IVF, sub-linear)",
+    )
+    ivf_nlist: int | None = Field(None, ge=1, description="IVF lists (None = sqrt of the descriptors)")
+    ivf_nprobe: int = Field(16, ge=1, description="IVF lists searched per query descriptor")
     nn_threads: int | None = Field(1, ge=1, description="faiss OpenMP threads (None = faiss's default)")
     place_spacing_m: float = Field(
         0.0, ge=0, description="m; only scans this far from every entry become entries"
@@ -129,13 +145,8 @@ def knn2(
             import faiss
         except ImportError as exc:  # pragma: no cover - faiss-cpu is a dependency
             raise DependencyError("keypoint voting needs faiss-cpu (pip install faiss-cpu)") from exc
-        before = faiss.omp_get_max_threads()
-        if threads is not None:
-            faiss.omp_set_num_threads(int(threads))
-        try:
+        with _omp_threads(threads):
             d2, idx = faiss.knn(q, x, 2)
-        finally:
-            faiss.omp_set_num_threads(before)
     else:
         xx = np.einsum("ij,ij->i", x, x)
         d2 = np.empty((q.shape[0], 2), np.float32)
@@ -152,13 +163,64 @@ def knn2(
     return np.sqrt(np.maximum(d2, 0.0)), np.asarray(idx, dtype=np.int64)
 
 
+def nn_ratio(dist: np.ndarray) -> np.ndarray:
+    """``tau = d1 / d2`` (eq. 4) of `knn2` distances; 1 where ``d2`` is 0 (two identical neighbours) or infinite
+    (an approximate search found fewer than two)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where((dist[:, 1] > 0) & np.isfinite(dist[:, 1]), dist[:, 0] / dist[:, 1], 1.0)
+
+
+class IvfIndex:
+    """Approximate 2-NN over fixed rows: faiss ``IndexIVFFlat`` (L2), ``nlist`` k-means lists (trained on at most
+    64 rows per list), ``nprobe`` of them searched per query; rows with no neighbour found get index -1 and an
+    infinite distance. Searching visits about ``nprobe / nlist`` of the rows, so its time grows with the square
+    root of the database when ``nlist`` does."""
+
+    def __init__(self, rows: np.ndarray, nlist: int | None = None, nprobe: int = 16, threads: int | None = 1):
+        import faiss
+
+        x = np.ascontiguousarray(rows, dtype=np.float32)
+        n, d = x.shape
+        self.nlist = max(1, min(n, int(nlist or round(np.sqrt(n)))))
+        self.threads = threads
+        self.index = faiss.IndexIVFFlat(faiss.IndexFlatL2(d), d, self.nlist)
+        sample = (
+            x
+            if n <= 64 * self.nlist
+            else x[np.random.default_rng(0).choice(n, 64 * self.nlist, replace=False)]
+        )
+        with _omp_threads(threads):
+            self.index.train(sample)
+            self.index.add(x)
+        self.index.nprobe = min(int(nprobe), self.nlist)
+        self.n_rows = n
+
+    def knn2(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        q = np.ascontiguousarray(query, dtype=np.float32)
+        with _omp_threads(self.threads):
+            d2, idx = self.index.search(q, 2)
+        dist = np.where(idx >= 0, np.sqrt(np.maximum(d2, 0.0)), np.inf)
+        return dist, np.asarray(idx, dtype=np.int64)
+
+
+@contextmanager
+def _omp_threads(threads: int | None) -> Iterator[None]:
+    import faiss
+
+    before = faiss.omp_get_max_threads()
+    if threads is not None:
+        faiss.omp_set_num_threads(int(threads))
+    try:
+        yield
+    finally:
+        faiss.omp_set_num_threads(before)
+
+
 def ratio_votes(
     dist: np.ndarray, idx: np.ndarray, row_entry: np.ndarray, n_entries: int, tau_max: float
 ) -> np.ndarray:
     """Votes per entry: each query row votes for the entry of its 1st neighbour when ``d1 / d2 < tau_max``."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        tau = np.where(dist[:, 1] > 0, dist[:, 0] / dist[:, 1], 1.0)
-    ok = tau < tau_max
+    ok = (nn_ratio(dist) < tau_max) & (idx[:, 0] >= 0)
     return np.bincount(row_entry[idx[ok, 0]], minlength=n_entries)
 
 
@@ -190,6 +252,7 @@ class KeypointVoting(Recognizer):
         self._keypoints: list[np.ndarray] = []
         self._clouds = CloudStore(self.params.verify.verify)
         self._sorted = True
+        self._ivf: IvfIndex | None = None
         # trailing window of (id, pose, travelled distance, cloud xyz, cloud intensity) for place aggregation
         self._buffer: list[tuple[int, np.ndarray, float, np.ndarray, np.ndarray]] = []
         self._travelled = 0.0
@@ -301,6 +364,7 @@ class KeypointVoting(Recognizer):
         self._desc[self._n_rows : self._n_rows + n] = desc
         self._row_entry = np.concatenate([self._row_entry, entry.astype(np.int64)])
         self._n_rows += n
+        self._ivf = None
 
     def _add_entry(
         self,
@@ -410,7 +474,7 @@ class KeypointVoting(Recognizer):
         rows, entry, n_ent = self._eligible(max_id)
         if q.shape[0] == 0 or rows.shape[0] < 2:
             return []
-        dist, idx = knn2(q, rows, self.params.backend, self.params.nn_threads)
+        dist, idx = self._search(q, rows)
         votes = ratio_votes(dist, idx, entry, n_ent, self.params.tau_max)
         vp = self.params.verify
         top = np.flatnonzero(votes)
@@ -432,19 +496,28 @@ class KeypointVoting(Recognizer):
         ]
         return verify_candidates(description["cloud"], retrieved, self._clouds, vp, query_id, k)
 
+    def _search(self, q: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """2-NN of ``q`` among ``rows`` (the eligible database rows): `knn2`, or with ``index = "ivf"`` and every row
+        eligible, the `IvfIndex` over the database (built on first use after the entries change)."""
+        p = self.params
+        if p.index == "ivf" and rows.shape[0] == self._n_rows:
+            if self._ivf is None or self._ivf.n_rows != self._n_rows:
+                self._ivf = IvfIndex(rows, p.ivf_nlist, p.ivf_nprobe, p.nn_threads)
+            return self._ivf.knn2(q)
+        return knn2(q, rows, p.backend, p.nn_threads)
+
     def _matches(
         self, e: int, q: np.ndarray, qkp: np.ndarray, starts: np.ndarray, score: float, extra: dict[str, Any]
     ) -> Retrieved:
-        """Entry ``e``'s correspondences with the query: 2-NN among its descriptors, ratio ``< tau_max`` (the time
-        counts in the candidate's ``verify_ms``)."""
+        """Entry ``e``'s correspondences with the query: 2-NN among its descriptors, ratio ``< verify_tau_max``
+        (default ``tau_max``; the time counts in the candidate's ``verify_ms``)."""
         t0 = time.perf_counter()
         rows = self._desc[starts[e] : starts[e + 1]]
         if rows.shape[0] < 2:
             return Retrieved(self._ids[e], score, np.zeros((0, 3)), np.zeros((0, 3)), extra=extra)
         dist, idx = knn2(q, rows, self.params.backend, self.params.nn_threads)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tau = np.where(dist[:, 1] > 0, dist[:, 0] / dist[:, 1], 1.0)
-        ok = tau < self.params.tau_max
+        tau = nn_ratio(dist)
+        ok = tau < (self.params.tau_max if self.params.verify_tau_max is None else self.params.verify_tau_max)
         dst = self._keypoints[e][idx[ok, 0]]
         ms = (time.perf_counter() - t0) * 1e3
         extra = {**extra, "matches": int(ok.sum()), "verify_ms": ms}

@@ -52,8 +52,12 @@ def make_localization_split(
     map_route: str = "default",
     n_map: int | None = None,
     conditions: tuple[str, ...] = CONDITIONS,
+    draw: int = 0,
 ) -> LocalizationSplit:
-    """Build the map sequence and ``n_queries`` query scans per condition (see the module docstring)."""
+    """Build the map sequence and ``n_queries`` query scans per condition (see the module docstring).
+
+    ``draw`` > 0 draws another set of query spots, headings and clutter in the same world (e.g. training scans
+    for the vote model, `placerec.pipelines.vote_fitting`); 0 is the evaluation set."""
     unknown = set(conditions) - set(CONDITIONS)
     if unknown:
         raise ConfigError(
@@ -66,7 +70,7 @@ def make_localization_split(
     for c_idx, cond in enumerate(CONDITIONS):
         if cond not in conditions:
             continue
-        rng = np.random.default_rng([int(seed), c_idx, 0x10C])
+        rng = np.random.default_rng([int(seed), c_idx, 0x10C] + ([int(draw)] if draw else []))
         xy: list[np.ndarray] = []
         for _ in range(200 * n_queries):
             if len(xy) == n_queries:
@@ -90,8 +94,9 @@ def make_localization_split(
         poses = poses_from_xy_yaw(pts, world.ground_height(pts[:, 0], pts[:, 1]) + height, yaw)
         times = 86400.0 * (c_idx + 1) + 601.0 * np.arange(n_queries)
         route = Route(poses=poses, timestamps=times, name=cond)
+        suffix = f"-draw{draw}" if draw else ""
         queries[cond] = SimulatedSequence(
-            world=world, sensor=mapping.sensor, seed=int(seed) * 1000 + c_idx + 1, route=route,
-            occluders=cond == "occlusion", unit_seed=mapping.spec.unit_seed, name=f"{mapping.name}-query-{cond}",
+            world=world, sensor=mapping.sensor, seed=int(seed) * 1000 + c_idx + 1 + 100 * int(draw), route=route,
+            occluders=cond == "occlusion", unit_seed=mapping.spec.unit_seed, name=f"{mapping.name}-query-{cond}{suffix}",
         )  # fmt: skip
     return LocalizationSplit(map=mapping, queries=queries)
