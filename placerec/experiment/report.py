@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from pydantic import BaseModel
 
 from placerec.config import ExperimentConfig, config_to_yaml
 from placerec.errors import ConfigError
@@ -65,6 +66,8 @@ __all__ = [
     "report_localize",
     "recompute_loop_metrics",
     "print_table",
+    "print_rows",
+    "write_html_page",
 ]
 
 
@@ -72,8 +75,9 @@ def _slug(label: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", label).strip("_") or "pipeline"
 
 
-def make_run_dir(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> Path:
-    """A new timestamped folder for this run with the config written into it (``latest`` is moved to it only
+def make_run_dir(cfg: BaseModel, out_dir: str | Path | None = None) -> Path:
+    """A new timestamped folder for a config with ``name`` and ``output.dir`` (an `ExperimentConfig`, a SLAM
+    config) with the config written into it (``latest`` is moved to it only
     when its report is complete, by `point_latest`); `ConfigError` when the results root cannot hold it."""
     root = Path(out_dir or cfg.output.dir)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -379,11 +383,15 @@ def table_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
 
 def print_table(payload: dict[str, Any], title: str) -> None:
     """The results as a rich console table."""
+    print_rows(*table_rows(payload), title)
+
+
+def print_rows(header: list[str], rows: list[list[str]], title: str) -> None:
+    """A rich console table: the first column left-aligned and bold, the others right-aligned."""
     from rich.console import Console
     from rich.table import Table
     from rich.text import Text
 
-    header, rows = table_rows(payload)
     table = Table(title=Text(title))
     for i, h in enumerate(header):  # Text: "[m]" is a unit, not rich markup
         table.add_column(Text(h), justify="left" if i == 0 else "right", style="bold" if i == 0 else None)
@@ -397,21 +405,36 @@ def print_table(payload: dict[str, Any], title: str) -> None:
 
 def write_index_html(run: Path, cfg: ExperimentConfig, payload: dict[str, Any]) -> Path:
     """A single page with the table and every figure of the run."""
-    header, rows = table_rows(payload)
-    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+    return write_html_page(run, cfg.name, f"mode: {html.escape(payload['mode'])}", [table_rows(payload)])
+
+
+def write_html_page(
+    run: Path,
+    title: str,
+    subtitle: str,
+    tables: list[tuple[list[str], list[list[str]]]],
+    first: tuple[str, ...] = ("pr_curves.png",),
+    last: tuple[str, ...] = ("timing.png",),
+) -> Path:
+    """``run/index.html``: ``title``, ``subtitle`` (HTML) with links to metrics.json and config.yaml, the
+    ``tables`` (header, rows) and every PNG of the folder (``first`` ones first, ``last`` ones last)."""
+    body = ""
+    for header, rows in tables:
+        head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+        cells = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+        body += f"<table><tr>{head}</tr>{cells}</table>"
     images = sorted(p.name for p in run.glob("*.png"))
-    order = {"pr_curves.png": 0, "timing.png": 2}
+    order = {**{n: 0 for n in first}, **{n: 2 for n in last}}
     images.sort(key=lambda n: (order.get(n, 1), n))
     figs = "".join(
         f'<figure><img src="{html.escape(n)}"><figcaption>{html.escape(n)}</figcaption></figure>'
         for n in images
     )
-    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(cfg.name)}</title>
-<style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}
+    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(title)}</title>
+<style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse;margin-bottom:1em}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}
 td:first-child{{text-align:left;font-weight:bold}}figure{{display:inline-block;margin:1em}}img{{max-width:560px}}</style></head><body>
-<h1>{html.escape(cfg.name)}</h1><p>mode: {html.escape(payload["mode"])} &middot; files: <a href="metrics.json">metrics.json</a>,
-<a href="config.yaml">config.yaml</a></p><table><tr>{head}</tr>{body}</table>{figs}</body></html>"""
+<h1>{html.escape(title)}</h1><p>{subtitle} &middot; files: <a href="metrics.json">metrics.json</a>,
+<a href="config.yaml">config.yaml</a></p>{body}{figs}</body></html>"""
     path = run / "index.html"
     with atomic_write(path, "w") as fh:
         fh.write(page)
