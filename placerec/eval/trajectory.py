@@ -29,7 +29,9 @@ __all__ = ["align_rigid", "ate", "rpe", "TrajectoryErrors", "trajectory_errors"]
 
 def _pair(est: Any, gt: Any) -> tuple[np.ndarray, np.ndarray]:
     E = check_poses(est, None, "estimated trajectory")
-    G = check_poses(gt, E.shape[0], "true trajectory")
+    G = check_poses(gt, None, "true trajectory")
+    if E.shape[0] != G.shape[0]:
+        raise ScanDataError(f"the estimated trajectory has {E.shape[0]} poses, the true one {G.shape[0]}")
     if E.shape[0] < 3:
         raise ScanDataError(f"trajectory errors need at least 3 poses, got {E.shape[0]}")
     return E, G
