@@ -41,7 +41,9 @@ def drive():
     """A 160 m lap, the same lap again 2 m inside it, then the lap driven the other way: true poses, drifting
     odometry and the loops a verified recognizer would give (true relative poses + 2 cm / 0.05 deg noise) for
     every scan within 4 m of a scan at least 60 frames older."""
-    gt = np.concatenate([_rectangle(50, 30, 0, False), _rectangle(50, 30, 2, False), _rectangle(50, 30, 0, True)])
+    gt = np.concatenate(
+        [_rectangle(50, 30, 0, False), _rectangle(50, 30, 2, False), _rectangle(50, 30, 0, True)]
+    )
     odo = drift_poses(gt, OdometryDrift(0.02, 0.05, 2.0, 0.0), seed=4)
     rng = np.random.default_rng(1)
     loops = []
@@ -103,7 +105,9 @@ def test_ten_false_loops_do_not_bend_the_map(drive, solved, robust):
     gt, odo, loops = drive
     params = GraphParams(batch="gnc") if robust == "gnc" else GraphParams()
     online = robust == "cauchy"  # GNC is the batch step: its test needs no online updates
-    clean = trajectory_errors((solved if online else _solve(odo, loops, params, online=False))[2], gt).ate_rmse
+    clean = trajectory_errors(
+        (solved if online else _solve(odo, loops, params, online=False))[2], gt
+    ).ate_rmse
     cfg = SlamConfig(robustness={"false_loops": 10, "seed": 2})
     injected = false_loops(cfg, gt, len(gt))
     assert sum(len(v) for v in injected.values()) == 10

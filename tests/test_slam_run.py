@@ -58,7 +58,14 @@ def test_a_reverse_direction_revisit_is_closed(reverse_run):
 
 def test_outputs_of_a_run(reverse_run):
     run, payload = reverse_run
-    for name in ("config.yaml", "graph.g2o", "index.html", "trajectory.png", "metrics.json", "odometry_kitti.txt"):
+    for name in (
+        "config.yaml",
+        "graph.g2o",
+        "index.html",
+        "trajectory.png",
+        "metrics.json",
+        "odometry_kitti.txt",
+    ):
         assert (run / name).is_file(), name
     kitti, _ = read_poses(run / "poses_kitti.txt")
     tum, stamps = read_poses(run / "poses_tum.txt")
@@ -79,7 +86,9 @@ def test_slam_kitti_config_on_a_kitti_folder(tmp_path):
     """configs/slam_kitti.yaml as a user runs it: a KITTI-style folder (velodyne/*.bin, poses.txt, times.txt)
     and KISS-ICP odometry; the poses file is there, so ATE/RPE are reported."""
     pytest.importorskip("kiss_icp")
-    folder = write_kitti_sequence(SimulatedSequence("town", "os1-64", n_scans=12, seed=2), tmp_path / "seq", progress=False)
+    folder = write_kitti_sequence(
+        SimulatedSequence("town", "os1-64", n_scans=12, seed=2), tmp_path / "seq", progress=False
+    )
     result = CliRunner().invoke(
         app,
         ["slam", str(ROOT / "configs" / "slam_kitti.yaml"), "--out", str(tmp_path / "res"),
@@ -136,3 +145,23 @@ def test_slam_demo_targets(tmp_path):
     assert traj["optimized"]["ate_rmse"] <= 0.3
     assert payload["ate_reduction"] >= 5
     assert payload["loops"]["false_accepted"] == 0 and payload["loops"]["opposite_direction"] > 0
+
+
+def test_corrected_map_ply(tmp_path):
+    """Two scans of the same wall seen from poses 1 m apart land on the same voxels of the map."""
+    from placerec.io.ply import read_ply
+    from placerec.slam.report import write_map_ply
+    from placerec.types import ListSequence, Scan
+
+    wall = np.stack(np.meshgrid(np.arange(0, 4, 0.1), np.arange(0, 2, 0.1)), -1).reshape(-1, 2)
+    xyz0 = np.c_[np.full(len(wall), 10.0), wall]  # a wall 10 m ahead of the first pose
+    scans = [Scan(xyz0, np.ones(len(xyz0))), Scan(xyz0 - [1.0, 0, 0], np.ones(len(xyz0)))]
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    poses[1, 0, 3] = 1.0
+    cfg = load_slam_config(None, ["output.map_voxel=0.5", "preprocess.min_range=0.5"])
+    path = write_map_ply(cfg, ListSequence(scans, poses=poses), poses, tmp_path / "map.ply")
+    cloud = read_ply(path)
+    cells = np.floor(cloud.xyz / 0.5).astype(int)
+    assert len(np.unique(cells, axis=0)) == len(cloud)  # one point per voxel
+    assert len(cloud) == len(np.unique(np.floor(xyz0 / 0.5).astype(int), axis=0))  # the second scan adds none
+    assert np.allclose(cloud.xyz[:, 0], 10.0, atol=1e-5)

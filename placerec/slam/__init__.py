@@ -23,7 +23,7 @@ _EXPORTS = {
     "load_slam_config": "config",
     "run_slam": "run",
     "slam_sequence": "run",
-    "SlamResult": "run",
+    "SlamResult": "result",
     "trajectory_errors": "placerec.eval.trajectory",
 }
 

@@ -40,7 +40,7 @@ from placerec.io import write_kitti_poses, write_tum_poses
 from placerec.io.atomic import atomic_write
 from placerec.preprocess import preprocess_scan
 from placerec.slam.config import SlamConfig
-from placerec.slam.run import ONLINE_STAGES, SlamResult
+from placerec.slam.result import ONLINE_STAGES, SlamResult
 from placerec.types import Scan, Sequence, relative_pose
 
 __all__ = ["report_slam", "loop_table", "slam_metrics", "print_slam_table", "write_map_ply"]
@@ -122,8 +122,10 @@ def slam_metrics(cfg: SlamConfig, result: SlamResult, cols: dict[str, np.ndarray
         loops["median_translation_error"] = float(np.median(te)) if te.size else None
     t = result.timing_ms
     per_scan = np.sum([t[s] for s in ONLINE_STAGES], axis=0) if n else np.zeros(0)
+    queried = np.asarray(result.queried, dtype=bool) if len(result.queried) == n else np.ones(n, bool)
     timing = {
         "online_without_odometry": timing_summary(per_scan),
+        "online_without_odometry_querying": timing_summary(per_scan[queried]),
         "online_with_odometry": timing_summary(per_scan + np.asarray(t["odometry"])),
         "stages": {s: timing_summary(t[s]) for s in (*ONLINE_STAGES, "odometry")},
         "isam2_update": timing_summary(result.isam2_ms),
@@ -192,6 +194,7 @@ def _loop_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
 
 def print_slam_table(payload: dict[str, Any], title: str) -> None:
     """The trajectory errors and the loop / time summary as console tables."""
+    title = f"{title}, odometry: {payload['odometry_source']}"
     if payload["trajectory"]:
         print_rows(*_rows(payload), title)
     print_rows(*_loop_rows(payload), f"{title}: loop closures and time")

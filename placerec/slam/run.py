@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -19,40 +18,21 @@ import numpy as np
 from placerec.errors import ConfigError
 from placerec.experiment.datasets import SlicedSequence, open_dataset
 from placerec.experiment.preprocessing import preprocess_params
+from placerec.experiment.report import make_run_dir
 from placerec.experiment.runner import progress_bars
 from placerec.io import read_poses
 from placerec.preprocess import preprocess_scan
 from placerec.recognizer import make_pipeline
 from placerec.slam.config import SlamConfig
-from placerec.slam.graph import LoopFactor, PoseGraph
+from placerec.slam.graph import LoopFactor
 from placerec.slam.online import OnlineSlam
+from placerec.slam.report import report_slam
+from placerec.slam.result import ONLINE_STAGES, SlamResult
 from placerec.types import PlaceRecognizer, Scan, Sequence
 
-__all__ = ["SlamResult", "slam_sequence", "run_slam", "odometry_source", "false_loops", "ONLINE_STAGES"]
-
-#: Stages of the online loop timed per scan (ms); "odometry" is reported apart (with and without it).
-ONLINE_STAGES = ("preprocess", "describe", "query", "verify", "insert", "graph", "isam2")
+__all__ = ["slam_sequence", "run_slam", "odometry_source", "false_loops"]
 
 Odometry = Callable[[int, Scan], np.ndarray]
-
-
-@dataclass
-class SlamResult:
-    """What a SLAM run produced: trajectories (N, 4, 4), the loop edges, per-scan stage times (ms)."""
-
-    name: str
-    odometry: np.ndarray
-    online: np.ndarray
-    optimized: np.ndarray
-    loops: list[LoopFactor]
-    timing_ms: dict[str, list[float]]
-    batch: dict[str, Any]
-    graph: PoseGraph
-    ground_truth: np.ndarray | None = None
-    timestamps: np.ndarray | None = None
-    isam2_ms: list[float] = field(default_factory=list)
-    isam2_loop_ms: list[float] = field(default_factory=list)
-    candidates: list[list[Any]] = field(default_factory=list)
 
 
 def _drift_odometry(cfg: SlamConfig, seq: Sequence) -> np.ndarray:
@@ -147,6 +127,7 @@ def slam_sequence(
     pre = preprocess_params(cfg.preprocess)
     timing: dict[str, list[float]] = {s: [] for s in (*ONLINE_STAGES, "odometry")}
     odo = np.empty((n, 4, 4))
+    queried = []
     with progress_bars(cfg.output.progress) as progress:
         task = progress.add_task(f"slam ({cfg.loops.pipeline.display_name})", total=n)
         for i in range(n):
@@ -159,6 +140,7 @@ def slam_sequence(
             slam.process(
                 scan, odo[i], None if stamps is None else float(stamps[i]), extra_loops=injected.get(i)
             )
+            queried.append(slam.detector.last_max_id >= 0)
             stages = dict(slam.last_timing_ms, odometry=(t1 - t0) * 1e3, preprocess=(t2 - t1) * 1e3)
             for s in timing:
                 timing[s].append(stages.get(s, 0.0))
@@ -179,6 +161,7 @@ def slam_sequence(
         isam2_ms=list(slam.graph.update_ms),
         isam2_loop_ms=list(slam.graph.loop_update_ms),
         candidates=slam.candidates,
+        queried=queried,
     )
 
 
@@ -187,9 +170,6 @@ def run_slam(
 ) -> tuple[Path, dict[str, Any]]:
     """Run ``cfg`` and write its results folder; returns (folder, metrics dict). The pipeline, dataset and
     odometry are set up before the folder is made, so a config that cannot run leaves none behind."""
-    from placerec.experiment.report import make_run_dir
-    from placerec.slam.report import report_slam
-
     seq = open_dataset(cfg.dataset) if seq is None else seq
     rec = make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
     odometry = odometry_source(cfg, seq)
