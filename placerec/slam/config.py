@@ -73,7 +73,10 @@ class LoopsConfig(Params):
     """Loop closures: a verified pipeline inside `placerec.loop_closure.LoopClosureDetector`."""
 
     pipeline: PipelineSpec = Field(default_factory=lambda: PipelineSpec(name="orb-hbst"))
-    threshold: float = Field(0.3, description="accept a closure when its verified score >= threshold")
+    threshold: float = Field(
+        0.25,
+        description="accept a closure when its verified score >= threshold (the verification's min_score)",
+    )
     exclusion: ExclusionConfig = Field(default_factory=ExclusionConfig)
     k: int = Field(1, ge=1, description="closures accepted per scan at most (best first)")
 

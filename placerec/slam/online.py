@@ -2,7 +2,7 @@
 
 >>> from placerec.recognizer import make_pipeline
 >>> from placerec.slam import OnlineSlam
->>> slam = OnlineSlam(make_pipeline("orb-hbst"), threshold=0.3)           # doctest: +SKIP
+>>> slam = OnlineSlam(make_pipeline("orb-hbst"), threshold=0.25)          # doctest: +SKIP
 >>> for scan, odom in stream:                                             # doctest: +SKIP
 ...     loops = slam.process(scan, odom)      # this scan's accepted closures, already in the graph
 >>> poses = slam.finish()                     # the batch-optimised trajectory (N, 4, 4)   # doctest: +SKIP
@@ -23,17 +23,27 @@ import numpy as np
 
 from placerec.errors import ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES
+from placerec.eval.pose_error import full_pose_mask
 from placerec.loop_closure import LoopClosureDetector
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
-from placerec.types import Description, PlaceRecognizer, Scan
+from placerec.types import Candidate, Description, PlaceRecognizer, Scan
 
 __all__ = ["OnlineSlam"]
+
+
+def _usable(c: Candidate) -> bool:
+    """A closure the graph can use: a 6-DoF ``relative_pose`` (not a yaw-only guess) that the pipeline's
+    verification accepted (when it says, in ``extra["accepted"]``)."""
+    if c.relative_pose is None or not full_pose_mask(c.relative_pose)[0]:
+        return False
+    return bool(c.extra.get("accepted", True))
 
 
 class OnlineSlam:
     """Loop closure + pose graph for a stream of scans with odometry (see the module docstring).
 
-    ``threshold``: verified score from which a closure is accepted; ``k``: closures accepted per scan at most;
+    ``threshold``: verified score from which a closure is accepted (closures without a 6-DoF pose, or that the
+    pipeline's verification rejected, never enter the graph); ``k``: closures accepted per scan at most;
     the exclusion limits are those of `LoopClosureDetector`; ``graph``: `GraphParams`.
     """
 
@@ -80,7 +90,7 @@ class OnlineSlam:
         added = [
             LoopFactor(c.match_id, c.query_id, np.asarray(c.relative_pose, dtype=np.float64), float(c.score))
             for c in accepted
-            if c.relative_pose is not None
+            if _usable(c)
         ]
         added += list(extra_loops or [])
         for loop in added:

@@ -127,6 +127,7 @@ def slam_metrics(cfg: SlamConfig, result: SlamResult, cols: dict[str, np.ndarray
         "online_without_odometry": timing_summary(per_scan),
         "online_without_odometry_querying": timing_summary(per_scan[queried]),
         "online_with_odometry": timing_summary(per_scan + np.asarray(t["odometry"])),
+        "online_without_odometry_cpu": timing_summary(t["cpu"]) if "cpu" in t else None,
         "stages": {s: timing_summary(t[s]) for s in (*ONLINE_STAGES, "odometry")},
         "isam2_update": timing_summary(result.isam2_ms),
         "isam2_loop_update": timing_summary(result.isam2_loop_ms),

@@ -11,7 +11,9 @@ from placerec.slam.graph import LoopFactor, PoseGraph
 
 __all__ = ["SlamResult", "ONLINE_STAGES"]
 
-#: Stages of the online loop timed per scan (ms); "odometry" is reported apart (with and without it).
+#: Stages of the online loop timed per scan (wall-clock ms); ``timing_ms`` also holds "odometry" (reported apart:
+#: the loop's cost with and without it) and "cpu": the process CPU time of the loop without odometry (all its
+#: threads), which contention from other processes does not inflate as it does wall-clock time.
 ONLINE_STAGES = ("preprocess", "describe", "query", "verify", "insert", "graph", "isam2")
 
 

@@ -125,7 +125,7 @@ def slam_sequence(
         )
     injected = false_loops(cfg, seq.poses, n) if seq.poses is not None else {}
     pre = preprocess_params(cfg.preprocess)
-    timing: dict[str, list[float]] = {s: [] for s in (*ONLINE_STAGES, "odometry")}
+    timing: dict[str, list[float]] = {s: [] for s in (*ONLINE_STAGES, "odometry", "cpu")}
     odo = np.empty((n, 4, 4))
     queried = []
     with progress_bars(cfg.output.progress) as progress:
@@ -134,14 +134,15 @@ def slam_sequence(
             raw = seq[i]
             t0 = time.perf_counter()
             odo[i] = odometry(i, raw)
-            t1 = time.perf_counter()
+            t1, c1 = time.perf_counter(), time.process_time()
             scan = preprocess_scan(raw, pre, keep_organized=True)
             t2 = time.perf_counter()
             slam.process(
                 scan, odo[i], None if stamps is None else float(stamps[i]), extra_loops=injected.get(i)
             )
+            cpu = (time.process_time() - c1) * 1e3
             queried.append(slam.detector.last_max_id >= 0)
-            stages = dict(slam.last_timing_ms, odometry=(t1 - t0) * 1e3, preprocess=(t2 - t1) * 1e3)
+            stages = dict(slam.last_timing_ms, odometry=(t1 - t0) * 1e3, preprocess=(t2 - t1) * 1e3, cpu=cpu)
             for s in timing:
                 timing[s].append(stages.get(s, 0.0))
             progress.advance(task)
