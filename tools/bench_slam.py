@@ -10,6 +10,8 @@
    with GNC as batch step, and with the peer: plain least squares (no kernel). Target: ATE within 10 % of clean.
 3. With odometry: KISS-ICP registering the first ``--kiss-scans`` scans, its time added to the online cost of
    the same scans.
+4. Drift models: the same loops replayed with odometry from other drift settings (`DRIFTS`, seeds 0-2): what
+   loop closures can and cannot correct (a scale error they cannot).
 
     .venv/bin/python tools/bench_slam.py [--config configs/slam_demo.yaml] [--set key=value ...] [--false-loops 10]
 """
@@ -26,11 +28,21 @@ import numpy as np
 
 from placerec.eval.trajectory import trajectory_errors
 from placerec.experiment.datasets import open_dataset
+from placerec.sim.odometry import OdometryDrift, drift_poses
 from placerec.slam.config import load_slam_config
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
 from placerec.slam.odometry import KissIcpOdometry
 from placerec.slam.report import loop_table, slam_metrics
 from placerec.slam.run import false_loops, slam_sequence
+
+#: (label, translation, rotation_deg, yaw_bias_deg_per_100m, scale_bias) of `placerec.sim.odometry.OdometryDrift`
+DRIFTS = (
+    ("simulator default", 0.01, 0.03, 0.5, 0.005),
+    ("simulator default, no scale error", 0.01, 0.03, 0.5, 0.0),
+    ("slam_demo", 0.01, 0.03, 2.0, 0.002),
+    ("slam_demo, 1 % scale error", 0.01, 0.03, 2.0, 0.01),
+    ("slam_demo x 5", 0.05, 0.15, 10.0, 0.01),
+)
 
 
 def replay(odometry: np.ndarray, loops: list[LoopFactor], params: GraphParams) -> np.ndarray:
@@ -128,6 +140,22 @@ def main() -> None:
     print(
         f"  with KISS-ICP odometry (first {n_kiss} scans): KISS-ICP median {np.median(kiss_ms):.1f} ms, online loop {np.median(with_odo):.1f} ms / scan"
     )
+    drift_rows = {}
+    for label, *values in DRIFTS:
+        row = []
+        for seed in range(3):
+            odo = drift_poses(gt, OdometryDrift(*values), seed)
+            row.append(
+                (
+                    trajectory_errors(odo, gt).ate_rmse,
+                    trajectory_errors(replay(odo, real, cfg.graph), gt).ate_rmse,
+                )
+            )
+        drift_rows[label] = row
+        print(
+            f"  drift {label:36s} {values}: ATE "
+            + ", ".join(f"{a:.3f} -> {b:.3f} ({a / b:.1f}x)" for a, b in row)
+        )
     load = os.getloadavg()[0]
     print(f"  load average {load:.2f} ({os.cpu_count()} cores, {platform.processor() or platform.machine()})")
     print(
@@ -153,6 +181,7 @@ def main() -> None:
                 "kiss_icp_ms_median": round(float(np.median(kiss_ms)), 2),
                 "isam2_update_ms_median": round(iu["median"], 3),
                 "isam2_loop_update_ms_median": round(il["median"], 3),
+                "ate_reduction_by_drift": {k: [round(a / b, 1) for a, b in v] for k, v in drift_rows.items()},
                 "load_average": round(load, 2),
             }
         )

@@ -84,23 +84,26 @@ def false_loops(cfg: SlamConfig, reference: np.ndarray, n_scans: int) -> dict[in
     rng = np.random.default_rng([rb.seed, 0xFA15E])
     gap = max(1, cfg.loops.exclusion.frames or 1)
     pos = reference[:, :3, 3]
-    q, m = np.triu_indices(n_scans, k=gap)
-    q, m = m, q  # query after match
-    far = np.linalg.norm(pos[q] - pos[m], axis=1) >= rb.min_distance
-    q, m = q[far], m[far]
-    if q.size < rb.false_loops:
+    pairs: set[tuple[int, int]] = set()
+    for _ in range(100 * rb.false_loops):  # a random query, then a random far enough older scan
+        if len(pairs) == rb.false_loops or n_scans <= gap:
+            break
+        q = int(rng.integers(gap, n_scans))
+        far = np.flatnonzero(np.linalg.norm(pos[: q - gap + 1] - pos[q], axis=1) >= rb.min_distance)
+        if far.size:
+            pairs.add((int(rng.choice(far)), q))
+    if len(pairs) < rb.false_loops:
         raise ConfigError(
-            f"robustness.false_loops: only {q.size} scan pairs are {rb.min_distance} m apart beyond the exclusion "
-            f"window; {rb.false_loops} asked"
+            f"robustness.false_loops: found {len(pairs)} of {rb.false_loops} scan pairs {rb.min_distance} m apart "
+            f"beyond the exclusion window ({n_scans} scans)"
         )
-    pick = rng.choice(q.size, rb.false_loops, replace=False)
     out: dict[int, list[LoopFactor]] = {}
-    for k in pick:
+    for m, q in sorted(pairs):
         yaw = np.radians(rng.uniform(-30, 30))
         T = np.eye(4)
         T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
         T[:2, 3] = rng.uniform(-3, 3, 2)
-        out.setdefault(int(q[k]), []).append(LoopFactor(int(m[k]), int(q[k]), T, float("nan"), injected=True))
+        out.setdefault(q, []).append(LoopFactor(m, q, T, float("nan"), injected=True))
     return out
 
 
