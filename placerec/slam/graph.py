@@ -65,11 +65,13 @@ class GraphParams(Params):
     robust: Literal["cauchy", "huber", "geman-mcclure", "dcs", "none"] = Field(
         "cauchy", description="robust kernel of the loop factors"
     )
-    robust_k: float = Field(1.0, gt=0, description="kernel width, in sigmas of the loop noise")
+    robust_k: float = Field(
+        3.0, gt=0, description="kernel width, in sigmas of the loop noise (measured: docs/slam.md)"
+    )
     loop_iterations: int = Field(2, ge=0, description="extra iSAM2 passes after an update holding a loop")
     relinearize_threshold: float = Field(0.01, gt=0, description="iSAM2 relinearisation threshold")
     batch: Literal["lm", "gnc", "none"] = Field(
-        "lm", description="final batch optimisation: Levenberg-Marquardt, GNC, or none (keep iSAM2's)"
+        "gnc", description="final batch optimisation: GNC, Levenberg-Marquardt, or none (keep iSAM2's)"
     )
     gnc_inlier_probability: float = Field(
         0.99,
