@@ -84,7 +84,8 @@ def test_outputs_of_a_run(reverse_run):
 
 def test_slam_kitti_config_on_a_kitti_folder(tmp_path):
     """configs/slam_kitti.yaml as a user runs it: a KITTI-style folder (velodyne/*.bin, poses.txt, times.txt)
-    and KISS-ICP odometry; the poses file is there, so ATE/RPE are reported."""
+    and KISS-ICP odometry; the poses file is there, so ATE/RPE are reported. Two false loops are injected
+    through the online loop (scans >= 5 m apart, 3 frames of exclusion: the folder is 11 m long)."""
     pytest.importorskip("kiss_icp")
     folder = write_kitti_sequence(
         SimulatedSequence("town", "os1-64", n_scans=12, seed=2), tmp_path / "seq", progress=False
@@ -92,14 +93,19 @@ def test_slam_kitti_config_on_a_kitti_folder(tmp_path):
     result = CliRunner().invoke(
         app,
         ["slam", str(ROOT / "configs" / "slam_kitti.yaml"), "--out", str(tmp_path / "res"),
-         "--set", f"dataset.path={folder}", "--set", "output.progress=false"],
+         "--set", f"dataset.path={folder}", "--set", "output.progress=false", "--set", "loops.exclusion.frames=3",
+         "--set", "robustness.false_loops=2", "--set", "robustness.min_distance=5"],
     )  # fmt: skip
     assert result.exit_code == 0, result.output
-    assert "KISS-ICP" in result.output or "kiss-icp" in result.output
+    assert "kiss-icp" in result.output
     metrics = json.loads((tmp_path / "res" / "latest" / "metrics.json").read_text())
     assert metrics["odometry_source"] == "kiss-icp" and metrics["n_scans"] == 12
     assert metrics["trajectory"]["odometry"]["ate_rmse"] < 0.2  # 11 m of simulated street
     assert metrics["time_ms"]["stages"]["odometry"]["median"] > 0
+    assert metrics["loops"]["injected"] == 2
+    rows = list(csv.DictReader((tmp_path / "res" / "latest" / "loops.csv").open()))
+    injected = [r for r in rows if r["injected"] == "1"]
+    assert len(injected) == 2 and all(r["false"] == "1" and float(r["true_distance"]) >= 5 for r in injected)
 
 
 @pytest.mark.skipif(not REAL.is_dir(), reason=f"real sample data not found at {REAL}")
