@@ -196,18 +196,21 @@ def _print_summary(summary: dict) -> None:
     Console().print(table)
 
 
+#: The options `run` and `slam` share.
+ResultsRoot = Annotated[Path | None, typer.Option("--out", "-o", help="Results root (default: output.dir).")]
+Overrides = Annotated[
+    list[str] | None,
+    typer.Option("--set", "-s", help="Override a config value: key.path=value (repeatable)."),
+]
+
+
 @app.command()
 def run(
     config: Annotated[
         Path, typer.Argument(help="Experiment YAML (see configs/ and `placerec dump-config`).")
     ],
-    out: Annotated[
-        Path | None, typer.Option("--out", "-o", help="Results root (default: output.dir).")
-    ] = None,
-    set_: Annotated[
-        list[str] | None,
-        typer.Option("--set", "-s", help="Override a config value: key.path=value (repeatable)."),
-    ] = None,
+    out: ResultsRoot = None,
+    set_: Overrides = None,
 ) -> None:
     """Run an experiment: every pipeline of CONFIG on its dataset; metrics, figures and a report.
 
@@ -233,13 +236,8 @@ def slam(
     config: Annotated[
         Path | None, typer.Argument(help="SLAM YAML (see configs/slam_*.yaml); none: the defaults.")
     ] = None,
-    out: Annotated[
-        Path | None, typer.Option("--out", "-o", help="Results root (default: output.dir).")
-    ] = None,
-    set_: Annotated[
-        list[str] | None,
-        typer.Option("--set", "-s", help="Override a config value: key.path=value (repeatable)."),
-    ] = None,
+    out: ResultsRoot = None,
+    set_: Overrides = None,
     dump: Annotated[bool, typer.Option("--dump-config", help="Print the resolved config and exit.")] = False,
 ) -> None:
     """SLAM back end: odometry + verified loop closures + a GTSAM pose graph; poses, g2o, ATE/RPE, a report.
