@@ -6,6 +6,7 @@ import pytest
 
 pytest.importorskip("gtsam")
 
+from placerec.errors import ScanDataError  # noqa: E402
 from placerec.eval.trajectory import trajectory_errors  # noqa: E402
 from placerec.sim.geometry import euler_rotation  # noqa: E402
 from placerec.sim.odometry import OdometryDrift, drift_poses  # noqa: E402
@@ -154,7 +155,7 @@ def test_g2o_export_reads_back_in_gtsam(drive, tmp_path):
 def test_a_loop_to_a_missing_pose_is_refused():
     g = PoseGraph()
     g.add_pose(np.eye(4))
-    with pytest.raises(ValueError, match="both poses must exist"):
+    with pytest.raises(ScanDataError, match="both poses must exist"):
         g.add_loop(LoopFactor(0, 3, np.eye(4)))
 
 
@@ -169,3 +170,16 @@ def test_large_drift_true_loops_are_not_taken_for_outliers(drive):
     assert trajectory_errors(odo, gt).ate_rmse > 5.0
     assert default.ate_rmse <= 1.05 * exact.ate_rmse
     assert narrow.ate_rmse > 2 * exact.ate_rmse
+
+
+def test_rounded_poses_from_a_text_file_are_taken(drive):
+    """Poses written with 4 decimals (rotations no longer orthonormal) enter the graph as the nearest rotations."""
+    gt, odo, _ = drive
+    rounded = np.round(odo[:50], 4)
+    assert np.abs(np.einsum("nji,njk->nik", rounded[:, :3, :3], rounded[:, :3, :3]) - np.eye(3)).max() > 1e-5
+    g = PoseGraph()
+    for T in rounded:
+        g.add_pose(T)
+    g.add_loop(LoopFactor(0, 49, np.round(relative_pose(odo[0], odo[49]), 4)))
+    g.update()
+    assert np.allclose(g.poses()[:, :3, 3], odo[:50, :3, 3], atol=2e-3)

@@ -19,14 +19,14 @@ matrix in g2o's (translation, rotation) order.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
 
-from placerec.errors import DependencyError
+from placerec.errors import DependencyError, ScanDataError
 from placerec.io.atomic import atomic_write
 from placerec.params import Params
 from placerec.types import as_pose
@@ -96,6 +96,14 @@ class LoopFactor:
 _KERNELS = {"cauchy": "Cauchy", "huber": "Huber", "geman-mcclure": "GemanMcClure", "dcs": "DCS"}
 
 
+def _rigid(T: np.ndarray) -> np.ndarray:
+    """``T`` (4x4) with its rotation projected onto SO(3) (poses read from text files are rounded)."""
+    P = as_pose(T).copy()
+    U, _, Vt = np.linalg.svd(P[:3, :3])
+    P[:3, :3] = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    return P
+
+
 @dataclass
 class PoseGraph:
     """An incrementally built pose graph (see the module docstring); poses are added in order 0, 1, 2, ..."""
@@ -142,7 +150,7 @@ class PoseGraph:
         """Add the next pose from its odometry pose ``T_world_sensor``; returns its id. The odometry factor is
         the motion since the previous odometry pose (``step_pose`` gives it directly instead)."""
         gtsam = self._gtsam
-        T = as_pose(odometry_pose)
+        T = _rigid(odometry_pose)
         i = self.n_poses
         if i == 0:
             self.prior = T
@@ -150,7 +158,7 @@ class PoseGraph:
             self._new.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(T), noise))
             self._new_values.insert(0, gtsam.Pose3(T))
         else:
-            rel = np.linalg.solve(self._last_pose, T) if step_pose is None else as_pose(step_pose)
+            rel = _rigid(np.linalg.solve(self._last_pose, T) if step_pose is None else step_pose)
             sig = self._sigmas(float(np.linalg.norm(rel[:3, 3])))
             self.odometry.append((i - 1, i, rel, sig))
             self._new.add(
@@ -164,15 +172,16 @@ class PoseGraph:
         """Add a robust loop factor between two poses already in the graph."""
         n = self.n_poses
         if not (0 <= loop.match_id < n and 0 <= loop.query_id < n) or loop.match_id == loop.query_id:
-            raise ValueError(
-                f"loop {loop.match_id} -> {loop.query_id}: both poses must exist and differ ({n})"
+            raise ScanDataError(
+                f"loop {loop.match_id} -> {loop.query_id}: both poses must exist and differ ({n} poses)"
             )
+        loop = replace(loop, T_match_query=_rigid(loop.T_match_query))
         self.loops.append(loop)
         self._new.add(
             self._gtsam.BetweenFactorPose3(
                 loop.match_id,
                 loop.query_id,
-                self._gtsam.Pose3(as_pose(loop.T_match_query)),
+                self._gtsam.Pose3(loop.T_match_query),
                 self._loop_noise(),
             )
         )
