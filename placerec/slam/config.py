@@ -22,6 +22,7 @@ from placerec.config import (
     read_config_file,
 )
 from placerec.params import Params, resolve
+from placerec.sim.odometry import OdometryDrift
 from placerec.slam.graph import GraphParams
 from placerec.slam.odometry import KissIcpParams
 
@@ -39,13 +40,17 @@ __all__ = [
 
 
 class DriftConfig(Params):
-    """Drifting odometry made from the dataset's true poses (`placerec.sim.odometry.OdometryDrift`): noise per
-    metre, a heading bias and a scale error."""
+    """Drifting odometry made from the dataset's true poses: the fields (and defaults) of
+    `placerec.sim.odometry.OdometryDrift` (noise per metre, a heading bias, a scale error) and its seed."""
 
-    translation: float = Field(0.01, ge=0, description="relative translation noise per metre (1 sigma)")
-    rotation_deg: float = Field(0.03, ge=0, description="yaw noise, deg per sqrt(metre)")
-    yaw_bias_deg_per_100m: float = Field(0.5, description="systematic heading drift")
-    scale_bias: float = Field(0.005, description="relative scale error")
+    translation: float = Field(
+        OdometryDrift.translation, ge=0, description="relative translation noise per metre (1 sigma)"
+    )
+    rotation_deg: float = Field(
+        OdometryDrift.rotation_deg, ge=0, description="yaw noise, deg per sqrt(metre)"
+    )
+    yaw_bias_deg_per_100m: float = Field(OdometryDrift.yaw_bias_deg_per_100m, description="heading drift")
+    scale_bias: float = Field(OdometryDrift.scale_bias, description="relative scale error")
     seed: int | None = Field(None, description="noise seed (None: the simulator's seed, else 0)")
 
 

@@ -46,7 +46,7 @@ def _drift_odometry(cfg: SlamConfig, seq: Sequence) -> np.ndarray:
     seed = d.seed
     if seed is None:
         seed = cfg.dataset.simulator.seed if cfg.dataset.source == "simulator" else 0
-    drift = OdometryDrift(d.translation, d.rotation_deg, d.yaw_bias_deg_per_100m, d.scale_bias)
+    drift = OdometryDrift(**d.model_dump(exclude={"seed"}))
     return drift_poses(seq.poses, drift, seed)
 
 
