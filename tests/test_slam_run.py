@@ -48,12 +48,14 @@ def test_a_reverse_direction_revisit_is_closed(reverse_run):
     loops = payload["loops"]
     assert loops["accepted"] >= 3 and loops["opposite_direction"] >= 3
     assert loops["false_accepted"] == 0 and loops["max_translation_error"] < 0.2
+    assert loops["rejected_by_back_end"] == 0  # GNC keeps every true loop
     traj = payload["trajectory"]
     assert traj["optimized"]["ate_rmse"] < traj["odometry"]["ate_rmse"] / 2
     rows = list(csv.DictReader((run / "loops.csv").open()))
     assert len(rows) == loops["accepted"]
     assert all(int(r["query_id"]) >= 20 > int(r["match_id"]) for r in rows)
     assert sum(r["opposite"] == "1" for r in rows) == loops["opposite_direction"]
+    assert all(float(r["weight"]) > 0.5 and float(r["residual_sigmas"]) < 3 for r in rows)
 
 
 def test_outputs_of_a_run(reverse_run):

@@ -233,8 +233,9 @@ class PoseGraph:
         return g
 
     def optimize(self) -> tuple[np.ndarray, dict[str, Any]]:
-        """The final batch solution (N, 4, 4) from the current estimate, and what it did (method, iterations,
-        time, GNC's loop weights)."""
+        """The final batch solution (N, 4, 4) from the current estimate, and what it did: method, iterations
+        (LM), time, ``loop_residuals`` (each loop factor's error at the solution, in sigmas) and ``loop_weights``
+        (GNC's weights, or the kernel's weight at that error: near 0 for a loop the back end rejected)."""
         gtsam, p = self._gtsam, self.params
         self.update()
         info: dict[str, Any] = {"method": p.batch}
@@ -258,10 +259,32 @@ class PoseGraph:
             opt = gtsam.GncLMOptimizer(graph, initial, gnc)
             opt.setInlierCostThresholdsAtProbability(p.gnc_inlier_probability)
             result = opt.optimize()
-            weights = np.asarray(opt.getWeights())
-            info["loop_weights"] = weights[1 + len(self.odometry) :].tolist()
+            gnc_weights = np.asarray(opt.getWeights())[1 + len(self.odometry) :]
         info["time_ms"] = (time.perf_counter() - t0) * 1e3
+        residuals = self._loop_residuals(result)
+        info["loop_residuals"] = residuals.tolist()
+        if p.batch == "gnc":
+            info["loop_weights"] = gnc_weights.tolist()
+        else:
+            kernel = self._loop_noise()
+            weight = kernel.robust().weight if p.robust != "none" else (lambda r: 1.0)
+            info["loop_weights"] = [float(weight(r)) for r in residuals]
         return np.stack([result.atPose3(i).matrix() for i in range(self.n_poses)]), info
+
+    def _loop_residuals(self, values: Any) -> np.ndarray:
+        """(L,) whitened error norm of every loop factor (in sigmas of the loop noise) at ``values``."""
+        gtsam = self._gtsam
+        noise = self._loop_noise(robust=False)
+        return np.array(
+            [
+                np.linalg.norm(
+                    gtsam.BetweenFactorPose3(
+                        lp.match_id, lp.query_id, gtsam.Pose3(lp.T_match_query), noise
+                    ).whitenedError(values)
+                )
+                for lp in self.loops
+            ]
+        )
 
     def write_g2o(self, path: str | Path, poses: np.ndarray | None = None) -> Path:
         """The graph as g2o text (``VERTEX_SE3:QUAT`` at ``poses`` (default: the current estimate), then every

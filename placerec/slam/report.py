@@ -6,7 +6,8 @@
   ``ground_truth_kitti.txt`` when the dataset has poses;
 * ``graph.g2o`` — the pose graph (vertices at the optimised poses, odometry and loop edges with information);
 * ``loops.csv`` — one row per loop edge: ``match_id, query_id, score, injected, x, y, z, roll, pitch, yaw``
-  (``T_match_query`` as in `placerec.experiment.candidates`), and with ground truth ``true_distance``,
+  (``T_match_query`` as in `placerec.experiment.candidates`), ``residual_sigmas, weight`` (`BATCH_COLUMNS`), and
+  with ground truth ``true_distance``,
   ``translation_error``, ``rotation_error_deg``, ``false`` (off by more than the evaluation's limits) and
   ``opposite`` (headings more than 135 deg apart: a reverse-direction revisit);
 * ``metrics.json`` — ATE / RPE of the odometry, the online and the optimised trajectory, the loop counts, per-scan
@@ -46,6 +47,9 @@ from placerec.types import Scan, Sequence, relative_pose
 __all__ = ["report_slam", "loop_table", "slam_metrics", "print_slam_table", "write_map_ply"]
 
 LOOP_COLUMNS = ("match_id", "query_id", "score", "injected", "x", "y", "z", "roll", "pitch", "yaw")
+#: After the batch step (not with ``graph.batch: none``): each loop's error at the solution, in sigmas of the loop
+#: noise, and its weight (GNC's, or the robust kernel's at that error); below 0.5: rejected by the back end.
+BATCH_COLUMNS = ("residual_sigmas", "weight")
 TRUTH_COLUMNS = ("true_distance", "translation_error", "rotation_error_deg", "false", "opposite")
 
 
@@ -63,6 +67,10 @@ def loop_table(cfg: SlamConfig, result: SlamResult) -> dict[str, np.ndarray]:
     xyzrpy = np.stack([pose_to_xyzrpy(t) for t in T]) if L else np.zeros((0, 6))
     for j, key in enumerate(("x", "y", "z", "roll", "pitch", "yaw")):
         cols[key] = xyzrpy[:, j]
+    for key, name in (("loop_residuals", "residual_sigmas"), ("loop_weights", "weight")):
+        values = result.batch.get(key)
+        if values is not None and len(values) == L:
+            cols[name] = np.asarray(values, dtype=np.float64)
     gt = result.ground_truth
     if gt is not None:
         m, q = cols["match_id"], cols["query_id"]
@@ -113,6 +121,10 @@ def slam_metrics(cfg: SlamConfig, result: SlamResult, cols: dict[str, np.ndarray
         "accepted": int((~injected).sum()),
         "injected": int(injected.sum()),
     }
+    if "weight" in cols:
+        rejected = cols["weight"] < 0.5
+        loops["rejected_by_back_end"] = int((rejected & ~injected).sum())
+        loops["injected_rejected_by_back_end"] = int((rejected & injected).sum())
     if "false" in cols:
         real = ~injected
         loops["false_accepted"] = int((cols["false"] & real).sum())
@@ -142,7 +154,7 @@ def slam_metrics(cfg: SlamConfig, result: SlamResult, cols: dict[str, np.ndarray
         "trajectory": traj,
         "loops": loops,
         "time_ms": timing,
-        "batch": {k: v for k, v in result.batch.items() if k != "loop_weights"},
+        "batch": {k: v for k, v in result.batch.items() if k not in ("loop_weights", "loop_residuals")},
     }
     if traj:
         opt = traj["optimized"]["ate_rmse"]
@@ -176,14 +188,20 @@ def _loop_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     def fmt(v: Any) -> str:
         return "-" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v))
 
-    header = ["loops", "accepted", "false", "opposite dir.", "injected", "median t err [m]",
-              "ms/scan (no odom) median", "with odom", "iSAM2 ms", "iSAM2 loop ms"]  # fmt: skip
+    header = ["loops", "accepted", "false", "opposite dir.", "injected", "rejected by graph (real / injected)",
+              "median t err [m]", "ms/scan (no odom) median", "with odom", "iSAM2 ms", "iSAM2 loop ms"]  # fmt: skip
+    rejected = (
+        f"{lp['rejected_by_back_end']} / {lp['injected_rejected_by_back_end']}"
+        if "rejected_by_back_end" in lp
+        else "-"
+    )
     row = [
         payload["pipeline"],
         fmt(lp["accepted"]),
         fmt(lp.get("false_accepted")),
         fmt(lp.get("opposite_direction")),
         fmt(lp["injected"]),
+        rejected,
         fmt(lp.get("median_translation_error")),
         fmt(tm["online_without_odometry"]["median"]),
         fmt(tm["online_with_odometry"]["median"]),
