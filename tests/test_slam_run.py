@@ -173,3 +173,23 @@ def test_corrected_map_ply(tmp_path):
     assert len(np.unique(cells, axis=0)) == len(cloud)  # one point per voxel
     assert len(cloud) == len(np.unique(np.floor(xyz0 / 0.5).astype(int), axis=0))  # the second scan adds none
     assert np.allclose(cloud.xyz[:, 0], 10.0, atol=1e-5)
+
+
+def test_a_poses_file_follows_the_dataset_slice(tmp_path):
+    """odometry.source 'file' with a sliced dataset (every 2nd scan): the file's poses of those scans."""
+    from placerec.experiment.datasets import open_dataset
+    from placerec.io import write_kitti_poses
+    from placerec.slam.run import odometry_source
+
+    poses = np.tile(np.eye(4), (6, 1, 1))
+    poses[:, 0, 3] = np.arange(6) * 1.5
+    path = tmp_path / "odom.txt"
+    write_kitti_poses(path, poses)
+    cfg = load_slam_config(
+        None,
+        ["dataset.simulator.n_scans=6", "dataset.step=2", "odometry.source=file", f"odometry.path={path}"],
+    )
+    seq = open_dataset(cfg.dataset)
+    odometry = odometry_source(cfg, seq)
+    assert len(seq) == 3
+    assert [odometry(i, None)[0, 3] for i in range(3)] == [0.0, 3.0, 6.0]
