@@ -173,22 +173,22 @@ PIPELINES: dict[str, PipelineEntry] = {
     "orb-hbst": PipelineEntry(
         "placerec.pipelines.visual:VisualHBST",
         "VPR paper: intensity image, ORB features, HBST retrieval; RANSAC + ICP verification",
-        {"features": "orb", "hbst": {"threshold": 50}, "verify": {"top_k": 5}},
+        {"features": "orb", "hbst": {"threshold": 50}, "verify": {"top_k": 5, "icp_top_k": 2}},
     ),
     "brisk-hbst": PipelineEntry(
         "placerec.pipelines.visual:VisualHBST",
         "VPR paper: intensity image, FAST + BRISK features, HBST retrieval; RANSAC + ICP verification",
-        {"features": "brisk", "hbst": {"threshold": 100}, "verify": {"top_k": 5}},
+        {"features": "brisk", "hbst": {"threshold": 100}, "verify": {"top_k": 5, "icp_top_k": 2}},
     ),
     "orb-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
         "VPR paper: intensity image, ORB features, DBoW2 bag of words; RANSAC + ICP verification",
-        {"features": "orb", "verify": {"top_k": 5}},
+        {"features": "orb", "verify": {"top_k": 20, "icp_top_k": 2}},
     ),
     "surf-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
         "VPR paper: intensity image, FAST + SURF features, DBoW2 bag of words; RANSAC + ICP verification",
-        {"features": "fast-surf", "verify": {"top_k": 5}},
+        {"features": "fast-surf", "verify": {"top_k": 20, "icp_top_k": 2}},
     ),
     "ishot-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",

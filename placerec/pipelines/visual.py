@@ -47,11 +47,11 @@ from placerec.recognizer import (
     require_points,
     require_varying_intensity,
 )
-from placerec.retrieval.bits import hamming, to_words
 from placerec.retrieval.hbst import HBST, HBSTParams, default_threshold
 from placerec.types import Candidate, Description, Scan
 from placerec.verify import VerifyParams
 from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
+from placerec.verify.matching import mutual_nearest
 
 __all__ = [
     "HBSTParams",
@@ -302,22 +302,6 @@ class VisualFrontend:
         return Retrieved(
             match_id, score, src[ok], dst[ok], q, extra={**extra, "matches": int(ok.sum()), "verify_ms": ms}
         )
-
-
-def mutual_nearest(dq: np.ndarray, dm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mutual nearest neighbours between two descriptor sets (Hamming for packed uint8, Euclidean for float):
-    (query rows, match rows, distances)."""
-    if dq.shape[0] == 0 or dm.shape[0] == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-    if dq.dtype == np.uint8:
-        D = hamming(to_words(dq)[:, None, :], to_words(dm)[None, :, :]).astype(np.float64)
-    else:
-        q, m = dq.astype(np.float64), dm.astype(np.float64)
-        sq = np.einsum("ij,ij->i", q, q)[:, None] + np.einsum("ij,ij->i", m, m)[None, :] - 2.0 * q @ m.T
-        D = np.sqrt(np.maximum(sq, 0.0))
-    nn = D.argmin(axis=1)
-    qi = np.flatnonzero(D.argmin(axis=0)[nn] == np.arange(dq.shape[0]))
-    return qi, nn[qi], D[qi, nn[qi]]
 
 
 def _keypoint_xyz(name: str, description: Description, n: int) -> np.ndarray:

@@ -20,7 +20,8 @@
   verified score, ``inliers`` (RANSAC inliers; None for ICP only), ``extra["verify"]`` =
   `Verification.as_dict`, ``extra["retrieval_score"]``, ``extra["accepted"]`` and ``extra["verify_ms"]`` (the
   candidate's verification time plus its share of preparing the clouds, plus any ``verify_ms`` the pipeline put
-  in `Retrieved.extra` for finding the correspondences: the runner's 'verify' stage,
+  in `Retrieved.extra` for finding the correspondences, plus an equal share of the time of the verified candidates
+  beyond ``k``, so the returned ones add up to the whole stage: the runner's 'verify' stage,
   `placerec.loop_closure.split_verify_time`), sorted by verified score (ties: retrieval score), at most ``k``.
 
 Rejected candidates are **kept**, ranked below the accepted ones of equal score, so PR curves stay continuous:
@@ -47,7 +48,7 @@ from placerec.params import Params
 from placerec.types import Candidate
 from placerec.verify.icp import IcpCloud, as_points
 from placerec.verify.params import VerifyParams
-from placerec.verify.verify import Verification, as_source, as_target, verify
+from placerec.verify.verify import Hypothesis, Verification, as_source, as_target, complete, hypothesise
 
 __all__ = ["VerifiedParams", "Retrieved", "CloudStore", "scan_cloud", "verify_candidates"]
 
@@ -62,6 +63,12 @@ class VerifiedParams(Params):
         3,
         ge=1,
         description="retrieved candidates verified per query (best retrieval first); the rest dropped",
+    )
+    icp_top_k: int | None = Field(
+        None,
+        ge=1,
+        description="of the candidates that pass RANSAC, ICP refines (and may accept) only this many, those with the"
+        " most inliers; the rest are rejected at 'rank' (None: all)",
     )
     verify: VerifyParams = Field(
         default_factory=VerifyParams, description="the verification stage (docs/verification.md)"
@@ -185,23 +192,46 @@ def verify_candidates(
     if not todo:
         return []
     vp = params.verify
-    t0 = time.perf_counter()
-    source = as_source(query_cloud, vp)
-    shared = (time.perf_counter() - t0) * 1e3 / len(todo)
-    out: list[tuple[Candidate, float]] = []
+    hyps, ms = [], []
     for r in todo:
+        t0 = time.perf_counter()
+        hyps.append(hypothesise(r.src_kp, r.dst_kp, r.init, vp, r.quality))
+        ms.append((time.perf_counter() - t0) * 1e3 + float(r.extra.get("verify_ms", 0.0)))
+    refined = _to_refine(hyps, params.icp_top_k)
+    source: Any = query_cloud
+    if refined:
+        t0 = time.perf_counter()
+        source = as_source(query_cloud, vp)
+        shared = (time.perf_counter() - t0) * 1e3 / len(refined)
+    out: list[tuple[Candidate, float]] = []
+    for j, (r, h) in enumerate(zip(todo, hyps, strict=True)):
         t1 = time.perf_counter()
-        target = partial(store.target, r.match_id)  # prepared (and cached) only when ICP runs
-        v = verify(source, target, r.src_kp, r.dst_kp, init=r.init, params=vp, quality=r.quality)
-        ms = (time.perf_counter() - t1) * 1e3 + shared
+        if j in refined:  # the match is prepared (and cached) only here
+            v = complete(source, partial(store.target, r.match_id), h, vp)
+            ms[j] += (time.perf_counter() - t1) * 1e3 + shared
+        else:
+            v = h.rejected(None if h.rejected_at else "rank")
         extra = {
             **r.extra,
             "retrieval_score": float(r.retrieval_score),
             "accepted": bool(v.accepted),
             "verify": v.as_dict(),
-            "verify_ms": ms + float(r.extra.get("verify_ms", 0.0)),
+            "verify_ms": ms[j],
         }
         cand = Candidate(query_id, int(r.match_id), _score(v, vp), v.T_match_query, v.inliers, extra)
         out.append((cand, float(r.retrieval_score)))
     out.sort(key=lambda cr: (-cr[0].score, not cr[0].extra["accepted"], -cr[1]))
-    return [c for c, _ in out][: k if k is not None else len(out)]
+    kept = [c for c, _ in out][: k if k is not None else len(out)]
+    dropped_ms = sum(c.extra["verify_ms"] for c, _ in out[len(kept) :])
+    for c in kept:  # the candidates not returned were verified too: their time is shared by those returned
+        c.extra["verify_ms"] += dropped_ms / len(kept)
+    return kept
+
+
+def _to_refine(hyps: Sequence[Hypothesis], icp_top_k: int | None) -> set[int]:
+    """Indices of the hypotheses ICP refines: those not rejected, at most ``icp_top_k`` of them with the most
+    RANSAC inliers (ties, and ICP-only hypotheses: retrieval order)."""
+    alive = [j for j, h in enumerate(hyps) if h.rejected_at is None]
+    if icp_top_k is not None:
+        alive = sorted(alive, key=lambda j: -(hyps[j].inliers or 0))[:icp_top_k]
+    return set(alive)

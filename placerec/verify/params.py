@@ -30,9 +30,6 @@ class RansacParams(Params):
     max_iterations: int = Field(
         1000, ge=1, description="most hypotheses drawn (enough for 99.9 % confidence down to 19 % inliers)"
     )
-    batch_size: int = Field(
-        256, ge=1, description="hypotheses evaluated at once (vectorised; 256 measured fastest of 64-512)"
-    )
     min_inliers: int = Field(
         8,
         ge=2,

@@ -14,7 +14,7 @@ Without correspondences (`verify_icp`), ICP starts from the given initial guess 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -27,7 +27,16 @@ from placerec.verify.params import VerifyParams
 from placerec.verify.ransac import RansacResult, ransac_pose, refit
 from placerec.verify.score import is_accepted, verified_score
 
-__all__ = ["Verification", "verify", "verify_icp", "as_source", "as_target"]
+__all__ = [
+    "Verification",
+    "Hypothesis",
+    "hypothesise",
+    "complete",
+    "verify",
+    "verify_icp",
+    "as_source",
+    "as_target",
+]
 
 
 @dataclass(frozen=True)
@@ -101,6 +110,128 @@ def _check_cloud(cloud: IcpCloud, role: str, params: VerifyParams) -> None:
         )
 
 
+@dataclass(frozen=True)
+class Hypothesis:
+    """The correspondence stage of `verify` (`hypothesise`): ``T_match_query`` is ICP's start (the RANSAC pose, or
+    the initial guess without correspondences), ``rejected_at`` the stage that ended it (None: ICP comes next);
+    the other fields as in `Verification`."""
+
+    T_match_query: np.ndarray
+    inliers: int | None
+    correspondences: int
+    ransac_iterations: int = 0
+    rejected_at: str | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    inlier_mask: np.ndarray | None = None
+
+    def rejected(self, stage: str | None = None) -> Verification:
+        """This hypothesis as a rejected `Verification` (score 0, no ICP statistics), at ``stage`` (default: its
+        own ``rejected_at``; e.g. ``"rank"`` when ICP was spent on other candidates)."""
+        nan = float("nan")
+        timings = {**self.timings_ms, "total": sum(self.timings_ms.values())}
+        return Verification(
+            self.T_match_query,
+            0.0,
+            False,
+            self.inliers,
+            self.correspondences,
+            nan,
+            nan,
+            nan,
+            self.ransac_iterations,
+            0,
+            stage or self.rejected_at,
+            timings,
+            self.inlier_mask,
+        )
+
+
+def hypothesise(
+    src_kp_xyz: np.ndarray | None,
+    dst_kp_xyz: np.ndarray | None,
+    init: np.ndarray | None = None,
+    params: VerifyParams | None = None,
+    quality: np.ndarray | None = None,
+) -> Hypothesis:
+    """The correspondence stage of `verify`: consistency grouping (when enabled) and RANSAC on ``src_kp_xyz[i] <->
+    dst_kp_xyz[i]``; without correspondences the hypothesis is ``init`` (None: identity), for ICP alone."""
+    params = params or VerifyParams()
+    T0 = _initial(init)
+    if src_kp_xyz is None and dst_kp_xyz is None:
+        return Hypothesis(T0, None, 0)
+    if src_kp_xyz is None or dst_kp_xyz is None:
+        raise ScanDataError("verify: give both keypoint arrays (src_kp_xyz and dst_kp_xyz) or neither")
+    timings: dict[str, float] = {}
+    src, dst = check_pairs(src_kp_xyz, dst_kp_xyz)
+    n_corr = src.shape[0]
+    t = time.perf_counter()
+    subsets = [np.arange(n_corr)]
+    if params.consistency.enabled and n_corr:
+        clusters = group_correspondences(src, dst, quality, params.consistency)
+        subsets = [
+            c for c in clusters[: params.consistency.max_clusters] if len(c) >= params.min_correspondences
+        ]
+    timings["grouping"] = (time.perf_counter() - t) * 1e3
+    if not subsets or n_corr < params.min_correspondences:
+        return Hypothesis(T0, 0, n_corr, 0, "grouping", timings)
+    t = time.perf_counter()
+    results = [(ransac_pose(src[c], dst[c], params.ransac), c) for c in subsets]
+    rr, chosen = max(results, key=lambda r: (r[0].n_inliers, -len(r[1])))
+    ransac_iters = sum(r.iterations for r, _ in results)
+    sample = 3 if params.ransac.mode == "6dof" else 2
+    if len(chosen) < n_corr and rr.n_inliers >= sample:  # a cluster's pose: its inliers among all pairs
+        T_all, inlier_mask = refit(rr.T, src, dst, params.ransac)
+        rr = RansacResult(T_all, inlier_mask, int(inlier_mask.sum()), rr.iterations, True)
+    else:
+        inlier_mask = np.zeros(n_corr, dtype=bool)
+        inlier_mask[chosen[rr.inliers]] = True
+    timings["ransac"] = (time.perf_counter() - t) * 1e3
+    inliers = rr.n_inliers
+    if inliers < params.ransac.min_inliers:
+        return Hypothesis(T0, inliers, n_corr, ransac_iters, "ransac", timings, inlier_mask)
+    return Hypothesis(rr.T, inliers, n_corr, ransac_iters, None, timings, inlier_mask)
+
+
+def complete(
+    query_pts: Any, match_pts: Any, hypothesis: Hypothesis, params: VerifyParams | None = None
+) -> Verification:
+    """The ICP stage of `verify` from ``hypothesis`` (one `hypothesise` accepted): ICP between the scans, the
+    verified score and acceptance. ``query_pts`` / ``match_pts`` as in `verify` (``match_pts`` may be a callable)."""
+    params = params or VerifyParams()
+    if hypothesis.rejected_at is not None:
+        return hypothesis.rejected()
+    t_start = time.perf_counter()
+    timings = dict(hypothesis.timings_ms)
+    source = as_source(query_pts, params)
+    target = as_target(match_pts() if callable(match_pts) else match_pts, params)
+    timings["prepare"] = (time.perf_counter() - t_start) * 1e3
+    sp = params.score
+    T0, coarse_ms = hypothesis.T_match_query, 0.0
+    if hypothesis.inliers is None:  # a rough initial guess: coarse gates first
+        for gate in params.icp_only_coarse_distances:
+            coarse = params.icp.model_copy(update={"max_correspondence_distance": gate})
+            step = refine(source, target, T0, coarse, sp.fitness_distance, sp.eps_icp_max_range)
+            T0, coarse_ms = step.T, coarse_ms + step.ms
+    icp = refine(source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range)
+    timings["icp"] = icp.ms + coarse_ms
+    timings["total"] = sum(v for k, v in timings.items() if k != "total")
+    score = verified_score(hypothesis.inliers, icp.fitness, icp.rmse, sp)
+    return Verification(
+        T_match_query=icp.T,
+        score=score,
+        accepted=is_accepted(score, icp.residual, sp),
+        inliers=hypothesis.inliers,
+        correspondences=hypothesis.correspondences,
+        fitness=icp.fitness,
+        rmse=icp.rmse,
+        residual=icp.residual,
+        ransac_iterations=hypothesis.ransac_iterations,
+        icp_iterations=icp.iterations,
+        timings_ms=timings,
+        inlier_mask=hypothesis.inlier_mask,
+    )
+
+
 def verify(
     query_pts: Any,
     match_pts: Any,
@@ -113,82 +244,13 @@ def verify(
     """Verify a candidate: ``query_pts`` / ``match_pts`` are the two scans ((N, 3) arrays, `Scan` objects or
     clouds from `as_source` / `as_target`); ``src_kp_xyz[i]`` (query frame) corresponds to ``dst_kp_xyz[i]``
     (match frame). ``match_pts`` may also be a zero-argument callable returning one of those, called only when
-    ICP runs, so a candidate rejected before ICP never prepares its scan. ``quality`` (lower is better, e.g. descriptor distance) orders the consistency grouping.
-    ``init`` (T_match_query) is the ICP start when no correspondences are given (None: identity); with
-    correspondences the RANSAC pose is the start.
+    ICP runs, so a candidate rejected before ICP never prepares its scan. ``quality`` (lower is better, e.g.
+    descriptor distance) orders the consistency grouping. ``init`` (T_match_query) is the ICP start when no
+    correspondences are given (None: identity); with correspondences the RANSAC pose is the start.
+    `hypothesise` then `complete`; the query is prepared only when ICP runs too.
     """
     params = params or VerifyParams()
-    t_start = time.perf_counter()
-    timings: dict[str, float] = {}
-    source = as_source(query_pts, params)
-    # a callable match is prepared only when ICP runs: most wrong candidates end at RANSAC, before that cost
-    target = None if callable(match_pts) else as_target(match_pts, params)
-    timings["prepare"] = (time.perf_counter() - t_start) * 1e3
-    T0 = _initial(init)
-    inliers: int | None = None
-    inlier_mask: np.ndarray | None = None
-    n_corr, ransac_iters = 0, 0
-    if src_kp_xyz is not None or dst_kp_xyz is not None:
-        if src_kp_xyz is None or dst_kp_xyz is None:
-            raise ScanDataError("verify: give both keypoint arrays (src_kp_xyz and dst_kp_xyz) or neither")
-        src, dst = check_pairs(src_kp_xyz, dst_kp_xyz)
-        n_corr = src.shape[0]
-        t = time.perf_counter()
-        subsets = [np.arange(n_corr)]
-        if params.consistency.enabled and n_corr:
-            clusters = group_correspondences(src, dst, quality, params.consistency)
-            subsets = [
-                c for c in clusters[: params.consistency.max_clusters] if len(c) >= params.min_correspondences
-            ]
-        timings["grouping"] = (time.perf_counter() - t) * 1e3
-        if not subsets or n_corr < params.min_correspondences:
-            return _rejected(T0, 0, n_corr, 0, "grouping", timings, t_start)
-        t = time.perf_counter()
-        results = [(ransac_pose(src[c], dst[c], params.ransac), c) for c in subsets]
-        rr, chosen = max(results, key=lambda r: (r[0].n_inliers, -len(r[1])))
-        timings["ransac"] = (time.perf_counter() - t) * 1e3
-        ransac_iters = sum(r.iterations for r, _ in results)
-        sample = 3 if params.ransac.mode == "6dof" else 2
-        if len(chosen) < n_corr and rr.n_inliers >= sample:  # a cluster's pose: its inliers among all pairs
-            T_all, inlier_mask = refit(rr.T, src, dst, params.ransac)
-            rr = RansacResult(T_all, inlier_mask, int(inlier_mask.sum()), rr.iterations, True)
-        else:
-            inlier_mask = np.zeros(n_corr, dtype=bool)
-            inlier_mask[chosen[rr.inliers]] = True
-        inliers = rr.n_inliers
-        rr = replace(rr, success=inliers >= params.ransac.min_inliers)
-        if not rr.success:
-            return _rejected(T0, inliers, n_corr, ransac_iters, "ransac", timings, t_start, inlier_mask)
-        T0 = rr.T
-    if target is None:
-        t = time.perf_counter()
-        target = as_target(match_pts(), params)
-        timings["prepare"] += (time.perf_counter() - t) * 1e3
-    sp = params.score
-    coarse_ms = 0.0
-    if inliers is None:  # a rough initial guess: coarse gates first
-        for gate in params.icp_only_coarse_distances:
-            coarse = params.icp.model_copy(update={"max_correspondence_distance": gate})
-            step = refine(source, target, T0, coarse, sp.fitness_distance, sp.eps_icp_max_range)
-            T0, coarse_ms = step.T, coarse_ms + step.ms
-    icp = refine(source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range)
-    timings["icp"] = icp.ms + coarse_ms
-    score = verified_score(inliers, icp.fitness, icp.rmse, sp)
-    timings["total"] = (time.perf_counter() - t_start) * 1e3
-    return Verification(
-        T_match_query=icp.T,
-        score=score,
-        accepted=is_accepted(score, icp.residual, sp),
-        inliers=inliers,
-        correspondences=n_corr,
-        fitness=icp.fitness,
-        rmse=icp.rmse,
-        residual=icp.residual,
-        ransac_iterations=ransac_iters,
-        icp_iterations=icp.iterations,
-        timings_ms=timings,
-        inlier_mask=inlier_mask,
-    )
+    return complete(query_pts, match_pts, hypothesise(src_kp_xyz, dst_kp_xyz, init, params, quality), params)
 
 
 def verify_icp(
@@ -213,18 +275,3 @@ def _initial(init: np.ndarray | None) -> np.ndarray:
     ):
         raise ScanDataError("init must be a rigid transform (orthonormal rotation, last row 0 0 0 1)")
     return T
-
-
-def _rejected(
-    T: np.ndarray,
-    inliers: int,
-    n_corr: int,
-    iters: int,
-    stage: str,
-    timings: dict[str, float],
-    t_start: float,
-    inlier_mask: np.ndarray | None = None,
-) -> Verification:
-    timings["total"] = (time.perf_counter() - t_start) * 1e3
-    nan = float("nan")
-    return Verification(T, 0.0, False, inliers, n_corr, nan, nan, nan, iters, 0, stage, timings, inlier_mask)
