@@ -221,25 +221,28 @@ def print_slam_table(payload: dict[str, Any], title: str) -> None:
 
 def write_map_ply(cfg: SlamConfig, seq: Sequence, poses: np.ndarray, path: Path) -> Path:
     """The corrected map: every preprocessed scan moved by its optimised pose, one point per ``map_voxel``
-    (the first that falls in it), as PLY."""
+    (the first that falls in it, in scan order), as PLY."""
     from placerec.io.ply import write_ply
 
     voxel = cfg.output.map_voxel
     pre = preprocess_params(cfg.preprocess)
-    keys: set[tuple[int, int, int]] = set()
-    xyz_out, inten_out = [], []
+    cells, xyz, inten = [], [], []
     for i in range(len(seq)):
         scan = preprocess_scan(seq[i], pre)
         world = scan.xyz.astype(np.float64) @ poses[i][:3, :3].T + poses[i][:3, 3]
-        cells = np.floor(world / voxel).astype(np.int64)
-        _, first = np.unique(cells, axis=0, return_index=True)
-        fresh = [j for j in first if tuple(cells[j]) not in keys]
-        keys.update(tuple(cells[j]) for j in fresh)
-        xyz_out.append(world[fresh])
-        inten_out.append(scan.intensity[fresh])
-    xyz = np.concatenate(xyz_out) if xyz_out else np.zeros((0, 3))
-    inten = np.concatenate(inten_out) if inten_out else np.zeros(0)
-    write_ply(path, Scan(xyz.astype(np.float32), inten, source=str(path)))
+        c = np.floor(world / voxel).astype(np.int64)
+        _, first = np.unique(c, axis=0, return_index=True)  # one point per voxel and scan first
+        first.sort()
+        cells.append(c[first])
+        xyz.append(world[first])
+        inten.append(scan.intensity[first])
+    if cells:
+        _, keep = np.unique(np.concatenate(cells), axis=0, return_index=True)
+        keep.sort()  # the earliest scan's point of each voxel
+        points, values = np.concatenate(xyz)[keep], np.concatenate(inten)[keep]
+    else:
+        points, values = np.zeros((0, 3)), np.zeros(0)
+    write_ply(path, Scan(points.astype(np.float32), values, source=str(path)))
     return path
 
 
