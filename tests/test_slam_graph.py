@@ -184,3 +184,13 @@ def test_rounded_poses_from_a_text_file_are_taken(drive):
     g.add_loop(LoopFactor(0, 49, np.round(relative_pose(odo[0], odo[49]), 4)))
     g.update()
     assert np.allclose(g.poses()[:, :3, 3], odo[:50, :3, 3], atol=2e-3)
+
+
+def test_missing_gtsam_says_what_to_install(monkeypatch):
+    import sys
+
+    from placerec.errors import DependencyError
+
+    monkeypatch.setitem(sys.modules, "gtsam", None)  # what an environment without GTSAM gives
+    with pytest.raises(DependencyError, match=r"placerec\[slam\]"):
+        PoseGraph()
