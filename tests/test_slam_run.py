@@ -141,6 +141,9 @@ def test_config_errors_name_the_key(tmp_path):
     )
     with pytest.raises(ConfigError, match="3 poses for 5 scans"):
         run_slam(cfg, tmp_path / "res")
+    cfg = load_slam_config(None, ["dataset.simulator.n_scans=50", "robustness.false_loops=10000"])
+    with pytest.raises(ConfigError, match="robustness.false_loops: found"):
+        run_slam(cfg, tmp_path / "res")
     assert not (tmp_path / "res").exists()  # nothing written for a config that cannot run
 
 

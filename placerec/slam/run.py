@@ -107,6 +107,17 @@ def false_loops(cfg: SlamConfig, reference: np.ndarray, n_scans: int) -> dict[in
     return out
 
 
+def _injected(cfg: SlamConfig, seq: Sequence) -> dict[int, list[LoopFactor]]:
+    """`false_loops` on the sequence's true poses; `ConfigError` when they are asked for and it has none."""
+    if not cfg.robustness.false_loops:
+        return {}
+    if seq.poses is None:
+        raise ConfigError(
+            "robustness.false_loops needs a dataset with true poses (to pick truly wrong pairs)"
+        )
+    return false_loops(cfg, seq.poses, len(seq))
+
+
 def slam_sequence(
     cfg: SlamConfig,
     seq: Sequence,
@@ -122,11 +133,7 @@ def slam_sequence(
     slam = OnlineSlam(rec, cfg.loops.threshold, cfg.graph, ex.frames, ex.seconds, ex.metres, k=cfg.loops.k)
     n = len(seq)
     stamps = seq.timestamps
-    if cfg.robustness.false_loops and seq.poses is None:
-        raise ConfigError(
-            "robustness.false_loops needs a dataset with true poses (to pick truly wrong pairs)"
-        )
-    injected = false_loops(cfg, seq.poses, n) if seq.poses is not None else {}
+    injected = _injected(cfg, seq)
     pre = preprocess_params(cfg.preprocess)
     timing: dict[str, list[float]] = {s: [] for s in (*ONLINE_STAGES, "odometry", "cpu")}
     odo = np.empty((n, 4, 4))
@@ -177,6 +184,7 @@ def run_slam(
     seq = open_dataset(cfg.dataset) if seq is None else seq
     rec = make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
     odometry = odometry_source(cfg, seq)
+    _injected(cfg, seq)
     run = make_run_dir(cfg, out_dir)
     result = slam_sequence(cfg, seq, rec, odometry)
     return run, report_slam(cfg, run, seq, result)
