@@ -144,6 +144,8 @@ def test_config_errors_name_the_key(tmp_path):
     cfg = load_slam_config(None, ["dataset.simulator.n_scans=50", "robustness.false_loops=10000"])
     with pytest.raises(ConfigError, match="robustness.false_loops: found"):
         run_slam(cfg, tmp_path / "res")
+    with pytest.raises(ConfigError, match="--set dataset.path="):
+        run_slam(load_slam_config(ROOT / "configs" / "slam_kitti.yaml"), tmp_path / "res")
     assert not (tmp_path / "res").exists()  # nothing written for a config that cannot run
 
 

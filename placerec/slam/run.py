@@ -181,7 +181,13 @@ def run_slam(
 ) -> tuple[Path, dict[str, Any]]:
     """Run ``cfg`` and write its results folder; returns (folder, metrics dict). The pipeline, dataset and
     odometry are set up before the folder is made, so a config that cannot run leaves none behind."""
-    seq = open_dataset(cfg.dataset) if seq is None else seq
+    if seq is None:
+        if cfg.dataset.source == "path" and not Path(cfg.dataset.path).expanduser().exists():
+            raise ConfigError(
+                f"dataset.path {cfg.dataset.path}: no such folder or file (point it at your sequence: "
+                "--set dataset.path=/path/to/sequence)"
+            )
+        seq = open_dataset(cfg.dataset)
     rec = make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
     odometry = odometry_source(cfg, seq)
     _injected(cfg, seq)
