@@ -4,16 +4,14 @@ loop closures reduce the trajectory error, injected false loops do not bend the 
 import numpy as np
 import pytest
 
-pytest.importorskip("gtsam")
-
-from placerec.errors import ScanDataError  # noqa: E402
-from placerec.eval.trajectory import trajectory_errors  # noqa: E402
-from placerec.sim.geometry import euler_rotation  # noqa: E402
-from placerec.sim.odometry import OdometryDrift, drift_poses  # noqa: E402
-from placerec.slam.config import SlamConfig  # noqa: E402
-from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph  # noqa: E402
-from placerec.slam.run import false_loops  # noqa: E402
-from placerec.types import relative_pose  # noqa: E402
+from placerec.errors import ScanDataError
+from placerec.eval.trajectory import trajectory_errors
+from placerec.sim.geometry import euler_rotation
+from placerec.sim.odometry import OdometryDrift, drift_poses
+from placerec.slam.config import SlamConfig
+from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
+from placerec.slam.run import false_loops
+from placerec.types import relative_pose
 
 
 def _rectangle(w: float, h: float, lateral: float, reverse: bool) -> np.ndarray:

@@ -12,15 +12,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-pytest.importorskip("gtsam")
-
-from placerec.cli import app  # noqa: E402
-from placerec.errors import ConfigError  # noqa: E402
-from placerec.io import read_poses  # noqa: E402
-from placerec.sim import SimulatedSequence, write_kitti_sequence  # noqa: E402
-from placerec.sim.routes import Route  # noqa: E402
-from placerec.slam.config import load_slam_config  # noqa: E402
-from placerec.slam.run import run_slam  # noqa: E402
+from placerec.cli import app
+from placerec.errors import ConfigError
+from placerec.io import read_poses
+from placerec.sim import SimulatedSequence, write_kitti_sequence
+from placerec.sim.routes import Route
+from placerec.slam.config import load_slam_config
+from placerec.slam.run import run_slam
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "real" / "kitti_raw_hdl64_sequence"
@@ -88,7 +86,6 @@ def test_slam_kitti_config_on_a_kitti_folder(tmp_path):
     """configs/slam_kitti.yaml as a user runs it: a KITTI-style folder (velodyne/*.bin, poses.txt, times.txt)
     and KISS-ICP odometry; the poses file is there, so ATE/RPE are reported. Two false loops are injected
     through the online loop (scans >= 5 m apart, 3 frames of exclusion: the folder is 11 m long)."""
-    pytest.importorskip("kiss_icp")
     folder = write_kitti_sequence(
         SimulatedSequence("town", "os1-64", n_scans=12, seed=2), tmp_path / "seq", progress=False
     )
@@ -113,7 +110,6 @@ def test_slam_kitti_config_on_a_kitti_folder(tmp_path):
 @pytest.mark.skipif(not REAL.is_dir(), reason=f"real sample data not found at {REAL}")
 def test_kiss_icp_odometry_on_real_kitti_frames(tmp_path):
     """22 consecutive real HDL-64 frames (no poses): KISS-ICP moves forward smoothly, nothing is evaluated."""
-    pytest.importorskip("kiss_icp")
     result = CliRunner().invoke(
         app,
         ["slam", str(ROOT / "configs" / "slam_kitti.yaml"), "--out", str(tmp_path / "res"),
