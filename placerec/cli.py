@@ -202,18 +202,21 @@ def _print_summary(summary: dict) -> None:
     Console().print(table)
 
 
+#: The options `run` and `slam` share.
+ResultsRoot = Annotated[Path | None, typer.Option("--out", "-o", help="Results root (default: output.dir).")]
+Overrides = Annotated[
+    list[str] | None,
+    typer.Option("--set", "-s", help="Override a config value: key.path=value (repeatable)."),
+]
+
+
 @app.command()
 def run(
     config: Annotated[
         Path, typer.Argument(help="Experiment YAML (see configs/ and `placerec dump-config`).")
     ],
-    out: Annotated[
-        Path | None, typer.Option("--out", "-o", help="Results root (default: output.dir).")
-    ] = None,
-    set_: Annotated[
-        list[str] | None,
-        typer.Option("--set", "-s", help="Override a config value: key.path=value (repeatable)."),
-    ] = None,
+    out: ResultsRoot = None,
+    set_: Overrides = None,
     workers: Annotated[
         int | None,
         typer.Option(
@@ -238,6 +241,46 @@ def run(
         _fail(exc)
         return
     print_table(payload, f"{cfg.name} ({payload['mode']} mode)")
+    typer.echo(f"results: {run_dir}  (report: {run_dir / 'index.html'})")
+
+
+@app.command()
+def slam(
+    config: Annotated[
+        Path | None, typer.Argument(help="SLAM YAML (see configs/slam_*.yaml); none: the defaults.")
+    ] = None,
+    out: ResultsRoot = None,
+    set_: Overrides = None,
+    dump: Annotated[bool, typer.Option("--dump-config", help="Print the resolved config and exit.")] = False,
+) -> None:
+    """SLAM back end: odometry + verified loop closures + a GTSAM pose graph; poses, g2o, ATE/RPE, a report.
+
+    Examples:
+
+      placerec slam configs/slam_demo.yaml
+
+      placerec slam configs/slam_kitti.yaml --set dataset.path=/data/kitti/sequences/00
+
+      placerec slam configs/slam_demo.yaml --set robustness.false_loops=10
+    """
+    from placerec.errors import PlacerecError
+    from placerec.slam.config import load_slam_config
+
+    try:
+        cfg = load_slam_config(config, set_ or [])
+        if dump:
+            from placerec.config import config_to_yaml
+
+            typer.echo(config_to_yaml(cfg), nl=False)
+            return
+        from placerec.slam.report import print_slam_table
+        from placerec.slam.run import run_slam
+
+        run_dir, payload = run_slam(cfg, out)
+    except PlacerecError as exc:
+        _fail(exc)
+        return
+    print_slam_table(payload, f"{cfg.name} (slam, {payload['n_scans']} scans)")
     typer.echo(f"results: {run_dir}  (report: {run_dir / 'index.html'})")
 
 

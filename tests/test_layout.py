@@ -21,7 +21,14 @@ from placerec.pipelines.dbow import SHIPPED, default_vocabulary_path, resolve_vo
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "placerec"
 #: The experiment layer: it reads configs and data sources and drives the algorithms, never the other way round.
-EXPERIMENT_LAYER = ("placerec.config", "placerec.cli", "placerec.experiment")
+EXPERIMENT_LAYER = (
+    "placerec.config",
+    "placerec.cli",
+    "placerec.experiment",
+    "placerec.slam.config",
+    "placerec.slam.run",
+    "placerec.slam.report",
+)
 #: Data sources an experiment picks; an algorithm gets scans, not the simulator.
 DATA_SOURCES = ("placerec.sim",)
 

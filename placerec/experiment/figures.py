@@ -10,7 +10,13 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["plot_pr_curves", "plot_trajectory_closures", "plot_timing", "plot_localization"]
+__all__ = [
+    "plot_pr_curves",
+    "plot_trajectory_closures",
+    "plot_timing",
+    "plot_localization",
+    "plot_slam_trajectories",
+]
 
 
 def _pyplot() -> Any:
@@ -177,3 +183,40 @@ def _legend(ax: Any, **kwargs: Any) -> None:
     """A legend when something is labelled (matplotlib warns on an empty one)."""
     if ax.get_legend_handles_labels()[0]:
         ax.legend(**kwargs)
+
+
+def plot_slam_trajectories(
+    trajectories: dict[str, np.ndarray],
+    loops: np.ndarray,
+    loop_ok: np.ndarray,
+    path: Path,
+    title: str,
+    loops_on: str | None = None,
+) -> Path:
+    """Trajectories (x, y) of a SLAM run (``label -> (N, 3) positions``, drawn in order: e.g. ground truth,
+    odometry, optimised) with its loop edges (``loops`` (L, 2) scan ids) drawn on the trajectory ``loops_on``
+    (default: the last): green where ``loop_ok``, red where not."""
+    from matplotlib.collections import LineCollection
+
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.5, 6.5), dpi=120)
+    styles = {0: ("0.2", "--", 1.0), 1: ("tab:orange", "-", 1.2), 2: ("tab:blue", "-", 1.4)}
+    for k, (label, pos) in enumerate(trajectories.items()):
+        color, ls, lw = styles.get(k, (None, "-", 1.2))
+        ax.plot(pos[:, 0], pos[:, 1], ls, color=color, lw=lw, label=label, zorder=2 + k)
+    base = trajectories[loops_on] if loops_on else list(trajectories.values())[-1]
+    loops = np.asarray(loops, dtype=np.int64).reshape(-1, 2)
+    ok = np.asarray(loop_ok, dtype=bool).reshape(-1)
+    for mask, color, label in ((ok, "tab:green", "loop edge"), (~ok, "tab:red", "false loop edge")):
+        if mask.any():
+            segs = np.stack([base[loops[mask, 0], :2], base[loops[mask, 1], :2]], axis=1)
+            ax.add_collection(LineCollection(segs, colors=color, lw=0.9, alpha=0.7, zorder=6))
+            ax.plot([], [], color=color, lw=0.9, label=f"{label} ({int(mask.sum())})")
+    ax.set(xlabel="x [m]", ylabel="y [m]", title=title)
+    _frame(ax, *trajectories.values())
+    ax.grid(alpha=0.3)
+    _legend(ax, loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from pydantic import BaseModel
 
 from placerec.config import ExperimentConfig, config_to_yaml
 from placerec.errors import ConfigError
@@ -68,6 +69,8 @@ __all__ = [
     "report_localize",
     "recompute_loop_metrics",
     "print_table",
+    "print_rows",
+    "write_html_page",
 ]
 
 
@@ -75,8 +78,9 @@ def _slug(label: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", label).strip("_") or "pipeline"
 
 
-def make_run_dir(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> Path:
-    """A new timestamped folder for this run with the config written into it (``latest`` is moved to it only
+def make_run_dir(cfg: BaseModel, out_dir: str | Path | None = None) -> Path:
+    """A new timestamped folder for a config with ``name`` and ``output.dir`` (an `ExperimentConfig`, a SLAM
+    config) with the config written into it (``latest`` is moved to it only
     when its report is complete, by `point_latest`); `ConfigError` when the results root cannot hold it."""
     root = Path(out_dir or cfg.output.dir)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -414,50 +418,73 @@ def protocol_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]] 
 
 
 def print_table(payload: dict[str, Any], title: str) -> None:
-    """The results as a rich console table."""
+    """The results as rich console tables: the main one, and in loop mode the retrieval / direction one."""
+    print_rows(*table_rows(payload), title)
+    protocols = protocol_rows(payload)
+    if protocols is not None:
+        print_rows(*protocols, f"{title}: retrieval within 25 m, same- / reverse-direction revisits")
+
+
+def print_rows(header: list[str], rows: list[list[str]], title: str) -> None:
+    """A rich console table: the first column left-aligned, bold and never cut, the others right-aligned."""
     from rich.console import Console
+    from rich.measure import Measurement
     from rich.table import Table
     from rich.text import Text
 
+    table = Table(title=Text(title))
+    names = max((len(r[0]) for r in rows), default=0)
+    for i, h in enumerate(header):  # Text: "[m]" is a unit, not rich markup
+        first = i == 0
+        table.add_column(
+            Text(h),
+            justify="left" if first else "right",
+            style="bold" if first else None,
+            no_wrap=first,
+            min_width=names if first else None,
+        )
+    for row in rows:
+        table.add_row(*(Text(c) for c in row))
     console = Console()
-    if not console.is_terminal:  # logs and pipes: wide enough that no column is cut
-        console = Console(width=200)
-    tables = [(title, table_rows(payload))]
-    protocols = protocol_rows(payload)
-    if protocols is not None:
-        tables.append((f"{title}: retrieval within 25 m, same- / reverse-direction revisits", protocols))
-    for name, (header, rows) in tables:
-        table = Table(title=Text(name))
-        for i, h in enumerate(header):  # Text: "[m]" is a unit, not rich markup
-            table.add_column(Text(h), justify="left" if i == 0 else "right", style="bold" if i == 0 else None)
-        for row in rows:
-            table.add_row(*(Text(c) for c in row))
-        console.print(table)
+    if not console.is_terminal:  # logs and pipes: as wide as the table, so that no column is cut
+        wide = Console(width=10_000)
+        console = Console(width=Measurement.get(wide, wide.options, table).maximum)
+    console.print(table)
 
 
 def write_index_html(run: Path, cfg: ExperimentConfig, payload: dict[str, Any]) -> Path:
-    """A single page with the table and every figure of the run."""
-    html_tables = [table_rows(payload)] + [t for t in [protocol_rows(payload)] if t is not None]
-    tables = "".join(
-        "<table><tr>"
-        + "".join(f"<th>{html.escape(h)}</th>" for h in header)
-        + "</tr>"
-        + "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
-        + "</table>"
-        for header, rows in html_tables
-    )
+    """A single page with the tables and every figure of the run."""
+    tables = [table_rows(payload)] + [t for t in [protocol_rows(payload)] if t is not None]
+    return write_html_page(run, cfg.name, f"mode: {html.escape(payload['mode'])}", tables)
+
+
+def write_html_page(
+    run: Path,
+    title: str,
+    subtitle: str,
+    tables: list[tuple[list[str], list[list[str]]]],
+    first: tuple[str, ...] = ("pr_curves.png",),
+    last: tuple[str, ...] = ("timing.png",),
+) -> Path:
+    """``run/index.html``: ``title``, ``subtitle`` (HTML) with links to metrics.json and config.yaml, the
+    ``tables`` (header, rows) and every PNG of the folder (``first`` ones first, ``last`` ones last)."""
+    body = ""
+    for header, rows in tables:
+        head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+        cells = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+        body += f"<table><tr>{head}</tr>{cells}</table>"
     images = sorted(p.name for p in run.glob("*.png"))
-    order = {"pr_curves.png": 0, "timing.png": 2}
+    order = {**{n: 0 for n in first}, **{n: 2 for n in last}}
     images.sort(key=lambda n: (order.get(n, 1), n))
     figs = "".join(
         f'<figure><img src="{html.escape(n)}"><figcaption>{html.escape(n)}</figcaption></figure>'
         for n in images
     )
-    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(cfg.name)}</title>
+    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse;margin-bottom:1em}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}
 td:first-child{{text-align:left;font-weight:bold}}figure{{display:inline-block;margin:1em}}img{{max-width:560px}}</style></head><body>
-<h1>{html.escape(cfg.name)}</h1><p>mode: {html.escape(payload["mode"])} &middot; files: <a href="metrics.json">metrics.json</a>,
-<a href="config.yaml">config.yaml</a></p>{tables}{figs}</body></html>"""
+<h1>{html.escape(title)}</h1><p>{subtitle} &middot; files: <a href="metrics.json">metrics.json</a>,
+<a href="config.yaml">config.yaml</a></p>{body}{figs}</body></html>"""
     path = run / "index.html"
     with atomic_write(path, "w") as fh:
         fh.write(page)

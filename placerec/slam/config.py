@@ -1,0 +1,144 @@
+"""The ``placerec slam`` configuration: strict `placerec.params.Params` sections, loaded like experiment configs
+(`placerec.config.read_config_file` + ``key.path=value`` overrides, errors naming the dotted key).
+
+The ``dataset`` and ``preprocess`` sections are the experiment config's (`placerec.config`); ``loops.pipeline``
+is a `placerec.config.PipelineSpec` and ``loops.exclusion`` an `placerec.config.ExclusionConfig`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from placerec.config import (
+    DatasetConfig,
+    ExclusionConfig,
+    PipelineSpec,
+    PreprocessConfig,
+    apply_overrides,
+    config_to_yaml,
+    read_config_file,
+)
+from placerec.params import Params, resolve
+from placerec.sim.odometry import OdometryDrift
+from placerec.slam.graph import GraphParams
+from placerec.slam.odometry import KissIcpParams
+
+__all__ = [
+    "DriftConfig",
+    "OdometryConfig",
+    "LoopsConfig",
+    "SlamEvaluationConfig",
+    "RobustnessConfig",
+    "SlamOutputConfig",
+    "SlamConfig",
+    "load_slam_config",
+    "dump_default_slam_config",
+]
+
+
+class DriftConfig(Params):
+    """Drifting odometry made from the dataset's true poses: the fields (and defaults) of
+    `placerec.sim.odometry.OdometryDrift` (noise per metre, a heading bias, a scale error) and its seed."""
+
+    translation: float = Field(
+        OdometryDrift.translation, ge=0, description="relative translation noise per metre (1 sigma)"
+    )
+    rotation_deg: float = Field(
+        OdometryDrift.rotation_deg, ge=0, description="yaw noise, deg per sqrt(metre)"
+    )
+    yaw_bias_deg_per_100m: float = Field(OdometryDrift.yaw_bias_deg_per_100m, description="heading drift")
+    scale_bias: float = Field(OdometryDrift.scale_bias, description="relative scale error")
+    seed: int | None = Field(None, description="noise seed (None: the simulator's seed, else 0)")
+
+
+class OdometryConfig(Params):
+    """Where the odometry poses come from.
+
+    ``dataset``: the simulator's drifting odometry (``drift``) applied to the dataset's true poses;
+    ``kiss-icp``: KISS-ICP on the scans (``kiss_icp``); ``file``: a KITTI or TUM poses file (``path``), one pose
+    per scan of the dataset (after its first/last/step slice)."""
+
+    source: Literal["dataset", "kiss-icp", "file"] = "dataset"
+    drift: DriftConfig = Field(default_factory=DriftConfig)
+    kiss_icp: KissIcpParams = Field(default_factory=KissIcpParams)
+    path: str | None = Field(None, description="poses file for source 'file'")
+    format: Literal["kitti", "tum"] | None = Field(None, description="poses file format (None: by columns)")
+
+    @model_validator(mode="after")
+    def _path_needed(self) -> OdometryConfig:
+        if self.source == "file" and not self.path:
+            raise ValueError("odometry.source 'file' needs odometry.path")
+        return self
+
+
+class LoopsConfig(Params):
+    """Loop closures: a verified pipeline inside `placerec.loop_closure.LoopClosureDetector`."""
+
+    pipeline: PipelineSpec = Field(default_factory=lambda: PipelineSpec(name="orb-hbst"))
+    threshold: float = Field(
+        0.25,
+        description="accept a closure when its verified score >= threshold (the verification's min_score)",
+    )
+    exclusion: ExclusionConfig = Field(default_factory=ExclusionConfig)
+    k: int = Field(1, ge=1, description="closures accepted per scan at most (best first)")
+
+
+class SlamEvaluationConfig(Params):
+    """Trajectory errors against the dataset's poses (when it has them) and the check of each loop edge."""
+
+    rpe_delta: int = Field(10, ge=1, description="RPE over this many frames")
+    false_loop_translation: float = Field(
+        1.0, gt=0, description="a loop whose pose is off by more than this (m) is false"
+    )
+    false_loop_rotation_deg: float = Field(5.0, gt=0, description="... or by more than this (deg)")
+
+
+class RobustnessConfig(Params):
+    """False loop edges injected into the graph, to test the robust back end (0: none)."""
+
+    false_loops: int = Field(
+        0, ge=0, description="random scan pairs at least 30 m apart, given plausible poses"
+    )
+    seed: int = 0
+    min_distance: float = Field(30.0, gt=0, description="the pair's true distance at least this (m)")
+
+
+class SlamOutputConfig(Params):
+    """Where results go: ``dir/<name>_<timestamp>/`` with a ``latest`` link."""
+
+    dir: str = "results"
+    figures: bool = True
+    progress: bool = True
+    map_ply: bool = Field(False, description="write the corrected map (map.ply; scans read a second time)")
+    map_voxel: float = Field(0.5, gt=0, description="voxel of the corrected map (m)")
+
+
+class SlamConfig(Params):
+    """The root of a ``placerec slam`` config."""
+
+    name: str = "slam"
+    dataset: DatasetConfig = Field(default_factory=DatasetConfig)
+    preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
+    odometry: OdometryConfig = Field(default_factory=OdometryConfig)
+    loops: LoopsConfig = Field(default_factory=LoopsConfig)
+    graph: GraphParams = Field(default_factory=GraphParams)
+    evaluation: SlamEvaluationConfig = Field(default_factory=SlamEvaluationConfig)
+    robustness: RobustnessConfig = Field(default_factory=RobustnessConfig)
+    output: SlamOutputConfig = Field(default_factory=SlamOutputConfig)
+
+
+def load_slam_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SlamConfig:
+    """Load a SLAM YAML config (None = defaults), apply ``key.path=value`` overrides, validate (`ConfigError`)."""
+    data = {} if path is None else read_config_file(path)
+    origin = "<defaults>" if path is None else str(path)
+    if overrides:
+        apply_overrides(data, overrides)
+    return resolve(SlamConfig, data, where=f"{origin}: invalid SLAM configuration")
+
+
+def dump_default_slam_config() -> str:
+    """The default SLAM config as YAML."""
+    return "# placerec slam default configuration\n" + config_to_yaml(SlamConfig())

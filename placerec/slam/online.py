@@ -1,0 +1,115 @@
+"""The online SLAM back end: odometry poses in, verified loop closures found, a GTSAM pose graph kept current.
+
+>>> from placerec.recognizer import make_pipeline
+>>> from placerec.slam import OnlineSlam
+>>> slam = OnlineSlam(make_pipeline("orb-hbst"), threshold=0.25)          # doctest: +SKIP
+>>> for scan, odom in stream:                                             # doctest: +SKIP
+...     loops = slam.process(scan, odom)      # this scan's accepted closures, already in the graph
+>>> poses = slam.finish()                     # the batch-optimised trajectory (N, 4, 4)   # doctest: +SKIP
+
+Each scan: the `placerec.loop_closure.LoopClosureDetector` queries with it (exclusion window over the odometry
+poses) and adds it; the graph gets the scan's pose with an odometry factor from the previous odometry pose, and a
+robust loop factor per accepted closure (``T_match_query``); then iSAM2 updates (every scan, and with extra passes
+when a loop arrived). ``extra_loops`` lets a caller add loop edges of its own (the robustness benchmarks inject
+false ones this way). Stage times (ms) of the last scan are in ``last_timing_ms``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from placerec.errors import ScanDataError
+from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES
+from placerec.eval.pose_error import full_pose_mask
+from placerec.loop_closure import LoopClosureDetector
+from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
+from placerec.types import Candidate, Description, PlaceRecognizer, Scan
+
+__all__ = ["OnlineSlam"]
+
+
+def _usable(c: Candidate) -> bool:
+    """A closure the graph can use: a 6-DoF ``relative_pose`` (not a yaw-only guess) that the pipeline's
+    verification accepted (when it says, in ``extra["accepted"]``)."""
+    if c.relative_pose is None or not full_pose_mask(c.relative_pose)[0]:
+        return False
+    return bool(c.extra.get("accepted", True))
+
+
+class OnlineSlam:
+    """Loop closure + pose graph for a stream of scans with odometry (see the module docstring).
+
+    ``threshold``: verified score from which a closure is accepted (closures without a 6-DoF pose, or that the
+    pipeline's verification rejected, never enter the graph); ``k``: closures accepted per scan at most;
+    the exclusion limits are those of `LoopClosureDetector`; ``graph``: `GraphParams`.
+    """
+
+    def __init__(
+        self,
+        recognizer: PlaceRecognizer,
+        threshold: float,
+        graph: GraphParams | None = None,
+        exclusion_frames: int | None = DEFAULT_EXCLUSION_FRAMES,
+        exclusion_seconds: float | None = None,
+        exclusion_metres: float | None = None,
+        k: int = 1,
+    ) -> None:
+        self.detector = LoopClosureDetector(
+            recognizer, threshold, exclusion_frames, exclusion_seconds, exclusion_metres, k=k
+        )
+        self.graph = PoseGraph(graph or GraphParams())
+        self.loops: list[LoopFactor] = []
+        self.last_timing_ms: dict[str, float] = {}
+        self.candidates: list[list[Any]] = []
+
+    def process(
+        self,
+        scan: Scan | None,
+        odometry_pose: np.ndarray,
+        timestamp: float | None = None,
+        description: Description | None = None,
+        extra_loops: list[LoopFactor] | None = None,
+    ) -> list[LoopFactor]:
+        """Add the next scan with its odometry pose ``T_world_sensor``; returns the loop factors added for it.
+
+        A scan the recognizer cannot describe (`ScanDataError`) still gets its pose and odometry factor, but is
+        never queried or matched."""
+        timing: dict[str, float] = {}
+        try:
+            accepted = self.detector.process(scan, odometry_pose, timestamp, description)
+            timing.update(self.detector.last_timing_ms)
+        except ScanDataError:
+            self.detector.skip(odometry_pose, timestamp)
+            accepted = []
+        self.candidates.append(self.detector.last_candidates)
+        t0 = time.perf_counter()
+        self.graph.add_pose(odometry_pose)
+        added = [
+            LoopFactor(c.match_id, c.query_id, np.asarray(c.relative_pose, dtype=np.float64), float(c.score))
+            for c in accepted
+            if _usable(c)
+        ]
+        added += list(extra_loops or [])
+        for loop in added:
+            self.graph.add_loop(loop)
+        self.loops.extend(added)
+        timing["graph"] = (time.perf_counter() - t0) * 1e3
+        timing["isam2"] = self.graph.update()
+        self.last_timing_ms = timing
+        return added
+
+    @property
+    def n_scans(self) -> int:
+        return self.graph.n_poses
+
+    def poses(self) -> np.ndarray:
+        """The current (iSAM2) estimate of every pose so far, (N, 4, 4)."""
+        return self.graph.poses()
+
+    def finish(self) -> np.ndarray:
+        """The final batch optimisation (`GraphParams.batch`); details in ``batch_info``."""
+        poses, self.batch_info = self.graph.optimize()
+        return poses

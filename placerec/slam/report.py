@@ -1,0 +1,286 @@
+"""The results folder of ``placerec slam``.
+
+* ``config.yaml`` — the resolved config;
+* ``poses_kitti.txt`` / ``poses_tum.txt`` — the batch-optimised trajectory (TUM timestamps: the dataset's, else
+  the scan index); ``odometry_kitti.txt`` and ``online_kitti.txt`` (iSAM2's estimate at the last scan) beside it,
+  ``ground_truth_kitti.txt`` when the dataset has poses;
+* ``graph.g2o`` — the pose graph (vertices at the optimised poses, odometry and loop edges with information);
+* ``loops.csv`` — one row per loop edge: ``match_id, query_id, score, injected, x, y, z, roll, pitch, yaw``
+  (``T_match_query`` as in `placerec.experiment.candidates`), ``residual_sigmas, weight`` (`BATCH_COLUMNS`), and
+  with ground truth ``true_distance``,
+  ``translation_error``, ``rotation_error_deg``, ``false`` (off by more than the evaluation's limits) and
+  ``opposite`` (headings more than 135 deg apart: a reverse-direction revisit);
+* ``metrics.json`` — ATE / RPE of the odometry, the online and the optimised trajectory, the loop counts, per-scan
+  times (online loop with and without odometry, each stage, iSAM2 updates) and the batch optimiser's summary;
+* ``trajectory.png`` (before / after with the loop edges), ``index.html``; ``map.ply`` with ``output.map_ply``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from placerec.eval.metrics import timing_summary
+from placerec.eval.pose_error import pose_errors
+from placerec.eval.trajectory import trajectory_errors
+from placerec.experiment import figures
+from placerec.experiment.candidates import pose_to_xyzrpy
+from placerec.experiment.preprocessing import preprocess_params
+from placerec.experiment.report import (
+    _finite_or_null,
+    _json_default,
+    point_latest,
+    print_rows,
+    write_html_page,
+)
+from placerec.io import write_kitti_poses, write_tum_poses
+from placerec.io.atomic import atomic_write
+from placerec.preprocess import preprocess_scan
+from placerec.slam.config import SlamConfig
+from placerec.slam.result import ONLINE_STAGES, SlamResult
+from placerec.types import Scan, Sequence, relative_pose
+
+__all__ = ["report_slam", "loop_table", "slam_metrics", "print_slam_table", "write_map_ply"]
+
+LOOP_COLUMNS = ("match_id", "query_id", "score", "injected", "x", "y", "z", "roll", "pitch", "yaw")
+#: After the batch step (not with ``graph.batch: none``): each loop's error at the solution, in sigmas of the loop
+#: noise, and its weight (GNC's, or the robust kernel's at that error); below 0.5: rejected by the back end.
+BATCH_COLUMNS = ("residual_sigmas", "weight")
+TRUTH_COLUMNS = ("true_distance", "translation_error", "rotation_error_deg", "false", "opposite")
+
+
+def loop_table(cfg: SlamConfig, result: SlamResult) -> dict[str, np.ndarray]:
+    """The loop edges as columns (`LOOP_COLUMNS`, and `TRUTH_COLUMNS` when the run has ground truth)."""
+    loops = result.loops
+    L = len(loops)
+    cols: dict[str, np.ndarray] = {
+        "match_id": np.array([lp.match_id for lp in loops], dtype=np.int64),
+        "query_id": np.array([lp.query_id for lp in loops], dtype=np.int64),
+        "score": np.array([lp.score for lp in loops], dtype=np.float64),
+        "injected": np.array([lp.injected for lp in loops], dtype=bool),
+    }
+    T = np.stack([lp.T_match_query for lp in loops]) if L else np.zeros((0, 4, 4))
+    xyzrpy = np.stack([pose_to_xyzrpy(t) for t in T]) if L else np.zeros((0, 6))
+    for j, key in enumerate(("x", "y", "z", "roll", "pitch", "yaw")):
+        cols[key] = xyzrpy[:, j]
+    for key, name in (("loop_residuals", "residual_sigmas"), ("loop_weights", "weight")):
+        values = result.batch.get(key)
+        if values is not None and len(values) == L:
+            cols[name] = np.asarray(values, dtype=np.float64)
+    gt = result.ground_truth
+    if gt is not None:
+        m, q = cols["match_id"], cols["query_id"]
+        true_rel = np.stack([relative_pose(gt[a], gt[b]) for a, b in zip(m, q, strict=True)]) if L else T
+        te, re = pose_errors(T, true_rel) if L else (np.zeros(0), np.zeros(0))
+        ev = cfg.evaluation
+        cols["true_distance"] = np.linalg.norm(gt[q, :3, 3] - gt[m, :3, 3], axis=1)
+        cols["translation_error"] = te
+        cols["rotation_error_deg"] = re
+        cols["false"] = (te > ev.false_loop_translation) | (re > ev.false_loop_rotation_deg)
+        heading = np.einsum("nij,j->ni", gt[:, :3, :3], np.array([1.0, 0.0, 0.0]))
+        cos = np.einsum("ni,ni->n", heading[q, :2], heading[m, :2]) / np.maximum(
+            np.linalg.norm(heading[q, :2], axis=1) * np.linalg.norm(heading[m, :2], axis=1), 1e-12
+        )
+        cols["opposite"] = cos < np.cos(np.radians(135.0))
+    return cols
+
+
+def _write_loops(path: Path, cols: dict[str, np.ndarray]) -> None:
+    keys = list(cols)
+    with atomic_write(path, "w") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(keys)
+        for i in range(len(cols["match_id"])):
+            row = []
+            for k in keys:
+                v = cols[k][i]
+                row.append(
+                    int(v) if cols[k].dtype == bool else (f"{v:.6g}" if cols[k].dtype.kind == "f" else v)
+                )
+            w.writerow(row)
+
+
+def slam_metrics(cfg: SlamConfig, result: SlamResult, cols: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The ``metrics.json`` payload (see the module docstring)."""
+    gt = result.ground_truth
+    n = len(result.odometry)
+    traj: dict[str, Any] = {}
+    if gt is not None and n >= 3:
+        for key, poses in (
+            ("odometry", result.odometry),
+            ("online", result.online),
+            ("optimized", result.optimized),
+        ):
+            traj[key] = trajectory_errors(poses, gt, cfg.evaluation.rpe_delta).as_dict()
+    injected = cols["injected"]
+    loops: dict[str, Any] = {
+        "accepted": int((~injected).sum()),
+        "injected": int(injected.sum()),
+    }
+    if "weight" in cols:
+        rejected = cols["weight"] < 0.5
+        loops["rejected_by_back_end"] = int((rejected & ~injected).sum())
+        loops["injected_rejected_by_back_end"] = int((rejected & injected).sum())
+    if "false" in cols:
+        real = ~injected
+        loops["false_accepted"] = int((cols["false"] & real).sum())
+        loops["opposite_direction"] = int((cols["opposite"] & real & ~cols["false"]).sum())
+        te = cols["translation_error"][real]
+        loops["max_translation_error"] = float(te.max()) if te.size else None
+        loops["median_translation_error"] = float(np.median(te)) if te.size else None
+    t = result.timing_ms
+    per_scan = np.sum([t[s] for s in ONLINE_STAGES], axis=0) if n else np.zeros(0)
+    queried = np.asarray(result.queried, dtype=bool) if len(result.queried) == n else np.ones(n, bool)
+    timing = {
+        "online_without_odometry": timing_summary(per_scan),
+        "online_without_odometry_querying": timing_summary(per_scan[queried]),
+        "online_with_odometry": timing_summary(per_scan + np.asarray(t["odometry"])),
+        "online_without_odometry_cpu": timing_summary(t["cpu"]) if "cpu" in t else None,
+        "stages": {s: timing_summary(t[s]) for s in (*ONLINE_STAGES, "odometry")},
+        "isam2_update": timing_summary(result.isam2_ms),
+        "isam2_loop_update": timing_summary(result.isam2_loop_ms),
+        "batch_ms": result.batch.get("time_ms"),
+    }
+    payload: dict[str, Any] = {
+        "mode": "slam",
+        "dataset": result.name,
+        "n_scans": n,
+        "pipeline": cfg.loops.pipeline.display_name,
+        "odometry_source": cfg.odometry.source,
+        "trajectory": traj,
+        "loops": loops,
+        "time_ms": timing,
+        "batch": {k: v for k, v in result.batch.items() if k not in ("loop_weights", "loop_residuals")},
+    }
+    if traj:
+        opt = traj["optimized"]["ate_rmse"]
+        payload["ate_reduction"] = traj["odometry"]["ate_rmse"] / opt if opt > 0 else None
+    return payload
+
+
+def _rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    header = ["trajectory", "ATE RMSE [m]", "ATE max [m]", "RPE t RMSE [m]", "RPE rot RMSE [deg]"]
+    rows = []
+    for key, label in (
+        ("odometry", "odometry"),
+        ("online", "iSAM2 online"),
+        ("optimized", "batch optimised"),
+    ):
+        e = payload["trajectory"].get(key)
+        if e:
+            rows.append(
+                [label]
+                + [
+                    f"{e[k]:.3f}"
+                    for k in ("ate_rmse", "ate_max", "rpe_translation_rmse", "rpe_rotation_rmse_deg")
+                ]
+            )
+    return header, rows
+
+
+def _loop_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    lp, tm = payload["loops"], payload["time_ms"]
+
+    def fmt(v: Any) -> str:
+        return "-" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v))
+
+    header = ["loops", "accepted", "false", "opposite dir.", "injected", "rejected by graph (real / injected)",
+              "median t err [m]", "ms/scan (no odom) median", "with odom", "iSAM2 ms", "iSAM2 loop ms"]  # fmt: skip
+    rejected = (
+        f"{lp['rejected_by_back_end']} / {lp['injected_rejected_by_back_end']}"
+        if "rejected_by_back_end" in lp
+        else "-"
+    )
+    row = [
+        payload["pipeline"],
+        fmt(lp["accepted"]),
+        fmt(lp.get("false_accepted")),
+        fmt(lp.get("opposite_direction")),
+        fmt(lp["injected"]),
+        rejected,
+        fmt(lp.get("median_translation_error")),
+        fmt(tm["online_without_odometry"]["median"]),
+        fmt(tm["online_with_odometry"]["median"]),
+        fmt(tm["isam2_update"]["median"]),
+        fmt(tm["isam2_loop_update"]["median"]),
+    ]
+    return header, [row]
+
+
+def print_slam_table(payload: dict[str, Any], title: str) -> None:
+    """The trajectory errors and the loop / time summary as console tables."""
+    title = f"{title}, odometry: {payload['odometry_source']}"
+    if payload["trajectory"]:
+        print_rows(*_rows(payload), title)
+    print_rows(*_loop_rows(payload), f"{title}: loop closures and time")
+
+
+def write_map_ply(cfg: SlamConfig, seq: Sequence, poses: np.ndarray, path: Path) -> Path:
+    """The corrected map: every preprocessed scan moved by its optimised pose, one point per ``map_voxel``
+    (the first that falls in it, in scan order), as PLY."""
+    from placerec.io.ply import write_ply
+
+    voxel = cfg.output.map_voxel
+    pre = preprocess_params(cfg.preprocess)
+    cells, xyz, inten = [], [], []
+    for i in range(len(seq)):
+        scan = preprocess_scan(seq[i], pre)
+        world = scan.xyz.astype(np.float64) @ poses[i][:3, :3].T + poses[i][:3, 3]
+        c = np.floor(world / voxel).astype(np.int64)
+        _, first = np.unique(c, axis=0, return_index=True)  # one point per voxel and scan first
+        first.sort()
+        cells.append(c[first])
+        xyz.append(world[first])
+        inten.append(scan.intensity[first])
+    if cells:
+        _, keep = np.unique(np.concatenate(cells), axis=0, return_index=True)
+        keep.sort()  # the earliest scan's point of each voxel
+        points, values = np.concatenate(xyz)[keep], np.concatenate(inten)[keep]
+    else:
+        points, values = np.zeros((0, 3)), np.zeros(0)
+    write_ply(path, Scan(points.astype(np.float32), values, source=str(path)))
+    return path
+
+
+def report_slam(cfg: SlamConfig, run: Path, seq: Sequence, result: SlamResult) -> dict[str, Any]:
+    """Write every output of a SLAM run into ``run``; returns the metrics dict."""
+    stamps = (
+        result.timestamps if result.timestamps is not None else np.arange(len(result.optimized), dtype=float)
+    )
+    write_kitti_poses(run / "poses_kitti.txt", result.optimized)
+    write_tum_poses(run / "poses_tum.txt", result.optimized, stamps)
+    write_kitti_poses(run / "odometry_kitti.txt", result.odometry)
+    write_kitti_poses(run / "online_kitti.txt", result.online)
+    if result.ground_truth is not None:
+        write_kitti_poses(run / "ground_truth_kitti.txt", result.ground_truth)
+    result.graph.write_g2o(run / "graph.g2o", result.optimized)
+    cols = loop_table(cfg, result)
+    _write_loops(run / "loops.csv", cols)
+    payload = slam_metrics(cfg, result, cols)
+    with atomic_write(run / "metrics.json", "w") as fh:
+        json.dump(_finite_or_null(payload), fh, indent=2, default=_json_default, allow_nan=False)
+    if cfg.output.figures:
+        traj = {}
+        if result.ground_truth is not None:
+            traj["ground truth"] = result.ground_truth[:, :3, 3]
+        traj["odometry"] = result.odometry[:, :3, 3]
+        traj["optimised"] = result.optimized[:, :3, 3]
+        ok = ~cols.get("false", np.zeros(len(cols["match_id"]), bool))
+        e = payload["trajectory"]
+        title = f"{cfg.name}: {cfg.loops.pipeline.display_name}, {len(result.loops)} loop edges"
+        if e:
+            title += (
+                f"\nATE {e['odometry']['ate_rmse']:.2f} m (odometry) -> {e['optimized']['ate_rmse']:.3f} m"
+            )
+        loops = np.stack([cols["match_id"], cols["query_id"]], axis=1)
+        figures.plot_slam_trajectories(traj, loops, ok, run / "trajectory.png", title, loops_on="optimised")
+        tables = [_rows(payload), _loop_rows(payload)] if e else [_loop_rows(payload)]
+        write_html_page(run, cfg.name, "mode: slam", tables, first=("trajectory.png",), last=())
+    if cfg.output.map_ply:
+        write_map_ply(cfg, seq, result.optimized, run / "map.ply")
+    point_latest(run)
+    return payload

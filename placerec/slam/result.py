@@ -1,0 +1,37 @@
+"""What a SLAM run produced (`placerec.slam.run.slam_sequence`), for the report and the benchmarks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from placerec.slam.graph import LoopFactor, PoseGraph
+
+__all__ = ["SlamResult", "ONLINE_STAGES"]
+
+#: Stages of the online loop timed per scan (wall-clock ms); ``timing_ms`` also holds "odometry" (reported apart:
+#: the loop's cost with and without it) and "cpu": the process CPU time of the loop without odometry (all its
+#: threads), which contention from other processes does not inflate as it does wall-clock time.
+ONLINE_STAGES = ("preprocess", "describe", "query", "verify", "insert", "graph", "isam2")
+
+
+@dataclass
+class SlamResult:
+    """What a SLAM run produced: trajectories (N, 4, 4), the loop edges, per-scan stage times (ms)."""
+
+    name: str
+    odometry: np.ndarray
+    online: np.ndarray
+    optimized: np.ndarray
+    loops: list[LoopFactor]
+    timing_ms: dict[str, list[float]]
+    batch: dict[str, Any]
+    graph: PoseGraph
+    ground_truth: np.ndarray | None = None
+    timestamps: np.ndarray | None = None
+    isam2_ms: list[float] = field(default_factory=list)
+    isam2_loop_ms: list[float] = field(default_factory=list)
+    candidates: list[list[Any]] = field(default_factory=list)
+    queried: list[bool] = field(default_factory=list)  # whether the scan had older scans to query

@@ -1,0 +1,196 @@
+"""``placerec slam``: a config's sequence through odometry, verified loop closure and the pose graph.
+
+`run_slam` opens the dataset, builds the loop-closure pipeline and the odometry source (all checked before a
+results folder is made), runs `slam_sequence` and writes the results (`placerec.slam.report`).
+`slam_sequence` is the online loop: for every scan, in order, read + preprocess it, get its odometry pose, feed
+`placerec.slam.online.OnlineSlam` (loop closure, graph, iSAM2); then the final batch optimisation.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from placerec.errors import ConfigError
+from placerec.experiment.datasets import SlicedSequence, open_dataset
+from placerec.experiment.preprocessing import preprocess_params
+from placerec.experiment.report import make_run_dir
+from placerec.experiment.runner import progress_bars
+from placerec.io import read_poses
+from placerec.preprocess import preprocess_scan
+from placerec.recognizer import make_pipeline
+from placerec.slam.config import SlamConfig
+from placerec.slam.graph import LoopFactor
+from placerec.slam.online import OnlineSlam
+from placerec.slam.report import report_slam
+from placerec.slam.result import ONLINE_STAGES, SlamResult
+from placerec.types import PlaceRecognizer, Scan, Sequence
+
+__all__ = ["slam_sequence", "run_slam", "odometry_source", "false_loops"]
+
+Odometry = Callable[[int, Scan], np.ndarray]
+
+
+def _drift_odometry(cfg: SlamConfig, seq: Sequence) -> np.ndarray:
+    from placerec.sim.odometry import OdometryDrift, drift_poses
+
+    if seq.poses is None:
+        raise ConfigError(
+            f"odometry.source 'dataset' makes drifting odometry from true poses; {seq.name} has none"
+        )
+    d = cfg.odometry.drift
+    seed = d.seed
+    if seed is None:
+        seed = cfg.dataset.simulator.seed if cfg.dataset.source == "simulator" else 0
+    drift = OdometryDrift(**d.model_dump(exclude={"seed"}))
+    return drift_poses(seq.poses, drift, seed)
+
+
+def _file_odometry(cfg: SlamConfig, seq: Sequence) -> np.ndarray:
+    poses, _ = read_poses(cfg.odometry.path, cfg.odometry.format)
+    if len(poses) == len(seq):
+        return poses
+    if isinstance(seq, SlicedSequence) and len(poses) > int(seq.base_indices.max()):
+        return poses[seq.base_indices]
+    raise ConfigError(
+        f"odometry.path {cfg.odometry.path}: {len(poses)} poses for {len(seq)} scans of {seq.name}"
+    )
+
+
+def odometry_source(cfg: SlamConfig, seq: Sequence) -> Odometry:
+    """``f(index, scan) -> T_world_sensor`` for the configured odometry (`ConfigError` when it cannot work)."""
+    source = cfg.odometry.source
+    if source in ("dataset", "file"):
+        poses = _drift_odometry(cfg, seq) if source == "dataset" else _file_odometry(cfg, seq)
+        return lambda i, scan: poses[i]
+    from placerec.slam.odometry import KissIcpOdometry
+
+    origin = None if seq.poses is None else seq.poses[0]
+    kiss = KissIcpOdometry(cfg.odometry.kiss_icp, origin)
+    return lambda i, scan: kiss.register(scan)
+
+
+def false_loops(cfg: SlamConfig, reference: np.ndarray, n_scans: int) -> dict[int, list[LoopFactor]]:
+    """``robustness.false_loops`` wrong loop edges by query scan: random pairs at least ``min_distance`` apart
+    (on ``reference``, the true poses when known) and older than the exclusion window, each given the kind of
+    relative pose a real closure has (up to 3 m in x and y, yaw up to 30 deg), seeded by ``robustness.seed``."""
+    rb = cfg.robustness
+    if rb.false_loops == 0:
+        return {}
+    rng = np.random.default_rng([rb.seed, 0xFA15E])
+    gap = max(1, cfg.loops.exclusion.frames or 1)
+    pos = reference[:, :3, 3]
+    pairs: set[tuple[int, int]] = set()
+    for _ in range(100 * rb.false_loops):  # a random query, then a random far enough older scan
+        if len(pairs) == rb.false_loops or n_scans <= gap:
+            break
+        q = int(rng.integers(gap, n_scans))
+        far = np.flatnonzero(np.linalg.norm(pos[: q - gap + 1] - pos[q], axis=1) >= rb.min_distance)
+        if far.size:
+            pairs.add((int(rng.choice(far)), q))
+    if len(pairs) < rb.false_loops:
+        raise ConfigError(
+            f"robustness.false_loops: found {len(pairs)} of {rb.false_loops} scan pairs {rb.min_distance} m apart "
+            f"beyond the exclusion window ({n_scans} scans)"
+        )
+    out: dict[int, list[LoopFactor]] = {}
+    for m, q in sorted(pairs):
+        yaw = np.radians(rng.uniform(-30, 30))
+        T = np.eye(4)
+        T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        T[:2, 3] = rng.uniform(-3, 3, 2)
+        out.setdefault(q, []).append(LoopFactor(m, q, T, float("nan"), injected=True))
+    return out
+
+
+def _injected(cfg: SlamConfig, seq: Sequence) -> dict[int, list[LoopFactor]]:
+    """`false_loops` on the sequence's true poses; `ConfigError` when they are asked for and it has none."""
+    if not cfg.robustness.false_loops:
+        return {}
+    if seq.poses is None:
+        raise ConfigError(
+            "robustness.false_loops needs a dataset with true poses (to pick truly wrong pairs)"
+        )
+    return false_loops(cfg, seq.poses, len(seq))
+
+
+def slam_sequence(
+    cfg: SlamConfig,
+    seq: Sequence,
+    recognizer: PlaceRecognizer | None = None,
+    odometry: Odometry | None = None,
+) -> SlamResult:
+    """Run the online loop over ``seq`` and the final batch optimisation (see the module docstring)."""
+    rec = recognizer or make_pipeline(
+        cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params"
+    )
+    odometry = odometry or odometry_source(cfg, seq)
+    ex = cfg.loops.exclusion
+    slam = OnlineSlam(rec, cfg.loops.threshold, cfg.graph, ex.frames, ex.seconds, ex.metres, k=cfg.loops.k)
+    n = len(seq)
+    stamps = seq.timestamps
+    injected = _injected(cfg, seq)
+    pre = preprocess_params(cfg.preprocess)
+    timing: dict[str, list[float]] = {s: [] for s in (*ONLINE_STAGES, "odometry", "cpu")}
+    odo = np.empty((n, 4, 4))
+    queried = []
+    with progress_bars(cfg.output.progress) as progress:
+        task = progress.add_task(f"slam ({cfg.loops.pipeline.display_name})", total=n)
+        for i in range(n):
+            raw = seq[i]
+            t0 = time.perf_counter()
+            odo[i] = odometry(i, raw)
+            t1, c1 = time.perf_counter(), time.process_time()
+            scan = preprocess_scan(raw, pre, keep_organized=True)
+            t2 = time.perf_counter()
+            slam.process(
+                scan, odo[i], None if stamps is None else float(stamps[i]), extra_loops=injected.get(i)
+            )
+            cpu = (time.process_time() - c1) * 1e3
+            queried.append(slam.detector.last_max_id >= 0)
+            stages = dict(slam.last_timing_ms, odometry=(t1 - t0) * 1e3, preprocess=(t2 - t1) * 1e3, cpu=cpu)
+            for s in timing:
+                timing[s].append(stages.get(s, 0.0))
+            progress.advance(task)
+    online = slam.poses()
+    optimized = slam.finish()
+    return SlamResult(
+        name=seq.name,
+        odometry=odo,
+        online=online,
+        optimized=optimized,
+        loops=slam.loops,
+        timing_ms=timing,
+        batch=slam.batch_info,
+        graph=slam.graph,
+        ground_truth=seq.poses,
+        timestamps=stamps,
+        isam2_ms=list(slam.graph.update_ms),
+        isam2_loop_ms=list(slam.graph.loop_update_ms),
+        candidates=slam.candidates,
+        queried=queried,
+    )
+
+
+def run_slam(
+    cfg: SlamConfig, out_dir: str | Path | None = None, seq: Sequence | None = None
+) -> tuple[Path, dict[str, Any]]:
+    """Run ``cfg`` and write its results folder; returns (folder, metrics dict). The pipeline, dataset and
+    odometry are set up before the folder is made, so a config that cannot run leaves none behind."""
+    if seq is None:
+        if cfg.dataset.source == "path" and not Path(cfg.dataset.path).expanduser().exists():
+            raise ConfigError(
+                f"dataset.path {cfg.dataset.path}: no such folder or file (point it at your sequence: "
+                "--set dataset.path=/path/to/sequence)"
+            )
+        seq = open_dataset(cfg.dataset)
+    rec = make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
+    odometry = odometry_source(cfg, seq)
+    _injected(cfg, seq)
+    run = make_run_dir(cfg, out_dir)
+    result = slam_sequence(cfg, seq, rec, odometry)
+    return run, report_slam(cfg, run, seq, result)
