@@ -19,6 +19,14 @@ __all__ = [
 ]
 
 
+def _save(fig: Any, path: Path) -> Path:
+    """Lay out, write and close a figure; returns its path."""
+    fig.tight_layout()
+    fig.savefig(path)
+    _pyplot().close(fig)
+    return path
+
+
 def _pyplot() -> Any:
     import matplotlib
 
@@ -50,10 +58,7 @@ def plot_pr_curves(curves: dict[str, dict[str, Any]], path: Path, title: str = "
     ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.02), ylim=(0, 1.02), title=title)
     ax.grid(alpha=0.3)
     _legend(ax, loc="lower left", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_trajectory_closures(
@@ -106,10 +111,7 @@ def plot_trajectory_closures(
     _frame(ax, positions)
     ax.grid(alpha=0.3)
     _legend(ax, loc="best", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_timing(timing: dict[str, dict[str, float]], path: Path) -> Path:
@@ -137,10 +139,7 @@ def plot_timing(timing: dict[str, dict[str, float]], path: Path) -> Path:
         ylim=(0, max(1.0, 1.1 * bottom.max(initial=0))),
     )
     _legend(ax, fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_localization(
@@ -173,10 +172,7 @@ def plot_localization(
     _frame(ax, map_positions, query_positions, estimates)
     ax.grid(alpha=0.3)
     _legend(ax, fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def _legend(ax: Any, **kwargs: Any) -> None:
@@ -216,7 +212,4 @@ def plot_slam_trajectories(
     _frame(ax, *trajectories.values())
     ax.grid(alpha=0.3)
     _legend(ax, loc="best", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(fig, path)

@@ -134,7 +134,44 @@ def message_index(index: int, n: int, topic: str) -> int:
     return index
 
 
-class RosbagSequence:
+def choose_topic(path: Path, topics: list[str], topic: str | None) -> str:
+    """``topic`` if it is one of the file's PointCloud2 ``topics``, or the only one when ``topic`` is None;
+    `ScanFormatError` naming ``path`` otherwise."""
+    if topic is None:
+        if len(topics) != 1:
+            raise ScanFormatError(f"{path}: {len(topics)} PointCloud2 topics {topics}; pass topic=")
+        return topics[0]
+    if topic not in topics:
+        raise ScanFormatError(f"{path}: no PointCloud2 topic {topic!r} (PointCloud2 topics: {topics})")
+    return topic
+
+
+class PointCloud2Topic:
+    """What a sequence of one PointCloud2 topic of a recording file reports (a subclass sets ``_path``,
+    ``_topic`` and ``_stamps``): header-stamp timestamps, no poses, a name of file stem and topic."""
+
+    _path: Path
+    _topic: str
+    _stamps: np.ndarray
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._stamps
+
+    @property
+    def poses(self) -> None:
+        return None
+
+    @property
+    def name(self) -> str:
+        return f"{self._path.stem}:{self._topic}"
+
+    @property
+    def topic(self) -> str:
+        return self._topic
+
+
+class RosbagSequence(PointCloud2Topic):
     """PointCloud2 messages of one topic of a ROS1 ``.bag`` or rosbag2 folder, as a lazy `Sequence`.
 
     ``topic`` may be omitted when the bag has exactly one PointCloud2 topic. Timestamps are the messages'
@@ -157,18 +194,12 @@ class RosbagSequence:
                 f"{self._path}: cannot open as a rosbag ({type(exc).__name__}: {exc})"
             ) from exc
         clouds = [c for c in self._reader.connections if c.msgtype == POINTCLOUD2]
-        topics = sorted({c.topic for c in clouds})
-        if topic is None:
-            if len(topics) != 1:
-                self.close()
-                raise ScanFormatError(f"{self._path}: {len(topics)} PointCloud2 topics {topics}; pass topic=")
-            topic = topics[0]
-        self._conns = [c for c in clouds if c.topic == topic]
-        if not self._conns:
+        try:
+            topic = choose_topic(self._path, sorted({c.topic for c in clouds}), topic)
+        except ScanFormatError:
             self.close()
-            raise ScanFormatError(
-                f"{self._path}: no PointCloud2 topic {topic!r} (PointCloud2 topics: {topics})"
-            )
+            raise
+        self._conns = [c for c in clouds if c.topic == topic]
         self._topic = topic
         log_times, stamps = [], []
         try:
@@ -207,22 +238,6 @@ class RosbagSequence:
                 msg, where, organized=self._organized, timestamp=float(self._stamps[index])
             )
         raise ScanFormatError(f"{where}: message not found again in the bag")  # pragma: no cover
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._stamps
-
-    @property
-    def poses(self) -> None:
-        return None
-
-    @property
-    def name(self) -> str:
-        return f"{self._path.stem}:{self._topic}"
-
-    @property
-    def topic(self) -> str:
-        return self._topic
 
     def close(self) -> None:
         if getattr(self, "_reader", None) is not None and self._reader.isopen:

@@ -13,6 +13,8 @@ import numpy as np
 from placerec.errors import DependencyError, ScanFormatError
 from placerec.io.rosbag import (
     POINTCLOUD2,
+    PointCloud2Topic,
+    choose_topic,
     header_stamp,
     message_index,
     pointcloud2_to_scan,
@@ -42,7 +44,7 @@ def _modules() -> tuple[Any, Any]:
     return make_reader, get_typestore(Stores.LATEST)
 
 
-class McapSequence:
+class McapSequence(PointCloud2Topic):
     """PointCloud2 messages of one topic of a ``.mcap`` file, as a lazy `Sequence` (poses None, timestamps
     the header stamps). ``topic`` may be left out when the file has one PointCloud2 topic. Messages are indexed
     (file offsets of their chunks are not kept: the file is re-read from the message's log time on access)."""
@@ -60,16 +62,7 @@ class McapSequence:
                     raise ScanFormatError(f"{self._path}: .mcap file without a summary section (not indexed)")
                 schemas = {k for k, s in summary.schemas.items() if s.name == _SCHEMA}
                 topics = sorted({c.topic for c in summary.channels.values() if c.schema_id in schemas})
-                if topic is None:
-                    if len(topics) != 1:
-                        raise ScanFormatError(
-                            f"{self._path}: {len(topics)} PointCloud2 topics {topics}; pass topic="
-                        )
-                    topic = topics[0]
-                if topic not in topics:
-                    raise ScanFormatError(
-                        f"{self._path}: no PointCloud2 topic {topic!r} (PointCloud2 topics: {topics})"
-                    )
+                topic = choose_topic(self._path, topics, topic)
                 times, stamps = [], []
                 for _, _, msg in reader.iter_messages(topics=[topic], log_time_order=True):
                     times.append(msg.log_time)
@@ -111,19 +104,3 @@ class McapSequence:
         return pointcloud2_to_scan(
             msg, where, organized=self._organized, timestamp=float(self._stamps[index])
         )
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._stamps
-
-    @property
-    def poses(self) -> None:
-        return None
-
-    @property
-    def name(self) -> str:
-        return f"{self._path.stem}:{self._topic}"
-
-    @property
-    def topic(self) -> str:
-        return self._topic
