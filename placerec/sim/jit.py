@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 from numba import njit as _numba_njit
 
+from placerec.numba_cache import needs_compile
+
 __all__ = ["njit", "inline", "needs_compile", "flat_args", "elementwise", "KERNEL_MODULES"]
 
 #: the modules whose code the compiled kernels contain (helpers are inlined across modules, and module constants
@@ -57,17 +59,6 @@ def inline(fn):
     """``@inline``: a small per-hit helper, inlined into its callers at Numba IR level. Separately compiled Numba
     functions are not inlined by LLVM, and a call per helper per hit would cost more than the arithmetic."""
     return njit(fn, inline="always")
-
-
-def needs_compile(dispatcher) -> bool:
-    """True when ``dispatcher`` has no compiled code in this process and none usable in its disk cache (the first
-    use will compile). False when unsure (Numba internals differ)."""
-    if dispatcher.signatures:
-        return False
-    try:
-        return not dispatcher._cache._cache_file._load_index()
-    except Exception:  # noqa: BLE001 - private Numba API; only used to tell the user about a one-off wait
-        return False
 
 
 def flat_args(args: tuple, dtypes: tuple) -> tuple[tuple[int, ...], list[np.ndarray]]:

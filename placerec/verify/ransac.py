@@ -16,17 +16,21 @@ where the NumPy batches of 256 cost ~2 ms (``docs/verification.md``).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
+from placerec.numba_cache import needs_compile
 from placerec.verify.kabsch import check_pairs, rigid_fit, to_matrix
 from placerec.verify.params import RansacParams
 
 __all__ = ["RansacResult", "ransac_pose", "refit", "required_iterations"]
 
 _MAX_REFITS = 5
+log = logging.getLogger(__name__)
+_COMPILE_NOTED = False
 
 
 @dataclass(frozen=True)
@@ -251,6 +255,13 @@ def ransac_pose(src: np.ndarray, dst: np.ndarray, params: RansacParams | None = 
     six_dof = params.mode == "6dof"
     if n < max(3 if six_dof else 2, params.min_inliers):
         return RansacResult(np.eye(4), np.zeros(n, dtype=bool), 0, 0, False)
+    global _COMPILE_NOTED
+    if not _COMPILE_NOTED:
+        _COMPILE_NOTED = True
+        if needs_compile(_search):
+            log.warning(
+                "compiling the verification's RANSAC kernel (once after install or update, ~10 s; cached)"
+            )
     R, t, found, drawn = _search(
         np.ascontiguousarray(s_all),
         np.ascontiguousarray(d_all),
