@@ -494,3 +494,29 @@ def test_icp_top_k_refines_only_the_candidates_with_most_inliers(sim_scans):
     cands = verify_candidates(scans[13], retrieved, store, VerifiedParams(top_k=3), query_id=13)
     assert sorted(prepared) == [10, 10, 36]
     assert [c.match_id for c in cands if c.extra["accepted"]][:2] == [10, 10]
+
+
+def test_verify_ms_of_candidates_not_returned_is_shared_by_those_returned(sim_scans, monkeypatch):
+    import placerec.verify.candidates as vc
+
+    seq, scans = sim_scans
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    rng = np.random.default_rng(13)
+    q = scans[13][rng.choice(len(scans[13]), 100, replace=False)].astype(np.float64)
+    m = _apply(T_gt, q)
+    retrieved = [vc.Retrieved(10, 0.9, q, m), vc.Retrieved(36, 0.8, q, m), vc.Retrieved(36, 0.7)]
+
+    def run(k):
+        store = vc.CloudStore()  # a new one: nothing prepared yet, so both runs do the same work
+        for sid in (10, 36):
+            store.add(sid, scans[sid])
+        clock = iter(np.arange(0.0, 10.0, 0.001))  # every reading 1 ms after the previous one
+        monkeypatch.setattr(vc.time, "perf_counter", lambda: next(clock))
+        return vc.verify_candidates(scans[13], retrieved, store, vc.VerifiedParams(top_k=3), 13, k)
+
+    every = run(None)
+    assert len(every) == 3
+    one = run(1)
+    assert len(one) == 1 and one[0].match_id == 10
+    total = sum(c.extra["verify_ms"] for c in every)
+    assert one[0].extra["verify_ms"] == pytest.approx(total)
