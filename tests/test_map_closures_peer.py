@@ -91,7 +91,7 @@ def test_local_map_mode_closes_maps_by_distance_and_finds_the_revisit():
     assert all(m.ids[-1] == n for m, n in zip(peer._maps, firsts, strict=True))
     revisits = [(i, c, T) for i, c, T in found if i >= 60]
     assert revisits, "the return to the start is found"
-    i, c, T = revisits[0]
+    i, c, T = max(revisits, key=lambda r: r[1].score)
     P_match = _scan(world, *route[c.match_id], 0.0)[1]
     assert np.linalg.norm(P_match[:2, 3] - T[:2, 3]) < 10.0
     assert np.allclose(c.relative_pose[:2, 3], (np.linalg.inv(P_match) @ T)[:2, 3], atol=1.0)

@@ -45,11 +45,11 @@ from pydantic import Field
 
 from placerec.errors import ScanDataError
 from placerec.params import Params
-from placerec.pipelines.keypoint_voting import KeypointVoting, VotingParams, knn
+from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams, knn
 from placerec.types import Candidate, Description
 from placerec.verify.candidates import verify_candidates
 
-__all__ = ["GestaltParams", "GestaltVoting", "lognormal_threshold", "place_votes"]
+__all__ = ["ARTIFACT_KIND", "GestaltParams", "GestaltVoting", "lognormal_threshold", "place_votes"]
 
 
 class GestaltParams(VotingParams):

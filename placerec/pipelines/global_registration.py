@@ -29,12 +29,12 @@ from pydantic import Field
 
 from placerec.errors import ScanDataError
 from placerec.params import Params
-from placerec.pipelines.keypoint_voting import KeypointVoting, VotingParams, knn
+from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams, knn
 from placerec.types import Candidate, Description
 from placerec.verify.candidates import Retrieved, verify_candidates
 from placerec.verify.verify import hypothesise
 
-__all__ = ["GlobalParams", "GlobalRegistration", "world_keypoints"]
+__all__ = ["ARTIFACT_KIND", "GlobalParams", "GlobalRegistration", "world_keypoints"]
 
 
 class GlobalParams(VotingParams):
