@@ -95,3 +95,24 @@ def test_local_map_mode_closes_maps_by_distance_and_finds_the_revisit():
     P_match = _scan(world, *route[c.match_id], 0.0)[1]
     assert np.linalg.norm(P_match[:2, 3] - T[:2, 3]) < 10.0
     assert np.allclose(c.relative_pose[:2, 3], (np.linalg.inv(P_match) @ T)[:2, 3], atol=1.0)
+
+
+def test_local_maps_from_kiss_icp_odometry_close_where_the_scans_say():
+    from placerec.errors import ScanDataError
+
+    world = _walls_world(2)
+    peer = make_pipeline(
+        "map-closures", {"local_map": True, "local_map_distance": 30.0, "odometry": "kiss-icp"}
+    )
+    route = [(float(x), 0.0) for x in range(0, 81, 2)]
+    for i, (x, y) in enumerate(route):
+        scan, _ = _scan(world, x, y, 0.0)
+        peer.query(scan, k=1, query_id=i)
+        peer.add(i, scan, None)  # poses given to add are not needed: KISS-ICP registers the scans
+    # KISS-ICP's poses (from the identity at scan 0) follow the route: maps close past 30 m, i.e. at 32 m and 64 m
+    assert [(m.ids[0], m.ids[-1]) for m in peer._maps] == [(0, 16), (16, 32)]
+    assert np.allclose(peer._maps[1].poses[-1][:2, 3], [64.0, 0.0], atol=0.5)
+    # KISS-ICP registered the query: adding another scan first breaks the loop-closure order
+    peer.query(_scan(world, 82.0, 0.0, 0.0)[0], k=1, query_id=41)
+    with pytest.raises(ScanDataError, match="loop-closure order"):
+        peer.add(42, _scan(world, 84.0, 0.0, 0.0)[0])
