@@ -209,6 +209,24 @@ PIPELINES: dict[str, PipelineEntry] = {
             "verify": {"verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 4}}},
         },
     ),
+    "shot-global": PipelineEntry(
+        "placerec.pipelines.global_registration:GlobalRegistration",
+        "ISHOT paper's baseline (a): SHOT global registration, K = 4 over every map keypoint, verification + ICP",
+        {
+            "descriptor": "shot",
+            "verify_tau_max": 1.0,
+            "verify": {"top_k": 1, "verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 4}}},
+        },
+    ),
+    "shot-gestalt-votes": PipelineEntry(
+        "placerec.pipelines.gestalt_voting:GestaltVoting",
+        "ISHOT paper's baseline (b) on SHOT: Bosse & Zlot voting (10 % rounds, K = 10, log-normal stop), verification",
+        {
+            "descriptor": "shot",
+            "verify_tau_max": 1.0,
+            "verify": {"verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 4}}},
+        },
+    ),
     "fpfh-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",
         "ISHOT paper's baseline: ISS-BR keypoints, FPFH descriptors, ratio-tested NN votes",

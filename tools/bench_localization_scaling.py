@@ -6,13 +6,16 @@ first N places (town 0 first) form a map of N places; gator queries of town 0 wi
 min(N) places (so that every map covers them) localise in it with probabilistic
 voting (``ishot-prob``, the vote model of ``configs/localize.yaml``), with exhaustive matching (every keypoint
 matched, ranked by the posterior), with plain vote counting (``ishot-votes``) and with probabilistic voting over an
-approximate index (``index: ivf``: faiss IVF, sqrt(descriptors) lists, 16 searched; its build timed apart). Printed per N: median and mean
+approximate index (``index: ivf``: faiss IVF, sqrt(descriptors) lists, 16 searched; its build timed apart), and on
+request (``--variants``) with the paper's baselines ``shot-global`` and ``shot-gestalt-votes`` over SHOT places of the
+same towns. Printed per N: median and mean
 time per localisation (describe + query + verification), median matching time, keypoints consumed, success within
 3 m, and the memory of the sparse and of the full posterior tables; then the growth rate: the slope of log(time)
 against log(N) between the smallest and the largest map (1 = linear). The last line is one JSON object.
 
     python tools/bench_localization_scaling.py                   # 50, 200, 800 places; ~15 min the first time
     python tools/bench_localization_scaling.py --sizes 50,200 --n-queries 5
+    python tools/bench_localization_scaling.py --sizes 121,800 --variants ishot-prob,shot-global,shot-gestalt-votes
 """
 
 from __future__ import annotations
@@ -40,14 +43,16 @@ from placerec.three_d.posterior import PosteriorTable  # noqa: E402
 OFFSET_M = 5000.0
 
 
-def town_places(seed: int, cache: Path) -> PlacesDatabase:
-    path = cache / f"places_town_vlp16_s{seed}.npz"
-    if seed == 0 and (cache / "places_town_vlp16.npz").is_file():
+def town_places(seed: int, cache: Path, descriptor: str = "ishot") -> PlacesDatabase:
+    tag = "" if descriptor == "ishot" else f"_{descriptor}"
+    path = cache / f"places_town_vlp16{tag}_s{seed}.npz"
+    if seed == 0 and not tag and (cache / "places_town_vlp16.npz").is_file():
         path = cache / "places_town_vlp16.npz"  # the one configs/localize.yaml uses
     if not path.is_file():
         seq = SimulatedSequence(world="town", sensor="vlp16", seed=seed, unit_seed=0)
         path.parent.mkdir(parents=True, exist_ok=True)
-        build_places(seq, PlacesParams(window_m=0.0, place_spacing=2.5)).save(path)
+        params = PlacesParams(window_m=0.0, place_spacing=2.5, features={"descriptor": descriptor})
+        build_places(seq, params).save(path)
     return PlacesDatabase.load(path)
 
 
@@ -77,14 +82,21 @@ def main() -> None:
     ap.add_argument("--cache", default=str(ROOT / ".cache" / "localize"))
     ap.add_argument("--vote-model", default=str(ROOT / ".cache" / "localize" / "votes_town_vlp16.npz"))
     ap.add_argument("--figure", default=str(ROOT / "docs" / "figures" / "localization_scaling.png"))
+    ap.add_argument("--variants", default="ishot-prob,ishot-exhaustive,ishot-votes,ishot-prob-ivf")
     args = ap.parse_args()
     t_start = time.perf_counter()
     sizes = [int(s) for s in args.sizes.split(",")]
     cache = Path(args.cache)
+    wanted = args.variants.split(",")
     dbs: list[PlacesDatabase] = []
     while sum(len(d) for d in dbs) < max(sizes):
         dbs.append(town_places(len(dbs), cache))
         print(f"town {len(dbs) - 1}: {len(dbs[-1])} places", flush=True)
+    shot_dbs = (
+        [town_places(w, cache, "shot") for w in range(len(dbs))]
+        if any(v.startswith("shot") for v in wanted)
+        else []
+    )
     # gator queries of town 0 within 10 m of one of its first min(sizes) places, so every map size covers them
     split = make_localization_split("town", "vlp16", 0, n_queries=4 * args.n_queries, conditions=("gator",))
     queries = split.queries["gator"]
@@ -101,20 +113,38 @@ def main() -> None:
         "ishot-exhaustive": lambda: make_pipeline("ishot-prob", {**model, "early_stop": False}),
         "ishot-votes": lambda: make_pipeline("ishot-votes", same_verify),
         "ishot-prob-ivf": lambda: make_pipeline("ishot-prob", {**model, "index": "ivf"}),
+        "shot-global": lambda: make_pipeline("shot-global"),
+        "shot-gestalt-votes": lambda: make_pipeline("shot-gestalt-votes"),
     }
-    describer = variants["ishot-votes"]()
-    descs, describe_ms = [], []
-    for q in picked:
-        t0 = time.perf_counter()
-        descs.append(describer.describe(normalize_intensity(queries[int(q)])))
-        describe_ms.append((time.perf_counter() - t0) * 1e3)
+    unknown = set(wanted) - set(variants)
+    if unknown:
+        raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(variants)}")
+    variants = {name: variants[name] for name in wanted}
+    described: dict[str, tuple[list, list]] = {}  # descriptor -> (query descriptions, describe ms)
+    for descriptor, describer in (
+        ("ishot", make_pipeline("ishot-votes", same_verify)),
+        ("shot", make_pipeline("shot-global")),
+    ):
+        if not any(v.startswith(descriptor + "-") for v in wanted):
+            continue
+        out: tuple[list, list] = ([], [])
+        for q in picked:
+            t0 = time.perf_counter()
+            out[0].append(describer.describe(normalize_intensity(queries[int(q)])))
+            out[1].append((time.perf_counter() - t0) * 1e3)
+        described[descriptor] = out
     truth = queries.poses[picked, :3, 3]
     rows = []
     for n in sizes:
-        row = {"places": n, "describe_ms_median": round(float(np.median(describe_ms)), 1)}
+        row = {"places": n}
+        for descriptor, (_, ms) in described.items():
+            row[f"describe_ms_median_{descriptor}" if descriptor != "ishot" else "describe_ms_median"] = (
+                round(float(np.median(ms)), 1)
+            )
         for name, make in variants.items():
+            descs, describe_ms = described["shot" if name.startswith("shot") else "ishot"]
             rec = make()
-            fill(rec, dbs, n)
+            fill(rec, shot_dbs if name.startswith("shot") else dbs, n)
             if isinstance(rec, ProbabilisticVoting):
                 t0 = time.perf_counter()
                 table = rec.posterior_table()
@@ -164,9 +194,13 @@ def main() -> None:
             ax.plot(
                 sizes, [r[name]["median_ms"] for r in rows], "o-", label=f"{name} (slope {growth.get(name)})"
             )
-        ax.plot(
-            sizes, [rows[0]["describe_ms_median"]] * len(sizes), "k:", label="describe query (ISS + ISHOT)"
-        )
+        if "describe_ms_median" in rows[0]:
+            ax.plot(
+                sizes,
+                [rows[0]["describe_ms_median"]] * len(sizes),
+                "k:",
+                label="describe query (ISS + ISHOT)",
+            )
         ax.set(
             xscale="log", yscale="log", xlabel="places in the map", ylabel="median time per localisation (ms)"
         )
@@ -178,7 +212,7 @@ def main() -> None:
     line = {
         "bench": "localization_scaling",
         "sizes": sizes,
-        "n_queries": len(descs),
+        "n_queries": len(picked),
         "rows": rows,
         "loglog_slope": growth,
         "cores": os.cpu_count(),

@@ -87,7 +87,8 @@ def query_figures(record: PipelineRecord) -> dict[str, Any]:
         top = cands[0].extra if cands else {}
         if "keypoints_consumed" in top:
             consumed.append(top["keypoints_consumed"])
-            stops.append(bool(top.get("early_stop")))
+            if "early_stop" in top:  # pipelines that can stop early (not global registration)
+                stops.append(bool(top["early_stop"]))
             match.append(float(top.get("match_ms", 0.0)))
         elif "n_query" in top:  # vote counting: every keypoint matched against the database
             consumed.append(top["n_query"])

@@ -81,7 +81,7 @@ from placerec.verify.params import VerifyParams
 
 log = logging.getLogger(__name__)
 
-__all__ = ["VotingParams", "KeypointVoting", "IvfIndex", "knn2", "nn_ratio", "ratio_votes"]
+__all__ = ["VotingParams", "KeypointVoting", "IvfIndex", "knn", "knn2", "nn_ratio", "ratio_votes"]
 
 _KIND = "keypoint-voting-db"
 _VERSION = 1
@@ -161,6 +161,24 @@ def knn2(
                 np.take_along_axis(pd, o, 1) + np.einsum("ij,ij->i", q[a : a + 512], q[a : a + 512])[:, None]
             )
     return np.sqrt(np.maximum(d2, 0.0)), np.asarray(idx, dtype=np.int64)
+
+
+def knn(query: np.ndarray, db: np.ndarray, k: int, threads: int | None = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Exact ``k`` nearest neighbours with faiss: (distances (Q, k) Euclidean, indices (Q, k)); rows beyond the
+    database's size get index -1 and an infinite distance."""
+    import faiss
+
+    q = np.ascontiguousarray(query, dtype=np.float32)
+    x = np.ascontiguousarray(db, dtype=np.float32)
+    kk = int(min(k, x.shape[0]))
+    dist = np.full((q.shape[0], k), np.inf, np.float32)
+    idx = np.full((q.shape[0], k), -1, np.int64)
+    if kk > 0 and q.shape[0]:
+        with _omp_threads(threads):
+            d2, i = faiss.knn(q, x, kk)
+        dist[:, :kk] = np.sqrt(np.maximum(d2, 0.0))
+        idx[:, :kk] = i
+    return dist, idx
 
 
 def nn_ratio(dist: np.ndarray) -> np.ndarray:
