@@ -112,9 +112,8 @@ class GestaltVoting(KeypointVoting):
         if p.verify.enabled and "cloud" not in description:
             raise ScanDataError(f"{self.name}: verification needs the query description's 'cloud'")
         ids = np.asarray(self._ids)
-        eligible = np.ones(len(ids), bool) if max_id is None else ids <= max_id
-        qkp = np.asarray(description["keypoints"], np.float32).reshape(-1, 3)
-        starts = np.concatenate([[0], np.cumsum(self._counts)])
+        eligible = self._eligible_entries(max_id)
+        qkp, starts = self._query_keypoints(description), self._entry_starts()
         order = np.random.default_rng(p.seed).permutation(q.shape[0])
         step = max(1, math.ceil(p.sample_fraction * q.shape[0]))
         votes = np.zeros(len(ids), np.int64)

@@ -485,6 +485,21 @@ class KeypointVoting(Recognizer):
         ok = np.asarray(self._ids)[entry] <= max_id
         return rows[ok], entry[ok], len(self._ids)
 
+    def _eligible_entries(self, max_id: int | None) -> np.ndarray:
+        """Mask over the entries (insertion order) of those with ``id <= max_id``."""
+        ids = np.asarray(self._ids)
+        return np.ones(len(ids), bool) if max_id is None else ids <= max_id
+
+    def _entry_starts(self) -> np.ndarray:
+        """First descriptor row of every entry, and the row count last: entry ``e`` owns rows
+        ``starts[e]:starts[e + 1]``."""
+        return np.concatenate([[0], np.cumsum(self._counts)])
+
+    @staticmethod
+    def _query_keypoints(description: Description) -> np.ndarray:
+        """The query description's keypoints, (K, 3) float32."""
+        return np.asarray(description["keypoints"], np.float32).reshape(-1, 3)
+
     def query_description(
         self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
     ) -> list[Candidate]:
@@ -506,8 +521,7 @@ class KeypointVoting(Recognizer):
             ]
         if "cloud" not in description:
             raise ScanDataError(f"{self.name}: verification needs the query description's 'cloud'")
-        qkp = np.asarray(description["keypoints"], np.float32).reshape(-1, 3)
-        starts = np.concatenate([[0], np.cumsum(self._counts)])
+        qkp, starts = self._query_keypoints(description), self._entry_starts()
         retrieved = [
             self._matches(e, q, qkp, starts, float(votes[e] * scale), x)
             for e, x in zip(top, extra, strict=True)

@@ -124,16 +124,14 @@ class ProbabilisticVoting(KeypointVoting):
         if q.shape[0] == 0 or rows.shape[0] < 2:
             return []
         table = self.posterior_table()
-        ids = np.asarray(self._ids)
-        eligible = np.ones(len(self._ids), bool) if max_id is None else ids <= max_id
+        eligible = self._eligible_entries(max_id)
         weights = density_weights(self._counts) if p.density_correction else None
         post = Posterior(table, weights)
         post.log[~eligible] = -np.inf
         votes = np.zeros(len(self._ids), np.int64)
         order = np.random.default_rng(p.seed).permutation(q.shape[0])
         verified: dict[int, Candidate] = {}
-        starts = np.concatenate([[0], np.cumsum(self._counts)])
-        qkp = np.asarray(description["keypoints"], np.float32).reshape(-1, 3)
+        qkp, starts = self._query_keypoints(description), self._entry_starts()
         source = None
         consumed, stopped, accepted = 0, False, False
         match_ms = 0.0
