@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from synthetic_places import add_synthetic_places
 
 from placerec.pipelines.gestalt_voting import GestaltVoting, lognormal_threshold, place_votes
 from placerec.pipelines.global_registration import GlobalRegistration, world_keypoints
@@ -31,16 +32,8 @@ def test_each_query_keypoint_votes_once_per_distinct_place():
     assert place_votes(idx, row_entry, 5).tolist() == [1, 1, 2, 1, 0]
 
 
-def _synthetic_db(rec, rng, n_places=200, per_place=20, dim=352):
-    descs = []
-    for i in range(n_places):
-        d = rng.normal(size=(per_place, dim)).astype(np.float32)
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        descs.append(d)
-        pose = np.eye(4)
-        pose[0, 3] = 5.0 * i
-        rec.add_description(i, {"keypoints": rng.normal(size=(per_place, 3)), "descriptors": d}, pose)
-    return descs
+def _synthetic_db(rec, rng):
+    return add_synthetic_places(rec, rng, n_places=200, per_place=20, dim=352)
 
 
 def test_voting_stops_after_one_round_of_ten_percent_when_the_place_stands_out():

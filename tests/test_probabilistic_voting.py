@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from synthetic_places import add_synthetic_places
 from typer.testing import CliRunner
 
 from placerec.cli import app
@@ -123,17 +124,8 @@ def test_vote_model_round_trip_and_corrupt_file(tmp_path):
         VoteModel([0, 1], [1.0], [1.0], 10.0)  # lambda must stay below 1
 
 
-def _synthetic_db(rec, rng, n_places=20, per_place=40, dim=1344):
-    """Places 5 m apart on a line, each with its own random unit descriptors."""
-    descs = []
-    for i in range(n_places):
-        d = rng.normal(size=(per_place, dim)).astype(np.float32)
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        descs.append(d)
-        pose = np.eye(4)
-        pose[0, 3] = 5.0 * i
-        rec.add_description(i, {"keypoints": rng.normal(size=(per_place, 3)), "descriptors": d}, pose)
-    return descs
+def _synthetic_db(rec, rng):
+    return add_synthetic_places(rec, rng, n_places=20, per_place=40, dim=1344)
 
 
 def test_early_stop_consumes_one_batch_and_exhaustive_consumes_all():
