@@ -27,6 +27,7 @@ __all__ = [
     "Scan",
     "Sequence",
     "ListSequence",
+    "StoredSequenceInfo",
     "Candidate",
     "Description",
     "PlaceRecognizer",
@@ -222,7 +223,27 @@ def iter_scans(seq: Sequence) -> Iterator[Scan]:
         yield seq[i]
 
 
-class ListSequence:
+class StoredSequenceInfo:
+    """The `Sequence` properties of a sequence that holds them as ``_poses``, ``_timestamps`` and ``_name``."""
+
+    _poses: np.ndarray | None
+    _timestamps: np.ndarray | None
+    _name: str
+
+    @property
+    def poses(self) -> np.ndarray | None:
+        return self._poses
+
+    @property
+    def timestamps(self) -> np.ndarray | None:
+        return self._timestamps
+
+    @property
+    def name(self) -> str:
+        return self._name
+
+
+class ListSequence(StoredSequenceInfo):
     """A `Sequence` over scans already in memory (handy for tests and small experiments)."""
 
     def __init__(
@@ -248,18 +269,6 @@ class ListSequence:
 
     def __getitem__(self, index: int) -> Scan:
         return self._scans[index]
-
-    @property
-    def poses(self) -> np.ndarray | None:
-        return self._poses
-
-    @property
-    def timestamps(self) -> np.ndarray | None:
-        return self._timestamps
-
-    @property
-    def name(self) -> str:
-        return self._name
 
 
 def as_pose(pose: np.ndarray) -> np.ndarray:

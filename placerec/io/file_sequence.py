@@ -24,7 +24,7 @@ from placerec.io._common import read_bytes
 from placerec.io.npz import parse_npy
 from placerec.io.registry import read_scan
 from placerec.safe_yaml import load_yaml
-from placerec.types import Scan, SensorInfo, check_poses
+from placerec.types import Scan, SensorInfo, StoredSequenceInfo, check_poses
 
 __all__ = ["FileSequence", "load_sensor_yaml", "read_times"]
 
@@ -53,7 +53,7 @@ def read_times(path: Path, n: int) -> np.ndarray:
     return t
 
 
-class FileSequence:
+class FileSequence(StoredSequenceInfo):
     """A sorted list of scan files with optional poses and timestamps, ``sensor.yaml`` and ``ring/`` files.
 
     Subclasses set ``_poses`` (through `_set_poses`, which checks the count) and ``_timestamps``, and may
@@ -120,15 +120,3 @@ class FileSequence:
     @property
     def files(self) -> list[Path]:
         return list(self._files)
-
-    @property
-    def poses(self) -> np.ndarray | None:
-        return self._poses
-
-    @property
-    def timestamps(self) -> np.ndarray | None:
-        return self._timestamps
-
-    @property
-    def name(self) -> str:
-        return self._name
