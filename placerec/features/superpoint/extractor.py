@@ -1,0 +1,112 @@
+"""The ``superpoint`` feature extractor: our SuperPoint network on the intensity image, run by ``cv2.dnn`` from
+the ONNX model (default; no torch needed) or by torch.
+
+VPR paper Table I settings: keypoints where the probability reaches ``min_probability`` 0.05, non-maximum
+suppression, at most ``nfeatures`` 300. The image is padded around (azimuth wrap-around, as for every extractor:
+`placerec.features.base`), then on the right and bottom to a multiple of 8 pixels.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from placerec.features.base import ExtractorParams, FeatureExtractor, _Keypoints
+from placerec.features.superpoint.arch import CELL, SuperPointArch
+from placerec.features.superpoint.post import keypoint_probability, sample_descriptors, select_keypoints
+from placerec.features.superpoint.weights import load_weights, onnx_path, resolve_weights
+
+__all__ = ["SuperPointParams", "SuperPointExtractor", "SuperPointNet"]
+
+
+class SuperPointParams(ExtractorParams):
+    """SuperPoint (VPR paper Table I: minProbability 0.05, nFeatures 300)."""
+
+    min_probability: float = Field(0.05, gt=0, lt=1, description="keypoint probability (VPR paper Table I)")
+    nms_radius: int = Field(
+        4, ge=0, description="px; non-maximum suppression window (2r+1)^2 (SuperPoint's 4)"
+    )
+    weights: str | None = Field(None, description="weights .npz (None: the shipped placerec/vocab one)")
+    backend: Literal["cv2", "torch"] = Field(
+        "cv2", description="cv2: the ONNX model through cv2.dnn (no torch); torch: needs placerec[superpoint]"
+    )
+
+
+class SuperPointNet:
+    """The network with one backend: ``forward(image_u8)`` -> (65, H/8, W/8) logits, (D, H/8, W/8) descriptors
+    for an image whose sides are multiples of 8."""
+
+    def __init__(self, weights: str | Path | None = None, backend: str = "cv2") -> None:
+        path = resolve_weights(None if weights is None else str(weights))
+        self.arch: SuperPointArch
+        self.arch, self.weights = load_weights(path)
+        self.backend = backend
+        self._lock = threading.Lock()  # a cv2.dnn.Net is not safe to share between threads
+        if backend == "cv2":
+            self._net = cv2.dnn.readNetFromONNX(str(onnx_path(path)))
+        else:
+            from placerec.features.superpoint.torch_model import build_torch_model, import_torch
+
+            self._torch = import_torch()
+            self._net = build_torch_model(self.arch, self.weights).eval()
+
+    def forward(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = (np.asarray(image, np.float32) / 255.0)[None, None]
+        if self.backend == "cv2":
+            with self._lock:
+                self._net.setInput(x)
+                semi, desc = self._net.forward(["semi", "desc"])
+        else:
+            with self._torch.inference_mode():
+                semi, desc = (t.numpy() for t in self._net(self._torch.from_numpy(x)))
+        return semi[0], desc[0]
+
+
+_NETS: dict[tuple[str, str], SuperPointNet] = {}
+_NETS_LOCK = threading.Lock()
+
+
+def _net(weights: str | None, backend: str) -> SuperPointNet:
+    """One `SuperPointNet` per (weights file, backend) and process."""
+    key = (str(resolve_weights(weights).resolve()), backend)
+    with _NETS_LOCK:
+        if key not in _NETS:
+            _NETS[key] = SuperPointNet(key[0], backend)
+        return _NETS[key]
+
+
+class SuperPointExtractor(FeatureExtractor):
+    """SuperPoint keypoints and 256-d unit descriptors (float)."""
+
+    name = "superpoint"
+    descriptor_kind = "float"
+    Params = SuperPointParams
+
+    def _setup(self) -> None:
+        self._model = _net(self.params.weights, self.params.backend)
+
+    @property
+    def descriptor_size(self) -> int:
+        return self._model.arch.descriptor_dim
+
+    def _run(self, image: np.ndarray, mask: np.ndarray) -> tuple[_Keypoints, Any]:
+        h, w = image.shape
+        ph, pw = -h % CELL, -w % CELL
+        semi, desc = self._model.forward(np.pad(image, ((0, ph), (0, pw))) if ph or pw else image)
+        prob = keypoint_probability(semi)[:h, :w]
+        p = self.params
+        uv, score = select_keypoints(prob, mask, p.min_probability, p.nms_radius, p.nfeatures)
+        n = len(uv)
+        kps = _Keypoints(
+            uv,
+            np.full(n, 2 * p.nms_radius + 1, np.float32),
+            np.full(n, -1, np.float32),
+            score.astype(np.float32),
+            np.zeros(n, np.int32),
+        )
+        return kps, sample_descriptors(desc, uv)
