@@ -190,6 +190,11 @@ PIPELINES: dict[str, PipelineEntry] = {
         "VPR paper: intensity image, FAST + SURF features, DBoW2 bag of words; RANSAC + ICP verification",
         {"features": "fast-surf", "verify": {"top_k": 20, "icp_top_k": 2}},
     ),
+    "superpoint-dbow": PipelineEntry(
+        "placerec.pipelines.dbow:VisualDBoW",
+        "VPR paper: intensity image, our SuperPoint (trained on simulated LiDAR), DBoW2; RANSAC + ICP verification",
+        {"features": "superpoint", "verify": {"top_k": 20, "icp_top_k": 2}},
+    ),
     "ishot-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",
         "ISHOT paper: ISS-BR keypoints, ISHOT descriptors (geometry + intensity), ratio-tested NN votes",

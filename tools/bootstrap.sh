@@ -34,7 +34,7 @@ if [ ! -x .venv/bin/python ]; then
 fi
 
 # 3. packages (skipped when pyproject.toml is unchanged since the last successful install)
-extras="dev,ouster,ros,dask,slam"
+extras="dev,ouster,ros,dask,slam,superpoint"
 stamp=".venv/.placerec-installed"
 want="$(sha256sum pyproject.toml | cut -d' ' -f1) $extras"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then

@@ -70,11 +70,17 @@ _VERSION = 1
 #: The shipped vocabularies: package data, installed as files with the package (editable install or wheel).
 VOCAB_DIR = Path(importlib.resources.files("placerec").joinpath("vocab"))
 #: Shipped vocabulary per feature extractor (SURF's descriptor with FAST or SURF keypoints share one).
-SHIPPED = {"orb": "orb_k10L5.dbow", "fast-surf": "surf_k10L4.dbow", "surf": "surf_k10L4.dbow"}
+SHIPPED = {
+    "orb": "orb_k10L5.dbow",
+    "fast-surf": "surf_k10L4.dbow",
+    "surf": "surf_k10L4.dbow",
+    "superpoint": "superpoint_k10L4.dbow",
+}
 _TRAIN_CONFIG = {
     "orb": "configs/vocab_orb.yaml",
     "fast-surf": "configs/vocab_surf.yaml",
     "surf": "configs/vocab_surf.yaml",
+    "superpoint": "configs/vocab_superpoint.yaml",
 }
 _CACHE: dict[tuple[str, int, int], Vocabulary] = {}
 
