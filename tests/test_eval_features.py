@@ -264,3 +264,41 @@ def test_kitti_pair_scores_and_frame_mixup(real_data: Path) -> None:
     assert good.repeatability > 0.6 and good.matching_score > 0.2 and good.precision > 0.5
     mixed = evaluate_pair(fa, fb, PairTruth.from_views(va, vb, np.linalg.inv(lidar[95]) @ lidar[198]))
     assert mixed.matching_score < 0.05 and mixed.precision < 0.1
+
+
+def test_tool_skips_superpoint_without_weights(tmp_path: Path) -> None:
+    tool = _tool()
+    log: list[str] = []
+    extractors = tool.make_extractors(["orb", "superpoint"], str(tmp_path / "absent.npz"), log)
+    assert list(extractors) == ["orb"]
+    assert len(log) == 1 and log[0].startswith("superpoint skipped") and "absent.npz" in log[0]
+
+
+def test_tool_simulator_pairs_are_ahead_or_revisits() -> None:
+    from placerec.sim import SimulatedSequence
+
+    tool = _tool()
+    seq = SimulatedSequence("town", "os1-64", seed=200)
+    xyz = seq.poses[:, :3, 3]
+    pairs = tool._pose_pairs(seq, np.random.default_rng(0), 3, 2)
+    assert pairs == tool._pose_pairs(seq, np.random.default_rng(0), 3, 2)  # deterministic
+    kinds = [k.split()[0] for _, _, k in pairs]
+    assert kinds == ["ahead"] * 3 + ["revisit"] * 2
+    for a, b, kind in pairs:
+        d = float(np.linalg.norm(xyz[b] - xyz[a]))
+        if kind.startswith("ahead"):
+            assert b > a and 0.9 < d < 8.5
+        else:
+            r = next(r for r in seq.revisits if r.start <= a < r.stop)
+            assert r.ref_start <= b < r.ref_stop and d < 10
+
+
+@pytest.mark.slow
+def test_tool_on_the_real_pairs(real_data: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    headline = _tool().main(["--no-sim", "--extractors", "orb", "--repeats", "1", "--real", str(real_data)])
+    assert headline["pairs"] == {"os1": 1, "kitti": 2, "real": 3}
+    real = headline["scores"]["orb"]["real"]
+    assert real["matching_score"] > 0.3 and real["precision"] > 0.6
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == headline

@@ -69,11 +69,16 @@ _VIEW_KIND, _VIEW_VERSION = "eval_features_view", 1
 
 @dataclass(frozen=True)
 class Pair:
-    """One evaluated image pair: its set (``sim``, ``os1``, ``kitti``), a label and its ground truth."""
+    """One evaluated image pair: the sets it counts in (e.g. ``("sim", "sim-revisit")``), a label and its ground
+    truth."""
 
-    set: str
+    sets: tuple[str, ...]
     label: str
     truth: PairTruth
+
+
+#: the pair sets in the order they are reported
+SETS = ("sim", "sim-ahead", "sim-revisit", "os1", "kitti", "real")
 
 
 # -- views ---------------------------------------------------------------------------------------------------------
@@ -164,7 +169,11 @@ def sim_pairs(
             va, vb = _cached_view(seq, a, key, cache), _cached_view(seq, b, key, cache)
             a_to_b = np.linalg.inv(seq.poses[b]) @ seq.poses[a]
             pairs.append(
-                Pair("sim", f"{world}/{sensor}/s{s} {a}-{b} ({kind})", PairTruth.from_views(va, vb, a_to_b))
+                Pair(
+                    ("sim", f"sim-{kind.split()[0]}"),
+                    f"{world}/{sensor}/s{s} {a}-{b} ({kind})",
+                    PairTruth.from_views(va, vb, a_to_b),
+                )
             )
         if progress:
             progress.advance(task)
@@ -214,7 +223,7 @@ def os1_pair(real: Path, log: list[str]) -> list[Pair]:
         f"{icp.fitness:.3f} (within 0.3 m), RMSE {icp.rmse:.3f} m; relative pose {_motion(icp.T)}"
     )
     truth = PairTruth.from_views(view_of(scans[0]), view_of(scans[1]), icp.T)
-    return [Pair("os1", "OS1-64 32line_1-32line_2", truth)]
+    return [Pair(("os1", "real"), "OS1-64 32line_1-32line_2", truth)]
 
 
 def kitti_pairs(real: Path, log: list[str]) -> list[Pair]:
@@ -235,7 +244,7 @@ def kitti_pairs(real: Path, log: list[str]) -> list[Pair]:
             f"RMSE {icp.rmse:.3f} m, correction {_motion(np.linalg.inv(a_to_b) @ icp.T)}"
         )
         truth = PairTruth.from_views(view_of(a, KITTI_IMAGE), view_of(b, KITTI_IMAGE), a_to_b)
-        out.append(Pair("kitti", f"KITTI 00 {i:06d}-{j:06d}", truth))
+        out.append(Pair(("kitti", "real"), f"KITTI 00 {i:06d}-{j:06d}", truth))
     return out
 
 
@@ -349,26 +358,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     log.append(f"{loader.__name__} skipped: {exc}")
         else:
             log.append(f"real pairs skipped: no real sample data at {args.real}")
+        if not pairs:
+            raise SystemExit("eval_features: no pairs to evaluate (no simulator pairs and no real data)")
         task = progress.add_task("features", total=len(pairs) * len(extractors))
         scores: dict[str, dict[str, list[PairScores]]] = {n: {} for n in extractors}
         for pair in pairs:
             for name, ex in extractors.items():
                 fa, fb = ex.extract(pair.truth.a.image), ex.extract(pair.truth.b.image)
-                scores[name].setdefault(pair.set, []).append(evaluate_pair(fa, fb, pair.truth))
-                if pair.set in ("os1", "kitti"):
-                    scores[name].setdefault("real", []).append(scores[name][pair.set][-1])
+                result = evaluate_pair(fa, fb, pair.truth)
+                for s in pair.sets:
+                    scores[name].setdefault(s, []).append(result)
                 progress.advance(task)
     for line in log:
         console.print(line)
-    sets = [
-        s
-        for s in ("sim", "os1", "kitti", "real")
-        if any(p.set == s or (s == "real" and p.set != "sim") for p in pairs)
-    ]
-    overlap = {
-        s: float(np.mean([p.truth.overlap for p in pairs if p.set == s or (s == "real" and p.set != "sim")]))
-        for s in sets
-    }
+    sets = [s for s in SETS if any(s in p.sets for p in pairs)]
+    overlap = {s: float(np.mean([p.truth.overlap for p in pairs if s in p.sets])) for s in sets}
     summary = {n: {s: mean_scores(v[s]) for s in sets if s in v} for n, v in scores.items()}
 
     table = Table(title="Feature repeatability and matching (3 px / 0.3 m); mean over pairs")
@@ -393,14 +397,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     console.print("pixel overlap (share of valid pixels with a ground-truth partner): "
                   + ", ".join(f"{s} {100 * v:.0f}%" for s, v in overlap.items()))  # fmt: skip
 
-    if (
-        args.real.is_dir()
-        and (args.real / "ouster_os1_64_revisit_pair").is_dir()
-        and any(p.set == "os1" for p in pairs)
-    ):
-        timing_image, timing_source = next(p.truth.a.image for p in pairs if p.set == "os1"), "real OS1-64"
-    else:
-        timing_image, timing_source = pairs[0].truth.a.image, "simulator OS1-64"
+    os1 = [p for p in pairs if "os1" in p.sets]
+    timing_image, timing_source = (os1[0], "real OS1-64") if os1 else (pairs[0], pairs[0].label.split()[0])
+    timing_image = timing_image.truth.a.image
+    if timing_image.shape != (64, 1024):
+        timing_image = cv2.resize(timing_image, (1024, 64), interpolation=cv2.INTER_AREA)
     load_before = os.getloadavg()
     n_log = len(log)
     ms = timings(extractors, timing_image, args.superpoint_weights, args.repeats, log)
@@ -431,7 +432,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "tool": "eval_features",
         "px": 3.0,
         "max_dist_m": 0.3,
-        "pairs": {s: int(next(iter(summary.values()))[s]["pairs"]) for s in sets} if summary else {},
+        "pairs": {s: sum(s in p.sets for p in pairs) for s in sets},
         "superpoint_weights": args.superpoint_weights or ("shipped" if "superpoint" in extractors else None),
         "scores": {
             n: {s: {k: _json_num(v) for k, v in m.items() if k != "pairs"} for s, m in per_set.items()}

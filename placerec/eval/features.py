@@ -24,6 +24,10 @@ Per direction (A -> B; B -> A likewise with the roles swapped), over the ``n_A``
   coinciding with ``j``) / ``n_A``;
 * **precision** = those correct matches / the mutual matches whose A keypoint is in the overlap.
 
+Repeatability has a chance level: with K keypoints spread over an H x W image, a pixel lies within ``px`` of
+one of them with probability about ``1 - exp(-K pi px^2 / (H W))`` (12 % for 300 keypoints, 3 px, 64 x 1024).
+Matching score and precision have none (a wrong pose gives ~0).
+
 A pair's figure is the mean of its two directions (of those with at least one keypoint in the overlap, resp.
 one such match); a pair set's is the mean over its pairs. ``tools/eval_features.py`` runs it on simulator and
 real pairs.
