@@ -373,6 +373,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         console.print(line)
     sets = [s for s in SETS if any(s in p.sets for p in pairs)]
     overlap = {s: float(np.mean([p.truth.overlap for p in pairs if s in p.sets])) for s in sets}
+    distance = {s: [float(np.linalg.norm(p.truth.a_to_b[:3, 3])) for p in pairs if s in p.sets] for s in sets}
     summary = {n: {s: mean_scores(v[s]) for s in sets if s in v} for n, v in scores.items()}
 
     table = Table(title="Feature repeatability and matching (3 px / 0.3 m); mean over pairs")
@@ -396,6 +397,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     console.print(table)
     console.print("pixel overlap (share of valid pixels with a ground-truth partner): "
                   + ", ".join(f"{s} {100 * v:.0f}%" for s, v in overlap.items()))  # fmt: skip
+    console.print("distance between the scans of a pair, median (min-max): "
+                  + ", ".join(f"{s} {np.median(d):.1f} m ({min(d):.1f}-{max(d):.1f})" for s, d in distance.items()))  # fmt: skip
 
     os1 = [p for p in pairs if "os1" in p.sets]
     timing_image, timing_source = (os1[0], "real OS1-64") if os1 else (pairs[0], pairs[0].label.split()[0])
@@ -433,6 +436,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "px": 3.0,
         "max_dist_m": 0.3,
         "pairs": {s: sum(s in p.sets for p in pairs) for s in sets},
+        "pair_distance_median_m": {s: round(float(np.median(d)), 2) for s, d in distance.items()},
         "superpoint_weights": args.superpoint_weights or ("shipped" if "superpoint" in extractors else None),
         "scores": {
             n: {s: {k: _json_num(v) for k, v in m.items() if k != "pairs"} for s, m in per_set.items()}
