@@ -35,8 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
-import time
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -49,7 +48,8 @@ from placerec.eval.features import PairScores, PairTruth, View, evaluate_pair, m
 from placerec.features import make_extractor
 from placerec.image import ImageParams
 
-REPO = Path(__file__).resolve().parents[1]
+TOOLS = Path(__file__).resolve().parent
+REPO = TOOLS.parent
 REAL = REPO.parent / "shared" / "data" / "real"
 CACHE = REPO / ".cache" / "eval_features"
 EXTRACTORS = ("orb", "brisk", "fast-surf", "surf", "superpoint")
@@ -264,21 +264,15 @@ def make_extractors(names: list[str], sp_weights: str | None, log: list[str]) ->
     return out
 
 
-def median_ms(fn: Any, repeats: int) -> float:
-    """Median wall-clock milliseconds of ``repeats`` calls after one warm-up call."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times) * 1e3
-
-
 def timings(
     extractors: dict[str, Any], image: np.ndarray, sp_weights: str | None, repeats: int, log: list[str]
 ):
-    """ms per image (64 x 1024 and 128 x 2048) for each extractor; SuperPoint through both backends."""
+    """Median ms per image (64 x 1024 and 128 x 2048) for each extractor (`bench_features.timeit`: after two
+    warm-up calls); SuperPoint through both backends."""
+    if str(TOOLS) not in sys.path:
+        sys.path.insert(0, str(TOOLS))
+    from bench_features import timeit
+
     big = cv2.resize(image, (image.shape[1] * 2, image.shape[0] * 2), interpolation=cv2.INTER_LINEAR)
     images = {"64x1024": image, "128x2048": big}
     timed = {k: v for k, v in extractors.items() if k != "superpoint"}
@@ -293,7 +287,7 @@ def timings(
     out: dict[str, dict[str, float]] = {}
     for name, ex in timed.items():
         out[name] = {
-            size: round(median_ms(lambda ex=ex, im=im: ex.extract(im), repeats), 2)
+            size: round(timeit(lambda ex=ex, im=im: ex.extract(im), repeats)[0], 2)
             for size, im in images.items()
         }
     return out
