@@ -294,10 +294,17 @@ def test_tool_simulator_pairs_are_ahead_or_revisits() -> None:
 
 
 @pytest.mark.slow
-def test_tool_on_the_real_pairs(real_data: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_tool_on_the_real_pairs(real_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import csv
     import json
 
-    headline = _tool().main(["--no-sim", "--extractors", "orb", "--repeats", "1", "--real", str(real_data)])
+    out = tmp_path / "pairs.csv"
+    args = ["--no-sim", "--extractors", "orb", "--repeats", "1", "--real", str(real_data), "--csv", str(out)]
+    headline = _tool().main(args)
+    rows = list(csv.DictReader(out.open()))
+    assert [r["set"] for r in rows] == ["os1", "kitti", "kitti"]
+    kitti = [float(r["matching_score"]) for r in rows if r["set"] == "kitti"]
+    assert headline["scores"]["orb"]["kitti"]["matching_score"] == pytest.approx(np.mean(kitti), abs=1e-4)
     assert headline["pairs"] == {"os1": 1, "kitti": 2, "real": 3}
     real = headline["scores"]["orb"]["real"]
     assert real["matching_score"] > 0.3 and real["precision"] > 0.6

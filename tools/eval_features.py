@@ -27,7 +27,7 @@ weights are absent it is skipped with a message. Scores of untrained (random) we
 The last line printed is one JSON object with the headline figures. Example::
 
     python tools/eval_features.py                      # everything, ~2-4 min on 2 cores (first run renders)
-    python tools/eval_features.py --superpoint-weights runs/superpoint/superpoint_lidar.npz
+    python tools/eval_features.py --superpoint-weights runs/superpoint/superpoint_lidar.npz --csv results/pairs.csv
 """
 
 from __future__ import annotations
@@ -296,6 +296,22 @@ def timings(
 # -- report --------------------------------------------------------------------------------------------------------
 
 
+def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    """One row per pair and extractor, written atomically."""
+    import csv
+    import io
+
+    from placerec.io.atomic import atomic_write
+
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]) if rows else ["extractor"])
+    writer.writeheader()
+    writer.writerows(rows)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path, "w") as fh:
+        fh.write(buf.getvalue())
+
+
 def _json_num(x: float) -> float | None:
     """Rounded, None for NaN (JSON has no NaN)."""
     return round(float(x), 4) if np.isfinite(x) else None
@@ -321,6 +337,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--no-sim", action="store_true", help="real pairs only")
     ap.add_argument("--repeats", type=int, default=7, help="timed calls per extractor and image size")
     ap.add_argument("--no-cache", action="store_true", help="render the simulator views again")
+    ap.add_argument(
+        "--csv", type=Path, default=None, help="write the figures of every pair and extractor here"
+    )
     args = ap.parse_args(argv)
 
     from rich.console import Console
@@ -356,15 +375,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             raise SystemExit("eval_features: no pairs to evaluate (no simulator pairs and no real data)")
         task = progress.add_task("features", total=len(pairs) * len(extractors))
         scores: dict[str, dict[str, list[PairScores]]] = {n: {} for n in extractors}
+        rows: list[dict[str, Any]] = []
         for pair in pairs:
             for name, ex in extractors.items():
                 fa, fb = ex.extract(pair.truth.a.image), ex.extract(pair.truth.b.image)
                 result = evaluate_pair(fa, fb, pair.truth)
                 for s in pair.sets:
                     scores[name].setdefault(s, []).append(result)
+                rows.append({"extractor": name, "set": pair.sets[0], "pair": pair.label,
+                             "distance_m": float(np.linalg.norm(pair.truth.a_to_b[:3, 3])),
+                             "overlap": pair.truth.overlap, **result.as_dict()})  # fmt: skip
                 progress.advance(task)
     for line in log:
         console.print(line)
+    if args.csv is not None:
+        write_csv(args.csv, rows)
+        console.print(f"per-pair figures: {args.csv}")
     sets = [s for s in SETS if any(s in p.sets for p in pairs)]
     overlap = {s: float(np.mean([p.truth.overlap for p in pairs if s in p.sets])) for s in sets}
     distance = {s: [float(np.linalg.norm(p.truth.a_to_b[:3, 3])) for p in pairs if s in p.sets] for s in sets}
