@@ -26,7 +26,7 @@ weights are absent it is skipped with a message. Scores of untrained (random) we
 
 The last line printed is one JSON object with the headline figures. Example::
 
-    python tools/eval_features.py                      # everything, ~2-4 min on 2 cores (first run renders)
+    python tools/eval_features.py          # ~1 min on 2 cores the first time (it renders ~90 scans), then ~30 s
     python tools/eval_features.py --superpoint-weights runs/superpoint/superpoint_lidar.npz --csv results/pairs.csv
 """
 
@@ -130,8 +130,8 @@ def _pose_pairs(
             continue
         a = int(rng.choice(chunk))
         ahead = float(rng.uniform(1.0, 8.0))
-        b = int(np.searchsorted(arc, arc[a] + ahead))
-        out.append((a, min(b, len(arc) - 1), f"ahead {arc[min(b, len(arc) - 1)] - arc[a]:.1f} m"))
+        b = a + 1 + int(np.argmin(np.abs(arc[a + 1 :] - arc[a] - ahead)))  # the scan nearest that far ahead
+        out.append((a, b, f"ahead {arc[b] - arc[a]:.1f} m"))
     revisits = [r for r in seq.revisits if r.stop - r.start >= 1]
     for k in range(min(n_revisit, len(revisits))):
         r = revisits[int(rng.integers(len(revisits)))] if k else max(revisits, key=lambda r: r.stop - r.start)
@@ -314,7 +314,7 @@ def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 
 def _json_num(x: float) -> float | None:
     """Rounded, None for NaN (JSON has no NaN)."""
-    return round(float(x), 4) if np.isfinite(x) else None
+    return round(float(x), 5) if np.isfinite(x) else None
 
 
 def _fmt(x: float, pct: bool = True) -> str:
