@@ -309,3 +309,18 @@ def test_tool_on_the_real_pairs(real_data: Path, tmp_path: Path, capsys: pytest.
     real = headline["scores"]["orb"]["real"]
     assert real["matching_score"] > 0.3 and real["precision"] > 0.6
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == headline
+
+
+def test_tool_view_cache_round_trip_and_broken_entry(room, tmp_path: Path) -> None:
+    tool = _tool()
+    xyz, inten = room
+    seq = [_scan(xyz, inten)]
+    first = tool._cached_view(seq, 0, "k", tmp_path)
+    entry = tmp_path / "k_0.npz"
+    assert entry.is_file()
+    again = tool._cached_view([None], 0, "k", tmp_path)  # read back: the sequence is not touched
+    np.testing.assert_array_equal(again.image, first.image)
+    np.testing.assert_array_equal(again.points, first.points)
+    entry.write_bytes(b"not an npz")
+    remade = tool._cached_view(seq, 0, "k", tmp_path)
+    np.testing.assert_array_equal(remade.image, first.image)
