@@ -173,6 +173,8 @@ def test_hand_computed_pair(room) -> None:
     assert s.precision == pytest.approx(1 / 3)
     assert s.overlap_keypoints == pytest.approx((3 + 4) / 2)
     assert s.matches == 3 and s.keypoints == 4
+    # half a turn away (u + 512) no keypoint of the other image is near: chance repeatability 0
+    assert s.chance_repeatability == 0.0
 
 
 def test_coincidence_wraps_columns_and_uses_3d(room) -> None:
@@ -216,6 +218,7 @@ def test_yawed_scan_scores_high_and_a_wrong_pose_near_zero(room, name: str) -> N
     fa, fb = ex.extract(va.image), ex.extract(vb.image)
     good = evaluate_pair(fa, fb, PairTruth.from_views(va, vb, a_to_b))
     assert good.repeatability > 0.9 and good.matching_score > 0.8 and good.precision > 0.9
+    assert good.chance_repeatability < 0.35
     wrong = evaluate_pair(fa, fb, PairTruth.from_views(va, vb, np.eye(4)))  # frames mixed up
     assert wrong.matching_score < 0.05 and wrong.precision < 0.1
     # repeatability keeps its chance level: ~300 keypoints in 64 x 1024 px put a random pixel within 3 px of
@@ -227,12 +230,33 @@ def test_yawed_scan_scores_high_and_a_wrong_pose_near_zero(room, name: str) -> N
     )
 
 
+def test_chance_repeatability_of_crowded_keypoints(room) -> None:
+    """Keypoints on two rows, one every 8 columns, 'repeat' under any pose: their chance repeatability says so,
+    while the matching score of unrelated descriptors stays ~0."""
+    xyz, inten = room
+    v = _view(_scan(xyz, inten))
+    u = np.arange(0, W, 8, dtype=np.float32)
+    kp = np.concatenate([np.stack([u, np.full_like(u, r)], 1) for r in (20.0, 40.0)])
+    rng = np.random.default_rng(0)
+    n = len(kp)
+    fa = Features(
+        kp, np.ones(n), np.zeros(n), np.ones(n), np.zeros(n), rng.integers(0, 256, (n, 32), np.uint8)
+    )
+    fb = Features(
+        kp, np.ones(n), np.zeros(n), np.ones(n), np.zeros(n), rng.integers(0, 256, (n, 32), np.uint8)
+    )
+    wrong = evaluate_pair(fa, fb, PairTruth.from_views(v, v, _yaw(0.3)))
+    assert wrong.chance_repeatability > 0.6 and wrong.repeatability > 0.6
+    assert wrong.matching_score < 0.05
+
+
 def test_empty_features_give_nan_not_errors(room) -> None:
     xyz, inten = room
     v = _view(_scan(xyz, inten))
     none = Features(np.zeros((0, 2)), [], [], [], [], np.zeros((0, 32), np.uint8))
     s = evaluate_pair(none, none, PairTruth.from_views(v, v, np.eye(4)))
     assert np.isnan(s.repeatability) and np.isnan(s.matching_score) and np.isnan(s.precision)
+    assert np.isnan(s.chance_repeatability)
     assert s.keypoints == 0
 
 

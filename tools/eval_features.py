@@ -404,6 +404,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "keypoints",
         "in overlap",
         "repeatability",
+        "(chance)",
         "matching score",
         "precision",
     ):
@@ -412,9 +413,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         for s, m in per_set.items():
             table.add_row(
                 name, s, f"{m['pairs']:.0f}", _fmt(m["keypoints"], False), _fmt(m["overlap_keypoints"], False),
-                _fmt(m["repeatability"]), _fmt(m["matching_score"]), _fmt(m["precision"]),
+                _fmt(m["repeatability"]), _fmt(m["chance_repeatability"]), _fmt(m["matching_score"]),
+                _fmt(m["precision"]),
             )  # fmt: skip
     console.print(table)
+    console.print("(chance): repeatability against the other image's keypoints turned half a revolution")
     console.print("pixel overlap (share of valid pixels with a ground-truth partner): "
                   + ", ".join(f"{s} {100 * v:.0f}%" for s, v in overlap.items()))  # fmt: skip
     console.print("distance between the scans of a pair, median (min-max): "
@@ -462,7 +465,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             n: {s: {k: _json_num(v) for k, v in m.items() if k != "pairs"} for s, m in per_set.items()}
             for n, per_set in summary.items()
         },
-        "matching_score_ratio_superpoint_orb": {"sim": ratio("sim"), "real": ratio("real")},
+        "matching_score_ratio_superpoint_orb": {s: ratio(s) for s in ("sim", "real", "kitti", "os1")},
         "ms_per_image": ms,
         "timing_image": timing_source,
         "loadavg": load,

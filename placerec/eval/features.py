@@ -24,9 +24,13 @@ Per direction (A -> B; B -> A likewise with the roles swapped), over the ``n_A``
   coinciding with ``j``) / ``n_A``;
 * **precision** = those correct matches / the mutual matches whose A keypoint is in the overlap.
 
-Repeatability has a chance level: with K keypoints spread over an H x W image, a pixel lies within ``px`` of
-one of them with probability about ``1 - exp(-K pi px^2 / (H W))`` (12 % for 300 keypoints, 3 px, 64 x 1024).
-Matching score and precision have none (a wrong pose gives ~0).
+Repeatability has a chance level: with K keypoints spread at random over an H x W image, a pixel lies within
+``px`` of one of them with probability about ``1 - exp(-K pi px^2 / (H W))`` (12 % for 300 keypoints, 3 px,
+64 x 1024), and much more where a detector crowds its keypoints (e.g. on a few rows, one every few columns).
+**Chance repeatability** measures it for the pair's own keypoints: the repeatability of A's keypoints against B's
+keypoints turned half a revolution (``u + W/2``, which keeps their rows and spacing and breaks the
+correspondence), and the other way round. Matching score and precision have no such floor (a wrong pose gives
+~0).
 
 A pair's figure is the mean of its two directions (of those with at least one keypoint in the overlap, resp.
 one such match); a pair set's is the mean over its pairs. ``tools/eval_features.py`` runs it on simulator and
@@ -187,12 +191,14 @@ def coincidence(
 @dataclass(frozen=True)
 class PairScores:
     """The figures of one pair (module docstring): ``repeatability``, ``matching_score``, ``precision`` (NaN
-    where undefined: no keypoint in the overlap, no match), mean ``keypoints`` per image, mean keypoints in the
-    overlap per direction, the mutual ``matches`` and the ``correct`` ones (counted once per direction)."""
+    where undefined: no keypoint in the overlap, no match), ``chance_repeatability``, mean ``keypoints`` per
+    image, mean keypoints in the overlap per direction, the mutual ``matches`` and the ``correct`` ones (counted
+    once per direction)."""
 
     repeatability: float
     matching_score: float
     precision: float
+    chance_repeatability: float
     keypoints: float
     overlap_keypoints: float
     matches: int
@@ -207,25 +213,33 @@ def _mean(values: list[float]) -> float:
     return float(np.mean(v)) if v else float("nan")
 
 
+def _half_turn(keypoints: np.ndarray, width: int) -> np.ndarray:
+    kp = np.array(keypoints, np.float64).reshape(-1, 2)
+    kp[:, 0] = (kp[:, 0] + width / 2.0) % width
+    return kp
+
+
+def _repeated_share(overlap: np.ndarray, C: np.ndarray) -> float:
+    n = int(overlap.sum())
+    return float(C[overlap].any(axis=1).sum()) / n if n else float("nan")
+
+
 def evaluate_pair(
     fa: Features, fb: Features, truth: PairTruth, px: float = 3.0, max_dist: float | None = None
 ) -> PairScores:
     """Repeatability, matching score and precision of features ``fa`` (image A) and ``fb`` (image B) of the pair
     ``truth`` (module docstring); ``max_dist`` defaults to the pair's own."""
     d = truth.max_dist if max_dist is None else float(max_dist)
-    o_a, C_ab = coincidence(
-        fa.keypoints, fb.keypoints, truth.a.points, truth.b.points, truth.gt_ab, truth.a_to_b, px, d
+    sides = (
+        (fa, fb, truth.a, truth.b, truth.gt_ab, truth.a_to_b),
+        (fb, fa, truth.b, truth.a, truth.gt_ba, np.linalg.inv(truth.a_to_b)),
     )
-    o_b, C_ba = coincidence(
-        fb.keypoints,
-        fa.keypoints,
-        truth.b.points,
-        truth.a.points,
-        truth.gt_ba,
-        np.linalg.inv(truth.a_to_b),
-        px,
-        d,
-    )
+    found, chance = [], []
+    for f, g, v, w, gt, T in sides:
+        found.append(coincidence(f.keypoints, g.keypoints, v.points, w.points, gt, T, px, d))
+        turned = _half_turn(g.keypoints, w.width)
+        chance.append(_repeated_share(*coincidence(f.keypoints, turned, v.points, w.points, gt, T, px, d)))
+    (o_a, C_ab), (o_b, C_ba) = found
     qi, mi, _ = mutual_nearest(fa.descriptors, fb.descriptors)
     rep, ms, prec, correct = [], [], [], []
     for o, C, src, dst in ((o_a, C_ab, qi, mi), (o_b, C_ba, mi, qi)):
@@ -233,13 +247,14 @@ def evaluate_pair(
         judged = o[src]
         ok = int(C[src[judged], dst[judged]].sum())
         correct.append(ok)
-        rep.append(float(C[o].any(axis=1).sum()) / n if n else float("nan"))
+        rep.append(_repeated_share(o, C))
         ms.append(ok / n if n else float("nan"))
         prec.append(ok / int(judged.sum()) if judged.any() else float("nan"))
     return PairScores(
         repeatability=_mean(rep),
         matching_score=_mean(ms),
         precision=_mean(prec),
+        chance_repeatability=_mean(chance),
         keypoints=(len(fa) + len(fb)) / 2.0,
         overlap_keypoints=(int(o_a.sum()) + int(o_b.sum())) / 2.0,
         matches=int(len(qi)),
