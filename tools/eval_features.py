@@ -26,7 +26,7 @@ weights are absent it is skipped with a message. Scores of untrained (random) we
 
 The last line printed is one JSON object with the headline figures. Example::
 
-    python tools/eval_features.py          # ~1 min on 2 cores the first time (it renders ~90 scans), then ~30 s
+    python tools/eval_features.py          # ~30 s on 2 cores (renders ~90 scans; ~20 s once they are cached)
     python tools/eval_features.py --superpoint-weights runs/superpoint/superpoint_lidar.npz --csv results/pairs.csv
 """
 
