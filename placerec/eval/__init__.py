@@ -1,7 +1,8 @@
 """Evaluation: loop-closure ground truth and metrics (VPR paper protocol), retrieval recall@1 / @1% and the
 same- / reverse-direction split, localisation success (ISHOT paper), errors of the closures' relative poses.
 
-Only NumPy and SciPy are imported here.
+Only NumPy and SciPy are imported here; the repeatability and matching score of 2D features, which need the
+feature extractors, are in `placerec.eval.features` (import it on its own).
 """
 
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES, ExclusionWindow, path_length
