@@ -11,7 +11,7 @@ from placerec.features import EXTRACTORS, Features, available_extractors, make_e
 from placerec.features.compat import brisk_create
 from placerec.features.synthetic import textured_image
 
-NAMES = ["orb", "brisk", "fast-surf", "surf"]
+NAMES = ["orb", "brisk", "fast-surf", "surf", "superpoint"]
 PANORAMA = textured_image(64, 1024, seed=21)
 
 
@@ -41,6 +41,8 @@ def test_registry_names_and_table_one_defaults():
     surf = make_extractor("surf").params
     assert (surf.hessian_threshold, surf.n_octaves, surf.n_octave_layers) == (400.0, 4, 3)
     assert make_extractor("fast-surf").params.fast_threshold == 40
+    sp = make_extractor("superpoint").params
+    assert (sp.min_probability, sp.nfeatures) == (0.005, 300)  # not Table I's 0.05: see SuperPointParams
     assert all(make_extractor(n).params.wrap_pad for n in NAMES)
 
 
@@ -55,6 +57,7 @@ def test_each_extractor_returns_capped_features_of_its_kind(name):
         "brisk": ("binary", 64),
         "fast-surf": ("float", 64),
         "surf": ("float", 64),
+        "superpoint": ("float", 256),
     }[name]
     assert (ex.descriptor_kind, ex.descriptor_size) == (kind, size)
     assert f.descriptors.shape == (len(f), size)
@@ -67,7 +70,10 @@ def test_each_extractor_returns_capped_features_of_its_kind(name):
     assert np.all(np.diff(f.response) <= 0)  # strongest first
     if kind == "float":
         assert np.allclose(np.linalg.norm(f.descriptors, axis=1), 1, atol=1e-5)
-    assert np.all((f.angle >= 0) & (f.angle < 360))
+    if name == "superpoint":  # no orientation (Features: angle -1)
+        assert np.all(f.angle == -1)
+    else:
+        assert np.all((f.angle >= 0) & (f.angle < 360))
     # deterministic
     g = ex.extract(PANORAMA.copy())
     assert np.array_equal(f.keypoints, g.keypoints) and np.array_equal(f.descriptors, g.descriptors)
@@ -82,7 +88,13 @@ def test_parameters_reach_the_backend(name):
         assert make_extractor(name, extended=True).extract(PANORAMA).descriptors.shape[1] == 128
         up = make_extractor(name, upright=True).extract(PANORAMA)
         assert np.all(up.angle == 0)
-    if name == "surf":
+    if name == "superpoint":
+        strict = make_extractor(name, min_probability=0.02, nfeatures=10_000).extract(PANORAMA)
+        loose = make_extractor(name, nfeatures=10_000).extract(PANORAMA)
+        assert 0 < len(strict) < len(loose) and strict.response.min() >= 0.02
+        wide = make_extractor(name, nms_radius=8, nfeatures=10_000).extract(PANORAMA)
+        assert len(wide) < len(loose)
+    elif name == "surf":
         few = make_extractor(name, hessian_threshold=4000.0, nfeatures=10_000).extract(PANORAMA)
         many = make_extractor(name, nfeatures=10_000).extract(PANORAMA)
         assert 0 < len(few) < len(many) and few.response.min() > 4000

