@@ -128,12 +128,12 @@ def test_save_load_identity_and_config_checks(small_db, tmp_path):
 
 def test_a_version_1_file_is_read_and_its_descriptor_options_must_be_empty(small_db, tmp_path):
     """Version 1 stored the descriptors' settings as an ``descriptor_options`` list (always empty in practice);
-    version 2 stores the ``shot`` / ``fpfh`` sections."""
+    version 2 on stores the ``shot`` / ``fpfh`` sections."""
     from placerec.io.atomic import load_artifact
 
     _, db = small_db
-    db.save(tmp_path / "v2.npz")
-    arrays, header = load_artifact(tmp_path / "v2.npz", "places-db", (2,))
+    db.save(tmp_path / "v3.npz")
+    arrays, header = load_artifact(tmp_path / "v3.npz", "places-db", (3,))
     meta = header["meta"]
     assert meta["params"]["features"]["shot"] == {
         "lrf_radius": None,
