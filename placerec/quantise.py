@@ -1,10 +1,13 @@
 """Lossy compact encodings of stored float arrays, with their error bounds.
 
-* `ScalarQuantiser` — 8 bits per dimension of a descriptor, uniform between a per-dimension minimum ``vmin`` and
-  ``vmin + vdiff`` (fitted on the rows to store): ``c = floor(255 (x - vmin) / vdiff)`` clipped to 0..255,
-  decoded to the centre of its step, ``vmin + (c + 0.5) vdiff / 255``. That is faiss's ``ScalarQuantizer``
-  ``QT_8bit`` formula, so faiss can search the codes directly; a value inside the fitted range comes back at most
-  ``vdiff / 510`` away, one outside it is clipped to the range first.
+* `ScalarQuantiser` — 8 bits per dimension of a descriptor on a uniform grid of 256 values from the dimension's
+  smallest value ``lo`` to its largest ``hi`` (fitted on the rows to store), step ``(hi - lo) / 255``: each value
+  is rounded to the nearest grid value, so one inside the fitted range comes back at most half a step,
+  ``(hi - lo) / 510``, away, and ``lo`` and ``hi`` exactly (the zeros that make up most of a SHOT / ISHOT
+  descriptor are not moved; values outside the range are clipped to it). It is stored in the layout of faiss's
+  ``ScalarQuantizer`` ``QT_8bit`` (``c = floor(255 (x - vmin) / vdiff)``, decoded to ``vmin + (c + 0.5) vdiff /
+  255``) with ``vmin = lo - step / 2`` and ``vdiff = hi - lo``, which is the same rounding, so faiss searches
+  the codes directly.
 * `FixedPointCloud` — a point cloud as int16 offsets from its bounding-box centre, one step ``scale`` for the cloud
   (the largest offset maps to 32767): each coordinate comes back at most ``scale / 2`` away (0.6 mm for a cloud
   within 40 m of its centre).
@@ -27,19 +30,19 @@ _MIN_VDIFF = 1e-12
 
 @dataclass(frozen=True)
 class ScalarQuantiser:
-    """Per-dimension 8-bit uniform quantiser (module docstring); ``vmin`` and ``vdiff`` are (D,) float32, ``vdiff``
-    positive."""
+    """Per-dimension 8-bit uniform quantiser (module docstring); ``vmin`` and ``vdiff`` (faiss's layout) are (D,)
+    float32, ``vdiff`` positive."""
 
     vmin: np.ndarray
     vdiff: np.ndarray
 
     @classmethod
     def fit(cls, rows: np.ndarray) -> ScalarQuantiser:
-        """The range of every column of ``rows`` (N >= 1, D)."""
+        """The grid from the smallest to the largest value of every column of ``rows`` (N >= 1, D)."""
         x = np.asarray(rows, np.float32)
-        vmin = x.min(axis=0)
-        vdiff = np.maximum(x.max(axis=0) - vmin, np.float32(_MIN_VDIFF))
-        return cls(vmin.astype(np.float32), vdiff.astype(np.float32))
+        lo = x.min(axis=0)
+        vdiff = np.maximum(x.max(axis=0) - lo, np.float32(_MIN_VDIFF)).astype(np.float32)
+        return cls((lo - vdiff / np.float32(2 * _LEVELS)).astype(np.float32), vdiff)
 
     @property
     def dim(self) -> int:
@@ -47,7 +50,8 @@ class ScalarQuantiser:
 
     @property
     def max_error(self) -> np.ndarray:
-        """The largest decoding error per dimension of a value inside the fitted range: ``vdiff / 510``."""
+        """The largest decoding error per dimension of a value inside the fitted range: half a step,
+        ``vdiff / 510``."""
         return self.vdiff / (2 * _LEVELS)
 
     def encode(self, rows: np.ndarray) -> np.ndarray:

@@ -18,13 +18,15 @@ from placerec.verify.candidates import CloudStore
 
 def test_scalar_quantiser_hand_computed_codes_and_error_bound():
     q = ScalarQuantiser.fit(np.array([[0.0, -1.0], [2.0, 3.0]]))
-    np.testing.assert_array_equal(q.vmin, [0.0, -1.0])
+    # grids 0..2 and -1..3 in 255 steps, kept in faiss's layout: vmin half a step below the smallest value
     np.testing.assert_array_equal(q.vdiff, [2.0, 4.0])
-    # 0.5 and 0.0 sit a quarter into their ranges: floor(0.25 * 255) = 63, decoded at the step's centre
+    np.testing.assert_allclose(q.vmin, [-1 / 255, -1 - 2 / 255], rtol=1e-6)
+    # 0.5 and 0.0 sit 63.75 steps into their grids: rounded to step 64; the ends are exact, the rest clipped
     codes = q.encode(np.array([[0.5, 0.0], [2.0, -1.0], [9.0, -7.0]]))
-    np.testing.assert_array_equal(codes, [[63, 63], [255, 0], [255, 0]])  # out-of-range values are clipped
+    np.testing.assert_array_equal(codes, [[64, 64], [255, 0], [255, 0]])
     dec = q.decode(codes)
-    np.testing.assert_allclose(dec[0], [63.5 / 255 * 2, -1 + 63.5 / 255 * 4], rtol=1e-6)
+    np.testing.assert_allclose(dec[0], [64 * 2 / 255, -1 + 64 * 4 / 255], atol=1e-6)
+    np.testing.assert_allclose(dec[1], [2.0, -1.0], atol=1e-6)
     np.testing.assert_allclose(q.max_error, [2 / 510, 4 / 510])
     x = np.random.default_rng(0).uniform([0.0, -1.0], [2.0, 3.0], size=(1000, 2)).astype(np.float32)
     err = np.abs(q.decode(q.encode(x)) - x)

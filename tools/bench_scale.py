@@ -2,8 +2,18 @@
 
 Databases: the ORB-HBST and ORB-DBoW pipelines (`placerec.pipelines.visual.VisualHBST`,
 `placerec.pipelines.dbow.VisualDBoW`, retrieval only: ``verify.enabled: false, check: none``) and Scan Context
-(`placerec.baselines.scan_context.ScanContext`, ``verify.enabled: false``), at 1k, 10k and 100k scans. The ISHOT
-store is not measured here yet (its probabilistic voting is being reworked).
+(`placerec.baselines.scan_context.ScanContext`, ``verify.enabled: false``), at 1k, 10k and 100k scans.
+
+The ISHOT store (``--ishot-queries``; 0 skips it) is measured on the places database of the localisation benchmark
+(simulated town, VLP-16, places 2.5 m apart, one sweep each: 121 places, ~126 ISHOT keypoints per place;
+docs/localization.md), built once and saved in each store: ``float32`` (descriptors and clouds float32) and
+``sq8`` (`placerec.retrieval.descriptor_store`: 8-bit descriptor codes; int16 clouds). Per store: the saved file's
+bytes per place, the anonymous memory per place of an ``ishot-prob`` pipeline loading it (in a fresh process,
+after a garbage collection, before any query: descriptors, keypoints, ICP clouds, poses; the posterior table and
+the prepared ICP targets come with the first queries, the latter bounded by the 128 the verification caches), then
+the median time of ``query_description`` (probabilistic voting, verification included) and of its matching
+against the database (``match_ms``) over the first ``--ishot-queries`` gator queries of the benchmark. Replicating
+ISHOT places to 100k would not fit this machine in float32 (680 KB a place: 68 GB), so its scale is the benchmark's.
 
 Descriptions: ``--base`` scans of the simulator (town, OS1-64, 1 m apart) are described once by each front end;
 a database of N scans holds them replicated with perturbation, since simulating 100k scans would take hours. Copy
@@ -156,6 +166,63 @@ def bench_database(
     }
 
 
+def _ishot_child(path: str, store: str, queries: list) -> dict:
+    """Memory of an ``ishot-prob`` pipeline loading the places file ``path`` in ``store``, then query times."""
+    warm = make_pipeline("ishot-prob", {})  # imports (faiss, Open3D, small_gicp, ...) are not the database's
+    warm.describe(queries[0])
+    del warm
+    before = rss_anon_bytes()
+    rec = make_pipeline(
+        "ishot-prob",
+        {"places_db": path, "descriptor_store": store, "verify": {"cloud_store": _CLOUDS[store]}},
+    )
+    loaded = rss_anon_bytes() - before
+    n = len(rec)
+    total, match = [], []
+    for scan in queries:
+        d = rec.describe(scan)
+        t0 = time.perf_counter()
+        cands = rec.query_description(d, k=1)
+        total.append((time.perf_counter() - t0) * 1e3)
+        match.append(cands[0].extra["match_ms"] if cands else np.nan)
+    return {
+        "store": store,
+        "places": n,
+        "ram_bytes_per_place": loaded / n,
+        "descriptor_bytes_per_place": rec._store.nbytes / n,
+        "ram_bytes_per_place_after_queries": (rss_anon_bytes() - before) / n,
+        "query_ms_median": float(np.median(total)),
+        "match_ms_median": float(np.nanmedian(match)),
+    }
+
+
+_CLOUDS = {"float32": "float32", "sq8": "int16"}
+
+
+def bench_ishot(n_queries: int) -> list[dict]:
+    """The ISHOT places database in float32 and in sq8 + int16 clouds: file bytes per place, then (each in a fresh
+    process) the pipeline's memory per place and query times (see the module docstring)."""
+    import multiprocessing
+
+    from placerec.sim import make_localization_split
+    from placerec.three_d.places import PlacesParams, build_places
+
+    split = make_localization_split("town", "vlp16", 0, n_queries=max(n_queries, 1))
+    queries = [preprocessed_scan(split.queries["gator"], i, PreprocessConfig())[0] for i in range(n_queries)]
+    db = build_places(split.map, PlacesParams(window_m=0.0, place_spacing=2.5))
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for store in ("float32", "sq8"):
+            path = str(Path(tmp) / f"places_{store}.npz")
+            db.stored_as(store, _CLOUDS[store]).save(path)
+            with multiprocessing.get_context("spawn").Pool(1) as pool:
+                row = pool.apply(_ishot_child, (path, store, queries))
+            row["file_bytes_per_place"] = Path(path).stat().st_size / len(db)
+            row["keypoints_per_place"] = int(db.kp_offsets[-1]) / len(db)
+            rows.append(row)
+    return rows
+
+
 def _bench_in_child(args: tuple) -> dict:
     base_file, name, *rest = args
     with np.load(base_file, allow_pickle=True) as z:
@@ -268,6 +335,9 @@ def main() -> None:
     ap.add_argument("--pipelines", nargs="+", default=list(PIPELINES), choices=list(PIPELINES))
     ap.add_argument("--saved-scans", type=int, default=1000, help="ORB-HBST with clouds saved; 0 = skip")
     ap.add_argument("--dask-scans", type=int, default=120, help="0 = skip the Dask measurement")
+    ap.add_argument(
+        "--ishot-queries", type=int, default=30, help="ISHOT store queries; 0 = skip the ISHOT store"
+    )
     args = ap.parse_args()
     print(f"load average {os.getloadavg()}; describing {args.base} simulated scans ...", flush=True)
     full, slim, scs = base_descriptions(args.base)
@@ -299,6 +369,16 @@ def main() -> None:
             "KiB/scan after a memory-mapped load",
             flush=True,
         )
+    ishot = bench_ishot(args.ishot_queries) if args.ishot_queries else []
+    for r in ishot:
+        print(
+            f"ishot-prob, {r['store']:>7} store, {r['places']} places ({r['keypoints_per_place']:.0f} keypoints each): "
+            f"file {r['file_bytes_per_place'] / 1e3:.1f} kB/place, RAM {r['ram_bytes_per_place'] / 1e3:.1f} kB/place "
+            f"loaded (descriptors {r['descriptor_bytes_per_place'] / 1e3:.1f} kB), "
+            f"{r['ram_bytes_per_place_after_queries'] / 1e3:.1f} kB/place after the queries; query median "
+            f"{r['query_ms_median']:.0f} ms (matching {r['match_ms_median']:.1f} ms)  (load {os.getloadavg()[0]:.1f})",
+            flush=True,
+        )
     dask = bench_dask(args.dask_scans) if args.dask_scans else None
     if dask:
         print(
@@ -322,6 +402,16 @@ def main() -> None:
                 and round(saved["built_bytes_per_scan"] / 1024, 1),
                 "orb_hbst_verified_kib_per_scan_mmap_loaded": saved
                 and round(saved["loaded_mmap_bytes_per_scan"] / 1024, 1),
+                **{
+                    f"ishot_{r['store']}_{k}": round(r[k], 1)
+                    for r in ishot
+                    for k in (
+                        "file_bytes_per_place",
+                        "ram_bytes_per_place",
+                        "query_ms_median",
+                        "match_ms_median",
+                    )
+                },
                 "dask_speedup_2_workers": None if dask is None else round(dask["speedup"], 3),
                 "dask_load_average": None if dask is None else round(dask["load_average"], 2),
             }

@@ -38,30 +38,55 @@ CONDITIONS = ("gator", "pole", "occlusion")
 PLACE_SPACING = 2.5
 
 
+def places_stores(cfg: Any) -> dict[str, tuple[str, str]]:
+    """The places databases the config's pipelines read, each with the (descriptor, cloud) store it is saved in:
+    those of the first pipeline reading it (its ``descriptor_store`` and ``verify.cloud_store``, float32 when not
+    set; a later pipeline asking for another store converts it on load)."""
+    out: dict[str, tuple[str, str]] = {}
+    for s in cfg.pipelines:
+        if s.params.get("places_db") is not None:
+            verify = s.params.get("verify") or {}
+            store = (s.params.get("descriptor_store") or "float32", verify.get("cloud_store", "float32"))
+            out.setdefault(s.params["places_db"], store)
+    return out
+
+
 def ensure_artifacts(cfg: Any, rebuild: bool, figure: Path | None) -> dict[str, Any]:
-    """Build the places database and fit the vote model named by the config's ISHOT pipelines when missing."""
+    """Build the places databases and fit the vote model named by the config's ISHOT pipelines when missing: the
+    first database is built from the map, the others are the same places in their pipelines' stores
+    (`PlacesDatabase.stored_as`); the vote model is fitted on the first."""
     from placerec.pipelines.vote_fitting import fit_votes
     from placerec.sim import make_localization_split
     from placerec.three_d.places import PlacesDatabase, PlacesParams, build_places
     from placerec.three_d.vote_model import plot_vote_model
 
-    places = {s.params.get("places_db") for s in cfg.pipelines} - {None}
+    places = places_stores(cfg)
     models = {s.params.get("vote_model") for s in cfg.pipelines} - {None}
-    if len(places) > 1 or len(models) > 1:
-        raise SystemExit(f"one places database and one vote model expected, got {places} and {models}")
+    if len(models) > 1:
+        raise SystemExit(f"one vote model expected, got {models}")
     info: dict[str, Any] = {}
     sim = cfg.dataset.simulator
     split = make_localization_split(sim.world, sim.sensor, sim.seed, n_queries=30, n_map=sim.n_scans, draw=1)
     if places:
-        path = Path(places.pop())
+        (first, store), *others = places.items()
+        path = Path(first)
         if rebuild or not path.is_file():
             t0 = time.perf_counter()
             path.parent.mkdir(parents=True, exist_ok=True)
-            build_places(split.map, PlacesParams(window_m=0.0, place_spacing=PLACE_SPACING)).save(path)
+            params = PlacesParams(
+                window_m=0.0, place_spacing=PLACE_SPACING, descriptor_store=store[0], cloud_store=store[1]
+            )
+            build_places(split.map, params).save(path)
             info["build_places_s"] = round(time.perf_counter() - t0, 1)
         db = PlacesDatabase.load(path)
         info["places"] = len(db)
         info["place_keypoints"] = int(db.kp_offsets[-1])
+        info["place_bytes"] = {}
+        for other, (desc_store, cloud_store) in others:
+            if rebuild or not Path(other).is_file():
+                db.stored_as(desc_store, cloud_store).save(other)
+        for name in places:
+            info["place_bytes"][name] = round(Path(name).stat().st_size / len(db))
         if models:
             mpath = Path(models.pop())
             if rebuild or not mpath.is_file():
@@ -145,11 +170,17 @@ def main() -> None:
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--n-queries", type=int, default=None, help="override evaluation.localize.n_queries")
     ap.add_argument("--out", default="results/localization")
-    ap.add_argument("--rebuild", action="store_true", help="rebuild the places database and the vote model")
+    ap.add_argument("--rebuild", action="store_true", help="rebuild the places databases and the vote model")
+    ap.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="config override (repeatable)"
+    )
     ap.add_argument("--figure", default=str(ROOT / "docs" / "figures" / "vote_model_town.png"))
     args = ap.parse_args()
     t0 = time.perf_counter()
-    overrides = [] if args.n_queries is None else [f"evaluation.localize.n_queries={args.n_queries}"]
+    overrides = [
+        *args.set,
+        *([] if args.n_queries is None else [f"evaluation.localize.n_queries={args.n_queries}"]),
+    ]
     cfg = load_config(args.config, overrides)
     info = ensure_artifacts(cfg, args.rebuild, Path(args.figure) if args.figure else None)
     results = {}

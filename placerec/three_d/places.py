@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -243,6 +243,17 @@ class PlacesDatabase:
         """(keypoints, descriptors) of place index ``p``."""
         a, b = self.kp_offsets[p], self.kp_offsets[p + 1]
         return self.keypoints[a:b], self.descriptors.rows(a, b)
+
+    def stored_as(self, descriptor_store: str, cloud_store: str | None = None) -> PlacesDatabase:
+        """The same places with the descriptors (and the clouds when saved) in another store: an sq8 store is
+        fitted on every descriptor, as `build_places` would fit it."""
+        params = self.params.model_copy(
+            update={
+                "descriptor_store": descriptor_store,
+                "cloud_store": cloud_store or self.params.cloud_store,
+            }
+        )
+        return replace(self, descriptors=self.descriptors.converted(descriptor_store), params=params)
 
     def check_features(self, features: FeatureParams, where: str = "places database") -> None:
         """`ArtifactError` unless the database was described with ``features``."""
