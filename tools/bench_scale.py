@@ -70,14 +70,15 @@ PIPELINES = {
 }
 
 
-def rss_anon_bytes() -> int:
-    """Anonymous resident memory of this process (Linux /proc), after a garbage collection."""
+def rss_anon_bytes(field: str = "RssAnon") -> int:
+    """Anonymous resident memory of this process (Linux /proc), after a garbage collection; ``field="VmRSS"``:
+    all resident memory, pages of memory-mapped files included."""
     gc.collect()
     with open("/proc/self/status") as fh:
         for line in fh:
-            if line.startswith("RssAnon:"):
+            if line.startswith(f"{field}:"):
                 return int(line.split()[1]) * 1024
-    raise SystemExit("bench_scale needs Linux /proc/self/status (RssAnon)")
+    raise SystemExit(f"bench_scale needs Linux /proc/self/status ({field})")
 
 
 def base_descriptions(n: int) -> tuple[list[dict], list[dict], list[dict]]:
@@ -166,17 +167,17 @@ def bench_database(
     }
 
 
-def _ishot_child(path: str, store: str, queries: list) -> dict:
+def _ishot_child(path: str, store: str, queries: list, warm_scan: object) -> dict:
     """Memory of an ``ishot-prob`` pipeline loading the places file ``path`` in ``store``, then query times."""
-    warm = make_pipeline("ishot-prob", {})  # imports (faiss, Open3D, small_gicp, ...) are not the database's
-    warm.describe(queries[0])
+    warm = make_pipeline("ishot-prob", {})  # imports and native pools (faiss, Open3D, small_gicp) are not the
+    warm.describe(warm_scan)  # database's
     del warm
-    before = rss_anon_bytes()
+    before, before_file = rss_anon_bytes(), rss_anon_bytes("RssFile")
     rec = make_pipeline(
         "ishot-prob",
         {"places_db": path, "descriptor_store": store, "verify": {"cloud_store": _CLOUDS[store]}},
     )
-    loaded = rss_anon_bytes() - before
+    loaded, loaded_file = rss_anon_bytes() - before, rss_anon_bytes("RssFile") - before_file
     n = len(rec)
     total, match = [], []
     for scan in queries:
@@ -186,22 +187,49 @@ def _ishot_child(path: str, store: str, queries: list) -> dict:
         total.append((time.perf_counter() - t0) * 1e3)
         match.append(cands[0].extra["match_ms"] if cands else np.nan)
     return {
-        "store": store,
         "places": n,
-        "ram_bytes_per_place": loaded / n,
-        "descriptor_bytes_per_place": rec._store.nbytes / n,
-        "ram_bytes_per_place_after_queries": (rss_anon_bytes() - before) / n,
-        "query_ms_median": float(np.median(total)),
-        "match_ms_median": float(np.nanmedian(match)),
+        "ram_bytes": loaded,
+        "file_ram_bytes": loaded_file,
+        "descriptor_bytes": rec._store.nbytes,
+        "cloud_bytes": rec._clouds.nbytes,
+        "ram_bytes_after_queries": rss_anon_bytes() - before,
+        "query_ms_median": float(np.median(total)) if total else None,
+        "match_ms_median": float(np.nanmedian(match)) if match else None,
     }
 
 
 _CLOUDS = {"float32": "float32", "sq8": "int16"}
 
 
-def bench_ishot(n_queries: int) -> list[dict]:
+def replicate_places(db: object, copies: int) -> object:
+    """``copies`` of the places of ``db`` side by side in one database (copy k's scans and ids offset by k times
+    the map's scans); only its size is meant to differ."""
+    from dataclasses import replace
+
+    from placerec.retrieval.descriptor_store import DescriptorStore
+
+    n_scans, counts = db.scan_poses.shape[0], np.diff(db.kp_offsets)
+    arrays = db.descriptors.arrays()
+    arrays["descriptors"] = np.tile(arrays["descriptors"], (copies, 1))
+    return replace(
+        db,
+        ids=np.concatenate([db.ids + k * n_scans for k in range(copies)]),
+        poses=np.tile(db.poses, (copies, 1, 1)),
+        sources=[s + k * n_scans for k in range(copies) for s in db.sources],
+        kp_offsets=np.r_[0, np.cumsum(np.tile(counts, copies))],
+        keypoints=np.tile(db.keypoints, (copies, 1)),
+        descriptors=DescriptorStore.from_arrays(
+            arrays, db.descriptors.dtype, db.descriptors.dim, "replicated"
+        ),
+        scan_poses=np.tile(db.scan_poses, (copies, 1, 1)),
+        clouds=None if db.clouds is None else list(db.clouds) * copies,
+    )
+
+
+def bench_ishot(n_queries: int, copies: int) -> list[dict]:
     """The ISHOT places database in float32 and in sq8 + int16 clouds: file bytes per place, then (each in a fresh
-    process) the pipeline's memory per place and query times (see the module docstring)."""
+    process) the pipeline's memory and query times on it, and its memory on ``copies`` copies of it: the growth
+    from one to ``copies`` copies per added place is the memory a place costs (module docstring)."""
     import multiprocessing
 
     from placerec.sim import make_localization_split
@@ -209,17 +237,38 @@ def bench_ishot(n_queries: int) -> list[dict]:
 
     split = make_localization_split("town", "vlp16", 0, n_queries=max(n_queries, 1))
     queries = [preprocessed_scan(split.queries["gator"], i, PreprocessConfig())[0] for i in range(n_queries)]
+    warm_scan = preprocessed_scan(split.map, 0, PreprocessConfig())[0]
     db = build_places(split.map, PlacesParams(window_m=0.0, place_spacing=2.5))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for store in ("float32", "sq8"):
-            path = str(Path(tmp) / f"places_{store}.npz")
-            db.stored_as(store, _CLOUDS[store]).save(path)
-            with multiprocessing.get_context("spawn").Pool(1) as pool:
-                row = pool.apply(_ishot_child, (path, store, queries))
-            row["file_bytes_per_place"] = Path(path).stat().st_size / len(db)
-            row["keypoints_per_place"] = int(db.kp_offsets[-1]) / len(db)
-            rows.append(row)
+            one, many = str(Path(tmp) / f"{store}_1.npz"), str(Path(tmp) / f"{store}_{copies}.npz")
+            stored = db.stored_as(store, _CLOUDS[store])
+            stored.save(one)
+            replicate_places(stored, copies).save(many)
+            ctx = multiprocessing.get_context("spawn")
+            with ctx.Pool(1) as pool:
+                a = pool.apply(_ishot_child, (one, store, queries, warm_scan))
+            with ctx.Pool(1) as pool:
+                b = pool.apply(_ishot_child, (many, store, [], warm_scan))
+            n = a["places"]
+            rows.append(
+                {
+                    "store": store,
+                    "places": n,
+                    "keypoints_per_place": int(db.kp_offsets[-1]) / n,
+                    "file_bytes_per_place": Path(one).stat().st_size / n,
+                    "ram_bytes_per_place": (b["ram_bytes"] - a["ram_bytes"]) / (b["places"] - n),
+                    "ram_bytes_per_place_at_121": a["ram_bytes"] / n,
+                    "mapped_bytes_per_place": (b["file_ram_bytes"] - a["file_ram_bytes"]) / (b["places"] - n),
+                    "descriptor_bytes_per_place": a["descriptor_bytes"] / n,
+                    "cloud_bytes_per_place": a["cloud_bytes"] / n,
+                    "ram_bytes_after_queries_per_place_at_121": a["ram_bytes_after_queries"] / n,
+                    "replicated_places": b["places"],
+                    "query_ms_median": a["query_ms_median"],
+                    "match_ms_median": a["match_ms_median"],
+                }
+            )
     return rows
 
 
@@ -338,6 +387,9 @@ def main() -> None:
     ap.add_argument(
         "--ishot-queries", type=int, default=30, help="ISHOT store queries; 0 = skip the ISHOT store"
     )
+    ap.add_argument(
+        "--ishot-copies", type=int, default=8, help="copies of the ISHOT places for the memory slope"
+    )
     args = ap.parse_args()
     print(f"load average {os.getloadavg()}; describing {args.base} simulated scans ...", flush=True)
     full, slim, scs = base_descriptions(args.base)
@@ -369,14 +421,18 @@ def main() -> None:
             "KiB/scan after a memory-mapped load",
             flush=True,
         )
-    ishot = bench_ishot(args.ishot_queries) if args.ishot_queries else []
+    ishot = bench_ishot(args.ishot_queries, args.ishot_copies) if args.ishot_queries else []
     for r in ishot:
         print(
             f"ishot-prob, {r['store']:>7} store, {r['places']} places ({r['keypoints_per_place']:.0f} keypoints each): "
-            f"file {r['file_bytes_per_place'] / 1e3:.1f} kB/place, RAM {r['ram_bytes_per_place'] / 1e3:.1f} kB/place "
-            f"loaded (descriptors {r['descriptor_bytes_per_place'] / 1e3:.1f} kB), "
-            f"{r['ram_bytes_per_place_after_queries'] / 1e3:.1f} kB/place after the queries; query median "
-            f"{r['query_ms_median']:.0f} ms (matching {r['match_ms_median']:.1f} ms)  (load {os.getloadavg()[0]:.1f})",
+            f"file {r['file_bytes_per_place'] / 1e3:.1f} kB/place; RAM {r['ram_bytes_per_place'] / 1e3:.1f} kB per "
+            f"added place ({r['places']} -> {r['replicated_places']} places; descriptors "
+            f"{r['descriptor_bytes_per_place'] / 1e3:.1f} kB, ICP clouds {r['cloud_bytes_per_place'] / 1e3:.1f} kB), "
+            f"{r['ram_bytes_per_place_at_121'] / 1e3:.1f} kB/place at {r['places']} places; resident pages of the "
+            f"memory-mapped file {r['mapped_bytes_per_place'] / 1e3:.1f} kB per added place; "
+            f"{r['ram_bytes_after_queries_per_place_at_121'] / 1e3:.1f} kB/place after the queries (prepared ICP "
+            f"targets); query median {r['query_ms_median']:.0f} ms (matching {r['match_ms_median']:.1f} ms)  "
+            f"(load {os.getloadavg()[0]:.1f})",
             flush=True,
         )
     dask = bench_dask(args.dask_scans) if args.dask_scans else None
@@ -408,6 +464,8 @@ def main() -> None:
                     for k in (
                         "file_bytes_per_place",
                         "ram_bytes_per_place",
+                        "ram_bytes_per_place_at_121",
+                        "mapped_bytes_per_place",
                         "query_ms_median",
                         "match_ms_median",
                     )

@@ -52,7 +52,8 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -226,7 +227,7 @@ class KeypointVoting(Recognizer):
             None  # the scan poses of the map a places database was built from
         )
         if p.places_db is not None:
-            self.use_places(PlacesDatabase.load(p.places_db, features=self._features))
+            self.use_places(PlacesDatabase.load(p.places_db, features=self._features, mmap=True))
 
     def _reset(self) -> None:
         self._store = DescriptorStore(self._dim, self.params.descriptor_store or "float32")
@@ -263,7 +264,8 @@ class KeypointVoting(Recognizer):
     def use_places(self, db: PlacesDatabase) -> None:
         """Replace the entries by the places of ``db`` (ids = place ids, poses = place poses). The descriptors are
         served from the database's store as it is (shared, not copied) unless ``descriptor_store`` asks for another
-        kind; only the map's scan poses are kept of the rest of ``db``."""
+        kind; a place's ICP cloud is made from its stored cloud when a query first verifies it (a database loaded
+        from ``places_db`` is memory-mapped, so its clouds take no RAM until then)."""
         db.check_features(self._features)
         self._reset()
         counts = np.diff(db.kp_offsets)
@@ -284,9 +286,13 @@ class KeypointVoting(Recognizer):
                     f"{self.name}: the places database has no clouds to verify with (build it with "
                     "store_clouds, or set verify.enabled to false)"
                 )
-            for i, (xyz, _) in zip(self._ids, db.clouds, strict=True):
-                self._clouds.add(i, scan_cloud(xyz, self.params.verify.verify))
-        self._map_poses = db.scan_poses
+            if len(db.clouds) != len(db):
+                raise ArtifactError(
+                    f"{self.name}: the places database has {len(db.clouds)} clouds for {len(db)} places"
+                )
+            for k, i in enumerate(self._ids):
+                self._clouds.add_deferred(i, partial(_icp_cloud, db.clouds, k, self.params.verify.verify))
+        self._map_poses = np.array(db.scan_poses)
 
     # -- front end -------------------------------------------------------------------------------------------
     @property
@@ -585,10 +591,16 @@ class KeypointVoting(Recognizer):
         )
         self._travelled = travelled
         if self.params.places_db is not None:
-            self._map_poses = PlacesDatabase.load(self.params.places_db, features=self._features).scan_poses
+            db = PlacesDatabase.load(self.params.places_db, features=self._features, mmap=True)
+            self._map_poses = np.array(db.scan_poses)
 
     def __len__(self) -> int:
         return len(self._ids)
+
+
+def _icp_cloud(clouds: Sequence[tuple[np.ndarray, np.ndarray]], k: int, params: VerifyParams) -> np.ndarray:
+    """The ICP cloud (`scan_cloud`) of place ``k``'s stored cloud."""
+    return scan_cloud(clouds[k][0], params)
 
 
 def _cat(parts: list[np.ndarray], empty: tuple[int, ...]) -> np.ndarray:

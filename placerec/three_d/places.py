@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable
+from collections.abc import Sequence as SequenceABC
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -219,7 +220,7 @@ class PlacesDatabase:
     descriptors: DescriptorStore
     params: PlacesParams
     scan_poses: np.ndarray
-    clouds: list[tuple[np.ndarray, np.ndarray]] | None = None
+    clouds: SequenceABC[tuple[np.ndarray, np.ndarray]] | None = None
     intensity: str = "sensor-default"
     sequence: str = ""
 
@@ -296,10 +297,14 @@ class PlacesDatabase:
         path: str | Path,
         features: FeatureParams | None = None,
         intensity: str | None = None,
+        mmap: bool = False,
     ) -> PlacesDatabase:
         """Read a database; `ArtifactError` if the file is corrupt or inconsistent (`_check_layout`), or if
-        ``features`` (or the ``intensity`` label) differ from the file's."""
-        arrays, header = load_artifact(path, KIND, _READ_VERSIONS, _SCHEMA)
+        ``features`` (or the ``intensity`` label) differ from the file's. ``mmap``: the arrays are memory maps of
+        the file (`load_artifact`), so a float32 store is searched from the page cache and only what is decoded
+        or copied (sq8 and float16 codes go into faiss) takes RAM. int16 clouds are decoded one place at a time
+        when read."""
+        arrays, header = load_artifact(path, KIND, _READ_VERSIONS, _SCHEMA, mmap=mmap)
         meta = header["meta"]
         _check_layout(arrays, meta, path)
         store = DescriptorStore.from_arrays(
@@ -405,18 +410,30 @@ def _cloud_arrays(clouds: list[tuple[np.ndarray, np.ndarray]], kind: str) -> dic
     return out
 
 
-def _read_clouds(arrays: dict[str, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+class _FixedPointClouds(SequenceABC):
+    """The int16 place clouds of a saved database as (xyz, intensity) float32 pairs, decoded when read."""
+
+    def __init__(self, xyz: list, intensity: list, centres: np.ndarray, scales: np.ndarray) -> None:
+        self._parts = list(zip(xyz, intensity, centres, scales, strict=True))
+
+    def __len__(self) -> int:
+        return len(self._parts)
+
+    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[override]
+        codes, inten, centre, scale = self._parts[i]
+        return FixedPointCloud(np.asarray(codes), np.asarray(centre), float(scale)).decode(), decode_unit(
+            inten
+        )
+
+
+def _read_clouds(arrays: dict[str, np.ndarray]) -> SequenceABC[tuple[np.ndarray, np.ndarray]]:
     """The place clouds (xyz float32, intensity float32) of a saved database (checked by `_check_layout`)."""
     if not arrays["cloud_counts"].size:
         return []
     cuts = np.cumsum(arrays["cloud_counts"])[:-1]
     xyz, inten = np.split(arrays["cloud_xyz"], cuts), np.split(arrays["cloud_intensity"], cuts)
     if arrays["cloud_xyz"].dtype == np.int16:
-        xyz = [
-            FixedPointCloud(c, centre, float(scale)).decode()
-            for c, centre, scale in zip(xyz, arrays["cloud_centre"], arrays["cloud_scale"], strict=True)
-        ]
-        inten = [decode_unit(i) for i in inten]
+        return _FixedPointClouds(xyz, inten, arrays["cloud_centre"], arrays["cloud_scale"])
     return list(zip(xyz, inten, strict=True))
 
 

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any, Literal
@@ -117,7 +117,8 @@ class CloudStore:
     ``max_prepared`` prepared clouds are kept (least recently used dropped; one takes ~3 MB for an OS1-64 scan at
     0.4 m and 30-90 ms to prepare). ``arrays`` / `from_arrays` give the clouds for a pipeline's saved database
     (float32 points either way). ``dtype = "int16"`` keeps each cloud as `placerec.quantise.FixedPointCloud`
-    (half the bytes; decoded when prepared)."""
+    (half the bytes; decoded when prepared). `add_deferred` stores a function making the cloud instead, called
+    when the cloud is first needed (e.g. from a memory-mapped places database: no RAM until then)."""
 
     def __init__(
         self, params: VerifyParams | None = None, max_prepared: int = 128, dtype: str = "float32"
@@ -127,7 +128,7 @@ class CloudStore:
         self.params = params or VerifyParams()
         self.max_prepared = max_prepared
         self.dtype = dtype
-        self._clouds: dict[int, np.ndarray | FixedPointCloud] = {}
+        self._clouds: dict[int, np.ndarray | FixedPointCloud | Callable[[], np.ndarray]] = {}
         self._prepared: OrderedDict[int, IcpCloud] = OrderedDict()
 
     def __len__(self) -> int:
@@ -143,18 +144,25 @@ class CloudStore:
         self._clouds[int(scan_id)] = FixedPointCloud.encode(c) if self.dtype == "int16" else c
         self._prepared.pop(int(scan_id), None)
 
+    def add_deferred(self, scan_id: int, make: Callable[[], np.ndarray]) -> None:
+        """Store ``make`` (no arguments, returns the (M, 3) cloud) for entry ``scan_id``: called on each use."""
+        self._clouds[int(scan_id)] = make
+        self._prepared.pop(int(scan_id), None)
+
     def cloud(self, scan_id: int) -> np.ndarray:
-        """Entry ``scan_id``'s cloud, (M, 3) float32 (decoded when kept as int16)."""
+        """Entry ``scan_id``'s cloud, (M, 3) float32 (decoded when kept as int16, made when deferred)."""
         try:
             c = self._clouds[int(scan_id)]
         except KeyError:
             raise ScanDataError(f"no cloud stored for entry {scan_id}") from None
-        return c.decode() if isinstance(c, FixedPointCloud) else c
+        if isinstance(c, FixedPointCloud):
+            return c.decode()
+        return np.asarray(c(), np.float32) if callable(c) else c
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the stored clouds (not the prepared targets)."""
-        return sum(int(c.nbytes) for c in self._clouds.values())
+        """Bytes of the stored clouds (not the prepared targets nor the deferred ones)."""
+        return sum(int(c.nbytes) for c in self._clouds.values() if not callable(c))
 
     def target(self, scan_id: int) -> IcpCloud:
         """Entry ``scan_id``'s cloud prepared for ICP (`as_target`), cached."""
