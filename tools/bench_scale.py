@@ -8,12 +8,15 @@ The ISHOT store (``--ishot-queries``; 0 skips it) is measured on the places data
 (simulated town, VLP-16, places 2.5 m apart, one sweep each: 121 places, ~126 ISHOT keypoints per place;
 docs/localization.md), built once and saved in each store: ``float32`` (descriptors and clouds float32) and
 ``sq8`` (`placerec.retrieval.descriptor_store`: 8-bit descriptor codes; int16 clouds). Per store: the saved file's
-bytes per place, the anonymous memory per place of an ``ishot-prob`` pipeline loading it (in a fresh process,
-after a garbage collection, before any query: descriptors, keypoints, ICP clouds, poses; the posterior table and
-the prepared ICP targets come with the first queries, the latter bounded by the 128 the verification caches), then
-the median time of ``query_description`` (probabilistic voting, verification included) and of its matching
-against the database (``match_ms``) over the first ``--ishot-queries`` gator queries of the benchmark. Replicating
-ISHOT places to 100k would not fit this machine in float32 (680 KB a place: 68 GB), so its scale is the benchmark's.
+bytes per place; the anonymous memory of an ``ishot-prob`` pipeline loading it (memory-mapped, as ``places_db``
+does; a fresh process each, after a warm-up pipeline and a garbage collection) at 121 places and at
+``--ishot-copies`` (8) copies of them side by side, whose difference per added place is what a place costs
+(fixed costs such as faiss's index objects left out), and the file pages the load left resident (its CRC check
+reads every page once; the kernel may drop them); the median time of ``query_description`` (probabilistic
+voting, verification included) and of its matching against the database (``match_ms``) over the first
+``--ishot-queries`` gator queries of the benchmark, and the anonymous memory after them (the posterior table and
+up to 128 prepared ICP targets the verification caches). Replicating ISHOT places to 100k would not fit this
+machine in float32 (754 kB a place: 75 GB).
 
 Descriptions: ``--base`` scans of the simulator (town, OS1-64, 1 m apart) are described once by each front end;
 a database of N scans holds them replicated with perturbation, since simulating 100k scans would take hours. Copy

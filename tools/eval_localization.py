@@ -38,23 +38,24 @@ CONDITIONS = ("gator", "pole", "occlusion")
 PLACE_SPACING = 2.5
 
 
-def places_stores(cfg: Any) -> dict[str, tuple[str, str]]:
-    """The places databases the config's pipelines read, each with the (descriptor, cloud) store it is saved in:
-    those of the first pipeline reading it (its ``descriptor_store`` and ``verify.cloud_store``, float32 when not
-    set; a later pipeline asking for another store converts it on load)."""
-    out: dict[str, tuple[str, str]] = {}
+def places_stores(cfg: Any) -> dict[str, str]:
+    """The places databases the config's pipelines read, each with the descriptor store it is saved in: that of
+    the first pipeline reading it (its ``descriptor_store``; `PlacesParams`'s default when not set)."""
+    from placerec.three_d.places import PlacesParams
+
+    out: dict[str, str] = {}
     for s in cfg.pipelines:
         if s.params.get("places_db") is not None:
-            verify = s.params.get("verify") or {}
-            store = (s.params.get("descriptor_store") or "float32", verify.get("cloud_store", "float32"))
-            out.setdefault(s.params["places_db"], store)
+            out.setdefault(
+                s.params["places_db"], s.params.get("descriptor_store") or PlacesParams().descriptor_store
+            )
     return out
 
 
 def ensure_artifacts(cfg: Any, rebuild: bool, figure: Path | None) -> dict[str, Any]:
     """Build the places databases and fit the vote model named by the config's ISHOT pipelines when missing: the
-    first database is built from the map, the others are the same places in their pipelines' stores
-    (`PlacesDatabase.stored_as`); the vote model is fitted on the first."""
+    places are built once from the map in float32 and saved in each database's store (`places_stores`; clouds
+    int16 unless the store is float32, `PlacesDatabase.stored_as`); the vote model is fitted on the first."""
     from placerec.pipelines.vote_fitting import fit_votes
     from placerec.sim import make_localization_split
     from placerec.three_d.places import PlacesDatabase, PlacesParams, build_places
@@ -68,25 +69,23 @@ def ensure_artifacts(cfg: Any, rebuild: bool, figure: Path | None) -> dict[str, 
     sim = cfg.dataset.simulator
     split = make_localization_split(sim.world, sim.sensor, sim.seed, n_queries=30, n_map=sim.n_scans, draw=1)
     if places:
-        (first, store), *others = places.items()
-        path = Path(first)
-        if rebuild or not path.is_file():
+        missing = [name for name in places if rebuild or not Path(name).is_file()]
+        if missing:
             t0 = time.perf_counter()
-            path.parent.mkdir(parents=True, exist_ok=True)
             params = PlacesParams(
-                window_m=0.0, place_spacing=PLACE_SPACING, descriptor_store=store[0], cloud_store=store[1]
+                window_m=0.0, place_spacing=PLACE_SPACING, descriptor_store="float32", cloud_store="float32"
             )
-            build_places(split.map, params).save(path)
+            full = build_places(split.map, params)
+            for name in missing:
+                Path(name).parent.mkdir(parents=True, exist_ok=True)
+                clouds = "float32" if places[name] == "float32" else "int16"
+                full.stored_as(places[name], clouds).save(name)
             info["build_places_s"] = round(time.perf_counter() - t0, 1)
+        path = Path(next(iter(places)))
         db = PlacesDatabase.load(path)
         info["places"] = len(db)
         info["place_keypoints"] = int(db.kp_offsets[-1])
-        info["place_bytes"] = {}
-        for other, (desc_store, cloud_store) in others:
-            if rebuild or not Path(other).is_file():
-                db.stored_as(desc_store, cloud_store).save(other)
-        for name in places:
-            info["place_bytes"][name] = round(Path(name).stat().st_size / len(db))
+        info["place_bytes"] = {name: round(Path(name).stat().st_size / len(db)) for name in places}
         if models:
             mpath = Path(models.pop())
             if rebuild or not mpath.is_file():
