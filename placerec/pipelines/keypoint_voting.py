@@ -8,7 +8,10 @@ simulator (docs/descriptors.md: success 0.55/0.60/0.60 on gator, 0.15/0.25/0.20 
 
 Nearest neighbours (`tools/bench_3d_nn.py`, docs/benchmarks.md): at 1344-d a k-d tree is 40-80x slower than
 brute force and HNSW takes minutes to build over 100k descriptors, so the search is exact brute force, on one
-OpenMP thread by default (``nn_threads``; on the shared 2-core machine one faiss thread beat two).
+OpenMP thread by default (``nn_threads``; on the shared 2-core machine one faiss thread beat two). The descriptors
+live in a `placerec.retrieval.descriptor_store.DescriptorStore` (``descriptor_store``: float32, float16 or sq8
+8-bit codes, searched without decoding the database; a places database's own store by default, float32 for
+entries added scan by scan): sq8 takes a quarter of float32's memory (docs/localization.md).
 
 Score (documented, what thresholds apply to): ``score="fraction"`` (default) is votes / number of query
 descriptors, in [0, 1], so one threshold works for scans with many or few keypoints; ``score="votes"`` is the raw
