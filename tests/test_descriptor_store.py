@@ -43,6 +43,16 @@ def test_faiss_decodes_the_codes_as_the_quantiser_does():
     assert codes.dtype == np.uint8 and codes.shape == x.shape
     np.testing.assert_array_equal(codes, store.quantiser.encode(x))
     np.testing.assert_allclose(store.rows(), store.quantiser.decode(codes), atol=1e-7)
+    # faiss, which computes the search's distances, decodes the codes as the quantiser does
+    np.testing.assert_allclose(store._index.reconstruct_n(0, 300), store.rows(), atol=1e-6)
+    d2, _ = store._index.search(x[:3], 1)
+    np.testing.assert_allclose(
+        d2[:, 0],
+        np.sum(
+            (store.rows()[np.argmin(((store.rows()[None] - x[:3, None]) ** 2).sum(-1), 1)] - x[:3]) ** 2, 1
+        ),
+        rtol=1e-4,
+    )
     np.testing.assert_allclose(store.take([5, 7]), store.rows()[[5, 7]])
     assert store.nbytes == 300 * 40 + 8 * 40
 
