@@ -34,7 +34,8 @@ reused): bytes of anonymous memory per scan (``RssAnon`` growth while adding, so
 allocator slack all count), add time, and the median / p95 time of
 ``query_description(k=5)`` over ``--queries`` queries. Then, at ``--saved-scans`` scans, the full ORB-HBST pipeline *with*
 verification (its ICP clouds make most of a scan's bytes) is saved and loaded again memory-mapped
-(`placerec.io.atomic.load_artifact` with ``mmap=True``) to show what a saved database costs in RAM.
+(`placerec.io.atomic.load_artifact` with ``mmap=True``) to show what a saved database costs in RAM; its ICP clouds
+are kept as ``--cloud-store`` (``verify.cloud_store``: int16, the default, or float32).
 
 Last, description of ``--dask-scans`` scans by every front end with 1 and with 2 Dask workers
 (`placerec.experiment.parallel.describe_chunk` tasks of two scans on a LocalCluster, empty caches, after a warm-up
@@ -290,12 +291,12 @@ def bench_database_fresh(base_file: str, name: str, size: int, *rest: object) ->
         return pool.apply(_bench_in_child, ((base_file, name, size, *rest),))
 
 
-def _build_and_save(base_file: str, path: str, size: int, flip: float) -> tuple[float, float]:
+def _build_and_save(base_file: str, path: str, size: int, flip: float, clouds: str) -> tuple[float, float]:
     """(bytes per scan while built, file MiB) of ORB-HBST with verification clouds, saved to ``path``."""
     with np.load(base_file, allow_pickle=True) as z:
         full = list(z["full"])
     rng = np.random.default_rng(1)
-    rec = make_pipeline("orb-hbst", {})
+    rec = make_pipeline("orb-hbst", {"verify": {"cloud_store": clouds}})
     before = rss_anon_bytes()
     for i in range(size):
         d = perturb_visual(full[i % len(full)], rng, flip)
@@ -307,15 +308,15 @@ def _build_and_save(base_file: str, path: str, size: int, flip: float) -> tuple[
     return built, Path(path).stat().st_size / 2**20
 
 
-def _load_saved(path: str) -> float:
+def _load_saved(path: str, clouds: str) -> float:
     """Anonymous memory growth (bytes) of loading ``path`` (memory-mapped) into an ORB-HBST pipeline."""
-    rec = make_pipeline("orb-hbst", {})
+    rec = make_pipeline("orb-hbst", {"verify": {"cloud_store": clouds}})
     before = rss_anon_bytes()
     rec.load(path)
     return rss_anon_bytes() - before
 
 
-def bench_saved(base_file: str, size: int, flip: float) -> dict:
+def bench_saved(base_file: str, size: int, flip: float, clouds: str = "float32") -> dict:
     """ORB-HBST with verification clouds: RAM while built, file size, RAM after a memory-mapped load (each in a
     fresh process)."""
     import multiprocessing
@@ -324,9 +325,9 @@ def bench_saved(base_file: str, size: int, flip: float) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         path = str(Path(tmp) / "orb-hbst.npz")
         with ctx.Pool(1) as pool:
-            built, file_mb = pool.apply(_build_and_save, (base_file, path, size, flip))
+            built, file_mb = pool.apply(_build_and_save, (base_file, path, size, flip, clouds))
         with ctx.Pool(1) as pool:
-            loaded = pool.apply(_load_saved, (path,))
+            loaded = pool.apply(_load_saved, (path, clouds))
     return {
         "scans": size,
         "built_bytes_per_scan": built,
@@ -386,6 +387,12 @@ def main() -> None:
     )
     ap.add_argument("--pipelines", nargs="+", default=list(PIPELINES), choices=list(PIPELINES))
     ap.add_argument("--saved-scans", type=int, default=1000, help="ORB-HBST with clouds saved; 0 = skip")
+    ap.add_argument(
+        "--cloud-store",
+        default="int16",
+        choices=["float32", "int16"],
+        help="verify.cloud_store of that ORB-HBST",
+    )
     ap.add_argument("--dask-scans", type=int, default=120, help="0 = skip the Dask measurement")
     ap.add_argument(
         "--ishot-queries", type=int, default=30, help="ISHOT store queries; 0 = skip the ISHOT store"
@@ -416,10 +423,12 @@ def main() -> None:
                 f"(load {os.getloadavg()[0]:.1f})",
                 flush=True,
             )
-    saved = bench_saved(base_file, args.saved_scans, args.flip) if args.saved_scans else None
+    saved = (
+        bench_saved(base_file, args.saved_scans, args.flip, args.cloud_store) if args.saved_scans else None
+    )
     if saved:
         print(
-            f"orb-hbst with verification clouds, {saved['scans']} scans: {saved['built_bytes_per_scan'] / 1024:.1f} "
+            f"orb-hbst with verification clouds ({args.cloud_store}), {saved['scans']} scans: {saved['built_bytes_per_scan'] / 1024:.1f} "
             f"KiB/scan built, file {saved['file_mb']:.0f} MiB, {saved['loaded_mmap_bytes_per_scan'] / 1024:.1f} "
             "KiB/scan after a memory-mapped load",
             flush=True,

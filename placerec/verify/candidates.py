@@ -75,9 +75,10 @@ class VerifiedParams(Params):
         default_factory=VerifyParams, description="the verification stage (docs/verification.md)"
     )
     cloud_store: Literal["float32", "int16"] = Field(
-        "float32",
-        description="how the database keeps each entry's ICP cloud in memory: float32 (12 bytes a point), or "
-        "int16 fixed point around the cloud's centre (6 bytes; error at most half a step, 0.6 mm within 40 m)",
+        "int16",
+        description="how the database keeps each added entry's ICP cloud in memory: int16 fixed point around the "
+        "cloud's centre (6 bytes a point; error at most half a step: 0.6 mm within 40 m, 1.8 mm within 120 m; "
+        "verified F1 unchanged, docs/benchmarks.md), or float32 (12 bytes)",
     )
 
 
@@ -116,8 +117,9 @@ class CloudStore:
     """Each database entry's cloud (from `scan_cloud`), prepared as an ICP target on first use; the last
     ``max_prepared`` prepared clouds are kept (least recently used dropped; one takes ~3 MB for an OS1-64 scan at
     0.4 m and 30-90 ms to prepare). ``arrays`` / `from_arrays` give the clouds for a pipeline's saved database
-    (float32 points either way). ``dtype = "int16"`` keeps each cloud as `placerec.quantise.FixedPointCloud`
-    (half the bytes; decoded when prepared). `add_deferred` stores a function making the cloud instead, called
+    (float32 points either way). ``dtype = "int16"`` keeps each cloud added as `placerec.quantise.FixedPointCloud`
+    (half the bytes; decoded when prepared); memory-mapped clouds (a database loaded with ``mmap``) and those read
+    by `from_arrays` stay as they are (a mapped file's pages take no RAM until used). `add_deferred` stores a function making the cloud instead, called
     when the cloud is first needed (e.g. from a memory-mapped places database: no RAM until then)."""
 
     def __init__(
@@ -138,10 +140,11 @@ class CloudStore:
         return scan_id in self._clouds
 
     def add(self, scan_id: int, cloud: np.ndarray) -> None:
+        mapped = _memory_mapped(cloud)  # a memory-mapped file's pages cost no RAM: kept as they are
         c = np.asarray(cloud, dtype=np.float32)
         if c.ndim != 2 or c.shape[1] != 3:
             raise ScanDataError(f"cloud of entry {scan_id} must have shape (M, 3), got {c.shape}")
-        self._clouds[int(scan_id)] = FixedPointCloud.encode(c) if self.dtype == "int16" else c
+        self._clouds[int(scan_id)] = FixedPointCloud.encode(c) if self.dtype == "int16" and not mapped else c
         self._prepared.pop(int(scan_id), None)
 
     def add_deferred(self, scan_id: int, make: Callable[[], np.ndarray]) -> None:
@@ -196,8 +199,18 @@ class CloudStore:
             raise ArtifactError(f"{path}: cloud_counts do not match the entries and cloud_xyz")
         self._clouds.clear()
         self._prepared.clear()
+        # kept as read, int16 or not: views of the file's pages when the database was loaded memory-mapped
         for i, c in zip(ids, np.split(xyz, np.cumsum(counts)[:-1]) if len(ids) else [], strict=True):
-            self._clouds[int(i)] = FixedPointCloud.encode(c) if self.dtype == "int16" else c
+            self._clouds[int(i)] = c
+
+
+def _memory_mapped(a: Any) -> bool:
+    """Whether ``a`` views the pages of a memory-mapped file (an `np.memmap` somewhere in its ``base`` chain)."""
+    while a is not None:
+        if isinstance(a, np.memmap):
+            return True
+        a = getattr(a, "base", None)
+    return False
 
 
 def _score(v: Verification, params: VerifyParams) -> float:
