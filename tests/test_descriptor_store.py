@@ -235,3 +235,35 @@ def test_cloud_store_int16_halves_the_clouds_and_keeps_them_to_half_a_step():
     np.testing.assert_array_equal(b.arrays([1])["cloud_counts"], [500])
     with pytest.raises(ConfigError, match="cloud store"):
         CloudStore(dtype="float8")
+
+
+def test_ivf_index_over_a_compressed_store_finds_the_clusters():
+    from placerec.pipelines.keypoint_voting import IvfIndex
+
+    rows, queries = _clusters(np.random.default_rng(8))
+    for dtype in ("float16", "sq8"):
+        ivf = IvfIndex(DescriptorStore.from_rows(rows, dtype), nlist=8, nprobe=8)
+        _, idx = ivf.knn2(queries)
+        assert (idx[:, 0] // 30 == np.arange(len(queries))).all()
+
+
+def test_float16_places_round_trip_and_memory_mapped_clouds_stay_mapped(compact_db, tmp_path):
+    half = compact_db.stored_as("float16")
+    half.save(tmp_path / "half.npz")
+    back = PlacesDatabase.load(tmp_path / "half.npz", mmap=True)
+    assert back.descriptors.dtype == "float16" and back.descriptors.codes().dtype == np.float16
+    np.testing.assert_array_equal(back.descriptors.codes(), half.descriptors.codes())
+    # a cloud that views a memory-mapped file is kept as it is (no RAM), others are encoded
+    mapped = np.memmap(tmp_path / "cloud.bin", dtype=np.float32, mode="w+", shape=(50, 3))
+    mapped[:] = np.random.default_rng(9).uniform(-5, 5, (50, 3))
+    store = CloudStore(dtype="int16")
+    store.add(1, np.asarray(mapped[:40]))
+    store.add(2, np.array(mapped[:40]))
+    assert store.nbytes == FixedPointCloud.encode(mapped[:40]).nbytes  # only entry 2 takes RAM
+    np.testing.assert_array_equal(store.cloud(1), mapped[:40])
+    # deferred clouds are made when used, and take no RAM before
+    calls = []
+    store.add_deferred(3, lambda: calls.append(1) or np.asarray(mapped[:10]))
+    assert not calls and store.nbytes == FixedPointCloud.encode(mapped[:40]).nbytes
+    np.testing.assert_array_equal(store.cloud(3), mapped[:10])
+    assert calls == [1]

@@ -164,8 +164,8 @@ class CloudStore:
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the stored clouds (not the prepared targets nor the deferred ones)."""
-        return sum(int(c.nbytes) for c in self._clouds.values() if not callable(c))
+        """Bytes of the clouds held in memory (not the prepared targets, deferred or memory-mapped clouds)."""
+        return sum(int(c.nbytes) for c in self._clouds.values() if not callable(c) and not _memory_mapped(c))
 
     def target(self, scan_id: int) -> IcpCloud:
         """Entry ``scan_id``'s cloud prepared for ICP (`as_target`), cached."""
