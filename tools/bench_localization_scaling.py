@@ -46,12 +46,14 @@ OFFSET_M = 5000.0
 def town_places(seed: int, cache: Path, descriptor: str = "ishot") -> PlacesDatabase:
     tag = "" if descriptor == "ishot" else f"_{descriptor}"
     path = cache / f"places_town_vlp16{tag}_s{seed}.npz"
-    if seed == 0 and not tag and (cache / "places_town_vlp16.npz").is_file():
-        path = cache / "places_town_vlp16.npz"  # the one configs/localize.yaml uses
+    if seed == 0 and not tag and (cache / "places_town_vlp16_float32.npz").is_file():
+        path = cache / "places_town_vlp16_float32.npz"  # configs/localize.yaml's float32 one
     if not path.is_file():
         seq = SimulatedSequence(world="town", sensor="vlp16", seed=seed, unit_seed=0)
         path.parent.mkdir(parents=True, exist_ok=True)
-        params = PlacesParams(window_m=0.0, place_spacing=2.5, features={"descriptor": descriptor})
+        params = PlacesParams(
+            window_m=0.0, place_spacing=2.5, features={"descriptor": descriptor}, descriptor_store="float32"
+        )  # the float32 descriptors its figures were measured with
         build_places(seq, params).save(path)
     return PlacesDatabase.load(path)
 

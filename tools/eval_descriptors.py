@@ -298,7 +298,7 @@ def main() -> None:
     near = {c: split.nearest_map(c)[1] for c in conds}
     places_params = PlacesParams(
         place_spacing=args.place_spacing, window_m=args.window_m, member_spacing=args.member_spacing,
-        store_clouds=False,
+        store_clouds=False, descriptor_store="float32",  # the descriptors themselves, not their 8-bit codes
     )  # fmt: skip
     print(
         f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}; map {split.map.name}: {len(split.map)} scans "
