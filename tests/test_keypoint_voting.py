@@ -154,7 +154,7 @@ def test_aggregated_places_and_places_database(sim_map, tmp_path):
     agg = KeypointVoting(place_spacing_m=6.0, place_window_m=6.0, **FAST)
     for i, s in enumerate(scans):
         agg.add(i, s, seq.poses[i])
-    assert agg._ids == [0, 3, 6, 9, 12, 15] and agg._n_rows > 300
+    assert agg._ids == [0, 3, 6, 9, 12, 15] and len(agg._store) > 300
     with pytest.raises(ScanDataError, match="pose"):
         KeypointVoting(place_window_m=6.0, **FAST).add(0, scans[0])
 

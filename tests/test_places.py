@@ -113,7 +113,15 @@ def test_save_load_identity_and_config_checks(small_db, tmp_path):
         np.testing.assert_array_equal(getattr(again, name), getattr(db, name), err_msg=name)
     assert [s.tolist() for s in again.sources] == [s.tolist() for s in db.sources]
     assert again.params == db.params
+    # int16 clouds (the default): each coordinate within half a step (reach / 32767 / 2), intensity within 1/510;
+    # saving what was read writes the same codes again
     for (a, b), (c, d) in zip(again.clouds, db.clouds, strict=True):
+        reach = np.abs(c - 0.5 * (c.min(0) + c.max(0))).max()
+        np.testing.assert_allclose(a, c, rtol=0, atol=reach / 32767 / 2 + 1e-5)
+        np.testing.assert_allclose(b, d, rtol=0, atol=1 / 510 + 1e-7)
+    again.save(tmp_path / "again.npz")
+    twice = PlacesDatabase.load(tmp_path / "again.npz")
+    for (a, b), (c, d) in zip(twice.clouds, again.clouds, strict=True):
         np.testing.assert_array_equal(a, c)
         np.testing.assert_array_equal(b, d)
     with pytest.raises(ArtifactError, match="other feature settings"):
@@ -128,12 +136,12 @@ def test_save_load_identity_and_config_checks(small_db, tmp_path):
 
 def test_a_version_1_file_is_read_and_its_descriptor_options_must_be_empty(small_db, tmp_path):
     """Version 1 stored the descriptors' settings as an ``descriptor_options`` list (always empty in practice);
-    version 2 stores the ``shot`` / ``fpfh`` sections."""
+    version 2 on stores the ``shot`` / ``fpfh`` sections."""
     from placerec.io.atomic import load_artifact
 
     _, db = small_db
-    db.save(tmp_path / "v2.npz")
-    arrays, header = load_artifact(tmp_path / "v2.npz", "places-db", (2,))
+    db.save(tmp_path / "v3.npz")
+    arrays, header = load_artifact(tmp_path / "v3.npz", "places-db", (3,))
     meta = header["meta"]
     assert meta["params"]["features"]["shot"] == {
         "lrf_radius": None,

@@ -2,8 +2,21 @@
 
 Databases: the ORB-HBST and ORB-DBoW pipelines (`placerec.pipelines.visual.VisualHBST`,
 `placerec.pipelines.dbow.VisualDBoW`, retrieval only: ``verify.enabled: false, check: none``) and Scan Context
-(`placerec.baselines.scan_context.ScanContext`, ``verify.enabled: false``), at 1k, 10k and 100k scans. The ISHOT
-store is not measured here yet (its probabilistic voting is being reworked).
+(`placerec.baselines.scan_context.ScanContext`, ``verify.enabled: false``), at 1k, 10k and 100k scans.
+
+The ISHOT store (``--ishot-queries``; 0 skips it) is measured on the places database of the localisation benchmark
+(simulated town, VLP-16, places 2.5 m apart, one sweep each: 121 places, ~126 ISHOT keypoints per place;
+docs/localization.md), built once and saved in each store: ``float32`` (descriptors and clouds float32) and
+``sq8`` (`placerec.retrieval.descriptor_store`: 8-bit descriptor codes; int16 clouds). Per store: the saved file's
+bytes per place; the anonymous memory of an ``ishot-prob`` pipeline loading it (memory-mapped, as ``places_db``
+does; a fresh process each, after a warm-up pipeline and a garbage collection) at 121 places and at
+``--ishot-copies`` (8) copies of them side by side, whose difference per added place is what a place costs
+(fixed costs such as faiss's index objects left out), and the file pages the load left resident (its CRC check
+reads every page once; the kernel may drop them); the median time of ``query_description`` (probabilistic
+voting, verification included) and of its matching against the database (``match_ms``) over the first
+``--ishot-queries`` gator queries of the benchmark, and the anonymous memory after them (the posterior table and
+up to 128 prepared ICP targets the verification caches). Replicating ISHOT places to 100k would not fit this
+machine in float32 (754 kB a place: 75 GB).
 
 Descriptions: ``--base`` scans of the simulator (town, OS1-64, 1 m apart) are described once by each front end;
 a database of N scans holds them replicated with perturbation, since simulating 100k scans would take hours. Copy
@@ -21,7 +34,8 @@ reused): bytes of anonymous memory per scan (``RssAnon`` growth while adding, so
 allocator slack all count), add time, and the median / p95 time of
 ``query_description(k=5)`` over ``--queries`` queries. Then, at ``--saved-scans`` scans, the full ORB-HBST pipeline *with*
 verification (its ICP clouds make most of a scan's bytes) is saved and loaded again memory-mapped
-(`placerec.io.atomic.load_artifact` with ``mmap=True``) to show what a saved database costs in RAM.
+(`placerec.io.atomic.load_artifact` with ``mmap=True``) to show what a saved database costs in RAM; its ICP clouds
+are kept as ``--cloud-store`` (``verify.cloud_store``: int16, the default, or float32).
 
 Last, description of ``--dask-scans`` scans by every front end with 1 and with 2 Dask workers
 (`placerec.experiment.parallel.describe_chunk` tasks of two scans on a LocalCluster, empty caches, after a warm-up
@@ -60,14 +74,15 @@ PIPELINES = {
 }
 
 
-def rss_anon_bytes() -> int:
-    """Anonymous resident memory of this process (Linux /proc), after a garbage collection."""
+def rss_anon_bytes(field: str = "RssAnon") -> int:
+    """Anonymous resident memory of this process (Linux /proc), after a garbage collection; ``field="VmRSS"``:
+    all resident memory, pages of memory-mapped files included."""
     gc.collect()
     with open("/proc/self/status") as fh:
         for line in fh:
-            if line.startswith("RssAnon:"):
+            if line.startswith(f"{field}:"):
                 return int(line.split()[1]) * 1024
-    raise SystemExit("bench_scale needs Linux /proc/self/status (RssAnon)")
+    raise SystemExit(f"bench_scale needs Linux /proc/self/status ({field})")
 
 
 def base_descriptions(n: int) -> tuple[list[dict], list[dict], list[dict]]:
@@ -156,6 +171,112 @@ def bench_database(
     }
 
 
+def _ishot_child(path: str, store: str, queries: list, warm_scan: object) -> dict:
+    """Memory of an ``ishot-prob`` pipeline loading the places file ``path`` in ``store``, then query times."""
+    warm = make_pipeline("ishot-prob", {})  # imports and native pools (faiss, Open3D, small_gicp) are not the
+    warm.describe(warm_scan)  # database's
+    del warm
+    before, before_file = rss_anon_bytes(), rss_anon_bytes("RssFile")
+    rec = make_pipeline(
+        "ishot-prob",
+        {"places_db": path, "descriptor_store": store, "verify": {"cloud_store": _CLOUDS[store]}},
+    )
+    loaded, loaded_file = rss_anon_bytes() - before, rss_anon_bytes("RssFile") - before_file
+    n = len(rec)
+    total, match = [], []
+    for scan in queries:
+        d = rec.describe(scan)
+        t0 = time.perf_counter()
+        cands = rec.query_description(d, k=1)
+        total.append((time.perf_counter() - t0) * 1e3)
+        match.append(cands[0].extra["match_ms"] if cands else np.nan)
+    return {
+        "places": n,
+        "ram_bytes": loaded,
+        "file_ram_bytes": loaded_file,
+        "descriptor_bytes": rec._store.nbytes,
+        "cloud_bytes": rec._clouds.nbytes,
+        "ram_bytes_after_queries": rss_anon_bytes() - before,
+        "query_ms_median": float(np.median(total)) if total else None,
+        "match_ms_median": float(np.nanmedian(match)) if match else None,
+    }
+
+
+_CLOUDS = {"float32": "float32", "sq8": "int16"}
+
+
+def replicate_places(db: object, copies: int) -> object:
+    """``copies`` of the places of ``db`` side by side in one database (copy k's scans and ids offset by k times
+    the map's scans); only its size is meant to differ."""
+    from dataclasses import replace
+
+    from placerec.retrieval.descriptor_store import DescriptorStore
+
+    n_scans, counts = db.scan_poses.shape[0], np.diff(db.kp_offsets)
+    arrays = db.descriptors.arrays()
+    arrays["descriptors"] = np.tile(arrays["descriptors"], (copies, 1))
+    return replace(
+        db,
+        ids=np.concatenate([db.ids + k * n_scans for k in range(copies)]),
+        poses=np.tile(db.poses, (copies, 1, 1)),
+        sources=[s + k * n_scans for k in range(copies) for s in db.sources],
+        kp_offsets=np.r_[0, np.cumsum(np.tile(counts, copies))],
+        keypoints=np.tile(db.keypoints, (copies, 1)),
+        descriptors=DescriptorStore.from_arrays(
+            arrays, db.descriptors.dtype, db.descriptors.dim, "replicated"
+        ),
+        scan_poses=np.tile(db.scan_poses, (copies, 1, 1)),
+        clouds=None if db.clouds is None else list(db.clouds) * copies,
+    )
+
+
+def bench_ishot(n_queries: int, copies: int) -> list[dict]:
+    """The ISHOT places database in float32 and in sq8 + int16 clouds: file bytes per place, then (each in a fresh
+    process) the pipeline's memory and query times on it, and its memory on ``copies`` copies of it: the growth
+    from one to ``copies`` copies per added place is the memory a place costs (module docstring)."""
+    import multiprocessing
+
+    from placerec.sim import make_localization_split
+    from placerec.three_d.places import PlacesParams, build_places
+
+    split = make_localization_split("town", "vlp16", 0, n_queries=max(n_queries, 1))
+    queries = [preprocessed_scan(split.queries["gator"], i, PreprocessConfig())[0] for i in range(n_queries)]
+    warm_scan = preprocessed_scan(split.map, 0, PreprocessConfig())[0]
+    params = PlacesParams(window_m=0.0, place_spacing=2.5, descriptor_store="float32", cloud_store="float32")
+    db = build_places(split.map, params)  # float32, saved in each store below
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for store in ("float32", "sq8"):
+            one, many = str(Path(tmp) / f"{store}_1.npz"), str(Path(tmp) / f"{store}_{copies}.npz")
+            stored = db.stored_as(store, _CLOUDS[store])
+            stored.save(one)
+            replicate_places(stored, copies).save(many)
+            ctx = multiprocessing.get_context("spawn")
+            with ctx.Pool(1) as pool:
+                a = pool.apply(_ishot_child, (one, store, queries, warm_scan))
+            with ctx.Pool(1) as pool:
+                b = pool.apply(_ishot_child, (many, store, [], warm_scan))
+            n = a["places"]
+            rows.append(
+                {
+                    "store": store,
+                    "places": n,
+                    "keypoints_per_place": int(db.kp_offsets[-1]) / n,
+                    "file_bytes_per_place": Path(one).stat().st_size / n,
+                    "ram_bytes_per_place": (b["ram_bytes"] - a["ram_bytes"]) / (b["places"] - n),
+                    "ram_bytes_per_place_at_121": a["ram_bytes"] / n,
+                    "mapped_bytes_per_place": (b["file_ram_bytes"] - a["file_ram_bytes"]) / (b["places"] - n),
+                    "descriptor_bytes_per_place": a["descriptor_bytes"] / n,
+                    "cloud_bytes_per_place": a["cloud_bytes"] / n,
+                    "ram_bytes_after_queries_per_place_at_121": a["ram_bytes_after_queries"] / n,
+                    "replicated_places": b["places"],
+                    "query_ms_median": a["query_ms_median"],
+                    "match_ms_median": a["match_ms_median"],
+                }
+            )
+    return rows
+
+
 def _bench_in_child(args: tuple) -> dict:
     base_file, name, *rest = args
     with np.load(base_file, allow_pickle=True) as z:
@@ -171,12 +292,12 @@ def bench_database_fresh(base_file: str, name: str, size: int, *rest: object) ->
         return pool.apply(_bench_in_child, ((base_file, name, size, *rest),))
 
 
-def _build_and_save(base_file: str, path: str, size: int, flip: float) -> tuple[float, float]:
+def _build_and_save(base_file: str, path: str, size: int, flip: float, clouds: str) -> tuple[float, float]:
     """(bytes per scan while built, file MiB) of ORB-HBST with verification clouds, saved to ``path``."""
     with np.load(base_file, allow_pickle=True) as z:
         full = list(z["full"])
     rng = np.random.default_rng(1)
-    rec = make_pipeline("orb-hbst", {})
+    rec = make_pipeline("orb-hbst", {"verify": {"cloud_store": clouds}})
     before = rss_anon_bytes()
     for i in range(size):
         d = perturb_visual(full[i % len(full)], rng, flip)
@@ -188,15 +309,15 @@ def _build_and_save(base_file: str, path: str, size: int, flip: float) -> tuple[
     return built, Path(path).stat().st_size / 2**20
 
 
-def _load_saved(path: str) -> float:
+def _load_saved(path: str, clouds: str) -> float:
     """Anonymous memory growth (bytes) of loading ``path`` (memory-mapped) into an ORB-HBST pipeline."""
-    rec = make_pipeline("orb-hbst", {})
+    rec = make_pipeline("orb-hbst", {"verify": {"cloud_store": clouds}})
     before = rss_anon_bytes()
     rec.load(path)
     return rss_anon_bytes() - before
 
 
-def bench_saved(base_file: str, size: int, flip: float) -> dict:
+def bench_saved(base_file: str, size: int, flip: float, clouds: str = "float32") -> dict:
     """ORB-HBST with verification clouds: RAM while built, file size, RAM after a memory-mapped load (each in a
     fresh process)."""
     import multiprocessing
@@ -205,9 +326,9 @@ def bench_saved(base_file: str, size: int, flip: float) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         path = str(Path(tmp) / "orb-hbst.npz")
         with ctx.Pool(1) as pool:
-            built, file_mb = pool.apply(_build_and_save, (base_file, path, size, flip))
+            built, file_mb = pool.apply(_build_and_save, (base_file, path, size, flip, clouds))
         with ctx.Pool(1) as pool:
-            loaded = pool.apply(_load_saved, (path,))
+            loaded = pool.apply(_load_saved, (path, clouds))
     return {
         "scans": size,
         "built_bytes_per_scan": built,
@@ -267,7 +388,19 @@ def main() -> None:
     )
     ap.add_argument("--pipelines", nargs="+", default=list(PIPELINES), choices=list(PIPELINES))
     ap.add_argument("--saved-scans", type=int, default=1000, help="ORB-HBST with clouds saved; 0 = skip")
+    ap.add_argument(
+        "--cloud-store",
+        default="int16",
+        choices=["float32", "int16"],
+        help="verify.cloud_store of that ORB-HBST",
+    )
     ap.add_argument("--dask-scans", type=int, default=120, help="0 = skip the Dask measurement")
+    ap.add_argument(
+        "--ishot-queries", type=int, default=30, help="ISHOT store queries; 0 = skip the ISHOT store"
+    )
+    ap.add_argument(
+        "--ishot-copies", type=int, default=8, help="copies of the ISHOT places for the memory slope"
+    )
     args = ap.parse_args()
     print(f"load average {os.getloadavg()}; describing {args.base} simulated scans ...", flush=True)
     full, slim, scs = base_descriptions(args.base)
@@ -291,12 +424,28 @@ def main() -> None:
                 f"(load {os.getloadavg()[0]:.1f})",
                 flush=True,
             )
-    saved = bench_saved(base_file, args.saved_scans, args.flip) if args.saved_scans else None
+    saved = (
+        bench_saved(base_file, args.saved_scans, args.flip, args.cloud_store) if args.saved_scans else None
+    )
     if saved:
         print(
-            f"orb-hbst with verification clouds, {saved['scans']} scans: {saved['built_bytes_per_scan'] / 1024:.1f} "
+            f"orb-hbst with verification clouds ({args.cloud_store}), {saved['scans']} scans: {saved['built_bytes_per_scan'] / 1024:.1f} "
             f"KiB/scan built, file {saved['file_mb']:.0f} MiB, {saved['loaded_mmap_bytes_per_scan'] / 1024:.1f} "
             "KiB/scan after a memory-mapped load",
+            flush=True,
+        )
+    ishot = bench_ishot(args.ishot_queries, args.ishot_copies) if args.ishot_queries else []
+    for r in ishot:
+        print(
+            f"ishot-prob, {r['store']:>7} store, {r['places']} places ({r['keypoints_per_place']:.0f} keypoints each): "
+            f"file {r['file_bytes_per_place'] / 1e3:.1f} kB/place; RAM {r['ram_bytes_per_place'] / 1e3:.1f} kB per "
+            f"added place ({r['places']} -> {r['replicated_places']} places; descriptors "
+            f"{r['descriptor_bytes_per_place'] / 1e3:.1f} kB, ICP clouds {r['cloud_bytes_per_place'] / 1e3:.1f} kB), "
+            f"{r['ram_bytes_per_place_at_121'] / 1e3:.1f} kB/place at {r['places']} places; resident pages of the "
+            f"memory-mapped file {r['mapped_bytes_per_place'] / 1e3:.1f} kB per added place; "
+            f"{r['ram_bytes_after_queries_per_place_at_121'] / 1e3:.1f} kB/place after the queries (prepared ICP "
+            f"targets); query median {r['query_ms_median']:.0f} ms (matching {r['match_ms_median']:.1f} ms)  "
+            f"(load {os.getloadavg()[0]:.1f})",
             flush=True,
         )
     dask = bench_dask(args.dask_scans) if args.dask_scans else None
@@ -322,6 +471,18 @@ def main() -> None:
                 and round(saved["built_bytes_per_scan"] / 1024, 1),
                 "orb_hbst_verified_kib_per_scan_mmap_loaded": saved
                 and round(saved["loaded_mmap_bytes_per_scan"] / 1024, 1),
+                **{
+                    f"ishot_{r['store']}_{k}": round(r[k], 1)
+                    for r in ishot
+                    for k in (
+                        "file_bytes_per_place",
+                        "ram_bytes_per_place",
+                        "ram_bytes_per_place_at_121",
+                        "mapped_bytes_per_place",
+                        "query_ms_median",
+                        "match_ms_median",
+                    )
+                },
                 "dask_speedup_2_workers": None if dask is None else round(dask["speedup"], 3),
                 "dask_load_average": None if dask is None else round(dask["load_average"], 2),
             }

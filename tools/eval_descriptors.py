@@ -46,7 +46,6 @@ from pathlib import Path
 import numpy as np
 
 from placerec.intensity import normalize_intensity
-from placerec.pipelines.keypoint_voting import knn2
 from placerec.sim import make_localization_split
 from placerec.three_d import FeatureParams, extract_features
 from placerec.three_d.places import PlacesParams, build_places
@@ -177,7 +176,7 @@ def evaluate(name, intensity, feats, map_seq, queries, places_params, gt_xy, gri
             lf = extract_features(intensity(seq[q]), feats)
             if len(lf) == 0:
                 continue
-            dist, idx = knn2(lf.descriptors, db.descriptors)
+            dist, idx = db.descriptors.view().knn2(lf.descriptors)
             t_scan.append(time.perf_counter() - t1)
             with np.errstate(divide="ignore", invalid="ignore"):
                 tau = np.where(dist[:, 1] > 0, dist[:, 0] / dist[:, 1], 1.0)
@@ -299,7 +298,7 @@ def main() -> None:
     near = {c: split.nearest_map(c)[1] for c in conds}
     places_params = PlacesParams(
         place_spacing=args.place_spacing, window_m=args.window_m, member_spacing=args.member_spacing,
-        store_clouds=False,
+        store_clouds=False, descriptor_store="float32",  # the descriptors themselves, not their 8-bit codes
     )  # fmt: skip
     print(
         f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}; map {split.map.name}: {len(split.map)} scans "

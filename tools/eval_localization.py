@@ -38,30 +38,54 @@ CONDITIONS = ("gator", "pole", "occlusion")
 PLACE_SPACING = 2.5
 
 
+def places_stores(cfg: Any) -> dict[str, str]:
+    """The places databases the config's pipelines read, each with the descriptor store it is saved in: that of
+    the first pipeline reading it (its ``descriptor_store``; `PlacesParams`'s default when not set)."""
+    from placerec.three_d.places import PlacesParams
+
+    out: dict[str, str] = {}
+    for s in cfg.pipelines:
+        if s.params.get("places_db") is not None:
+            out.setdefault(
+                s.params["places_db"], s.params.get("descriptor_store") or PlacesParams().descriptor_store
+            )
+    return out
+
+
 def ensure_artifacts(cfg: Any, rebuild: bool, figure: Path | None) -> dict[str, Any]:
-    """Build the places database and fit the vote model named by the config's ISHOT pipelines when missing."""
+    """Build the places databases and fit the vote model named by the config's ISHOT pipelines when missing: the
+    places are built once from the map in float32 and saved in each database's store (`places_stores`; clouds
+    int16 unless the store is float32, `PlacesDatabase.stored_as`); the vote model is fitted on the first."""
     from placerec.pipelines.vote_fitting import fit_votes
     from placerec.sim import make_localization_split
     from placerec.three_d.places import PlacesDatabase, PlacesParams, build_places
     from placerec.three_d.vote_model import plot_vote_model
 
-    places = {s.params.get("places_db") for s in cfg.pipelines} - {None}
+    places = places_stores(cfg)
     models = {s.params.get("vote_model") for s in cfg.pipelines} - {None}
-    if len(places) > 1 or len(models) > 1:
-        raise SystemExit(f"one places database and one vote model expected, got {places} and {models}")
+    if len(models) > 1:
+        raise SystemExit(f"one vote model expected, got {models}")
     info: dict[str, Any] = {}
     sim = cfg.dataset.simulator
     split = make_localization_split(sim.world, sim.sensor, sim.seed, n_queries=30, n_map=sim.n_scans, draw=1)
     if places:
-        path = Path(places.pop())
-        if rebuild or not path.is_file():
+        missing = [name for name in places if rebuild or not Path(name).is_file()]
+        if missing:
             t0 = time.perf_counter()
-            path.parent.mkdir(parents=True, exist_ok=True)
-            build_places(split.map, PlacesParams(window_m=0.0, place_spacing=PLACE_SPACING)).save(path)
+            params = PlacesParams(
+                window_m=0.0, place_spacing=PLACE_SPACING, descriptor_store="float32", cloud_store="float32"
+            )
+            full = build_places(split.map, params)
+            for name in missing:
+                Path(name).parent.mkdir(parents=True, exist_ok=True)
+                clouds = "float32" if places[name] == "float32" else "int16"
+                full.stored_as(places[name], clouds).save(name)
             info["build_places_s"] = round(time.perf_counter() - t0, 1)
+        path = Path(next(iter(places)))
         db = PlacesDatabase.load(path)
         info["places"] = len(db)
         info["place_keypoints"] = int(db.kp_offsets[-1])
+        info["place_bytes"] = {name: round(Path(name).stat().st_size / len(db)) for name in places}
         if models:
             mpath = Path(models.pop())
             if rebuild or not mpath.is_file():
@@ -145,11 +169,17 @@ def main() -> None:
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--n-queries", type=int, default=None, help="override evaluation.localize.n_queries")
     ap.add_argument("--out", default="results/localization")
-    ap.add_argument("--rebuild", action="store_true", help="rebuild the places database and the vote model")
+    ap.add_argument("--rebuild", action="store_true", help="rebuild the places databases and the vote model")
+    ap.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="config override (repeatable)"
+    )
     ap.add_argument("--figure", default=str(ROOT / "docs" / "figures" / "vote_model_town.png"))
     args = ap.parse_args()
     t0 = time.perf_counter()
-    overrides = [] if args.n_queries is None else [f"evaluation.localize.n_queries={args.n_queries}"]
+    overrides = [
+        *args.set,
+        *([] if args.n_queries is None else [f"evaluation.localize.n_queries={args.n_queries}"]),
+    ]
     cfg = load_config(args.config, overrides)
     info = ensure_artifacts(cfg, args.rebuild, Path(args.figure) if args.figure else None)
     results = {}

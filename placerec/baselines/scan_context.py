@@ -254,7 +254,7 @@ class ScanContext(Recognizer):
         self._n = 0
         self._tree: cKDTree | None = None
         self._n_tree = 0
-        self._clouds = CloudStore(self.params.verify.verify)
+        self._clouds = CloudStore(self.params.verify.verify, dtype=self.params.verify.cloud_store)
 
     def __len__(self) -> int:
         return self._n
@@ -460,7 +460,7 @@ class ScanContext(Recognizer):
                 f"{path}: database saved without the clouds verification needs (or with other voxel "
                 f"parameters): {saved_cloud}"
             )
-        clouds = CloudStore(self.params.verify.verify)
+        clouds = CloudStore(self.params.verify.verify, dtype=self.params.verify.cloud_store)
         if self.params.verify.enabled:
             clouds.from_arrays(ids.tolist(), arrays, path)
         n = int(ids.size)

@@ -45,7 +45,7 @@ from pydantic import Field
 
 from placerec.errors import ScanDataError
 from placerec.params import Params
-from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams, knn
+from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams
 from placerec.types import Candidate, Description
 from placerec.verify.candidates import verify_candidates
 
@@ -123,7 +123,7 @@ class GestaltVoting(KeypointVoting):
         while consumed < q.shape[0] and not accepted:
             t0 = time.perf_counter()
             batch = order[consumed : consumed + step]
-            _, idx = knn(q[batch], rows, p.knn, p.nn_threads)
+            _, idx = rows.knn(q[batch], p.knn, p.nn_threads)
             votes[:n_ent] += place_votes(idx, entry, n_ent)
             consumed += batch.size
             match_ms += (time.perf_counter() - t0) * 1e3

@@ -29,7 +29,7 @@ from pydantic import Field
 
 from placerec.errors import ScanDataError
 from placerec.params import Params
-from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams, knn
+from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams
 from placerec.types import Candidate, Description
 from placerec.verify.candidates import Retrieved, verify_candidates
 from placerec.verify.verify import hypothesise
@@ -78,22 +78,22 @@ class GlobalRegistration(KeypointVoting):
             )
         q = np.asarray(description["descriptors"], np.float32).reshape(-1, self._dim)
         qkp = np.asarray(description["keypoints"], np.float64).reshape(-1, 3)
-        if q.shape[0] == 0 or self._n_rows == 0:
+        if q.shape[0] == 0 or len(self._store) == 0:
             return []
         if "cloud" not in description:
             raise ScanDataError(f"{self.name}: verification needs the query description's 'cloud'")
         if self._wkp is None:
             self._wkp = world_keypoints(self._keypoints, self._poses)
         ids = np.asarray(self._ids)
-        rows, wkp, eligible = self._desc[: self._n_rows], self._wkp, np.ones(len(ids), bool)
+        rows, wkp, eligible = self._store.view(), self._wkp, np.ones(len(ids), bool)
         if max_id is not None:
             eligible = ids <= max_id
             keep = eligible[self._row_entry]
-            rows, wkp = rows[keep], wkp[keep]
+            rows, wkp = self._store.view(mask=keep), wkp[keep]
             if not rows.shape[0]:
                 return []
         t0 = time.perf_counter()
-        dist, idx = knn(q, rows, p.knn, p.nn_threads)
+        dist, idx = rows.knn(q, p.knn, p.nn_threads)
         found = idx.ravel() >= 0
         src = np.repeat(qkp, p.knn, axis=0)[found]
         dst = wkp[idx.ravel()[found]]

@@ -8,7 +8,10 @@ simulator (docs/descriptors.md: success 0.55/0.60/0.60 on gator, 0.15/0.25/0.20 
 
 Nearest neighbours (`tools/bench_3d_nn.py`, docs/benchmarks.md): at 1344-d a k-d tree is 40-80x slower than
 brute force and HNSW takes minutes to build over 100k descriptors, so the search is exact brute force, on one
-OpenMP thread by default (``nn_threads``; on the shared 2-core machine one faiss thread beat two).
+OpenMP thread by default (``nn_threads``; on the shared 2-core machine one faiss thread beat two). The descriptors
+live in a `placerec.retrieval.descriptor_store.DescriptorStore` (``descriptor_store``: float32, float16 or sq8
+8-bit codes, searched without decoding the database; a places database's own store by default, float32 for
+entries added scan by scan): sq8 takes a quarter of float32's memory (docs/localization.md).
 
 Score (documented, what thresholds apply to): ``score="fraction"`` (default) is votes / number of query
 descriptors, in [0, 1], so one threshold works for scans with many or few keypoints; ``score="votes"`` is the raw
@@ -52,15 +55,15 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
 
-from placerec.errors import ArtifactError, DependencyError, ScanDataError, short_repr
+from placerec.errors import ArtifactError, ScanDataError, short_repr
 from placerec.intensity import normalize_intensity
 from placerec.io.artifact_schema import Member, check_counts, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
@@ -71,6 +74,14 @@ from placerec.recognizer import (
     params_key,
     require_points,
     require_varying_intensity,
+)
+from placerec.retrieval.descriptor_store import (
+    DescriptorStore,
+    StoreDtype,
+    StoreView,
+    knn,
+    knn2,
+    omp_threads,
 )
 from placerec.three_d.descriptors import DESCRIPTOR_DIMS
 from placerec.three_d.features import FeatureParams, extract_features
@@ -84,7 +95,10 @@ log = logging.getLogger(__name__)
 __all__ = ["VotingParams", "KeypointVoting", "IvfIndex", "knn", "knn2", "nn_ratio", "ratio_votes"]
 
 _KIND = "keypoint-voting-db"
-_VERSION = 1
+#: 2: descriptors as their store keeps them (``meta["descriptor_store"]``: float32, float16, or sq8 uint8 codes
+#: with ``sq_vmin`` / ``sq_vdiff``); 1: float32 descriptors
+_VERSION = 2
+_READ_VERSIONS = (1, 2)
 #: The kind of a saved database (`KeypointVoting.save`), shared by its subclasses.
 ARTIFACT_KIND = _KIND
 
@@ -112,6 +126,11 @@ class VotingParams(FeatureParams):
     ivf_nlist: int | None = Field(None, ge=1, description="IVF lists (None = sqrt of the descriptors)")
     ivf_nprobe: int = Field(16, ge=1, description="IVF lists searched per query descriptor")
     nn_threads: int | None = Field(1, ge=1, description="faiss OpenMP threads (None = faiss's default)")
+    descriptor_store: StoreDtype | None = Field(
+        None,
+        description="how descriptors are kept and searched: float32, float16 or sq8 (8-bit codes, 1 byte per "
+        "dimension; placerec.retrieval.descriptor_store); None = a places database's own, else float32",
+    )
     place_spacing_m: float = Field(
         0.0, ge=0, description="m; only scans this far from every entry become entries"
     )
@@ -131,56 +150,6 @@ class VotingParams(FeatureParams):
         return FeatureParams(**{name: getattr(self, name) for name in FeatureParams.model_fields})
 
 
-def knn2(
-    query: np.ndarray, db: np.ndarray, backend: str = "faiss", threads: int | None = 1
-) -> tuple[np.ndarray, np.ndarray]:
-    """Exact 2 nearest neighbours: (distances (Q, 2) Euclidean, indices (Q, 2)); needs ``len(db) >= 2``.
-
-    ``threads``: OpenMP threads for faiss during the call (None: faiss's default, all cores).
-    """
-    q = np.ascontiguousarray(query, dtype=np.float32)
-    x = np.ascontiguousarray(db, dtype=np.float32)
-    if backend == "faiss":
-        try:
-            import faiss
-        except ImportError as exc:  # pragma: no cover - faiss-cpu is a dependency
-            raise DependencyError("keypoint voting needs faiss-cpu (pip install faiss-cpu)") from exc
-        with _omp_threads(threads):
-            d2, idx = faiss.knn(q, x, 2)
-    else:
-        xx = np.einsum("ij,ij->i", x, x)
-        d2 = np.empty((q.shape[0], 2), np.float32)
-        idx = np.empty((q.shape[0], 2), np.int64)
-        for a in range(0, q.shape[0], 512):
-            dd = xx[None, :] - 2.0 * (q[a : a + 512] @ x.T)
-            part = np.argpartition(dd, 1, axis=1)[:, :2]
-            pd = np.take_along_axis(dd, part, axis=1)
-            o = np.argsort(pd, axis=1, kind="stable")
-            idx[a : a + 512] = np.take_along_axis(part, o, 1)
-            d2[a : a + 512] = (
-                np.take_along_axis(pd, o, 1) + np.einsum("ij,ij->i", q[a : a + 512], q[a : a + 512])[:, None]
-            )
-    return np.sqrt(np.maximum(d2, 0.0)), np.asarray(idx, dtype=np.int64)
-
-
-def knn(query: np.ndarray, db: np.ndarray, k: int, threads: int | None = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Exact ``k`` nearest neighbours with faiss: (distances (Q, k) Euclidean, indices (Q, k)); rows beyond the
-    database's size get index -1 and an infinite distance."""
-    import faiss
-
-    q = np.ascontiguousarray(query, dtype=np.float32)
-    x = np.ascontiguousarray(db, dtype=np.float32)
-    kk = int(min(k, x.shape[0]))
-    dist = np.full((q.shape[0], k), np.inf, np.float32)
-    idx = np.full((q.shape[0], k), -1, np.int64)
-    if kk > 0 and q.shape[0]:
-        with _omp_threads(threads):
-            d2, i = faiss.knn(q, x, kk)
-        dist[:, :kk] = np.sqrt(np.maximum(d2, 0.0))
-        idx[:, :kk] = i
-    return dist, idx
-
-
 def nn_ratio(dist: np.ndarray) -> np.ndarray:
     """``tau = d1 / d2`` (eq. 4) of `knn2` distances; 1 where ``d2`` is 0 (two identical neighbours) or infinite
     (an approximate search found fewer than two)."""
@@ -192,46 +161,48 @@ class IvfIndex:
     """Approximate 2-NN over fixed rows: faiss ``IndexIVFFlat`` (L2), ``nlist`` k-means lists (trained on at most
     64 rows per list), ``nprobe`` of them searched per query; rows with no neighbour found get index -1 and an
     infinite distance. Searching visits about ``nprobe / nlist`` of the rows, so its time grows with the square
-    root of the database when ``nlist`` does."""
+    root of the database when ``nlist`` does. Over a compressed `DescriptorStore` the lists hold codes of the
+    same kind (``IndexIVFScalarQuantizer``, its own ranges fitted on the training rows), filled from blocks of
+    decoded rows; the index keeps its own copy of the codes either way."""
 
-    def __init__(self, rows: np.ndarray, nlist: int | None = None, nprobe: int = 16, threads: int | None = 1):
+    def __init__(
+        self,
+        rows: np.ndarray | DescriptorStore,
+        nlist: int | None = None,
+        nprobe: int = 16,
+        threads: int | None = 1,
+    ):
         import faiss
 
-        x = np.ascontiguousarray(rows, dtype=np.float32)
-        n, d = x.shape
+        store = rows if isinstance(rows, DescriptorStore) else DescriptorStore.from_rows(rows)
+        n, d = store.shape
         self.nlist = max(1, min(n, int(nlist or round(np.sqrt(n)))))
         self.threads = threads
-        self.index = faiss.IndexIVFFlat(faiss.IndexFlatL2(d), d, self.nlist)
+        if store.encoded:
+            qt = faiss.ScalarQuantizer.QT_fp16 if store.dtype == "float16" else faiss.ScalarQuantizer.QT_8bit
+            self.index = faiss.IndexIVFScalarQuantizer(
+                faiss.IndexFlatL2(d), d, self.nlist, qt, faiss.METRIC_L2, False
+            )
+        else:
+            self.index = faiss.IndexIVFFlat(faiss.IndexFlatL2(d), d, self.nlist)
         sample = (
-            x
+            store.rows()
             if n <= 64 * self.nlist
-            else x[np.random.default_rng(0).choice(n, 64 * self.nlist, replace=False)]
+            else store.take(np.sort(np.random.default_rng(0).choice(n, 64 * self.nlist, replace=False)))
         )
-        with _omp_threads(threads):
-            self.index.train(sample)
-            self.index.add(x)
+        with omp_threads(threads):
+            self.index.train(np.ascontiguousarray(sample))
+            for a in range(0, n, 4096):
+                self.index.add(np.ascontiguousarray(store.rows(a, a + 4096)))
         self.index.nprobe = min(int(nprobe), self.nlist)
         self.n_rows = n
 
     def knn2(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = np.ascontiguousarray(query, dtype=np.float32)
-        with _omp_threads(self.threads):
+        with omp_threads(self.threads):
             d2, idx = self.index.search(q, 2)
         dist = np.where(idx >= 0, np.sqrt(np.maximum(d2, 0.0)), np.inf)
         return dist, np.asarray(idx, dtype=np.int64)
-
-
-@contextmanager
-def _omp_threads(threads: int | None) -> Iterator[None]:
-    import faiss
-
-    before = faiss.omp_get_max_threads()
-    if threads is not None:
-        faiss.omp_set_num_threads(int(threads))
-    try:
-        yield
-    finally:
-        faiss.omp_set_num_threads(before)
 
 
 def ratio_votes(
@@ -255,20 +226,21 @@ class KeypointVoting(Recognizer):
         self._dim = DESCRIPTOR_DIMS[p.descriptor]
         self._warned = False
         self._reset()
-        self._places: PlacesDatabase | None = None
+        self._map_poses: np.ndarray | None = (
+            None  # the scan poses of the map a places database was built from
+        )
         if p.places_db is not None:
-            self.use_places(PlacesDatabase.load(p.places_db, features=self._features))
+            self.use_places(PlacesDatabase.load(p.places_db, features=self._features, mmap=True))
 
     def _reset(self) -> None:
-        self._desc = np.zeros((0, self._dim), np.float32)
-        self._n_rows = 0
-        self._row_entry = np.zeros(0, np.int64)
+        self._store = DescriptorStore(self._dim, self.params.descriptor_store or "float32")
+        self._row_entry = np.zeros(0, np.int32)
         self._ids: list[int] = []
         self._idset: set[int] = set()
         self._poses: list[np.ndarray] = []
         self._counts: list[int] = []
         self._keypoints: list[np.ndarray] = []
-        self._clouds = CloudStore(self.params.verify.verify)
+        self._clouds = CloudStore(self.params.verify.verify, dtype=self.params.verify.cloud_store)
         self._sorted = True
         self._ivf: IvfIndex | None = None
         # trailing window of (id, pose, travelled distance, cloud xyz, cloud intensity) for place aggregation
@@ -293,26 +265,37 @@ class KeypointVoting(Recognizer):
         return rec
 
     def use_places(self, db: PlacesDatabase) -> None:
-        """Replace the entries by the places of ``db`` (ids = place ids, poses = place poses)."""
+        """Replace the entries by the places of ``db`` (ids = place ids, poses = place poses). The descriptors are
+        served from the database's store as it is (shared, not copied) unless ``descriptor_store`` asks for another
+        kind; a place's ICP cloud is made from its stored cloud when a query first verifies it (a database loaded
+        from ``places_db`` is memory-mapped, so its clouds take no RAM until then)."""
         db.check_features(self._features)
         self._reset()
         counts = np.diff(db.kp_offsets)
-        self._append_rows(db.descriptors, np.repeat(np.arange(len(db)), counts))
+        want = self.params.descriptor_store
+        self._store = db.descriptors if want is None else db.descriptors.converted(want)
+        self._row_entry = np.repeat(np.arange(len(db), dtype=np.int32), counts)
         self._ids = [int(i) for i in db.ids]
         self._idset = set(self._ids)
         self._sorted = bool(np.all(np.diff(db.ids) > 0))
         self._poses = [np.asarray(T) for T in db.poses]
         self._counts = [int(c) for c in counts]
-        self._keypoints = [db.place_features(p)[0] for p in range(len(db))]
+        self._keypoints = [
+            db.keypoints[a:b] for a, b in zip(db.kp_offsets[:-1], db.kp_offsets[1:], strict=True)
+        ]
         if self.params.verify.enabled:
             if db.clouds is None:
                 raise ArtifactError(
                     f"{self.name}: the places database has no clouds to verify with (build it with "
                     "store_clouds, or set verify.enabled to false)"
                 )
-            for i, (xyz, _) in zip(self._ids, db.clouds, strict=True):
-                self._clouds.add(i, scan_cloud(xyz, self.params.verify.verify))
-        self._places = db
+            if len(db.clouds) != len(db):
+                raise ArtifactError(
+                    f"{self.name}: the places database has {len(db.clouds)} clouds for {len(db)} places"
+                )
+            for k, i in enumerate(self._ids):
+                self._clouds.add_deferred(i, partial(_icp_cloud, db.clouds, k, self.params.verify.verify))
+        self._map_poses = np.array(db.scan_poses)
 
     # -- front end -------------------------------------------------------------------------------------------
     @property
@@ -373,15 +356,8 @@ class KeypointVoting(Recognizer):
 
     # -- database --------------------------------------------------------------------------------------------
     def _append_rows(self, desc: np.ndarray, entry: np.ndarray) -> None:
-        n = desc.shape[0]
-        if self._n_rows + n > self._desc.shape[0]:
-            cap = max(1024, 2 * self._desc.shape[0], self._n_rows + n)
-            grown = np.empty((cap, self._dim), np.float32)
-            grown[: self._n_rows] = self._desc[: self._n_rows]
-            self._desc = grown
-        self._desc[self._n_rows : self._n_rows + n] = desc
-        self._row_entry = np.concatenate([self._row_entry, entry.astype(np.int64)])
-        self._n_rows += n
+        self._store.append(desc)
+        self._row_entry = np.concatenate([self._row_entry, entry.astype(np.int32)])
         self._ivf = None
 
     def _add_entry(
@@ -412,7 +388,7 @@ class KeypointVoting(Recognizer):
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
         scan_id = int(scan_id)
         p = self.params
-        if self._places is not None:
+        if self._map_poses is not None:
             self._check_map_scan(scan_id, pose)
             return
         if scan_id in self._idset:
@@ -465,7 +441,7 @@ class KeypointVoting(Recognizer):
         return lf.keypoints, lf.descriptors, icp_cloud
 
     def _check_map_scan(self, scan_id: int, pose: np.ndarray | None) -> None:
-        sp = self._places.scan_poses
+        sp = self._map_poses
         if not 0 <= scan_id < sp.shape[0]:
             raise ArtifactError(
                 f"{self.name}: scan {scan_id} is not part of the map the places database was built from"
@@ -473,17 +449,18 @@ class KeypointVoting(Recognizer):
         if pose is not None and not np.allclose(as_pose(pose), sp[scan_id], atol=1e-6):
             raise ArtifactError(f"{self.name}: scan {scan_id}'s pose differs from the places database's map")
 
-    def _eligible(self, max_id: int | None) -> tuple[np.ndarray, np.ndarray, int]:
-        """(descriptor rows, their entry index, number of eligible entries) for ``id <= max_id``."""
-        rows, entry = self._desc[: self._n_rows], self._row_entry
+    def _eligible(self, max_id: int | None) -> tuple[StoreView, np.ndarray, int]:
+        """(descriptor rows, their entry index, number of eligible entries) for ``id <= max_id``; the rows are a
+        view of the store (searched in place, never decoded as a whole)."""
+        entry = self._row_entry
         if max_id is None or (self._ids and max_id >= max(self._ids)):
-            return rows, entry, len(self._ids)
+            return self._store.view(), entry, len(self._ids)
         if self._sorted:
             n_ent = int(np.searchsorted(np.asarray(self._ids), max_id, side="right"))
             n = int(np.sum(self._counts[:n_ent]))
-            return rows[:n], entry[:n], n_ent
+            return self._store.view(n), entry[:n], n_ent
         ok = np.asarray(self._ids)[entry] <= max_id
-        return rows[ok], entry[ok], len(self._ids)
+        return self._store.view(mask=ok), entry[ok], len(self._ids)
 
     def _eligible_entries(self, max_id: int | None) -> np.ndarray:
         """Mask over the entries (insertion order) of those with ``id <= max_id``."""
@@ -528,15 +505,16 @@ class KeypointVoting(Recognizer):
         ]
         return verify_candidates(description["cloud"], retrieved, self._clouds, vp, query_id, k)
 
-    def _search(self, q: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """2-NN of ``q`` among ``rows`` (the eligible database rows): `knn2`, or with ``index = "ivf"`` and every row
-        eligible, the `IvfIndex` over the database (built on first use after the entries change)."""
+    def _search(self, q: np.ndarray, rows: StoreView) -> tuple[np.ndarray, np.ndarray]:
+        """2-NN of ``q`` among ``rows`` (the eligible database rows, `StoreView.knn2`), or with ``index = "ivf"``
+        and every row eligible, the `IvfIndex` over the database (built on first use after the entries change)."""
         p = self.params
-        if p.index == "ivf" and rows.shape[0] == self._n_rows:
-            if self._ivf is None or self._ivf.n_rows != self._n_rows:
-                self._ivf = IvfIndex(rows, p.ivf_nlist, p.ivf_nprobe, p.nn_threads)
+        n = len(self._store)
+        if p.index == "ivf" and rows.shape[0] == n:
+            if self._ivf is None or self._ivf.n_rows != n:
+                self._ivf = IvfIndex(self._store, p.ivf_nlist, p.ivf_nprobe, p.nn_threads)
             return self._ivf.knn2(q)
-        return knn2(q, rows, p.backend, p.nn_threads)
+        return rows.knn2(q, p.backend, p.nn_threads)
 
     def _matches(
         self, e: int, q: np.ndarray, qkp: np.ndarray, starts: np.ndarray, score: float, extra: dict[str, Any]
@@ -544,7 +522,7 @@ class KeypointVoting(Recognizer):
         """Entry ``e``'s correspondences with the query: 2-NN among its descriptors, ratio ``< verify_tau_max``
         (default ``tau_max``; the time counts in the candidate's ``verify_ms``)."""
         t0 = time.perf_counter()
-        rows = self._desc[starts[e] : starts[e + 1]]
+        rows = self._store.rows(starts[e], starts[e + 1])
         if rows.shape[0] < 2:
             return Retrieved(self._ids[e], score, np.zeros((0, 3)), np.zeros((0, 3)), extra=extra)
         dist, idx = knn2(q, rows, self.params.backend, self.params.nn_threads)
@@ -564,7 +542,7 @@ class KeypointVoting(Recognizer):
             "poses": np.asarray(self._poses, np.float64).reshape(-1, 4, 4),
             "counts": np.asarray(self._counts, np.int64),
             "keypoints": _cat(self._keypoints, (0, 3)),
-            "descriptors": self._desc[: self._n_rows].copy(),
+            **self._store.arrays(),
             "buffer_ids": np.asarray([b[0] for b in buf], np.int64),
             "buffer_poses": np.asarray([b[1] for b in buf], np.float64).reshape(-1, 4, 4),
             "buffer_travelled": np.asarray([b[2] for b in buf], np.float64),
@@ -574,17 +552,25 @@ class KeypointVoting(Recognizer):
         }
         if self.params.verify.enabled:
             arrays.update(self._clouds.arrays(self._ids))
-        meta = {"params": self.params.model_dump(mode="json"), "travelled": self._travelled}
+        meta = {
+            "params": self.params.model_dump(mode="json"),
+            "travelled": self._travelled,
+            "descriptor_store": self._store.dtype,
+        }
         save_artifact(path, _KIND, _VERSION, arrays, meta)
 
     def load(self, path: str | Path) -> None:
-        arrays, header = load_artifact(path, _KIND, (_VERSION,), _schema(self._dim))
+        arrays, header = load_artifact(path, _KIND, _READ_VERSIONS, _schema(self._dim))
         check_saved_params(path, header, self.params)
         travelled = _check_saved(path, arrays, header["meta"])
+        store = DescriptorStore.from_arrays(
+            arrays, header["meta"].get("descriptor_store", "float32"), self._dim, path
+        )
         self._reset()
-        self._places = None
+        self._map_poses = None
         kp = np.split(arrays["keypoints"], np.cumsum(arrays["counts"])[:-1]) if len(arrays["ids"]) else []
-        self._append_rows(arrays["descriptors"], np.repeat(np.arange(len(arrays["ids"])), arrays["counts"]))
+        self._store = store
+        self._row_entry = np.repeat(np.arange(len(arrays["ids"]), dtype=np.int32), arrays["counts"])
         self._ids = [int(i) for i in arrays["ids"]]
         self._idset = set(self._ids)
         self._sorted = bool(np.all(np.diff(arrays["ids"]) > 0))
@@ -608,10 +594,16 @@ class KeypointVoting(Recognizer):
         )
         self._travelled = travelled
         if self.params.places_db is not None:
-            self._places = PlacesDatabase.load(self.params.places_db, features=self._features)
+            db = PlacesDatabase.load(self.params.places_db, features=self._features, mmap=True)
+            self._map_poses = np.array(db.scan_poses)
 
     def __len__(self) -> int:
         return len(self._ids)
+
+
+def _icp_cloud(clouds: Sequence[tuple[np.ndarray, np.ndarray]], k: int, params: VerifyParams) -> np.ndarray:
+    """The ICP cloud (`scan_cloud`) of place ``k``'s stored cloud."""
+    return scan_cloud(clouds[k][0], params)
 
 
 def _cat(parts: list[np.ndarray], empty: tuple[int, ...]) -> np.ndarray:
@@ -626,7 +618,9 @@ def _schema(dim: int) -> dict[str, Member]:
         "poses": Member("f", ("n_entries", 4, 4), finite=True),
         "counts": Member("iu", ("n_entries",), min_value=0),
         "keypoints": Member("f", ("n_rows", 3), finite=True),
-        "descriptors": Member("f", ("n_rows", dim), finite=True),
+        "descriptors": Member("fu", ("n_rows", dim), finite=True),
+        "sq_vmin": Member("f", (dim,), optional=True, finite=True),
+        "sq_vdiff": Member("f", (dim,), optional=True, finite=True),
         "buffer_ids": Member("iu", ("n_buffer",)),
         "buffer_poses": Member("f", ("n_buffer", 4, 4), finite=True),
         "buffer_travelled": Member("f", ("n_buffer",), finite=True),

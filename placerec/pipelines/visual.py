@@ -259,7 +259,7 @@ class VisualFrontend:
 
     def _reset_verification(self) -> None:
         self._kp_xyz: dict[int, np.ndarray] = {}
-        self._clouds = CloudStore(self.params.verify.verify)
+        self._clouds = CloudStore(self.params.verify.verify, dtype=self.params.verify.cloud_store)
 
     def _add_verification(self, scan_id: int, description: Description) -> None:
         """Keep the keypoints' 3D points and (with verification) the ICP cloud of a description being added."""

@@ -20,7 +20,7 @@ import numpy as np
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.intensity import normalize_intensity
-from placerec.pipelines.keypoint_voting import knn2, nn_ratio
+from placerec.pipelines.keypoint_voting import nn_ratio
 from placerec.three_d.features import FeatureParams, extract_features
 from placerec.three_d.places import PlacesDatabase
 from placerec.three_d.vote_model import VoteModel, VoteModelParams, fit_vote_model
@@ -65,7 +65,7 @@ def training_votes(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(distances, taus) of every vote of ``queries`` = (descriptors (K, D), true position (3,)) pairs against the
     places of ``db``: the distance from the voted place's centre to the query's true position, and ``d1 / d2``."""
-    rows = np.ascontiguousarray(db.descriptors, np.float32)
+    rows = db.descriptors.view()  # searched as stored (float32, float16 or sq8 codes)
     if rows.shape[0] < 2:
         raise ScanDataError(
             f"votes: the places database has {rows.shape[0]} descriptors, at least 2 are needed"
@@ -76,7 +76,7 @@ def training_votes(
         q = np.asarray(desc, np.float32).reshape(-1, rows.shape[1])
         if q.shape[0] == 0:
             continue
-        nd, idx = knn2(q, rows, backend, threads)
+        nd, idx = rows.knn2(q, backend, threads)
         voted = row_place[idx[:, 0]]
         dist.append(np.linalg.norm(place_xyz[voted] - np.asarray(xyz, np.float64)[None, :3], axis=1))
         taus.append(nn_ratio(nd))

@@ -16,19 +16,26 @@ three quarters.
 
 `PlacesDatabase` stores the place ids (= centre scan index in the mapping sequence, so the ids index into the
 map's poses), place poses, source scans, keypoints (place frame), descriptors and, optionally, the voxelised
-place clouds (for later verification), in an atomic versioned artifact (kind ``places-db``, version 2) with the
-parameters that made it; `PlacesDatabase.load` refuses a file made with other feature settings. Version 1 files
-(whose feature settings hold an empty ``descriptor_options`` list instead of the ``shot`` / ``fpfh`` sections)
-are read too.
+place clouds (for later verification), in an atomic versioned artifact (kind ``places-db``, version 3) with the
+parameters that made it; `PlacesDatabase.load` refuses a file made with other feature settings.
+
+Compact storage (docs/localization.md, 'The places database's size'): ``descriptor_store`` keeps the descriptors
+as float32, float16 or sq8 (one byte per dimension, `placerec.retrieval.descriptor_store`), searched in that form;
+``cloud_store = "int16"`` saves each place cloud as int16 fixed point around its centre
+(`placerec.quantise.FixedPointCloud`, with ``cloud_centre`` / ``cloud_scale``) and its intensities as uint8.
+Version 3 records both in the header (``descriptor_store``, ``cloud_store``) and `load` checks every array's
+dtype against them. Versions 1 and 2 (float32 throughout; version 1's feature settings hold an empty
+``descriptor_options`` list instead of the ``shot`` / ``fpfh`` sections) are read too.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from collections.abc import Sequence as SequenceABC
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
@@ -39,6 +46,8 @@ from placerec.io.artifact_schema import Member, check_counts, check_offsets, che
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params, resolve
 from placerec.preprocess import crop, remove_invalid
+from placerec.quantise import FixedPointCloud, decode_unit, encode_unit
+from placerec.retrieval.descriptor_store import DescriptorStore, StoreDtype
 from placerec.three_d.features import FeatureParams, extract_features
 from placerec.types import Scan, Sequence
 
@@ -56,8 +65,8 @@ __all__ = [
 ]
 
 KIND = "places-db"
-FORMAT_VERSION = 2
-_READ_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+_READ_VERSIONS = (1, 2, 3)
 # the arrays of a saved database; n_places, n_rows (keypoints), n_sources and n_cloud (points) tie them together
 _SCHEMA = {
     "ids": Member("iu", ("n_places",), min_value=0),
@@ -66,11 +75,25 @@ _SCHEMA = {
     "sources": Member("iu", ("n_sources",), min_value=0),
     "kp_offsets": Member("iu", (None,)),
     "keypoints": Member("f", ("n_rows", 3), finite=True),
-    "descriptors": Member("f", ("n_rows", None), finite=True),
+    "descriptors": Member("fu", ("n_rows", None), finite=True),
+    "sq_vmin": Member("f", (None,), optional=True, finite=True),
+    "sq_vdiff": Member("f", (None,), optional=True, finite=True),
     "scan_poses": Member("f", ("n_scans", 4, 4), finite=True),
     "cloud_counts": Member("iu", ("n_places",), optional=True, min_value=0),
-    "cloud_xyz": Member("f", ("n_cloud", 3), optional=True, finite=True),
-    "cloud_intensity": Member("f", ("n_cloud",), optional=True),
+    "cloud_xyz": Member("fi", ("n_cloud", 3), optional=True, finite=True),
+    "cloud_intensity": Member("fu", ("n_cloud",), optional=True),
+    "cloud_centre": Member("f", ("n_places", 3), optional=True, finite=True),
+    "cloud_scale": Member("f", ("n_places",), optional=True, finite=True, min_value=0),
+}
+#: the arrays of each cloud store besides ``cloud_counts``, and their dtypes
+_CLOUD_ARRAYS = {
+    "float32": {"cloud_xyz": np.float32, "cloud_intensity": np.float32},
+    "int16": {
+        "cloud_xyz": np.int16,
+        "cloud_intensity": np.uint8,
+        "cloud_centre": np.float64,
+        "cloud_scale": np.float64,
+    },
 }
 
 IntensityFn = Callable[[Scan], Scan]
@@ -84,6 +107,16 @@ class PlacesParams(Params):
     window_s: float | None = Field(None, ge=0, description="s of acquisition merged instead (None = off)")
     member_spacing: float = Field(2.0, ge=0, description="m between the scans merged into a place")
     store_clouds: bool = Field(True, description="keep each place's cloud in the database")
+    descriptor_store: StoreDtype = Field(
+        "sq8",
+        description="descriptors kept and searched as sq8 (8-bit codes, 1 byte a dimension: a quarter of float32, "
+        "localisation success within 2 points of float32, docs/localization.md), float16 or float32",
+    )
+    cloud_store: Literal["float32", "int16"] = Field(
+        "int16",
+        description="place clouds saved as int16 fixed point (intensity as uint8; error at most half a step, 0.6 mm "
+        "within 40 m), or float32",
+    )
     features: FeatureParams = Field(default_factory=FeatureParams)
 
 
@@ -178,19 +211,24 @@ def place_cloud(scans: dict[int, Scan], poses: np.ndarray, centre: int, members:
 @dataclass
 class PlacesDatabase:
     """Described places of one mapping sequence (see the module docstring). Rows of ``keypoints`` and
-    ``descriptors`` of place ``p`` are ``kp_offsets[p]:kp_offsets[p + 1]``; keypoints are in the place frame."""
+    ``descriptors`` of place ``p`` are ``kp_offsets[p]:kp_offsets[p + 1]``; keypoints are in the place frame.
+    ``descriptors`` is a `DescriptorStore` (a float32 array given here is wrapped in one)."""
 
     ids: np.ndarray
     poses: np.ndarray
     sources: list[np.ndarray]
     kp_offsets: np.ndarray
     keypoints: np.ndarray
-    descriptors: np.ndarray
+    descriptors: DescriptorStore
     params: PlacesParams
     scan_poses: np.ndarray
-    clouds: list[tuple[np.ndarray, np.ndarray]] | None = None
+    clouds: SequenceABC[tuple[np.ndarray, np.ndarray]] | None = None
     intensity: str = "sensor-default"
     sequence: str = ""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.descriptors, DescriptorStore):
+            self.descriptors = DescriptorStore.from_rows(np.asarray(self.descriptors, np.float32))
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -207,7 +245,18 @@ class PlacesDatabase:
     def place_features(self, p: int) -> tuple[np.ndarray, np.ndarray]:
         """(keypoints, descriptors) of place index ``p``."""
         a, b = self.kp_offsets[p], self.kp_offsets[p + 1]
-        return self.keypoints[a:b], self.descriptors[a:b]
+        return self.keypoints[a:b], self.descriptors.rows(a, b)
+
+    def stored_as(self, descriptor_store: str, cloud_store: str | None = None) -> PlacesDatabase:
+        """The same places with the descriptors (and the clouds when saved) in another store: an sq8 store is
+        fitted on every descriptor, as `build_places` would fit it."""
+        params = self.params.model_copy(
+            update={
+                "descriptor_store": descriptor_store,
+                "cloud_store": cloud_store or self.params.cloud_store,
+            }
+        )
+        return replace(self, descriptors=self.descriptors.converted(descriptor_store), params=params)
 
     def check_features(self, features: FeatureParams, where: str = "places database") -> None:
         """`ArtifactError` unless the database was described with ``features``."""
@@ -228,19 +277,19 @@ class PlacesDatabase:
             else np.zeros(0, np.int64),
             "kp_offsets": self.kp_offsets.astype(np.int64),
             "keypoints": self.keypoints.astype(np.float32),
-            "descriptors": self.descriptors.astype(np.float32),
+            **self.descriptors.arrays(),
             "scan_poses": self.scan_poses.astype(np.float64),
         }
         if self.clouds is not None:
-            arrays["cloud_counts"] = np.array([c[0].shape[0] for c in self.clouds], dtype=np.int64)
-            arrays["cloud_xyz"] = _cat([c[0] for c in self.clouds], (0, 3))
-            arrays["cloud_intensity"] = _cat([c[1] for c in self.clouds], (0,))
+            arrays.update(_cloud_arrays(self.clouds, self.params.cloud_store))
         meta = {
             "params": self.params.model_dump(mode="json"),
             "descriptor": self.descriptor,
             "dim": int(self.descriptors.shape[1]),
             "intensity": self.intensity,
             "sequence": self.sequence,
+            "descriptor_store": self.descriptors.dtype,
+            "cloud_store": self.params.cloud_store,
         }
         save_artifact(path, KIND, FORMAT_VERSION, arrays, meta)
 
@@ -250,32 +299,32 @@ class PlacesDatabase:
         path: str | Path,
         features: FeatureParams | None = None,
         intensity: str | None = None,
+        mmap: bool = False,
     ) -> PlacesDatabase:
         """Read a database; `ArtifactError` if the file is corrupt or inconsistent (`_check_layout`), or if
-        ``features`` (or the ``intensity`` label) differ from the file's."""
-        arrays, header = load_artifact(path, KIND, _READ_VERSIONS, _SCHEMA)
+        ``features`` (or the ``intensity`` label) differ from the file's. ``mmap``: the arrays are memory maps of
+        the file (`load_artifact`), so a float32 store is searched from the page cache and only what is decoded
+        or copied (sq8 and float16 codes go into faiss) takes RAM. int16 clouds are decoded one place at a time
+        when read."""
+        arrays, header = load_artifact(path, KIND, _READ_VERSIONS, _SCHEMA, mmap=mmap)
         meta = header["meta"]
         _check_layout(arrays, meta, path)
+        store = DescriptorStore.from_arrays(
+            arrays, meta.get("descriptor_store", "float32"), arrays["descriptors"].shape[1], path
+        )
         try:
             params = _read_params(meta["params"], header["format_version"])
             src = np.split(arrays["sources"], np.cumsum(arrays["source_counts"])[:-1])
             clouds = None
             if "cloud_counts" in arrays:
-                cuts = np.cumsum(arrays["cloud_counts"])[:-1]
-                clouds = list(
-                    zip(
-                        np.split(arrays["cloud_xyz"], cuts),
-                        np.split(arrays["cloud_intensity"], cuts),
-                        strict=True,
-                    )
-                )
+                clouds = _read_clouds(arrays)
             db = cls(
                 ids=arrays["ids"],
                 poses=arrays["poses"],
                 sources=list(src) if len(arrays["ids"]) else [],
                 kp_offsets=arrays["kp_offsets"],
                 keypoints=arrays["keypoints"],
-                descriptors=arrays["descriptors"],
+                descriptors=store,
                 params=params,
                 scan_poses=arrays["scan_poses"],
                 clouds=clouds if len(arrays["ids"]) else ([] if clouds is not None else None),
@@ -325,17 +374,81 @@ def _check_layout(arrays: dict[str, np.ndarray], meta: dict[str, Any], path: str
             f"{path}: descriptors have {arrays['descriptors'].shape[1]} columns, the header says dim="
             f"{short_repr(meta.get('dim'))}"
         )
-    cloud = [k for k in ("cloud_counts", "cloud_xyz", "cloud_intensity") if k in arrays]
-    if cloud and len(cloud) != 3:
+    kind = meta.get("cloud_store", "float32")
+    if kind not in _CLOUD_ARRAYS:
         raise ArtifactError(
-            f"{path}: place clouds need cloud_counts, cloud_xyz and cloud_intensity, found {cloud}"
+            f"{path}: cloud_store {short_repr(kind)} is unknown (expected one of {sorted(_CLOUD_ARRAYS)})"
         )
+    names = ("cloud_counts", *_CLOUD_ARRAYS[kind])
+    others = [k for k in _SCHEMA if k.startswith("cloud_") and k not in names and k in arrays]
+    cloud = [k for k in names if k in arrays]
+    if others or (cloud and len(cloud) != len(names)):
+        raise ArtifactError(f"{path}: {kind} place clouds need {list(names)}, found {cloud + others}")
     if cloud:
         check_counts(arrays["cloud_counts"], arrays["cloud_xyz"].shape[0], path, "cloud_counts")
+        for name, dtype in _CLOUD_ARRAYS[kind].items():
+            if arrays[name].dtype != dtype:
+                raise ArtifactError(
+                    f"{path}: {name!r} is {arrays[name].dtype}, expected {np.dtype(dtype)} for {kind} clouds"
+                )
 
 
 def _cat(parts: list[np.ndarray], empty: tuple[int, ...]) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros(empty, np.float32)
+
+
+def _cloud_arrays(clouds: list[tuple[np.ndarray, np.ndarray]], kind: str) -> dict[str, np.ndarray]:
+    """The saved arrays of the place clouds (``cloud_store`` ``kind``)."""
+    if kind == "int16" and isinstance(clouds, _FixedPointClouds):
+        return clouds.arrays()  # as read: saved again unchanged
+    out = {"cloud_counts": np.array([c[0].shape[0] for c in clouds], dtype=np.int64)}
+    if kind == "float32":
+        out["cloud_xyz"] = _cat([c[0] for c in clouds], (0, 3)).astype(np.float32)
+        out["cloud_intensity"] = _cat([c[1] for c in clouds], (0,)).astype(np.float32)
+        return out
+    fixed = [FixedPointCloud.encode(c[0]) for c in clouds]
+    out["cloud_xyz"] = np.concatenate([f.codes for f in fixed]) if fixed else np.zeros((0, 3), np.int16)
+    out["cloud_intensity"] = encode_unit(_cat([c[1] for c in clouds], (0,)))
+    out["cloud_centre"] = np.array([f.centre for f in fixed], np.float64).reshape(-1, 3)
+    out["cloud_scale"] = np.array([f.scale for f in fixed], np.float64)
+    return out
+
+
+class _FixedPointClouds(SequenceABC):
+    """The int16 place clouds of a saved database as (xyz, intensity) float32 pairs, decoded when read."""
+
+    def __init__(self, xyz: list, intensity: list, centres: np.ndarray, scales: np.ndarray) -> None:
+        self._parts = list(zip(xyz, intensity, centres, scales, strict=True))
+
+    def __len__(self) -> int:
+        return len(self._parts)
+
+    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[override]
+        codes, inten, centre, scale = self._parts[i]
+        xyz = FixedPointCloud(np.asarray(codes), np.asarray(centre), float(scale)).decode()
+        return xyz, decode_unit(inten)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The saved arrays these clouds were read from."""
+        parts = self._parts
+        return {
+            "cloud_counts": np.array([len(p[0]) for p in parts], np.int64),
+            "cloud_xyz": np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, 3), np.int16),
+            "cloud_intensity": np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.uint8),
+            "cloud_centre": np.array([p[2] for p in parts], np.float64).reshape(-1, 3),
+            "cloud_scale": np.array([p[3] for p in parts], np.float64),
+        }
+
+
+def _read_clouds(arrays: dict[str, np.ndarray]) -> SequenceABC[tuple[np.ndarray, np.ndarray]]:
+    """The place clouds (xyz float32, intensity float32) of a saved database (checked by `_check_layout`)."""
+    if not arrays["cloud_counts"].size:
+        return []
+    cuts = np.cumsum(arrays["cloud_counts"])[:-1]
+    xyz, inten = np.split(arrays["cloud_xyz"], cuts), np.split(arrays["cloud_intensity"], cuts)
+    if arrays["cloud_xyz"].dtype == np.int16:
+        return _FixedPointClouds(xyz, inten, arrays["cloud_centre"], arrays["cloud_scale"])
+    return list(zip(xyz, inten, strict=True))
 
 
 def build_places(
@@ -396,7 +509,7 @@ def build_places(
         sources=part.members,
         kp_offsets=np.r_[0, np.cumsum(counts)].astype(np.int64),
         keypoints=np.concatenate(kps),
-        descriptors=np.ascontiguousarray(np.concatenate(descs), dtype=np.float32),
+        descriptors=DescriptorStore.from_rows(np.concatenate(descs), params.descriptor_store),
         params=params,
         scan_poses=poses.copy(),
         clouds=clouds if params.store_clouds else None,
