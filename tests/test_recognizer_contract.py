@@ -18,7 +18,15 @@ NAMES = sorted(PIPELINES)
 #: Pipelines that use intensity: a scan whose valid points all have one intensity is a `ScanDataError` in them.
 #: The geometry-only ones (scan-context, shot-votes, fpfh-votes, map-closures) ignore intensity and match such a
 #: scan on its geometry, as any other.
-USES_INTENSITY = {"orb-hbst", "brisk-hbst", "orb-dbow", "surf-dbow", "ishot-votes", "ishot-prob"}
+USES_INTENSITY = {
+    "orb-hbst",
+    "brisk-hbst",
+    "orb-dbow",
+    "surf-dbow",
+    "superpoint-dbow",
+    "ishot-votes",
+    "ishot-prob",
+}
 
 
 def _make(name):
