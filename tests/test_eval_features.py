@@ -230,6 +230,29 @@ def test_yawed_scan_scores_high_and_a_wrong_pose_near_zero(room, name: str) -> N
     )
 
 
+def test_judged_matches_agree_with_the_scores_and_draw(room, tmp_path: Path) -> None:
+    from placerec.eval.features import judged_matches
+    from placerec.experiment.figures import plot_feature_matches
+
+    xyz, inten = room
+    b, a_to_b = _rolled(xyz, inten, 128)
+    va, vb = _view(_scan(xyz, inten)), _view(b)
+    ex = make_extractor("orb")
+    fa, fb = ex.extract(va.image), ex.extract(vb.image)
+    truth = PairTruth.from_views(va, vb, a_to_b)
+    qi, mi, judged, correct = judged_matches(fa, fb, truth)
+    assert len(qi) > 100 and judged.all() and correct.mean() > 0.9
+    # A -> B half of evaluate_pair's count
+    s = evaluate_pair(fa, fb, truth)
+    assert correct.sum() / judged.sum() == pytest.approx(s.precision, abs=0.05)
+    _, _, _, wrong = judged_matches(fa, fb, PairTruth.from_views(va, vb, np.eye(4)))
+    assert wrong.sum() < 0.1 * correct.sum()
+    path = plot_feature_matches(
+        va.image, vb.image, {"orb": (fa.keypoints[qi], fb.keypoints[mi], correct)}, tmp_path / "m.png", "room"
+    )
+    assert path.is_file() and path.stat().st_size > 10_000
+
+
 def test_chance_repeatability_of_crowded_keypoints(room) -> None:
     """Keypoints on two rows, one every 8 columns, 'repeat' under any pose: their chance repeatability says so,
     while the matching score of unrelated descriptors stays ~0."""
@@ -323,7 +346,8 @@ def test_tool_on_the_real_pairs(real_data: Path, tmp_path: Path, capsys: pytest.
     import json
 
     out = tmp_path / "pairs.csv"
-    args = ["--no-sim", "--extractors", "orb", "--repeats", "1", "--real", str(real_data), "--csv", str(out)]
+    args = ["--no-sim", "--extractors", "orb", "--repeats", "1", "--real", str(real_data), "--csv", str(out),
+            "--figure", str(tmp_path / "matches.png")]  # fmt: skip
     headline = _tool().main(args)
     rows = list(csv.DictReader(out.open()))
     assert [r["set"] for r in rows] == ["os1", "kitti", "kitti"]
@@ -333,6 +357,7 @@ def test_tool_on_the_real_pairs(real_data: Path, tmp_path: Path, capsys: pytest.
     real = headline["scores"]["orb"]["real"]
     assert real["matching_score"] > 0.3 and real["precision"] > 0.6
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == headline
+    assert (tmp_path / "matches.png").is_file()
 
 
 def test_tool_view_cache_round_trip_and_broken_entry(room, tmp_path: Path) -> None:

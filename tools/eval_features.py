@@ -296,6 +296,23 @@ def timings(
 # -- report --------------------------------------------------------------------------------------------------------
 
 
+def match_figure(pairs: list[Pair], extractors: dict[str, Any], path: Path) -> Path:
+    """Mutual matches of ORB and SuperPoint (those present) on the first KITTI pair, else the first simulator
+    revisit pair, else the first pair; correct ones green (`placerec.experiment.figures.plot_feature_matches`)."""
+    from placerec.eval.features import judged_matches
+    from placerec.experiment.figures import plot_feature_matches
+
+    pair = next((p for s in ("kitti", "sim-revisit") for p in pairs if s in p.sets), pairs[0])
+    shown = {n: ex for n, ex in extractors.items() if n in ("orb", "superpoint")} or dict(extractors)
+    matches = {}
+    for name, ex in shown.items():
+        fa, fb = ex.extract(pair.truth.a.image), ex.extract(pair.truth.b.image)
+        qi, mi, judged, correct = judged_matches(fa, fb, pair.truth)
+        matches[name] = (fa.keypoints[qi[judged]], fb.keypoints[mi[judged]], correct[judged])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return plot_feature_matches(pair.truth.a.image, pair.truth.b.image, matches, path, pair.label)
+
+
 def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
     """One row per pair and extractor, written atomically."""
     import csv
@@ -339,6 +356,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--no-cache", action="store_true", help="render the simulator views again")
     ap.add_argument(
         "--csv", type=Path, default=None, help="write the figures of every pair and extractor here"
+    )
+    ap.add_argument(
+        "--figure",
+        type=Path,
+        default=Path("results/eval_features_matches.png"),
+        help="matches of ORB and SuperPoint on one pair, correct in green ('' = none)",
     )
     args = ap.parse_args(argv)
 
@@ -391,6 +414,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if args.csv is not None:
         write_csv(args.csv, rows)
         console.print(f"per-pair figures: {args.csv}")
+    if str(args.figure):
+        console.print(f"matches figure: {match_figure(pairs, extractors, args.figure)}")
     sets = [s for s in SETS if any(s in p.sets for p in pairs)]
     overlap = {s: float(np.mean([p.truth.overlap for p in pairs if s in p.sets])) for s in sets}
     distance = {s: [float(np.linalg.norm(p.truth.a_to_b[:3, 3])) for p in pairs if s in p.sets] for s in sets}

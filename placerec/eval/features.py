@@ -59,6 +59,7 @@ __all__ = [
     "ground_truth_pixels",
     "coincidence",
     "evaluate_pair",
+    "judged_matches",
     "mean_scores",
 ]
 
@@ -260,6 +261,27 @@ def evaluate_pair(
         matches=int(len(qi)),
         correct=float(np.mean(correct)),
     )
+
+
+def judged_matches(
+    fa: Features, fb: Features, truth: PairTruth, px: float = 3.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The mutual nearest-neighbour matches of A -> B, as indices ``(qi, mi)``, with masks ``judged`` (A's keypoint
+    is in the overlap) and ``correct`` (judged, and the two coincide), as `evaluate_pair` counts them; for
+    figures."""
+    overlap, C = coincidence(
+        fa.keypoints,
+        fb.keypoints,
+        truth.a.points,
+        truth.b.points,
+        truth.gt_ab,
+        truth.a_to_b,
+        px,
+        truth.max_dist,
+    )
+    qi, mi, _ = mutual_nearest(fa.descriptors, fb.descriptors)
+    judged = overlap[qi]
+    return qi, mi, judged, judged & C[qi, mi]
 
 
 def mean_scores(scores: list[PairScores]) -> dict[str, float]:

@@ -16,6 +16,7 @@ __all__ = [
     "plot_timing",
     "plot_localization",
     "plot_slam_trajectories",
+    "plot_feature_matches",
 ]
 
 
@@ -212,4 +213,35 @@ def plot_slam_trajectories(
     _frame(ax, *trajectories.values())
     ax.grid(alpha=0.3)
     _legend(ax, loc="best", fontsize=8)
+    return _save(fig, path)
+
+
+def plot_feature_matches(
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    matches: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+    path: Path,
+    title: str = "",
+) -> Path:
+    """One panel per extractor: image A above image B, each mutual match a line from its keypoint in A
+    (``uv_a`` (M, 2)) to its keypoint in B (``uv_b``), green where ``correct`` (M,) is true, red where not.
+    ``matches``: ``{name: (uv_a, uv_b, correct)}``."""
+    plt = _pyplot()
+    h_a, w = image_a.shape
+    gap = max(4, h_a // 4)
+    canvas = np.full((h_a + gap + image_b.shape[0], max(w, image_b.shape[1])), 255, np.uint8)
+    canvas[:h_a, :w] = image_a
+    canvas[h_a + gap :, : image_b.shape[1]] = image_b
+    n = max(len(matches), 1)
+    fig, axes = plt.subplots(n, 1, figsize=(14, 1.2 + 1.9 * n * canvas.shape[0] / 140), squeeze=False)
+    for ax, (name, (uv_a, uv_b, correct)) in zip(axes[:, 0], matches.items(), strict=False):
+        ax.imshow(canvas, cmap="gray", aspect="auto", interpolation="nearest")
+        for ok, colour in ((False, "#d62728"), (True, "#2ca02c")):
+            sel = np.flatnonzero(np.asarray(correct, bool) == ok)
+            for k in sel:
+                ax.plot([uv_a[k, 0], uv_b[k, 0]], [uv_a[k, 1], uv_b[k, 1] + h_a + gap], color=colour, lw=0.6)
+        ax.set_title(f"{name}: {int(np.sum(correct))} correct of {len(correct)} mutual matches", fontsize=9)
+        ax.set_axis_off()
+    if title:
+        fig.suptitle(title, fontsize=10)
     return _save(fig, path)
