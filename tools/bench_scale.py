@@ -35,7 +35,7 @@ allocator slack all count), add time, and the median / p95 time of
 ``query_description(k=5)`` over ``--queries`` queries. Then, at ``--saved-scans`` scans, the full ORB-HBST pipeline *with*
 verification (its ICP clouds make most of a scan's bytes) is saved and loaded again memory-mapped
 (`placerec.io.atomic.load_artifact` with ``mmap=True``) to show what a saved database costs in RAM; its ICP clouds
-are kept as ``--cloud-store`` (``verify.cloud_store``: int16, the default, or float32).
+are kept as ``--cloud-store`` (``verify.cloud_store``: int16-zlib, the default, int16 or float32).
 
 Last, description of ``--dask-scans`` scans by every front end with 1 and with 2 Dask workers
 (`placerec.experiment.parallel.describe_chunk` tasks of two scans on a LocalCluster, empty caches, after a warm-up
@@ -390,8 +390,8 @@ def main() -> None:
     ap.add_argument("--saved-scans", type=int, default=1000, help="ORB-HBST with clouds saved; 0 = skip")
     ap.add_argument(
         "--cloud-store",
-        default="int16",
-        choices=["float32", "int16"],
+        default="int16-zlib",
+        choices=["float32", "int16", "int16-zlib"],
         help="verify.cloud_store of that ORB-HBST",
     )
     ap.add_argument("--dask-scans", type=int, default=120, help="0 = skip the Dask measurement")
