@@ -183,12 +183,19 @@ class CloudStore:
         return tgt
 
     def arrays(self, ids: Iterable[int]) -> dict[str, np.ndarray]:
-        """``cloud_counts`` and ``cloud_xyz`` of the entries ``ids`` (in that order), for saving."""
-        parts = [self.cloud(i) for i in ids]
-        return {
-            "cloud_counts": np.asarray([len(c) for c in parts], np.int64),
-            "cloud_xyz": np.concatenate(parts).astype(np.float32) if parts else np.zeros((0, 3), np.float32),
-        }
+        """``cloud_counts`` and ``cloud_xyz`` of the entries ``ids`` (in that order), for saving: decoded one at a
+        time into the output, so the only float32 copy of the clouds is ``cloud_xyz`` itself."""
+        ids = [int(i) for i in ids]
+        counts = np.asarray([self._count(i) for i in ids], np.int64)
+        ends = np.cumsum(counts)
+        xyz = np.empty((int(ends[-1]) if ids else 0, 3), np.float32)
+        for i, end, n in zip(ids, ends, counts, strict=True):
+            xyz[end - n : end] = self.cloud(i)
+        return {"cloud_counts": counts, "cloud_xyz": xyz}
+
+    def _count(self, scan_id: int) -> int:
+        c = self._clouds.get(scan_id)
+        return len(self.cloud(scan_id)) if c is None or callable(c) else len(c)
 
     def from_arrays(self, ids: Sequence[int], arrays: Mapping[str, np.ndarray], path: Any = "") -> None:
         """Replace the clouds by those of `arrays` (saved for ``ids``); `ArtifactError` when they disagree."""
