@@ -294,9 +294,16 @@ def bench_database_fresh(base_file: str, name: str, size: int, *rest: object) ->
 
 
 def _build_and_save(
-    base_file: str, path: str, size: int, flip: float, clouds: str, pipeline: str = "orb-hbst"
+    base_file: str,
+    path: str,
+    size: int,
+    flip: float,
+    clouds: str,
+    pipeline: str = "orb-hbst",
+    save: bool = True,
 ) -> tuple[float, float]:
-    """(bytes per scan while built, file MiB) of ``pipeline`` with verification clouds, saved to ``path``."""
+    """(bytes per scan while built, file MiB) of ``pipeline`` with verification clouds, saved to ``path`` (not
+    saved, file 0, with ``save=False``)."""
     with np.load(base_file, allow_pickle=True) as z:
         full = list(z["full"])
     rng = np.random.default_rng(1)
@@ -308,6 +315,8 @@ def _build_and_save(
         d["cloud"] = (cloud + rng.normal(0.0, 0.01, cloud.shape)).astype(np.float32)
         rec.add_description(i, d)
     built = (rss_anon_bytes() - before) / size
+    if not save:
+        return built, 0.0
     rec.save(path)
     return built, Path(path).stat().st_size / 2**20
 
@@ -321,7 +330,12 @@ def _load_saved(path: str, clouds: str, pipeline: str = "orb-hbst") -> float:
 
 
 def bench_saved(
-    base_file: str, size: int, flip: float, clouds: str = "float32", pipeline: str = "orb-hbst"
+    base_file: str,
+    size: int,
+    flip: float,
+    clouds: str = "float32",
+    pipeline: str = "orb-hbst",
+    save: bool = True,
 ) -> dict:
     """``pipeline`` (orb-hbst or orb-dbow) with verification clouds: RAM while built, file size, RAM after a
     memory-mapped load (each in a fresh process)."""
@@ -331,15 +345,19 @@ def bench_saved(
     with tempfile.TemporaryDirectory() as tmp:
         path = str(Path(tmp) / f"{pipeline}.npz")
         with ctx.Pool(1) as pool:
-            built, file_mb = pool.apply(_build_and_save, (base_file, path, size, flip, clouds, pipeline))
-        with ctx.Pool(1) as pool:
-            loaded = pool.apply(_load_saved, (path, clouds, pipeline))
+            built, file_mb = pool.apply(
+                _build_and_save, (base_file, path, size, flip, clouds, pipeline, save)
+            )
+        loaded = None
+        if save:
+            with ctx.Pool(1) as pool:
+                loaded = pool.apply(_load_saved, (path, clouds, pipeline))
     return {
         "pipeline": pipeline,
         "scans": size,
         "built_bytes_per_scan": built,
         "file_mb": file_mb,
-        "loaded_mmap_bytes_per_scan": loaded / size,
+        "loaded_mmap_bytes_per_scan": None if loaded is None else loaded / size,
     }
 
 
@@ -407,6 +425,12 @@ def main() -> None:
         choices=["orb-hbst", "orb-dbow"],
         help="pipelines measured with verification at --saved-scans",
     )
+    ap.add_argument(
+        "--build-only",
+        action="store_true",
+        help="measure those pipelines built in RAM, without saving and loading them (a saved 100k database "
+        "needs a float32 copy of its clouds while saving: ~16 GB)",
+    )
     ap.add_argument("--dask-scans", type=int, default=120, help="0 = skip the Dask measurement")
     ap.add_argument(
         "--ishot-queries", type=int, default=30, help="ISHOT store queries; 0 = skip the ISHOT store"
@@ -438,15 +462,20 @@ def main() -> None:
                 flush=True,
             )
     saves = [
-        bench_saved(base_file, args.saved_scans, args.flip, args.cloud_store, p)
+        bench_saved(base_file, args.saved_scans, args.flip, args.cloud_store, p, not args.build_only)
         for p in (args.saved_pipelines if args.saved_scans else [])
     ]
     for saved in saves:
+        mapped = saved["loaded_mmap_bytes_per_scan"]
         print(
             f"{saved['pipeline']} with verification clouds ({args.cloud_store}), {saved['scans']} scans: "
-            f"{saved['built_bytes_per_scan'] / 1024:.1f} "
-            f"KiB/scan built, file {saved['file_mb']:.0f} MiB, {saved['loaded_mmap_bytes_per_scan'] / 1024:.1f} "
-            "KiB/scan after a memory-mapped load",
+            f"{saved['built_bytes_per_scan'] / 1024:.1f} KiB/scan built ("
+            f"{saved['built_bytes_per_scan'] * saved['scans'] / 1e9:.2f} GB)"
+            + (
+                f", file {saved['file_mb']:.0f} MiB, {mapped / 1024:.1f} KiB/scan after a memory-mapped load"
+                if mapped is not None
+                else ", not saved"
+            ),
             flush=True,
         )
     ishot = bench_ishot(args.ishot_queries, args.ishot_copies) if args.ishot_queries else []
@@ -484,6 +513,8 @@ def main() -> None:
                 },
                 **{
                     f"{s['pipeline'].replace('-', '_')}_verified_kib_per_scan_{k}": round(s[f] / 1024, 1)
+                    if s[f] is not None
+                    else None
                     for s in saves
                     for k, f in (
                         ("built", "built_bytes_per_scan"),
