@@ -11,15 +11,20 @@
 * `FixedPointCloud` — a point cloud as int16 offsets from its bounding-box centre, one step ``scale`` for the cloud
   (the largest offset maps to 32767): each coordinate comes back at most ``scale / 2`` away (0.6 mm for a cloud
   within 40 m of its centre).
+* `PackedCloud` — a `FixedPointCloud` compressed losslessly in memory: each coordinate column delta-coded (int16,
+  wrapping), the bytes split into a high-byte and a low-byte plane (the high bytes of neighbouring points agree,
+  the low bytes are noise), then zlib; about 0.68 of the int16 bytes for a KITTI scan at 0.4 m, 1-2 ms to pack
+  and well under 1 ms to unpack. `unpack` gives back the very same codes.
 """
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ScalarQuantiser", "FixedPointCloud", "encode_unit", "decode_unit"]
+__all__ = ["ScalarQuantiser", "FixedPointCloud", "PackedCloud", "encode_unit", "decode_unit"]
 
 _LEVELS = 255
 _INT16_MAX = 32767
@@ -99,6 +104,45 @@ class FixedPointCloud:
 
     def __len__(self) -> int:
         return int(self.codes.shape[0])
+
+
+@dataclass(frozen=True)
+class PackedCloud:
+    """A `FixedPointCloud` of ``n`` points as zlib-compressed delta-coded byte planes ``data`` (module docstring),
+    with its ``centre`` and ``scale``; in memory only (the byte planes are in this machine's byte order)."""
+
+    data: bytes
+    n: int
+    centre: np.ndarray
+    scale: float
+
+    @classmethod
+    def pack(cls, cloud: FixedPointCloud, level: int = 1) -> PackedCloud:
+        cols = np.ascontiguousarray(cloud.codes.T)  # (3, n): one coordinate a row
+        deltas = cols.copy()
+        deltas[:, 1:] -= cols[:, :-1]  # int16 arithmetic wraps, and `unpack`'s cumulative sum wraps back
+        planes = np.ascontiguousarray(deltas.view(np.uint8).reshape(3, -1, 2).transpose(2, 0, 1))
+        return cls(zlib.compress(planes.tobytes(), level), len(cloud), cloud.centre, cloud.scale)
+
+    @classmethod
+    def encode(cls, xyz: np.ndarray, level: int = 1) -> PackedCloud:
+        return cls.pack(FixedPointCloud.encode(xyz), level)
+
+    def unpack(self) -> FixedPointCloud:
+        planes = np.frombuffer(zlib.decompress(self.data), np.uint8).reshape(2, 3, self.n)
+        deltas = np.ascontiguousarray(planes.transpose(1, 2, 0)).view(np.int16).reshape(3, self.n)
+        return FixedPointCloud(np.cumsum(deltas, axis=1, dtype=np.int16).T.copy(), self.centre, self.scale)
+
+    def decode(self) -> np.ndarray:
+        """(M, 3) float32 points (those of the `FixedPointCloud` packed)."""
+        return self.unpack().decode()
+
+    @property
+    def nbytes(self) -> int:
+        return int(len(self.data) + self.centre.nbytes + 16)
+
+    def __len__(self) -> int:
+        return self.n
 
 
 def encode_unit(values: np.ndarray) -> np.ndarray:

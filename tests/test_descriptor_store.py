@@ -225,6 +225,24 @@ def test_a_corrupt_or_mismatched_quantiser_is_refused_naming_the_file(compact_db
     assert str(bad) in str(err.value)
 
 
+def test_packed_cloud_unpacks_to_the_same_codes_even_across_int16_wrap_around():
+    from placerec.quantise import PackedCloud
+
+    # extreme jumps between neighbouring points (the deltas wrap around int16), a single point, and none
+    for p in (
+        np.array([[40.0, -40.0, 0.0], [-40.0, 40.0, 1.0], [40.0, 40.0, -1.0], [-40.0, -40.0, 0.5]]),
+        np.random.default_rng(3).uniform(-70, 70, size=(300, 3)),
+        np.array([[1.0, 2.0, 3.0]]),
+        np.zeros((0, 3)),
+    ):
+        f = FixedPointCloud.encode(p)
+        back = PackedCloud.pack(f).unpack()
+        assert back.codes.dtype == np.int16 and back.codes.shape == f.codes.shape
+        np.testing.assert_array_equal(back.codes, f.codes)
+        np.testing.assert_array_equal(PackedCloud.encode(p).decode(), f.decode())
+        assert len(PackedCloud.encode(p)) == len(p)
+
+
 def test_cloud_store_int16_halves_the_clouds_and_keeps_them_to_half_a_step():
     cloud = np.random.default_rng(7).uniform(-40, 40, size=(500, 3)).astype(np.float32)
     a, b = CloudStore(), CloudStore(dtype="int16")

@@ -32,10 +32,11 @@ candidate is that copy.
 Per database size and pipeline, each in a fresh process (so memory freed by an earlier measurement cannot be
 reused): bytes of anonymous memory per scan (``RssAnon`` growth while adding, so NumPy buffers, Python objects and
 allocator slack all count), add time, and the median / p95 time of
-``query_description(k=5)`` over ``--queries`` queries. Then, at ``--saved-scans`` scans, the full ORB-HBST pipeline *with*
+``query_description(k=5)`` over ``--queries`` queries. Then, at ``--saved-scans`` scans, the full ORB-HBST pipeline (and
+ORB-DBoW with ``--saved-pipelines orb-hbst orb-dbow``) *with*
 verification (its ICP clouds make most of a scan's bytes) is saved and loaded again memory-mapped
 (`placerec.io.atomic.load_artifact` with ``mmap=True``) to show what a saved database costs in RAM; its ICP clouds
-are kept as ``--cloud-store`` (``verify.cloud_store``: int16, the default, or float32).
+are kept as ``--cloud-store`` (``verify.cloud_store``: int16-zlib, the default, int16 or float32).
 
 Last, description of ``--dask-scans`` scans by every front end with 1 and with 2 Dask workers
 (`placerec.experiment.parallel.describe_chunk` tasks of two scans on a LocalCluster, empty caches, after a warm-up
@@ -292,12 +293,21 @@ def bench_database_fresh(base_file: str, name: str, size: int, *rest: object) ->
         return pool.apply(_bench_in_child, ((base_file, name, size, *rest),))
 
 
-def _build_and_save(base_file: str, path: str, size: int, flip: float, clouds: str) -> tuple[float, float]:
-    """(bytes per scan while built, file MiB) of ORB-HBST with verification clouds, saved to ``path``."""
+def _build_and_save(
+    base_file: str,
+    path: str,
+    size: int,
+    flip: float,
+    clouds: str,
+    pipeline: str = "orb-hbst",
+    save: bool = True,
+) -> tuple[float, float]:
+    """(bytes per scan while built, file MiB) of ``pipeline`` with verification clouds, saved to ``path`` (not
+    saved, file 0, with ``save=False``)."""
     with np.load(base_file, allow_pickle=True) as z:
         full = list(z["full"])
     rng = np.random.default_rng(1)
-    rec = make_pipeline("orb-hbst", {"verify": {"cloud_store": clouds}})
+    rec = make_pipeline(pipeline, {"verify": {"cloud_store": clouds}})
     before = rss_anon_bytes()
     for i in range(size):
         d = perturb_visual(full[i % len(full)], rng, flip)
@@ -305,35 +315,49 @@ def _build_and_save(base_file: str, path: str, size: int, flip: float, clouds: s
         d["cloud"] = (cloud + rng.normal(0.0, 0.01, cloud.shape)).astype(np.float32)
         rec.add_description(i, d)
     built = (rss_anon_bytes() - before) / size
+    if not save:
+        return built, 0.0
     rec.save(path)
     return built, Path(path).stat().st_size / 2**20
 
 
-def _load_saved(path: str, clouds: str) -> float:
-    """Anonymous memory growth (bytes) of loading ``path`` (memory-mapped) into an ORB-HBST pipeline."""
-    rec = make_pipeline("orb-hbst", {"verify": {"cloud_store": clouds}})
+def _load_saved(path: str, clouds: str, pipeline: str = "orb-hbst") -> float:
+    """Anonymous memory growth (bytes) of loading ``path`` (memory-mapped) into a ``pipeline`` pipeline."""
+    rec = make_pipeline(pipeline, {"verify": {"cloud_store": clouds}})
     before = rss_anon_bytes()
     rec.load(path)
     return rss_anon_bytes() - before
 
 
-def bench_saved(base_file: str, size: int, flip: float, clouds: str = "float32") -> dict:
-    """ORB-HBST with verification clouds: RAM while built, file size, RAM after a memory-mapped load (each in a
-    fresh process)."""
+def bench_saved(
+    base_file: str,
+    size: int,
+    flip: float,
+    clouds: str = "float32",
+    pipeline: str = "orb-hbst",
+    save: bool = True,
+) -> dict:
+    """``pipeline`` (orb-hbst or orb-dbow) with verification clouds: RAM while built, file size, RAM after a
+    memory-mapped load (each in a fresh process)."""
     import multiprocessing
 
     ctx = multiprocessing.get_context("spawn")
     with tempfile.TemporaryDirectory() as tmp:
-        path = str(Path(tmp) / "orb-hbst.npz")
+        path = str(Path(tmp) / f"{pipeline}.npz")
         with ctx.Pool(1) as pool:
-            built, file_mb = pool.apply(_build_and_save, (base_file, path, size, flip, clouds))
-        with ctx.Pool(1) as pool:
-            loaded = pool.apply(_load_saved, (path, clouds))
+            built, file_mb = pool.apply(
+                _build_and_save, (base_file, path, size, flip, clouds, pipeline, save)
+            )
+        loaded = None
+        if save:
+            with ctx.Pool(1) as pool:
+                loaded = pool.apply(_load_saved, (path, clouds, pipeline))
     return {
+        "pipeline": pipeline,
         "scans": size,
         "built_bytes_per_scan": built,
         "file_mb": file_mb,
-        "loaded_mmap_bytes_per_scan": loaded / size,
+        "loaded_mmap_bytes_per_scan": None if loaded is None else loaded / size,
     }
 
 
@@ -390,9 +414,22 @@ def main() -> None:
     ap.add_argument("--saved-scans", type=int, default=1000, help="ORB-HBST with clouds saved; 0 = skip")
     ap.add_argument(
         "--cloud-store",
-        default="int16",
-        choices=["float32", "int16"],
-        help="verify.cloud_store of that ORB-HBST",
+        default="int16-zlib",
+        choices=["float32", "int16", "int16-zlib"],
+        help="verify.cloud_store of those pipelines",
+    )
+    ap.add_argument(
+        "--saved-pipelines",
+        nargs="+",
+        default=["orb-hbst"],
+        choices=["orb-hbst", "orb-dbow"],
+        help="pipelines measured with verification at --saved-scans",
+    )
+    ap.add_argument(
+        "--build-only",
+        action="store_true",
+        help="measure those pipelines built in RAM, without saving and loading them (a saved 100k database "
+        "needs a float32 copy of its clouds while saving: ~16 GB)",
     )
     ap.add_argument("--dask-scans", type=int, default=120, help="0 = skip the Dask measurement")
     ap.add_argument(
@@ -424,14 +461,21 @@ def main() -> None:
                 f"(load {os.getloadavg()[0]:.1f})",
                 flush=True,
             )
-    saved = (
-        bench_saved(base_file, args.saved_scans, args.flip, args.cloud_store) if args.saved_scans else None
-    )
-    if saved:
+    saves = [
+        bench_saved(base_file, args.saved_scans, args.flip, args.cloud_store, p, not args.build_only)
+        for p in (args.saved_pipelines if args.saved_scans else [])
+    ]
+    for saved in saves:
+        mapped = saved["loaded_mmap_bytes_per_scan"]
         print(
-            f"orb-hbst with verification clouds ({args.cloud_store}), {saved['scans']} scans: {saved['built_bytes_per_scan'] / 1024:.1f} "
-            f"KiB/scan built, file {saved['file_mb']:.0f} MiB, {saved['loaded_mmap_bytes_per_scan'] / 1024:.1f} "
-            "KiB/scan after a memory-mapped load",
+            f"{saved['pipeline']} with verification clouds ({args.cloud_store}), {saved['scans']} scans: "
+            f"{saved['built_bytes_per_scan'] / 1024:.1f} KiB/scan built ("
+            f"{saved['built_bytes_per_scan'] * saved['scans'] / 1e9:.2f} GB)"
+            + (
+                f", file {saved['file_mb']:.0f} MiB, {mapped / 1024:.1f} KiB/scan after a memory-mapped load"
+                if mapped is not None
+                else ", not saved"
+            ),
             flush=True,
         )
     ishot = bench_ishot(args.ishot_queries, args.ishot_copies) if args.ishot_queries else []
@@ -467,10 +511,16 @@ def main() -> None:
                     for n in largest
                     for k in ("ram_mb", "bytes_per_scan", "query_ms_median", "top1_hit")
                 },
-                "orb_hbst_verified_kib_per_scan_built": saved
-                and round(saved["built_bytes_per_scan"] / 1024, 1),
-                "orb_hbst_verified_kib_per_scan_mmap_loaded": saved
-                and round(saved["loaded_mmap_bytes_per_scan"] / 1024, 1),
+                **{
+                    f"{s['pipeline'].replace('-', '_')}_verified_kib_per_scan_{k}": round(s[f] / 1024, 1)
+                    if s[f] is not None
+                    else None
+                    for s in saves
+                    for k, f in (
+                        ("built", "built_bytes_per_scan"),
+                        ("mmap_loaded", "loaded_mmap_bytes_per_scan"),
+                    )
+                },
                 **{
                     f"ishot_{r['store']}_{k}": round(r[k], 1)
                     for r in ishot

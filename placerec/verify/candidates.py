@@ -45,7 +45,7 @@ from pydantic import Field
 
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.params import Params
-from placerec.quantise import FixedPointCloud
+from placerec.quantise import FixedPointCloud, PackedCloud
 from placerec.types import Candidate
 from placerec.verify.icp import IcpCloud, as_points
 from placerec.verify.params import VerifyParams
@@ -74,11 +74,13 @@ class VerifiedParams(Params):
     verify: VerifyParams = Field(
         default_factory=VerifyParams, description="the verification stage (docs/verification.md)"
     )
-    cloud_store: Literal["float32", "int16"] = Field(
-        "int16",
-        description="how the database keeps each added entry's ICP cloud in memory: int16 fixed point around the "
-        "cloud's centre (6 bytes a point; error at most half a step: 0.6 mm within 40 m, 1.8 mm within 120 m; "
-        "verified F1 unchanged, docs/benchmarks.md), or float32 (12 bytes)",
+    cloud_store: Literal["float32", "int16", "int16-zlib"] = Field(
+        "int16-zlib",
+        description="how the database keeps each added entry's ICP cloud in memory: int16-zlib, the int16 codes "
+        "compressed losslessly (placerec.quantise.PackedCloud: ~0.65 of int16's bytes, ~0.6 ms to unpack when a "
+        "cloud is first prepared for ICP); int16 fixed point around the cloud's centre (6 bytes a point; error at "
+        "most half a step: 0.6 mm within 40 m, 1.8 mm within 120 m; verified F1 unchanged, docs/benchmarks.md); "
+        "or float32 (12 bytes)",
     )
 
 
@@ -118,19 +120,20 @@ class CloudStore:
     ``max_prepared`` prepared clouds are kept (least recently used dropped; one takes ~3 MB for an OS1-64 scan at
     0.4 m and 30-90 ms to prepare). ``arrays`` / `from_arrays` give the clouds for a pipeline's saved database
     (float32 points either way). ``dtype = "int16"`` keeps each cloud added as `placerec.quantise.FixedPointCloud`
-    (half the bytes; decoded when prepared); memory-mapped clouds (a database loaded with ``mmap``) and those read
+    (half the bytes; decoded when prepared), ``"int16-zlib"`` as `placerec.quantise.PackedCloud` (the same codes
+    compressed losslessly, about a third of the bytes; unpacked when prepared); memory-mapped clouds (a database loaded with ``mmap``) and those read
     by `from_arrays` stay as they are (a mapped file's pages take no RAM until used). `add_deferred` stores a function making the cloud instead, called
     when the cloud is first needed (e.g. from a memory-mapped places database: no RAM until then)."""
 
     def __init__(
         self, params: VerifyParams | None = None, max_prepared: int = 128, dtype: str = "float32"
     ) -> None:
-        if dtype not in ("float32", "int16"):
-            raise ConfigError(f"cloud store {dtype!r} is unknown; allowed: ['float32', 'int16']")
+        if dtype not in _ENCODERS:
+            raise ConfigError(f"cloud store {dtype!r} is unknown; allowed: {sorted(_ENCODERS)}")
         self.params = params or VerifyParams()
         self.max_prepared = max_prepared
         self.dtype = dtype
-        self._clouds: dict[int, np.ndarray | FixedPointCloud | Callable[[], np.ndarray]] = {}
+        self._clouds: dict[int, np.ndarray | FixedPointCloud | PackedCloud | Callable[[], np.ndarray]] = {}
         self._prepared: OrderedDict[int, IcpCloud] = OrderedDict()
 
     def __len__(self) -> int:
@@ -144,7 +147,7 @@ class CloudStore:
         c = np.asarray(cloud, dtype=np.float32)
         if c.ndim != 2 or c.shape[1] != 3:
             raise ScanDataError(f"cloud of entry {scan_id} must have shape (M, 3), got {c.shape}")
-        self._clouds[int(scan_id)] = FixedPointCloud.encode(c) if self.dtype == "int16" and not mapped else c
+        self._clouds[int(scan_id)] = c if mapped else _ENCODERS[self.dtype](c)
         self._prepared.pop(int(scan_id), None)
 
     def add_deferred(self, scan_id: int, make: Callable[[], np.ndarray]) -> None:
@@ -158,7 +161,7 @@ class CloudStore:
             c = self._clouds[int(scan_id)]
         except KeyError:
             raise ScanDataError(f"no cloud stored for entry {scan_id}") from None
-        if isinstance(c, FixedPointCloud):
+        if isinstance(c, FixedPointCloud | PackedCloud):
             return c.decode()
         return np.asarray(c(), np.float32) if callable(c) else c
 
@@ -180,12 +183,19 @@ class CloudStore:
         return tgt
 
     def arrays(self, ids: Iterable[int]) -> dict[str, np.ndarray]:
-        """``cloud_counts`` and ``cloud_xyz`` of the entries ``ids`` (in that order), for saving."""
-        parts = [self.cloud(i) for i in ids]
-        return {
-            "cloud_counts": np.asarray([len(c) for c in parts], np.int64),
-            "cloud_xyz": np.concatenate(parts).astype(np.float32) if parts else np.zeros((0, 3), np.float32),
-        }
+        """``cloud_counts`` and ``cloud_xyz`` of the entries ``ids`` (in that order), for saving: decoded one at a
+        time into the output, so the only float32 copy of the clouds is ``cloud_xyz`` itself."""
+        ids = [int(i) for i in ids]
+        counts = np.asarray([self._count(i) for i in ids], np.int64)
+        ends = np.cumsum(counts)
+        xyz = np.empty((int(ends[-1]) if ids else 0, 3), np.float32)
+        for i, end, n in zip(ids, ends, counts, strict=True):
+            xyz[end - n : end] = self.cloud(i)
+        return {"cloud_counts": counts, "cloud_xyz": xyz}
+
+    def _count(self, scan_id: int) -> int:
+        c = self._clouds.get(scan_id)
+        return len(self.cloud(scan_id)) if c is None or callable(c) else len(c)
 
     def from_arrays(self, ids: Sequence[int], arrays: Mapping[str, np.ndarray], path: Any = "") -> None:
         """Replace the clouds by those of `arrays` (saved for ``ids``); `ArtifactError` when they disagree."""
@@ -202,6 +212,14 @@ class CloudStore:
         # kept as read, int16 or not: views of the file's pages when the database was loaded memory-mapped
         for i, c in zip(ids, np.split(xyz, np.cumsum(counts)[:-1]) if len(ids) else [], strict=True):
             self._clouds[int(i)] = c
+
+
+#: how `CloudStore.add` keeps a cloud per ``dtype`` (``VerifiedParams.cloud_store``)
+_ENCODERS: dict[str, Callable[[np.ndarray], np.ndarray | FixedPointCloud | PackedCloud]] = {
+    "float32": lambda c: c,
+    "int16": FixedPointCloud.encode,
+    "int16-zlib": partial(PackedCloud.encode, level=2),
+}
 
 
 def _memory_mapped(a: Any) -> bool:
