@@ -358,6 +358,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--csv", type=Path, default=None, help="write the figures of every pair and extractor here"
     )
     ap.add_argument(
+        "--record",
+        action="store_true",
+        help="also write SuperPoint's figures into its weights' provenance .json ('evaluation')",
+    )
+    ap.add_argument(
         "--figure",
         type=Path,
         default=Path("results/eval_features_matches.png"),
@@ -495,8 +500,31 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "timing_image": timing_source,
         "loadavg": load,
     }
+    if args.record and "superpoint" in summary:
+        console.print(f"recorded in {record_provenance(args.superpoint_weights, headline)}")
     print(json.dumps(headline, separators=(",", ":")))
     return headline
+
+
+def record_provenance(weights: str | None, headline: dict[str, Any]) -> Path:
+    """Add SuperPoint's figures of this run (scores per pair set, ratios to ORB, ms per image, load) to the
+    provenance ``.json`` beside its weights, under ``evaluation``."""
+    from placerec.features.superpoint.weights import resolve_weights
+    from placerec.io.atomic import atomic_write
+
+    path = resolve_weights(weights).with_suffix(".json")
+    provenance = json.loads(path.read_text()) if path.is_file() else {}
+    provenance["evaluation"] = {
+        "tool": "tools/eval_features.py",
+        "pairs": headline["pairs"],
+        "superpoint": headline["scores"]["superpoint"],
+        "matching_score_ratio_superpoint_orb": headline["matching_score_ratio_superpoint_orb"],
+        "ms_per_image": {k: v for k, v in headline["ms_per_image"].items() if k.startswith("superpoint")},
+        "loadavg": headline["loadavg"],
+    }
+    with atomic_write(path, "w") as fh:
+        json.dump(provenance, fh, indent=2)
+    return path
 
 
 if __name__ == "__main__":
