@@ -208,6 +208,22 @@ def test_bad_weights_files_are_artifact_errors_naming_the_file(tmp_path, fault: 
         load_weights(path)
 
 
+@pytest.mark.parametrize("damage", ["missing", "truncated"])
+def test_a_broken_onnx_model_is_an_artifact_error(tmp_path, damage: str) -> None:
+    pytest.importorskip("onnx")
+    from placerec.features.superpoint.extractor import SuperPointNet
+
+    path = tmp_path / "w.npz"
+    save_weights(path, SMALL, _random_weights(SMALL))
+    model = onnx_path(path)
+    if damage == "missing":
+        model.unlink()
+    else:
+        model.write_bytes(model.read_bytes()[:500])
+    with pytest.raises(ArtifactError, match="w.onnx"):
+        SuperPointNet(path, "cv2")
+
+
 def test_missing_weights_say_how_to_train(tmp_path) -> None:
     with pytest.raises(ArtifactError, match="train_superpoint"):
         make_extractor("superpoint", weights=str(tmp_path / "none.npz"))

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
+from placerec.errors import ArtifactError
 from placerec.features.base import ExtractorParams, FeatureExtractor, _Keypoints
 from placerec.features.superpoint.arch import CELL, SuperPointArch
 from placerec.features.superpoint.post import keypoint_probability, sample_descriptors, select_keypoints
@@ -60,7 +61,15 @@ class SuperPointNet:
         self.backend = backend
         self._lock = threading.Lock()  # a cv2.dnn.Net is not safe to share between threads
         if backend == "cv2":
-            self._net = cv2.dnn.readNetFromONNX(str(onnx_path(path)))
+            model = onnx_path(path)
+            try:
+                self._net = cv2.dnn.readNetFromONNX(str(model))
+            except cv2.error as exc:
+                raise ArtifactError(
+                    f"{model}: not a readable SuperPoint ONNX model (write it again from {path.name} with "
+                    f"placerec.features.superpoint.weights.save_weights, or use backend 'torch'): "
+                    f"{str(exc).strip().splitlines()[-1]}"
+                ) from None
         else:
             from placerec.features.superpoint.torch_model import build_torch_model, import_torch
 
