@@ -9,7 +9,7 @@ and the allowed keys (`placerec.params.format_errors`). `dump_default_config` wr
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, Field, model_validator
@@ -19,6 +19,8 @@ from placerec.eval.exclusion import ExclusionWindow
 from placerec.intensity import IntensitySpec
 from placerec.params import Params, resolve
 from placerec.safe_yaml import load_yaml, load_yaml_file
+
+P = TypeVar("P", bound=Params)
 
 __all__ = [
     "SimulatorConfig",
@@ -33,6 +35,7 @@ __all__ = [
     "ExecutionConfig",
     "ExperimentConfig",
     "load_config",
+    "load_params_file",
     "read_config_file",
     "parse_config",
     "apply_overrides",
@@ -259,6 +262,14 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     if loaded is not None and not isinstance(loaded, dict):
         raise ConfigError(f"{path}: the top level of a config must be a mapping, got {type(loaded).__name__}")
     return loaded or {}
+
+
+def load_params_file(cls: type[P], path: str | Path | None, what: str, **overrides: Any) -> P:
+    """A `Params` section ``cls`` from a YAML file (None = its defaults) with top-level ``overrides`` (None values
+    ignored); `ConfigError` naming the file (or ``what``) on a bad key or value."""
+    data = {} if path is None else read_config_file(path)
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    return resolve(cls, data, where=str(path or what))
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> ExperimentConfig:

@@ -340,3 +340,17 @@ def test_a_short_training_run_writes_weights_curves_and_provenance(tmp_path) -> 
     curves = json.loads((tmp_path / "curves" / "loss_curves.json").read_text())
     assert curves["step"] == [1, 2, 3] and curves["val_step"] == [2, 3]
     assert (tmp_path / "curves" / "loss_curves.png").is_file()
+
+
+def test_train_tool_validates_a_steps_override_before_training() -> None:
+    import importlib.util
+    from pathlib import Path
+
+    from placerec.errors import ConfigError
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("train_superpoint", root / "tools" / "train_superpoint.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    with pytest.raises(ConfigError, match="train.steps"):
+        tool.main(["--config", str(root / "configs" / "superpoint.yaml"), "--steps", "0"])

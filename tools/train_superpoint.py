@@ -29,8 +29,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     logging.getLogger("numba").setLevel(logging.WARNING)
     cfg = load_superpoint_config(args.config, output=args.output)
-    if args.steps is not None:
-        cfg = cfg.model_copy(update={"train": cfg.train.model_copy(update={"steps": args.steps})})
+    if args.steps is not None:  # validated like the config's own value
+        train = {**cfg.train.model_dump(), "steps": args.steps}
+        cfg = load_superpoint_config(args.config, output=args.output, train=train)
     prov = train_superpoint(cfg, progress=sys.stderr.isatty())
     print(
         json.dumps(

@@ -27,7 +27,8 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from placerec.config import read_config_file
+from placerec import __version__
+from placerec.config import load_params_file
 from placerec.experiment.superpoint_pairs import (
     PairData,
     TrainingData,
@@ -36,7 +37,10 @@ from placerec.experiment.superpoint_pairs import (
     data_fingerprint,
 )
 from placerec.features.superpoint.arch import CELL, SuperPointArch
-from placerec.params import Params, resolve
+from placerec.features.superpoint.torch_model import build_torch_model, import_torch, model_weights
+from placerec.features.superpoint.weights import save_weights
+from placerec.io.atomic import atomic_write
+from placerec.params import Params
 
 log = logging.getLogger(__name__)
 
@@ -84,9 +88,7 @@ class SuperPointTrainingConfig(Params):
 
 def load_superpoint_config(path: str | Path | None, **overrides: Any) -> SuperPointTrainingConfig:
     """A training config from YAML (None: defaults) with top-level overrides; `ConfigError` on bad keys."""
-    data = {} if path is None else read_config_file(path)
-    data.update({k: v for k, v in overrides.items() if v is not None})
-    return resolve(SuperPointTrainingConfig, data, where=str(path or "superpoint training config"))
+    return load_params_file(SuperPointTrainingConfig, path, "superpoint training config", **overrides)
 
 
 # ----------------------------------------------------------------------------- batches
@@ -193,8 +195,6 @@ def _losses(torch: Any, model: Any, batch: dict, s: TrainingSchedule) -> tuple[A
 def train_superpoint(cfg: SuperPointTrainingConfig, progress: bool = False) -> dict[str, Any]:
     """Train, then write the weights, provenance and loss curves (see the module docstring); returns the
     provenance."""
-    from placerec.features.superpoint.torch_model import build_torch_model, import_torch, model_weights
-    from placerec.features.superpoint.weights import save_weights
 
     torch = import_torch()
     s = cfg.train
@@ -283,12 +283,8 @@ def train_superpoint(cfg: SuperPointTrainingConfig, progress: bool = False) -> d
         "threads": s.threads,
         "final": {k: curves[k][-1] for k in curves if curves[k] and k not in ("step", "val_step")},
     }
-    from placerec import __version__
-
     provenance["placerec_version"] = __version__
     save_weights(cfg.output, cfg.arch, model_weights(model), {"provenance": provenance})
-    from placerec.io.atomic import atomic_write
-
     with atomic_write(Path(cfg.output).with_suffix(".json"), "w") as fh:
         json.dump(provenance, fh, indent=2)
     _write_curves(Path(cfg.curves), curves)
@@ -296,8 +292,6 @@ def train_superpoint(cfg: SuperPointTrainingConfig, progress: bool = False) -> d
 
 
 def _write_curves(folder: Path, curves: dict[str, list]) -> None:
-    from placerec.io.atomic import atomic_write
-
     folder.mkdir(parents=True, exist_ok=True)
     with atomic_write(folder / "loss_curves.json", "w") as fh:
         json.dump(curves, fh)

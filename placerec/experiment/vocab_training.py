@@ -32,11 +32,11 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from placerec.config import DatasetConfig, PreprocessConfig, read_config_file
+from placerec.config import DatasetConfig, PreprocessConfig, load_params_file
 from placerec.errors import ArtifactError, ConfigError
 from placerec.hashing import stable_hash
 from placerec.io.npz import read_npz_arrays
-from placerec.params import Params, resolve
+from placerec.params import Params
 from placerec.pipelines.visual import VisualFrontendParams
 from placerec.retrieval.dbow.vocabulary import VocabularyParams
 
@@ -88,9 +88,7 @@ class VocabTrainingConfig(VisualFrontendParams, VocabularyParams):
 
 def load_training_config(path: str | Path | None, **overrides: Any) -> VocabTrainingConfig:
     """Read a training config from YAML (None = defaults) with top-level overrides; `ConfigError` on bad keys."""
-    data = {} if path is None else read_config_file(path)
-    data.update({k: v for k, v in overrides.items() if v is not None})
-    return resolve(VocabTrainingConfig, data, where=str(path or "training config"))
+    return load_params_file(VocabTrainingConfig, path, "training config", **overrides)
 
 
 def _sequences(cfg: VocabTrainingConfig) -> list[tuple[str, dict[str, Any]]]:
