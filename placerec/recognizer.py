@@ -151,6 +151,19 @@ class Recognizer(ABC):
         return self.query_description(self.describe(scan), k=k, max_id=max_id, query_id=query_id)
 
 
+#: The verification the global-localisation presets share (ISHOT paper Sec. V-C: one verification module for
+#: every pipeline; the settings measured in docs/localization.md): every nearest neighbour paired, each candidate
+#: verified as a local map of the entries within 15 m, ICP clouds cropped at 40 m, RANSAC from 3 inliers, accepted
+#: by eps_ICP with at least 70 % of the query's voxels overlapping the local map.
+LOCALIZE_VERIFY: dict[str, Any] = {
+    "verify_tau_max": 1.0,
+    "verify_radius_m": 15.0,
+    "verify": {
+        "verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 3}, "score": {"min_fitness": 0.7}}
+    },
+}
+
+
 @dataclass(frozen=True)
 class PipelineEntry:
     """A registered pipeline: its class (``"module:Class"``), parameter preset and a one-line summary."""
@@ -208,29 +221,17 @@ PIPELINES: dict[str, PipelineEntry] = {
     "ishot-prob": PipelineEntry(
         "placerec.pipelines.probabilistic_voting:ProbabilisticVoting",
         "ISHOT paper Sec. IV: probabilistic keypoint voting (batches of 16, stop at 15 %), verification + ICP",
-        {
-            "descriptor": "ishot",
-            "verify_tau_max": 1.0,
-            "verify": {"verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 4}}},
-        },
+        {"descriptor": "ishot", **LOCALIZE_VERIFY},
     ),
     "shot-global": PipelineEntry(
         "placerec.pipelines.global_registration:GlobalRegistration",
         "ISHOT paper's baseline (a): SHOT global registration, K = 4 over every map keypoint, verification + ICP",
-        {
-            "descriptor": "shot",
-            "verify_tau_max": 1.0,
-            "verify": {"top_k": 1, "verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 4}}},
-        },
+        {"descriptor": "shot", **LOCALIZE_VERIFY, "verify": {**LOCALIZE_VERIFY["verify"], "top_k": 1}},
     ),
     "shot-gestalt-votes": PipelineEntry(
         "placerec.pipelines.gestalt_voting:GestaltVoting",
         "ISHOT paper's baseline (b) on SHOT: Bosse & Zlot voting (10 % rounds, K = 10, log-normal stop), verification",
-        {
-            "descriptor": "shot",
-            "verify_tau_max": 1.0,
-            "verify": {"verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 4}}},
-        },
+        {"descriptor": "shot", **LOCALIZE_VERIFY},
     ),
     "fpfh-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",

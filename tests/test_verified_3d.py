@@ -240,3 +240,32 @@ def test_scan_context_save_load_keeps_the_clouds(scan_context, tmp_path):
         ScanContext(verify={"verify": {"icp": {"voxel_size": 0.5}}}).load(tmp_path / "sc.npz")
     with pytest.raises(ScanDataError, match="cloud"):
         ScanContext().add_description(3, descs[TRUE]["scan_context"])
+
+
+def test_local_map_verification_matches_and_aligns_in_the_candidates_frame(sim):
+    from placerec.pipelines.keypoint_voting import KeypointVoting
+
+    seq, _ = sim
+    rec = KeypointVoting(descriptor="ishot", iss={"max_keypoints": 150}, verify_radius_m=10.0)
+    descs = {i: rec.describe(seq[i]) for i in (7, TRUE, QUERY, WRONG)}
+    for i in (7, TRUE, WRONG):
+        rec.add_description(i, descs[i], seq.poses[i])
+    e7, e10, e36 = (rec._ids.index(i) for i in (7, TRUE, WRONG))
+    assert rec._local_entries(e10) == [e10, e7] and rec._local_entries(e36) == [e36]
+    assert rec._local_entries(e10, np.array([False, True, True])) == [e10]  # only eligible neighbours
+    # the local map's keypoints, taken back to the world by entry 10's pose, are each entry's world keypoints
+    T10 = seq.poses[TRUE]
+    kp = rec._local_keypoints(e10, [e10, e7])
+    world = np.concatenate(
+        [descs[i]["keypoints"] @ seq.poses[i][:3, :3].T + seq.poses[i][:3, 3] for i in (TRUE, 7)]
+    )
+    np.testing.assert_allclose(kp @ T10[:3, :3].T + T10[:3, 3], world, atol=1e-3)
+    merged = rec._local_target([e10, e7])
+    assert merged.points.shape[0] > rec._clouds.target(TRUE).points.shape[0]
+    assert rec._local_target([e10, e7]) is merged  # prepared once
+    got = rec.query_description(descs[QUERY], k=3, query_id=QUERY)
+    best = got[0]
+    assert best.match_id in (7, TRUE) and best.extra["accepted"] and best.extra["local_entries"] == 2
+    T_gt = relative_pose(seq.poses[best.match_id], seq.poses[QUERY])
+    assert _t_err(best.relative_pose, T_gt) < 0.3
+    assert all(c.extra["local_entries"] == 1 for c in got if c.match_id == WRONG)

@@ -369,6 +369,26 @@ def test_eps_icp_acceptance_rule(sim_scans):
     assert not verify_icp(scans[13], scans[10], init=T_gt, params=strict).accepted
 
 
+def test_min_fitness_gates_every_acceptance_rule(sim_scans):
+    from placerec.verify.score import is_accepted
+
+    p = ScoreParams(acceptance="eps_icp", min_fitness=0.7)
+    assert is_accepted(0.0, 1.0, p, fitness=0.7) and not is_accepted(0.0, 1.0, p, fitness=0.69)
+    assert not is_accepted(0.0, 1.0, p) and not is_accepted(0.0, 1.0, p, fitness=float("nan"))
+    assert not is_accepted(0.0, 8.0, p, fitness=0.9)  # eps_ICP still applies
+    by_score = ScoreParams(acceptance="score", min_score=0.25, min_fitness=0.5)
+    assert is_accepted(0.3, 99.0, by_score, fitness=0.5) and not is_accepted(0.3, 99.0, by_score, fitness=0.4)
+    assert is_accepted(0.0, 1.0, ScoreParams(acceptance="eps_icp"))  # off by default
+    seq, scans = sim_scans
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    good = verify_icp(scans[13], scans[10], init=T_gt, params=VerifyParams(score={"acceptance": "eps_icp"}))
+    gated = VerifyParams(score={"acceptance": "eps_icp", "min_fitness": min(1.0, good.fitness + 0.01)})
+    again = verify_icp(scans[13], scans[10], init=T_gt, params=gated)
+    assert good.accepted and not again.accepted and again.fitness == pytest.approx(good.fitness)
+    with pytest.raises(ValueError):
+        ScoreParams(min_fitness=1.5)
+
+
 def _greedy_reference(src, dst, order, res, min_size):
     """PCL's clustering written plainly (members checked one by one), for comparison."""
     n = len(src)

@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 from placerec.intensity import normalize_intensity  # noqa: E402
 from placerec.pipelines.keypoint_voting import KeypointVoting  # noqa: E402
 from placerec.pipelines.probabilistic_voting import ProbabilisticVoting  # noqa: E402
-from placerec.recognizer import make_pipeline  # noqa: E402
+from placerec.recognizer import LOCALIZE_VERIFY, make_pipeline  # noqa: E402
 from placerec.sim import SimulatedSequence, make_localization_split  # noqa: E402
 from placerec.three_d.places import PlacesDatabase, PlacesParams, build_places  # noqa: E402
 from placerec.three_d.posterior import PosteriorTable  # noqa: E402
@@ -106,10 +106,7 @@ def main() -> None:
     near = np.linalg.norm(queries.poses[:, None, :2, 3] - first[None, :, :2], axis=2).min(axis=1) <= 10.0
     picked = np.flatnonzero(near)[: args.n_queries]
     model = {"vote_model": args.vote_model} if Path(args.vote_model).is_file() else {}
-    same_verify = {
-        "verify_tau_max": 1.0,
-        "verify": {"verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 4}}},
-    }
+    same_verify = LOCALIZE_VERIFY  # ishot-votes verifies as the presets of the others do
     variants = {
         "ishot-prob": lambda: make_pipeline("ishot-prob", model),
         "ishot-exhaustive": lambda: make_pipeline("ishot-prob", {**model, "early_stop": False}),

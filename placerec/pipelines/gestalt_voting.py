@@ -178,7 +178,9 @@ class GestaltVoting(KeypointVoting):
                 x: dict[str, Any] = {**extra(e), "retrieval_score": score, "accepted": True}
                 verified[e] = Candidate(query_id, self._ids[e], score, None, None, x)
             return True
-        retrieved = [self._matches(e, q, qkp, starts, float(votes[e]) / q.shape[0], extra(e)) for e in picked]
+        retrieved = [
+            self._matches(e, q, qkp, starts, float(votes[e]) / q.shape[0], extra(e), eligible) for e in picked
+        ]
         cands = verify_candidates(description["cloud"], retrieved, self._clouds, vp, query_id, None)
         by_id = {self._ids[e]: e for e in picked}
         for c in cands:

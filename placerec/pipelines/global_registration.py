@@ -22,6 +22,7 @@ largest consistent cluster gives one pose; when it is rejected the query has no 
 from __future__ import annotations
 
 import time
+from functools import partial
 from typing import Any, ClassVar
 
 import numpy as np
@@ -119,6 +120,7 @@ class GlobalRegistration(KeypointVoting):
             "verify_ms": locate_ms,
             "T_world_ransac": T_world_query,
         }
+        local = self._local_entries(e, eligible)
         retrieved = Retrieved(
             self._ids[e],
             float(hyp.inliers or 0) / q.shape[0],
@@ -126,6 +128,7 @@ class GlobalRegistration(KeypointVoting):
             dst @ T_entry_world[:3, :3].T + T_entry_world[:3, 3],
             quality,
             extra=extra,
+            target=partial(self._local_target, local) if len(local) > 1 else None,
         )
         cands = verify_candidates(description["cloud"], [retrieved], self._clouds, p.verify, query_id, k)
         for c in cands:

@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from functools import partial
 from pathlib import Path
@@ -87,8 +88,17 @@ from placerec.three_d.descriptors import DESCRIPTOR_DIMS
 from placerec.three_d.features import FeatureParams, extract_features
 from placerec.three_d.places import PlacesDatabase, merge_clouds
 from placerec.types import Candidate, Description, Scan, as_pose
-from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
+from placerec.verify.candidates import (
+    CloudStore,
+    Retrieved,
+    VerifiedParams,
+    scan_cloud,
+    verify_candidates,
+    voxel_points,
+)
+from placerec.verify.icp import IcpCloud
 from placerec.verify.params import VerifyParams
+from placerec.verify.verify import as_target
 
 log = logging.getLogger(__name__)
 
@@ -116,6 +126,18 @@ class VotingParams(FeatureParams):
         le=1,
         description="ratio d1/d2 below which a query descriptor is paired with a candidate's for verification "
         "(None = tau_max; 1 keeps every nearest neighbour and leaves outliers to the consistency grouping)",
+    )
+    verify_radius_m: float = Field(
+        0.0,
+        ge=0,
+        description="m; a candidate entry is verified as a local map: with the entries within this distance of it, "
+        "their keypoints and ICP clouds in its frame (0: the entry alone)",
+    )
+    local_map_cache: int = Field(
+        64,
+        ge=1,
+        description="local maps kept prepared for ICP (least recently used dropped; ~5 MB each in the simulated "
+        "town at 15 m)",
     )
     score: Literal["fraction", "votes"] = Field("fraction", description="votes / query descriptors, or votes")
     backend: Literal["faiss", "numpy"] = Field("faiss", description="exact 2-NN search")
@@ -241,6 +263,7 @@ class KeypointVoting(Recognizer):
         self._counts: list[int] = []
         self._keypoints: list[np.ndarray] = []
         self._clouds = CloudStore(self.params.verify.verify, dtype=self.params.verify.cloud_store)
+        self._local_targets: OrderedDict[tuple[int, ...], IcpCloud] = OrderedDict()
         self._sorted = True
         self._ivf: IvfIndex | None = None
         # trailing window of (id, pose, travelled distance, cloud xyz, cloud intensity) for place aggregation
@@ -499,8 +522,9 @@ class KeypointVoting(Recognizer):
         if "cloud" not in description:
             raise ScanDataError(f"{self.name}: verification needs the query description's 'cloud'")
         qkp, starts = self._query_keypoints(description), self._entry_starts()
+        eligible = self._eligible_entries(max_id)
         retrieved = [
-            self._matches(e, q, qkp, starts, float(votes[e] * scale), x)
+            self._matches(e, q, qkp, starts, float(votes[e] * scale), x, eligible)
             for e, x in zip(top, extra, strict=True)
         ]
         return verify_candidates(description["cloud"], retrieved, self._clouds, vp, query_id, k)
@@ -517,21 +541,74 @@ class KeypointVoting(Recognizer):
         return rows.knn2(q, p.backend, p.nn_threads)
 
     def _matches(
-        self, e: int, q: np.ndarray, qkp: np.ndarray, starts: np.ndarray, score: float, extra: dict[str, Any]
+        self,
+        e: int,
+        q: np.ndarray,
+        qkp: np.ndarray,
+        starts: np.ndarray,
+        score: float,
+        extra: dict[str, Any],
+        eligible: np.ndarray | None = None,
     ) -> Retrieved:
-        """Entry ``e``'s correspondences with the query: 2-NN among its descriptors, ratio ``< verify_tau_max``
-        (default ``tau_max``; the time counts in the candidate's ``verify_ms``)."""
+        """Entry ``e``'s correspondences with the query: 2-NN among its descriptors (with ``verify_radius_m``, those
+        of its local map: `_local_entries`), ratio ``< verify_tau_max`` (default ``tau_max``; the time counts in the
+        candidate's ``verify_ms``)."""
         t0 = time.perf_counter()
-        rows = self._store.rows(starts[e], starts[e + 1])
+        local = self._local_entries(e, eligible)
+        rows = np.concatenate([self._store.rows(starts[j], starts[j + 1]) for j in local])
         if rows.shape[0] < 2:
             return Retrieved(self._ids[e], score, np.zeros((0, 3)), np.zeros((0, 3)), extra=extra)
         dist, idx = knn2(q, rows, self.params.backend, self.params.nn_threads)
         tau = nn_ratio(dist)
         ok = tau < (self.params.tau_max if self.params.verify_tau_max is None else self.params.verify_tau_max)
-        dst = self._keypoints[e][idx[ok, 0]]
+        dst = self._local_keypoints(e, local)[idx[ok, 0]]
         ms = (time.perf_counter() - t0) * 1e3
-        extra = {**extra, "matches": int(ok.sum()), "verify_ms": ms}
-        return Retrieved(self._ids[e], score, qkp[ok], dst, tau[ok], extra=extra)
+        extra = {**extra, "matches": int(ok.sum()), "verify_ms": ms, "local_entries": len(local)}
+        target = partial(self._local_target, local) if len(local) > 1 else None
+        return Retrieved(self._ids[e], score, qkp[ok], dst, tau[ok], extra=extra, target=target)
+
+    def _local_entries(self, e: int, eligible: np.ndarray | None = None) -> list[int]:
+        """Entry ``e`` first, then the entries (``eligible`` ones only, when given) within ``verify_radius_m`` of
+        it, nearest first."""
+        r = self.params.verify_radius_m
+        if r <= 0:
+            return [e]
+        centres = np.stack([P[:3, 3] for P in self._poses])
+        d = np.linalg.norm(centres - centres[e], axis=1)
+        near = d <= r
+        if eligible is not None:
+            near &= eligible
+        near[e] = False
+        others = np.flatnonzero(near)
+        return [e, *(int(j) for j in others[np.argsort(d[others], kind="stable")])]
+
+    def _local_keypoints(self, e: int, local: Sequence[int]) -> np.ndarray:
+        """The keypoints of the entries ``local``, stacked in entry ``e``'s frame."""
+        T_e_world = np.linalg.inv(self._poses[e])
+        parts = []
+        for j in local:
+            T = T_e_world @ self._poses[j]
+            parts.append(self._keypoints[j] @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32))
+        return np.concatenate(parts)
+
+    def _local_target(self, local: Sequence[int]) -> IcpCloud:
+        """The ICP target of the local map ``local`` (its first entry's frame): the entries' clouds merged and
+        voxelised again at ``icp.voxel_size`` (`as_target`); the last ``local_map_cache`` are kept."""
+        key = tuple(int(j) for j in local)
+        if key in self._local_targets:
+            self._local_targets.move_to_end(key)
+            return self._local_targets[key]
+        vp = self.params.verify.verify
+        T_e_world = np.linalg.inv(self._poses[key[0]])
+        parts = []
+        for j in key:
+            T = T_e_world @ self._poses[j]
+            parts.append(self._clouds.cloud(self._ids[j]) @ T[:3, :3].T + T[:3, 3])
+        target = as_target(voxel_points(np.concatenate(parts), vp.icp.voxel_size), vp)
+        self._local_targets[key] = target
+        while len(self._local_targets) > self.params.local_map_cache:
+            self._local_targets.popitem(last=False)
+        return target
 
     # -- persistence ----------------------------------------------------------------------------------------
     def save(self, path: str | Path) -> None:

@@ -154,7 +154,7 @@ class ProbabilisticVoting(KeypointVoting):
             if source is None and p.verify.enabled:
                 source = self._source(description)
             todo = [e for e in np.argsort(-prob, kind="stable") if prob[e] > 0 and int(e) not in verified]
-            accepted = self._verify(todo, prob, votes, q, qkp, starts, source, verified, query_id, True)
+            accepted = self._verify(todo, prob, votes, q, qkp, starts, source, verified, query_id, True, eligible)
         if not accepted:
             prob = post.probabilities
             # the threshold never led to an accepted place: vote counts first (the paper's fallback), then the
@@ -163,7 +163,9 @@ class ProbabilisticVoting(KeypointVoting):
             todo = [e for e in ranked if eligible[e] and int(e) not in verified]
             if source is None and p.verify.enabled:
                 source = self._source(description)
-            self._verify(todo, prob, votes, q, qkp, starts, source, verified, query_id, not p.early_stop)
+            self._verify(
+                todo, prob, votes, q, qkp, starts, source, verified, query_id, not p.early_stop, eligible
+            )
         for e, c in verified.items():
             if c.relative_pose is not None:
                 c.extra["T_world_query"] = np.asarray(self._poses[e]) @ c.relative_pose
@@ -197,6 +199,7 @@ class ProbabilisticVoting(KeypointVoting):
         verified: dict[int, Candidate],
         query_id: int,
         by_posterior: bool,
+        eligible: np.ndarray | None = None,
     ) -> bool:
         """Verify the first ``verify.top_k`` entries of ``todo`` (entry indices); store their candidates in
         ``verified`` by entry; True when one is accepted. The retrieval score is the posterior
@@ -220,6 +223,7 @@ class ProbabilisticVoting(KeypointVoting):
                 starts,
                 float(prob[e] if by_posterior else votes[e] / q.shape[0]),
                 {"votes": int(votes[e]), "posterior": float(prob[e]), "n_query": int(q.shape[0])},
+                eligible,
             )
             for e in picked
         ]

@@ -51,7 +51,7 @@ from placerec.verify.icp import IcpCloud, as_points
 from placerec.verify.params import VerifyParams
 from placerec.verify.verify import Hypothesis, Verification, as_source, as_target, complete, hypothesise
 
-__all__ = ["VerifiedParams", "Retrieved", "CloudStore", "scan_cloud", "verify_candidates"]
+__all__ = ["VerifiedParams", "Retrieved", "CloudStore", "scan_cloud", "voxel_points", "verify_candidates"]
 
 
 class VerifiedParams(Params):
@@ -88,8 +88,9 @@ class VerifiedParams(Params):
 class Retrieved:
     """One retrieved candidate to verify: ``src_kp`` (query frame) corresponds row by row to ``dst_kp`` (match
     frame), ``quality`` orders them for the consistency grouping (lower is better, e.g. descriptor distance);
-    without keypoints, ICP starts from ``init`` (``T_match_query``; None: identity). ``extra`` is copied into the
-    candidate."""
+    without keypoints, ICP starts from ``init`` (``T_match_query``; None: identity). ``target`` (no arguments,
+    returns the prepared `IcpCloud`) replaces the store's cloud of ``match_id`` as ICP target, e.g. a place merged
+    with its neighbours. ``extra`` is copied into the candidate."""
 
     match_id: int
     retrieval_score: float
@@ -98,20 +99,26 @@ class Retrieved:
     quality: np.ndarray | None = None
     init: np.ndarray | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    target: Callable[[], IcpCloud] | None = None
 
 
 def scan_cloud(scan: Any, params: VerifyParams | None = None) -> np.ndarray:
     """The scan's valid points (a `Scan` or (N, 3+) array) cropped to ``icp.max_range`` and voxelised at
     ``icp.voxel_size``: (M, 3) float32, to keep in a description."""
-    import small_gicp
-
     icp = (params or VerifyParams()).icp
     p = as_points(scan, "scan")
     if icp.max_range is not None:
         p = p[np.einsum("ni,ni->n", p, p) <= icp.max_range**2]
-    if p.shape[0] == 0:
+    return voxel_points(p, icp.voxel_size)
+
+
+def voxel_points(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """(N, 3) points voxelised (small_gicp's voxel grid: one point per occupied voxel), (M, 3) float32."""
+    import small_gicp
+
+    if points.shape[0] == 0:
         return np.zeros((0, 3), np.float32)
-    vox = small_gicp.voxelgrid_sampling(np.ascontiguousarray(p), icp.voxel_size)
+    vox = small_gicp.voxelgrid_sampling(np.ascontiguousarray(points, dtype=np.float64), voxel_size)
     return np.asarray(vox.points(), dtype=np.float32)[:, :3].copy()
 
 
@@ -266,7 +273,7 @@ def verify_candidates(
     for j, (r, h) in enumerate(zip(todo, hyps, strict=True)):
         t1 = time.perf_counter()
         if j in refined:  # the match is prepared (and cached) only here
-            v = complete(source, partial(store.target, r.match_id), h, vp)
+            v = complete(source, r.target or partial(store.target, r.match_id), h, vp)
             ms[j] += (time.perf_counter() - t1) * 1e3 + shared
         else:
             v = h.rejected(None if h.rejected_at else "rank")

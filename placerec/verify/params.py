@@ -108,6 +108,13 @@ class ScoreParams(Params):
     eps_icp: float = Field(
         7.0, gt=0, description="m^2; ISHOT paper Sec. V: accept when the ICP residual is below eps_ICP"
     )
+    min_fitness: float | None = Field(
+        None,
+        ge=0,
+        le=1,
+        description="accept only when the ICP fitness (share of query voxels overlapping the match) is at least this,"
+        " whatever the rule (None: no overlap gate; docs/localization.md measures 0.7 for neighbourhood targets)",
+    )
     eps_icp_max_range: float | None = Field(
         None,
         gt=0,

@@ -9,7 +9,8 @@
   RMSE is over those voxels, so it never exceeds that distance).
 
 Each term is in [0, 1] and a candidate scores high only when all three agree. ``acceptance="eps_icp"`` applies
-the ISHOT paper's rule instead (ICP residual < eps_ICP = 7 m^2), ``"both"`` requires both.
+the ISHOT paper's rule instead (ICP residual < eps_ICP = 7 m^2), ``"both"`` requires both. ``min_fitness``
+(off by default) adds an overlap gate to any rule: the ICP fitness must reach it.
 """
 
 from __future__ import annotations
@@ -34,9 +35,16 @@ def verified_score(
     return inlier_term * fit_term * rmse_term
 
 
-def is_accepted(score: float, residual: float, params: ScoreParams | None = None) -> bool:
-    """The acceptance rule chosen by ``params.acceptance`` (see the module docstring)."""
+def is_accepted(
+    score: float, residual: float, params: ScoreParams | None = None, fitness: float | None = None
+) -> bool:
+    """The acceptance rule chosen by ``params.acceptance``, and the ``min_fitness`` gate on ``fitness`` when set
+    (see the module docstring)."""
     params = params or ScoreParams()
+    if params.min_fitness is not None and not (
+        fitness is not None and math.isfinite(fitness) and fitness >= params.min_fitness
+    ):
+        return False
     by_score = score >= params.min_score and score > 0.0
     by_eps = math.isfinite(residual) and residual < params.eps_icp
     if params.acceptance == "score":

@@ -219,7 +219,7 @@ def complete(
     return Verification(
         T_match_query=icp.T,
         score=score,
-        accepted=is_accepted(score, icp.residual, sp),
+        accepted=is_accepted(score, icp.residual, sp, icp.fitness),
         inliers=hypothesis.inliers,
         correspondences=hypothesis.correspondences,
         fitness=icp.fitness,
