@@ -154,7 +154,9 @@ class ProbabilisticVoting(KeypointVoting):
             if source is None and p.verify.enabled:
                 source = self._source(description)
             todo = [e for e in np.argsort(-prob, kind="stable") if prob[e] > 0 and int(e) not in verified]
-            accepted = self._verify(todo, prob, votes, q, qkp, starts, source, verified, query_id, True, eligible)
+            accepted = self._verify(
+                todo, prob, votes, q, qkp, starts, source, verified, query_id, True, eligible
+            )
         if not accepted:
             prob = post.probabilities
             # the threshold never led to an accepted place: vote counts first (the paper's fallback), then the
