@@ -29,7 +29,10 @@ are re-ranked by it. A candidate is accepted when its ICP residual is below the 
 precision 0); verifying the top 1 / 3 / 5 with ``eps_icp``: 0.810 / 0.844 / 0.864 (R@P100 0.455 / 0.545 /
 0.556) for 20 / 40 / 48 ms per scan, so ``top_k`` = 5; at top 3, ``both`` gives 0.718 (true single-scan pairs
 often score below ``min_score``: max F1 sits at 0.19) and ``score`` 0.878. Accepted closures' median translation
-error 0.019 m, at most 0.049 m. Off, ``relative_pose`` is None (the paper's probabilistic voting is not implemented).
+error 0.019 m, at most 0.049 m. Off, ``relative_pose`` is None. With ``verify_radius_m > 0`` a candidate is verified
+as a local map: its descriptors and those of the (eligible) entries within that distance, their keypoints moved
+into its frame by the entries' poses, and ICP against their clouds merged in that frame (cached, the last
+``local_map_cache``); the global-localisation presets use 15 m (docs/localization.md).
 
 Entries ("places"):
 

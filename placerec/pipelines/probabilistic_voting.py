@@ -27,9 +27,10 @@ Each returned candidate carries the 6-DoF ``relative_pose`` (``T_match_query``, 
 Departures from the paper (measured in docs/localization.md): descriptors are computed for all keypoints in
 ``describe`` (shared and cached with ``ishot-votes``), so early stopping saves the matching against the database,
 not the description, which the paper does batch by batch; the ISHOT descriptors already computed are matched with
-the candidate place's instead of SHOT; the registry preset verifies with every nearest neighbour
-(``verify_tau_max`` 1), ICP clouds cropped at 40 m like the places and RANSAC from 4 inliers. ``index: ivf``
-searches the database approximately (sub-linear in its size).
+the candidate place's instead of SHOT; the registry preset (`placerec.recognizer.LOCALIZE_VERIFY`) verifies each
+candidate as a local map of the places within 15 m (``verify_radius_m``), with every nearest neighbour
+(``verify_tau_max`` 1), ICP clouds cropped at 40 m like the places, RANSAC from 3 inliers and at least 70 % overlap
+(``verify.verify.score.min_fitness``). ``index: ivf`` searches the database approximately (sub-linear in its size).
 """
 
 from __future__ import annotations
