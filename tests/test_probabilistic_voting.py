@@ -147,6 +147,23 @@ def test_early_stop_consumes_one_batch_and_exhaustive_consumes_all():
     assert all(c.match_id <= 5 for c in early.query_description(desc, k=3, max_id=5))
 
 
+def test_verify_separation_spreads_the_verified_places():
+    rng = np.random.default_rng(4)
+    common = {"verify": {"enabled": False, "top_k": 3}, "model": {"tau_edges": [0, 0.8, 1], "sigma": [12, 20],
+              "lam": [0.8, 0.5], "d_max": 100}}  # fmt: skip
+    descs = _synthetic_db(ProbabilisticVoting(common), rng)
+    query = descs[7][:16] + 0.02 * rng.normal(size=(16, 1344)).astype(np.float32)
+    desc = {"keypoints": np.zeros((16, 3)), "descriptors": query}
+    xs = {}
+    for sep in (0.0, 12.0):
+        rec = ProbabilisticVoting(common, verify_separation_m=sep)
+        _synthetic_db(rec, np.random.default_rng(4))
+        xs[sep] = [5.0 * c.match_id for c in rec.query_description(desc, k=3)]
+    assert xs[0.0][0] == xs[12.0][0] == 35.0  # place 7 first either way
+    assert min(abs(a - b) for a in xs[0.0] for b in xs[0.0] if a != b) == 5.0  # its neighbours next
+    assert all(abs(a - b) >= 12.0 for a in xs[12.0] for b in xs[12.0] if a != b) and len(xs[12.0]) == 3
+
+
 def test_localises_a_simulated_scan_with_a_6dof_pose():
     from placerec.sim import SimulatedSequence
     from placerec.types import relative_pose

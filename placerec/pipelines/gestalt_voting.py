@@ -166,9 +166,7 @@ class GestaltVoting(KeypointVoting):
         """Verify the ``verify.top_k`` most voted eligible entries not verified yet; True when one is accepted."""
         vp = self.params.verify
         ranked = np.lexsort((np.asarray(self._ids), -votes))
-        picked = [int(e) for e in ranked if eligible[e] and votes[e] > 0 and int(e) not in verified][
-            : vp.top_k
-        ]
+        picked = self._pick([e for e in ranked if eligible[e] and votes[e] > 0], verified, vp.top_k)
         if not picked:
             return False
         extra = lambda e: {"votes": int(votes[e]), "n_query": int(q.shape[0]), "threshold": thr}  # noqa: E731

@@ -136,6 +136,12 @@ class VotingParams(FeatureParams):
         description="m; a candidate entry is verified as a local map: with the entries within this distance of it, "
         "their keypoints and ICP clouds in its frame (0: the entry alone)",
     )
+    verify_separation_m: float = Field(
+        0.0,
+        ge=0,
+        description="m; candidates within this distance of one already verified for the same query are skipped "
+        "(their local maps overlap it), so the verified candidates cover distinct regions (0: none skipped)",
+    )
     local_map_cache: int = Field(
         64,
         ge=1,
@@ -268,6 +274,7 @@ class KeypointVoting(Recognizer):
         self._clouds = CloudStore(self.params.verify.verify, dtype=self.params.verify.cloud_store)
         self._local_targets: OrderedDict[tuple[int, ...], IcpCloud] = OrderedDict()
         self._sorted = True
+        self._xyz: np.ndarray | None = None
         self._ivf: IvfIndex | None = None
         # trailing window of (id, pose, travelled distance, cloud xyz, cloud intensity) for place aggregation
         self._buffer: list[tuple[int, np.ndarray, float, np.ndarray, np.ndarray]] = []
@@ -493,6 +500,32 @@ class KeypointVoting(Recognizer):
         ids = np.asarray(self._ids)
         return np.ones(len(ids), bool) if max_id is None else ids <= max_id
 
+    def _pick(self, ranked: Any, taken: Any, k: int) -> list[int]:
+        """The first ``k`` entries of ``ranked`` (entry indices, best first) not in ``taken``, skipping those within
+        ``verify_separation_m`` of an entry taken before (``taken`` and the ones picked here)."""
+        sep = self.params.verify_separation_m
+        done = [int(e) for e in taken]
+        picked: list[int] = []
+        for e in ranked:
+            e = int(e)
+            if len(picked) == k:
+                break
+            if e in done:
+                continue
+            if sep > 0 and done:
+                xyz = self._entry_xyz()
+                if np.min(np.linalg.norm(xyz[done] - xyz[e], axis=1)) < sep:
+                    continue
+            picked.append(e)
+            done.append(e)
+        return picked
+
+    def _entry_xyz(self) -> np.ndarray:
+        """(entries, 3) positions of the entries (their poses' translations)."""
+        if self._xyz is None or len(self._xyz) != len(self._poses):
+            self._xyz = np.asarray([T[:3, 3] for T in self._poses], np.float64).reshape(-1, 3)
+        return self._xyz
+
     def _entry_starts(self) -> np.ndarray:
         """First descriptor row of every entry, and the row count last: entry ``e`` owns rows
         ``starts[e]:starts[e + 1]``."""
@@ -514,7 +547,9 @@ class KeypointVoting(Recognizer):
         votes = ratio_votes(dist, idx, entry, n_ent, self.params.tau_max)
         vp = self.params.verify
         top = np.flatnonzero(votes)
-        top = top[np.lexsort((np.asarray(self._ids)[top], -votes[top]))][: vp.top_k if vp.enabled else k]
+        top = self._pick(
+            top[np.lexsort((np.asarray(self._ids)[top], -votes[top]))], (), vp.top_k if vp.enabled else k
+        )
         scale = 1.0 / q.shape[0] if self.params.score == "fraction" else 1.0
         extra = [{"votes": int(votes[e]), "n_query": int(q.shape[0])} for e in top]
         if not vp.enabled:
@@ -576,7 +611,7 @@ class KeypointVoting(Recognizer):
         r = self.params.verify_radius_m
         if r <= 0:
             return [e]
-        centres = np.stack([P[:3, 3] for P in self._poses])
+        centres = self._entry_xyz()
         d = np.linalg.norm(centres - centres[e], axis=1)
         near = d <= r
         if eligible is not None:

@@ -87,6 +87,11 @@ class ProbabilisticParams(VotingParams):
     )
     truncation: float = Field(1e-3, gt=0, lt=1, description="relative error of the sparse vectors")
     seed: int = Field(0, description="order in which keypoints are consumed")
+    fallback_top_k: int | None = Field(
+        None,
+        ge=1,
+        description="places verified when every keypoint is consumed unaccepted (None = verify.top_k)",
+    )
 
 
 class ProbabilisticVoting(KeypointVoting):
@@ -167,7 +172,18 @@ class ProbabilisticVoting(KeypointVoting):
             if source is None and p.verify.enabled:
                 source = self._source(description)
             self._verify(
-                todo, prob, votes, q, qkp, starts, source, verified, query_id, not p.early_stop, eligible
+                todo,
+                prob,
+                votes,
+                q,
+                qkp,
+                starts,
+                source,
+                verified,
+                query_id,
+                not p.early_stop,
+                eligible,
+                p.fallback_top_k,
             )
         for e, c in verified.items():
             if c.relative_pose is not None:
@@ -203,12 +219,13 @@ class ProbabilisticVoting(KeypointVoting):
         query_id: int,
         by_posterior: bool,
         eligible: np.ndarray | None = None,
+        top_k: int | None = None,
     ) -> bool:
         """Verify the first ``verify.top_k`` entries of ``todo`` (entry indices); store their candidates in
         ``verified`` by entry; True when one is accepted. The retrieval score is the posterior
         (``by_posterior``) or the vote fraction."""
         vp = self.params.verify
-        picked = [int(e) for e in todo[: vp.top_k]]
+        picked = self._pick(todo, verified, top_k or vp.top_k)
         if not picked:
             return False
         if not vp.enabled:  # retrieval only: the most probable (or most voted) entry, no pose
