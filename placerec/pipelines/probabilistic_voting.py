@@ -30,7 +30,8 @@ not the description, which the paper does batch by batch; the ISHOT descriptors 
 the candidate place's instead of SHOT; the registry preset (`placerec.recognizer.LOCALIZE_VERIFY`) verifies each
 candidate as a local map of the places within 15 m (``verify_radius_m``), with every nearest neighbour
 (``verify_tau_max`` 1), ICP clouds cropped at 40 m like the places, RANSAC from 3 inliers and at least 70 % overlap
-(``verify.verify.score.min_fitness``). ``index: ivf`` searches the database approximately (sub-linear in its size).
+(``verify.verify.score.min_fitness``), and skips candidates within 7.5 m of one already verified
+(``verify_separation_m``: their local maps overlap it). ``index: ivf`` searches the database approximately (sub-linear in its size).
 """
 
 from __future__ import annotations
@@ -87,11 +88,6 @@ class ProbabilisticParams(VotingParams):
     )
     truncation: float = Field(1e-3, gt=0, lt=1, description="relative error of the sparse vectors")
     seed: int = Field(0, description="order in which keypoints are consumed")
-    fallback_top_k: int | None = Field(
-        None,
-        ge=1,
-        description="places verified when every keypoint is consumed unaccepted (None = verify.top_k)",
-    )
 
 
 class ProbabilisticVoting(KeypointVoting):
@@ -183,7 +179,6 @@ class ProbabilisticVoting(KeypointVoting):
                 query_id,
                 not p.early_stop,
                 eligible,
-                p.fallback_top_k,
             )
         for e, c in verified.items():
             if c.relative_pose is not None:
@@ -219,13 +214,12 @@ class ProbabilisticVoting(KeypointVoting):
         query_id: int,
         by_posterior: bool,
         eligible: np.ndarray | None = None,
-        top_k: int | None = None,
     ) -> bool:
         """Verify the first ``verify.top_k`` entries of ``todo`` (entry indices); store their candidates in
         ``verified`` by entry; True when one is accepted. The retrieval score is the posterior
         (``by_posterior``) or the vote fraction."""
         vp = self.params.verify
-        picked = self._pick(todo, verified, top_k or vp.top_k)
+        picked = self._pick(todo, verified, vp.top_k)
         if not picked:
             return False
         if not vp.enabled:  # retrieval only: the most probable (or most voted) entry, no pose
