@@ -155,11 +155,13 @@ class Recognizer(ABC):
 #: every pipeline; the settings measured in docs/localization.md): every nearest neighbour paired, each candidate
 #: verified as a local map of the entries within 15 m, ICP clouds cropped at 40 m, RANSAC from 3 inliers, accepted
 #: by eps_ICP with at least 70 % of the query's voxels overlapping the local map; a candidate within 7.5 m (half
-#: the local map's radius) of one already verified for the query is skipped.
+#: the local map's radius) of one already verified for the query is skipped; when voting ends without an accepted
+#: place, the voting pipelines verify the 30 most voted (their last resort).
 LOCALIZE_VERIFY: dict[str, Any] = {
     "verify_tau_max": 1.0,
     "verify_radius_m": 15.0,
     "verify_separation_m": 7.5,
+    "fallback_top_k": 30,
     "verify": {
         "verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 3}, "score": {"min_fitness": 0.7}}
     },

@@ -181,6 +181,23 @@ def test_localises_a_simulated_scan_with_a_6dof_pose():
     assert 0 < c.extra["keypoints_consumed"] <= c.extra["n_keypoints"]
 
 
+def test_fallback_verifies_fallback_top_k_places():
+    from placerec.sim import SimulatedSequence
+
+    seq = SimulatedSequence(world="town", sensor="vlp16", n_scans=5, seed=5, clutter=False, spacing=2.0)
+    # nothing can be accepted (eps_ICP ~ 0) and nothing stops early: the fallback verifies the only candidates
+    strict = {"early_stop": False, "verify": {"top_k": 1, "verify": {"score": {"eps_icp": 1e-12}}}}
+    descs = None
+    for fallback, expected in ((None, 1), (3, 3)):
+        rec = ProbabilisticVoting(strict, fallback_top_k=fallback)
+        descs = descs or {i: rec.describe(seq[i]) for i in range(5)}
+        for i in (0, 2, 3, 4):
+            rec.add_description(i, descs[i], seq.poses[i])
+        cands = rec.query_description(descs[1], k=10, query_id=1)
+        assert len(cands) == expected and not any(c.extra["accepted"] for c in cands)
+        assert all(c.extra["verify"]["correspondences"] > 0 for c in cands)  # each went through verification
+
+
 def test_build_places_and_fit_votes_commands(tmp_path):
     runner = CliRunner()
     places, model, fig = tmp_path / "places.npz", tmp_path / "votes.npz", tmp_path / "votes.png"

@@ -16,7 +16,8 @@ What is implemented (`GestaltVoting`, registered as ``shot-gestalt-votes``):
    ``exp(mu + z * sigma)`` (``z``: ``lognormal_z``); then matching stops and the ``verify.top_k`` most voted
    places not verified yet go through the verification stage every localisation pipeline shares (geometric
    consistency grouping, RANSAC, point-to-plane ICP, eps_ICP = 7 m^2). An accepted place ends the query; otherwise
-   the next round goes on. When every keypoint is consumed, the most voted unverified places are verified.
+   the next round goes on. When every keypoint is consumed, the most voted unverified places are verified
+   (``fallback_top_k`` of them; every verified place at least ``verify_separation_m`` from the others).
 
 Departures, said plainly:
 
@@ -133,7 +134,9 @@ class GestaltVoting(KeypointVoting):
             stopped = True
             accepted = self._verify_top(votes, eligible, verified, q, qkp, starts, description, query_id, thr)
         if not accepted:
-            self._verify_top(votes, eligible, verified, q, qkp, starts, description, query_id, thr)
+            self._verify_top(
+                votes, eligible, verified, q, qkp, starts, description, query_id, thr, p.fallback_top_k
+            )
         out = sorted(
             verified.values(),
             key=lambda c: (-c.score, not c.extra.get("accepted", True), -c.extra["retrieval_score"]),
@@ -162,11 +165,13 @@ class GestaltVoting(KeypointVoting):
         description: Description,
         query_id: int,
         thr: float,
+        top_k: int | None = None,
     ) -> bool:
-        """Verify the ``verify.top_k`` most voted eligible entries not verified yet; True when one is accepted."""
+        """Verify the ``top_k`` (default ``verify.top_k``) most voted eligible entries not verified yet, at least
+        ``verify_separation_m`` apart; True when one is accepted."""
         vp = self.params.verify
         ranked = np.lexsort((np.asarray(self._ids), -votes))
-        picked = self._pick([e for e in ranked if eligible[e] and votes[e] > 0], verified, vp.top_k)
+        picked = self._pick([e for e in ranked if eligible[e] and votes[e] > 0], verified, top_k or vp.top_k)
         if not picked:
             return False
         extra = lambda e: {"votes": int(votes[e]), "n_query": int(q.shape[0]), "threshold": thr}  # noqa: E731
@@ -179,7 +184,9 @@ class GestaltVoting(KeypointVoting):
         retrieved = [
             self._matches(e, q, qkp, starts, float(votes[e]) / q.shape[0], extra(e), eligible) for e in picked
         ]
-        cands = verify_candidates(description["cloud"], retrieved, self._clouds, vp, query_id, None)
+        cands = verify_candidates(
+            description["cloud"], retrieved, self._clouds, self._verify_all(len(picked)), query_id, None
+        )
         by_id = {self._ids[e]: e for e in picked}
         for c in cands:
             verified[by_id[c.match_id]] = c

@@ -142,6 +142,12 @@ class VotingParams(FeatureParams):
         description="m; candidates within this distance of one already verified for the same query are skipped "
         "(their local maps overlap it), so the verified candidates cover distinct regions (0: none skipped)",
     )
+    fallback_top_k: int | None = Field(
+        None,
+        ge=1,
+        description="entries the voting pipelines that stop early (ishot-prob, gestalt-voting) verify when every "
+        "query keypoint is consumed without an accepted one (their last resort; None = verify.top_k)",
+    )
     local_map_cache: int = Field(
         64,
         ge=1,
@@ -519,6 +525,12 @@ class KeypointVoting(Recognizer):
             picked.append(e)
             done.append(e)
         return picked
+
+    def _verify_all(self, n: int) -> Any:
+        """The verification parameters with ``top_k`` raised to ``n`` when more candidates are to be verified (the
+        fallback's ``fallback_top_k``)."""
+        vp = self.params.verify
+        return vp if n <= vp.top_k else vp.model_copy(update={"top_k": n})
 
     def _entry_xyz(self) -> np.ndarray:
         """(entries, 3) positions of the entries (their poses' translations)."""

@@ -15,7 +15,8 @@
    consensus 7 m, RANSAC, point-to-plane ICP, accepted by eps_ICP = 7 m^2). An accepted candidate ends the query.
    If none is accepted, voting goes on with the next batch (a place verified once is not verified again).
 4. When every keypoint is consumed without an accepted candidate, the places are ranked by their vote counts
-   (``tau < tau_max``, the paper's fallback) and the top ones not yet verified are verified. Without early
+   (``tau < tau_max``, the paper's fallback) and the top ``fallback_top_k`` not yet verified are verified (the
+   registry preset: 30, at least ``verify_separation_m`` = 7.5 m from every place verified before). Without early
    stopping (``early_stop = False``: every keypoint matched in one search, the exhaustive variant) the posterior
    ranks them instead.
 
@@ -179,6 +180,7 @@ class ProbabilisticVoting(KeypointVoting):
                 query_id,
                 not p.early_stop,
                 eligible,
+                p.fallback_top_k,
             )
         for e, c in verified.items():
             if c.relative_pose is not None:
@@ -214,12 +216,14 @@ class ProbabilisticVoting(KeypointVoting):
         query_id: int,
         by_posterior: bool,
         eligible: np.ndarray | None = None,
+        top_k: int | None = None,
     ) -> bool:
-        """Verify the first ``verify.top_k`` entries of ``todo`` (entry indices); store their candidates in
+        """Verify the first ``top_k`` (default ``verify.top_k``) entries of ``todo`` (entry indices) at least
+        ``verify_separation_m`` from those verified before; store their candidates in
         ``verified`` by entry; True when one is accepted. The retrieval score is the posterior
         (``by_posterior``) or the vote fraction."""
         vp = self.params.verify
-        picked = self._pick(todo, verified, vp.top_k)
+        picked = self._pick(todo, verified, top_k or vp.top_k)
         if not picked:
             return False
         if not vp.enabled:  # retrieval only: the most probable (or most voted) entry, no pose
@@ -241,7 +245,9 @@ class ProbabilisticVoting(KeypointVoting):
             )
             for e in picked
         ]
-        cands = verify_candidates(source, retrieved, self._clouds, vp, query_id, None)
+        cands = verify_candidates(
+            source, retrieved, self._clouds, self._verify_all(len(picked)), query_id, None
+        )
         by_id = {self._ids[e]: e for e in picked}
         for c in cands:
             verified[by_id[c.match_id]] = c
