@@ -48,7 +48,6 @@ from placerec.errors import ScanDataError
 from placerec.params import Params
 from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams
 from placerec.types import Candidate, Description
-from placerec.verify.candidates import verify_candidates
 
 __all__ = ["ARTIFACT_KIND", "GestaltParams", "GestaltVoting", "lognormal_threshold", "place_votes"]
 
@@ -181,13 +180,10 @@ class GestaltVoting(KeypointVoting):
                 x: dict[str, Any] = {**extra(e), "retrieval_score": score, "accepted": True}
                 verified[e] = Candidate(query_id, self._ids[e], score, None, None, x)
             return True
-        retrieved = [
-            self._matches(e, q, qkp, starts, float(votes[e]) / q.shape[0], extra(e), eligible) for e in picked
-        ]
-        cands = verify_candidates(
-            description["cloud"], retrieved, self._clouds, self._verify_all(len(picked)), query_id, None
+        return self._verify_chunks(
+            description["cloud"],
+            picked,
+            lambda e: self._matches(e, q, qkp, starts, float(votes[e]) / q.shape[0], extra(e), eligible),
+            verified,
+            query_id,
         )
-        by_id = {self._ids[e]: e for e in picked}
-        for c in cands:
-            verified[by_id[c.match_id]] = c
-        return any(c.extra["accepted"] for c in cands)

@@ -59,7 +59,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from functools import partial
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -526,11 +526,29 @@ class KeypointVoting(Recognizer):
             done.append(e)
         return picked
 
-    def _verify_all(self, n: int) -> Any:
-        """The verification parameters with ``top_k`` raised to ``n`` when more candidates are to be verified (the
-        fallback's ``fallback_top_k``)."""
-        vp = self.params.verify
-        return vp if n <= vp.top_k else vp.model_copy(update={"top_k": n})
+    def _verify_chunks(
+        self,
+        source: Any,
+        picked: Sequence[int],
+        retrieve: Callable[[int], Retrieved],
+        verified: dict[int, Candidate],
+        query_id: int,
+    ) -> bool:
+        """Verify the entries ``picked`` (best first) ``verify.top_k`` at a time until one is accepted (more than
+        ``top_k`` come from the fallback's ``fallback_top_k``); ``retrieve(e)`` gives entry ``e``'s correspondences.
+        The candidates go into ``verified`` by entry; True when one is accepted."""
+        step = self.params.verify.top_k
+        for a in range(0, len(picked), step):
+            chunk = picked[a : a + step]
+            cands = verify_candidates(
+                source, [retrieve(e) for e in chunk], self._clouds, self.params.verify, query_id, None
+            )
+            by_id = {self._ids[e]: e for e in chunk}
+            for c in cands:
+                verified[by_id[c.match_id]] = c
+            if any(c.extra["accepted"] for c in cands):
+                return True
+        return False
 
     def _entry_xyz(self) -> np.ndarray:
         """(entries, 3) positions of the entries (their poses' translations)."""

@@ -50,7 +50,6 @@ from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, Vo
 from placerec.three_d.posterior import Posterior, PosteriorTable, density_weights
 from placerec.three_d.vote_model import VoteModel
 from placerec.types import Candidate, Description
-from placerec.verify.candidates import verify_candidates
 from placerec.verify.verify import as_source
 
 log = logging.getLogger(__name__)
@@ -233,8 +232,10 @@ class ProbabilisticVoting(KeypointVoting):
                 extra.update(accepted=True, retrieval_score=score)
                 verified[e] = Candidate(query_id, self._ids[e], score, None, None, extra)
             return True
-        retrieved = [
-            self._matches(
+        return self._verify_chunks(
+            source,
+            picked,
+            lambda e: self._matches(
                 e,
                 q,
                 qkp,
@@ -242,13 +243,7 @@ class ProbabilisticVoting(KeypointVoting):
                 float(prob[e] if by_posterior else votes[e] / q.shape[0]),
                 {"votes": int(votes[e]), "posterior": float(prob[e]), "n_query": int(q.shape[0])},
                 eligible,
-            )
-            for e in picked
-        ]
-        cands = verify_candidates(
-            source, retrieved, self._clouds, self._verify_all(len(picked)), query_id, None
+            ),
+            verified,
+            query_id,
         )
-        by_id = {self._ids[e]: e for e in picked}
-        for c in cands:
-            verified[by_id[c.match_id]] = c
-        return any(c.extra["accepted"] for c in cands)
