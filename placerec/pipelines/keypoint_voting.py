@@ -59,7 +59,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from functools import partial
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -506,7 +506,7 @@ class KeypointVoting(Recognizer):
         ids = np.asarray(self._ids)
         return np.ones(len(ids), bool) if max_id is None else ids <= max_id
 
-    def _pick(self, ranked: Any, taken: Any, k: int) -> list[int]:
+    def _pick(self, ranked: Iterable[Any], taken: Iterable[int], k: int) -> list[int]:
         """The first ``k`` entries of ``ranked`` (entry indices, best first) not in ``taken``, skipping those within
         ``verify_separation_m`` of an entry taken before (``taken`` and the ones picked here)."""
         sep = self.params.verify_separation_m
