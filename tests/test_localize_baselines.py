@@ -94,3 +94,18 @@ def test_localises_a_simulated_scan_with_a_6dof_pose(town, name):
         # the match is the map entry nearest to the estimated position, every keypoint is paired with K = 4
         assert isinstance(rec, GlobalRegistration) and c.match_id in (0, 2)
         assert c.extra["correspondences"] == 4 * c.extra["n_query"]
+
+
+def test_localize_config_verifies_every_pipeline_as_localize_verify():
+    from placerec.config import read_config_file
+    from placerec.recognizer import LOCALIZE_VERIFY, pipeline_class
+
+    rows = read_config_file("configs/localize.yaml")["pipelines"]
+    votes = next(r for r in rows if r["name"] == "ishot-votes")
+    params = pipeline_class("ishot-votes").Params(**votes["params"])
+    # ishot-votes has no early stop, so no fallback; everything else of the shared preset is given by hand
+    expected = pipeline_class("ishot-votes").Params(
+        **{k: v for k, v in LOCALIZE_VERIFY.items() if k != "fallback_top_k"},
+        places_db=votes["params"]["places_db"],
+    )
+    assert params.model_dump() == expected.model_dump()

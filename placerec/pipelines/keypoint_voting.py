@@ -652,11 +652,18 @@ class KeypointVoting(Recognizer):
 
     def _local_keypoints(self, e: int, local: Sequence[int]) -> np.ndarray:
         """The keypoints of the entries ``local``, stacked in entry ``e``'s frame."""
+        return self._in_frame(e, local, lambda j: self._keypoints[j], np.float32)
+
+    def _in_frame(
+        self, e: int, local: Sequence[int], points: Callable[[int], np.ndarray], dtype: type = np.float64
+    ) -> np.ndarray:
+        """``points(j)`` (in entry ``j``'s frame) of every entry ``j`` of ``local``, moved into entry ``e``'s frame
+        by the entries' poses (computed in ``dtype``) and stacked."""
         T_e_world = np.linalg.inv(self._poses[e])
         parts = []
         for j in local:
-            T = T_e_world @ self._poses[j]
-            parts.append(self._keypoints[j] @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32))
+            T = (T_e_world @ self._poses[j]).astype(dtype)
+            parts.append(points(j) @ T[:3, :3].T + T[:3, 3])
         return np.concatenate(parts)
 
     def _local_target(self, local: Sequence[int]) -> IcpCloud:
@@ -667,12 +674,8 @@ class KeypointVoting(Recognizer):
             self._local_targets.move_to_end(key)
             return self._local_targets[key]
         vp = self.params.verify.verify
-        T_e_world = np.linalg.inv(self._poses[key[0]])
-        parts = []
-        for j in key:
-            T = T_e_world @ self._poses[j]
-            parts.append(self._clouds.cloud(self._ids[j]) @ T[:3, :3].T + T[:3, 3])
-        target = as_target(voxel_points(np.concatenate(parts), vp.icp.voxel_size), vp)
+        merged = self._in_frame(key[0], key, lambda j: self._clouds.cloud(self._ids[j]))
+        target = as_target(voxel_points(merged, vp.icp.voxel_size), vp)
         self._local_targets[key] = target
         while len(self._local_targets) > self.params.local_map_cache:
             self._local_targets.popitem(last=False)
