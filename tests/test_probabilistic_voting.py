@@ -9,7 +9,7 @@ from synthetic_places import add_synthetic_places
 from typer.testing import CliRunner
 
 from placerec.cli import app
-from placerec.errors import ArtifactError, ConfigError
+from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.pipelines.probabilistic_voting import ProbabilisticVoting
 from placerec.three_d.places import PlacesDatabase
 from placerec.three_d.posterior import Posterior, PosteriorTable, density_weights
@@ -109,6 +109,19 @@ def test_keypoint_density_correction_weights_dense_places_down():
     assert p[0] == pytest.approx(p[1], rel=1e-5) and p[2] < p[0]
 
 
+def test_scale_is_evidence_against_the_masked_places():
+    model = _model()
+    xyz = np.c_[np.arange(4) * 100.0, np.zeros(4), np.zeros(4)]
+    post = Posterior(PosteriorTable(model, xyz, "full"))
+    post.update([0, 0, 1], [0, 0, 0])
+    before = post.probabilities
+    post.scale(np.array([True, False, False, False]), 0.1)
+    expect = before * np.array([0.1, 1, 1, 1])
+    assert np.allclose(post.probabilities, expect / expect.sum(), rtol=1e-9)
+    with pytest.raises(ScanDataError):
+        post.scale(np.ones(4, bool), 0.0)
+
+
 def test_vote_model_round_trip_and_corrupt_file(tmp_path):
     rng = np.random.default_rng(2)
     model = fit_vote_model(_mixture_sample(rng, 400, 3.0, 0.6, 100.0), rng.uniform(0, 1, 400), 100.0,
@@ -162,6 +175,45 @@ def test_verify_separation_spreads_the_verified_places():
     assert xs[0.0][0] == xs[12.0][0] == 35.0  # place 7 first either way
     assert min(abs(a - b) for a in xs[0.0] for b in xs[0.0] if a != b) == 5.0  # its neighbours next
     assert all(abs(a - b) >= 12.0 for a in xs[12.0] for b in xs[12.0] if a != b) and len(xs[12.0]) == 3
+
+
+def test_stop_radius_tests_the_posterior_of_each_region():
+    common = {"verify": {"enabled": False}}
+    rec = ProbabilisticVoting(common, stop_radius_m=5.0)
+    _synthetic_db(rec, np.random.default_rng(4))  # places 5 m apart on a line
+    prob = np.random.default_rng(0).dirichlet(np.ones(20))
+    padded = np.r_[0.0, prob, 0.0]
+    assert np.allclose(
+        rec._stop_mass(prob), padded[:-2] + padded[1:-1] + padded[2:]
+    )  # each place and its neighbours
+    rec0 = ProbabilisticVoting(common)
+    _synthetic_db(rec0, np.random.default_rng(4))
+    assert rec0._stop_mass(prob) is prob  # the paper's test: each place alone
+
+
+def test_a_rejection_sends_the_stop_to_the_next_place_without_more_keypoints():
+    from placerec.sim import SimulatedSequence
+
+    seq = SimulatedSequence(world="town", sensor="vlp16", n_scans=5, seed=5, clutter=False, spacing=2.0)
+    # every candidate is rejected (eps_ICP ~ 0) and every batch passes the stop test (xi_v ~ 0)
+    strict = {"xi_v": 1e-9, "verify": {"top_k": 1, "verify": {"score": {"eps_icp": 1e-12}}}}
+    descs = None
+    consumed = {}
+    for weight in (1.0, 1e-6):
+        rec = ProbabilisticVoting(strict, reject_weight=weight)
+        descs = descs or {i: rec.describe(seq[i]) for i in range(5)}
+        for i in (0, 2, 3, 4):
+            rec.add_description(i, descs[i], seq.poses[i])
+        cands = rec.query_description(descs[1], k=10, query_id=1)
+        assert len(cands) == 4 and not any(c.extra["accepted"] for c in cands)
+        assert cands[0].extra["n_verified"] == 4
+        consumed[weight] = cands[0].extra["keypoints_consumed"]
+    n = cands[0].extra["n_keypoints"]
+    assert n > 80
+    # the paper's query verifies one place per batch, then one more batch finds nothing left to verify
+    assert consumed[1.0] == 80
+    # a rejection is evidence against its place: the next one passes the test on the first batch's votes
+    assert consumed[1e-6] == 16
 
 
 def test_localises_a_simulated_scan_with_a_6dof_pose():

@@ -104,9 +104,9 @@ def ensure_artifacts(cfg: Any, rebuild: bool, figure: Path | None) -> dict[str, 
 
 
 def query_figures(record: PipelineRecord) -> dict[str, Any]:
-    """Keypoints consumed, early-stop rate and time per localisation of one pipeline's queries."""
+    """Keypoints consumed, early-stop rate, places verified and time per localisation of one pipeline's queries."""
     per_scan = record.per_scan_ms()
-    consumed, stops, match = [], [], []
+    consumed, stops, match, verified = [], [], [], []
     for cands in record.candidates:
         top = cands[0].extra if cands else {}
         if "keypoints_consumed" in top:
@@ -114,6 +114,8 @@ def query_figures(record: PipelineRecord) -> dict[str, Any]:
             if "early_stop" in top:  # pipelines that can stop early (not global registration)
                 stops.append(bool(top["early_stop"]))
             match.append(float(top.get("match_ms", 0.0)))
+            if "n_verified" in top:
+                verified.append(top["n_verified"])
         elif "n_query" in top:  # vote counting: every keypoint matched against the database
             consumed.append(top["n_query"])
     return {
@@ -123,6 +125,7 @@ def query_figures(record: PipelineRecord) -> dict[str, Any]:
         "keypoints_consumed_median": round(float(np.median(consumed)), 1) if consumed else None,
         "early_stop_rate": round(float(np.mean(stops)), 3) if stops else None,
         "match_ms": round(float(np.mean(match)), 1) if match else None,
+        "verified": round(float(np.mean(verified)), 2) if verified else None,
     }
 
 
@@ -198,6 +201,8 @@ def main() -> None:
         "mean ms",
         "keypoints",
         "early stop",
+        "verified",
+        "wrong accepted",
     ):
         table.add_column(col)
     fmt = lambda v, p="{:.1%}": "-" if v is None else p.format(v)  # noqa: E731
@@ -205,16 +210,18 @@ def main() -> None:
         for label, r in res["pipelines"].items():
             table.add_row(cond, label, fmt(r["success_3m"]), fmt(r["success_1m_5deg"]), fmt(r["median_ms"], "{:.0f}"),
                           fmt(r["mean_ms"], "{:.0f}"), fmt(r["keypoints_consumed"], "{:.1f}"),
-                          fmt(r["early_stop_rate"]), str(r["accepted_wrong"]))  # fmt: skip
+                          fmt(r["early_stop_rate"]), fmt(r["verified"], "{:.1f}"), str(r["accepted_wrong"]))  # fmt: skip
     Console().print(table)
     reduction = {}
     for cond, res in results.items():
-        p, e = res["pipelines"].get("ishot-prob"), res["pipelines"].get("ishot-exhaustive")
-        if p and e and p["keypoints_consumed"] and p["match_ms"]:
-            reduction[cond] = {
-                "keypoints_x": round(e["keypoints_consumed"] / p["keypoints_consumed"], 2),
-                "match_time_x": round(e["match_ms"] / p["match_ms"], 2),
-            }
+        e = res["pipelines"].get("ishot-exhaustive")
+        for label in ("ishot-prob", "ishot-prob-region-stop"):
+            p = res["pipelines"].get(label)
+            if p and e and p["keypoints_consumed"] and p["match_ms"]:
+                reduction.setdefault(label, {})[cond] = {
+                    "keypoints_x": round(e["keypoints_consumed"] / p["keypoints_consumed"], 2),
+                    "match_time_x": round(e["match_ms"] / p["match_ms"], 2),
+                }
     line = {
         "tool": "eval_localization",
         "config": os.path.relpath(args.config, ROOT),

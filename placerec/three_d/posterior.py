@@ -155,6 +155,13 @@ class Posterior:
         self.table.add(self.log, voted, tau_range, self.weights[voted])
         self.n_votes += int(voted.size)
 
+    def scale(self, mask: np.ndarray, factor: float) -> None:
+        """Multiply the posterior of the places in ``mask`` by ``factor`` (evidence against them, e.g. a rejected
+        verification); the others gain by the renormalisation."""
+        if factor <= 0:
+            raise ScanDataError(f"posterior: a scale factor must be > 0, got {factor}")
+        self.log[np.asarray(mask, bool)] += np.log(factor)
+
     @property
     def probabilities(self) -> np.ndarray:
         """The normalised posterior (sums to 1; uniform before any vote)."""
