@@ -7,7 +7,8 @@ min(N) places (so that every map covers them) localise in it with probabilistic
 voting (``ishot-prob``, the vote model of ``configs/localize.yaml``), with exhaustive matching (every keypoint
 matched, ranked by the posterior), with plain vote counting (``ishot-votes``) and with probabilistic voting over an
 approximate index (``index: ivf``: faiss IVF, sqrt(descriptors) lists, 16 searched; its build timed apart), and on
-request (``--variants``) with the paper's baselines ``shot-global`` and ``shot-gestalt-votes`` over SHOT places of the
+request (``--variants``) with the region stop test (``ishot-prob-region``: ``stop_radius_m`` 7.5, ``reject_weight``
+0.02, docs/localization.md) and the paper's baselines ``shot-global`` and ``shot-gestalt-votes`` over SHOT places of the
 same towns. Printed per N: median and mean
 time per localisation (describe + query + verification), median matching time, keypoints consumed, success within
 3 m, and the memory of the sparse and of the full posterior tables; then the growth rate: the slope of log(time)
@@ -16,6 +17,7 @@ against log(N) between the smallest and the largest map (1 = linear). The last l
     python tools/bench_localization_scaling.py                   # 50, 200, 800 places; ~15 min the first time
     python tools/bench_localization_scaling.py --sizes 50,200 --n-queries 5
     python tools/bench_localization_scaling.py --sizes 121,800 --variants ishot-prob,shot-global,shot-gestalt-votes
+    python tools/bench_localization_scaling.py --variants ishot-prob,ishot-prob-region
 """
 
 from __future__ import annotations
@@ -112,6 +114,9 @@ def main() -> None:
         "ishot-exhaustive": lambda: make_pipeline("ishot-prob", {**model, "early_stop": False}),
         "ishot-votes": lambda: make_pipeline("ishot-votes", same_verify),
         "ishot-prob-ivf": lambda: make_pipeline("ishot-prob", {**model, "index": "ivf"}),
+        "ishot-prob-region": lambda: make_pipeline(
+            "ishot-prob", {**model, "stop_radius_m": 7.5, "reject_weight": 0.02}
+        ),
         "shot-global": lambda: make_pipeline("shot-global"),
         "shot-gestalt-votes": lambda: make_pipeline("shot-gestalt-votes"),
     }
