@@ -121,15 +121,16 @@ class ProbabilisticVoting(KeypointVoting):
         p = self.params
         self.vote_model = VoteModel.load(p.vote_model) if p.vote_model else p.model.build()
         self._table: PosteriorTable | None = None
-        self._region: tuple[tuple[float, int], np.ndarray] | None = None
+        self._region: tuple[tuple[float, int], Any] | None = None
 
     def _reset(self) -> None:
         super()._reset()
-        self._table = None
+        self._table, self._region = None, None
 
     def _append_rows(self, desc: np.ndarray, entry: np.ndarray) -> None:
         super()._append_rows(desc, entry)
-        self._table = None  # the entries changed: their posterior vectors are rebuilt on the next query
+        # the entries changed: their posterior vectors and regions are rebuilt on the next query
+        self._table, self._region = None, None
 
     def posterior_table(self) -> PosteriorTable:
         """The vote vectors over every entry (built on first use after the entries change)."""
@@ -243,9 +244,15 @@ class ProbabilisticVoting(KeypointVoting):
         if r <= 0:
             return prob
         if self._region is None or self._region[0] != (r, len(prob)):
-            xyz = self._entry_xyz()
-            near = np.linalg.norm(xyz[:, None, :] - xyz[None, :, :], axis=2) <= r
-            self._region = ((r, len(prob)), near.astype(np.float64))
+            from scipy.sparse import csr_matrix
+            from scipy.spatial import cKDTree
+
+            # sparse (places x places) neighbourhood: memory grows with the places within r, not with their square
+            nbrs = cKDTree(self._entry_xyz()).query_ball_point(self._entry_xyz(), r=r)
+            cols = np.concatenate([np.asarray(nb, np.int64) for nb in nbrs])
+            rows = np.repeat(np.arange(len(nbrs)), [len(nb) for nb in nbrs])
+            near = csr_matrix((np.ones(cols.size), (rows, cols)), shape=(len(nbrs), len(nbrs)))
+            self._region = ((r, len(prob)), near)
         return self._region[1] @ prob
 
     def _source(self, description: Description) -> Any:
