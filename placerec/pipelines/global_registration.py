@@ -106,8 +106,7 @@ class GlobalRegistration(KeypointVoting):
         if hyp.rejected_at is not None:
             return []
         T_world_query = hyp.T_match_query
-        centres = np.stack([P[:3, 3] for P in self._poses])
-        d = np.linalg.norm(centres - T_world_query[:3, 3], axis=1)
+        d = np.linalg.norm(self._entry_xyz() - T_world_query[:3, 3], axis=1)
         d[~eligible] = np.inf
         e = int(np.argmin(d))
         T_entry_world = np.linalg.inv(self._poses[e])

@@ -445,8 +445,7 @@ class KeypointVoting(Recognizer):
         if p.place_window_m > 0:
             self._push_buffer(scan_id, T, description)
         if p.place_spacing_m > 0 and self._poses:
-            centres = np.stack([P[:3, 3] for P in self._poses])
-            if np.min(np.linalg.norm(centres - T[:3, 3], axis=1)) < p.place_spacing_m:
+            if np.min(np.linalg.norm(self._entry_xyz() - T[:3, 3], axis=1)) < p.place_spacing_m:
                 return
         if p.place_window_m > 0:
             kp, desc, cloud = self._describe_buffer(T)

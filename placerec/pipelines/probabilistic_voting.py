@@ -121,7 +121,7 @@ class ProbabilisticVoting(KeypointVoting):
         p = self.params
         self.vote_model = VoteModel.load(p.vote_model) if p.vote_model else p.model.build()
         self._table: PosteriorTable | None = None
-        self._region: tuple[tuple[float, int], Any] | None = None
+        self._region: Any = None  # sparse (places x places): 1 within stop_radius_m
 
     def _reset(self) -> None:
         super()._reset()
@@ -135,8 +135,9 @@ class ProbabilisticVoting(KeypointVoting):
     def posterior_table(self) -> PosteriorTable:
         """The vote vectors over every entry (built on first use after the entries change)."""
         if self._table is None:
-            xyz = np.asarray([T[:3, 3] for T in self._poses], np.float64).reshape(-1, 3)
-            self._table = PosteriorTable(self.vote_model, xyz, self.params.posterior, self.params.truncation)
+            self._table = PosteriorTable(
+                self.vote_model, self._entry_xyz(), self.params.posterior, self.params.truncation
+            )
         return self._table
 
     def query_description(
@@ -243,7 +244,7 @@ class ProbabilisticVoting(KeypointVoting):
         r = self.params.stop_radius_m
         if r <= 0:
             return prob
-        if self._region is None or self._region[0] != (r, len(prob)):
+        if self._region is None:  # built on first use after the entries change
             from scipy.sparse import csr_matrix
             from scipy.spatial import cKDTree
 
@@ -251,9 +252,8 @@ class ProbabilisticVoting(KeypointVoting):
             nbrs = cKDTree(self._entry_xyz()).query_ball_point(self._entry_xyz(), r=r)
             cols = np.concatenate([np.asarray(nb, np.int64) for nb in nbrs])
             rows = np.repeat(np.arange(len(nbrs)), [len(nb) for nb in nbrs])
-            near = csr_matrix((np.ones(cols.size), (rows, cols)), shape=(len(nbrs), len(nbrs)))
-            self._region = ((r, len(prob)), near)
-        return self._region[1] @ prob
+            self._region = csr_matrix((np.ones(cols.size), (rows, cols)), shape=(len(nbrs), len(nbrs)))
+        return self._region @ prob
 
     def _source(self, description: Description) -> Any:
         if "cloud" not in description:
