@@ -1,0 +1,56 @@
+"""The tuning split and the test split: which simulated data may choose a default, and which may only be reported.
+
+Every default of placerec that was chosen on data (a preset's operating threshold, ``top_k``, a verification
+setting, the SLAM acceptance threshold, DELIGHT's radii and bins, the localisation vote model) was chosen on the
+**tuning split**. The **test split** is the held-out benchmark (`placerec bench`, ``configs/benchmark.yaml``): no
+default may ever be chosen on it, and a committed config or preset that names one of its seeds fails the suite
+(``tests/test_protocol.py``). ``docs/protocol.md`` lists both splits in words.
+
+Tuning split
+    * loop closure: the demo sequence (town, OS1-64, route ``default``, seed 0) and the tuning matrix
+      (`TUNING_WORLDS` x `TUNING_SENSORS` x `TUNING_SEEDS`);
+    * localisation: query draw `LOCALIZE_TUNING_DRAW` (``draw=1``) of the town VLP-16 map, seed 0;
+    * the verification pairs and SuperPoint's training / validation seeds (100-109), the DBoW vocabularies'
+      training seeds (100-109), the feature evaluation's seeds (200-203).
+
+Test split
+    * loop closure and SLAM: `TEST_WORLDS` x `TEST_SENSORS` x `TEST_SEEDS`, route ``default`` (same- and
+      opposite-direction revisits);
+    * localisation: query draw `LOCALIZE_TEST_DRAW` of the maps (town, campus, industrial; VLP-16, seed 0).
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "TEST_WORLDS",
+    "TEST_SENSORS",
+    "TEST_SEEDS",
+    "TUNING_WORLDS",
+    "TUNING_SENSORS",
+    "TUNING_SEEDS",
+    "LOCALIZE_TUNING_DRAW",
+    "LOCALIZE_TEST_DRAW",
+    "is_test_seed",
+]
+
+#: Worlds of the held-out benchmark.
+TEST_WORLDS: tuple[str, ...] = ("town", "campus", "industrial")
+#: Sensors of the held-out benchmark.
+TEST_SENSORS: tuple[str, ...] = ("vlp16", "hdl64", "os1-64", "os1-128")
+#: Simulator seeds of the held-out benchmark: used nowhere else in placerec, never to choose a default.
+TEST_SEEDS: tuple[int, ...] = (4601, 4602)
+
+#: The tuning matrix the operating thresholds are chosen on (with the demo sequence, town OS1-64 seed 0).
+TUNING_WORLDS: tuple[str, ...] = ("town", "campus", "industrial")
+TUNING_SENSORS: tuple[str, ...] = ("vlp16", "hdl64", "os1-64", "os1-128")
+TUNING_SEEDS: tuple[int, ...] = (0,)
+
+#: Localisation query draws (`placerec.sim.make_localization_split`'s ``draw``): the training queries, on which
+#: the vote model, ``reject_weight`` and DELIGHT were chosen, and the held-out queries reported as results.
+LOCALIZE_TUNING_DRAW = 1
+LOCALIZE_TEST_DRAW = 2
+
+
+def is_test_seed(seed: int) -> bool:
+    """Whether ``seed`` is a test-split simulator seed (no default may be chosen on it)."""
+    return int(seed) in TEST_SEEDS
