@@ -30,6 +30,7 @@ __all__ = [
     "PipelineSpec",
     "ExclusionConfig",
     "LocalizeConfig",
+    "PoseTruthConfig",
     "EvaluationConfig",
     "OutputConfig",
     "ExecutionConfig",
@@ -110,11 +111,15 @@ class PreprocessConfig(Params):
 
 class PipelineSpec(Params):
     """One pipeline to run: a registry name (see ``placerec.recognizer.PIPELINES``) or ``module:Class``,
-    a display label, and parameter overrides validated by the pipeline itself."""
+    a display label, parameter overrides validated by the pipeline itself, and the operating threshold the
+    report judges it at (None: the registry preset's, chosen on the tuning split; docs/protocol.md)."""
 
     name: str
     label: str | None = None
     params: dict[str, Any] = Field(default_factory=dict)
+    threshold: float | None = Field(
+        None, allow_inf_nan=False, description="operating threshold on the candidate score (None: the preset's)"
+    )
 
     @property
     def display_name(self) -> str:
@@ -140,6 +145,18 @@ class LocalizeConfig(Params):
     success_distance: float = Field(3.0, gt=0)
 
 
+class PoseTruthConfig(Params):
+    """The pose ground truth (`placerec.eval.pose_truth`): a revisit overlaps an eligible scan by ``min_overlap``
+    (voxels of ``voxel`` m), a closure is true when its relative pose is within ``max_translation`` /
+    ``max_rotation_deg`` of the true one. Reported beside the distance-only figures in loop mode."""
+
+    enabled: bool = True
+    max_translation: float = Field(0.5, gt=0, allow_inf_nan=False, description="m")
+    max_rotation_deg: float = Field(2.0, gt=0, allow_inf_nan=False, description="deg")
+    min_overlap: float = Field(0.5, gt=0, le=1, description="fraction of the smaller scan's voxels")
+    voxel: float = Field(1.0, gt=0, allow_inf_nan=False, description="m")
+
+
 class EvaluationConfig(Params):
     """How pipelines are evaluated (loop: VPR paper protocol; localize: ISHOT paper protocol)."""
 
@@ -157,6 +174,11 @@ class EvaluationConfig(Params):
     )
     reverse_yaw_deg: float = Field(
         90.0, gt=0, le=180, description="a revisit is reverse-direction beyond this heading difference (deg)"
+    )
+    pose_truth: PoseTruthConfig = Field(default_factory=PoseTruthConfig)
+    gt_icp: bool = Field(
+        False,
+        description="VPR paper's ground truth: a revisit is near AND an ICP from the true pose succeeds (1 m, 20 deg)",
     )
     localize: LocalizeConfig = Field(default_factory=LocalizeConfig)
 

@@ -170,11 +170,14 @@ LOCALIZE_VERIFY: dict[str, Any] = {
 
 @dataclass(frozen=True)
 class PipelineEntry:
-    """A registered pipeline: its class (``"module:Class"``), parameter preset and a one-line summary."""
+    """A registered pipeline: its class (``"module:Class"``), parameter preset, a one-line summary and its
+    operating ``threshold`` on the candidate score (what `LoopClosureDetector` accepts and the benchmark judges
+    at), chosen once on the tuning split (docs/protocol.md); None where none was chosen."""
 
     target: str
     summary: str
     preset: dict[str, Any] = field(default_factory=dict)
+    threshold: float | None = None
 
 
 #: Registered pipelines by short name.

@@ -39,10 +39,13 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> 
 
     pipelines = build_pipelines(cfg)
     if cfg.evaluation.mode == "loop":
-        require_poses(loop_sequence(cfg))
+        from placerec.experiment.truth import TruthClouds
+
+        seq = require_poses(loop_sequence(cfg))
+        truth = TruthClouds(cfg.evaluation, seq.poses)
         run = make_run_dir(cfg, out_dir)
-        seq, records = run_loop(cfg, None, pipelines)
-        payload = report_loop(cfg, run, seq, records)
+        seq, records = run_loop(cfg, None, pipelines, on_scan=truth)
+        payload = report_loop(cfg, run, seq, records, truth)
     else:
         localize_sequences(cfg)
         run = make_run_dir(cfg, out_dir)

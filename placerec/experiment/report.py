@@ -47,16 +47,21 @@ from placerec.eval import (
     LoopMetrics,
     closure_pose_errors,
     direction_summary,
+    error_stats,
     evaluate_loop,
     full_pose_mask,
     localization_metrics,
     loop_ground_truth,
+    loop_metrics,
     retrieval_metrics,
     timing_summary,
 )
+from placerec.eval.icp_truth import icp_ground_truth
+from placerec.eval.pose_truth import PoseGroundTruth, correct_candidates, overlap_truth, with_candidates
 from placerec.experiment import figures
 from placerec.experiment.candidates import CandidateTable, read_candidates, write_candidates
 from placerec.experiment.runner import STAGES, PipelineRecord
+from placerec.experiment.truth import TruthClouds
 from placerec.io import read_poses, write_kitti_poses
 from placerec.io.atomic import atomic_write
 from placerec.types import Sequence
@@ -147,25 +152,110 @@ def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
     return _loop_summary(cfg, table, poses, stamps)[1]
 
 
+def operating_point(
+    metrics: LoopMetrics, relative_poses: np.ndarray, poses: np.ndarray, threshold: float | None
+) -> dict[str, Any] | None:
+    """The figures of a pipeline at its fixed operating ``threshold`` (None when it has none): precision, recall,
+    F1, the counts, and the translation / rotation errors of every closure accepted there (true or false)."""
+    if threshold is None:
+        return None
+    c = metrics.confusion_at(threshold)
+    accepted = c["tp"] + c["fp"]
+    p = c["tp"] / accepted if accepted else 1.0
+    r = c["tp"] / metrics.n_revisits if metrics.n_revisits else 0.0
+    errors = closure_pose_errors(metrics, relative_poses, poses, threshold)
+    acc = errors.accepted
+    return {
+        "threshold": float(threshold),
+        "precision": p,
+        "recall": r,
+        "f1": 2 * p * r / (p + r) if p + r > 0 else 0.0,
+        "n_accepted": accepted,
+        "tp": c["tp"],
+        "fp": c["fp"],
+        "n_revisits": metrics.n_revisits,
+        "translation_m": error_stats(errors.translation_m[acc]),
+        "rotation_deg": error_stats(errors.rotation_deg[acc]),
+    }
+
+
+def _other_truth_summary(
+    metrics: LoopMetrics, relative_poses: np.ndarray, poses: np.ndarray, threshold: float | None
+) -> dict[str, Any]:
+    """``metrics.json``'s entry for a ground truth beside the distance one: its PR figures and operating point."""
+    return {
+        "n_revisits": metrics.n_revisits,
+        "max_f1": metrics.max_f1,
+        "precision_at_max_f1": metrics.precision_at_max_f1,
+        "recall_at_max_f1": metrics.recall_at_max_f1,
+        "recall_at_100_precision": metrics.recall_at_100_precision,
+        "operating": operating_point(metrics, relative_poses, poses, threshold),
+    }
+
+
 def _loop_summary(
-    cfg: ExperimentConfig, table: CandidateTable, poses: np.ndarray, stamps: np.ndarray | None
+    cfg: ExperimentConfig,
+    table: CandidateTable,
+    poses: np.ndarray,
+    stamps: np.ndarray | None,
+    threshold: float | None = None,
+    truth: TruthClouds | None = None,
+    pose_truth: PoseGroundTruth | None = None,
 ) -> tuple[LoopMetrics, dict[str, Any]]:
     """A pipeline's loop metrics and their ``metrics.json`` entry (without times): PR metrics of the top
-    candidates, recall@N, and the pose errors of the closures accepted at the max-F1 threshold."""
+    candidates, recall@N, the pose errors of the closures accepted at the max-F1 threshold, the figures at the
+    operating ``threshold`` (``operating``), the same under ``pose_truth`` (`pose_truths`) and, with ``truth``'s
+    clouds (``evaluation.gt_icp``), under the VPR paper's ICP-confirmed ground truth (``icp_truth``)."""
     q, m, s = table.top1()
     ev = cfg.evaluation
     options = _gt_options(cfg, stamps)
     topn = table.topn(ev.top_n)
     metrics, gt = evaluate_loop(q, m, s, poses, topn, **options)
+    rel = table.relative_poses[:, 0]
     summary = metrics.summary()
+    summary["operating"] = operating_point(metrics, rel, poses, threshold)
+    if pose_truth is not None:
+        summary["pose_truth"] = _other_truth_summary(
+            loop_metrics(q, m, s, pose_truth, topn), rel, poses, threshold
+        )
+    if truth is not None and truth.icp_truth and len(truth.clouds) == poses.shape[0]:
+        igt = icp_ground_truth(gt, truth.clouds, poses, truth.icp_settings)
+        summary["icp_truth"] = _other_truth_summary(loop_metrics(q, m, s, igt, topn), rel, poses, threshold)
     summary["auc"] = summary.pop("average_precision")
     summary["directions"] = direction_summary(metrics, gt, ev.reverse_yaw_deg)
     retrieval_gt = loop_ground_truth(
         poses, **{**options, "gt_distance": ev.retrieval_distance, "gt_yaw_deg": None}
     )
     summary["retrieval"] = retrieval_metrics(metrics.query_ids, topn, retrieval_gt).summary()
-    summary["pose_error"] = closure_pose_errors(metrics, table.relative_poses[:, 0], poses).summary()
+    summary["pose_error"] = closure_pose_errors(metrics, rel, poses).summary()
     return metrics, summary
+
+
+def pose_truths(
+    cfg: ExperimentConfig,
+    tables: list[CandidateTable],
+    poses: np.ndarray,
+    stamps: np.ndarray | None,
+    truth: TruthClouds | None,
+) -> list[PoseGroundTruth | None]:
+    """The pose ground truth of each pipeline's candidates (`placerec.eval.pose_truth`), sharing one revisit set:
+    the overlap's plus every query some pipeline of the run closed with a correct pose (None each when ``truth``
+    holds no voxels: pose truth off, or not collected)."""
+    if truth is None or not truth.pose_truth or len(truth.voxels) != poses.shape[0]:
+        return [None] * len(tables)
+    base = overlap_truth(truth.voxels, poses, _gt_options(cfg, stamps)["exclusion"], stamps, truth.settings)
+    keys = []
+    for table in tables:
+        width = min(cfg.evaluation.top_n, table.match_ids.shape[1])
+        keys.append(
+            correct_candidates(
+                base, poses, table.query_ids, table.match_ids[:, :width], table.relative_poses[:, :width]
+            )
+        )
+    closed = np.zeros(len(base), dtype=bool)
+    for k in keys:
+        closed[k // max(len(base), 1)] = True
+    return [with_candidates(base, k, closed) for k in keys]
 
 
 def _read_or_empty(path: Path, read: Any, empty_shape: tuple[int, ...]) -> np.ndarray:
@@ -176,9 +266,14 @@ def _read_or_empty(path: Path, read: Any, empty_shape: tuple[int, ...]) -> np.nd
 
 
 def report_loop(
-    cfg: ExperimentConfig, run: Path, seq: Sequence, records: list[PipelineRecord]
+    cfg: ExperimentConfig,
+    run: Path,
+    seq: Sequence,
+    records: list[PipelineRecord],
+    truth: TruthClouds | None = None,
 ) -> dict[str, Any]:
-    """Loop-mode metrics and all outputs; returns the metrics dict written to ``metrics.json``."""
+    """Loop-mode metrics and all outputs; returns the metrics dict written to ``metrics.json``. ``truth`` (the
+    scans' voxels collected by the run) adds the pose and ICP ground truths' figures."""
     poses = require_poses(seq).poses
     write_kitti_poses(run / "poses.txt", poses)
     if seq.timestamps is not None:
@@ -186,9 +281,13 @@ def report_loop(
             np.savetxt(fh, seq.timestamps, fmt="%.6f")
     results: dict[str, Any] = {}
     curves: dict[str, dict[str, Any]] = {}
-    for record in records:
+    tables = [record.table() for record in records]
+    pose_gts = pose_truths(cfg, tables, poses, seq.timestamps, truth)
+    for record, table, pose_gt in zip(records, tables, pose_gts, strict=True):
         write_candidates(run / f"candidates_{_slug(record.label)}.csv", record.query_ids, record.candidates)
-        metrics, summary = _loop_summary(cfg, record.table(), poses, seq.timestamps)
+        metrics, summary = _loop_summary(
+            cfg, table, poses, seq.timestamps, record.threshold, truth, pose_gt
+        )
         q, m = metrics.query_ids, metrics.match_ids
         summary["time_ms"] = _timing(record)
         results[record.label] = summary

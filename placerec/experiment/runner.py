@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,7 +27,7 @@ from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint,
 from placerec.experiment.preprocessing import preprocessed_scan
 from placerec.loop_closure import LoopClosureDetector, split_verify_time
 from placerec.params import Params
-from placerec.recognizer import make_pipeline
+from placerec.recognizer import PIPELINES, make_pipeline
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, Sequence
 
 log = logging.getLogger(__name__)
@@ -49,7 +49,8 @@ STAGES = ("preprocess", "describe", "query", "insert", "verify")
 @dataclass
 class PipelineRecord:
     """What one pipeline answered: top-N candidates per query and stage times (ms) per scan; ``pipeline`` is
-    the registry name (or ``module:Class``), ``params`` the resolved parameters (presets and defaults applied)."""
+    the registry name (or ``module:Class``), ``params`` the resolved parameters (presets and defaults applied),
+    ``threshold`` the operating threshold it is judged at (the config's, else the registry preset's; None: none)."""
 
     label: str
     name: str
@@ -58,6 +59,7 @@ class PipelineRecord:
     query_ids: list[int] = field(default_factory=list)
     candidates: list[list[Candidate]] = field(default_factory=list)
     timing_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
+    threshold: float | None = None
 
     def table(self) -> CandidateTable:
         """The candidates as a `placerec.experiment.candidates.CandidateTable` (top-1, top-N, scores)."""
@@ -142,7 +144,11 @@ def build_pipelines(cfg: ExperimentConfig) -> Pipelines:
         rec = make_pipeline(spec.name, spec.params, path=f"pipelines[{i}].params")
         params = getattr(rec, "params", None)
         resolved = params.model_dump(mode="json") if isinstance(params, Params) else dict(spec.params)
-        out.append((PipelineRecord(spec.display_name, type(rec).__name__, spec.name, resolved), rec))
+        entry = PIPELINES.get(spec.name)
+        threshold = spec.threshold if spec.threshold is not None else (entry.threshold if entry else None)
+        out.append(
+            (PipelineRecord(spec.display_name, type(rec).__name__, spec.name, resolved, threshold=threshold), rec)
+        )
     return out
 
 
@@ -189,13 +195,17 @@ def loop_sequence(cfg: ExperimentConfig, seq: Sequence | None = None) -> Sequenc
 
 
 def run_loop(
-    cfg: ExperimentConfig, seq: Sequence | None = None, pipelines: Pipelines | None = None
+    cfg: ExperimentConfig,
+    seq: Sequence | None = None,
+    pipelines: Pipelines | None = None,
+    on_scan: Callable[[int, Scan], None] | None = None,
 ) -> tuple[Sequence, list[PipelineRecord]]:
     """Loop mode: every scan queries (exclusion window applied) and is then added, for every pipeline.
 
     ``seq`` defaults to the config's dataset, ``pipelines`` to `build_pipelines`. The on-disk description cache
     (``output.cache_dir``) is keyed by the config's dataset, so it is used only when ``seq`` is not given. A
-    sequence with no scans, or one shorter than the exclusion window, gives every query no candidates."""
+    sequence with no scans, or one shorter than the exclusion window, gives every query no candidates.
+    ``on_scan(index, scan)`` sees every preprocessed scan once, in order (e.g. `placerec.experiment.truth`)."""
     pipelines = build_pipelines(cfg) if pipelines is None else pipelines
     own_data = seq is None
     cache_dir = cfg.output.cache_dir if own_data else None
@@ -222,6 +232,8 @@ def run_loop(
         tasks = [progress.add_task(record.label, total=len(seq)) for record, _ in pipelines]
         for i in range(len(seq)):
             scan, pre_ms = preprocessed_scan(seq, i, cfg.preprocess)
+            if on_scan is not None:
+                on_scan(i, scan)
             pose = None if poses is None else poses[i]
             stamp = None if stamps is None else float(stamps[i])
             for (record, rec), det, task in zip(pipelines, detectors, tasks, strict=True):
