@@ -245,6 +245,57 @@ def run(
 
 
 @app.command()
+def bench(
+    config: Annotated[
+        Path, typer.Argument(help="Benchmark YAML (configs/benchmark.yaml: the held-out test split).")
+    ],
+    out: Annotated[
+        Path | None, typer.Option("--out", "-o", help="Benchmark folder (default: output.dir/<name>).")
+    ] = None,
+    set_: Overrides = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Run N cells at once (execution.workers; executor: dask uses a cluster).")
+    ] = None,
+    fresh: Annotated[bool, typer.Option(help="Run every cell again, even those already done.")] = False,
+    suggest: Annotated[
+        bool, typer.Option(help="Also print the operating thresholds the tuning rule picks (tuning split only).")
+    ] = False,
+) -> None:
+    """Every pipeline of CONFIG over a matrix of simulated worlds x sensors x seeds, at fixed thresholds.
+
+    Cells already done with the same config are read back (an interrupted benchmark resumes); the last line is
+    one JSON object. Example: placerec bench configs/benchmark.yaml --workers 2
+    """
+    from placerec.errors import ConfigError, PlacerecError
+    from placerec.experiment.benchmark import (
+        bench_line,
+        load_benchmark_config,
+        rows,
+        run_benchmark,
+        suggest_thresholds,
+    )
+    from placerec.experiment.report import print_rows
+
+    try:
+        overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
+        cfg = load_benchmark_config(config, overrides)
+        if suggest and cfg.split != "tuning":
+            raise ConfigError("--suggest picks thresholds on the tuning split only (split: tuning)")
+        folder, payload = run_benchmark(cfg, out, fresh=fresh)
+    except PlacerecError as exc:
+        _fail(exc)
+        return
+    print_rows(*rows(payload), f"{cfg.name} ({cfg.split} split, {len(payload['cells'])} cells): matrix mean / worst")
+    if suggest:
+        import json
+
+        cells = {c: json.loads((folder / "cells" / c / "cell.json").read_text()) for c in payload["cells"]}
+        typer.echo(f"operating thresholds the tuning rule picks: {suggest_thresholds(cfg, cells)}")
+    typer.echo(f"benchmark: {folder}  (report: {folder / 'index.html'})")
+    typer.echo(bench_line(payload))
+
+
+@app.command()
 def slam(
     config: Annotated[
         Path | None, typer.Argument(help="SLAM YAML (see configs/slam_*.yaml); none: the defaults.")

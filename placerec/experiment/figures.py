@@ -17,6 +17,7 @@ __all__ = [
     "plot_localization",
     "plot_slam_trajectories",
     "plot_feature_matches",
+    "plot_heatmap",
 ]
 
 
@@ -244,4 +245,33 @@ def plot_feature_matches(
         ax.set_axis_off()
     if title:
         fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
+def plot_heatmap(
+    values: np.ndarray,
+    rows: list[str],
+    columns: list[str],
+    path: Path,
+    title: str,
+    marks: np.ndarray | None = None,
+) -> Path:
+    """A (rows x columns) heatmap of figures in [0, 1] with each value written in its cell (NaN: blank, ``-``);
+    ``marks`` (same shape, bool) draws an ``x`` over the cells to flag (e.g. a false closure accepted there)."""
+    plt = _pyplot()
+    v = np.asarray(values, dtype=np.float64).reshape(len(rows), len(columns))
+    fig, ax = plt.subplots(figsize=(1.2 + 0.55 * max(len(columns), 1), 1.4 + 0.45 * max(len(rows), 1)), dpi=110)
+    im = ax.imshow(np.ma.masked_invalid(v), cmap="viridis", vmin=0.0, vmax=1.0, aspect="auto")
+    for i in range(v.shape[0]):
+        for j in range(v.shape[1]):
+            text = "-" if not np.isfinite(v[i, j]) else f"{v[i, j]:.2f}"
+            dark = np.isfinite(v[i, j]) and v[i, j] < 0.6
+            ax.text(j, i, text, ha="center", va="center", fontsize=7, color="white" if dark else "black")
+            if marks is not None and marks[i][j]:
+                ax.plot([j - 0.45, j + 0.45], [i - 0.45, i + 0.45], color="red", lw=1.2)
+                ax.plot([j - 0.45, j + 0.45], [i + 0.45, i - 0.45], color="red", lw=1.2)
+    ax.set_xticks(range(len(columns)), columns, rotation=60, ha="right", fontsize=7)
+    ax.set_yticks(range(len(rows)), rows, fontsize=8)
+    ax.set_title(title, fontsize=9)
+    fig.colorbar(im, ax=ax, fraction=0.03, pad=0.02)
     return _save(fig, path)

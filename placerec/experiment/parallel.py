@@ -19,7 +19,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
-from placerec.config import DatasetConfig, ExperimentConfig, parse_config
+from placerec.config import DatasetConfig, ExecutionConfig, ExperimentConfig, parse_config
 from placerec.errors import ConfigError, DependencyError, ScanDataError
 from placerec.experiment.cache import DescriptionCache
 from placerec.experiment.datasets import open_dataset
@@ -28,7 +28,7 @@ from placerec.hashing import stable_hash
 from placerec.recognizer import make_pipeline
 from placerec.types import PlaceRecognizer, Sequence
 
-__all__ = ["ChunkResult", "describe_chunk", "describe_in_parallel"]
+__all__ = ["ChunkResult", "describe_chunk", "describe_in_parallel", "task_pool"]
 
 log = logging.getLogger(__name__)
 
@@ -152,6 +152,15 @@ def _dask_pool(workers: int, scheduler: str | None) -> Iterator[Callable[..., li
             cluster.close()
 
 
+def task_pool(execution: ExecutionConfig) -> Any:
+    """A context manager giving ``submit(fn, args, done)`` on ``execution``'s executor: local spawned processes or
+    Dask (a LocalCluster of ``workers``, or the scheduler at ``scheduler``); ``submit`` runs ``fn(*a)`` for every
+    ``a`` in ``args``, calls ``done`` with each result as it completes and returns the results (completion order)."""
+    if execution.executor == "dask":
+        return _dask_pool(execution.workers, execution.scheduler)
+    return _local_pool(execution.workers)
+
+
 def describe_in_parallel(
     cfg: ExperimentConfig,
     dataset: DatasetConfig,
@@ -172,9 +181,8 @@ def describe_in_parallel(
         if progress is not None:
             progress.advance(task, result.scans)
 
-    pool = _dask_pool(ex.workers, ex.scheduler) if ex.executor == "dask" else _local_pool(ex.workers)
     t0 = time.perf_counter()
-    with pool as submit:
+    with task_pool(ex) as submit:
         results = submit(describe_chunk, args, done)
     log.info(
         "described %d scans in %.1f s on %s (%d workers): %d descriptions computed, %d cached",

@@ -176,7 +176,25 @@ def operating_point(
         "n_revisits": metrics.n_revisits,
         "translation_m": error_stats(errors.translation_m[acc]),
         "rotation_deg": error_stats(errors.rotation_deg[acc]),
+        "accepted_translation_m": [round(float(v), 4) for v in errors.translation_m[acc] if np.isfinite(v)],
+        "accepted_rotation_deg": [round(float(v), 3) for v in errors.rotation_deg[acc] if np.isfinite(v)],
     }
+
+
+def _min_score(params: dict[str, Any]) -> float | None:
+    """The verification's ``min_score`` of a pipeline's resolved parameters when it accepts by score (a candidate
+    scoring below it was rejected), else None."""
+    score = _get(params, ("verify", "verify", "score"))
+    if isinstance(score, dict) and score.get("acceptance", "score") == "score":
+        return score.get("min_score")
+    return None
+
+
+def max_false_score(metrics: LoopMetrics) -> float:
+    """The score of the best-scored false closure (NaN when every candidate is true or there is none): a
+    threshold above it accepts no false closure."""
+    wrong = (metrics.match_ids >= 0) & ~metrics.correct
+    return float(metrics.scores[wrong].max()) if wrong.any() else float("nan")
 
 
 def _other_truth_summary(
@@ -189,6 +207,7 @@ def _other_truth_summary(
         "precision_at_max_f1": metrics.precision_at_max_f1,
         "recall_at_max_f1": metrics.recall_at_max_f1,
         "recall_at_100_precision": metrics.recall_at_100_precision,
+        "max_false_score": max_false_score(metrics),
         "operating": operating_point(metrics, relative_poses, poses, threshold),
     }
 
@@ -214,6 +233,8 @@ def _loop_summary(
     rel = table.relative_poses[:, 0]
     summary = metrics.summary()
     summary["operating"] = operating_point(metrics, rel, poses, threshold)
+    summary["max_false_score"] = max_false_score(metrics)
+    summary["max_score"] = float(np.nanmax(s)) if np.isfinite(s).any() else float("nan")
     if pose_truth is not None:
         summary["pose_truth"] = _other_truth_summary(
             loop_metrics(q, m, s, pose_truth, topn), rel, poses, threshold
@@ -271,9 +292,11 @@ def report_loop(
     seq: Sequence,
     records: list[PipelineRecord],
     truth: TruthClouds | None = None,
+    link_latest: bool = True,
 ) -> dict[str, Any]:
     """Loop-mode metrics and all outputs; returns the metrics dict written to ``metrics.json``. ``truth`` (the
-    scans' voxels collected by the run) adds the pose and ICP ground truths' figures."""
+    scans' voxels collected by the run) adds the pose and ICP ground truths' figures; ``link_latest`` False leaves
+    ``latest`` alone (a benchmark's cells)."""
     poses = require_poses(seq).poses
     write_kitti_poses(run / "poses.txt", poses)
     if seq.timestamps is not None:
@@ -290,6 +313,7 @@ def report_loop(
         )
         q, m = metrics.query_ids, metrics.match_ids
         summary["time_ms"] = _timing(record)
+        summary["min_score"] = _min_score(record.params)
         results[record.label] = summary
         curves[record.label] = {
             "precision": metrics.precision,
@@ -320,7 +344,7 @@ def report_loop(
         "pipelines": results,
         "peak_memory_mb": _peak_memory_mb(),
     }
-    _finish(cfg, run, payload, curves, records)
+    _finish(cfg, run, payload, curves, records, link_latest)
     return payload
 
 
@@ -394,6 +418,7 @@ def _finish(
     payload: dict[str, Any],
     curves: dict[str, Any],
     records: list[PipelineRecord],
+    link_latest: bool = True,
 ) -> None:
     with atomic_write(run / "metrics.json", "w") as fh:
         json.dump(_finite_or_null(payload), fh, indent=2, default=_json_default, allow_nan=False)
@@ -409,7 +434,8 @@ def _finish(
         }
         figures.plot_timing(means, run / "timing.png")
         write_index_html(run, cfg, payload)
-    point_latest(run)  # last: a run that failed before this point leaves latest where it was
+    if link_latest:
+        point_latest(run)  # last: a run that failed before this point leaves latest where it was
 
 
 def _finite_or_null(value: Any) -> Any:

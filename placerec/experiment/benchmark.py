@@ -1,0 +1,492 @@
+"""``placerec bench``: every loop pipeline over a matrix of simulated worlds x sensors x seeds, judged at fixed
+operating thresholds.
+
+A benchmark config (``configs/benchmark.yaml``) names a split of `placerec.experiment.protocol` (``test``: the
+held-out matrix; ``tuning``: the matrix the presets' thresholds are chosen on), optionally a subset of its worlds,
+sensors and seeds, the pipelines and the evaluation. Each cell (world, sensor, seed) is one loop-mode run of the
+simulator's ``route`` through `placerec.experiment.runner.run_loop` and `placerec.experiment.report.report_loop`
+(the pose and distance ground truths), written to ``<out>/cells/<cell>/`` with a ``cell.json`` stamp of its
+config: a rerun (or an interrupted benchmark started again) skips the cells already done with the same config, and
+descriptions are cached on disk (``output.cache_dir``). Cells run in ``execution.workers`` local processes or on a
+Dask cluster (``execution.executor: dask``).
+
+Per pipeline and cell, and over the matrix (mean and worst): max F1 (distance ground truth, as the VPR paper),
+precision / recall / F1 at the pipeline's fixed operating threshold under the pose ground truth (the benchmark's
+headline: what a pose graph would receive) and the distance one, recall at 100 % precision, the accepted closures'
+translation / rotation errors (median, p95, max over the whole matrix), describe / query / verify ms per scan.
+Outputs: ``benchmark.json``, ``cells.csv``, heatmaps (pipeline x cell), ``index.html``, a console table and one
+JSON line (`bench_line`).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+
+from placerec.config import (
+    EvaluationConfig,
+    ExecutionConfig,
+    ExperimentConfig,
+    PipelineSpec,
+    PreprocessConfig,
+    apply_overrides,
+    read_config_file,
+)
+from placerec.errors import ArtifactError, ConfigError
+from placerec.experiment import protocol
+from placerec.hashing import stable_hash
+from placerec.io.atomic import atomic_write
+from placerec.params import Params, resolve
+
+__all__ = [
+    "BenchmarkConfig",
+    "Cell",
+    "load_benchmark_config",
+    "run_cell",
+    "run_benchmark",
+    "summarise",
+    "suggest_thresholds",
+    "bench_line",
+]
+
+log = logging.getLogger(__name__)
+
+#: The version of ``cell.json`` and ``benchmark.json``.
+BENCH_VERSION = 1
+
+
+class BenchOutputConfig(Params):
+    """Where the benchmark goes: ``dir/<name>/`` (a fixed folder, so a rerun resumes), the description cache."""
+
+    dir: str = "results"
+    cache_dir: str | None = Field(".cache/descriptions", description="per-scan description cache (None = off)")
+    figures: bool = True
+    progress: bool = True
+
+
+class BenchmarkConfig(Params):
+    """The root of a benchmark config (module docstring). ``worlds`` / ``sensors`` / ``seeds`` default to the
+    split's (`placerec.experiment.protocol`); a tuning benchmark may not name a test-split seed."""
+
+    name: str = "benchmark"
+    split: Literal["test", "tuning"] = "test"
+    worlds: list[str] | None = None
+    sensors: list[str] | None = None
+    seeds: list[int] | None = None
+    route: str = "default"
+    n_scans: int | None = Field(None, ge=1, description="scans per cell (None: the whole route)")
+    spacing: float = Field(1.0, gt=0, allow_inf_nan=False, description="metres between scans")
+    preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
+    pipelines: list[PipelineSpec] = Field(min_length=1)
+    evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
+    output: BenchOutputConfig = Field(default_factory=BenchOutputConfig)
+    execution: ExecutionConfig = Field(default_factory=ExecutionConfig)
+
+    @field_validator("worlds")
+    @classmethod
+    def _known_worlds(cls, v: list[str] | None) -> list[str] | None:
+        from placerec.sim.presets import preset_names
+
+        bad = [w for w in v or [] if w not in preset_names()]
+        if bad:
+            raise ValueError(f"unknown world {bad[0]!r}; known: {', '.join(preset_names())}")
+        return v
+
+    @field_validator("sensors")
+    @classmethod
+    def _known_sensors(cls, v: list[str] | None) -> list[str] | None:
+        from placerec.sim.sensors import sensor_names
+
+        bad = [s for s in v or [] if s not in sensor_names()]
+        if bad:
+            raise ValueError(f"unknown sensor {bad[0]!r}; known: {', '.join(sensor_names())}")
+        return v
+
+    @model_validator(mode="after")
+    def _split_rules(self) -> BenchmarkConfig:
+        if self.split == "tuning":
+            bad = [s for s in self.seeds or [] if protocol.is_test_seed(s)]
+            if bad:
+                raise ValueError(
+                    f"seeds: {bad[0]} is a test-split seed; a tuning benchmark may not use it (docs/protocol.md)"
+                )
+        if self.evaluation.mode != "loop":
+            raise ValueError("evaluation.mode: a benchmark evaluates loop closure ('loop')")
+        labels = [p.display_name for p in self.pipelines]
+        dupes = sorted({x for x in labels if labels.count(x) > 1})
+        if dupes:
+            raise ValueError(f"pipeline labels must be unique; repeated: {dupes}")
+        return self
+
+    def cells(self) -> list[Cell]:
+        """The matrix: the split's worlds x sensors x seeds, or the config's subsets."""
+        test = self.split == "test"
+        worlds = self.worlds or list(protocol.TEST_WORLDS if test else protocol.TUNING_WORLDS)
+        sensors = self.sensors or list(protocol.TEST_SENSORS if test else protocol.TUNING_SENSORS)
+        seeds = self.seeds or list(protocol.TEST_SEEDS if test else protocol.TUNING_SEEDS)
+        return [Cell(w, s, int(seed)) for w in worlds for s in sensors for seed in seeds]
+
+    def cell_config(self, cell: Cell) -> ExperimentConfig:
+        """The loop-mode experiment config of one cell."""
+        data = {
+            "name": f"{self.name}-{cell.name}",
+            "dataset": {
+                "source": "simulator",
+                "simulator": {
+                    "world": cell.world,
+                    "sensor": cell.sensor,
+                    "seed": cell.seed,
+                    "route": self.route,
+                    "n_scans": self.n_scans,
+                    "spacing": self.spacing,
+                },
+            },
+            "preprocess": self.preprocess.model_dump(mode="json"),
+            "pipelines": [p.model_dump(mode="json") for p in self.pipelines],
+            "evaluation": self.evaluation.model_dump(mode="json"),
+            "output": {"dir": self.output.dir, "cache_dir": self.output.cache_dir, "figures": False,
+                       "progress": False},  # fmt: skip
+        }
+        return resolve(ExperimentConfig, data, where=f"benchmark cell {cell.name}")
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One cell of the matrix."""
+
+    world: str
+    sensor: str
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.world}_{self.sensor}_{self.seed}"
+
+
+def load_benchmark_config(path: str | Path, overrides: list[str] | None = None) -> BenchmarkConfig:
+    """A benchmark YAML with ``key.path=value`` overrides, validated; `ConfigError` naming the key."""
+    data = read_config_file(path)
+    if overrides:
+        apply_overrides(data, overrides)
+    return resolve(BenchmarkConfig, data, where=f"{path}: invalid benchmark configuration")
+
+
+def _cell_key(cfg: ExperimentConfig) -> str:
+    from placerec import __version__
+
+    return stable_hash({"config": cfg.model_dump(mode="json"), "placerec": __version__, "v": BENCH_VERSION})
+
+
+def run_cell(cell_cfg_json: dict[str, Any], folder: str) -> dict[str, Any]:
+    """Run one cell (a loop-mode config as JSON) into ``folder``; returns ``{"cell", "seconds", "metrics"}`` and
+    writes it as ``folder/cell.json`` last, so a cell with a ``cell.json`` is complete. Runs in a worker process."""
+    from placerec.config import parse_config
+    from placerec.experiment.report import _finite_or_null, report_loop
+    from placerec.experiment.runner import build_pipelines, loop_sequence, run_loop
+    from placerec.experiment.truth import TruthClouds
+
+    cfg = parse_config(cell_cfg_json)
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    seq = loop_sequence(cfg)
+    truth = TruthClouds(cfg.evaluation, seq.poses)
+    seq, records = run_loop(cfg, None, build_pipelines(cfg), on_scan=truth)
+    payload = report_loop(cfg, out, seq, records, truth, link_latest=False)
+    result = {
+        "version": BENCH_VERSION,
+        "key": _cell_key(cfg),
+        "cell": out.name,
+        "seconds": time.perf_counter() - t0,
+        "n_scans": payload["n_scans"],
+        "metrics": _finite_or_null(payload["pipelines"]),
+    }
+    with atomic_write(out / "cell.json", "w") as fh:
+        json.dump(result, fh, allow_nan=False, default=_jsonable)
+    return result
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"not JSON: {type(value).__name__}")
+
+
+def _done_cell(folder: Path, key: str) -> dict[str, Any] | None:
+    """The result of a finished cell made with the same config, else None (a damaged stamp is redone)."""
+    path = folder / "cell.json"
+    if not path.is_file():
+        return None
+    try:
+        found = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        log.warning("%s: unreadable (%s); the cell is run again", path, exc)
+        return None
+    if not isinstance(found, dict) or found.get("version") != BENCH_VERSION or found.get("key") != key:
+        return None
+    return found
+
+
+def run_benchmark(
+    bench: BenchmarkConfig, out_dir: str | Path | None = None, fresh: bool = False
+) -> tuple[Path, dict[str, Any]]:
+    """Run every cell not done yet (all with ``fresh``), then summarise; returns (folder, ``benchmark.json``)."""
+    from placerec.experiment.parallel import task_pool
+    from placerec.experiment.runner import build_pipelines
+
+    cells = bench.cells()
+    build_pipelines(bench.cell_config(cells[0]))  # every pipeline and parameter checked before any cell runs
+    root = Path(out_dir) if out_dir is not None else Path(bench.output.dir) / bench.name
+    try:
+        (root / "cells").mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"output.dir: cannot make the benchmark folder {root}: {exc.strerror or exc}") from None
+    t0 = time.perf_counter()
+    results: dict[str, dict[str, Any]] = {}
+    todo = []
+    for cell in cells:
+        cfg = bench.cell_config(cell)
+        folder = root / "cells" / cell.name
+        done = None if fresh else _done_cell(folder, _cell_key(cfg))
+        if done is not None:
+            results[cell.name] = done
+        else:
+            todo.append((cell, cfg, folder))
+    log.info("benchmark %s: %d cells, %d cached, %d to run", bench.name, len(cells), len(results), len(todo))
+    from placerec.experiment.runner import progress_bars
+
+    with progress_bars(bench.output.progress) as progress:
+        task = progress.add_task(f"cells ({len(results)} cached)", total=len(todo))
+
+        def finished(result: dict[str, Any]) -> None:
+            progress.advance(task)
+
+        args = [(cfg.model_dump(mode="json"), str(folder)) for _, cfg, folder in todo]
+        if todo and bench.execution.workers == 1 and bench.execution.executor == "local":
+            ran = []
+            for a in args:
+                ran.append(run_cell(*a))
+                finished(ran[-1])
+        elif todo:
+            with task_pool(bench.execution) as submit:
+                ran = submit(run_cell, args, finished)
+        else:
+            ran = []
+    results.update({r["cell"]: r for r in ran})
+    ordered = {c.name: results[c.name] for c in cells}
+    payload = summarise(bench, ordered)
+    payload["seconds"] = time.perf_counter() - t0
+    payload["cells_run"] = len(todo)
+    _write_outputs(bench, root, payload)
+    return root, payload
+
+
+def _get(entry: Any, *path: str) -> Any:
+    for key in path:
+        if not isinstance(entry, dict) or key not in entry:
+            return None
+        entry = entry[key]
+    return entry
+
+
+def _num(x: Any) -> float:
+    return float(x) if isinstance(x, int | float) and x is not None and math.isfinite(float(x)) else math.nan
+
+
+#: Figures per cell and pipeline: (name, path in metrics.json, "high" if higher is better else "low")
+CELL_FIGURES: tuple[tuple[str, tuple[str, ...], str], ...] = (
+    ("max_f1", ("max_f1",), "high"),
+    ("pose_max_f1", ("pose_truth", "max_f1"), "high"),
+    ("precision", ("pose_truth", "operating", "precision"), "high"),
+    ("recall", ("pose_truth", "operating", "recall"), "high"),
+    ("f1", ("pose_truth", "operating", "f1"), "high"),
+    ("false_closures", ("pose_truth", "operating", "fp"), "low"),
+    ("distance_precision", ("operating", "precision"), "high"),
+    ("distance_recall", ("operating", "recall"), "high"),
+    ("recall_at_100_precision", ("recall_at_100_precision",), "high"),
+    ("pose_recall_at_100_precision", ("pose_truth", "recall_at_100_precision"), "high"),
+    ("describe_ms", ("time_ms", "stages", "describe", "mean"), "low"),
+    ("query_ms", ("time_ms", "stages", "query", "mean"), "low"),
+    ("verify_ms", ("time_ms", "stages", "verify", "mean"), "low"),
+    ("ms_per_scan", ("time_ms", "mean"), "low"),
+)
+
+
+def summarise(bench: BenchmarkConfig, cells: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """``benchmark.json``: per pipeline, each figure per cell and over the matrix (mean, worst), the accepted
+    closures' pose errors pooled over the matrix, and the threshold each pipeline was judged at."""
+    labels = [p.display_name for p in bench.pipelines]
+    pipelines: dict[str, Any] = {}
+    for label in labels:
+        per_cell = {name: c["metrics"].get(label, {}) for name, c in cells.items()}
+        figures: dict[str, Any] = {}
+        for fig, path, better in CELL_FIGURES:
+            values = {name: _num(_get(m, *path)) for name, m in per_cell.items()}
+            arr = np.array([v for v in values.values() if math.isfinite(v)])
+            worst = (arr.min() if better == "high" else arr.max()) if arr.size else math.nan
+            figures[fig] = {"cells": values, "mean": float(arr.mean()) if arr.size else math.nan,
+                            "worst": float(worst)}  # fmt: skip
+        t_err, r_err = [], []
+        for m in per_cell.values():
+            op = _get(m, "pose_truth", "operating") or {}
+            t_err += [v for v in op.get("accepted_translation_m", []) if v is not None]
+            r_err += [v for v in op.get("accepted_rotation_deg", []) if v is not None]
+        thresholds = {_get(m, "operating", "threshold") for m in per_cell.values()}
+        pipelines[label] = {
+            "threshold": next(iter(thresholds)) if len(thresholds) == 1 else sorted(map(str, thresholds)),
+            "figures": figures,
+            "accepted_translation_m": _stats(t_err),
+            "accepted_rotation_deg": _stats(r_err),
+            "cells_with_false_closures": sorted(
+                name for name, v in figures["false_closures"]["cells"].items() if v and v > 0
+            ),
+        }
+    return {
+        "version": BENCH_VERSION,
+        "name": bench.name,
+        "split": bench.split,
+        "cells": list(cells),
+        "n_scans": {name: c.get("n_scans") for name, c in cells.items()},
+        "pipelines": pipelines,
+    }
+
+
+def _stats(values: list[float]) -> dict[str, Any]:
+    a = np.asarray(values, dtype=np.float64)
+    if a.size == 0:
+        return {"n": 0, "median": math.nan, "p95": math.nan, "max": math.nan}
+    return {"n": int(a.size), "median": float(np.median(a)), "p95": float(np.percentile(a, 95)),
+            "max": float(a.max())}  # fmt: skip
+
+
+def suggest_thresholds(
+    bench: BenchmarkConfig, cells: dict[str, dict[str, Any]], step: float = 0.05
+) -> dict[str, float | None]:
+    """Per pipeline, the operating threshold the tuning rule picks (docs/protocol.md): above the best score of any
+    false closure (pose ground truth) in any cell, rounded up to the next multiple of ``step`` (scores in [0, 1];
+    1 for counts), and never below the verification's ``min_score`` (a rejected candidate is no answer)."""
+    out: dict[str, float | None] = {}
+    for spec in bench.pipelines:
+        label = spec.display_name
+        false = [_num(_get(c["metrics"].get(label, {}), "pose_truth", "max_false_score")) for c in cells.values()]
+        top = [_num(_get(c["metrics"].get(label, {}), "max_score")) for c in cells.values()]
+        if not any(math.isfinite(t) for t in top):
+            out[label] = None
+            continue
+        unit = step if max(t for t in top if math.isfinite(t)) <= 1.0 else 1.0
+        worst = max((f for f in false if math.isfinite(f)), default=-math.inf)
+        pick = 0.0 if worst == -math.inf else (math.floor(worst / unit + 1e-9) + 1) * unit
+        floors = [_get(c["metrics"].get(label, {}), "min_score") for c in cells.values()]
+        floor = max((f for f in floors if isinstance(f, int | float)), default=0.0)
+        out[label] = round(max(pick, floor), 6)
+    return out
+
+
+def bench_line(payload: dict[str, Any]) -> str:
+    """The one JSON line the benchmark ends with: per pipeline the matrix means / worsts of the headline figures."""
+    short = {}
+    for label, p in payload["pipelines"].items():
+        f = p["figures"]
+        short[label] = {
+            "threshold": p["threshold"],
+            "max_f1_mean": f["max_f1"]["mean"],
+            "precision_mean": f["precision"]["mean"],
+            "precision_worst": f["precision"]["worst"],
+            "recall_mean": f["recall"]["mean"],
+            "recall_worst": f["recall"]["worst"],
+            "false_closures": int(np.nansum(list(f["false_closures"]["cells"].values()))),
+            "t_err_p95_m": p["accepted_translation_m"]["p95"],
+            "ms_per_scan_mean": f["ms_per_scan"]["mean"],
+        }
+    line = {"tool": "bench", "name": payload["name"], "split": payload["split"], "cells": len(payload["cells"]),
+            "seconds": payload.get("seconds"), "pipelines": short}  # fmt: skip
+    return json.dumps(_finite(line), separators=(",", ":"))
+
+
+def _finite(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, float):
+        return round(value, 4) if math.isfinite(value) else None
+    return value
+
+
+def rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """The console / HTML table: one row per pipeline, the matrix mean and worst of the headline figures."""
+    header = ["pipeline", "thr", "maxF1", "P mean", "P worst", "R mean", "R worst", "FP", "t p95 m", "ms/scan"]
+    out = []
+    for label, p in payload["pipelines"].items():
+        f = p["figures"]
+        thr = p["threshold"]
+        out.append([
+            label,
+            "-" if thr is None else f"{thr:g}" if isinstance(thr, float | int) else "mixed",
+            _fmt(f["max_f1"]["mean"]),
+            _fmt(f["precision"]["mean"]),
+            _fmt(f["precision"]["worst"]),
+            _fmt(f["recall"]["mean"]),
+            _fmt(f["recall"]["worst"]),
+            str(int(np.nansum(list(f["false_closures"]["cells"].values())))),
+            _fmt(p["accepted_translation_m"]["p95"]),
+            _fmt(f["ms_per_scan"]["mean"], 0),
+        ])  # fmt: skip
+    return header, out
+
+
+def _fmt(x: Any, digits: int = 3) -> str:
+    return "-" if x is None or not math.isfinite(float(x)) else f"{float(x):.{digits}f}"
+
+
+def _write_outputs(bench: BenchmarkConfig, root: Path, payload: dict[str, Any]) -> None:
+    from placerec.experiment.report import _finite_or_null, write_html_page
+
+    with atomic_write(root / "benchmark.json", "w") as fh:
+        json.dump(_finite_or_null(payload), fh, indent=1, allow_nan=False, default=_jsonable)
+    with atomic_write(root / "config.yaml", "w") as fh:
+        import yaml
+
+        yaml.safe_dump(bench.model_dump(mode="json"), fh, sort_keys=False)
+    with atomic_write(root / "cells.csv", "w") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        names = [f for f, _, _ in CELL_FIGURES]
+        w.writerow(["pipeline", "cell", *names])
+        for label, p in payload["pipelines"].items():
+            for cell in payload["cells"]:
+                w.writerow([label, cell, *(_fmt(p["figures"][n]["cells"].get(cell), 4) for n in names)])
+    if bench.output.figures:
+        from placerec.experiment.figures import plot_heatmap
+
+        for fig, title in (("recall", "recall at the fixed threshold (pose truth); x: a false closure"),
+                           ("max_f1", "max F1 (distance truth, threshold chosen after the fact)")):  # fmt: skip
+            labels = list(payload["pipelines"])
+            values = np.array([[_num(payload["pipelines"][lb]["figures"][fig]["cells"][c]) for c in payload["cells"]]
+                               for lb in labels])  # fmt: skip
+            marks = np.array([[(_num(payload["pipelines"][lb]["figures"]["false_closures"]["cells"][c]) or 0) > 0
+                               for c in payload["cells"]] for lb in labels])  # fmt: skip
+            plot_heatmap(values, labels, payload["cells"], root / f"heatmap_{fig}.png",
+                         f"{bench.name} ({bench.split} split): {title}", marks if fig == "recall" else None)  # fmt: skip
+        write_html_page(root, f"{bench.name} ({bench.split} split)",
+                        f"{len(payload['cells'])} cells", [rows(payload)], first=("heatmap_recall.png",))  # fmt: skip
+
+
+def read_benchmark(path: str | Path) -> dict[str, Any]:
+    """A ``benchmark.json`` back; `ArtifactError` naming the file when it is not one of this version."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ArtifactError(f"{path}: not a readable benchmark.json ({exc})") from None
+    if not isinstance(data, dict) or data.get("version") != BENCH_VERSION or "pipelines" not in data:
+        raise ArtifactError(f"{path}: not a benchmark.json of version {BENCH_VERSION}")
+    return data

@@ -1,0 +1,101 @@
+"""``placerec bench``: the config's rules, a 2-cell benchmark end to end, resuming from the cells done."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import yaml
+
+from placerec.errors import ConfigError
+from placerec.experiment import protocol
+from placerec.experiment.benchmark import (
+    BenchmarkConfig,
+    bench_line,
+    load_benchmark_config,
+    run_benchmark,
+    suggest_thresholds,
+)
+from placerec.params import resolve
+
+
+def _write(tmp_path, data):
+    path = tmp_path / "bench.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+BASE = {"pipelines": [{"name": "scan-context"}]}
+
+
+@pytest.mark.parametrize(
+    "change, key",
+    [
+        ({"worlds": ["atlantis"]}, "worlds"),
+        ({"sensors": ["hdl128"]}, "sensors"),
+        ({"split": "tuning", "seeds": [protocol.TEST_SEEDS[0]]}, "seeds"),
+        ({"pipelines": []}, "pipelines"),
+        ({"evaluation": {"mode": "localize"}}, "evaluation.mode"),
+        ({"worlds": ["town"], "extra": 1}, "extra"),
+    ],
+)
+def test_a_bad_benchmark_config_is_a_config_error_naming_the_key(tmp_path, change, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        load_benchmark_config(_write(tmp_path, {**BASE, **change}))
+
+
+def test_the_matrix_is_the_splits_unless_narrowed():
+    test = resolve(BenchmarkConfig, BASE)
+    cells = test.cells()
+    assert len(cells) == len(protocol.TEST_WORLDS) * len(protocol.TEST_SENSORS) * len(protocol.TEST_SEEDS)
+    assert {c.seed for c in cells} == set(protocol.TEST_SEEDS)
+    tuning = resolve(BenchmarkConfig, {**BASE, "split": "tuning", "sensors": ["vlp16"]})
+    assert {(c.sensor, c.seed) for c in tuning.cells()} == {("vlp16", s) for s in protocol.TUNING_SEEDS}
+    cfg = tuning.cell_config(tuning.cells()[0])
+    assert cfg.dataset.simulator.seed == protocol.TUNING_SEEDS[0] and cfg.evaluation.mode == "loop"
+
+
+def test_an_unknown_pipeline_fails_before_any_cell_runs(tmp_path):
+    cfg = resolve(BenchmarkConfig, {"pipelines": [{"name": "no-such"}], "worlds": ["town"], "sensors": ["vlp16"]})
+    with pytest.raises(ConfigError, match="no-such"):
+        run_benchmark(cfg, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_two_cells_end_to_end_at_fixed_thresholds_and_resumed(tmp_path):
+    """The fast variant of the benchmark: 2 cells (town, two sensors; the block loop driven twice, 3 m apart)."""
+    cfg = resolve(
+        BenchmarkConfig,
+        {
+            "name": "two",
+            "split": "tuning",
+            "worlds": ["town"],
+            "sensors": ["vlp16", "os1-64"],
+            "route": "loop",
+            "spacing": 3.0,
+            "pipelines": [{"name": "scan-context"}, {"name": "orb-hbst", "threshold": 0.3}],
+            "evaluation": {"exclusion": {"frames": 30}},
+            "output": {"dir": str(tmp_path), "cache_dir": str(tmp_path / "cache"), "progress": False},
+        },
+    )
+    folder, payload = run_benchmark(cfg)
+    assert payload["cells_run"] == 2 and payload["cells"] == ["town_vlp16_0", "town_os1-64_0"]
+    orb = payload["pipelines"]["orb-hbst"]
+    assert orb["threshold"] == 0.3
+    recall = orb["figures"]["recall"]["cells"]
+    assert all(0.5 < r <= 1.0 for r in recall.values()), recall  # the second lap closes on the first
+    assert orb["figures"]["precision"]["worst"] == 1.0
+    assert orb["accepted_translation_m"]["n"] > 10 and orb["accepted_translation_m"]["p95"] < 0.5
+    for name in ("benchmark.json", "cells.csv", "heatmap_recall.png", "heatmap_max_f1.png", "index.html"):
+        assert (folder / name).is_file(), name
+    line = json.loads(bench_line(payload))
+    assert line["cells"] == 2 and line["pipelines"]["orb-hbst"]["false_closures"] == 0
+
+    cells = {c: json.loads((folder / "cells" / c / "cell.json").read_text()) for c in payload["cells"]}
+    picked = suggest_thresholds(cfg, cells)
+    assert set(picked) == {"scan-context", "orb-hbst"} and all(v is not None and v >= 0.25 for v in picked.values())
+
+    (folder / "cells" / "town_os1-64_0" / "cell.json").unlink()  # interrupted before this cell finished
+    _, again = run_benchmark(cfg)
+    assert again["cells_run"] == 1
+    assert again["pipelines"]["orb-hbst"]["figures"]["recall"] == orb["figures"]["recall"]
