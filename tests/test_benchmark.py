@@ -95,6 +95,14 @@ def test_two_cells_end_to_end_at_fixed_thresholds_and_resumed(tmp_path):
     picked = suggest_thresholds(cfg, cells)
     assert set(picked) == {"scan-context", "orb-hbst"} and all(v is not None and v >= 0.25 for v in picked.values())
 
+    strict = cfg.model_copy(
+        update={"pipelines": [cfg.pipelines[0], cfg.pipelines[1].model_copy(update={"threshold": 0.95})]}
+    )
+    _, judged = run_benchmark(strict)  # another threshold: judged again from the cells' files, nothing rerun
+    assert judged["cells_run"] == 0 and judged["pipelines"]["orb-hbst"]["threshold"] == 0.95
+    stricter = judged["pipelines"]["orb-hbst"]["figures"]["recall"]["cells"]
+    assert all(stricter[c] <= recall[c] for c in recall) and stricter != recall
+
     (folder / "cells" / "town_os1-64_0" / "cell.json").unlink()  # interrupted before this cell finished
     _, again = run_benchmark(cfg)
     assert again["cells_run"] == 1

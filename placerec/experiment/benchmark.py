@@ -181,9 +181,14 @@ def load_benchmark_config(path: str | Path, overrides: list[str] | None = None) 
 
 
 def _cell_key(cfg: ExperimentConfig) -> str:
+    """The stamp of a cell's result: its config and the placerec version (not the thresholds: the figures at a
+    threshold are recomputed from the cell's files, `cell_metrics`)."""
     from placerec import __version__
 
-    return stable_hash({"config": cfg.model_dump(mode="json"), "placerec": __version__, "v": BENCH_VERSION})
+    data = cfg.model_dump(mode="json")
+    for spec in data["pipelines"]:
+        spec.pop("threshold", None)
+    return stable_hash({"config": data, "placerec": __version__, "v": BENCH_VERSION})
 
 
 def run_cell(cell_cfg_json: dict[str, Any], folder: str) -> dict[str, Any]:
@@ -202,6 +207,9 @@ def run_cell(cell_cfg_json: dict[str, Any], folder: str) -> dict[str, Any]:
     truth = TruthClouds(cfg.evaluation, seq.poses)
     seq, records = run_loop(cfg, None, build_pipelines(cfg), on_scan=truth)
     payload = report_loop(cfg, out, seq, records, truth, link_latest=False)
+    offsets = np.cumsum([0] + [v.size for v in truth.voxels])
+    with atomic_write(out / "truth.npz", "wb") as fh:
+        np.savez_compressed(fh, keys=np.concatenate(truth.voxels or [np.zeros(0, np.int64)]), offsets=offsets)
     result = {
         "version": BENCH_VERSION,
         "key": _cell_key(cfg),
@@ -282,12 +290,53 @@ def run_benchmark(
         else:
             ran = []
     results.update({r["cell"]: r for r in ran})
-    ordered = {c.name: results[c.name] for c in cells}
+    ordered = {}
+    for c in cells:
+        found = results[c.name]
+        ordered[c.name] = {**found, "metrics": cell_metrics(bench, c, root / "cells" / c.name, found["metrics"])}
     payload = summarise(bench, ordered)
     payload["seconds"] = time.perf_counter() - t0
     payload["cells_run"] = len(todo)
     _write_outputs(bench, root, payload)
     return root, payload
+
+
+def _threshold(spec: PipelineSpec) -> float | None:
+    from placerec.recognizer import PIPELINES
+
+    entry = PIPELINES.get(spec.name)
+    return spec.threshold if spec.threshold is not None else (entry.threshold if entry else None)
+
+
+def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[str, Any]) -> dict[str, Any]:
+    """A finished cell's metrics per pipeline label with the figures at the operating thresholds recomputed from
+    its files (poses, candidates, the scans' voxels in ``truth.npz``) at the thresholds in force now; the stored
+    entries give the rest (times). `ArtifactError` naming the file when one is missing or damaged."""
+    from placerec.experiment.candidates import read_candidates
+    from placerec.experiment.report import _finite_or_null, _loop_summary, _slug, pose_truths
+    from placerec.experiment.truth import TruthClouds
+    from placerec.io import read_poses
+
+    cfg = bench.cell_config(cell)
+    poses = read_poses(folder / "poses.txt")[0]
+    stamps = np.loadtxt(folder / "times.txt", ndmin=1) if (folder / "times.txt").is_file() else None
+    try:
+        with np.load(folder / "truth.npz") as z:
+            keys, offsets = z["keys"], z["offsets"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise ArtifactError(f"{folder / 'truth.npz'}: missing or damaged ({exc}); run the cell again (--fresh)")
+    truth = TruthClouds(cfg.evaluation, poses)
+    truth.voxels = [keys[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
+    specs = list(bench.pipelines)
+    tables = [read_candidates(folder / f"candidates_{_slug(p.display_name)}.csv") for p in specs]
+    pose_gts = pose_truths(cfg, tables, poses, stamps, truth)
+    out = {}
+    for spec, table, pose_gt in zip(specs, tables, pose_gts, strict=True):
+        label = spec.display_name
+        _, summary = _loop_summary(cfg, table, poses, stamps, _threshold(spec), truth, pose_gt)
+        kept = stored.get(label, {})
+        out[label] = {**kept, **_finite_or_null(summary)}
+    return out
 
 
 def _get(entry: Any, *path: str) -> Any:
