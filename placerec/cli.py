@@ -120,10 +120,12 @@ def pipelines(
     if name is None:
         table = Table(title="registered pipelines (placerec pipelines NAME: parameters)")
         table.add_column("pipeline", no_wrap=True)
+        table.add_column("threshold", no_wrap=True)
         table.add_column("description", overflow="fold")
         for key, entry in PIPELINES.items():
-            table.add_row(key, entry.summary)
+            table.add_row(key, "-" if entry.threshold is None else f"{entry.threshold:g}", entry.summary)
         Console().print(table)
+        typer.echo("threshold: the operating threshold on the candidate score, chosen on the tuning split (docs/protocol.md)")
         return
     try:
         params = pipeline_params(name)
@@ -138,6 +140,9 @@ def pipelines(
     for key, value, kind, description in param_rows(params):
         table.add_row(key, repr(value), kind, description)
     Console().print(table)
+    entry = PIPELINES.get(name)
+    if entry is not None and entry.threshold is not None:
+        typer.echo(f"operating threshold: {entry.threshold:g} (chosen on the tuning split, docs/protocol.md)")
 
 
 @app.command()

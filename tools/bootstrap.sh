@@ -43,7 +43,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   .venv/bin/python -m pip install -q -e ".[$extras]"
   # the peers: map-closures pins an old typer/click that ouster-sdk's pins exclude, so they are installed without
   # their dependencies (their Python API needs only numpy and pydantic, which placerec already has)
-  .venv/bin/python -m pip install -q --no-deps "map-closures>=2.0" "pyhbst>=0.2.0"
+  .venv/bin/python -m pip install -q --no-deps "map-closures>=2.2" "pyhbst>=0.2.0"
   echo "$want" > "$stamp"
 fi
 .venv/bin/placerec --version

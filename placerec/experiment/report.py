@@ -9,8 +9,10 @@ Output folder ``<output.dir>/<name>_<timestamp>/`` (and a ``latest`` link beside
   precision, see `placerec.eval.metrics`), ``recall_at_100_precision``, ``precision_at_min_recall``,
   ``extended_precision``, ``recall_at_1``, ``recall_at_n``, ``pose_error`` (the closures accepted at the max-F1
   threshold, `placerec.eval.pose_error`), ``success_rate``, ``success_basis`` and ``fine_success_rate``
-  (localize mode), ``time_ms`` {mean, median, p95} per scan and per stage, ``n_queries``, ``n_revisits``; plus peak
-  memory. Strict JSON: a value that is undefined for the run is ``null`` (``threshold_at_max_f1`` with no
+  (localize mode), ``time_ms`` {mean, median, p95} per scan and per stage, ``n_queries``, ``n_revisits``; in loop
+  mode also ``operating`` (the figures at the pipeline's fixed threshold, `operating_point`), ``max_false_score``,
+  ``max_score``, ``min_score``, and ``pose_truth`` / ``icp_truth`` (the same under the pose ground truth and the
+  ICP-confirmed one, docs/protocol.md); plus peak memory. Strict JSON: a value that is undefined for the run is ``null`` (``threshold_at_max_f1`` with no
   candidate, ``mean_error`` with no estimate, times with no scan, pose errors with no 6-DoF pose). A sequence
   without revisits (too short, shorter than the exclusion window) has ``no_revisits: true`` and recalls, F1 and
   AUC of 0; no scans at all give ``n_queries: 0``;
