@@ -125,7 +125,9 @@ def pipelines(
         for key, entry in PIPELINES.items():
             table.add_row(key, "-" if entry.threshold is None else f"{entry.threshold:g}", entry.summary)
         Console().print(table)
-        typer.echo("threshold: the operating threshold on the candidate score, chosen on the tuning split (docs/protocol.md)")
+        typer.echo(
+            "threshold: the operating threshold on the candidate score, chosen on the tuning split (docs/protocol.md)"
+        )
         return
     try:
         params = pipeline_params(name)
@@ -259,11 +261,13 @@ def bench(
     ] = None,
     set_: Overrides = None,
     workers: Annotated[
-        int | None, typer.Option(help="Run N cells at once (execution.workers; executor: dask uses a cluster).")
+        int | None,
+        typer.Option(help="Run N cells at once (execution.workers; executor: dask uses a cluster)."),
     ] = None,
     fresh: Annotated[bool, typer.Option(help="Run every cell again, even those already done.")] = False,
     suggest: Annotated[
-        bool, typer.Option(help="Also print the operating thresholds the tuning rule picks (tuning split only).")
+        bool,
+        typer.Option(help="Also print the operating thresholds the tuning rule picks (tuning split only)."),
     ] = False,
 ) -> None:
     """Every pipeline of CONFIG over a matrix of simulated worlds x sensors x seeds, at fixed thresholds.
@@ -290,7 +294,9 @@ def bench(
     except PlacerecError as exc:
         _fail(exc)
         return
-    print_rows(*rows(payload), f"{cfg.name} ({cfg.split} split, {len(payload['cells'])} cells): matrix mean / worst")
+    print_rows(
+        *rows(payload), f"{cfg.name} ({cfg.split} split, {len(payload['cells'])} cells): matrix mean / worst"
+    )
     if suggest:
         import json
 

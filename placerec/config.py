@@ -118,7 +118,9 @@ class PipelineSpec(Params):
     label: str | None = None
     params: dict[str, Any] = Field(default_factory=dict)
     threshold: float | None = Field(
-        None, allow_inf_nan=False, description="operating threshold on the candidate score (None: the preset's)"
+        None,
+        allow_inf_nan=False,
+        description="operating threshold on the candidate score (None: the preset's)",
     )
 
     @property

@@ -56,7 +56,9 @@ def test_the_matrix_is_the_splits_unless_narrowed():
 
 
 def test_an_unknown_pipeline_fails_before_any_cell_runs(tmp_path):
-    cfg = resolve(BenchmarkConfig, {"pipelines": [{"name": "no-such"}], "worlds": ["town"], "sensors": ["vlp16"]})
+    cfg = resolve(
+        BenchmarkConfig, {"pipelines": [{"name": "no-such"}], "worlds": ["town"], "sensors": ["vlp16"]}
+    )
     with pytest.raises(ConfigError, match="no-such"):
         run_benchmark(cfg, tmp_path / "out")
     assert not (tmp_path / "out").exists()
@@ -93,7 +95,9 @@ def test_two_cells_end_to_end_at_fixed_thresholds_and_resumed(tmp_path):
 
     cells = {c: json.loads((folder / "cells" / c / "cell.json").read_text()) for c in payload["cells"]}
     picked = suggest_thresholds(cfg, cells)
-    assert set(picked) == {"scan-context", "orb-hbst"} and all(v is not None and v >= 0.25 for v in picked.values())
+    assert set(picked) == {"scan-context", "orb-hbst"} and all(
+        v is not None and v >= 0.25 for v in picked.values()
+    )
 
     strict = cfg.model_copy(
         update={"pipelines": [cfg.pipelines[0], cfg.pipelines[1].model_copy(update={"threshold": 0.95})]}

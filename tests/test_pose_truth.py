@@ -33,7 +33,9 @@ def test_scan_voxels_are_world_cells_of_the_points_within_range():
     pts = np.array([[0.5, 0.5, 0.5], [0.6, 0.4, 0.2], [1.5, 0.5, 0.5], [20.0, 0, 0], [np.nan, 0, 0]])
     here, moved = scan_voxels(pts, np.eye(4), s), scan_voxels(pts, _pose(1.0), s)
     assert here.size == 2  # two points share a cell; the far and the NaN point are dropped
-    assert np.intersect1d(here, moved).size == 1  # moved by 1 m: the second cell of one is the first of the other
+    assert (
+        np.intersect1d(here, moved).size == 1
+    )  # moved by 1 m: the second cell of one is the first of the other
 
 
 def _wall_scan(rng: np.random.Generator, n: int = 4000) -> np.ndarray:

@@ -33,7 +33,12 @@ def _seeds(node: Any, path: str = "") -> list[tuple[str, int]]:
 
 def test_seed_finder_reads_nested_keys_and_lists():
     tree = {"a": {"seed": 4}, "b": [{"seeds": [1, 2]}], "validation_seed": 3, "c": {"x": 4601}}
-    assert sorted(_seeds(tree)) == [("a.seed", 4), ("b[0].seeds", 1), ("b[0].seeds", 2), ("validation_seed", 3)]
+    assert sorted(_seeds(tree)) == [
+        ("a.seed", 4),
+        ("b[0].seeds", 1),
+        ("b[0].seeds", 2),
+        ("validation_seed", 3),
+    ]
 
 
 def test_test_split_is_disjoint_from_the_tuning_split():
@@ -49,11 +54,15 @@ def test_no_committed_config_names_a_test_seed(path):
 
 
 def test_no_preset_names_a_test_seed():
-    bad = [(name, k, v) for name, e in PIPELINES.items() for k, v in _seeds(e.preset) if protocol.is_test_seed(v)]
+    bad = [
+        (name, k, v) for name, e in PIPELINES.items() for k, v in _seeds(e.preset) if protocol.is_test_seed(v)
+    ]
     assert not bad
 
 
 def test_a_config_naming_a_test_seed_is_caught(tmp_path):
     path = tmp_path / "tuned.yaml"
     path.write_text(f"dataset:\n  simulator: {{world: town, seed: {protocol.TEST_SEEDS[1]}}}\n")
-    assert [v for _, v in _seeds(load_yaml_file(path)) if protocol.is_test_seed(v)] == [protocol.TEST_SEEDS[1]]
+    assert [v for _, v in _seeds(load_yaml_file(path)) if protocol.is_test_seed(v)] == [
+        protocol.TEST_SEEDS[1]
+    ]

@@ -213,7 +213,9 @@ def correct_candidates(
     return np.unique(qq[has][good] * n + mm[has][good])
 
 
-def with_candidates(truth: PoseGroundTruth, keys: np.ndarray, closed: np.ndarray | None = None) -> PoseGroundTruth:
+def with_candidates(
+    truth: PoseGroundTruth, keys: np.ndarray, closed: np.ndarray | None = None
+) -> PoseGroundTruth:
     """``truth`` judging the candidates of ``keys`` (`correct_candidates`) as true; the queries ``closed`` (N,)
     bool, default those of ``keys``, become revisits too (a correct registration shows the scans overlap enough;
     pass the union over every pipeline of a run so that all share one revisit set)."""

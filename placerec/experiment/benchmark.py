@@ -68,7 +68,9 @@ class BenchOutputConfig(Params):
     """Where the benchmark goes: ``dir/<name>/`` (a fixed folder, so a rerun resumes), the description cache."""
 
     dir: str = "results"
-    cache_dir: str | None = Field(".cache/descriptions", description="per-scan description cache (None = off)")
+    cache_dir: str | None = Field(
+        ".cache/descriptions", description="per-scan description cache (None = off)"
+    )
     figures: bool = True
     progress: bool = True
 
@@ -153,8 +155,12 @@ class BenchmarkConfig(Params):
             "preprocess": self.preprocess.model_dump(mode="json"),
             "pipelines": [p.model_dump(mode="json") for p in self.pipelines],
             "evaluation": self.evaluation.model_dump(mode="json"),
-            "output": {"dir": self.output.dir, "cache_dir": self.output.cache_dir, "figures": False,
-                       "progress": False},  # fmt: skip
+            "output": {
+                "dir": self.output.dir,
+                "cache_dir": self.output.cache_dir,
+                "figures": False,
+                "progress": False,
+            },  # fmt: skip
         }
         return resolve(ExperimentConfig, data, where=f"benchmark cell {cell.name}")
 
@@ -257,7 +263,9 @@ def run_benchmark(
     try:
         (root / "cells").mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise ConfigError(f"output.dir: cannot make the benchmark folder {root}: {exc.strerror or exc}") from None
+        raise ConfigError(
+            f"output.dir: cannot make the benchmark folder {root}: {exc.strerror or exc}"
+        ) from None
     t0 = time.perf_counter()
     results: dict[str, dict[str, Any]] = {}
     todo = []
@@ -293,7 +301,10 @@ def run_benchmark(
     ordered = {}
     for c in cells:
         found = results[c.name]
-        ordered[c.name] = {**found, "metrics": cell_metrics(bench, c, root / "cells" / c.name, found["metrics"])}
+        ordered[c.name] = {
+            **found,
+            "metrics": cell_metrics(bench, c, root / "cells" / c.name, found["metrics"]),
+        }
     payload = summarise(bench, ordered)
     payload["seconds"] = time.perf_counter() - t0
     payload["cells_run"] = len(todo)
@@ -324,7 +335,9 @@ def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[
         with np.load(folder / "truth.npz") as z:
             keys, offsets = z["keys"], z["offsets"]
     except (OSError, ValueError, KeyError) as exc:
-        raise ArtifactError(f"{folder / 'truth.npz'}: missing or damaged ({exc}); run the cell again (--fresh)")
+        raise ArtifactError(
+            f"{folder / 'truth.npz'}: missing or damaged ({exc}); run the cell again (--fresh)"
+        ) from None
     truth = TruthClouds(cfg.evaluation, poses)
     truth.voxels = [keys[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
     specs = list(bench.pipelines)
@@ -426,7 +439,9 @@ def suggest_thresholds(
     out: dict[str, float | None] = {}
     for spec in bench.pipelines:
         label = spec.display_name
-        false = [_num(_get(c["metrics"].get(label, {}), "pose_truth", "max_false_score")) for c in cells.values()]
+        false = [
+            _num(_get(c["metrics"].get(label, {}), "pose_truth", "max_false_score")) for c in cells.values()
+        ]
         top = [_num(_get(c["metrics"].get(label, {}), "max_score")) for c in cells.values()]
         if not any(math.isfinite(t) for t in top):
             out[label] = None
@@ -473,7 +488,18 @@ def _finite(value: Any) -> Any:
 
 def rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     """The console / HTML table: one row per pipeline, the matrix mean and worst of the headline figures."""
-    header = ["pipeline", "thr", "maxF1", "P mean", "P worst", "R mean", "R worst", "FP", "t p95 m", "ms/scan"]
+    header = [
+        "pipeline",
+        "thr",
+        "maxF1",
+        "P mean",
+        "P worst",
+        "R mean",
+        "R worst",
+        "FP",
+        "t p95 m",
+        "ms/scan",
+    ]
     out = []
     for label, p in payload["pipelines"].items():
         f = p["figures"]

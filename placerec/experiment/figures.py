@@ -260,7 +260,9 @@ def plot_heatmap(
     ``marks`` (same shape, bool) draws an ``x`` over the cells to flag (e.g. a false closure accepted there)."""
     plt = _pyplot()
     v = np.asarray(values, dtype=np.float64).reshape(len(rows), len(columns))
-    fig, ax = plt.subplots(figsize=(1.2 + 0.55 * max(len(columns), 1), 1.4 + 0.45 * max(len(rows), 1)), dpi=110)
+    fig, ax = plt.subplots(
+        figsize=(1.2 + 0.55 * max(len(columns), 1), 1.4 + 0.45 * max(len(rows), 1)), dpi=110
+    )
     im = ax.imshow(np.ma.masked_invalid(v), cmap="viridis", vmin=0.0, vmax=1.0, aspect="auto")
     for i in range(v.shape[0]):
         for j in range(v.shape[1]):

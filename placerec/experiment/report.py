@@ -310,9 +310,7 @@ def report_loop(
     pose_gts = pose_truths(cfg, tables, poses, seq.timestamps, truth)
     for record, table, pose_gt in zip(records, tables, pose_gts, strict=True):
         write_candidates(run / f"candidates_{_slug(record.label)}.csv", record.query_ids, record.candidates)
-        metrics, summary = _loop_summary(
-            cfg, table, poses, seq.timestamps, record.threshold, truth, pose_gt
-        )
+        metrics, summary = _loop_summary(cfg, table, poses, seq.timestamps, record.threshold, truth, pose_gt)
         q, m = metrics.query_ids, metrics.match_ids
         summary["time_ms"] = _timing(record)
         summary["min_score"] = _min_score(record.params)
@@ -544,12 +542,41 @@ def protocol_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]] 
     return header, rows
 
 
+_OPERATING_COLUMNS = (
+    ("threshold", ("operating", "threshold")),
+    ("P", ("operating", "precision")),
+    ("R", ("operating", "recall")),
+    ("pose truth: P", ("pose_truth", "operating", "precision")),
+    ("R", ("pose_truth", "operating", "recall")),
+    ("false", ("pose_truth", "operating", "fp")),
+    ("revisits", ("pose_truth", "n_revisits")),
+    ("t err p95 [m]", ("pose_truth", "operating", "translation_m", "p95")),
+)
+
+
+def operating_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]] | None:
+    """Header and rows of the loop-mode table at each pipeline's fixed operating threshold, under the distance and
+    the pose ground truths (None in localize mode or when no pipeline has a threshold)."""
+    if payload["mode"] != "loop" or not any(m.get("operating") for m in payload["pipelines"].values()):
+        return None
+    header = ["pipeline"] + [h for h, _ in _OPERATING_COLUMNS]
+    rows = [
+        [label] + [_fmt(_get(m, k)) for _, k in _OPERATING_COLUMNS]
+        for label, m in payload["pipelines"].items()
+    ]
+    return header, rows
+
+
 def print_table(payload: dict[str, Any], title: str) -> None:
-    """The results as rich console tables: the main one, and in loop mode the retrieval / direction one."""
+    """The results as rich console tables: the main one, and in loop mode the retrieval / direction one and the
+    one at the fixed operating thresholds."""
     print_rows(*table_rows(payload), title)
     protocols = protocol_rows(payload)
     if protocols is not None:
         print_rows(*protocols, f"{title}: retrieval within 25 m, same- / reverse-direction revisits")
+    operating = operating_rows(payload)
+    if operating is not None:
+        print_rows(*operating, f"{title}: at the fixed operating thresholds (docs/protocol.md)")
 
 
 def print_rows(header: list[str], rows: list[list[str]], title: str) -> None:
@@ -581,7 +608,9 @@ def print_rows(header: list[str], rows: list[list[str]], title: str) -> None:
 
 def write_index_html(run: Path, cfg: ExperimentConfig, payload: dict[str, Any]) -> Path:
     """A single page with the tables and every figure of the run."""
-    tables = [table_rows(payload)] + [t for t in [protocol_rows(payload)] if t is not None]
+    tables = [table_rows(payload)] + [
+        t for t in [protocol_rows(payload), operating_rows(payload)] if t is not None
+    ]
     return write_html_page(run, cfg.name, f"mode: {html.escape(payload['mode'])}", tables)
 
 

@@ -147,7 +147,12 @@ def build_pipelines(cfg: ExperimentConfig) -> Pipelines:
         entry = PIPELINES.get(spec.name)
         threshold = spec.threshold if spec.threshold is not None else (entry.threshold if entry else None)
         out.append(
-            (PipelineRecord(spec.display_name, type(rec).__name__, spec.name, resolved, threshold=threshold), rec)
+            (
+                PipelineRecord(
+                    spec.display_name, type(rec).__name__, spec.name, resolved, threshold=threshold
+                ),
+                rec,
+            )
         )
     return out
 
