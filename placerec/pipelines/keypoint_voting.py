@@ -105,7 +105,16 @@ from placerec.verify.verify import as_target
 
 log = logging.getLogger(__name__)
 
-__all__ = ["VotingParams", "KeypointVoting", "IvfIndex", "knn", "knn2", "nn_ratio", "ratio_votes"]
+__all__ = [
+    "VotingParams",
+    "KeypointVoting",
+    "IvfIndex",
+    "knn",
+    "knn2",
+    "nn_ratio",
+    "ratio_votes",
+    "voting_schema",
+]
 
 _KIND = "keypoint-voting-db"
 #: 2: descriptors as their store keeps them (``meta["descriptor_store"]``: float32, float16, or sq8 uint8 codes
@@ -683,6 +692,11 @@ class KeypointVoting(Recognizer):
     # -- persistence ----------------------------------------------------------------------------------------
     def save(self, path: str | Path) -> None:
         """Entries (ids, poses, keypoints, descriptors) and the aggregation buffer, with the parameters."""
+        arrays, meta = self._state()
+        save_artifact(path, _KIND, _VERSION, arrays, meta)
+
+    def _state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """The arrays (`voting_schema`) and header metadata of a saved database: what `_restore` reads back."""
         buf = self._buffer
         arrays = {
             "ids": np.asarray(self._ids, np.int64),
@@ -704,11 +718,16 @@ class KeypointVoting(Recognizer):
             "travelled": self._travelled,
             "descriptor_store": self._store.dtype,
         }
-        save_artifact(path, _KIND, _VERSION, arrays, meta)
+        return arrays, meta
 
     def load(self, path: str | Path) -> None:
-        arrays, header = load_artifact(path, _KIND, _READ_VERSIONS, _schema(self._dim))
-        check_saved_params(path, header, self.params)
+        arrays, header = load_artifact(path, _KIND, _READ_VERSIONS, voting_schema(self._dim))
+        self._restore(path, arrays, header)
+
+    def _restore(self, path: str | Path, arrays: Mapping[str, np.ndarray], header: Mapping[str, Any]) -> None:
+        """Replace the database by a loaded one (`_state`'s arrays, checked against `voting_schema`);
+        `ArtifactError` if it was made with other parameters or its arrays disagree."""
+        check_saved_params(path, dict(header), self.params)
         travelled = _check_saved(path, arrays, header["meta"])
         store = DescriptorStore.from_arrays(
             arrays, header["meta"].get("descriptor_store", "float32"), self._dim, path
@@ -757,7 +776,7 @@ def _cat(parts: list[np.ndarray], empty: tuple[int, ...]) -> np.ndarray:
     return np.concatenate(parts).astype(np.float32) if parts else np.zeros(empty, np.float32)
 
 
-def _schema(dim: int) -> dict[str, Member]:
+def voting_schema(dim: int) -> dict[str, Member]:
     """The arrays of a saved database: entries (ids, poses, per-entry counts of keypoint/descriptor rows) and
     the aggregation buffer (ids, poses, travelled distance, per-scan counts of cloud points)."""
     return {
@@ -780,7 +799,7 @@ def _schema(dim: int) -> dict[str, Member]:
 
 
 def _check_saved(path: str | Path, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> float:
-    """What `_schema` cannot state: unique ids, counts adding up to their rows, the distance travelled (a finite
+    """What `voting_schema` cannot state: unique ids, counts adding up to their rows, the distance travelled (a finite
     number >= 0, reached by the buffer's non-decreasing distances); returns that distance."""
     check_unique(arrays["ids"], path, "ids")
     check_unique(arrays["buffer_ids"], path, "buffer_ids")
