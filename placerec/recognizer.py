@@ -240,6 +240,12 @@ PIPELINES: dict[str, PipelineEntry] = {
         "ISHOT paper's baseline (b) on SHOT: Bosse & Zlot voting (10 % rounds, K = 10, log-normal stop), verification",
         {"descriptor": "shot", **LOCALIZE_VERIFY},
     ),
+    "delight": PipelineEntry(
+        "placerec.pipelines.delight:Delight",
+        "ISHOT paper's baseline (c): DELIGHT intensity histograms (2 spheres x 8 sectors, chi-squared) rank the "
+        "places, then the shared verification on SHOT",
+        {"descriptor": "shot", **LOCALIZE_VERIFY},
+    ),
     "fpfh-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",
         "ISHOT paper's baseline: ISS-BR keypoints, FPFH descriptors, ratio-tested NN votes",

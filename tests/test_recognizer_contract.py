@@ -26,6 +26,7 @@ USES_INTENSITY = {
     "superpoint-dbow",
     "ishot-votes",
     "ishot-prob",
+    "delight",
 }
 
 
