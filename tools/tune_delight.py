@@ -11,10 +11,14 @@ with any entry that close (the ceiling), and recall@5 within 10 m (the query spo
 Choice, fixed before running: the highest mean over the conditions of recall@5 within ``--radius``; ties go to
 the higher mean recall@5 within 10 m, then recall@1, then the fewer bins and the smaller radii. The grid's outer
 radius takes each of ``--outer`` with the inner one at half of it; ``sector_shifts`` off is measured beside the
-chosen point (the heading is random at the queries). The test draw is not reachable from here.
+chosen point (the heading is random at the queries).
 
-    python tools/tune_delight.py                      # 100 queries per condition, ~3 min on 2 cores
+``--test`` measures the stored defaults (`DelightParams`), and nothing else, on the test draw
+(`LOCALIZE_TEST_DRAW`): a result to report, never a choice (no grid is accepted with it).
+
+    python tools/tune_delight.py                         # 100 queries per condition, ~1 min on 2 cores
     python tools/tune_delight.py --n-queries 30 --outer 20,40 --bins 16,32
+    python tools/tune_delight.py --test --n-queries 30   # the defaults on the held-out queries
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 
 from placerec.config import load_config  # noqa: E402
 from placerec.experiment.preprocessing import preprocessed_scan  # noqa: E402
-from placerec.experiment.protocol import LOCALIZE_TUNING_DRAW  # noqa: E402
+from placerec.experiment.protocol import LOCALIZE_TEST_DRAW, LOCALIZE_TUNING_DRAW  # noqa: E402
 from placerec.pipelines.delight import DelightParams, delight_distance, make_descriptor  # noqa: E402
 from placerec.sim import make_localization_split  # noqa: E402
 
@@ -92,25 +96,28 @@ def recalls(
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default=str(ROOT / "configs" / "localize.yaml"))
-    ap.add_argument("--n-queries", type=int, default=100, help="tuning queries per condition")
-    ap.add_argument("--outer", default="20,40,60", help="outer radii (m); the inner one is half")
-    ap.add_argument("--bins", default="16,32,64")
+    ap.add_argument("--n-queries", type=int, default=100, help="queries per condition")
+    ap.add_argument("--outer", default=None, help="outer radii (m); the inner one is half (default 20,40,60)")
+    ap.add_argument("--bins", default=None, help="histogram bins (default 16,32,64)")
     ap.add_argument("--spacing", type=float, default=2.5, help="m between map entries (place_spacing_m)")
     ap.add_argument("--radius", type=float, default=3.0, help="m; a retrieved entry this close is right")
+    ap.add_argument("--test", action="store_true", help="measure the stored defaults on the test draw")
     args = ap.parse_args()
+    if args.test and (args.outer or args.bins):
+        ap.error("--test measures the stored defaults only: no --outer / --bins")
+    draw = LOCALIZE_TEST_DRAW if args.test else LOCALIZE_TUNING_DRAW
     t0 = time.perf_counter()
     cfg = load_config(args.config)
     sim = cfg.dataset.simulator
     split = make_localization_split(
-        sim.world,
-        sim.sensor,
-        sim.seed,
-        n_queries=args.n_queries,
-        n_map=sim.n_scans,
-        draw=LOCALIZE_TUNING_DRAW,
+        sim.world, sim.sensor, sim.seed, n_queries=args.n_queries, n_map=sim.n_scans, draw=draw
     )
-    points = [(float(o), int(b)) for o, b in itertools.product(args.outer.split(","), args.bins.split(","))]
-    grid = [DelightParams(outer_radius=o, inner_radius=o / 2, bins=b) for o, b in points]
+    if args.test:
+        grid = [DelightParams()]
+    else:
+        outer, bins = (args.outer or "20,40,60").split(","), (args.bins or "16,32,64").split(",")
+        grid = [DelightParams(outer_radius=float(o), inner_radius=float(o) / 2, bins=int(b))
+                for o, b in itertools.product(outer, bins)]  # fmt: skip
     entries = spaced_entries(split.map.poses[:, :3, 3], args.spacing)
     map_xyz = split.map.poses[entries, :3, 3]
     map_desc = describe_all(split.map, entries, grid, cfg.preprocess)
@@ -118,41 +125,31 @@ def main() -> None:
     for cond in CONDITIONS:
         seq = split.queries[cond]
         queries[cond] = (describe_all(seq, range(len(seq)), grid, cfg.preprocess), seq.poses[:, :3, 3])
-    rows: list[dict[str, Any]] = []
-    for g, (outer, bins) in enumerate(points):
+
+    def row(g: int, shifts: bool) -> dict[str, Any]:
         per = {
-            c: recalls(map_desc[g], map_xyz, qd[g], qxyz, args.radius, True)
+            c: recalls(map_desc[g], map_xyz, qd[g], qxyz, args.radius, shifts)
             for c, (qd, qxyz) in queries.items()
         }
         mean = {m: float(np.mean([per[c][m] for c in CONDITIONS])) for m in per[CONDITIONS[0]]}
-        rows.append({"outer_radius": outer, "inner_radius": outer / 2, "bins": bins, "shifts": True,
-                     "conditions": per, "mean": mean})  # fmt: skip
+        p = grid[g]
+        return {"outer_radius": p.outer_radius, "inner_radius": p.inner_radius, "bins": p.bins, "shifts": shifts,
+                "conditions": per, "mean": mean}  # fmt: skip
+
+    rows = [row(g, True) for g in range(len(grid))]
     best = max(
-        rows,
-        key=lambda r: (
-            r["mean"]["r@5"],
-            r["mean"]["r@5_10m"],
-            r["mean"]["r@1"],
-            -r["bins"],
-            -r["outer_radius"],
-        ),
-    )
-    g = points.index((best["outer_radius"], best["bins"]))
-    per = {
-        c: recalls(map_desc[g], map_xyz, qd[g], qxyz, args.radius, False) for c, (qd, qxyz) in queries.items()
-    }
-    no_shift = {
-        **{k: best[k] for k in ("outer_radius", "inner_radius", "bins")},
-        "shifts": False,
-        "conditions": per,
-        "mean": {m: float(np.mean([per[c][m] for c in CONDITIONS])) for m in per[CONDITIONS[0]]},
-    }
+        range(len(rows)),
+        key=lambda g: (rows[g]["mean"]["r@5"], rows[g]["mean"]["r@5_10m"], rows[g]["mean"]["r@1"],
+                       -rows[g]["bins"], -rows[g]["outer_radius"]),
+    )  # fmt: skip
+    no_shift = row(best, False)
     from rich.console import Console
     from rich.table import Table
 
     title = (
-        f"DELIGHT first stage, tuning draw {LOCALIZE_TUNING_DRAW}: {args.n_queries} queries per condition, "
-        f"{len(entries)} entries {args.spacing} m apart, recall within {args.radius} m (r@5 10m: within 10 m)"
+        f"DELIGHT first stage, {'test' if args.test else 'tuning'} draw {draw}: {args.n_queries} queries per "
+        f"condition, {len(entries)} entries {args.spacing} m apart, recall within {args.radius} m "
+        "(r@5 10m: within 10 m)"
     )
     table = Table(title=title)
     for col in ("outer / inner m", "bins", "shifts", *CONDITIONS, "mean r@1", "mean r@5", "mean r@30",
@@ -163,21 +160,22 @@ def main() -> None:
             f"{r['conditions'][c]['r@1']:.2f} / {r['conditions'][c]['r@5']:.2f} / {r['conditions'][c]['r@30']:.2f}"
             for c in CONDITIONS
         ]
-        mark = " *" if r is best else ""
+        mark = " *" if r is rows[best] and not args.test else ""
         table.add_row(f"{r['outer_radius']:g} / {r['inner_radius']:g}{mark}", str(r["bins"]), str(r["shifts"]),
                       *cells, *(f"{r['mean'][m]:.3f}" for m in ("r@1", "r@5", "r@30", "r@5_10m", "ceiling")))  # fmt: skip
     Console(width=170).print(table)
-    print("per condition: r@1 / r@5 / r@30; * = chosen (highest mean r@5, ties: r@5 within 10 m, r@1)")
+    rule = "" if args.test else "; * = chosen (highest mean r@5, ties: r@5 within 10 m, r@1)"
+    print(f"per condition: r@1 / r@5 / r@30{rule}")
     line = {
         "tool": "tune_delight",
-        "draw": LOCALIZE_TUNING_DRAW,
+        "draw": draw,
         "n_queries": args.n_queries,
         "entries": int(len(entries)),
         "spacing_m": args.spacing,
         "radius_m": args.radius,
         "grid": rows,
-        "chosen": {k: best[k] for k in ("outer_radius", "inner_radius", "bins")},
-        "chosen_without_shifts": no_shift["mean"],
+        "chosen": None if args.test else {k: rows[best][k] for k in ("outer_radius", "inner_radius", "bins")},
+        "without_shifts": no_shift["mean"],
         "load_avg": round(os.getloadavg()[0], 2),
         "runtime_s": round(time.perf_counter() - t0, 1),
     }
