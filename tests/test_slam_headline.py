@@ -9,7 +9,6 @@ import importlib.util
 from pathlib import Path
 
 from placerec.experiment.datasets import open_dataset
-from placerec.experiment.protocol import TEST_SEEDS
 from placerec.sim.odometry import OdometryDrift
 from placerec.slam.config import load_slam_config
 from placerec.slam.report import loop_table, slam_metrics
@@ -54,10 +53,10 @@ def test_loop_closures_cut_the_drift():
 
 def test_matrix_sources_are_the_settings_they_name():
     """sim-default is `OdometryDrift()`, demo-drift is configs/slam_demo.yaml's drift, kiss-icp registers scans;
-    the cells are OS1-64 on the default route at the committed threshold; test seeds come from the protocol."""
+    the cells are OS1-64 on the default route with the committed loops and graph settings."""
     tool = _matrix_tool()
     demo = load_slam_config(ROOT / "configs" / "slam_demo.yaml")
-    seed = TEST_SEEDS[0]
+    seed = 0
     default = tool.cell_config("campus", seed, "sim-default", [])
     drift = default.odometry.drift.model_dump(exclude={"seed"})
     assert drift == dataclasses.asdict(OdometryDrift()) and default.odometry.source == "dataset"
