@@ -3,6 +3,7 @@
 >>> from placerec.loop_closure import LoopClosureDetector
 >>> from placerec.recognizer import make_pipeline
 >>> detector = LoopClosureDetector(make_pipeline("scan-context"), threshold=0.8)   # doctest: +SKIP
+>>> detector = LoopClosureDetector.for_pipeline("orb-hbst")  # its operating threshold  # doctest: +SKIP
 >>> for scan, pose in stream:                                                      # doctest: +SKIP
 ...     for closure in detector.process(scan, pose=pose):
 ...         graph.add_edge(closure.match_id, closure.query_id, closure.relative_pose)
@@ -19,6 +20,7 @@ gets no candidates (``last_max_id`` -1).
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -40,6 +42,27 @@ class LoopClosureDetector:
     ``last_max_id`` is the bound the last query used (``-1``: nothing was eligible, the query was skipped).
     ``k``: candidates requested per query (accepted ones are returned best first).
     """
+
+    @classmethod
+    def for_pipeline(
+        cls,
+        name: str,
+        params: Mapping[str, Any] | None = None,
+        threshold: float | None = None,
+        **options: Any,
+    ) -> LoopClosureDetector:
+        """A detector over the registered pipeline ``name`` (``params`` overrides its preset) at its operating
+        threshold, chosen on the tuning split (docs/protocol.md), unless ``threshold`` is given; ``options`` are
+        the other arguments of the constructor. `ConfigError` when the pipeline has no operating threshold and none
+        is given."""
+        from placerec.recognizer import PIPELINES, make_pipeline
+
+        entry = PIPELINES.get(name)
+        if threshold is None:
+            if entry is None or entry.threshold is None:
+                raise ConfigError(f"pipeline {name!r} has no operating threshold: give threshold=")
+            threshold = entry.threshold
+        return cls(make_pipeline(name, params), threshold=threshold, **options)
 
     def __init__(
         self,

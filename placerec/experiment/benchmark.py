@@ -402,12 +402,21 @@ def summarise(bench: BenchmarkConfig, cells: dict[str, dict[str, Any]]) -> dict[
             op = _get(m, "pose_truth", "operating") or {}
             t_err += [v for v in op.get("accepted_translation_m", []) if v is not None]
             r_err += [v for v in op.get("accepted_rotation_deg", []) if v is not None]
+        missed: dict[str, Any] = {}
+        for m in per_cell.values():
+            for key, value in (_get(m, "pose_truth", "operating", "missed") or {}).items():
+                if isinstance(value, list):
+                    old = missed.get(key, [0, 0])
+                    missed[key] = [old[0] + value[0], old[1] + value[1]]
+                else:
+                    missed[key] = missed.get(key, 0) + value
         thresholds = {_get(m, "operating", "threshold") for m in per_cell.values()}
         pipelines[label] = {
             "threshold": next(iter(thresholds)) if len(thresholds) == 1 else sorted(map(str, thresholds)),
             "figures": figures,
             "accepted_translation_m": _stats(t_err),
             "accepted_rotation_deg": _stats(r_err),
+            "missed": missed,
             "cells_with_false_closures": sorted(
                 name for name, v in figures["false_closures"]["cells"].items() if v and v > 0
             ),

@@ -155,10 +155,17 @@ def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
 
 
 def operating_point(
-    metrics: LoopMetrics, relative_poses: np.ndarray, poses: np.ndarray, threshold: float | None
+    metrics: LoopMetrics,
+    relative_poses: np.ndarray,
+    poses: np.ndarray,
+    threshold: float | None,
+    nearest: np.ndarray | None = None,
 ) -> dict[str, Any] | None:
     """The figures of a pipeline at its fixed operating ``threshold`` (None when it has none): precision, recall,
-    F1, the counts, and the translation / rotation errors of every closure accepted there (true or false)."""
+    F1, the counts, the translation / rotation errors of every closure accepted there (true or false), and why
+    revisits were missed (``missed``: no candidate, the top candidate below the threshold, i.e. rejected, or a
+    wrong one accepted; with ``nearest``, the distance (m) from each query to its nearest eligible scan, the
+    revisits and those found per band of that distance)."""
     if threshold is None:
         return None
     c = metrics.confusion_at(threshold)
@@ -167,6 +174,18 @@ def operating_point(
     r = c["tp"] / metrics.n_revisits if metrics.n_revisits else 0.0
     errors = closure_pose_errors(metrics, relative_poses, poses, threshold)
     acc = errors.accepted
+    masks = metrics.outcomes_at(threshold)
+    fn, has = masks["fn"], metrics.match_ids >= 0
+    missed: dict[str, Any] = {
+        "no_candidate": int((fn & ~has).sum()),
+        "below_threshold": int((fn & has & ~masks["accepted"]).sum()),
+        "wrong_accepted": int((fn & masks["fp"]).sum()),
+    }
+    if nearest is not None:
+        d = np.asarray(nearest, dtype=np.float64)
+        for lo, hi in ((0.0, 5.0), (5.0, 10.0), (10.0, np.inf)):
+            band = metrics.revisit & (d >= lo) & (d < hi)
+            missed[f"nearest_{lo:g}-{hi:g}_m"] = [int(band.sum()), int((band & masks["tp"]).sum())]
     return {
         "threshold": float(threshold),
         "precision": p,
@@ -180,6 +199,7 @@ def operating_point(
         "rotation_deg": error_stats(errors.rotation_deg[acc]),
         "accepted_translation_m": [round(float(v), 4) for v in errors.translation_m[acc] if np.isfinite(v)],
         "accepted_rotation_deg": [round(float(v), 3) for v in errors.rotation_deg[acc] if np.isfinite(v)],
+        "missed": missed,
     }
 
 
@@ -200,7 +220,11 @@ def max_false_score(metrics: LoopMetrics) -> float:
 
 
 def _other_truth_summary(
-    metrics: LoopMetrics, relative_poses: np.ndarray, poses: np.ndarray, threshold: float | None
+    metrics: LoopMetrics,
+    relative_poses: np.ndarray,
+    poses: np.ndarray,
+    threshold: float | None,
+    nearest: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """``metrics.json``'s entry for a ground truth beside the distance one: its PR figures and operating point."""
     return {
@@ -210,7 +234,7 @@ def _other_truth_summary(
         "recall_at_max_f1": metrics.recall_at_max_f1,
         "recall_at_100_precision": metrics.recall_at_100_precision,
         "max_false_score": max_false_score(metrics),
-        "operating": operating_point(metrics, relative_poses, poses, threshold),
+        "operating": operating_point(metrics, relative_poses, poses, threshold, nearest),
     }
 
 
@@ -234,16 +258,19 @@ def _loop_summary(
     metrics, gt = evaluate_loop(q, m, s, poses, topn, **options)
     rel = table.relative_poses[:, 0]
     summary = metrics.summary()
-    summary["operating"] = operating_point(metrics, rel, poses, threshold)
+    nearest = gt.nearest_distance[metrics.query_ids]
+    summary["operating"] = operating_point(metrics, rel, poses, threshold, nearest)
     summary["max_false_score"] = max_false_score(metrics)
     summary["max_score"] = float(np.nanmax(s)) if np.isfinite(s).any() else float("nan")
     if pose_truth is not None:
         summary["pose_truth"] = _other_truth_summary(
-            loop_metrics(q, m, s, pose_truth, topn), rel, poses, threshold
+            loop_metrics(q, m, s, pose_truth, topn), rel, poses, threshold, nearest
         )
     if truth is not None and truth.icp_truth and len(truth.clouds) == poses.shape[0]:
         igt = icp_ground_truth(gt, truth.clouds, poses, truth.icp_settings)
-        summary["icp_truth"] = _other_truth_summary(loop_metrics(q, m, s, igt, topn), rel, poses, threshold)
+        summary["icp_truth"] = _other_truth_summary(
+            loop_metrics(q, m, s, igt, topn), rel, poses, threshold, nearest
+        )
     summary["auc"] = summary.pop("average_precision")
     summary["directions"] = direction_summary(metrics, gt, ev.reverse_yaw_deg)
     retrieval_gt = loop_ground_truth(
