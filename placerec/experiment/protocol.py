@@ -40,8 +40,10 @@ TEST_SENSORS: tuple[str, ...] = ("vlp16", "hdl64", "os1-64", "os1-128")
 #: Simulator seeds of the held-out benchmark: used nowhere else in placerec, never to choose a default.
 TEST_SEEDS: tuple[int, ...] = (4601, 4602)
 
-#: The tuning matrix the operating thresholds are chosen on (with the demo sequence, town OS1-64 seed 0).
-TUNING_WORLDS: tuple[str, ...] = ("town", "campus", "industrial")
+#: The tuning matrix the operating thresholds are chosen on: the demo's world with every sensor (town OS1-64 seed 0
+#: is the demo sequence). Campus and industrial have no tuning cell: the test split measures whether the thresholds
+#: transfer to worlds they were not chosen on.
+TUNING_WORLDS: tuple[str, ...] = ("town",)
 TUNING_SENSORS: tuple[str, ...] = ("vlp16", "hdl64", "os1-64", "os1-128")
 TUNING_SEEDS: tuple[int, ...] = (0,)
 
