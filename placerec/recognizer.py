@@ -180,40 +180,50 @@ class PipelineEntry:
     threshold: float | None = None
 
 
-#: Registered pipelines by short name.
+#: Registered pipelines by short name. The loop pipelines' operating thresholds were picked by the tuning rule of
+#: docs/protocol.md on the tuning matrix (town x 4 sensors, seed 0): `placerec bench configs/benchmark_tuning.yaml
+#: --suggest`. 0.25 is the verification's min_score (no false closure scored above it on the tuning cells); Scan
+#: Context's ICP-verified false closures reached 0.259, MapClosures' false ones 14 inliers.
 PIPELINES: dict[str, PipelineEntry] = {
     "scan-context": PipelineEntry(
         "placerec.baselines.scan_context:ScanContext",
         "Scan Context (Kim & Kim 2018): polar max-height grid, ring-key search, column-shift distance",
+        threshold=0.3,
     ),
     "map-closures": PipelineEntry(
         "placerec.baselines.map_closures_peer:MapClosuresPeer",
         "MapClosures peer (PRBonn): bird's-eye density-map ORB, HBST, RANSAC; fed single scans",
+        threshold=15.0,
     ),
     "orb-hbst": PipelineEntry(
         "placerec.pipelines.visual:VisualHBST",
         "VPR paper: intensity image, ORB features, HBST retrieval; RANSAC + ICP verification",
         {"features": "orb", "hbst": {"threshold": 50}, "verify": {"top_k": 5, "icp_top_k": 2}},
+        threshold=0.25,
     ),
     "brisk-hbst": PipelineEntry(
         "placerec.pipelines.visual:VisualHBST",
         "VPR paper: intensity image, FAST + BRISK features, HBST retrieval; RANSAC + ICP verification",
         {"features": "brisk", "hbst": {"threshold": 100}, "verify": {"top_k": 5, "icp_top_k": 2}},
+        threshold=0.25,
     ),
     "orb-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
         "VPR paper: intensity image, ORB features, DBoW2 bag of words; RANSAC + ICP verification",
         {"features": "orb", "verify": {"top_k": 20, "icp_top_k": 2}},
+        threshold=0.25,
     ),
     "surf-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
         "VPR paper: intensity image, FAST + SURF features, DBoW2 bag of words; RANSAC + ICP verification",
         {"features": "fast-surf", "verify": {"top_k": 20, "icp_top_k": 2}},
+        threshold=0.25,
     ),
     "superpoint-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
         "VPR paper: intensity image, our SuperPoint (trained on simulated LiDAR), DBoW2; RANSAC + ICP verification",
         {"features": "superpoint", "verify": {"top_k": 20, "icp_top_k": 2}},
+        threshold=0.25,
     ),
     "ishot-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",

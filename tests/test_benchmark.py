@@ -111,3 +111,15 @@ def test_two_cells_end_to_end_at_fixed_thresholds_and_resumed(tmp_path):
     _, again = run_benchmark(cfg)
     assert again["cells_run"] == 1
     assert again["pipelines"]["orb-hbst"]["figures"]["recall"] == orb["figures"]["recall"]
+
+
+def test_a_detector_for_a_registered_pipeline_runs_at_its_operating_threshold():
+    from placerec.loop_closure import LoopClosureDetector
+    from placerec.recognizer import PIPELINES
+
+    loop_pipelines = ("scan-context", "orb-hbst", "brisk-hbst", "orb-dbow", "surf-dbow", "superpoint-dbow")
+    assert all(PIPELINES[n].threshold is not None for n in loop_pipelines)
+    assert LoopClosureDetector.for_pipeline("orb-hbst").threshold == PIPELINES["orb-hbst"].threshold
+    assert LoopClosureDetector.for_pipeline("orb-hbst", threshold=0.6, k=3).threshold == 0.6
+    with pytest.raises(ConfigError, match="no operating threshold"):
+        LoopClosureDetector.for_pipeline("ishot-votes")
