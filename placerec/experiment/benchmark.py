@@ -253,9 +253,12 @@ def _done_cell(folder: Path, key: str) -> dict[str, Any] | None:
 def run_benchmark(
     bench: BenchmarkConfig, out_dir: str | Path | None = None, fresh: bool = False
 ) -> tuple[Path, dict[str, Any]]:
-    """Run every cell not done yet (all with ``fresh``), then summarise; returns (folder, ``benchmark.json``)."""
+    """Run every cell not done yet (all with ``fresh``), then summarise; returns (folder, ``benchmark.json``).
+
+    A cell is done when its ``cell.json`` stamp holds the key of its config and of the placerec version: after
+    changing placerec's code without changing its version, run with ``fresh`` (``--fresh``)."""
     from placerec.experiment.parallel import task_pool
-    from placerec.experiment.runner import build_pipelines
+    from placerec.experiment.runner import build_pipelines, progress_bars
 
     cells = bench.cells()
     build_pipelines(bench.cell_config(cells[0]))  # every pipeline and parameter checked before any cell runs
@@ -276,9 +279,8 @@ def run_benchmark(
         if done is not None:
             results[cell.name] = done
         else:
-            todo.append((cell, cfg, folder))
+            todo.append((cfg, folder))
     log.info("benchmark %s: %d cells, %d cached, %d to run", bench.name, len(cells), len(results), len(todo))
-    from placerec.experiment.runner import progress_bars
 
     with progress_bars(bench.output.progress) as progress:
         task = progress.add_task(f"cells ({len(results)} cached)", total=len(todo))
@@ -286,7 +288,7 @@ def run_benchmark(
         def finished(result: dict[str, Any]) -> None:
             progress.advance(task)
 
-        args = [(cfg.model_dump(mode="json"), str(folder)) for _, cfg, folder in todo]
+        args = [(cfg.model_dump(mode="json"), str(folder)) for cfg, folder in todo]
         if todo and bench.execution.workers == 1 and bench.execution.executor == "local":
             ran = []
             for a in args:
