@@ -7,7 +7,8 @@ OS1-64, route ``default``. Everything else is configs/slam_demo.yaml as committe
 fixed threshold ``loops.threshold`` (chosen on the tuning split, docs/slam.md "The default threshold"), exclusion
 120 frames, Cauchy loop factors, GNC batch. Per cell: ATE / RPE of the odometry (before) and of the batch-optimised
 graph (after) by `placerec.eval.trajectory`, loops accepted, false (pose off by > 1 m / 5 deg), rejected by the
-back end, and the verified candidates' scores (the highest score of a wrong candidate: the threshold's margin).
+back end, and the highest score of a wrong candidate among those the threshold decides on (each query's best
+``loops.k``): the threshold's margin.
 
 KISS-SLAM (PyPI ``kiss-slam``, PRBonn) runs on the same sequences, exported as KITTI-style folders
 (`placerec.sim.write_kitti_sequence`), through its own command ``kiss_slam_pipeline <folder>/velodyne`` with its
@@ -99,8 +100,9 @@ def _save(path: Path, data: dict[str, Any]) -> None:
 
 
 def candidate_scores(cfg: SlamConfig, result: SlamResult) -> dict[str, Any]:
-    """The verified candidates with a 6-DoF pose, judged like loop edges (> 1 m or 5 deg off: wrong): how many are
-    right / wrong, the highest wrong score, and how many right ones reach the threshold."""
+    """The candidates the threshold decided on (each query's best ``loops.k``) that carry a 6-DoF pose, judged like
+    loop edges (> 1 m or 5 deg off: wrong): how many are right / wrong, the highest wrong score, and how many
+    right ones reach the threshold."""
     gt = result.ground_truth
     cands = [c for per_scan in result.candidates for c in per_scan]
     cands = [c for c in cands if c.relative_pose is not None and full_pose_mask(c.relative_pose)[0]]
