@@ -15,12 +15,17 @@ KISS-SLAM (PyPI ``kiss-slam``, PRBonn) runs on the same sequences, exported as K
 defaults, in its own virtual environment (its dependencies pin numpy < 2.3, pydantic and typer below placerec's):
 ``--install-kiss-slam`` creates it (`KISS_SLAM_INSTALL`). Its poses are scored by the same ATE / RPE code.
 
-Each cell's result is cached as JSON in ``--cache`` with the key of what made it (the resolved config, the
-KISS-SLAM version): a rerun skips finished cells and recomputes cells whose config changed.
+Each cell's result is cached as JSON in ``--cache`` with the key of what made it (the resolved config; for KISS-SLAM
+its version and the dataset settings, which also name the exported folder): a rerun skips finished cells and
+recomputes cells whose config changed.
 
     .venv/bin/python tools/bench_slam_matrix.py                       # test split, all sources, KISS-SLAM
     .venv/bin/python tools/bench_slam_matrix.py --split tuning        # the tuning cells (threshold check)
     .venv/bin/python tools/bench_slam_matrix.py --install-kiss-slam   # first: KISS-SLAM's environment
+    .venv/bin/python tools/bench_slam_matrix.py --split tuning --noise-grid --sources kiss-icp --no-kiss-slam
+
+``--noise-grid`` (tuning split only): each cell's odometry and loops replayed (`bench_slam.replay`) into graphs with
+the odometry and loop noise of `NOISE_GRID`, to see whether another noise model would suit an odometry source.
 """
 
 from __future__ import annotations
@@ -50,6 +55,7 @@ from placerec.io.atomic import atomic_write
 from placerec.sim.odometry import OdometryDrift
 from placerec.slam.config import SlamConfig, load_slam_config
 from placerec.slam.result import SlamResult
+from placerec.types import relative_pose
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "slam_demo.yaml"
@@ -60,6 +66,13 @@ KISS_SLAM_VENV = ROOT / ".venv-kiss-slam"
 #: The authors' install (``pip install kiss-slam``) plus two modules its pipeline imports but does not declare
 #: (PIL in ``occupancy_mapper``, matplotlib for its trajectory figure).
 KISS_SLAM_INSTALL = ("kiss-slam==0.0.2", "pillow", "matplotlib")
+
+
+#: ``--noise-grid``: (odometry sigma per metre, deg per metre) x (loop sigma m, deg), the GraphParams fields.
+NOISE_GRID = {
+    "odometry": [(t, r) for t in (0.02, 0.005, 0.002) for r in (0.1, 0.02)],
+    "loop": [(t, r) for t in (0.1, 0.05) for r in (1.0, 0.3)],
+}
 
 
 def _drift_overrides(drift: OdometryDrift) -> list[str]:
@@ -109,7 +122,7 @@ def candidate_scores(cfg: SlamConfig, result: SlamResult) -> dict[str, Any]:
     if gt is None or not cands:
         return {"right": 0, "wrong": 0, "max_wrong_score": None, "right_at_threshold": 0}
     est = np.stack([np.asarray(c.relative_pose, dtype=np.float64) for c in cands])
-    true = np.stack([np.linalg.solve(gt[c.match_id], gt[c.query_id]) for c in cands])
+    true = np.stack([relative_pose(gt[c.match_id], gt[c.query_id]) for c in cands])
     te, re_deg = pose_errors(est, true)
     ev = cfg.evaluation
     wrong = (te > ev.false_loop_translation) | (re_deg > ev.false_loop_rotation_deg)
@@ -147,6 +160,48 @@ def run_placerec_cell(cfg: SlamConfig) -> dict[str, Any]:
     }
 
 
+def noise_grid(cfg: SlamConfig) -> dict[str, float]:
+    """ATE of ``cfg``'s run replayed with every noise model of `NOISE_GRID` (key "odo t/r, loop t/r")."""
+    from bench_slam import replay  # tools/ is on sys.path when this file runs as a script
+
+    from placerec.experiment.datasets import open_dataset
+    from placerec.slam.run import slam_sequence
+
+    result = slam_sequence(cfg, open_dataset(cfg.dataset))
+    loops = [lp for lp in result.loops if not lp.injected]
+    out = {"odometry": trajectory_errors(result.odometry, result.ground_truth).ate_rmse}
+    for (ot, orot), (lt, lr) in ((o, lp) for o in NOISE_GRID["odometry"] for lp in NOISE_GRID["loop"]):
+        p = cfg.graph.model_copy(
+            update={
+                "odometry_sigma_translation": ot,
+                "odometry_sigma_rotation_deg": orot,
+                "loop_sigma_translation": lt,
+                "loop_sigma_rotation_deg": lr,
+            }
+        )
+        out[f"{ot:g}/{orot:g}, {lt:g}/{lr:g}"] = trajectory_errors(
+            replay(result.odometry, loops, p), result.ground_truth
+        ).ate_rmse
+    return out
+
+
+def print_noise_grid(args: argparse.Namespace, seeds: tuple[int, ...]) -> None:
+    """`noise_grid` for every cell of the split (tuning only: the grid is there to choose on)."""
+    if args.split != "tuning":
+        sys.exit("--noise-grid chooses settings: tuning split only (--split tuning)")
+    cols: dict[str, dict[str, float]] = {}
+    for world in args.worlds:
+        for seed in seeds:
+            for source in args.sources:
+                print(f"noise grid {world} {seed} {source} ...", flush=True)
+                cols[f"{world} {seed} {source}"] = noise_grid(cell_config(world, seed, source, args.set))
+    keys = list(next(iter(cols.values())))
+    rows = [[k, *(f"{c[k]:.4f}" for c in cols.values())] for k in keys]
+    header = ["odometry m/m / deg/m, loop m / deg", *(f"{name}: ATE [m]" for name in cols)]
+    print_rows(header, rows, "graph noise models replayed (the config's: 0.02/0.1, 0.1/1)")
+    print(json.dumps({"bench": "slam_noise_grid", "split": args.split, "ate_m": cols}))
+
+
 # --- KISS-SLAM -----------------------------------------------------------------------------------------------
 
 
@@ -168,12 +223,14 @@ def kiss_slam_version(venv: Path) -> str | None:
     return out.stdout.strip() if out.returncode == 0 else None
 
 
-def export_sequence(world: str, seed: int, folder: Path) -> Path:
-    """The cell's simulated sequence as a KITTI-style folder (written once; sensor.yaml is written last)."""
+def export_sequence(cfg: SlamConfig, folder: Path) -> Path:
+    """The cell's dataset (the sequence placerec runs on) as a KITTI-style folder, written once (sensor.yaml is
+    written last)."""
     if not (folder / "sensor.yaml").is_file():
-        from placerec.sim import SimulatedSequence, write_kitti_sequence
+        from placerec.experiment.datasets import open_dataset
+        from placerec.sim import write_kitti_sequence
 
-        write_kitti_sequence(SimulatedSequence(world, SENSOR, seed=seed), folder, progress=False)
+        write_kitti_sequence(open_dataset(cfg.dataset), folder, progress=False)
     return folder
 
 
@@ -231,12 +288,17 @@ def main() -> None:
     ap.add_argument("--kiss-slam-venv", type=Path, default=KISS_SLAM_VENV)
     ap.add_argument("--no-kiss-slam", action="store_true", help="placerec's cells only")
     ap.add_argument("--install-kiss-slam", action="store_true", help="create --kiss-slam-venv and exit")
+    ap.add_argument(
+        "--noise-grid", action="store_true", help="graph noise models replayed (tuning split only)"
+    )
     args = ap.parse_args()
     if args.install_kiss_slam:
         install_kiss_slam(args.kiss_slam_venv)
         return
-
     seeds = TEST_SEEDS if args.split == "test" else TUNING_SEEDS
+    if args.noise_grid:
+        print_noise_grid(args, seeds)
+        return
     kiss_version = None if args.no_kiss_slam else kiss_slam_version(args.kiss_slam_venv)
     if not args.no_kiss_slam and kiss_version is None:
         print(
@@ -273,14 +335,16 @@ def run_matrix(
                 cells.append(cell)
             if kiss_version is None:
                 continue
-            key = _key(f"kiss-slam {kiss_version}", name)
+            cfg = cell_config(world, seed, args.sources[0], args.set)
+            data_key = _key(config_to_yaml(cfg.dataset))
+            key = _key(f"kiss-slam {kiss_version}", data_key)
             path = args.cache / "cells" / f"{name}_kiss-slam.json"
             cell = _cached(path, key)
             if cell is None:
                 print(f"running {name} KISS-SLAM {kiss_version} ...", flush=True)
-                folder = export_sequence(world, seed, args.cache / "sequences" / name)
+                folder = export_sequence(cfg, args.cache / "sequences" / f"{name}_{data_key}")
                 out = args.cache / "kiss_slam" / name
-                delta = cell_config(world, seed, args.sources[0], args.set).evaluation.rpe_delta
+                delta = cfg.evaluation.rpe_delta
                 head = {"key": key, "world": world, "seed": seed, "source": f"kiss-slam {kiss_version}"}
                 cell = {**head, **run_kiss_slam(args.kiss_slam_venv, folder, out, delta)}
                 _save(path, cell)
