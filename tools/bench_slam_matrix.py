@@ -1,9 +1,9 @@
 """SLAM over the matrix: `placerec.slam.run.slam_sequence` per odometry source x world x seed, KISS-SLAM beside it.
 
 Cells: the odometry sources of `SOURCES` (the simulator's default drift, ``OdometryDrift()``; the drift of
-configs/slam_demo.yaml; KISS-ICP on the scans) x worlds town / campus / industrial x the split's seeds
-(``--split test``: `placerec.experiment.protocol.TEST_SEEDS`; ``--split tuning``: ``TUNING_SEEDS``), sensor
-OS1-64, route ``default``. Everything else is configs/slam_demo.yaml as committed: ORB-HBST loop closures at the
+configs/slam_demo.yaml; KISS-ICP on the scans) x the split's worlds and seeds (``--split test``:
+`placerec.experiment.protocol.TEST_WORLDS` x ``TEST_SEEDS``; ``--split tuning``: ``TUNING_WORLDS`` x
+``TUNING_SEEDS``, i.e. the demo's town, seed 0; ``--worlds`` names others), sensor OS1-64, route ``default``. Everything else is configs/slam_demo.yaml as committed: ORB-HBST loop closures at the
 fixed threshold ``loops.threshold`` (chosen on the tuning split, docs/slam.md "The default threshold"), exclusion
 120 frames, Cauchy loop factors, GNC batch. Per cell: ATE / RPE of the odometry (before) and of the batch-optimised
 graph (after) by `placerec.eval.trajectory`, loops accepted, false (pose off by > 1 m / 5 deg), rejected by the
@@ -24,8 +24,9 @@ recomputes cells whose config changed.
     .venv/bin/python tools/bench_slam_matrix.py --install-kiss-slam   # first: KISS-SLAM's environment
     .venv/bin/python tools/bench_slam_matrix.py --split tuning --noise-grid --sources kiss-icp --no-kiss-slam
 
-``--noise-grid`` (tuning split only): each cell's odometry and loops replayed (`bench_slam.replay`) into graphs with
-the odometry and loop noise of `NOISE_GRID`, to see whether another noise model would suit an odometry source.
+``--noise-grid`` (tuning seeds only): each cell's odometry and loops replayed (`bench_slam.replay`) into graphs with
+the odometry and loop noise of `NOISE_GRID`, to see whether another noise model would suit an odometry source (a
+setting may be chosen on the tuning worlds only).
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ import numpy as np
 from placerec.config import config_to_yaml
 from placerec.eval.pose_error import full_pose_mask, pose_errors
 from placerec.eval.trajectory import trajectory_errors
-from placerec.experiment.protocol import TEST_SEEDS, TEST_WORLDS, TUNING_SEEDS
+from placerec.experiment.protocol import TEST_SEEDS, TEST_WORLDS, TUNING_SEEDS, TUNING_WORLDS
 from placerec.experiment.report import print_rows
 from placerec.io import read_poses
 from placerec.io.atomic import atomic_write
@@ -281,7 +282,7 @@ def meets_target(cell: dict[str, Any]) -> bool | None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--split", choices=("test", "tuning"), default="test")
-    ap.add_argument("--worlds", nargs="+", default=list(TEST_WORLDS))
+    ap.add_argument("--worlds", nargs="+", help="default: the split's worlds")
     ap.add_argument("--sources", nargs="+", choices=list(SOURCES), default=list(SOURCES))
     ap.add_argument("--set", action="append", default=[], help="config override key.path=value (every cell)")
     ap.add_argument("--cache", type=Path, default=ROOT / "results" / "slam_matrix")
@@ -296,6 +297,7 @@ def main() -> None:
         install_kiss_slam(args.kiss_slam_venv)
         return
     seeds = TEST_SEEDS if args.split == "test" else TUNING_SEEDS
+    args.worlds = args.worlds or list(TEST_WORLDS if args.split == "test" else TUNING_WORLDS)
     if args.noise_grid:
         print_noise_grid(args, seeds)
         return
