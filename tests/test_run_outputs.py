@@ -437,3 +437,34 @@ def test_the_run_reports_a_verify_stage(sequence_dir, tmp_path):
     stages = record["time_ms"]["stages"]
     assert stages["verify"]["mean"] == pytest.approx(per_scan.mean())
     assert stages["verify"]["max"] == pytest.approx(per_scan.max())
+
+
+def test_localisation_counts_only_accepted_answers():
+    """A rejected top candidate is no answer, never a success, even when it lies next to the truth; an accepted
+    one beyond the success distance is a wrong answer."""
+    from placerec.eval import localization_metrics
+    from placerec.experiment.report import _localize_estimates
+
+    map_poses = np.stack([np.eye(4)] * 3)
+    map_poses[:, 0, 3] = [0.0, 10.0, 20.0]
+    truth = np.stack([np.eye(4)] * 4)
+    truth[:, 0, 3] = [0.5, 10.5, 0.5, 5.0]
+    near = np.eye(4)
+    near[0, 3] = 0.5
+
+    def cand(q, m, accepted, score):
+        return Candidate(q, m, score, near, 20, {"accepted": accepted})
+
+    rows = [
+        [cand(0, 0, True, 0.9)],  # accepted, 0 m off: localised
+        [cand(1, 1, False, 0.1)],  # rejected, though right: no answer
+        [cand(2, 2, True, 0.8)],  # accepted, 20 m off: wrong
+        [],  # nothing: no answer
+    ]
+    table = CandidateTable.from_candidates([0, 1, 2, 3], rows)
+    estimates, basis = _localize_estimates(table, map_poses)
+    assert basis == "pose"
+    m = localization_metrics(estimates, truth, 3.0, basis=basis)
+    s = m.summary()
+    assert (s["n_success"], s["n_no_estimate"], s["n_wrong"]) == (1, 2, 1)
+    assert s["success_rate"] == 0.25 and s["no_answer_rate"] == 0.5 and s["wrong_rate"] == 0.25

@@ -264,6 +264,8 @@ def evaluate_loop(
 @dataclass(frozen=True, eq=False)
 class LocalizationMetrics:
     """Localize-mode metrics (ISHOT paper): a query succeeds when its position error is <= ``success_distance``.
+    Each query is localised (an answer within the distance), has no answer (NaN estimate: nothing accepted), or
+    is answered wrongly (an answer beyond it).
 
     ``basis`` says what the estimate is: ``"pose"`` (the matched map pose composed with the candidate's 6-DoF
     relative pose) or ``"retrieval"`` (the matched map scan's position: place retrieval only). ``errors`` (Q,)
@@ -290,12 +292,22 @@ class LocalizationMetrics:
     fine_distance: float = 1.0
     fine_rotation_deg: float = 5.0
 
+    @property
+    def n_wrong(self) -> int:
+        """Answers given (accepted) but farther than ``success_distance`` from the truth."""
+        return self.n_queries - self.n_success - self.n_no_estimate
+
     def summary(self) -> dict[str, Any]:
-        """The scalar metrics as a JSON-friendly dict."""
+        """The scalar metrics as a JSON-friendly dict: ``n_success`` localised, ``n_no_estimate`` no answer,
+        ``n_wrong`` answered but wrong, and their rates."""
+        n = max(self.n_queries, 1)
         return {
             "n_queries": self.n_queries,
             "n_success": self.n_success,
             "n_no_estimate": self.n_no_estimate,
+            "n_wrong": self.n_wrong,
+            "no_answer_rate": self.n_no_estimate / n if self.n_queries else 0.0,
+            "wrong_rate": self.n_wrong / n if self.n_queries else 0.0,
             "success_basis": self.basis,
             "success_rate": self.success_rate,
             "mean_error": self.mean_error,

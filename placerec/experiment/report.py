@@ -403,7 +403,8 @@ def report_localize(
                 np.where(np.isfinite(estimates[:, :3, 3]), estimates[:, :3, 3], query_poses[:, :3, 3]),
                 metrics.success,
                 run / f"localization_{_slug(record.label)}.png",
-                f"{record.label}: success {metrics.success_rate:.1%} (<= {success_distance} m, {basis})",
+                f"{record.label}: localised {metrics.success_rate:.1%} (accepted, <= {success_distance} m, {basis}),"
+                f" no answer {metrics.n_no_estimate}, wrong {metrics.n_wrong}",
             )
     payload = {
         "mode": "localize",
@@ -419,16 +420,21 @@ def report_localize(
 
 
 def _localize_estimates(table: CandidateTable, map_poses: np.ndarray) -> tuple[np.ndarray, str]:
-    """(Q, 4, 4) estimated query poses from the top candidates (NaN: no estimate) and their basis: ``"pose"``
+    """(Q, 4, 4) estimated query poses from the top candidates (NaN: no answer) and their basis: ``"pose"``
     (``T_world_match @ T_match_query``) when any top candidate carries a 6-DoF relative pose, a top candidate
-    without one then giving no estimate; else ``"retrieval"``, the matched map scan's pose."""
+    without one then giving no answer; else ``"retrieval"``, the matched map scan's pose.
+
+    Only an answer the pipeline accepted counts: a top candidate its verification rejected (``accepted`` 0) is
+    no answer, never a hit. A pipeline that does not verify (``accepted`` unknown) answers with its top candidate
+    (verified candidates rank the accepted ones first, so a rejected top candidate means none was accepted)."""
     top, rel = table.match_ids[:, 0], table.relative_poses[:, 0]
-    full = full_pose_mask(rel) & (top >= 0)
+    answered = (top >= 0) & (table.accepted[:, 0] != 0)
+    full = full_pose_mask(rel) & answered
     estimates = np.full((top.size, 4, 4), np.nan)
-    if full.any():
+    if (full_pose_mask(rel) & (top >= 0)).any():
         estimates[full] = map_poses[top[full]] @ rel[full]
         return estimates, "pose"
-    estimates[top >= 0] = map_poses[top[top >= 0]]
+    estimates[answered] = map_poses[top[answered]]
     return estimates, "retrieval"
 
 
@@ -519,6 +525,8 @@ _PROTOCOL_COLUMNS = (
 _LOCALIZE_COLUMNS = (
     ("basis", ("success_basis",)),
     ("success", ("success_rate",)),
+    ("no answer", ("no_answer_rate",)),
+    ("wrong", ("wrong_rate",)),
     ("success 1 m/5 deg", ("fine_success_rate",)),
     ("median err [m]", ("median_error",)),
     ("median rot err [deg]", ("median_rotation_error_deg",)),
