@@ -339,6 +339,15 @@ def test_localization_metrics():
     np.testing.assert_allclose(m.errors, [3.0, 3.5, np.inf, 10.0])
     assert m.success.tolist() == [True, False, False, False]  # exactly 3 m succeeds
     assert m.success_rate == 0.25 and m.n_no_estimate == 1
+    # each query is one of localised / no answer / answered wrongly: 1 + 1 + 2 (3.5 m and 10 m off)
+    assert (m.n_success, m.n_no_estimate, m.n_wrong) == (1, 1, 2)
+    assert m.answered.tolist() == [True, True, False, True]
+    assert (m.no_answer_rate, m.wrong_rate) == (0.25, 0.5)
+    s = m.summary()
+    assert (s["n_wrong"], s["no_answer_rate"], s["wrong_rate"]) == (2, 0.25, 0.5)
+    assert s["answer_rule"] == "accepted"
+    planar = localization_metrics(est, truth, planar=True, answer_rule="top")
+    assert (planar.n_success, planar.n_no_estimate, planar.n_wrong, planar.answer_rule) == (2, 1, 1, "top")
     assert m.mean_error == pytest.approx((3 + 3.5 + 10) / 3) and m.median_error == pytest.approx(3.5)
     assert localization_metrics(est, truth, planar=True).success.tolist() == [True, False, False, True]
     poses = np.tile(np.eye(4), (4, 1, 1))
@@ -346,6 +355,15 @@ def test_localization_metrics():
     assert localization_metrics(poses, truth).success.all()
     with pytest.raises(ScanDataError):
         localization_metrics(est[:2], truth)
+    with pytest.raises(ScanDataError, match="answer_rule"):
+        localization_metrics(est, truth, answer_rule="rejected")
+
+
+def test_localization_metrics_without_queries_or_answers():
+    empty = localization_metrics(np.zeros((0, 3)), np.zeros((0, 3)))
+    assert (empty.n_wrong, empty.no_answer_rate, empty.wrong_rate, empty.success_rate) == (0, 0.0, 0.0, 0.0)
+    none = localization_metrics(np.full((3, 3), np.nan), np.zeros((3, 3)))
+    assert (none.n_success, none.n_no_estimate, none.n_wrong, none.no_answer_rate) == (0, 3, 0, 1.0)
 
 
 def test_timing_summary():

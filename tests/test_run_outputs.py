@@ -447,24 +447,42 @@ def test_localisation_counts_only_accepted_answers():
 
     map_poses = np.stack([np.eye(4)] * 3)
     map_poses[:, 0, 3] = [0.0, 10.0, 20.0]
-    truth = np.stack([np.eye(4)] * 4)
-    truth[:, 0, 3] = [0.5, 10.5, 0.5, 5.0]
+    truth = np.stack([np.eye(4)] * 5)
+    truth[:, 0, 3] = [0.5, 10.5, 0.5, 5.0, 0.5]
     near = np.eye(4)
     near[0, 3] = 0.5
 
     def cand(q, m, accepted, score):
-        return Candidate(q, m, score, near, 20, {"accepted": accepted})
+        return Candidate(q, m, score, near, 20, {} if accepted is None else {"accepted": accepted})
 
     rows = [
         [cand(0, 0, True, 0.9)],  # accepted, 0 m off: localised
         [cand(1, 1, False, 0.1)],  # rejected, though right: no answer
         [cand(2, 2, True, 0.8)],  # accepted, 20 m off: wrong
         [],  # nothing: no answer
+        [cand(4, 0, None, 0.5)],  # a pipeline that verifies, this candidate unverified: no answer
     ]
-    table = CandidateTable.from_candidates([0, 1, 2, 3], rows)
-    estimates, basis = _localize_estimates(table, map_poses)
-    assert basis == "pose"
-    m = localization_metrics(estimates, truth, 3.0, basis=basis)
+    table = CandidateTable.from_candidates([0, 1, 2, 3, 4], rows)
+    estimates, basis, rule = _localize_estimates(table, map_poses)
+    assert (basis, rule) == ("pose", "accepted")
+    m = localization_metrics(estimates, truth, 3.0, basis=basis, answer_rule=rule)
     s = m.summary()
-    assert (s["n_success"], s["n_no_estimate"], s["n_wrong"]) == (1, 2, 1)
-    assert s["success_rate"] == 0.25 and s["no_answer_rate"] == 0.5 and s["wrong_rate"] == 0.25
+    assert (s["n_success"], s["n_no_estimate"], s["n_wrong"]) == (1, 3, 1)
+    assert s["success_rate"] == 0.2 and s["no_answer_rate"] == 0.6 and s["wrong_rate"] == 0.2
+
+
+def test_localisation_without_verification_answers_with_the_top_candidate():
+    """No candidate carries an acceptance (retrieval only): the top candidate is the answer, scored on the
+    matched map scan's position."""
+    from placerec.eval import localization_metrics
+    from placerec.experiment.report import _localize_estimates
+
+    map_poses = np.stack([np.eye(4)] * 2)
+    map_poses[:, 0, 3] = [0.0, 10.0]
+    truth = np.stack([np.eye(4)] * 3)
+    truth[:, 0, 3] = [1.0, 1.0, 1.0]
+    rows = [[Candidate(0, 0, 0.9)], [Candidate(1, 1, 0.9)], []]
+    estimates, basis, rule = _localize_estimates(CandidateTable.from_candidates([0, 1, 2], rows), map_poses)
+    assert (basis, rule) == ("retrieval", "top")
+    m = localization_metrics(estimates, truth, 3.0, basis=basis, answer_rule=rule)
+    assert (m.n_success, m.n_wrong, m.n_no_estimate) == (1, 1, 1)

@@ -264,13 +264,15 @@ def evaluate_loop(
 @dataclass(frozen=True, eq=False)
 class LocalizationMetrics:
     """Localize-mode metrics (ISHOT paper): a query succeeds when its position error is <= ``success_distance``.
-    Each query is localised (an answer within the distance), has no answer (NaN estimate: nothing accepted), or
-    is answered wrongly (an answer beyond it).
+    Each query is exactly one of: localised (an answer within the distance: ``n_success``), no answer (a NaN
+    estimate: ``n_no_estimate``) or answered wrongly (an answer beyond the distance: ``n_wrong``, what a user would
+    act on). ``answer_rule`` says what counted as an answer: ``"accepted"`` (the verification's accepted top
+    candidate; a rejected one is no answer) or ``"top"`` (a pipeline without verification: its top candidate).
 
     ``basis`` says what the estimate is: ``"pose"`` (the matched map pose composed with the candidate's 6-DoF
     relative pose) or ``"retrieval"`` (the matched map scan's position: place retrieval only). ``errors`` (Q,)
-    metres (inf where no estimate was given), ``success`` (Q,) bool. ``rotation_errors`` (Q,) degrees where a
-    pose was estimated (NaN elsewhere). ``fine_success`` (Q,): within ``fine_distance`` and ``fine_rotation_deg``
+    metres (inf where no estimate was given), ``success`` (Q,) bool, ``answered`` (Q,) bool (an estimate was
+    given). ``rotation_errors`` (Q,) degrees where a pose was estimated (NaN elsewhere). ``fine_success`` (Q,): within ``fine_distance`` and ``fine_rotation_deg``
     (1 m / 5 deg); defined only for pose estimates (None, and ``fine_success_rate`` NaN, for ``retrieval``).
     ``mean_error``, ``median_error`` and ``median_rotation_error`` are over queries with an estimate (NaN if none).
     """
@@ -281,10 +283,15 @@ class LocalizationMetrics:
     n_queries: int
     n_success: int
     n_no_estimate: int
+    n_wrong: int
+    no_answer_rate: float
+    wrong_rate: float
+    answered: np.ndarray
     mean_error: float
     median_error: float
     success_distance: float
     basis: str = "retrieval"
+    answer_rule: str = "accepted"
     rotation_errors: np.ndarray | None = None
     fine_success: np.ndarray | None = None
     fine_success_rate: float = float("nan")
@@ -292,22 +299,17 @@ class LocalizationMetrics:
     fine_distance: float = 1.0
     fine_rotation_deg: float = 5.0
 
-    @property
-    def n_wrong(self) -> int:
-        """Answers given (accepted) but farther than ``success_distance`` from the truth."""
-        return self.n_queries - self.n_success - self.n_no_estimate
-
     def summary(self) -> dict[str, Any]:
         """The scalar metrics as a JSON-friendly dict: ``n_success`` localised, ``n_no_estimate`` no answer,
-        ``n_wrong`` answered but wrong, and their rates."""
-        n = max(self.n_queries, 1)
+        ``n_wrong`` answered but wrong, and their rates (``success_rate``, ``no_answer_rate``, ``wrong_rate``)."""
         return {
             "n_queries": self.n_queries,
             "n_success": self.n_success,
             "n_no_estimate": self.n_no_estimate,
             "n_wrong": self.n_wrong,
-            "no_answer_rate": self.n_no_estimate / n if self.n_queries else 0.0,
-            "wrong_rate": self.n_wrong / n if self.n_queries else 0.0,
+            "no_answer_rate": self.no_answer_rate,
+            "wrong_rate": self.wrong_rate,
+            "answer_rule": self.answer_rule,
             "success_basis": self.basis,
             "success_rate": self.success_rate,
             "mean_error": self.mean_error,
@@ -337,6 +339,7 @@ def localization_metrics(
     basis: str = "retrieval",
     fine_distance: float = 1.0,
     fine_rotation_deg: float = 5.0,
+    answer_rule: str = "accepted",
 ) -> LocalizationMetrics:
     """Success rate of localisation: ``estimated`` and ``truth`` are (Q, 2|3) positions or (Q, 4, 4) poses.
     Rows of ``estimated`` with NaN mean "no answer" and fail. The error is 3D Euclidean (xy with ``planar=True``).
@@ -344,9 +347,13 @@ def localization_metrics(
     ``basis="pose"``: the rows are estimated query poses (map pose @ relative pose); with (Q, 4, 4) poses on both
     sides the rotation error and the fine success (``fine_distance`` m and ``fine_rotation_deg``) are computed too.
     ``basis="retrieval"``: the rows are the matched map scans' positions; no fine success (it is not a pose).
+    ``answer_rule`` labels what the caller counted as an answer (`LocalizationMetrics`); a query without one is a
+    NaN row either way.
     """
     if basis not in ("pose", "retrieval"):
         raise ScanDataError(f"basis must be 'pose' or 'retrieval', got {basis!r}")
+    if answer_rule not in ("accepted", "top"):
+        raise ScanDataError(f"answer_rule must be 'accepted' or 'top', got {answer_rule!r}")
     est = _as_positions(estimated, "estimated")
     gt = _as_positions(truth, "truth")
     if est.shape[0] != gt.shape[0]:
@@ -384,10 +391,15 @@ def localization_metrics(
         n_queries=n,
         n_success=int(success.sum()),
         n_no_estimate=int((~answered).sum()),
+        n_wrong=int((answered & ~success).sum()),
+        no_answer_rate=float((~answered).mean()) if n else 0.0,
+        wrong_rate=float((answered & ~success).mean()) if n else 0.0,
+        answered=answered,
         mean_error=float(fin.mean()) if fin.size else float("nan"),
         median_error=float(np.median(fin)) if fin.size else float("nan"),
         success_distance=float(success_distance),
         basis=basis,
+        answer_rule=answer_rule,
         rotation_errors=rot,
         fine_success=fine,
         fine_success_rate=fine_rate,

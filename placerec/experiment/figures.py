@@ -151,23 +151,33 @@ def plot_localization(
     success: np.ndarray,
     path: Path,
     title: str,
+    answered: np.ndarray | None = None,
 ) -> Path:
-    """Map trajectory, query positions and estimates (green: within the success distance, red: not)."""
+    """Map trajectory, query positions and estimates: green localised (within the success distance), red answered
+    wrongly (a line to the answer), grey no answer (``answered`` False; every query answered when None)."""
+    from matplotlib.collections import LineCollection
+
     plt = _pyplot()
+    success = np.asarray(success, bool)
+    answered = np.ones_like(success) if answered is None else np.asarray(answered, bool)
     fig, ax = plt.subplots(figsize=(6, 6), dpi=120)
     ax.plot(map_positions[:, 0], map_positions[:, 1], color="0.6", lw=1, label="map route")
-    for mask, color, label in ((success, "tab:green", "success"), (~success, "tab:red", "failure")):
+    classes = (
+        (success, "tab:green", "o", "localised"),
+        (answered & ~success, "tab:red", "o", "wrong answer"),
+        (~answered, "0.3", "x", "no answer"),
+    )
+    for mask, color, marker, label in classes:
         if mask.any():
-            segs = np.stack([query_positions[mask, :2], estimates[mask, :2]], axis=1)
-            from matplotlib.collections import LineCollection
-
-            ax.add_collection(LineCollection(segs, colors=color, lw=1))
+            if label != "no answer":
+                segs = np.stack([query_positions[mask, :2], estimates[mask, :2]], axis=1)
+                ax.add_collection(LineCollection(segs, colors=color, lw=1))
             ax.plot(
                 query_positions[mask, 0],
                 query_positions[mask, 1],
-                "o",
+                marker,
                 color=color,
-                ms=3,
+                ms=3 if marker == "o" else 4,
                 label=f"{label} ({mask.sum()})",
             )
     ax.set(xlabel="x [m]", ylabel="y [m]", title=title)

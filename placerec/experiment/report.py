@@ -386,12 +386,13 @@ def report_localize(
     results: dict[str, Any] = {}
     for record in records:
         write_candidates(run / f"candidates_{_slug(record.label)}.csv", record.query_ids, record.candidates)
-        estimates, basis = _localize_estimates(record.table(), map_poses)
+        estimates, basis, rule = _localize_estimates(record.table(), map_poses)
         metrics = localization_metrics(
             estimates,
             query_poses[np.asarray(record.query_ids, dtype=np.int64)],
             success_distance,
             basis=basis,
+            answer_rule=rule,
         )
         summary = metrics.summary()
         summary["time_ms"] = _timing(record)
@@ -403,8 +404,9 @@ def report_localize(
                 np.where(np.isfinite(estimates[:, :3, 3]), estimates[:, :3, 3], query_poses[:, :3, 3]),
                 metrics.success,
                 run / f"localization_{_slug(record.label)}.png",
-                f"{record.label}: localised {metrics.success_rate:.1%} (accepted, <= {success_distance} m, {basis}),"
-                f" no answer {metrics.n_no_estimate}, wrong {metrics.n_wrong}",
+                f"{record.label}: localised {metrics.success_rate:.1%} ({rule} answers within {success_distance} m,"
+                f" {basis})",
+                answered=metrics.answered,
             )
     payload = {
         "mode": "localize",
@@ -419,23 +421,28 @@ def report_localize(
     return payload
 
 
-def _localize_estimates(table: CandidateTable, map_poses: np.ndarray) -> tuple[np.ndarray, str]:
-    """(Q, 4, 4) estimated query poses from the top candidates (NaN: no answer) and their basis: ``"pose"``
-    (``T_world_match @ T_match_query``) when any top candidate carries a 6-DoF relative pose, a top candidate
-    without one then giving no answer; else ``"retrieval"``, the matched map scan's pose.
+def _localize_estimates(table: CandidateTable, map_poses: np.ndarray) -> tuple[np.ndarray, str, str]:
+    """(Q, 4, 4) estimated query poses from the top candidates (NaN: no answer), their basis and the answer rule.
 
-    Only an answer the pipeline accepted counts: a top candidate its verification rejected (``accepted`` 0) is
-    no answer, never a hit. A pipeline that does not verify (``accepted`` unknown) answers with its top candidate
-    (verified candidates rank the accepted ones first, so a rejected top candidate means none was accepted)."""
+    Basis: ``"pose"`` (``T_world_match @ T_match_query``) when any top candidate carries a 6-DoF relative pose, a
+    top candidate without one then giving no answer; else ``"retrieval"``, the matched map scan's pose.
+
+    Answer rule: ``"accepted"`` when the pipeline verifies (any of its candidates carries ``accepted``): only a top
+    candidate its verification accepted is an answer, a rejected one is no answer, never a hit (verification ranks
+    the accepted candidates first, so a rejected top candidate means none was accepted). ``"top"`` for a pipeline
+    that does not verify (no candidate carries ``accepted``): its top candidate is its answer."""
     top, rel = table.match_ids[:, 0], table.relative_poses[:, 0]
-    answered = (top >= 0) & (table.accepted[:, 0] != 0)
-    full = full_pose_mask(rel) & answered
+    verifies = bool((table.accepted >= 0).any())
+    answered = (top >= 0) & (table.accepted[:, 0] == 1) if verifies else top >= 0
+    posed = full_pose_mask(rel)
     estimates = np.full((top.size, 4, 4), np.nan)
-    if (full_pose_mask(rel) & (top >= 0)).any():
-        estimates[full] = map_poses[top[full]] @ rel[full]
-        return estimates, "pose"
+    rule = "accepted" if verifies else "top"
+    if (posed & (top >= 0)).any():
+        ok = posed & answered
+        estimates[ok] = map_poses[top[ok]] @ rel[ok]
+        return estimates, "pose", rule
     estimates[answered] = map_poses[top[answered]]
-    return estimates, "retrieval"
+    return estimates, "retrieval", rule
 
 
 def require_poses(seq: Sequence) -> Sequence:
@@ -524,7 +531,8 @@ _PROTOCOL_COLUMNS = (
 )
 _LOCALIZE_COLUMNS = (
     ("basis", ("success_basis",)),
-    ("success", ("success_rate",)),
+    ("answers", ("answer_rule",)),
+    ("localised", ("success_rate",)),
     ("no answer", ("no_answer_rate",)),
     ("wrong", ("wrong_rate",)),
     ("success 1 m/5 deg", ("fine_success_rate",)),
