@@ -142,6 +142,12 @@ class LocalizeConfig(Params):
 
     condition: Literal["gator", "pole", "occlusion"] = "gator"
     n_queries: int = Field(50, ge=1)
+    draw: int = Field(
+        0,
+        ge=0,
+        description="simulated query draw (placerec.experiment.protocol): 2 the held-out test queries, 1 the"
+        " training queries defaults were chosen on, 0 the development queries",
+    )
     map: DatasetConfig | None = None
     queries: DatasetConfig | None = None
     success_distance: float = Field(3.0, gt=0)

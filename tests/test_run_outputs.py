@@ -486,3 +486,27 @@ def test_localisation_without_verification_answers_with_the_top_candidate():
     assert (basis, rule) == ("retrieval", "top")
     m = localization_metrics(estimates, truth, 3.0, basis=basis, answer_rule=rule)
     assert (m.n_success, m.n_wrong, m.n_no_estimate) == (1, 1, 1)
+
+
+def test_localize_draws_the_configured_query_draw():
+    """``evaluation.localize.draw`` reaches the simulator split (another draw, other query poses, the same map);
+    with map/queries datasets it is an error, not ignored."""
+    from placerec.experiment.runner import localize_sequences
+    from placerec.sim import make_localization_split
+
+    base = ["evaluation.mode=localize", "evaluation.localize.n_queries=3", "dataset.simulator.n_scans=40"]
+    maps, queries = {}, {}
+    for draw in (0, 2):
+        maps[draw], queries[draw] = localize_sequences(
+            load_config(None, [*base, f"evaluation.localize.draw={draw}"])
+        )
+    split = make_localization_split("town", "vlp16", 0, n_queries=3, n_map=40, conditions=("gator",), draw=2)
+    np.testing.assert_array_equal(queries[2].poses, split.queries["gator"].poses)
+    assert not np.allclose(queries[0].poses[:, :3, 3], queries[2].poses[:, :3, 3])
+    np.testing.assert_array_equal(maps[0].poses, maps[2].poses)
+    paths = [
+        "evaluation.localize.map={source: path, path: x}",
+        "evaluation.localize.queries={source: path, path: x}",
+    ]
+    with pytest.raises(ConfigError, match="evaluation.localize.draw"):
+        localize_sequences(load_config(None, [*base, *paths, "evaluation.localize.draw=2"]))

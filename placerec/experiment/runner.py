@@ -266,6 +266,10 @@ def localize_sequences(cfg: ExperimentConfig) -> tuple[Sequence, Sequence]:
     if loc.map is not None or loc.queries is not None:
         if loc.map is None or loc.queries is None:
             raise ConfigError("evaluation.localize needs both 'map' and 'queries' datasets (or neither)")
+        if loc.draw:
+            raise ConfigError(
+                "evaluation.localize.draw: a simulated query draw, not used with map/queries datasets"
+            )
         return _with_poses(open_dataset(loc.map), open_dataset(loc.queries))
     if cfg.dataset.source != "simulator":
         raise ConfigError("localize mode on a path dataset needs evaluation.localize.map and .queries")
@@ -279,6 +283,7 @@ def localize_sequences(cfg: ExperimentConfig) -> tuple[Sequence, Sequence]:
         n_queries=loc.n_queries,
         n_map=sim.n_scans,
         conditions=(loc.condition,),
+        draw=loc.draw,
     )
     return _with_poses(split.map, split.queries[loc.condition])
 
