@@ -170,6 +170,19 @@ def query_figures(record: PipelineRecord) -> dict[str, Any]:
     }
 
 
+def vote_model_draw_check(training: list[str], draw: int, world: str) -> dict[str, Any]:
+    """The vote model's training draws (from its ``training`` sequence names) and whether the evaluated ``draw`` is
+    one of them; `SystemExit` when it is and ``draw`` is not the tuning draw (a result on the model's own
+    training queries)."""
+    draws = training_draws(training)
+    on_training = draw in draws and world == VOTE_MODEL_WORLD
+    if on_training and draw != LOCALIZE_TUNING_DRAW:
+        raise SystemExit(
+            f"the vote model was fitted on query draw {draw}: refit it on the tuning draw (--rebuild)"
+        )
+    return {"vote_model_draws": sorted(draws), "vote_model_trained_on_evaluated_draw": on_training}
+
+
 def config_data(config: str, world: str, labels: list[str] | None) -> dict[str, Any]:
     """The config as data, on the map of ``world`` (its places databases named after it instead of town; the vote
     model stays the one fitted on town), keeping the pipelines whose label (or name) is in ``labels`` (all when
@@ -257,12 +270,7 @@ def main() -> None:
     figure = Path(args.figure) if args.figure and args.world == VOTE_MODEL_WORLD else None
     info = ensure_artifacts(cfg, args.rebuild, figure, args.world)
     if "vote_model_training" in info:
-        draws = training_draws(info["vote_model_training"])
-        on_training = args.draw in draws
-        if on_training and args.draw != LOCALIZE_TUNING_DRAW:
-            raise SystemExit(f"the vote model was fitted on query draw {args.draw}: refit it (--rebuild)")
-        info["vote_model_draws"] = sorted(draws)
-        info["vote_model_trained_on_evaluated_draw"] = on_training and args.world == VOTE_MODEL_WORLD
+        info.update(vote_model_draw_check(info["vote_model_training"], args.draw, args.world))
     results = {}
     for cond in args.conditions.split(","):
         results[cond] = run_condition(data, overrides, cond, Path(args.out))
