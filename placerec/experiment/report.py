@@ -577,11 +577,13 @@ def protocol_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]] 
     (None in localize mode)."""
     if payload["mode"] != "loop":
         return None
-    header = ["pipeline"] + [h for h, _ in _PROTOCOL_COLUMNS]
-    rows = [
-        [label] + [_fmt(_get(m, k)) for _, k in _PROTOCOL_COLUMNS]
-        for label, m in payload["pipelines"].items()
-    ]
+    return _column_rows(payload, _PROTOCOL_COLUMNS)
+
+
+def _column_rows(payload: dict[str, Any], columns: Any) -> tuple[list[str], list[list[str]]]:
+    """Header and one row per pipeline of ``columns`` ((heading, key path) pairs)."""
+    header = ["pipeline"] + [h for h, _ in columns]
+    rows = [[label] + [_fmt(_get(m, k)) for _, k in columns] for label, m in payload["pipelines"].items()]
     return header, rows
 
 
@@ -602,12 +604,7 @@ def operating_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]
     the pose ground truths (None in localize mode or when no pipeline has a threshold)."""
     if payload["mode"] != "loop" or not any(m.get("operating") for m in payload["pipelines"].values()):
         return None
-    header = ["pipeline"] + [h for h, _ in _OPERATING_COLUMNS]
-    rows = [
-        [label] + [_fmt(_get(m, k)) for _, k in _OPERATING_COLUMNS]
-        for label, m in payload["pipelines"].items()
-    ]
-    return header, rows
+    return _column_rows(payload, _OPERATING_COLUMNS)
 
 
 def print_table(payload: dict[str, Any], title: str) -> None:
