@@ -404,7 +404,7 @@ def report_localize(
                 np.where(np.isfinite(estimates[:, :3, 3]), estimates[:, :3, 3], query_poses[:, :3, 3]),
                 metrics.success,
                 run / f"localization_{_slug(record.label)}.png",
-                f"{record.label}: localised {metrics.success_rate:.1%} ({rule} answers within {success_distance} m,"
+                f"{record.label}\nlocalised {metrics.success_rate:.1%} ({rule} answers within {success_distance} m,"
                 f" {basis})",
                 answered=metrics.answered,
             )
