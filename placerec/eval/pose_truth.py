@@ -172,9 +172,11 @@ def overlap_truth(
     exclusion: ExclusionWindow | None = None,
     timestamps: np.ndarray | None = None,
     settings: PoseTruthSettings | None = None,
+    known: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> PoseGroundTruth:
     """The revisits of a sequence by overlap (``voxels`` per scan from `scan_voxels`, ``poses`` (N, 4, 4)), with no
-    candidate judged yet (`with_candidates` adds a pipeline's)."""
+    candidate judged yet (`with_candidates` adds a pipeline's). ``known`` (is_revisit, best_overlap) from an earlier
+    call on the same scans skips the overlap search, the costly part."""
     s = settings or PoseTruthSettings()
     P = np.asarray(poses, dtype=np.float64)
     n = P.shape[0]
@@ -184,8 +186,11 @@ def overlap_truth(
         raise ScanDataError("pose ground truth: poses contain NaN or inf")
     window = ExclusionWindow() if exclusion is None else exclusion
     max_eligible = window.sequence_bounds(n, timestamps, P[:, :3, 3])
-    revisit, best = overlap_revisits(voxels, P[:, :3, 3], max_eligible, s)
-    return PoseGroundTruth(max_eligible, revisit, best, np.zeros(0, dtype=np.int64), s)
+    if known is not None and len(known[0]) == n:
+        revisit, best = (np.asarray(a) for a in known)
+    else:
+        revisit, best = overlap_revisits(voxels, P[:, :3, 3], max_eligible, s)
+    return PoseGroundTruth(max_eligible, revisit.astype(bool), best, np.zeros(0, dtype=np.int64), s)
 
 
 def correct_candidates(

@@ -216,7 +216,14 @@ def run_cell(cell_cfg_json: dict[str, Any], folder: str) -> dict[str, Any]:
     payload = report_loop(cfg, out, seq, records, truth, link_latest=False)
     offsets = np.cumsum([0] + [v.size for v in truth.voxels])
     with atomic_write(out / "truth.npz", "wb") as fh:
-        np.savez_compressed(fh, keys=np.concatenate(truth.voxels or [np.zeros(0, np.int64)]), offsets=offsets)
+        overlap = truth.overlap or (np.zeros(0, bool), np.zeros(0))
+        np.savez_compressed(
+            fh,
+            keys=np.concatenate(truth.voxels or [np.zeros(0, np.int64)]),
+            offsets=offsets,
+            revisit=overlap[0],
+            best_overlap=overlap[1],
+        )
     result = {
         "version": BENCH_VERSION,
         "key": _cell_key(cfg),
@@ -337,12 +344,14 @@ def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[
     try:
         with np.load(folder / "truth.npz") as z:
             keys, offsets = z["keys"], z["offsets"]
+            overlap = (z["revisit"], z["best_overlap"]) if "revisit" in z.files else None
     except (OSError, ValueError, KeyError) as exc:
         raise ArtifactError(
             f"{folder / 'truth.npz'}: missing or damaged ({exc}); run the cell again (--fresh)"
         ) from None
     truth = TruthClouds(cfg.evaluation, poses)
     truth.voxels = [keys[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
+    truth.overlap = overlap  # the overlap search of the run, not made again
     specs = list(bench.pipelines)
     tables = [read_candidates(folder / f"candidates_{_slug(p.display_name)}.csv") for p in specs]
     pose_gts = pose_truths(cfg, tables, poses, stamps, truth)

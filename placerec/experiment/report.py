@@ -293,7 +293,9 @@ def pose_truths(
     holds no voxels: pose truth off, or not collected)."""
     if truth is None or not truth.pose_truth or len(truth.voxels) != poses.shape[0]:
         return [None] * len(tables)
-    base = overlap_truth(truth.voxels, poses, _gt_options(cfg, stamps)["exclusion"], stamps, truth.settings)
+    exclusion = _gt_options(cfg, stamps)["exclusion"]
+    base = overlap_truth(truth.voxels, poses, exclusion, stamps, truth.settings, truth.overlap)
+    truth.overlap = (base.is_revisit, base.best_overlap)
     keys = []
     for table in tables:
         width = min(cfg.evaluation.top_n, table.match_ids.shape[1])

@@ -40,6 +40,8 @@ class TruthClouds:
         self.icp_settings = IcpTruthSettings()
         self.voxels: list[np.ndarray] = []
         self.clouds: list[np.ndarray] = []
+        #: (is_revisit, best_overlap) of the overlap search once made (`placerec.eval.pose_truth.overlap_truth`)
+        self.overlap: tuple[np.ndarray, np.ndarray] | None = None
 
     def __call__(self, index: int, scan: Scan) -> None:
         if index != len(self.voxels):
