@@ -526,10 +526,11 @@ def build_places_cmd(
     """
     from rich.progress import Progress
 
+    from placerec.artifacts.places import build_places
     from placerec.config import apply_overrides
     from placerec.errors import PlacerecError
     from placerec.params import resolve
-    from placerec.three_d.places import PlacesParams, build_places
+    from placerec.three_d.places import PlacesParams
 
     try:
         params = resolve(PlacesParams, apply_overrides({}, set_ or []), where="places parameters")

@@ -144,9 +144,9 @@ def test_voting_on_sq8_equals_float32_on_synthetic_places():
 
 @pytest.fixture(scope="module")
 def compact_db():
+    from placerec.artifacts.places import build_places
     from placerec.sim import SimulatedSequence
     from placerec.three_d import FeatureParams, ISSParams
-    from placerec.three_d.places import build_places
 
     seq = SimulatedSequence("town", "vlp16", n_scans=5, seed=1, spacing=2.0, clutter=False)
     features = FeatureParams(descriptor="ishot", iss=ISSParams(max_keypoints=40))

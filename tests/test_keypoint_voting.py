@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from placerec.artifacts.places import build_places
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.pipelines.keypoint_voting import KeypointVoting, knn2, ratio_votes
 from placerec.recognizer import make_pipeline
 from placerec.three_d import FeatureParams, ISSParams
-from placerec.three_d.places import PlacesParams, build_places
+from placerec.three_d.places import PlacesParams
 
 D = 1344
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from placerec.artifacts.places import build_places
 from placerec.errors import ArtifactError, ConfigError
 from placerec.io.atomic import save_artifact
 from placerec.three_d import FeatureParams, ISSParams
 from placerec.three_d.places import (
     PlacesDatabase,
     PlacesParams,
-    build_places,
     partition_places,
     place_cloud,
 )

@@ -34,12 +34,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from placerec.artifacts.places import build_places  # noqa: E402
 from placerec.intensity import normalize_intensity  # noqa: E402
 from placerec.pipelines.keypoint_voting import KeypointVoting  # noqa: E402
 from placerec.pipelines.probabilistic_voting import ProbabilisticVoting  # noqa: E402
 from placerec.recognizer import LOCALIZE_VERIFY, make_pipeline  # noqa: E402
 from placerec.sim import SimulatedSequence, make_localization_split  # noqa: E402
-from placerec.three_d.places import PlacesDatabase, PlacesParams, build_places  # noqa: E402
+from placerec.three_d.places import PlacesDatabase, PlacesParams  # noqa: E402
 from placerec.three_d.posterior import PosteriorTable  # noqa: E402
 
 OFFSET_M = 5000.0

@@ -237,8 +237,9 @@ def bench_ishot(n_queries: int, copies: int) -> list[dict]:
     from one to ``copies`` copies per added place is the memory a place costs (module docstring)."""
     import multiprocessing
 
+    from placerec.artifacts.places import build_places
     from placerec.sim import make_localization_split
-    from placerec.three_d.places import PlacesParams, build_places
+    from placerec.three_d.places import PlacesParams
 
     split = make_localization_split("town", "vlp16", 0, n_queries=max(n_queries, 1))
     queries = [preprocessed_scan(split.queries["gator"], i, PreprocessConfig())[0] for i in range(n_queries)]

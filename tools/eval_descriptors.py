@@ -45,10 +45,11 @@ from pathlib import Path
 
 import numpy as np
 
+from placerec.artifacts.places import build_places
 from placerec.intensity import normalize_intensity
 from placerec.sim import make_localization_split
 from placerec.three_d import FeatureParams, extract_features
-from placerec.three_d.places import PlacesParams, build_places
+from placerec.three_d.places import PlacesParams
 from placerec.types import Scan
 
 CONDITIONS = ("gator", "pole", "occlusion")

@@ -30,8 +30,7 @@ dtype against them. Versions 1 and 2 (float32 throughout; version 1's feature se
 
 from __future__ import annotations
 
-import logging
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from collections.abc import Sequence as SequenceABC
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -41,17 +40,13 @@ import numpy as np
 from pydantic import Field
 
 from placerec.errors import ArtifactError, ConfigError, ScanDataError, short_repr
-from placerec.intensity import normalize_intensity
 from placerec.io.artifact_schema import Member, check_counts, check_offsets, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params, resolve
-from placerec.preprocess import crop, remove_invalid
 from placerec.quantise import FixedPointCloud, decode_unit, encode_unit
 from placerec.retrieval.descriptor_store import DescriptorStore, StoreDtype
-from placerec.three_d.features import FeatureParams, extract_features
-from placerec.types import Scan, Sequence
-
-log = logging.getLogger(__name__)
+from placerec.three_d.features import FeatureParams
+from placerec.types import Scan
 
 __all__ = [
     "PlacesParams",
@@ -60,7 +55,6 @@ __all__ = [
     "partition_places",
     "place_cloud",
     "merge_clouds",
-    "build_places",
     "features_json",
 ]
 
@@ -95,8 +89,6 @@ _CLOUD_ARRAYS = {
         "cloud_scale": np.float64,
     },
 }
-
-IntensityFn = Callable[[Scan], Scan]
 
 
 class PlacesParams(Params):
@@ -174,11 +166,6 @@ def partition_places(
             m = m[np.abs(t[m] - t[ci]) <= params.window_s]
         members.append(np.union1d(m, [ci]).astype(np.int64))
     return PlacePartition(c, members)
-
-
-def _prepared(scan: Scan, intensity: IntensityFn, max_range: float | None) -> Scan:
-    scan, _ = remove_invalid(intensity(scan))
-    return scan if max_range is None else crop(scan, max_range=max_range)
 
 
 def merge_clouds(T_world_frame: np.ndarray, parts: Iterable[tuple[np.ndarray, Scan]], source: str) -> Scan:
@@ -449,70 +436,3 @@ def _read_clouds(arrays: dict[str, np.ndarray]) -> SequenceABC[tuple[np.ndarray,
     if arrays["cloud_xyz"].dtype == np.int16:
         return _FixedPointClouds(xyz, inten, arrays["cloud_centre"], arrays["cloud_scale"])
     return list(zip(xyz, inten, strict=True))
-
-
-def build_places(
-    seq: Sequence,
-    params: PlacesParams | None = None,
-    intensity: IntensityFn | None = None,
-    intensity_label: str = "sensor-default",
-    progress: Callable[[int, int], None] | None = None,
-) -> PlacesDatabase:
-    """Partition ``seq`` into places, accumulate and describe each (see the module docstring).
-
-    ``intensity`` maps every raw scan to [0, 1] intensity before accumulation (default: the sensor's default
-    normalisation, `placerec.intensity.normalize_intensity`; pass a calibration's ``apply`` for ISHOT-C) and
-    ``intensity_label`` names it in the database. ``progress(done, total)`` is called after every place.
-    """
-    params = params or PlacesParams()
-    poses = seq.poses
-    if poses is None:
-        raise ConfigError(f"{seq.name}: building places needs a sequence with poses")
-    poses = np.asarray(poses, dtype=np.float64)
-    part = partition_places(poses, seq.timestamps, params)
-    fn = intensity or normalize_intensity
-    feats = params.features
-    cache: dict[int, Scan] = {}
-    kps, descs, clouds = [], [], []
-    dim = None
-    for p, (c, members) in enumerate(zip(part.centres, part.members, strict=True)):
-        cache = {
-            int(j): cache[int(j)] if int(j) in cache else _prepared(seq[int(j)], fn, feats.max_range)
-            for j in members
-        }
-        cloud = place_cloud(cache, poses, int(c), members)
-        try:
-            lf = extract_features(cloud, feats)
-            kps.append(lf.keypoints.astype(np.float32))
-            descs.append(lf.descriptors)
-            dim = lf.descriptors.shape[1]
-            if params.store_clouds:
-                clouds.append((lf.points.astype(np.float32), lf.intensity.astype(np.float32)))
-        except ScanDataError as exc:
-            log.warning("place %d (scan %d): %s; stored without keypoints", p, c, exc)
-            kps.append(np.zeros((0, 3), np.float32))
-            descs.append(None)
-            clouds.append((np.zeros((0, 3), np.float32), np.zeros(0, np.float32)))
-        if progress is not None:
-            progress(p + 1, len(part))
-    if dim is None:
-        raise ScanDataError(f"{seq.name}: no place had enough points to be described")
-    descs = [np.zeros((0, dim), np.float32) if d is None else d for d in descs]
-    counts = np.array([k.shape[0] for k in kps], dtype=np.int64)
-    log.info(
-        "%s: %d places, %d keypoints (%.0f per place), %s", seq.name, len(part), counts.sum(), counts.mean(),
-        feats.descriptor,
-    )  # fmt: skip
-    return PlacesDatabase(
-        ids=part.centres.copy(),
-        poses=poses[part.centres].copy(),
-        sources=part.members,
-        kp_offsets=np.r_[0, np.cumsum(counts)].astype(np.int64),
-        keypoints=np.concatenate(kps),
-        descriptors=DescriptorStore.from_rows(np.concatenate(descs), params.descriptor_store),
-        params=params,
-        scan_poses=poses.copy(),
-        clouds=clouds if params.store_clouds else None,
-        intensity=intensity_label,
-        sequence=seq.name,
-    )
