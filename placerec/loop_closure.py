@@ -168,9 +168,9 @@ class LoopClosureDetector:
 
 def split_verify_time(candidates: list[Candidate], timing: dict[str, Any]) -> None:
     """Move the candidates' verification time out of ``timing["query"]`` into ``timing["verify"]``: pipelines that
-    verify geometrically put each candidate's milliseconds in ``extra["verify_ms"]``
-    (`placerec.verify.candidates.verify_candidates`); nothing changes when no candidate carries it."""
-    verify = sum(float(c.extra.get("verify_ms", 0.0)) for c in candidates)
+    verify geometrically give each candidate's milliseconds in ``Candidate.verify_ms``
+    (`placerec.verify.candidates.verify_candidates`); nothing changes when no candidate took any."""
+    verify = sum(float(c.verify_ms) for c in candidates)
     if verify:
         timing["verify"] = verify
         timing["query"] = max(0.0, timing["query"] - verify)

@@ -29,6 +29,7 @@ __all__ = [
     "ListSequence",
     "StoredSequenceInfo",
     "Candidate",
+    "Verification",
     "Description",
     "PlaceRecognizer",
     "as_pose",
@@ -294,9 +295,62 @@ def check_poses(poses: np.ndarray, n: int | None, where: str) -> np.ndarray:
     return P
 
 
+def path_length(positions: np.ndarray) -> np.ndarray:
+    """(N,) cumulative distance travelled along the trajectory (0 at the first position)."""
+    p = np.asarray(positions, dtype=np.float64)
+    if p.ndim != 2 or p.shape[0] == 0:
+        return np.zeros(p.shape[0] if p.ndim else 0)
+    steps = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
 def relative_pose(T_world_match: np.ndarray, T_world_query: np.ndarray) -> np.ndarray:
     """``T_match_query``: maps query-frame points into the match frame (see module docstring)."""
     return np.linalg.inv(as_pose(T_world_match)) @ as_pose(T_world_query)
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The outcome of verifying one candidate.
+
+    ``T_match_query``: 4x4 (the ICP result; the RANSAC pose, or the initial guess, when rejected before ICP).
+    ``score`` in [0, 1] (0 when rejected before ICP), ``accepted`` by ``params.score.acceptance``.
+    ``inliers``: RANSAC inliers among all given pairs (with grouping: of the best cluster's pose, refit on them;
+    None for ICP-only), ``correspondences``: pairs given. ``fitness``, ``rmse`` (m), ``residual`` (m^2, the eps_ICP
+    quantity): ICP statistics (NaN when ICP did not run). ``rejected_at``: the stage that ended it early (``grouping``, ``ransac``) or None.
+    ``timings_ms``: per stage (``prepare``, ``grouping``, ``ransac``, ``icp``, ``total``). ``inlier_mask``: over
+    the given correspondences, those RANSAC kept (None for ICP-only).
+    """
+
+    T_match_query: np.ndarray
+    score: float
+    accepted: bool
+    inliers: int | None
+    correspondences: int
+    fitness: float
+    rmse: float
+    residual: float
+    ransac_iterations: int = 0
+    icp_iterations: int = 0
+    rejected_at: str | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    inlier_mask: np.ndarray | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """Scalars only (for a Candidate's ``extra`` or a CSV row)."""
+        return {
+            "score": self.score,
+            "accepted": self.accepted,
+            "inliers": self.inliers,
+            "correspondences": self.correspondences,
+            "fitness": self.fitness,
+            "rmse": self.rmse,
+            "residual": self.residual,
+            "ransac_iterations": self.ransac_iterations,
+            "icp_iterations": self.icp_iterations,
+            "rejected_at": self.rejected_at,
+            **{f"ms_{k}": v for k, v in self.timings_ms.items()},
+        }
 
 
 @dataclass(frozen=True)
@@ -307,7 +361,14 @@ class Candidate:
     added. ``score``: higher is more confident; its scale is the recognizer's own (documented per recognizer) and
     thresholds are applied on it. ``relative_pose`` is ``T_match_query`` (4x4) when the recognizer estimates one
     (Scan Context gives a yaw-only rotation), else None. ``inliers`` counts the supporting correspondences when the
-    recognizer verifies geometrically; ``extra`` holds recognizer-specific diagnostics.
+    recognizer verifies geometrically.
+
+    What a verifying recognizer decided is typed: ``accepted`` (True / False; None when the recognizer does not
+    verify), ``verification`` (the `Verification`: statistics and, when rejected, the stage that rejected it),
+    ``retrieval_score`` (the score that ranked the candidate before verification), ``verify_ms`` (milliseconds
+    spent verifying it, its share of the verification stage) and ``T_world_query`` (the query's pose in the map
+    when the recognizer knows the matched entry's pose). ``extra`` holds recognizer-specific diagnostics only:
+    nothing outside the recognizer depends on them.
     """
 
     query_id: int
@@ -316,6 +377,11 @@ class Candidate:
     relative_pose: np.ndarray | None = None
     inliers: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    accepted: bool | None = None
+    verification: Verification | None = None
+    retrieval_score: float | None = None
+    verify_ms: float = 0.0
+    T_world_query: np.ndarray | None = None
 
 
 #: A scan's description by a recognizer's front end: named NumPy arrays (so it can be cached as ``.npz``).

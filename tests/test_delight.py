@@ -135,13 +135,13 @@ def test_a_query_from_the_map_finds_itself_with_a_6dof_pose_through_the_shared_v
     for i in (0, 2, 4):
         rec.add(i, town[i], town.poses[i])
     c = rec.query(town[2], k=1, query_id=2)[0]
-    assert c.match_id == 2 and c.extra["accepted"] and c.extra["rank"] == 0 and c.extra["distance"] == 0.0
+    assert c.match_id == 2 and c.accepted and c.extra["rank"] == 0 and c.extra["distance"] == 0.0
     assert np.allclose(c.relative_pose, np.eye(4), atol=0.05)
-    assert np.allclose(c.extra["T_world_query"][:3, 3], town.poses[2][:3, 3], atol=0.05)
+    assert np.allclose(c.T_world_query[:3, 3], town.poses[2][:3, 3], atol=0.05)
     # a scan between map entries, turned by 90 degrees: ranked, verified, its 6-DoF pose recovered
     query = rotated(town[1], 90.0)
     c = rec.query(query, k=1, query_id=1)[0]
-    assert c.extra["accepted"] and c.match_id in (0, 2)
+    assert c.accepted and c.match_id in (0, 2)
     truth = relative_pose(town.poses[c.match_id], town.poses[1])
     truth[:3, :3] = truth[:3, :3] @ rot_z(-90.0)  # the query sensor turned by -90 degrees
     assert np.linalg.norm(c.relative_pose[:3, 3] - truth[:3, 3]) < 0.3

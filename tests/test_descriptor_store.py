@@ -129,7 +129,7 @@ def test_voting_on_sq8_equals_float32_on_synthetic_places():
     for dtype in ("float32", "sq8"):
         rec = KeypointVoting(descriptor="shot", descriptor_store=dtype, verify={"enabled": False})
         descs = add_synthetic_places(rec, np.random.default_rng(5), n_places=12, per_place=40, dim=352)
-        assert rec._store.dtype == dtype
+        assert rec.entries.store.dtype == dtype
         queries = [d[:20] + 0.01 * np.random.default_rng(6).normal(size=d[:20].shape) for d in descs]
         results[dtype] = [
             [
@@ -176,23 +176,23 @@ def test_places_database_round_trip_keeps_the_store_and_the_search(compact_db, t
         assert np.abs(xa - xb).max() <= scale / 2 + 1e-5 and np.abs(ia - ib).max() <= 1 / 510 + 1e-7
     # a recognizer serves the compressed store as it is, and a float32 copy of it on request
     rec = KeypointVoting.from_places(again, iss={"max_keypoints": 40}, verify={"cloud_store": "int16"})
-    assert rec._store is again.descriptors
+    assert rec.entries.store is again.descriptors
     assert KeypointVoting.from_places(
         again, iss={"max_keypoints": 40}, descriptor_store="float32"
-    )._store.dtype == ("float32")
+    ).entries.store.dtype == ("float32")
 
 
 def test_keypoint_voting_database_round_trip_in_sq8(compact_db, tmp_path):
     rec = KeypointVoting.from_places(compact_db, iss={"max_keypoints": 40}, verify={"enabled": False})
-    assert rec._store.dtype == "sq8"
+    assert rec.entries.store.dtype == "sq8"
     path = tmp_path / "kv.npz"
     rec.save(path)
     arrays, header = load_artifact(path, "keypoint-voting-db", (2,))
     assert arrays["descriptors"].dtype == np.uint8 and header["meta"]["descriptor_store"] == "sq8"
     back = KeypointVoting(rec.params)
     back.load(path)
-    assert back._store.dtype == "sq8"
-    np.testing.assert_array_equal(back._store.codes(), rec._store.codes())
+    assert back.entries.store.dtype == "sq8"
+    np.testing.assert_array_equal(back.entries.store.codes(), rec.entries.store.codes())
     query = {"descriptors": compact_db.descriptors.rows(0, 30) + 0.001, "keypoints": np.zeros((30, 3))}
     got = [(c.match_id, c.score) for c in back.query_description(query, k=3)]
     assert got and got == [(c.match_id, c.score) for c in rec.query_description(query, k=3)]

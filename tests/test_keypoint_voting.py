@@ -155,7 +155,7 @@ def test_aggregated_places_and_places_database(sim_map, tmp_path):
     agg = KeypointVoting(place_spacing_m=6.0, place_window_m=6.0, **FAST)
     for i, s in enumerate(scans):
         agg.add(i, s, seq.poses[i])
-    assert agg._ids == [0, 3, 6, 9, 12, 15] and len(agg._store) > 300
+    assert agg.entries.ids == [0, 3, 6, 9, 12, 15] and len(agg.entries.store) > 300
     with pytest.raises(ScanDataError, match="pose"):
         KeypointVoting(place_window_m=6.0, **FAST).add(0, scans[0])
 
@@ -165,7 +165,7 @@ def test_aggregated_places_and_places_database(sim_map, tmp_path):
     path = tmp_path / "places.npz"
     db.save(path)
     rec = KeypointVoting(places_db=str(path), **FAST)
-    assert rec._ids == db.ids.tolist()
+    assert rec.entries.ids == db.ids.tolist()
     for i in range(len(seq)):  # what the localize evaluator does: consistent with the database, no-op
         rec.add(i, scans[i], seq.poses[i])
     assert len(rec) == len(db)

@@ -9,7 +9,8 @@ import pytest
 from synthetic_places import add_synthetic_places
 
 from placerec.pipelines.gestalt_voting import GestaltVoting, lognormal_threshold, place_votes
-from placerec.pipelines.global_registration import GlobalRegistration, world_keypoints
+from placerec.pipelines.global_registration import GlobalRegistration
+from placerec.three_d.entries import EntryTable
 from placerec.recognizer import make_pipeline
 
 
@@ -62,7 +63,10 @@ def test_world_keypoints_apply_each_entrys_pose():
     T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
     T[:3, 3] = [10.0, -2.0, 1.0]
     a, b = np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 2.0, 0.0], [1.0, 1.0, 1.0]])
-    w = world_keypoints([a, b], [np.eye(4), T])
+    table = EntryTable.empty(4)
+    table.append(0, np.eye(4), a, np.zeros((1, 4), np.float32))
+    table.append(1, T, b, np.zeros((2, 4), np.float32))
+    w = table.world_keypoints()
     assert np.allclose(w[0], [1, 0, 0])
     assert np.allclose(w[1], [10 - 2 * s, -2 + 2 * c, 1])
     assert np.allclose(w[2], T[:3, :3] @ [1, 1, 1] + T[:3, 3])
@@ -85,11 +89,11 @@ def test_localises_a_simulated_scan_with_a_6dof_pose(town, name):
     for i in (0, 2, 4):
         rec.add(i, town[i], town.poses[i])
     cands = rec.query(town[1], k=1, query_id=1)
-    assert cands and cands[0].extra["accepted"]
+    assert cands and cands[0].accepted
     c = cands[0]
     gt = relative_pose(town.poses[c.match_id], town.poses[1])
     assert np.linalg.norm(c.relative_pose[:3, 3] - gt[:3, 3]) < 0.3
-    assert np.linalg.norm(c.extra["T_world_query"][:3, 3] - town.poses[1][:3, 3]) < 0.3
+    assert np.linalg.norm(c.T_world_query[:3, 3] - town.poses[1][:3, 3]) < 0.3
     if name == "shot-global":
         # the match is the map entry nearest to the estimated position, every keypoint is paired with K = 4
         assert isinstance(rec, GlobalRegistration) and c.match_id in (0, 2)

@@ -184,11 +184,11 @@ def test_stop_radius_tests_the_posterior_of_each_region():
     prob = np.random.default_rng(0).dirichlet(np.ones(20))
     padded = np.r_[0.0, prob, 0.0]
     assert np.allclose(
-        rec._stop_mass(prob), padded[:-2] + padded[1:-1] + padded[2:]
+        rec.stop_mass(prob), padded[:-2] + padded[1:-1] + padded[2:]
     )  # each place and its neighbours
     rec0 = ProbabilisticVoting(common)
     _synthetic_db(rec0, np.random.default_rng(4))
-    assert rec0._stop_mass(prob) is prob  # the paper's test: each place alone
+    assert rec0.stop_mass(prob) is prob  # the paper's test: each place alone
 
 
 def test_a_rejection_sends_the_stop_to_the_next_place_without_more_keypoints():
@@ -205,7 +205,7 @@ def test_a_rejection_sends_the_stop_to_the_next_place_without_more_keypoints():
         for i in (0, 2, 3, 4):
             rec.add_description(i, descs[i], seq.poses[i])
         cands = rec.query_description(descs[1], k=10, query_id=1)
-        assert len(cands) == 4 and not any(c.extra["accepted"] for c in cands)
+        assert len(cands) == 4 and not any(c.accepted for c in cands)
         assert cands[0].extra["n_verified"] == 4
         consumed[weight] = cands[0].extra["keypoints_consumed"]
     n = cands[0].extra["n_keypoints"]
@@ -225,11 +225,11 @@ def test_localises_a_simulated_scan_with_a_6dof_pose():
     for i in (0, 2, 4):
         rec.add(i, seq[i], seq.poses[i])
     cands = rec.query(seq[1], k=1, query_id=1)
-    assert cands and cands[0].extra["accepted"]
+    assert cands and cands[0].accepted
     c = cands[0]
     gt = relative_pose(seq.poses[c.match_id], seq.poses[1])
     assert np.linalg.norm(c.relative_pose[:3, 3] - gt[:3, 3]) < 0.3
-    assert np.linalg.norm(c.extra["T_world_query"][:3, 3] - seq.poses[1][:3, 3]) < 0.3
+    assert np.linalg.norm(c.T_world_query[:3, 3] - seq.poses[1][:3, 3]) < 0.3
     assert 0 < c.extra["keypoints_consumed"] <= c.extra["n_keypoints"]
 
 
@@ -246,8 +246,8 @@ def test_fallback_verifies_fallback_top_k_places():
         for i in (0, 2, 3, 4):
             rec.add_description(i, descs[i], seq.poses[i])
         cands = rec.query_description(descs[1], k=10, query_id=1)
-        assert len(cands) == expected and not any(c.extra["accepted"] for c in cands)
-        assert all(c.extra["verify"]["correspondences"] > 0 for c in cands)  # each went through verification
+        assert len(cands) == expected and not any(c.accepted for c in cands)
+        assert all(c.verification.correspondences > 0 for c in cands)  # each went through verification
 
 
 def test_build_places_and_fit_votes_commands(tmp_path):

@@ -2,6 +2,7 @@
 
 import csv
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -24,7 +25,7 @@ from placerec.experiment.report import (
 from placerec.experiment.runner import STAGES, PipelineRecord
 from placerec.io import read_poses, write_kitti_poses
 from placerec.loop_closure import split_verify_time
-from placerec.types import Candidate, ListSequence, Scan, relative_pose
+from placerec.types import Candidate, ListSequence, Scan, Verification, relative_pose
 
 N_SCANS = 24
 
@@ -178,13 +179,20 @@ def _pose(xyz, rpy_deg):
 
 def test_candidates_round_trip_with_relative_poses_and_verification(tmp_path):
     T = _pose((1.5, -2.0, 0.25), (2.0, -3.0, 120.0))
-    verified = {"accepted": True, "verify": {"score": 0.8, "fitness": 0.9, "rmse": 0.05}, "verify_ms": 3.0}
-    rejected = {"accepted": False, "verify": {"score": 0.0, "fitness": float("nan"), "rmse": float("nan")}}
-    other = {"verify": "column shift"}  # not the verification statistics: unknown
+
+    def verification(score, fitness, rmse, accepted):
+        return Verification(T, score, accepted, 40, 50, fitness, rmse, 0.1)
+
+    nan = float("nan")
+    other = {"verify": "column shift"}  # a pipeline's own diagnostics: no verification statistics
     cands = [
         [
-            Candidate(0, 4, 0.8, T, 40, verified),
-            Candidate(0, 2, 0.0, np.eye(4), 3, rejected),
+            Candidate(
+                0, 4, 0.8, T, 40, accepted=True, verification=verification(0.8, 0.9, 0.05, True), verify_ms=3
+            ),
+            Candidate(
+                0, 2, 0.0, np.eye(4), 3, accepted=False, verification=verification(0.0, nan, nan, False)
+            ),
             Candidate(0, 1, 0.0, None, None, other),
         ]
     ]
@@ -333,7 +341,7 @@ def test_loop_report_holds_pose_errors_extended_precision_and_recomputes_them(tm
         10: (1, 0.1, None),
     }
     ids = list(range(12))
-    verified = [[Candidate(q, *top[q], 30, {"verify_ms": 2.0})] if q in top else [] for q in ids]
+    verified = [[Candidate(q, *top[q], 30, verify_ms=2.0)] if q in top else [] for q in ids]
     yaw_only = [
         [Candidate(q, top[q][0], top[q][1], _pose((0, 0, 0), (0, 0, 90)))] if q in top else [] for q in ids
     ]
@@ -412,7 +420,7 @@ def test_localize_counts_success_from_the_estimated_pose_and_labels_retrieval(tm
 
 def test_split_verify_time_moves_verification_out_of_the_query_stage():
     timing = {"query": 10.0}
-    split_verify_time([Candidate(0, 1, 0.5, extra={"verify_ms": 3.0}), Candidate(0, 2, 0.4)], timing)
+    split_verify_time([Candidate(0, 1, 0.5, verify_ms=3.0), Candidate(0, 2, 0.4)], timing)
     assert timing == {"query": 7.0, "verify": 3.0}
     timing = {"query": 10.0}
     split_verify_time([Candidate(0, 1, 0.5)], timing)
@@ -424,9 +432,7 @@ class TimedScanContext(ScanContext):
 
     def query_description(self, description, k=1, max_id=None, query_id=-1):
         cands = super().query_description(description, k=k, max_id=max_id, query_id=query_id)
-        for c in cands:
-            c.extra["verify_ms"] = 1.5
-        return cands
+        return [replace(c, verify_ms=1.5) for c in cands]
 
 
 def test_the_run_reports_a_verify_stage(sequence_dir, tmp_path):
@@ -453,7 +459,7 @@ def test_localisation_counts_only_accepted_answers():
     near[0, 3] = 0.5
 
     def cand(q, m, accepted, score):
-        return Candidate(q, m, score, near, 20, {} if accepted is None else {"accepted": accepted})
+        return Candidate(q, m, score, near, 20, accepted=accepted)
 
     rows = [
         [cand(0, 0, True, 0.9)],  # accepted, 0 m off: localised

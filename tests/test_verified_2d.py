@@ -83,16 +83,16 @@ def test_true_loop_gets_the_6dof_pose_and_a_wrong_place_ranks_lower(sim, name):
     cands = rec.query(scans[2], k=2, query_id=2)
     assert [c.match_id for c in cands] == [0, 30]
     best = cands[0]
-    assert best.extra["accepted"]
+    assert best.accepted
     t_err, r_err = _errors(best.relative_pose, relative_pose(poses[0], poses[2]))
     assert (
         np.linalg.norm(relative_pose(poses[0], poses[2])[:3, 3]) > 1.5
     )  # a translation a yaw-only pose misses
     assert t_err < 0.3 and r_err < 2.0
-    assert best.inliers >= 8 and best.extra["verify"]["correspondences"] >= best.inliers
-    assert 0 < best.score <= 1 and best.score == best.extra["verify"]["score"]
+    assert best.inliers >= 8 and best.verification.correspondences >= best.inliers
+    assert 0 < best.score <= 1 and best.score == best.verification.score
     min_score = rec.params.verify.verify.score.min_score
-    assert all(c.score < min_score and not c.extra["accepted"] for c in cands[1:])
+    assert all(c.score < min_score and not c.accepted for c in cands[1:])
 
 
 def test_verification_needs_the_descriptions_3d_parts(sim):

@@ -51,20 +51,20 @@ def test_verify_candidates_reranks_and_returns_t_match_query(sim, clouds):
     # the wrong place is retrieved first; verification (ICP from the identity) must put the true one on top
     got = verify_candidates(
         clouds[QUERY],
-        [Retrieved(WRONG, 0.9), Retrieved(TRUE, 0.5, extra={"votes": 4, "verify_ms": 500.0})],
+        [Retrieved(WRONG, 0.9), Retrieved(TRUE, 0.5, extra={"votes": 4}, verify_ms=500.0)],
         store,
         VerifiedParams(),
         7,
     )
     assert [c.match_id for c in got] == [TRUE, WRONG]
     best, wrong = got
-    assert best.query_id == 7 and best.extra["accepted"] and not wrong.extra["accepted"]
+    assert best.query_id == 7 and best.accepted and not wrong.accepted
     assert _t_err(best.relative_pose, T_gt) < 0.3
     np.testing.assert_allclose(seq.poses[TRUE] @ best.relative_pose, seq.poses[QUERY], atol=0.3)
-    assert best.score == best.extra["verify"]["score"] > wrong.score
-    assert best.extra["retrieval_score"] == 0.5 and best.extra["votes"] == 4
+    assert best.score == best.verification.score > wrong.score
+    assert best.retrieval_score == 0.5 and best.extra["votes"] == 4
     assert best.inliers is None  # ICP only
-    assert all(c.extra["verify_ms"] > 0 for c in got) and best.extra["verify_ms"] > 500.0  # + its matching
+    assert all(c.verify_ms > 0 for c in got) and best.verify_ms > 500.0  # + its matching
     assert wrong.score < VerifiedParams().verify.score.min_score  # kept, below the acceptance threshold
 
 
@@ -77,7 +77,7 @@ def test_verify_candidates_top_k_k_and_the_eps_icp_rule(clouds):
     assert [c.match_id for c in only_first] == [WRONG]  # beyond top_k: dropped, not verified
     p = VerifiedParams(verify={"score": {"acceptance": "eps_icp", "eps_icp": 1e-6}})
     got = verify_candidates(clouds[QUERY], retrieved, store, p, k=1)
-    assert len(got) == 1 and got[0].score == 0.0 and not got[0].extra["accepted"]  # rejected by the rule: 0
+    assert len(got) == 1 and got[0].score == 0.0 and not got[0].accepted  # rejected by the rule: 0
     assert verify_candidates(clouds[QUERY], [], store, VerifiedParams()) == []
 
 
@@ -160,9 +160,9 @@ def test_keypoint_voting_verifies_with_grouping_ransac_and_icp(sim, voting):
     T_gt = relative_pose(seq.poses[TRUE], seq.poses[QUERY])
     assert _t_err(best.relative_pose, T_gt) < 0.3
     np.testing.assert_allclose(seq.poses[TRUE] @ best.relative_pose, seq.poses[QUERY], atol=0.3)
-    assert best.extra["accepted"] and best.inliers >= 8 and best.inliers == best.extra["verify"]["inliers"]
-    assert best.extra["verify"]["residual"] < 7.0 and best.extra["votes"] > 0 and best.extra["matches"] >= 8
-    assert not wrong.extra["accepted"] and wrong.score < best.score
+    assert best.accepted and best.inliers >= 8 and best.inliers == best.verification.inliers
+    assert best.verification.residual < 7.0 and best.extra["votes"] > 0 and best.extra["matches"] >= 8
+    assert not wrong.accepted and wrong.score < best.score
 
 
 def test_keypoint_voting_save_load_keeps_the_clouds(sim, voting, tmp_path):
@@ -212,9 +212,9 @@ def test_scan_context_yaw_seeds_icp_for_a_6dof_pose(sim, scan_context):
     best, wrong = got
     assert _t_err(best.relative_pose, T_gt) < 0.3  # the yaw-only pose was off by the whole offset
     np.testing.assert_allclose(seq.poses[TRUE] @ best.relative_pose, seq.poses[QUERY], atol=0.3)
-    assert best.extra["accepted"] and not wrong.extra["accepted"] and best.score > wrong.score
-    assert best.score == best.extra["verify"]["score"] and best.inliers is None
-    assert -1.0 <= best.extra["retrieval_score"] <= 1.0 and "yaw_deg" in best.extra
+    assert best.accepted and not wrong.accepted and best.score > wrong.score
+    assert best.score == best.verification.score and best.inliers is None
+    assert -1.0 <= best.retrieval_score <= 1.0 and "yaw_deg" in best.extra
     plain = ScanContext(verify={"enabled": False})
     assert plain.frontend_key != sc.frontend_key  # its descriptions carry no cloud
     plain.add_description(TRUE, plain.describe(sim[1][TRUE]))
@@ -250,22 +250,22 @@ def test_local_map_verification_matches_and_aligns_in_the_candidates_frame(sim):
     descs = {i: rec.describe(seq[i]) for i in (7, TRUE, QUERY, WRONG)}
     for i in (7, TRUE, WRONG):
         rec.add_description(i, descs[i], seq.poses[i])
-    e7, e10, e36 = (rec._ids.index(i) for i in (7, TRUE, WRONG))
-    assert rec._local_entries(e10) == [e10, e7] and rec._local_entries(e36) == [e36]
-    assert rec._local_entries(e10, np.array([False, True, True])) == [e10]  # only eligible neighbours
+    e7, e10, e36 = (rec.entries.ids.index(i) for i in (7, TRUE, WRONG))
+    assert rec.local_maps.members(e10) == [e10, e7] and rec.local_maps.members(e36) == [e36]
+    assert rec.local_maps.members(e10, np.array([False, True, True])) == [e10]  # only eligible neighbours
     # the local map's keypoints, taken back to the world by entry 10's pose, are each entry's world keypoints
     T10 = seq.poses[TRUE]
-    kp = rec._local_keypoints(e10, [e10, e7])
+    kp = rec.local_maps.keypoints(e10, [e10, e7])
     world = np.concatenate(
         [descs[i]["keypoints"] @ seq.poses[i][:3, :3].T + seq.poses[i][:3, 3] for i in (TRUE, 7)]
     )
     np.testing.assert_allclose(kp @ T10[:3, :3].T + T10[:3, 3], world, atol=1e-3)
-    merged = rec._local_target([e10, e7])
-    assert merged.points.shape[0] > rec._clouds.target(TRUE).points.shape[0]
-    assert rec._local_target([e10, e7]) is merged  # prepared once
+    merged = rec.local_maps.target([e10, e7])
+    assert merged.points.shape[0] > rec.clouds.target(TRUE).points.shape[0]
+    assert rec.local_maps.target([e10, e7]) is merged  # prepared once
     got = rec.query_description(descs[QUERY], k=3, query_id=QUERY)
     best = got[0]
-    assert best.match_id in (7, TRUE) and best.extra["accepted"] and best.extra["local_entries"] == 2
+    assert best.match_id in (7, TRUE) and best.accepted and best.extra["local_entries"] == 2
     T_gt = relative_pose(seq.poses[best.match_id], seq.poses[QUERY])
     assert _t_err(best.relative_pose, T_gt) < 0.3
     assert all(c.extra["local_entries"] == 1 for c in got if c.match_id == WRONG)

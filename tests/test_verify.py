@@ -506,14 +506,14 @@ def test_icp_top_k_refines_only_the_candidates_with_most_inliers(sim_scans):
     # goes to the candidate with the most inliers, the first of equal ones in retrieval order
     assert prepared == [10]
     best = cands[0]
-    assert best.extra["accepted"] and best.extra["retrieval_score"] == 0.8 and best.inliers >= 190
-    others = [c.extra["verify"]["rejected_at"] for c in cands[1:]]
+    assert best.accepted and best.retrieval_score == 0.8 and best.inliers >= 190
+    others = [c.verification.rejected_at for c in cands[1:]]
     assert others == ["rank", "rank"] and all(c.score == 0.0 for c in cands[1:])
     # without the cap every candidate that passes RANSAC is refined
     prepared.clear()
     cands = verify_candidates(scans[13], retrieved, store, VerifiedParams(top_k=3), query_id=13)
     assert sorted(prepared) == [10, 10, 36]
-    assert [c.match_id for c in cands if c.extra["accepted"]][:2] == [10, 10]
+    assert [c.match_id for c in cands if c.accepted][:2] == [10, 10]
 
 
 def test_verify_ms_of_candidates_not_returned_is_shared_by_those_returned(sim_scans, monkeypatch):
@@ -538,5 +538,5 @@ def test_verify_ms_of_candidates_not_returned_is_shared_by_those_returned(sim_sc
     assert len(every) == 3
     one = run(1)
     assert len(one) == 1 and one[0].match_id == 10
-    total = sum(c.extra["verify_ms"] for c in every)
-    assert one[0].extra["verify_ms"] == pytest.approx(total)
+    total = sum(c.verify_ms for c in every)
+    assert one[0].verify_ms == pytest.approx(total)

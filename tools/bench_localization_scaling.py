@@ -156,11 +156,11 @@ def main() -> None:
                 row["table_build_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
                 row["sparse_table_mb"] = round(table.nbytes / 2**20, 3)
                 if n <= 2000:
-                    full = PosteriorTable(rec.vote_model, np.asarray([T[:3, 3] for T in rec._poses]), "full")
+                    full = PosteriorTable(rec.vote_model, np.asarray([T[:3, 3] for T in rec.entries.poses]), "full")
                     row["full_table_mb"] = round(full.nbytes / 2**20, 3)
             if name.endswith("-ivf"):  # the index is built on the first query: time it apart
                 t0 = time.perf_counter()
-                rec._search(descs[0]["descriptors"][:1], rec._store.view())
+                rec.search(descs[0]["descriptors"][:1], rec.entries.store.view())
                 row["ivf_build_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
             times, matched, ok = [], [], []
             for q, d in enumerate(descs):

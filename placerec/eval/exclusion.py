@@ -25,19 +25,11 @@ from pydantic import Field
 
 from placerec.errors import ScanDataError
 from placerec.params import Params
+from placerec.types import path_length
 
 __all__ = ["DEFAULT_EXCLUSION_FRAMES", "ExclusionWindow", "path_length"]
 
 DEFAULT_EXCLUSION_FRAMES = 120  # VPR paper: "results from the most recent 120 steps are ignored"
-
-
-def path_length(positions: np.ndarray) -> np.ndarray:
-    """(N,) cumulative distance travelled along the trajectory (0 at the first position)."""
-    p = np.asarray(positions, dtype=np.float64)
-    if p.ndim != 2 or p.shape[0] == 0:
-        return np.zeros(p.shape[0] if p.ndim else 0)
-    steps = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    return np.concatenate([[0.0], np.cumsum(steps)])
 
 
 class ExclusionWindow(Params):

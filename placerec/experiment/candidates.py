@@ -11,7 +11,7 @@
   rotation ``R = Rz(yaw) Ry(pitch) Rx(roll)`` in degrees (fixed axes x, then y, then z); empty without a pose.
   Six readable numbers rather than the twelve of the 3x4 matrix; they round-trip to ~1e-12.
 * ``verified_score``, ``fitness``, ``rmse`` (m), ``accepted`` (1/0): the geometric verification's statistics
-  (``Candidate.extra["verify"]`` and ``extra["accepted"]``, `placerec.verify.candidates`); empty for a pipeline
+  (``Candidate.verification`` and ``Candidate.accepted``, `placerec.verify.candidates`); empty for a pipeline
   that does not verify, or a statistic that was not computed (``fitness`` of a candidate rejected before ICP).
 
 Files of earlier runs still read: without ``rank`` (``query_id,match_id,score``, the top candidate only) as rank 1,
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -75,9 +75,8 @@ class _Row:
 
     @classmethod
     def of(cls, c: Candidate) -> _Row:
-        v = c.extra.get("verify")
-        v = v if isinstance(v, Mapping) else {}  # a pipeline's own "verify" entry that is no statistics
-        acc = c.extra.get("accepted")
+        v = c.verification.as_dict() if c.verification is not None else {}
+        acc = c.accepted
         return cls(
             int(c.match_id),
             float(c.score),

@@ -35,6 +35,7 @@ from __future__ import annotations
 import importlib.resources
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -253,7 +254,8 @@ class VisualDBoW(VisualFrontend, Recognizer):
                 float(s),
                 qi[bounds[c] : bounds[c + 1]],
                 ri[bounds[c] : bounds[c + 1]],
-                {"bow_score": float(s), "verify_ms": share},
+                {"bow_score": float(s)},
+                share,
             )
             for c, (i, s) in enumerate(zip(image_ids, scores, strict=False))
         ]
@@ -289,9 +291,7 @@ class VisualDBoW(VisualFrontend, Recognizer):
             extra = {"bow_score": float(bow_score), "matches": int(q.size), "yaw_deg": float(np.degrees(yaw))}
             out.append(Candidate(query_id, image_id, float(score), yaw_pose(yaw), inliers, extra))
         per = (time.perf_counter() - t0) * 1e3 / len(out)
-        for c in out:
-            c.extra["verify_ms"] = per
-        return out
+        return [replace(c, verify_ms=per) for c in out]
 
     def _match(
         self, dq: np.ndarray, nq: np.ndarray, image_ids: list[int]

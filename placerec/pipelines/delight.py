@@ -63,9 +63,11 @@ from placerec.io.artifact_schema import Member
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
 from placerec.pipelines.keypoint_voting import KeypointVoting, VotingParams, voting_schema
+from placerec.pipelines.voting_engine import Query, Shortlist, VoteStrategy
 from placerec.recognizer import params_key, require_points, require_varying_intensity, valid_points
+from placerec.three_d.entries import EntryTable
 from placerec.three_d.places import PlacesDatabase
-from placerec.types import Candidate, Description, Scan
+from placerec.types import Description, Scan
 
 __all__ = [
     "ARTIFACT_KIND",
@@ -175,14 +177,52 @@ def delight_distance(
     return dist[np.arange(e.shape[0]), best], best.astype(np.int64)
 
 
+class HistogramRanking(VoteStrategy):
+    """DELIGHT's query: the eligible entries ranked once by the distance of their histograms to the query's (ties:
+    lower id); no keypoint is matched against the database, the best ``fallback_top_k`` (default ``verify.top_k``)
+    are verified ``verify.top_k`` at a time until one is accepted."""
+
+    def __init__(self, rec: Delight, query: Query) -> None:
+        if query.k < 1:
+            raise ScanDataError(f"{rec.name}: k must be >= 1, got {query.k}")
+        super().__init__(rec, query)
+        self.histogram = rec.histogram(query.description)
+
+    def possible(self) -> bool:
+        verifies = self.rec.params.verify.enabled
+        return bool(self.query.eligible.any()) and (self.n > 0 or not verifies)
+
+    def fallback(self) -> Shortlist:
+        rec, eligible = self.rec, self.query.eligible
+        rows = np.flatnonzero(eligible)
+        dist, shift = delight_distance(self.histogram, rec._hist[rows], rec.params.sector_shifts)
+        ranked = rows[np.lexsort((np.asarray(rec.entries.ids)[rows], dist))]
+        info = {int(e): (float(d), int(s)) for e, d, s in zip(rows, dist, shift, strict=True)}
+        rank = {int(e): i for i, e in enumerate(ranked)}
+
+        def extra(e: int) -> dict[str, Any]:
+            d, s = info[e]
+            yaw = float((-45.0 * s + 180.0) % 360.0 - 180.0)
+            return {"distance": d, "shift": s, "yaw_deg": yaw, "rank": rank[e], "n_ranked": int(rows.size)}
+
+        p = rec.params
+        return Shortlist(
+            ranked,
+            score=lambda e: 1.0 - info[e][0] / (2.0 * N_SPHERES * N_SECTORS),
+            extra=extra,
+            top_k=(p.fallback_top_k or p.verify.top_k) if p.verify.enabled else None,
+        )
+
+
 class Delight(KeypointVoting):
     """`PlaceRecognizer`: DELIGHT ranking, then the shared keypoint verification (module docstring)."""
 
     name: ClassVar[str] = "delight"
     Params: ClassVar[type[Params]] = DelightParams
+    Strategy: ClassVar[type[VoteStrategy]] = HistogramRanking
 
-    def _reset(self) -> None:
-        super()._reset()
+    def _reset(self, entries: EntryTable | None = None) -> None:
+        super()._reset(entries)
         self._hist = np.zeros((0, N_SPHERES, N_SECTORS, self.params.bins), np.float32)
 
     def use_places(self, db: PlacesDatabase) -> None:
@@ -210,7 +250,7 @@ class Delight(KeypointVoting):
         out["delight"] = make_descriptor(self._normalised(scan), self.params)
         return out
 
-    def _histogram(self, description: Description) -> np.ndarray:
+    def histogram(self, description: Description) -> np.ndarray:
         if not isinstance(description, Mapping) or "delight" not in description:
             raise ScanDataError(
                 f"{self.name}: the description has no 'delight' histograms (describe() gives it)"
@@ -223,64 +263,11 @@ class Delight(KeypointVoting):
         return h
 
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
-        h = self._histogram(description)
-        n = len(self._ids)
+        h = self.histogram(description)
+        n = len(self.entries)
         super().add_description(scan_id, description, pose)
-        if len(self._ids) > n:  # the scan became an entry (place_spacing_m may skip it)
+        if len(self.entries) > n:  # the scan became an entry (place_spacing_m may skip it)
             self._hist = np.concatenate([self._hist, h[None]])
-
-    def query_description(
-        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
-    ) -> list[Candidate]:
-        if k < 1:
-            raise ScanDataError(f"{self.name}: k must be >= 1, got {k}")
-        p, vp = self.params, self.params.verify
-        h = self._histogram(description)
-        eligible = self._eligible_entries(max_id)
-        if not eligible.any():
-            return []
-        rows = np.flatnonzero(eligible)
-        dist, shift = delight_distance(h, self._hist[rows], p.sector_shifts)
-        ranked = rows[np.lexsort((np.asarray(self._ids)[rows], dist))]
-        info = {int(e): (float(d), int(s)) for e, d, s in zip(rows, dist, shift, strict=True)}
-        rank = {int(e): i for i, e in enumerate(ranked)}
-
-        def extra(e: int) -> dict[str, Any]:
-            d, s = info[e]
-            yaw = float((-45.0 * s + 180.0) % 360.0 - 180.0)
-            return {"distance": d, "shift": s, "yaw_deg": yaw, "rank": rank[e], "n_ranked": int(rows.size)}
-
-        def score(e: int) -> float:
-            return 1.0 - info[e][0] / (2.0 * N_SPHERES * N_SECTORS)
-
-        if not vp.enabled:
-            return [Candidate(query_id, self._ids[e], score(e), None, None, extra(e)) for e in ranked[:k]]
-        q = np.asarray(description["descriptors"], np.float32).reshape(-1, self._dim)
-        if q.shape[0] == 0:
-            return []
-        if "cloud" not in description:
-            raise ScanDataError(f"{self.name}: verification needs the query description's 'cloud'")
-        picked = self._pick(ranked, (), p.fallback_top_k or vp.top_k)
-        qkp, starts = self._query_keypoints(description), self._entry_starts()
-        verified: dict[int, Candidate] = {}
-        self._verify_chunks(
-            description["cloud"],
-            picked,
-            lambda e: self._matches(e, q, qkp, starts, score(e), extra(e), eligible),
-            verified,
-            query_id,
-        )
-        out = sorted(
-            verified.values(),
-            key=lambda c: (-c.score, not c.extra["accepted"], -c.extra["retrieval_score"]),
-        )
-        for c in out:
-            c.extra["n_verified"] = len(verified)
-            if c.relative_pose is not None:
-                c.extra["T_world_query"] = (
-                    np.asarray(self._poses[self._ids.index(c.match_id)]) @ c.relative_pose
-                )
-        return out[:k]
 
     # -- persistence ----------------------------------------------------------------------------------------
     def save(self, path: str | Path) -> None:

@@ -31,25 +31,31 @@ Departures, said plainly:
   sample), after which the termination test runs; the other reading (keypoints sampled uniformly from the cloud,
   10 % of the points) would change the front end for this pipeline alone.
 
-``extra``: ``votes``, ``keypoints_consumed``, ``n_keypoints``, ``early_stop`` (the threshold was passed),
-``match_ms``, ``threshold`` (the log-normal threshold when the place was verified).
+The query runs in the loop every voting pipeline shares (`placerec.pipelines.voting_engine`), `LognormalVotes`
+its strategy. ``extra``: the engine's diagnostics (``early_stop``: the threshold was passed, ...), ``votes`` and
+``threshold`` (the log-normal threshold when the place was verified).
 """
 
 from __future__ import annotations
 
 import math
-import time
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 from pydantic import Field
 
-from placerec.errors import ScanDataError
 from placerec.params import Params
 from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams
-from placerec.types import Candidate, Description
+from placerec.pipelines.voting_engine import Query, Shortlist, VoteStrategy
 
-__all__ = ["ARTIFACT_KIND", "GestaltParams", "GestaltVoting", "lognormal_threshold", "place_votes"]
+__all__ = [
+    "ARTIFACT_KIND",
+    "GestaltParams",
+    "GestaltVoting",
+    "LognormalVotes",
+    "lognormal_threshold",
+    "place_votes",
+]
 
 
 class GestaltParams(VotingParams):
@@ -95,95 +101,55 @@ def lognormal_threshold(votes: np.ndarray, z: float) -> float:
     return float(np.exp(logs.mean() + z * logs.std()))
 
 
+class LognormalVotes(VoteStrategy):
+    """Bosse & Zlot's query (module docstring): rounds of ``sample_fraction`` of the keypoints, K-NN votes, the
+    log-normal stop test after each round."""
+
+    stops_early = True
+
+    def __init__(self, rec: GestaltVoting, query: Query) -> None:
+        super().__init__(rec, query)
+        self.p = rec.params
+        self.votes = np.zeros(len(rec.entries), np.int64)
+        self.threshold = math.inf
+
+    def possible(self) -> bool:
+        return self.n > 0 and self.query.rows.shape[0] > 0
+
+    def order(self) -> np.ndarray:
+        return np.random.default_rng(self.p.seed).permutation(self.n)
+
+    def batch_size(self) -> int:
+        return max(1, math.ceil(self.p.sample_fraction * self.n))
+
+    def vote(self, batch: np.ndarray) -> None:
+        qr = self.query
+        _, idx = qr.rows.knn(qr.q[batch], self.p.knn, self.p.nn_threads)
+        self.votes[: qr.n_entries] += place_votes(idx, qr.row_entry, qr.n_entries)
+        self.matched += batch.size
+        self.threshold = lognormal_threshold(self.votes[qr.eligible], self.p.lognormal_z)
+
+    def ready(self) -> Shortlist | None:
+        return self._shortlist(None) if self.votes.max() > self.threshold else None
+
+    def fallback(self) -> Shortlist:
+        return self._shortlist(self.p.fallback_top_k)
+
+    def _shortlist(self, top_k: int | None) -> Shortlist:
+        """The most voted eligible entries with a vote (ties: lower id)."""
+        votes, n, thr, eligible = self.votes, self.n, self.threshold, self.query.eligible
+        ranked = np.lexsort((np.asarray(self.rec.entries.ids), -votes))
+        return Shortlist(
+            [e for e in ranked if eligible[e] and votes[e] > 0],
+            score=lambda e: float(votes[e]) / n,
+            extra=lambda e: {"votes": int(votes[e]), "n_query": n, "threshold": thr},
+            top_k=top_k,
+        )
+
+
 class GestaltVoting(KeypointVoting):
     """`PlaceRecognizer`: Bosse & Zlot keypoint voting with log-normal early termination (module docstring)."""
 
     name: ClassVar[str] = "gestalt-voting"
     Params: ClassVar[type[Params]] = GestaltParams
-
-    def query_description(
-        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
-    ) -> list[Candidate]:
-        p = self.params
-        q = np.asarray(description["descriptors"], np.float32).reshape(-1, self._dim)
-        rows, entry, n_ent = self._eligible(max_id)
-        if q.shape[0] == 0 or rows.shape[0] == 0:
-            return []
-        if p.verify.enabled and "cloud" not in description:
-            raise ScanDataError(f"{self.name}: verification needs the query description's 'cloud'")
-        ids = np.asarray(self._ids)
-        eligible = self._eligible_entries(max_id)
-        qkp, starts = self._query_keypoints(description), self._entry_starts()
-        order = np.random.default_rng(p.seed).permutation(q.shape[0])
-        step = max(1, math.ceil(p.sample_fraction * q.shape[0]))
-        votes = np.zeros(len(ids), np.int64)
-        verified: dict[int, Candidate] = {}
-        consumed, stopped, accepted, match_ms = 0, False, False, 0.0
-        thr = math.inf
-        while consumed < q.shape[0] and not accepted:
-            t0 = time.perf_counter()
-            batch = order[consumed : consumed + step]
-            _, idx = rows.knn(q[batch], p.knn, p.nn_threads)
-            votes[:n_ent] += place_votes(idx, entry, n_ent)
-            consumed += batch.size
-            match_ms += (time.perf_counter() - t0) * 1e3
-            thr = lognormal_threshold(votes[eligible], p.lognormal_z)
-            if votes.max() <= thr:
-                continue
-            stopped = True
-            accepted = self._verify_top(votes, eligible, verified, q, qkp, starts, description, query_id, thr)
-        if not accepted:
-            self._verify_top(
-                votes, eligible, verified, q, qkp, starts, description, query_id, thr, p.fallback_top_k
-            )
-        out = sorted(
-            verified.values(),
-            key=lambda c: (-c.score, not c.extra.get("accepted", True), -c.extra["retrieval_score"]),
-        )
-        for c in out:
-            c.extra.update(
-                keypoints_consumed=consumed,
-                n_keypoints=int(q.shape[0]),
-                early_stop=stopped,
-                match_ms=match_ms,
-            )
-            if c.relative_pose is not None:
-                c.extra["T_world_query"] = (
-                    np.asarray(self._poses[self._ids.index(c.match_id)]) @ c.relative_pose
-                )
-        return out[:k]
-
-    def _verify_top(
-        self,
-        votes: np.ndarray,
-        eligible: np.ndarray,
-        verified: dict[int, Candidate],
-        q: np.ndarray,
-        qkp: np.ndarray,
-        starts: np.ndarray,
-        description: Description,
-        query_id: int,
-        thr: float,
-        top_k: int | None = None,
-    ) -> bool:
-        """Verify the ``top_k`` (default ``verify.top_k``) most voted eligible entries not verified yet, at least
-        ``verify_separation_m`` apart; True when one is accepted."""
-        vp = self.params.verify
-        ranked = np.lexsort((np.asarray(self._ids), -votes))
-        picked = self._pick([e for e in ranked if eligible[e] and votes[e] > 0], verified, top_k or vp.top_k)
-        if not picked:
-            return False
-        extra = lambda e: {"votes": int(votes[e]), "n_query": int(q.shape[0]), "threshold": thr}  # noqa: E731
-        if not vp.enabled:
-            for e in picked:
-                score = float(votes[e]) / q.shape[0]
-                x: dict[str, Any] = {**extra(e), "retrieval_score": score, "accepted": True}
-                verified[e] = Candidate(query_id, self._ids[e], score, None, None, x)
-            return True
-        return self._verify_chunks(
-            description["cloud"],
-            picked,
-            lambda e: self._matches(e, q, qkp, starts, float(votes[e]) / q.shape[0], extra(e), eligible),
-            verified,
-            query_id,
-        )
+    Strategy: ClassVar[type[VoteStrategy]] = LognormalVotes

@@ -15,14 +15,15 @@ against its cloud with `placerec.verify.candidates.verify_candidates`, so ``rela
 and ``map_poses[match_id] @ relative_pose`` the query's pose in the map. At most one candidate is returned: the
 largest consistent cluster gives one pose; when it is rejected the query has no candidate with a pose.
 
-``extra``: ``correspondences`` (query keypoints x K), ``match_ms`` (K-NN search), ``T_world_query`` (before ICP:
-``T_world_ransac``), ``keypoints_consumed`` (every query keypoint) and ``votes`` (RANSAC inliers).
+The query runs in the loop every voting pipeline shares (`placerec.pipelines.voting_engine`), `RegistrationVotes`
+its strategy: one batch of every keypoint, whose registration shortlists the one entry. ``extra``: the engine's
+diagnostics (``match_ms``: the K-NN search, ...), ``correspondences`` (query keypoints x K), ``T_world_ransac``
+(the query's pose in the map before ICP) and ``votes`` (RANSAC inliers).
 """
 
 from __future__ import annotations
 
 import time
-from functools import partial
 from typing import Any, ClassVar
 
 import numpy as np
@@ -31,11 +32,11 @@ from pydantic import Field
 from placerec.errors import ScanDataError
 from placerec.params import Params
 from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams
-from placerec.types import Candidate, Description
-from placerec.verify.candidates import Retrieved, verify_candidates
+from placerec.pipelines.voting_engine import Query, Shortlist, VoteStrategy
+from placerec.verify.candidates import Retrieved
 from placerec.verify.verify import hypothesise
 
-__all__ = ["ARTIFACT_KIND", "GlobalParams", "GlobalRegistration", "world_keypoints"]
+__all__ = ["ARTIFACT_KIND", "GlobalParams", "GlobalRegistration", "RegistrationVotes"]
 
 
 class GlobalParams(VotingParams):
@@ -46,13 +47,66 @@ class GlobalParams(VotingParams):
     )
 
 
-def world_keypoints(keypoints: list[np.ndarray], poses: list[np.ndarray]) -> np.ndarray:
-    """The entries' keypoints (each in its entry's frame) mapped into the world frame, stacked in row order."""
-    if not keypoints:
-        return np.zeros((0, 3), np.float64)
-    return np.concatenate(
-        [np.asarray(k, np.float64) @ P[:3, :3].T + P[:3, 3] for k, P in zip(keypoints, poses, strict=True)]
-    )
+class RegistrationVotes(VoteStrategy):
+    """Every query descriptor paired with its K nearest map descriptors (keypoints in the world frame); grouping
+    and RANSAC over all pairs give the query's pose, and the entry nearest to it is the one candidate."""
+
+    def __init__(self, rec: GlobalRegistration, query: Query) -> None:
+        if not rec.params.verify.enabled:
+            raise ScanDataError(
+                f"{rec.name}: global registration needs verify.enabled (it is the registration)"
+            )
+        super().__init__(rec, query)
+        self.p = rec.params
+        self.pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def possible(self) -> bool:
+        return self.n > 0 and self.query.rows.shape[0] > 0
+
+    def vote(self, batch: np.ndarray) -> None:
+        qr, k = self.query, self.p.knn
+        wkp = self.rec.derived("world_keypoints", self.rec.entries.world_keypoints)
+        if qr.rows.shape[0] < len(self.rec.entries.store):
+            wkp = wkp[qr.eligible[self.rec.entries.row_entry]]
+        dist, idx = qr.rows.knn(qr.q[batch], k, self.p.nn_threads)
+        found = idx.ravel() >= 0
+        src = np.repeat(np.asarray(qr.qkp, np.float64)[batch], k, axis=0)[found]
+        self.pairs = (src, wkp[idx.ravel()[found]], dist.ravel()[found])
+        self.matched += batch.size
+
+    def ready(self) -> Shortlist | None:
+        assert self.pairs is not None
+        src, dst, quality = self.pairs
+        t0 = time.perf_counter()
+        hyp = hypothesise(src, dst, None, self.p.verify.verify, quality)
+        locate_ms = (time.perf_counter() - t0) * 1e3
+        if hyp.rejected_at is not None:
+            return None
+        entries, eligible = self.rec.entries, self.query.eligible
+        T_world_query = hyp.T_match_query
+        d = np.linalg.norm(entries.xyz() - T_world_query[:3, 3], axis=1)
+        d[~eligible] = np.inf
+        e = int(np.argmin(d))
+        T_entry_world = np.linalg.inv(entries.poses[e])
+        extra: dict[str, Any] = {
+            "correspondences": int(src.shape[0]),
+            "votes": int(hyp.inliers or 0),
+            "n_query": self.n,
+            "T_world_ransac": T_world_query,
+        }
+        score = float(hyp.inliers or 0) / self.n
+        local = self.rec.local_maps.members(e, eligible)
+        retrieved = Retrieved(
+            entries.ids[e],
+            score,
+            src,
+            dst @ T_entry_world[:3, :3].T + T_entry_world[:3, 3],
+            quality,
+            extra=extra,
+            target=self.rec.local_maps.target_of(local),
+            verify_ms=locate_ms,
+        )
+        return Shortlist([e], score=lambda _: score, extra=lambda _: extra, retrieve=lambda _: retrieved)
 
 
 class GlobalRegistration(KeypointVoting):
@@ -60,77 +114,4 @@ class GlobalRegistration(KeypointVoting):
 
     name: ClassVar[str] = "global-registration"
     Params: ClassVar[type[Params]] = GlobalParams
-
-    def _reset(self) -> None:
-        super()._reset()
-        self._wkp: np.ndarray | None = None
-
-    def _append_rows(self, desc: np.ndarray, entry: np.ndarray) -> None:
-        super()._append_rows(desc, entry)
-        self._wkp = None  # the entries changed: their world keypoints are stacked again on the next query
-
-    def query_description(
-        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
-    ) -> list[Candidate]:
-        p = self.params
-        if not p.verify.enabled:
-            raise ScanDataError(
-                f"{self.name}: global registration needs verify.enabled (it is the registration)"
-            )
-        q = np.asarray(description["descriptors"], np.float32).reshape(-1, self._dim)
-        qkp = np.asarray(description["keypoints"], np.float64).reshape(-1, 3)
-        if q.shape[0] == 0 or len(self._store) == 0:
-            return []
-        if "cloud" not in description:
-            raise ScanDataError(f"{self.name}: verification needs the query description's 'cloud'")
-        if self._wkp is None:
-            self._wkp = world_keypoints(self._keypoints, self._poses)
-        ids = np.asarray(self._ids)
-        rows, wkp, eligible = self._store.view(), self._wkp, np.ones(len(ids), bool)
-        if max_id is not None:
-            eligible = ids <= max_id
-            keep = eligible[self._row_entry]
-            rows, wkp = self._store.view(mask=keep), wkp[keep]
-            if not rows.shape[0]:
-                return []
-        t0 = time.perf_counter()
-        dist, idx = rows.knn(q, p.knn, p.nn_threads)
-        found = idx.ravel() >= 0
-        src = np.repeat(qkp, p.knn, axis=0)[found]
-        dst = wkp[idx.ravel()[found]]
-        quality = dist.ravel()[found]
-        match_ms = (time.perf_counter() - t0) * 1e3
-        t1 = time.perf_counter()
-        hyp = hypothesise(src, dst, None, p.verify.verify, quality)
-        locate_ms = (time.perf_counter() - t1) * 1e3
-        if hyp.rejected_at is not None:
-            return []
-        T_world_query = hyp.T_match_query
-        d = np.linalg.norm(self._entry_xyz() - T_world_query[:3, 3], axis=1)
-        d[~eligible] = np.inf
-        e = int(np.argmin(d))
-        T_entry_world = np.linalg.inv(self._poses[e])
-        extra: dict[str, Any] = {
-            "correspondences": int(src.shape[0]),
-            "votes": int(hyp.inliers or 0),
-            "n_query": int(q.shape[0]),
-            "keypoints_consumed": int(q.shape[0]),
-            "match_ms": match_ms,
-            "verify_ms": locate_ms,
-            "T_world_ransac": T_world_query,
-        }
-        local = self._local_entries(e, eligible)
-        retrieved = Retrieved(
-            self._ids[e],
-            float(hyp.inliers or 0) / q.shape[0],
-            src,
-            dst @ T_entry_world[:3, :3].T + T_entry_world[:3, 3],
-            quality,
-            extra=extra,
-            target=partial(self._local_target, local) if len(local) > 1 else None,
-        )
-        cands = verify_candidates(description["cloud"], [retrieved], self._clouds, p.verify, query_id, k)
-        for c in cands:
-            if c.relative_pose is not None:
-                c.extra["T_world_query"] = np.asarray(self._poses[e]) @ c.relative_pose
-        return cands
+    Strategy: ClassVar[type[VoteStrategy]] = RegistrationVotes

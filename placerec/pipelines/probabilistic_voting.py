@@ -26,10 +26,11 @@
    stopping (``early_stop = False``: every keypoint matched in one search, the exhaustive variant) the posterior
    ranks them instead.
 
-Each returned candidate carries the 6-DoF ``relative_pose`` (``T_match_query``, from ICP) and in ``extra``:
-``T_world_query`` (the query's pose in the map: the place's pose composed with it), ``keypoints_consumed``
-(query descriptors matched against the whole database), ``n_keypoints``, ``early_stop`` (the posterior passed
-``xi_v`` at least once), ``match_ms``, ``n_verified`` (places verified for the query), ``posterior`` (the place's probability when it was verified) and ``votes``.
+The query runs in the loop every voting pipeline shares (`placerec.pipelines.voting_engine`); `PosteriorVotes`
+is its strategy. Each returned candidate carries the 6-DoF ``relative_pose`` (``T_match_query``, from ICP) and
+``T_world_query`` (the query's pose in the map), and in ``extra``: the engine's diagnostics (``keypoints_consumed``,
+``early_stop``: the posterior passed ``xi_v`` at least once, ...), ``posterior`` (the place's probability when it
+was verified) and ``votes``.
 
 Departures from the paper (measured in docs/localization.md): descriptors are computed for all keypoints in
 ``describe`` (shared and cached with ``ishot-votes``), so early stopping saves the matching against the database,
@@ -45,23 +46,21 @@ candidate as a local map of the places within 15 m (``verify_radius_m``), with e
 from __future__ import annotations
 
 import logging
-import time
 from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
 
-from placerec.errors import ScanDataError
 from placerec.params import Params
-from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams, nn_ratio
+from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams
+from placerec.pipelines.voting_engine import Query, Shortlist, VoteStrategy
+from placerec.retrieval.nearest import nn_ratio
 from placerec.three_d.posterior import Posterior, PosteriorTable, density_weights
 from placerec.three_d.vote_model import VoteModel
-from placerec.types import Candidate, Description
-from placerec.verify.verify import as_source
 
 log = logging.getLogger(__name__)
 
-__all__ = ["InlineVoteModel", "ProbabilisticParams", "ProbabilisticVoting", "ARTIFACT_KIND"]
+__all__ = ["InlineVoteModel", "PosteriorVotes", "ProbabilisticParams", "ProbabilisticVoting", "ARTIFACT_KIND"]
 
 
 class InlineVoteModel(Params):
@@ -110,198 +109,118 @@ class ProbabilisticParams(VotingParams):
     )
 
 
+class PosteriorVotes(VoteStrategy):
+    """The paper's query (module docstring): batches of keypoints in a random order update the posterior over the
+    entries; a place (or region) above ``xi_v`` is verified; a rejection may scale its region's posterior."""
+
+    stops_early = True
+
+    def __init__(self, rec: ProbabilisticVoting, query: Query) -> None:
+        super().__init__(rec, query)
+        p = rec.params
+        self.p = p
+        self.vote_model = rec.vote_model
+        weights = density_weights(rec.entries.counts) if p.density_correction else None
+        self.post = Posterior(rec.posterior_table(), weights)
+        self.post.log[~query.eligible] = -np.inf
+        self.votes = np.zeros(len(rec.entries), np.int64)
+
+    def order(self) -> np.ndarray:
+        return np.random.default_rng(self.p.seed).permutation(self.n)
+
+    def batch_size(self) -> int:
+        # without early stopping every keypoint is matched at once (one BLAS search instead of many small ones)
+        return self.p.batch_size if self.p.early_stop else self.n
+
+    def vote(self, batch: np.ndarray) -> None:
+        qr = self.query
+        dist, idx = self.rec.search(qr.q[batch], qr.rows)
+        found = idx[:, 0] >= 0
+        voted = qr.row_entry[idx[found, 0]]
+        tau = nn_ratio(dist[found])
+        self.post.update(voted, self.vote_model.range_of(tau))
+        self.votes += np.bincount(voted[tau < self.p.tau_max], minlength=self.votes.size)
+        self.matched += batch.size
+
+    def ready(self) -> Shortlist | None:
+        if not self.p.early_stop:
+            return None
+        prob = self.post.probabilities
+        if self.rec.stop_mass(prob).max() <= self.p.xi_v:
+            return None
+        ranked = [e for e in np.argsort(-prob, kind="stable") if self.query.eligible[e]]
+        return self._shortlist(ranked, prob, by_posterior=True, top_k=None)
+
+    def rejected(self, entries: list[int]) -> bool:
+        """With ``reject_weight < 1`` the posterior near the rejected places is scaled and tested again."""
+        if self.p.reject_weight >= 1:
+            return False
+        self.post.scale(self.rec.near(entries), self.p.reject_weight)
+        return True
+
+    def fallback(self) -> Shortlist:
+        # the threshold never led to an accepted place: vote counts first (the paper's fallback), then the
+        # posterior; without early stopping (exhaustive matching) the posterior ranks
+        prob = self.post.probabilities
+        ranked = np.lexsort((-prob, -self.votes)) if self.p.early_stop else np.argsort(-prob, kind="stable")
+        ranked = [e for e in ranked if self.query.eligible[e]]
+        return self._shortlist(ranked, prob, by_posterior=not self.p.early_stop, top_k=self.p.fallback_top_k)
+
+    def _shortlist(
+        self, ranked: list[Any], prob: np.ndarray, by_posterior: bool, top_k: int | None
+    ) -> Shortlist:
+        """The entries ``ranked``; the retrieval score is the posterior (``by_posterior``) or the vote fraction."""
+        votes, n = self.votes, self.n
+        return Shortlist(
+            ranked,
+            score=lambda e: float(prob[e] if by_posterior else votes[e] / n),
+            extra=lambda e: {"votes": int(votes[e]), "posterior": float(prob[e]), "n_query": n},
+            top_k=top_k,
+            final=True,
+        )
+
+
 class ProbabilisticVoting(KeypointVoting):
     """`PlaceRecognizer`: ISHOT probabilistic voting with early stopping and verification (module docstring)."""
 
     name: ClassVar[str] = "probabilistic-voting"
     Params: ClassVar[type[Params]] = ProbabilisticParams
+    Strategy: ClassVar[type[VoteStrategy]] = PosteriorVotes
 
     def __init__(self, params: ProbabilisticParams | None = None, **overrides: Any) -> None:
         super().__init__(params, **overrides)
         p = self.params
         self.vote_model = VoteModel.load(p.vote_model) if p.vote_model else p.model.build()
-        self._table: PosteriorTable | None = None
-        self._region: Any = None  # sparse (places x places): 1 within stop_radius_m
-
-    def _reset(self) -> None:
-        super()._reset()
-        self._table, self._region = None, None
-
-    def _append_rows(self, desc: np.ndarray, entry: np.ndarray) -> None:
-        super()._append_rows(desc, entry)
-        # the entries changed: their posterior vectors and regions are rebuilt on the next query
-        self._table, self._region = None, None
 
     def posterior_table(self) -> PosteriorTable:
         """The vote vectors over every entry (built on first use after the entries change)."""
-        if self._table is None:
-            self._table = PosteriorTable(
-                self.vote_model, self._entry_xyz(), self.params.posterior, self.params.truncation
-            )
-        return self._table
-
-    def query_description(
-        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
-    ) -> list[Candidate]:
         p = self.params
-        q = np.asarray(description["descriptors"], np.float32).reshape(-1, self._dim)
-        rows, entry, n_ent = self._eligible(max_id)
-        if q.shape[0] == 0 or rows.shape[0] < 2:
-            return []
-        table = self.posterior_table()
-        eligible = self._eligible_entries(max_id)
-        weights = density_weights(self._counts) if p.density_correction else None
-        post = Posterior(table, weights)
-        post.log[~eligible] = -np.inf
-        votes = np.zeros(len(self._ids), np.int64)
-        order = np.random.default_rng(p.seed).permutation(q.shape[0])
-        verified: dict[int, Candidate] = {}
-        qkp, starts = self._query_keypoints(description), self._entry_starts()
-        source = None
-        consumed, stopped, accepted, exhausted = 0, False, False, False
-        match_ms = 0.0
-        while consumed < q.shape[0] and not accepted and not exhausted:
-            t0 = time.perf_counter()
-            # without early stopping every keypoint is matched at once (one BLAS search instead of many small ones)
-            batch = order[consumed : consumed + (p.batch_size if p.early_stop else q.shape[0])]
-            dist, idx = self._search(q[batch], rows)
-            found = idx[:, 0] >= 0
-            voted = entry[idx[found, 0]]
-            tau = nn_ratio(dist[found])
-            post.update(voted, self.vote_model.range_of(tau))
-            votes += np.bincount(voted[tau < p.tau_max], minlength=votes.size)
-            consumed += batch.size
-            match_ms += (time.perf_counter() - t0) * 1e3
-            if not p.early_stop:
-                continue
-            # verify while a place (or region) passes xi_v; a rejection scales its region's posterior by
-            # reject_weight and the test runs again on the same votes (at 1 the next batch comes first, as in the paper)
-            while not accepted:
-                prob = post.probabilities
-                if self._stop_mass(prob).max() <= p.xi_v:
-                    break
-                stopped = True
-                if source is None and p.verify.enabled:
-                    source = self._source(description)
-                todo = [e for e in np.argsort(-prob, kind="stable") if eligible[e] and int(e) not in verified]
-                before = len(verified)
-                accepted = self._verify(
-                    todo, prob, votes, q, qkp, starts, source, verified, query_id, True, eligible
-                )
-                rejected = list(verified)[before:]
-                # nothing left to verify (every place verified or within verify_separation_m of one): stop matching
-                exhausted = not accepted and not rejected
-                if accepted or exhausted or p.reject_weight >= 1:
-                    break
-                post.scale(self._near(rejected), p.reject_weight)
-        if not accepted:
-            prob = post.probabilities
-            # the threshold never led to an accepted place: vote counts first (the paper's fallback), then the
-            # posterior; without early stopping (exhaustive matching) the posterior ranks
-            ranked = np.lexsort((-prob, -votes)) if p.early_stop else np.argsort(-prob, kind="stable")
-            todo = [e for e in ranked if eligible[e] and int(e) not in verified]
-            if source is None and p.verify.enabled:
-                source = self._source(description)
-            self._verify(
-                todo,
-                prob,
-                votes,
-                q,
-                qkp,
-                starts,
-                source,
-                verified,
-                query_id,
-                not p.early_stop,
-                eligible,
-                p.fallback_top_k,
-            )
-        for e, c in verified.items():
-            if c.relative_pose is not None:
-                c.extra["T_world_query"] = np.asarray(self._poses[e]) @ c.relative_pose
-        out = sorted(
-            verified.values(),
-            key=lambda c: (-c.score, not c.extra["accepted"], -c.extra["retrieval_score"]),
+        return self.derived(
+            "posterior",
+            lambda: PosteriorTable(self.vote_model, self.entries.xyz(), p.posterior, p.truncation),
         )
-        for c in out:
-            c.extra.update(
-                keypoints_consumed=consumed,
-                n_keypoints=int(q.shape[0]),
-                early_stop=stopped,
-                match_ms=match_ms,
-                n_verified=len(verified),
-            )
-        return out[:k]
 
-    def _near(self, entries: list[int]) -> np.ndarray:
+    def near(self, entries: list[int]) -> np.ndarray:
         """Mask of the entries within ``verify_separation_m`` of any of ``entries`` (those themselves included)."""
-        xyz = self._entry_xyz()
+        xyz = self.entries.xyz()
         d = np.linalg.norm(xyz[:, None, :] - xyz[None, entries, :], axis=2)
         return (d <= self.params.verify_separation_m).any(axis=1)
 
-    def _stop_mass(self, prob: np.ndarray) -> np.ndarray:
+    def stop_mass(self, prob: np.ndarray) -> np.ndarray:
         """What the stop test compares with xi_v: each place's posterior, or the posterior within ``stop_radius_m``."""
         r = self.params.stop_radius_m
         if r <= 0:
             return prob
-        if self._region is None:  # built on first use after the entries change
-            from scipy.sparse import csr_matrix
-            from scipy.spatial import cKDTree
+        return self.derived("region", lambda: _region(self.entries.xyz(), r)) @ prob
 
-            # sparse (places x places) neighbourhood: memory grows with the places within r, not with their square
-            nbrs = cKDTree(self._entry_xyz()).query_ball_point(self._entry_xyz(), r=r)
-            cols = np.concatenate([np.asarray(nb, np.int64) for nb in nbrs])
-            rows = np.repeat(np.arange(len(nbrs)), [len(nb) for nb in nbrs])
-            self._region = csr_matrix((np.ones(cols.size), (rows, cols)), shape=(len(nbrs), len(nbrs)))
-        return self._region @ prob
 
-    def _source(self, description: Description) -> Any:
-        if "cloud" not in description:
-            raise ScanDataError(f"{self.name}: verification needs the query description's 'cloud'")
-        return as_source(description["cloud"], self.params.verify.verify)
+def _region(xyz: np.ndarray, r: float) -> Any:
+    """Sparse (places x places) neighbourhood, 1 within ``r``: memory grows with the places within r, not with
+    their square."""
+    from scipy.sparse import csr_matrix
+    from scipy.spatial import cKDTree
 
-    def _verify(
-        self,
-        todo: list[int],
-        prob: np.ndarray,
-        votes: np.ndarray,
-        q: np.ndarray,
-        qkp: np.ndarray,
-        starts: np.ndarray,
-        source: Any,
-        verified: dict[int, Candidate],
-        query_id: int,
-        by_posterior: bool,
-        eligible: np.ndarray | None = None,
-        top_k: int | None = None,
-    ) -> bool:
-        """Verify the first ``top_k`` (default ``verify.top_k``) entries of ``todo`` (entry indices) at least
-        ``verify_separation_m`` from those verified before; store their candidates in
-        ``verified`` by entry; True when one is accepted. The retrieval score is the posterior
-        (``by_posterior``) or the vote fraction."""
-        vp = self.params.verify
-        picked = self._pick(todo, verified, top_k or vp.top_k)
-        if not picked:
-            return False
-        if not vp.enabled:  # retrieval only: the most probable (or most voted) entry, no pose
-            for e in picked:
-                score = float(prob[e] if by_posterior else votes[e] / q.shape[0])
-                extra = {"votes": int(votes[e]), "posterior": float(prob[e]), "n_query": int(q.shape[0])}
-                extra.update(accepted=True, retrieval_score=score)
-                verified[e] = Candidate(query_id, self._ids[e], score, None, None, extra)
-            return True
-        return self._verify_chunks(
-            source,
-            picked,
-            lambda e: self._matches(
-                e,
-                q,
-                qkp,
-                starts,
-                float(prob[e] if by_posterior else votes[e] / q.shape[0]),
-                {"votes": int(votes[e]), "posterior": float(prob[e]), "n_query": int(q.shape[0])},
-                eligible,
-            ),
-            verified,
-            query_id,
-        )
+    nbrs = cKDTree(xyz).query_ball_point(xyz, r=r)
+    cols = np.concatenate([np.asarray(nb, np.int64) for nb in nbrs])
+    rows = np.repeat(np.arange(len(nbrs)), [len(nb) for nb in nbrs])
+    return csr_matrix((np.ones(cols.size), (rows, cols)), shape=(len(nbrs), len(nbrs)))

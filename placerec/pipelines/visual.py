@@ -283,11 +283,13 @@ class VisualFrontend:
         query_idx: np.ndarray,
         match_idx: np.ndarray,
         extra: dict[str, Any],
+        spent_ms: float = 0.0,
     ) -> Retrieved:
         """A candidate to verify: with ``verify_matches="retrieval"`` the retrieval's feature matches (query
         feature ``query_idx[i]`` <-> the candidate's ``match_idx[i]``), else the `mutual_nearest` features; the
         pairs whose keypoints both have a 3D point become correspondences (descriptor distance as quality). The
-        time taken is added to ``extra["verify_ms"]`` (the runner's verify stage)."""
+        time taken, plus ``spent_ms`` already spent on this candidate's matches, is its ``verify_ms`` (the runner's
+        verify stage)."""
         t0 = time.perf_counter()
         desc = description["descriptors"]
         quality = None
@@ -298,9 +300,9 @@ class VisualFrontend:
         dst = self._kp_xyz[match_id][match_idx]
         ok = np.isfinite(src).all(axis=1) & np.isfinite(dst).all(axis=1)
         q = None if quality is None else quality[ok]
-        ms = float(extra.get("verify_ms", 0.0)) + (time.perf_counter() - t0) * 1e3
+        ms = spent_ms + (time.perf_counter() - t0) * 1e3
         return Retrieved(
-            match_id, score, src[ok], dst[ok], q, extra={**extra, "matches": int(ok.sum()), "verify_ms": ms}
+            match_id, score, src[ok], dst[ok], q, extra={**extra, "matches": int(ok.sum())}, verify_ms=ms
         )
 
 

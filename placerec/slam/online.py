@@ -33,10 +33,10 @@ __all__ = ["OnlineSlam"]
 
 def _usable(c: Candidate) -> bool:
     """A closure the graph can use: a 6-DoF ``relative_pose`` (not a yaw-only guess) that the pipeline's
-    verification accepted (when it says, in ``extra["accepted"]``)."""
+    verification accepted (``Candidate.accepted``; None: the pipeline does not verify)."""
     if c.relative_pose is None or not full_pose_mask(c.relative_pose)[0]:
         return False
-    return bool(c.extra.get("accepted", True))
+    return c.accepted is not False
 
 
 class OnlineSlam:

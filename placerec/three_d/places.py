@@ -45,8 +45,9 @@ from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params, resolve
 from placerec.quantise import FixedPointCloud, decode_unit, encode_unit
 from placerec.retrieval.descriptor_store import DescriptorStore, StoreDtype
+from placerec.three_d.entries import EntryTable, far_from_all
 from placerec.three_d.features import FeatureParams
-from placerec.types import Scan
+from placerec.types import Scan, path_length
 
 __all__ = [
     "PlacesParams",
@@ -128,12 +129,6 @@ def features_json(features: FeatureParams) -> Any:
     return features.model_dump(mode="json")
 
 
-def arc_length(positions: np.ndarray) -> np.ndarray:
-    """Travelled distance at every pose (0 at the first)."""
-    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
-    return np.concatenate([[0.0], np.cumsum(steps)])
-
-
 def partition_places(
     poses: np.ndarray, timestamps: np.ndarray | None, params: PlacesParams
 ) -> PlacePartition:
@@ -145,11 +140,10 @@ def partition_places(
         raise ConfigError("places: window_s needs a sequence with timestamps")
     xyz = P[:, :3, 3]
     centres: list[int] = []
-    spacing2 = params.place_spacing**2
     for i in range(xyz.shape[0]):
-        if not centres or np.min(np.sum((xyz[centres] - xyz[i]) ** 2, axis=1)) >= spacing2:
+        if far_from_all(xyz[centres], xyz[i], params.place_spacing):
             centres.append(i)
-    s = arc_length(xyz)
+    s = path_length(xyz)
     if params.member_spacing > 0:
         bins = np.floor(s / params.member_spacing).astype(np.int64)
         cand = np.flatnonzero(np.r_[True, bins[1:] != bins[:-1]])
@@ -233,6 +227,13 @@ class PlacesDatabase:
         """(keypoints, descriptors) of place index ``p``."""
         a, b = self.kp_offsets[p], self.kp_offsets[p + 1]
         return self.keypoints[a:b], self.descriptors.rows(a, b)
+
+    def entry_table(self, descriptor_store: str | None = None) -> EntryTable:
+        """The places as the entries of a 3D pipeline (ids, poses, keypoints in the place frames), their descriptors
+        served from this database's store as it is (shared, not copied), or converted to ``descriptor_store``."""
+        store = self.descriptors if descriptor_store is None else self.descriptors.converted(descriptor_store)
+        kp = [self.keypoints[a:b] for a, b in zip(self.kp_offsets[:-1], self.kp_offsets[1:], strict=True)]
+        return EntryTable.of(store, self.ids, self.poses, np.diff(self.kp_offsets), kp)
 
     def stored_as(self, descriptor_store: str, cloud_store: str | None = None) -> PlacesDatabase:
         """The same places with the descriptors (and the clouds when saved) in another store: an sq8 store is

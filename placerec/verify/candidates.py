@@ -17,11 +17,10 @@
 * `verify_candidates` verifies the first ``top_k`` retrieved candidates (in the order given: best retrieval
   first) with `placerec.verify.verify` (keypoint correspondences) or `verify_icp` (an initial guess ``init``),
   and returns `placerec.types.Candidate`\\ s with ``relative_pose = T_match_query`` (the ICP pose), ``score`` = the
-  verified score, ``inliers`` (RANSAC inliers; None for ICP only), ``extra["verify"]`` =
-  `Verification.as_dict`, ``extra["retrieval_score"]``, ``extra["accepted"]`` and ``extra["verify_ms"]`` (the
-  candidate's verification time plus its share of preparing the clouds, plus any ``verify_ms`` the pipeline put
-  in `Retrieved.extra` for finding the correspondences, plus an equal share of the time of the verified candidates
-  beyond ``k``, so the returned ones add up to the whole stage: the runner's 'verify' stage,
+  verified score, ``inliers`` (RANSAC inliers; None for ICP only), ``verification`` (the `Verification`),
+  ``retrieval_score``, ``accepted`` and ``verify_ms`` (the candidate's verification time plus its share of
+  preparing the clouds, plus the `Retrieved`'s ``verify_ms`` for finding the correspondences, plus an equal share
+  of the time of the verified candidates beyond ``k``, so the returned ones add up to the whole stage: the runner's 'verify' stage,
   `placerec.loop_closure.split_verify_time`), sorted by verified score (ties: retrieval score), at most ``k``.
 
 Rejected candidates are **kept**, ranked below the accepted ones of equal score, so PR curves stay continuous:
@@ -36,7 +35,7 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any, Literal
 
@@ -90,7 +89,8 @@ class Retrieved:
     frame), ``quality`` orders them for the consistency grouping (lower is better, e.g. descriptor distance);
     without keypoints, ICP starts from ``init`` (``T_match_query``; None: identity). ``target`` (no arguments,
     returns the prepared `IcpCloud`) replaces the store's cloud of ``match_id`` as ICP target, e.g. a place merged
-    with its neighbours. ``extra`` is copied into the candidate."""
+    with its neighbours. ``extra`` is copied into the candidate; ``verify_ms`` is the time the pipeline took to find
+    the correspondences, counted in the candidate's ``verify_ms``."""
 
     match_id: int
     retrieval_score: float
@@ -100,6 +100,7 @@ class Retrieved:
     init: np.ndarray | None = None
     extra: dict[str, Any] = field(default_factory=dict)
     target: Callable[[], IcpCloud] | None = None
+    verify_ms: float = 0.0
 
 
 def scan_cloud(scan: Any, params: VerifyParams | None = None) -> np.ndarray:
@@ -262,7 +263,7 @@ def verify_candidates(
     for r in todo:
         t0 = time.perf_counter()
         hyps.append(hypothesise(r.src_kp, r.dst_kp, r.init, vp, r.quality))
-        ms.append((time.perf_counter() - t0) * 1e3 + float(r.extra.get("verify_ms", 0.0)))
+        ms.append((time.perf_counter() - t0) * 1e3 + r.verify_ms)
     refined = _to_refine(hyps, params.icp_top_k)
     source: Any = query_cloud
     if refined:
@@ -277,21 +278,24 @@ def verify_candidates(
             ms[j] += (time.perf_counter() - t1) * 1e3 + shared
         else:
             v = h.rejected(None if h.rejected_at else "rank")
-        extra = {
-            **r.extra,
-            "retrieval_score": float(r.retrieval_score),
-            "accepted": bool(v.accepted),
-            "verify": v.as_dict(),
-            "verify_ms": ms[j],
-        }
-        cand = Candidate(query_id, int(r.match_id), _score(v, vp), v.T_match_query, v.inliers, extra)
-        out.append((cand, float(r.retrieval_score)))
-    out.sort(key=lambda cr: (-cr[0].score, not cr[0].extra["accepted"], -cr[1]))
-    kept = [c for c, _ in out][: k if k is not None else len(out)]
-    dropped_ms = sum(c.extra["verify_ms"] for c, _ in out[len(kept) :])
-    for c in kept:  # the candidates not returned were verified too: their time is shared by those returned
-        c.extra["verify_ms"] += dropped_ms / len(kept)
-    return kept
+        cand = Candidate(
+            query_id,
+            int(r.match_id),
+            _score(v, vp),
+            v.T_match_query,
+            v.inliers,
+            dict(r.extra),
+            accepted=bool(v.accepted),
+            verification=v,
+            retrieval_score=float(r.retrieval_score),
+            verify_ms=ms[j],
+        )
+        out.append(cand)
+    out.sort(key=lambda c: (-c.score, not c.accepted, -c.retrieval_score))
+    kept = out[: k if k is not None else len(out)]
+    # the candidates not returned were verified too: their time is shared by those returned
+    dropped_ms = sum(c.verify_ms for c in out[len(kept) :])
+    return [replace(c, verify_ms=c.verify_ms + dropped_ms / len(kept)) for c in kept]
 
 
 def _to_refine(hyps: Sequence[Hypothesis], icp_top_k: int | None) -> set[int]:

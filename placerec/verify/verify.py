@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from placerec.errors import ScanDataError
+from placerec.types import Verification
 from placerec.verify.consistency import group_correspondences
 from placerec.verify.icp import IcpCloud, prepare_source, prepare_target, refine
 from placerec.verify.kabsch import check_pairs
@@ -37,50 +38,6 @@ __all__ = [
     "as_source",
     "as_target",
 ]
-
-
-@dataclass(frozen=True)
-class Verification:
-    """The outcome of verifying one candidate.
-
-    ``T_match_query``: 4x4 (the ICP result; the RANSAC pose, or the initial guess, when rejected before ICP).
-    ``score`` in [0, 1] (0 when rejected before ICP), ``accepted`` by ``params.score.acceptance``.
-    ``inliers``: RANSAC inliers among all given pairs (with grouping: of the best cluster's pose, refit on them;
-    None for ICP-only), ``correspondences``: pairs given. ``fitness``, ``rmse`` (m), ``residual`` (m^2, the eps_ICP
-    quantity): ICP statistics (NaN when ICP did not run). ``rejected_at``: the stage that ended it early (``grouping``, ``ransac``) or None.
-    ``timings_ms``: per stage (``prepare``, ``grouping``, ``ransac``, ``icp``, ``total``). ``inlier_mask``: over
-    the given correspondences, those RANSAC kept (None for ICP-only).
-    """
-
-    T_match_query: np.ndarray
-    score: float
-    accepted: bool
-    inliers: int | None
-    correspondences: int
-    fitness: float
-    rmse: float
-    residual: float
-    ransac_iterations: int = 0
-    icp_iterations: int = 0
-    rejected_at: str | None = None
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    inlier_mask: np.ndarray | None = None
-
-    def as_dict(self) -> dict[str, Any]:
-        """Scalars only (for a Candidate's ``extra`` or a CSV row)."""
-        return {
-            "score": self.score,
-            "accepted": self.accepted,
-            "inliers": self.inliers,
-            "correspondences": self.correspondences,
-            "fitness": self.fitness,
-            "rmse": self.rmse,
-            "residual": self.residual,
-            "ransac_iterations": self.ransac_iterations,
-            "icp_iterations": self.icp_iterations,
-            "rejected_at": self.rejected_at,
-            **{f"ms_{k}": v for k, v in self.timings_ms.items()},
-        }
 
 
 def as_source(query: Any, params: VerifyParams | None = None) -> IcpCloud:
