@@ -17,6 +17,7 @@ from pydantic import BaseModel, Field, model_validator
 from placerec.errors import ConfigError, short_repr
 from placerec.eval.exclusion import ExclusionWindow
 from placerec.intensity import IntensitySpec
+from placerec.loop_filter import LoopFilterParams
 from placerec.params import Params, resolve
 from placerec.safe_yaml import load_yaml, load_yaml_file
 
@@ -121,6 +122,10 @@ class PipelineSpec(Params):
         None,
         allow_inf_nan=False,
         description="operating threshold on the candidate score (None: the preset's)",
+    )
+    loop_filter: LoopFilterParams | None = Field(
+        None,
+        description="loop mode: DLoopDetector's islands and temporal consistency on its candidates (None: off)",
     )
 
     @property

@@ -27,6 +27,7 @@ import numpy as np
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES, ExclusionWindow, path_length
+from placerec.loop_filter import LoopFilter, LoopFilterParams
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, as_pose
 
 __all__ = ["LoopClosureDetector"]
@@ -40,7 +41,9 @@ class LoopClosureDetector:
     scan (needs ``pose``, e.g. odometry); ``None`` = no limit of that kind. Every limit that is set applies — the
     rule of `placerec.eval.exclusion.ExclusionWindow`, which the evaluation's ground truth uses too.
     ``last_max_id`` is the bound the last query used (``-1``: nothing was eligible, the query was skipped).
-    ``k``: candidates requested per query (accepted ones are returned best first).
+    ``k``: candidates requested per query (accepted ones are returned best first). ``loop_filter``: DLoopDetector's
+    islands and temporal consistency over each query's candidates (`placerec.loop_filter`; None: off); the reason a
+    filtered query has no candidate is in ``last_status``.
     """
 
     @classmethod
@@ -72,6 +75,7 @@ class LoopClosureDetector:
         exclusion_seconds: float | None = None,
         exclusion_metres: float | None = None,
         k: int = 1,
+        loop_filter: LoopFilterParams | None = None,
     ) -> None:
         self.exclusion = ExclusionWindow(exclusion_frames, exclusion_seconds, exclusion_metres)
         if k < 1:
@@ -79,6 +83,8 @@ class LoopClosureDetector:
         self.recognizer = recognizer
         self.threshold = float(threshold)
         self.k = int(k)
+        self.loop_filter = None if loop_filter is None else LoopFilter(loop_filter)
+        self.last_status = "ok"
         self._times: list[float] = []
         self._path: list[float] = []
         self._last_position: np.ndarray | None = None
@@ -141,14 +147,20 @@ class LoopClosureDetector:
         self._record_motion(pose, timestamp)
         max_id = self.last_max_id = self._max_eligible_id(scan_id)
         t0 = time.perf_counter()
-        candidates: list[Candidate] = []
+        answered: list[Candidate] = []
+        lf = self.loop_filter
         if max_id >= 0:
-            candidates = rec.query_description(description, k=self.k, max_id=max_id, query_id=scan_id)
+            k = self.k if lf is None else max(self.k, lf.params.max_candidates)
+            answered = rec.query_description(description, k=k, max_id=max_id, query_id=scan_id)
+        candidates = answered
+        if lf is not None and max_id >= 0:
+            candidates, self.last_status = lf.apply(scan_id, answered)
+            candidates = candidates[: self.k]
         timing["query"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         rec.add_description(scan_id, description, pose)
         timing["insert"] = (time.perf_counter() - t0) * 1e3
-        split_verify_time(candidates, timing)
+        split_verify_time(answered, timing)
         self.last_candidates = candidates
         self.last_timing_ms = timing
         accepted = [c for c in candidates if c.score >= self.threshold]

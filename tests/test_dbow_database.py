@@ -5,7 +5,7 @@ import pytest
 
 from placerec.errors import ArtifactError, ScanDataError
 from placerec.retrieval.dbow.database import BowDatabase, candidate_pairs
-from placerec.retrieval.dbow.loop_detector import LoopDetectorParams, LoopFilter, compute_islands
+from placerec.retrieval.dbow.loop_detector import LoopDetectorParams, normalised_results
 from placerec.retrieval.dbow.vocabulary import BowVector, l1_score, train_vocabulary
 
 
@@ -81,28 +81,17 @@ def test_direct_index_pairs_and_persistence(tmp_path, corpus):
         BowDatabase.load(path, other)
 
 
-def test_islands_group_close_ids():
-    islands = compute_islands(
-        np.array([10, 11, 40, 13, 41, 90]), np.array([0.5, 0.4, 0.3, 0.2, 0.6, 0.1]), 3, 1
-    )
-    assert [(i.first, i.last, i.best_id) for i in islands] == [(10, 13, 10), (40, 41, 41), (90, 90, 90)]
-    assert islands[0].score == pytest.approx(1.1)
-    assert len(compute_islands(np.array([10, 11, 40]), np.array([1.0, 1.0, 1.0]), 3, 2)) == 1
-
-
-def test_loop_filter_nss_alpha_and_temporal_consistency():
-    lf = LoopFilter(LoopDetectorParams(use_nss=True, alpha=0.3, islands=True, temporal_k=2))
+def test_normalised_score_and_alpha():
+    p = LoopDetectorParams(use_nss=True, alpha=0.3)
     ids, scores = np.array([50, 51, 200]), np.array([0.2, 0.1, 0.05])
-    assert lf.apply(300, ids, scores, eta=0.001).status == "low_nss_factor"
-    assert lf.apply(301, ids, scores, eta=1.0).status == "low_scores"
-    # normalised by eta = 0.25: 0.8, 0.4, 0.2 -> 200 is cut by alpha; one island 50-51
-    r = lf.apply(302, ids, scores, eta=0.25)
-    assert r.status == "no_temporal_consistency"
-    assert lf.apply(303, ids + 1, scores, eta=0.25).status == "no_temporal_consistency"
-    r = lf.apply(304, ids + 2, scores, eta=0.25)
-    assert r.status == "ok" and r.ids.tolist() == [52] and r.scores[0] == pytest.approx(0.8)
-    # a jump to an unrelated island restarts the window
-    assert lf.apply(305, np.array([120]), np.array([0.3]), eta=0.25).status == "no_temporal_consistency"
-    off = LoopFilter()
-    r = off.apply(5, ids, scores)
-    assert r.status == "ok" and r.ids.tolist() == ids.tolist()
+    assert normalised_results(p, ids, scores, eta=0.001).status == "low_nss_factor"
+    assert normalised_results(p, ids, scores, eta=None).status == "low_nss_factor"
+    assert normalised_results(p, ids, scores, eta=1.0).status == "low_scores"
+    # normalised by eta = 0.25: 0.8, 0.4, 0.2 -> 200 is cut by alpha
+    r = normalised_results(p, ids, scores, eta=0.25)
+    assert r.status == "ok" and r.ids.tolist() == [50, 51] and r.scores.tolist() == pytest.approx([0.8, 0.4])
+    assert normalised_results(p, ids[:0], scores[:0], eta=0.25).status == "no_db_results"
+    r = normalised_results(LoopDetectorParams(), ids, scores)
+    assert r.status == "ok" and r.ids.tolist() == ids.tolist() and not LoopDetectorParams().enabled
+
+

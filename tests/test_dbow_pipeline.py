@@ -85,7 +85,7 @@ def test_bow_score_and_exclusion(trained, scans):
             "vocabulary": str(trained),
             "verify": {"enabled": False},
             "check": "none",
-            "loop": {"use_nss": True, "islands": True},
+            "loop": {"use_nss": True},
         },
     )
     looped.add(0, scans[0])
@@ -131,7 +131,7 @@ def test_missing_or_mismatched_vocabulary(tmp_path, trained):
 
 
 def test_descriptor_cache_key_follows_settings_and_data(tmp_path):
-    from placerec.experiment.vocab_training import VocabTrainingConfig, descriptor_cache_key
+    from placerec.artifacts.vocabulary import VocabTrainingConfig, descriptor_cache_key
 
     folder = tmp_path / "velodyne"
     folder.mkdir()

@@ -26,6 +26,7 @@ from placerec.experiment.candidates import CandidateTable
 from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint, open_dataset
 from placerec.experiment.preprocessing import preprocessed_scan
 from placerec.loop_closure import LoopClosureDetector, split_verify_time
+from placerec.loop_filter import LoopFilterParams
 from placerec.params import Params
 from placerec.recognizer import PIPELINES, make_pipeline
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, Sequence
@@ -60,6 +61,8 @@ class PipelineRecord:
     candidates: list[list[Candidate]] = field(default_factory=list)
     timing_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
     threshold: float | None = None
+    #: DLoopDetector's islands and temporal consistency over the candidates in loop mode (`placerec.loop_filter`)
+    loop_filter: LoopFilterParams | None = None
 
     def table(self) -> CandidateTable:
         """The candidates as a `placerec.experiment.candidates.CandidateTable` (top-1, top-N, scores)."""
@@ -149,7 +152,12 @@ def build_pipelines(cfg: ExperimentConfig) -> Pipelines:
         out.append(
             (
                 PipelineRecord(
-                    spec.display_name, type(rec).__name__, spec.name, resolved, threshold=threshold
+                    spec.display_name,
+                    type(rec).__name__,
+                    spec.name,
+                    resolved,
+                    threshold=threshold,
+                    loop_filter=spec.loop_filter,
                 ),
                 rec,
             )
@@ -224,8 +232,9 @@ def run_loop(
             exclusion_seconds=ex.seconds,
             exclusion_metres=ex.metres,
             k=cfg.evaluation.top_n,
+            loop_filter=record.loop_filter,
         )
-        for _, rec in pipelines
+        for record, rec in pipelines
     ]
     poses, stamps = seq.poses, seq.timestamps
     with progress_bars(cfg.output.progress) as progress, ExitStack() as stack:

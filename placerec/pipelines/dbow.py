@@ -20,9 +20,9 @@ Score (what thresholds apply to):
   DLoopDetector's ``GEOM_DI``), then the column-shift consensus of VisualHBST (`shift_consensus`) counts the
   inliers and gives the yaw. Score ``inliers / min(n_query_features, n_match_features)``.
 
-DLoopDetector's options (normalised score with ``alpha``, islands, temporal consistency: ``loop``) are off by
-default: the paper queries DBoW2's database as is. The temporal window lives in the recognizer (queries are assumed
-in acquisition order) and is not saved.
+DLoopDetector's normalised score with ``alpha`` (``loop``) is off by default: the paper queries DBoW2's database as
+is. Its islands and temporal consistency are the loop detector's optional filter (`placerec.loop_filter`): they keep
+state between queries, which a recognizer's query must not change.
 
 Vocabulary: ``vocabulary`` is a path (absolute or relative to the working directory; a missing relative path whose
 file name is a shipped vocabulary picks that one); None picks the shipped vocabulary for the feature type
@@ -58,7 +58,7 @@ from placerec.pipelines.visual import (
 from placerec.recognizer import Recognizer, check_saved_params
 from placerec.retrieval.bits import hamming, to_words
 from placerec.retrieval.dbow.database import BowDatabase, candidate_pairs
-from placerec.retrieval.dbow.loop_detector import LoopDetectorParams, LoopFilter
+from placerec.retrieval.dbow.loop_detector import LoopDetectorParams, normalised_results
 from placerec.retrieval.dbow.vocabulary import Vocabulary, l1_score
 from placerec.types import Candidate, Description
 
@@ -166,12 +166,10 @@ class VisualDBoW(VisualFrontend, Recognizer):
             )
         levels_up = max(voc.L - 2, 0) if p.levels_up is None else p.levels_up
         self.levels_up = min(levels_up, voc.L - 1)  # direct index at depth L - levels_up >= 1
-        self._loop_on = p.loop.use_nss or p.loop.islands or p.loop.alpha > 0 or p.loop.temporal_k > 0
         self._reset()
 
     def _reset(self) -> None:
         self.db = BowDatabase(self.vocabulary, self.levels_up)
-        self.loop_filter = LoopFilter(self.params.loop)
         self._keypoints: dict[int, np.ndarray] = {}
         self._descriptors: dict[int, np.ndarray] = {}
         self._width: dict[int, int] = {}
@@ -200,13 +198,13 @@ class VisualDBoW(VisualFrontend, Recognizer):
             return []
         bow, nodes = self.vocabulary.transform(desc, self.levels_up)
         n_check = p.verify.top_k if p.verify.enabled else p.n_check if p.check == "shift" else k
-        n_res = max(k, n_check, p.loop.max_db_results if self._loop_on else 0)
+        n_res = max(k, n_check, p.loop.max_db_results if p.loop.enabled else 0)
         res = self.db.query(bow, n_res, max_id)
         ids, scores, status = res.ids, res.scores, "ok"
-        if self._loop_on:
+        if p.loop.enabled:
             last = self.db.last_id
             eta = l1_score(bow, self.db.bow(last)) if p.loop.use_nss and last is not None else None
-            lr = self.loop_filter.apply(query_id if query_id >= 0 else len(self.db), ids, scores, eta)
+            lr = normalised_results(p.loop, ids, scores, eta)
             ids, scores, status = lr.ids, lr.scores, lr.status
         if p.verify.enabled:
             top = [int(i) for i in ids[: p.verify.top_k]]

@@ -7,7 +7,7 @@
 * `placerec.retrieval.dbow.io` — the compact binary vocabulary format and the ORB-SLAM2/DBoW2 text format.
 
 Training a vocabulary from an experiment config (``placerec train-vocab``) is orchestration and lives in
-`placerec.experiment.vocab_training`.
+`placerec.artifacts.vocabulary`.
 
 Names below are imported lazily.
 """
@@ -24,7 +24,7 @@ __all__ = [
     "BowDatabase",
     "QueryResults",
     "LoopDetectorParams",
-    "LoopFilter",
+    "normalised_results",
     "load_vocabulary",
     "save_vocabulary",
     "read_text_vocabulary",
@@ -39,7 +39,7 @@ _LAZY = {
     "BowDatabase": "database",
     "QueryResults": "database",
     "LoopDetectorParams": "loop_detector",
-    "LoopFilter": "loop_detector",
+    "normalised_results": "loop_detector",
     "load_vocabulary": "io",
     "save_vocabulary": "io",
     "read_text_vocabulary": "io",
