@@ -6,11 +6,13 @@ from __future__ import annotations
 import json
 import logging
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
+from placerec import cli_support as support
 from placerec._version import __version__
 
 app = typer.Typer(
@@ -25,25 +27,6 @@ app = typer.Typer(
 )
 
 
-def _native_versions() -> dict[str, str]:
-    """Versions of the native dependencies; raises DependencyError naming the one that fails to import."""
-    from placerec.errors import DependencyError
-
-    versions = {}
-    for module, label in (("numpy", "numpy"), ("cv2", "OpenCV"), ("open3d", "Open3D")):
-        try:
-            mod = __import__(module)
-        except Exception as exc:  # ImportError, OSError from a missing shared library
-            hint = (
-                " (open3d needs the system library libusb-1.0-0: apt-get install libusb-1.0-0)"
-                if module == "open3d"
-                else ""
-            )
-            raise DependencyError(f"cannot import {label}: {exc}{hint}") from exc
-        versions[label] = getattr(mod, "__version__", "unknown")
-    return versions
-
-
 def _version_callback(value: bool) -> None:
     if not value:
         return
@@ -51,7 +34,7 @@ def _version_callback(value: bool) -> None:
 
     typer.echo(f"placerec {__version__}")
     try:
-        for label, ver in _native_versions().items():
+        for label, ver in support.native_versions().items():
             typer.echo(f"  {label} {ver}")
     except DependencyError as exc:
         typer.echo(f"error: {exc}", err=True)
@@ -73,22 +56,12 @@ def _main(
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
 
 
-def _error_line(exc: Exception) -> str:
-    """A placerec error as one line: the lines of its message joined by "; " (by a space after a colon)."""
-    line = ""
-    for part in (" ".join(p.split()) for p in str(exc).splitlines()):
-        if part:
-            line = f"{line}{' ' if not line or line.endswith(':') else '; '}{part}"
-    return f"error:{line}"
+def _command(name: str | None = None) -> Callable[[Callable[..., None]], Callable[..., None]]:
+    """``app.command(name)`` for a command whose placerec errors end as one line on stderr, status 2."""
+    return lambda command: app.command(name)(support.reports_errors(command))
 
 
-def _fail(exc: Exception) -> None:
-    """Print a placerec error as one line on stderr and exit with status 2."""
-    typer.echo(_error_line(exc), err=True)
-    raise typer.Exit(2)
-
-
-@app.command("dump-config")
+@_command("dump-config")
 def dump_config(
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Write here instead of stdout.")] = None,
 ) -> None:
@@ -102,7 +75,7 @@ def dump_config(
         typer.echo(f"wrote {out}")
 
 
-@app.command()
+@_command()
 def pipelines(
     name: Annotated[str | None, typer.Argument(help="A registered pipeline: list its parameters.")] = None,
 ) -> None:
@@ -110,44 +83,13 @@ def pipelines(
 
     Examples: placerec pipelines;  placerec pipelines orb-dbow
     """
-    from rich.console import Console
-    from rich.table import Table
-
-    from placerec.errors import PlacerecError
-    from placerec.params import param_rows
-    from placerec.recognizer import PIPELINES, pipeline_params
-
     if name is None:
-        table = Table(title="registered pipelines (placerec pipelines NAME: parameters)")
-        table.add_column("pipeline", no_wrap=True)
-        table.add_column("threshold", no_wrap=True)
-        table.add_column("description", overflow="fold")
-        for key, entry in PIPELINES.items():
-            table.add_row(key, "-" if entry.threshold is None else f"{entry.threshold:g}", entry.summary)
-        Console().print(table)
-        typer.echo(
-            "threshold: the operating threshold on the candidate score, chosen on the tuning split (docs/protocol.md)"
-        )
-        return
-    try:
-        params = pipeline_params(name)
-    except PlacerecError as exc:
-        _fail(exc)
-        return
-    table = Table(title=f"{name} parameters")
-    table.add_column("parameter", no_wrap=True)  # a dotted name is never cut; the other columns wrap
-    table.add_column("default", overflow="fold", max_width=16)
-    table.add_column("type", overflow="fold", max_width=16)
-    table.add_column("what / where from", overflow="fold")
-    for key, value, kind, description in param_rows(params):
-        table.add_row(key, repr(value), kind, description)
-    Console().print(table)
-    entry = PIPELINES.get(name)
-    if entry is not None and entry.threshold is not None:
-        typer.echo(f"operating threshold: {entry.threshold:g} (chosen on the tuning split, docs/protocol.md)")
+        support.print_pipelines()
+    else:
+        support.print_pipeline_params(name)
 
 
-@app.command()
+@_command()
 def info(
     path: Annotated[
         Path, typer.Argument(help="A scan file (.bin .pcd .ply .npy .npz) or a sequence folder/bag.")
@@ -164,49 +106,11 @@ def info(
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
 ) -> None:
     """Summarise a scan or a sequence: points, fields, intensity and range percentiles, beams, poses."""
-    from placerec.errors import PlacerecError
-
-    try:
-        summary = _summarise(path, format, dataset)
-    except PlacerecError as exc:
-        _fail(exc)
-        return
+    summary = support.summarise(path, format, dataset)
     if as_json:
         typer.echo(json.dumps(summary, indent=2, default=str))
     else:
-        _print_summary(summary)
-
-
-def _summarise(path: Path, format: str | None, dataset: str | None = None) -> dict:
-    from placerec.io import open_sequence, read_scan
-    from placerec.summary import scan_summary, sequence_summary
-
-    if dataset or path.is_dir() or path.suffix.lower() in {".bag", ".db3", ".mcap", ".pcap"}:
-        kwargs = {k: v for k, v in (("format", format), ("dataset", dataset)) if v}
-        return sequence_summary(open_sequence(path, **kwargs))
-    return scan_summary(read_scan(path, format=format))
-
-
-def _print_summary(summary: dict) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table(show_header=False, box=None)
-    table.add_column(style="bold cyan")
-    table.add_column()
-
-    def add(prefix: str, value: object) -> None:
-        if isinstance(value, dict):
-            if all(isinstance(v, float) for v in value.values()) and value:
-                table.add_row(prefix, "  ".join(f"{k}={v:.3g}" for k, v in value.items()))
-            else:
-                for k, v in value.items():
-                    add(f"{prefix}.{k}" if prefix else k, v)
-        else:
-            table.add_row(prefix, str(value))
-
-    add("", summary)
-    Console().print(table)
+        support.print_summary(summary)
 
 
 #: The options `run` and `slam` share.
@@ -217,7 +121,7 @@ Overrides = Annotated[
 ]
 
 
-@app.command()
+@_command()
 def run(
     config: Annotated[
         Path, typer.Argument(help="Experiment YAML (see configs/ and `placerec dump-config`).")
@@ -236,22 +140,17 @@ def run(
     Example: placerec run configs/demo.yaml --set dataset.simulator.n_scans=200 --workers 2
     """
     from placerec.config import load_config
-    from placerec.errors import PlacerecError
     from placerec.experiment import run_experiment
     from placerec.experiment.report import print_table
 
-    try:
-        overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
-        cfg = load_config(config, overrides)
-        run_dir, payload = run_experiment(cfg, out)
-    except PlacerecError as exc:
-        _fail(exc)
-        return
+    overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
+    cfg = load_config(config, overrides)
+    run_dir, payload = run_experiment(cfg, out)
     print_table(payload, f"{cfg.name} ({payload['mode']} mode)")
     typer.echo(f"results: {run_dir}  (report: {run_dir / 'index.html'})")
 
 
-@app.command()
+@_command()
 def bench(
     config: Annotated[
         Path, typer.Argument(help="Benchmark YAML (configs/benchmark.yaml: the held-out test split).")
@@ -275,7 +174,7 @@ def bench(
     Cells already done with the same config are read back (an interrupted benchmark resumes); the last line is
     one JSON object. Example: placerec bench configs/benchmark.yaml --workers 2
     """
-    from placerec.errors import ConfigError, PlacerecError
+    from placerec.errors import ConfigError
     from placerec.experiment.benchmark import (
         bench_line,
         load_benchmark_config,
@@ -285,15 +184,11 @@ def bench(
     )
     from placerec.experiment.report import print_rows
 
-    try:
-        overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
-        cfg = load_benchmark_config(config, overrides)
-        if suggest and cfg.split != "tuning":
-            raise ConfigError("--suggest picks thresholds on the tuning split only (split: tuning)")
-        folder, payload = run_benchmark(cfg, out, fresh=fresh)
-    except PlacerecError as exc:
-        _fail(exc)
-        return
+    overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
+    cfg = load_benchmark_config(config, overrides)
+    if suggest and cfg.split != "tuning":
+        raise ConfigError("--suggest picks thresholds on the tuning split only (split: tuning)")
+    folder, payload = run_benchmark(cfg, out, fresh=fresh)
     print_rows(
         *rows(payload), f"{cfg.name} ({cfg.split} split, {len(payload['cells'])} cells): matrix mean / worst"
     )
@@ -306,7 +201,7 @@ def bench(
     typer.echo(bench_line(payload))
 
 
-@app.command()
+@_command()
 def slam(
     config: Annotated[
         Path | None, typer.Argument(help="SLAM YAML (see configs/slam_*.yaml); none: the defaults.")
@@ -325,28 +220,23 @@ def slam(
 
       placerec slam configs/slam_demo.yaml --set robustness.false_loops=10
     """
-    from placerec.errors import PlacerecError
     from placerec.slam.config import load_slam_config
 
-    try:
-        cfg = load_slam_config(config, set_ or [])
-        if dump:
-            from placerec.config import config_to_yaml
+    cfg = load_slam_config(config, set_ or [])
+    if dump:
+        from placerec.config import config_to_yaml
 
-            typer.echo(config_to_yaml(cfg), nl=False)
-            return
-        from placerec.slam.report import print_slam_table
-        from placerec.slam.run import run_slam
-
-        run_dir, payload = run_slam(cfg, out)
-    except PlacerecError as exc:
-        _fail(exc)
+        typer.echo(config_to_yaml(cfg), nl=False)
         return
+    from placerec.slam.report import print_slam_table
+    from placerec.slam.run import run_slam
+
+    run_dir, payload = run_slam(cfg, out)
     print_slam_table(payload, f"{cfg.name} (slam, {payload['n_scans']} scans)")
     typer.echo(f"results: {run_dir}  (report: {run_dir / 'index.html'})")
 
 
-@app.command()
+@_command()
 def simulate(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (KITTI odometry layout).")],
     preset: Annotated[str, typer.Option(help="World preset: town, campus, industrial.")] = "town",
@@ -360,18 +250,13 @@ def simulate(
 
     Example: placerec simulate --preset town --sensor hdl64 --scans 300 --seed 1 --out sim/town_hdl64
     """
-    from placerec.errors import PlacerecError
     from placerec.sim import simulate as run_simulation
 
-    try:
-        path = run_simulation(preset, sensor, scans, seed, out, progress=True)
-    except PlacerecError as exc:
-        _fail(exc)
-        return
+    path = run_simulation(preset, sensor, scans, seed, out, progress=True)
     typer.echo(f"wrote {path}")
 
 
-@app.command("train-vocab")
+@_command("train-vocab")
 def train_vocab(
     config: Annotated[
         Path | None, typer.Option("--config", "-c", help="Training YAML (see configs/vocab_*.yaml).")
@@ -386,19 +271,14 @@ def train_vocab(
 
     Example: placerec train-vocab --config configs/vocab_orb.yaml
     """
-    from placerec.errors import PlacerecError
-    from placerec.experiment.vocab_training import load_training_config, train_vocabulary_from_config
+    from placerec.artifacts.vocabulary import build_vocabulary, load_training_config
 
-    try:
-        cfg = load_training_config(config, n_images=n_images, workers=workers)
-        path = train_vocabulary_from_config(cfg, out, progress=True)
-    except PlacerecError as exc:
-        _fail(exc)
-        return
+    cfg = load_training_config(config, n_images=n_images, workers=workers)
+    path = build_vocabulary(cfg, out, progress=True)
     typer.echo(f"wrote {path} and {path.with_suffix('.json')}")
 
 
-@app.command()
+@_command()
 def calibrate(
     out: Annotated[Path, typer.Option("--out", "-o", help="Calibration table to write (.npz).")],
     sequence: Annotated[
@@ -436,39 +316,18 @@ def calibrate(
     """
     import time
 
-    from rich.progress import Progress
+    from placerec.artifacts.calibration import CalibrationBuild, build_calibration
+    from placerec.calibration import CalibrationParams, CalibrationTable
 
-    from placerec.calibration import CalibrationParams, calibrate_sequence
-    from placerec.config import apply_overrides
-    from placerec.errors import ConfigError, PlacerecError
-    from placerec.params import resolve
-
-    try:
-        if (sequence is None) == (sim_world is None):
-            raise ConfigError("give either a SEQUENCE path or --sim-world (not both)")
-        values = {"voxel_size": voxel_size, "max_range": max_range, "iterations": iterations, "step": step}
-        params = resolve(
-            CalibrationParams, apply_overrides(values, set_ or []), where="calibration parameters"
-        )
-        if sim_world is not None:
-            from placerec.sim import SimulatedSequence
-
-            seq = SimulatedSequence(world=sim_world, sensor=sim_sensor, n_scans=sim_scans, seed=seed)
-        else:
-            from placerec.io import open_sequence
-
-            kwargs = {k: v for k, v in (("format", format), ("poses", poses)) if v is not None}
-            seq = open_sequence(sequence, **kwargs)
-        t0 = time.perf_counter()
-        with Progress(transient=True) as bar:
-            task = bar.add_task("reading scans", total=None)
-            table = calibrate_sequence(
-                seq, params, lambda done, total: bar.update(task, completed=done, total=total)
-            )
-        table.save(out)
-    except PlacerecError as exc:
-        _fail(exc)
-        return
+    source = support.sequence_source(
+        sequence, format, poses, support.sim_world(sim_world, sim_sensor, sim_scans, seed)
+    )
+    values = {"voxel_size": voxel_size, "max_range": max_range, "iterations": iterations, "step": step}
+    params = support.with_overrides(CalibrationParams, values, set_, "calibration parameters")
+    t0 = time.perf_counter()
+    with support.progress_bar("reading scans") as progress:
+        path = build_calibration(CalibrationBuild(source=source, out=out, params=params), progress)
+    table = CalibrationTable.load(path)
     m = table.meta
     typer.echo(
         f"{table.sensor}: {table.n_beams} beams, {m['n_cells']} cells, {m['n_observations']} observations, "
@@ -477,26 +336,7 @@ def calibrate(
     typer.echo(f"wrote {out}")
 
 
-def _map_sequence(sequence: Path | None, format: str | None, poses: Path | None, sim_world: str | None,
-                  sim_sensor: str, sim_scans: int | None, seed: int):  # fmt: skip
-    """The map sequence of build-places / fit-votes: a path, or the simulator's localisation map route."""
-    from placerec.errors import ConfigError
-
-    if (sequence is None) == (sim_world is None):
-        raise ConfigError("give either a SEQUENCE path or --sim-world (not both)")
-    if sim_world is not None:
-        from placerec.sim import make_localization_split
-
-        return make_localization_split(
-            sim_world, sim_sensor, seed, n_queries=1, n_map=sim_scans, conditions=()
-        ).map
-    from placerec.io import open_sequence
-
-    kwargs = {k: v for k, v in (("format", format), ("poses", poses)) if v is not None}
-    return open_sequence(sequence, **kwargs)
-
-
-@app.command("build-places")
+@_command("build-places")
 def build_places_cmd(
     out: Annotated[Path, typer.Option("--out", "-o", help="Places database to write (.npz).")],
     sequence: Annotated[
@@ -524,30 +364,22 @@ def build_places_cmd(
 
       placerec build-places sim/town_vlp16 --set place_spacing=5 --set features.descriptor=shot --out places.npz
     """
-    from rich.progress import Progress
+    from placerec.artifacts.places import PlacesBuild, build_places_db
+    from placerec.three_d.places import PlacesDatabase, PlacesParams
 
-    from placerec.artifacts.places import build_places
-    from placerec.config import apply_overrides
-    from placerec.errors import PlacerecError
-    from placerec.params import resolve
-    from placerec.three_d.places import PlacesParams
-
-    try:
-        params = resolve(PlacesParams, apply_overrides({}, set_ or []), where="places parameters")
-        seq = _map_sequence(sequence, format, poses, sim_world, sim_sensor, sim_scans, seed)
-        with Progress(transient=True) as bar:
-            task = bar.add_task("describing places", total=None)
-            db = build_places(seq, params, progress=lambda d, t: bar.update(task, completed=d, total=t))
-        db.save(out)
-    except PlacerecError as exc:
-        _fail(exc)
-        return
+    params = support.with_overrides(PlacesParams, {}, set_, "places parameters")
+    source = support.sequence_source(
+        sequence, format, poses, support.sim_world(sim_world, sim_sensor, sim_scans, seed)
+    )
+    with support.progress_bar("describing places") as progress:
+        path = build_places_db(PlacesBuild(source=source, out=out, params=params), progress)
+    db = PlacesDatabase.load(path, mmap=True)  # counted from the file, however large
     n_kp = int(db.kp_offsets[-1])
-    typer.echo(f"{seq.name}: {len(db)} places, {n_kp} keypoints ({n_kp / max(len(db), 1):.0f} per place)")
+    typer.echo(f"{db.sequence}: {len(db)} places, {n_kp} keypoints ({n_kp / max(len(db), 1):.0f} per place)")
     typer.echo(f"wrote {out}")
 
 
-@app.command("fit-votes")
+@_command("fit-votes")
 def fit_votes_cmd(
     places: Annotated[Path, typer.Option("--places", help="Places database (placerec build-places).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Vote model to write (.npz).")],
@@ -580,50 +412,16 @@ def fit_votes_cmd(
 
       placerec fit-votes --places places.npz train_seq_1 train_seq_2 --out votes.npz
     """
-    import numpy as np
-    from rich.progress import Progress
+    from placerec.artifacts.votes import VoteModelBuild, build_vote_model
+    from placerec.three_d.vote_model import VoteModel, VoteModelParams
 
-    from placerec.config import apply_overrides
-    from placerec.errors import ConfigError, PlacerecError
-    from placerec.params import resolve
-    from placerec.pipelines.vote_fitting import fit_votes
-    from placerec.three_d.places import PlacesDatabase
-    from placerec.three_d.vote_model import VoteModelParams, plot_vote_model
-
-    try:
-        params = resolve(VoteModelParams, apply_overrides({}, set_ or []), where="vote model parameters")
-        db = PlacesDatabase.load(places)
-        if bool(training) == (sim_world is not None):
-            raise ConfigError("give either TRAINING sequence paths or --sim-world (not both)")
-        if sim_world is not None:
-            from placerec.sim import make_localization_split
-
-            split = make_localization_split(sim_world, sim_sensor, seed, n_training, n_map=sim_scans, draw=1)
-            same = split.map.poses.shape == db.scan_poses.shape and np.allclose(
-                split.map.poses, db.scan_poses
-            )
-            if not same:
-                raise ConfigError(
-                    f"{places} was built from another map ({db.sequence}, {len(db.scan_poses)} scans) than the "
-                    f"simulated {split.map.name} ({len(split.map)} scans): check --sim-world/--sim-scans/--seed"
-                )
-            seqs = list(split.queries.values())
-        else:
-            from placerec.io import open_sequence
-
-            seqs = [open_sequence(p, **({"format": format} if format else {})) for p in training or []]
-        with Progress(transient=True) as bar:
-            task = bar.add_task("describing training scans", total=None)
-            model = fit_votes(db, seqs, params, progress=lambda d, t: bar.update(task, completed=d, total=t),
-                              provenance={"places_file": str(places)})  # fmt: skip
-        model.save(out)
-        if figure is not None:
-            plot_vote_model(
-                model, figure, f"vote model of {places.name} ({model.provenance['n_votes']} votes)"
-            )
-    except PlacerecError as exc:
-        _fail(exc)
-        return
+    params = support.with_overrides(VoteModelParams, {}, set_, "vote model parameters")
+    sim = support.sim_world(sim_world, sim_sensor, sim_scans, seed)
+    config = VoteModelBuild(places=places, out=out, training=training or [], format=format, sim=sim,
+                            n_training=n_training, figure=figure, params=params)  # fmt: skip
+    with support.progress_bar("describing training scans") as progress:
+        path = build_vote_model(config, progress)
+    model = VoteModel.load(path)
     for row in model.summary():
         typer.echo(
             f"tau {row['tau']}: sigma {row['sigma_m']} m, lambda {row['lambda']}, {row['n_votes']} votes"
@@ -640,7 +438,7 @@ def main() -> None:
     except KeyboardInterrupt:
         sys.exit(130)
     except PlacerecError as exc:
-        print(_error_line(exc), file=sys.stderr)
+        print(support.error_line(exc), file=sys.stderr)
         sys.exit(2)
 
 

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from placerec.artifacts.vocabulary import load_training_config
 from placerec.config import load_config
 from placerec.errors import ArtifactError, ConfigError, ScanFormatError, short_repr
-from placerec.experiment.vocab_training import load_training_config
 from placerec.io import read_scan
 from placerec.io._common import check_count
 from placerec.io.atomic import load_artifact, save_artifact
@@ -217,7 +217,7 @@ def test_compressed_pcd_expanding_beyond_the_scan_cap_is_refused_before_decompre
 
 
 def test_a_corrupt_descriptor_cache_is_recomputed_not_used(tmp_path):
-    from placerec.experiment.vocab_training import VocabTrainingConfig, cached_descriptors
+    from placerec.artifacts.vocabulary import VocabTrainingConfig, cached_descriptors
 
     folder = tmp_path / "velodyne"
     folder.mkdir()

@@ -24,6 +24,8 @@ PACKAGE = ROOT / "placerec"
 EXPERIMENT_LAYER = (
     "placerec.config",
     "placerec.cli",
+    "placerec.cli_support",
+    "placerec.artifacts",
     "placerec.experiment",
     "placerec.slam.config",
     "placerec.slam.run",

@@ -75,8 +75,8 @@ def test_every_registered_pipeline_has_strict_params_at_every_level(name):
 
 
 def test_every_config_section_is_a_strict_params_model():
+    from placerec.artifacts.vocabulary import load_training_config
     from placerec.config import ExperimentConfig, PipelineSpec, load_config
-    from placerec.experiment.vocab_training import load_training_config
 
     seen: dict[type, str] = {}
     for cfg, name in ((load_config(None), "experiment"), (load_training_config(None), "train-vocab")):

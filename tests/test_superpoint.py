@@ -277,7 +277,7 @@ def test_repeatable_wraps_columns_and_needs_a_partner() -> None:
 
 
 def test_batch_crops_keep_correspondences_aligned() -> None:
-    from placerec.experiment.superpoint_training import TrainingSchedule, make_batch
+    from placerec.artifacts.superpoint import TrainingSchedule, make_batch
 
     img = _image(64, 512, seed=4)
     shift = 137
@@ -312,8 +312,8 @@ def test_batch_crops_keep_correspondences_aligned() -> None:
 def test_a_short_training_run_writes_weights_curves_and_provenance(tmp_path) -> None:
     pytest.importorskip("torch")
     pytest.importorskip("onnx")
+    from placerec.artifacts.superpoint import load_superpoint_config, train_superpoint
     from placerec.experiment import superpoint_pairs as training_data
-    from placerec.experiment.superpoint_training import load_superpoint_config, train_superpoint
 
     img = _image(64, 256, seed=5)
     v, u = np.mgrid[0:64:2, 0:256:3]

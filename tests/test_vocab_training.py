@@ -1,9 +1,9 @@
-"""Vocabulary training configs (`placerec.experiment.vocab_training`): strict keys with clear errors."""
+"""Vocabulary training configs (`placerec.artifacts.vocabulary`): strict keys with clear errors."""
 
 import pytest
 
+from placerec.artifacts.vocabulary import VocabTrainingConfig, load_training_config
 from placerec.errors import ConfigError
-from placerec.experiment.vocab_training import VocabTrainingConfig, load_training_config
 
 
 def test_training_config_errors_name_the_key_and_the_allowed_keys(tmp_path):

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from placerec.experiment.vocab_training import cached_descriptors, load_training_config
+from placerec.artifacts.vocabulary import cached_descriptors, load_training_config
 from placerec.retrieval.dbow.database import BowDatabase
 from placerec.retrieval.dbow.vocabulary import Vocabulary, train_vocabulary
 

@@ -78,7 +78,7 @@ def ensure_artifacts(cfg: Any, rebuild: bool, figure: Path | None, world: str = 
     places are built once from the map in float32 and saved in each database's store (`places_stores`; clouds
     int16 unless the store is float32, `PlacesDatabase.stored_as`); the vote model is fitted on the first."""
     from placerec.artifacts.places import build_places
-    from placerec.pipelines.vote_fitting import fit_votes
+    from placerec.artifacts.votes import fit_votes
     from placerec.sim import make_localization_split
     from placerec.three_d.places import PlacesDatabase, PlacesParams
     from placerec.three_d.vote_model import plot_vote_model

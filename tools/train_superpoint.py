@@ -17,7 +17,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from placerec.experiment.superpoint_training import load_superpoint_config, train_superpoint  # noqa: E402
+from placerec.artifacts.superpoint import load_superpoint_config, train_superpoint  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

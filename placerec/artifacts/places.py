@@ -1,16 +1,23 @@
 """The places database (kind ``places-db``): a mapping sequence partitioned into places
 (`placerec.three_d.places.partition_places`), each place's scans merged, described and stored as a
-`placerec.three_d.places.PlacesDatabase`."""
+`placerec.three_d.places.PlacesDatabase`.
+
+`build_places` makes the database in memory; `build_places_db` reads the map, builds it and writes the file.
+"""
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
+from pydantic import Field
 
+from placerec.artifacts.sources import FilePath, SequenceSource
 from placerec.errors import ConfigError, ScanDataError
 from placerec.intensity import normalize_intensity
+from placerec.params import Params
 from placerec.preprocess import crop, remove_invalid
 from placerec.retrieval.descriptor_store import DescriptorStore
 from placerec.three_d.features import extract_features
@@ -19,7 +26,26 @@ from placerec.types import Scan, Sequence
 
 log = logging.getLogger(__name__)
 
+__all__ = ["PlacesBuild", "build_places", "build_places_db"]
+
 IntensityFn = Callable[[Scan], Scan]
+
+
+class PlacesBuild(Params):
+    """What ``placerec build-places`` builds: the places of the map ``source`` (a sequence with poses, or the map
+    of a simulated world's localisation split), cut and described with ``params``, written to ``out``."""
+
+    source: SequenceSource
+    out: FilePath
+    params: PlacesParams = Field(default_factory=PlacesParams)
+
+
+def build_places_db(config: PlacesBuild, progress: Callable[[int, int], None] | None = None) -> Path:
+    """Build the places database of the map and write it (atomically); returns its path. ``progress(done,
+    total)`` counts the places described."""
+    seq = config.source.localization_map()
+    build_places(seq, config.params, progress=progress).save(config.out)
+    return config.out
 
 
 def _prepared(scan: Scan, intensity: IntensityFn, max_range: float | None) -> Scan:

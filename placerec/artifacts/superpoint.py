@@ -1,4 +1,5 @@
-"""Training SuperPoint on simulated LiDAR intensity images with correspondences from known poses (needs torch).
+"""SuperPoint's weights (kind ``superpoint-weights``): SuperPoint trained on simulated LiDAR intensity images with
+correspondences from known poses (needs torch).
 
 The pairs, the ground-truth correspondences and the detector labels are made by
 `placerec.experiment.superpoint_pairs` (repeatability of 3D points across views). Here:
@@ -13,7 +14,8 @@ The pairs, the ground-truth correspondences and the detector labels are made by
 * Adam with a cosine-decayed learning rate, fixed seeds, a validation set of pairs from a held-out world seed.
 
 `train_superpoint` writes the weights (float16 ``.npz`` + ``.onnx``), the provenance ``.json`` beside them and the
-loss curves (``curves``/loss_curves.json and .png).
+loss curves (``curves``/loss_curves.json and .png), and returns the provenance; `build_superpoint_weights` is the
+same as a builder, returning the weights' path.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ __all__ = [
     "load_superpoint_config",
     "make_batch",
     "train_superpoint",
+    "build_superpoint_weights",
 ]
 
 
@@ -289,6 +292,12 @@ def train_superpoint(cfg: SuperPointTrainingConfig, progress: bool = False) -> d
         json.dump(provenance, fh, indent=2)
     _write_curves(Path(cfg.curves), curves)
     return provenance
+
+
+def build_superpoint_weights(config: SuperPointTrainingConfig, progress: bool = False) -> Path:
+    """`train_superpoint`; returns the path of the weights."""
+    train_superpoint(config, progress)
+    return Path(config.output)
 
 
 def _write_curves(folder: Path, curves: dict[str, list]) -> None:

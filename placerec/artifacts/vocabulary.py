@@ -1,4 +1,5 @@
-"""Train a vocabulary from a config: intensity images of simulated (or recorded) sequences -> features -> tree.
+"""The DBoW vocabulary: intensity images of simulated (or recorded) sequences -> features -> tree, trained as a
+config (`VocabTrainingConfig`) says and written by `build_vocabulary` (``placerec train-vocab``).
 
 The images are formed exactly as the experiment runner does for the visual pipelines (the config's
 ``preprocess`` section, then `placerec.image.make_image` with ``image``, then the feature extractor), so the words
@@ -49,7 +50,7 @@ __all__ = [
     "collect_descriptors",
     "cached_descriptors",
     "descriptor_cache_key",
-    "train_vocabulary_from_config",
+    "build_vocabulary",
 ]
 
 #: Seeds of the town world used by the evaluation configs (never trained on by default).
@@ -212,34 +213,32 @@ def cached_descriptors(
     return parts, labels
 
 
-def train_vocabulary_from_config(
-    config: VocabTrainingConfig | str | Path | None = None,
-    output: str | Path | None = None,
-    progress: bool = False,
+def build_vocabulary(
+    config: VocabTrainingConfig, output: str | Path | None = None, progress: bool = False
 ) -> Path:
-    """Train the vocabulary a config describes and write it (plus ``<stem>.json``); returns the vocabulary path."""
+    """Train the vocabulary ``config`` describes (`load_training_config` reads one from YAML) and write it
+    atomically (plus ``<stem>.json``) to ``output`` (default: the config's); returns the vocabulary path."""
     from placerec import __version__
     from placerec.retrieval.dbow.io import save_vocabulary
     from placerec.retrieval.dbow.vocabulary import train_vocabulary
 
-    cfg = config if isinstance(config, VocabTrainingConfig) else load_training_config(config)
-    out = Path(output or cfg.output)
+    out = Path(output or config.output)
     t0 = time.perf_counter()
-    parts, labels = cached_descriptors(cfg, progress)
+    parts, labels = cached_descriptors(config, progress)
     labels = list(dict.fromkeys(labels))
     t_features = time.perf_counter() - t0
     meta = {
-        "features": cfg.features,
-        "feature_params": cfg.feature_params.model_dump(mode="json"),
-        "image": cfg.image.model_dump(mode="json"),
+        "features": config.features,
+        "feature_params": config.feature_params.model_dump(mode="json"),
+        "image": config.image.model_dump(mode="json"),
         "sequences": labels,
-        "simulator": None if cfg.simulator is None else cfg.simulator.model_dump(mode="json"),
+        "simulator": None if config.simulator is None else config.simulator.model_dump(mode="json"),
         "placerec_version": __version__,
         "feature_seconds": round(t_features, 1),
     }
-    voc = train_vocabulary(parts, cfg, progress=progress, meta=meta)
-    centre_dtype = None if cfg.centre_dtype == "auto" else cfg.centre_dtype
-    save_vocabulary(voc, out, None if voc.binary else centre_dtype, compress=cfg.compress)
+    voc = train_vocabulary(parts, config, progress=progress, meta=meta)
+    centre_dtype = None if config.centre_dtype == "auto" else config.centre_dtype
+    save_vocabulary(voc, out, None if voc.binary else centre_dtype, compress=config.compress)
     info = {
         **voc.meta,
         "k": voc.k,
@@ -248,7 +247,7 @@ def train_vocabulary_from_config(
         "n_words": voc.n_words,
         "file_bytes": out.stat().st_size,
         "fingerprint": voc.fingerprint,
-        "config": cfg.model_dump(mode="json"),
+        "config": config.model_dump(mode="json"),
     }
     from placerec.io.atomic import atomic_write
 

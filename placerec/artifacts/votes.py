@@ -1,32 +1,97 @@
-"""Fitting the vote model of probabilistic voting (ISHOT paper Sec. IV-D) from a places database and training scans.
+"""The vote model of probabilistic voting (kind ``vote-model``, ISHOT paper Sec. IV-D) fitted from a places
+database and training scans with ground truth.
 
 ::
 
-    from placerec.pipelines.vote_fitting import fit_votes
+    from placerec.artifacts.votes import fit_votes
     model = fit_votes(places_db, training_sequence)     # scans with ground-truth poses in the map's frame
     model.save("vote_model.npz"); plot_vote_model(model, "vote_model.png")
 
 Every descriptor of every training scan is matched against all places (2-NN, eq. 4): its vote lands on the place of
 its nearest neighbour, at a distance from the scan's true position; `fit_vote_model` fits eq. 7 per tau range to
-those distances. ``placerec fit-votes`` is the command line of `fit_votes`.
+those distances. `build_vote_model` (``placerec fit-votes``) reads the database and the training scans, checks
+that simulated training scans come from the database's map, fits and writes the model.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import Field
 
+from placerec.artifacts.sources import FilePath, SimWorld, open_path, require_one_source
 from placerec.errors import ConfigError, ScanDataError
 from placerec.intensity import normalize_intensity
+from placerec.params import Params
 from placerec.pipelines.keypoint_voting import nn_ratio
 from placerec.three_d.features import FeatureParams, extract_features
 from placerec.three_d.places import PlacesDatabase
-from placerec.three_d.vote_model import VoteModel, VoteModelParams, fit_vote_model
+from placerec.three_d.vote_model import VoteModel, VoteModelParams, fit_vote_model, plot_vote_model
 from placerec.types import Scan, Sequence
 
-__all__ = ["place_extent", "describe_training", "training_votes", "fit_votes"]
+__all__ = [
+    "VoteModelBuild",
+    "build_vote_model",
+    "check_same_map",
+    "place_extent",
+    "describe_training",
+    "training_votes",
+    "fit_votes",
+]
+
+
+class VoteModelBuild(Params):
+    """What ``placerec fit-votes`` builds: the vote model of the places database ``places``, fitted with
+    ``params`` on the ``training`` sequences (ground-truth poses in the map's frame, read with ``format``) or on
+    ``n_training`` scans per condition of another draw of the simulated world ``sim``'s localisation queries (the
+    world the database was built from), written to ``out``; ``figure``: also draw the fitted vs empirical CDFs."""
+
+    places: FilePath
+    out: FilePath
+    training: list[FilePath] = Field(default_factory=list)
+    format: str | None = None
+    sim: SimWorld | None = None
+    n_training: int = 30
+    figure: FilePath | None = None
+    params: VoteModelParams = Field(default_factory=VoteModelParams)
+
+
+def build_vote_model(config: VoteModelBuild, progress: Callable[[int, int], None] | None = None) -> Path:
+    """Fit the vote model and write it (atomically), and the figure when asked; returns the model's path.
+
+    `ConfigError` unless exactly one of ``training`` and ``sim`` is given, or when the simulated map is not the
+    one the places database was built from (`check_same_map`). ``progress(done, total)`` counts training scans.
+    """
+    db = PlacesDatabase.load(config.places)
+    require_one_source(bool(config.training), config.sim, "TRAINING sequence paths")
+    if config.sim is not None:
+        split = config.sim.localization_split(config.n_training, draw=1)
+        check_same_map(db, split.map, config.places)
+        seqs = list(split.queries.values())
+    else:
+        seqs = [open_path(p, config.format or None) for p in config.training]
+    model = fit_votes(
+        db, seqs, config.params, progress=progress, provenance={"places_file": str(config.places)}
+    )
+    model.save(config.out)
+    if config.figure is not None:
+        title = f"vote model of {config.places.name} ({model.provenance['n_votes']} votes)"
+        plot_vote_model(model, config.figure, title)
+    return config.out
+
+
+def check_same_map(db: PlacesDatabase, map_seq: Sequence, where: str | Path) -> None:
+    """`ConfigError` unless ``map_seq`` (a simulated localisation map) has the poses of the map the places
+    database ``db`` (read from ``where``) was built from."""
+    same = map_seq.poses.shape == db.scan_poses.shape and np.allclose(map_seq.poses, db.scan_poses)
+    if not same:
+        raise ConfigError(
+            f"{where} was built from another map ({db.sequence}, {len(db.scan_poses)} scans) than the "
+            f"simulated {map_seq.name} ({len(map_seq)} scans): check --sim-world/--sim-scans/--seed"
+        )
 
 
 def place_extent(place_xyz: np.ndarray) -> float:

@@ -93,7 +93,8 @@ def calibrate_sequence(
 ) -> CalibrationTable:
     """Calibrate the intensity of ``seq``'s sensor from its registered scans (poses and per-point rings needed).
 
-    This is what ``placerec calibrate`` runs; ``on_scan(done, total)`` reports progress while scans are read.
+    ``placerec calibrate`` runs it (`placerec.artifacts.calibration.build_calibration`); ``on_scan(done, total)``
+    reports progress while scans are read.
     """
     p = params or CalibrationParams()
     return calibrate_points(gather_points(seq, p, on_scan), p)

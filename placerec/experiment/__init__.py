@@ -8,7 +8,6 @@ turns config sections into the algorithms' own parameter objects; no algorithm m
 * `placerec.experiment.runner` — loop-closure and localisation runs over every pipeline.
 * `placerec.experiment.cache` — the description cache shared by pipelines with the same front end.
 * `placerec.experiment.report`, `.candidates`, `.figures` — the results folder: metrics, candidates, figures.
-* `placerec.experiment.vocab_training` — ``placerec train-vocab``: DBoW vocabularies from configured sequences.
 """
 
 from __future__ import annotations

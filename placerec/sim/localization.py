@@ -57,7 +57,7 @@ def make_localization_split(
     """Build the map sequence and ``n_queries`` query scans per condition (see the module docstring).
 
     ``draw`` > 0 draws another set of query spots, headings and clutter in the same world (e.g. training scans
-    for the vote model, `placerec.pipelines.vote_fitting`); 0 is the evaluation set."""
+    for the vote model, `placerec.artifacts.votes`); 0 is the evaluation set."""
     unknown = set(conditions) - set(CONDITIONS)
     if unknown:
         raise ConfigError(

@@ -12,7 +12,7 @@ Eq. 7 writes the uniform term as ``(1 - lambda)``; here it is the uniform densit
 the diagonal of the bounding box of the map's places), so that ``f`` is a density whose CDF can be fitted.
 
 `fit_vote_model` fits ``sigma`` and ``lambda`` per ``tau`` range by least squares between ``F`` and the empirical
-CDF of training votes with ground truth (`placerec.pipelines.vote_fitting.training_votes`: query scans with known
+CDF of training votes with ground truth (`placerec.artifacts.votes.training_votes`: query scans with known
 poses matched against a places database). The true location is the query's ground-truth position, not its nearest place: the distance to the
 nearest place would be quantised to the place spacing, with a point mass at 0 that no half-normal CDF matches.
 A range with fewer than ``min_votes`` votes gets ``lambda = 0`` (its votes carry no information).

@@ -1,0 +1,206 @@
+"""What the ``placerec`` commands (`placerec.cli`) share: one-line errors, progress bars, ``--set`` overrides, the
+scans of "a SEQUENCE path or ``--sim-world``", and the tables they print. Heavy modules are imported inside the
+functions, so ``placerec --help`` stays instant."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import typer
+
+if TYPE_CHECKING:
+    from placerec.artifacts.sources import SequenceSource, SimWorld
+    from placerec.params import Params
+
+P = TypeVar("P", bound="Params")
+
+__all__ = [
+    "native_versions",
+    "error_line",
+    "fail",
+    "reports_errors",
+    "progress_bar",
+    "with_overrides",
+    "sim_world",
+    "sequence_source",
+    "summarise",
+    "print_summary",
+    "print_pipelines",
+    "print_pipeline_params",
+]
+
+
+def native_versions() -> dict[str, str]:
+    """Versions of the native dependencies; raises DependencyError naming the one that fails to import."""
+    from placerec.errors import DependencyError
+
+    versions = {}
+    for module, label in (("numpy", "numpy"), ("cv2", "OpenCV"), ("open3d", "Open3D")):
+        try:
+            mod = __import__(module)
+        except Exception as exc:  # ImportError, OSError from a missing shared library
+            hint = (
+                " (open3d needs the system library libusb-1.0-0: apt-get install libusb-1.0-0)"
+                if module == "open3d"
+                else ""
+            )
+            raise DependencyError(f"cannot import {label}: {exc}{hint}") from exc
+        versions[label] = getattr(mod, "__version__", "unknown")
+    return versions
+
+
+def error_line(exc: Exception) -> str:
+    """A placerec error as one line: the lines of its message joined by "; " (by a space after a colon)."""
+    line = ""
+    for part in (" ".join(p.split()) for p in str(exc).splitlines()):
+        if part:
+            line = f"{line}{' ' if not line or line.endswith(':') else '; '}{part}"
+    return f"error:{line}"
+
+
+def fail(exc: Exception) -> None:
+    """Print a placerec error as one line on stderr and exit with status 2."""
+    typer.echo(error_line(exc), err=True)
+    raise typer.Exit(2)
+
+
+def reports_errors(command: Callable[..., None]) -> Callable[..., None]:
+    """``command`` (same signature, help and options) with its placerec errors ending as `fail` ends them."""
+
+    @functools.wraps(command)
+    def run(*args: Any, **kwargs: Any) -> None:
+        from placerec.errors import PlacerecError
+
+        try:
+            command(*args, **kwargs)
+        except PlacerecError as exc:
+            fail(exc)
+
+    return run
+
+
+@contextmanager
+def progress_bar(label: str) -> Iterator[Callable[[int, int], None]]:
+    """A transient progress bar labelled ``label``, as a ``progress(done, total)`` callback; the bar starts at the
+    first call, so a builder that fails while reading its inputs prints nothing but its error."""
+    from rich.progress import Progress
+
+    bar = Progress(transient=True)
+    task = None
+
+    def update(done: int, total: int) -> None:
+        nonlocal task
+        if task is None:
+            bar.start()
+            task = bar.add_task(label, total=None)
+        bar.update(task, completed=done, total=total)
+
+    try:
+        yield update
+    finally:
+        if task is not None:
+            bar.stop()
+
+
+def with_overrides(cls: type[P], values: dict[str, Any], overrides: list[str] | None, where: str) -> P:
+    """``cls`` from the options' ``values`` with the ``--set key=value`` ``overrides`` applied."""
+    from placerec.config import apply_overrides
+    from placerec.params import resolve
+
+    return resolve(cls, apply_overrides(values, overrides or []), where=where)
+
+
+def sim_world(world: str | None, sensor: str, scans: int | None, seed: int) -> SimWorld | None:
+    """The simulated world of ``--sim-world``, ``--sim-sensor``, ``--sim-scans`` and ``--seed`` (None: none)."""
+    from placerec.artifacts.sources import SimWorld
+
+    return None if world is None else SimWorld(world=world, sensor=sensor, scans=scans, seed=seed)
+
+
+def sequence_source(
+    sequence: Path | None, format: str | None, poses: Path | None, sim: SimWorld | None
+) -> SequenceSource:
+    """The scans of SEQUENCE (read with ``--format``, ``--poses``) or of the simulated world; `ConfigError`
+    unless exactly one is given."""
+    from placerec.artifacts.sources import SequenceSource
+
+    return SequenceSource(path=sequence, format=format, poses=poses, sim=sim).check()
+
+
+def summarise(path: Path, format: str | None, dataset: str | None = None) -> dict:
+    """``placerec info``'s summary of a scan file, or of a sequence (a folder, a bag, or ``dataset`` given)."""
+    from placerec.io import open_sequence, read_scan
+    from placerec.summary import scan_summary, sequence_summary
+
+    if dataset or path.is_dir() or path.suffix.lower() in {".bag", ".db3", ".mcap", ".pcap"}:
+        kwargs = {k: v for k, v in (("format", format), ("dataset", dataset)) if v}
+        return sequence_summary(open_sequence(path, **kwargs))
+    return scan_summary(read_scan(path, format=format))
+
+
+def print_summary(summary: dict) -> None:
+    """A summary as a two-column table: dotted keys, values (a dict of floats on one row)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(show_header=False, box=None)
+    table.add_column(style="bold cyan")
+    table.add_column()
+
+    def add(prefix: str, value: object) -> None:
+        if isinstance(value, dict):
+            if all(isinstance(v, float) for v in value.values()) and value:
+                table.add_row(prefix, "  ".join(f"{k}={v:.3g}" for k, v in value.items()))
+            else:
+                for k, v in value.items():
+                    add(f"{prefix}.{k}" if prefix else k, v)
+        else:
+            table.add_row(prefix, str(value))
+
+    add("", summary)
+    Console().print(table)
+
+
+def print_pipelines() -> None:
+    """The registered pipelines with their operating thresholds and summaries."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from placerec.recognizer import PIPELINES
+
+    table = Table(title="registered pipelines (placerec pipelines NAME: parameters)")
+    table.add_column("pipeline", no_wrap=True)
+    table.add_column("threshold", no_wrap=True)
+    table.add_column("description", overflow="fold")
+    for key, entry in PIPELINES.items():
+        table.add_row(key, "-" if entry.threshold is None else f"{entry.threshold:g}", entry.summary)
+    Console().print(table)
+    typer.echo(
+        "threshold: the operating threshold on the candidate score, chosen on the tuning split (docs/protocol.md)"
+    )
+
+
+def print_pipeline_params(name: str) -> None:
+    """Every parameter of pipeline ``name`` (dotted path, default, type, description), then its threshold."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from placerec.params import param_rows
+    from placerec.recognizer import PIPELINES, pipeline_params
+
+    params = pipeline_params(name)
+    table = Table(title=f"{name} parameters")
+    table.add_column("parameter", no_wrap=True)  # a dotted name is never cut; the other columns wrap
+    table.add_column("default", overflow="fold", max_width=16)
+    table.add_column("type", overflow="fold", max_width=16)
+    table.add_column("what / where from", overflow="fold")
+    for key, value, kind, description in param_rows(params):
+        table.add_row(key, repr(value), kind, description)
+    Console().print(table)
+    entry = PIPELINES.get(name)
+    if entry is not None and entry.threshold is not None:
+        typer.echo(f"operating threshold: {entry.threshold:g} (chosen on the tuning split, docs/protocol.md)")
