@@ -16,7 +16,7 @@ from pydantic import Field
 from placerec.errors import ScanDataError
 from placerec.intensity import IntensitySpec, normalize_intensity
 from placerec.params import Params
-from placerec.types import Scan
+from placerec.types import Scan, valid_points
 
 log = logging.getLogger(__name__)
 
@@ -36,21 +36,22 @@ def _keep(scan: Scan, keep: np.ndarray, keep_organized: bool) -> Scan:
 
 
 def remove_invalid(scan: Scan, keep_organized: bool = False) -> tuple[Scan, dict[str, int]]:
-    """Drop points with NaN/inf coordinates or intensity and points at the origin (no return).
+    """Keep the valid points (`placerec.types.valid_points`, finite intensity included): drop points with NaN/inf
+    coordinates or intensity and those with no return (at the origin, or at a fill-value range).
 
-    Returns the cleaned scan and counts ``{"nonfinite": ..., "zero": ...}``. Organised scans become unorganised
-    unless ``keep_organized``, which zeroes invalid points in place (the organised convention for no return).
+    Returns the cleaned scan and counts ``{"nonfinite": ..., "no_return": ...}``. Organised scans become
+    unorganised unless ``keep_organized``, which zeroes invalid points in place (the organised convention for no
+    return).
     """
     finite = np.isfinite(scan.xyz).all(axis=1) & np.isfinite(scan.intensity)
-    zero = finite & ~np.any(scan.xyz != 0.0, axis=1)
-    keep = finite & ~zero
-    counts = {"nonfinite": int((~finite).sum()), "zero": int(zero.sum())}
-    if counts["nonfinite"] or counts["zero"]:
+    keep = valid_points(scan, intensity=True)
+    counts = {"nonfinite": int((~finite).sum()), "no_return": int((finite & ~keep).sum())}
+    if counts["nonfinite"] or counts["no_return"]:
         log.debug(
-            "%s: removed %d non-finite and %d zero points",
+            "%s: removed %d non-finite points and %d without a return",
             scan.source or "scan",
             counts["nonfinite"],
-            counts["zero"],
+            counts["no_return"],
         )
     return _keep(scan, keep, keep_organized), counts
 

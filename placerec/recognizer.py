@@ -24,7 +24,7 @@ import numpy as np
 from placerec.errors import ArtifactError, ConfigError, ScanDataError, short_repr
 from placerec.hashing import stable_hash
 from placerec.params import Params, deep_merge, resolve
-from placerec.types import Candidate, Description, PlaceRecognizer, Scan
+from placerec.types import MAX_RANGE_M, Candidate, Description, PlaceRecognizer, Scan, valid_points
 
 __all__ = [
     "Description",
@@ -45,18 +45,6 @@ __all__ = [
 
 #: Fewest valid points a scan needs to be described; fewer is a `ScanDataError` in every pipeline.
 MIN_POINTS = 100
-#: Points at or beyond this range (m) are not returns of any LiDAR (e.g. 1e30 fill values) and count as invalid.
-MAX_RANGE_M = 1e4
-
-
-def valid_points(scan: Scan) -> np.ndarray:
-    """Mask of the points that are real returns: finite, not at the origin (organised scans' invalid returns),
-    closer than `MAX_RANGE_M`."""
-    r = scan.ranges
-    with np.errstate(invalid="ignore"):
-        return np.isfinite(r) & (r > 1e-6) & (r < MAX_RANGE_M)
-
-
 def require_points(scan: Scan, where: str, minimum: int = MIN_POINTS) -> np.ndarray:
     """`valid_points` of ``scan``; `ScanDataError` naming ``where`` when fewer than ``minimum`` are valid."""
     ok = valid_points(scan)

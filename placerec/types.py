@@ -29,6 +29,8 @@ __all__ = [
     "ListSequence",
     "StoredSequenceInfo",
     "Candidate",
+    "MAX_RANGE_M",
+    "valid_points",
     "Verification",
     "Description",
     "PlaceRecognizer",
@@ -293,6 +295,21 @@ def check_poses(poses: np.ndarray, n: int | None, where: str) -> np.ndarray:
     if not np.all(np.isfinite(P)):
         raise ScanDataError(f"{where}: poses contain NaN or inf")
     return P
+
+
+#: Points at or beyond this range (m) are not returns of any LiDAR (e.g. 1e30 fill values) and count as invalid.
+MAX_RANGE_M = 1e4
+#: Points closer than this (m) sit at the origin: how organised scans mark a beam without return.
+MIN_RETURN_M = 1e-6
+
+
+def valid_points(scan: Scan, intensity: bool = False) -> np.ndarray:
+    """Mask of the points that are real returns: finite, not at the origin (organised scans' invalid returns),
+    closer than `MAX_RANGE_M`; with ``intensity`` also a finite intensity. The one definition every stage uses."""
+    r = scan.ranges
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(r) & (r > MIN_RETURN_M) & (r < MAX_RANGE_M)
+    return ok & np.isfinite(scan.intensity) if intensity else ok
 
 
 def path_length(positions: np.ndarray) -> np.ndarray:

@@ -16,11 +16,14 @@ from placerec.preprocess import PreprocessParams, crop, preprocess_scan, remove_
 from placerec.types import Scan, SensorInfo
 
 
-def test_remove_invalid_counts_nan_inf_and_zero():
-    xyz = np.array([[1, 2, 3], [np.nan, 0, 0], [0, 0, 0], [np.inf, 1, 1], [4, 5, 6]], dtype=np.float32)
-    s = Scan(xyz, [1, 2, 3, 4, np.nan])
+def test_remove_invalid_counts_nan_inf_and_no_return():
+    xyz = np.array(
+        [[1, 2, 3], [np.nan, 0, 0], [0, 0, 0], [np.inf, 1, 1], [4, 5, 6], [1e5, 0, 0], [1e-8, 0, 0]], np.float32
+    )
+    s = Scan(xyz, [1, 2, 3, 4, np.nan, 5, 6])
     out, counts = remove_invalid(s)
-    assert counts == {"nonfinite": 3, "zero": 1}
+    # the origin, a fill-value range and a point closer than MIN_RETURN_M are no returns (types.valid_points)
+    assert counts == {"nonfinite": 3, "no_return": 3}
     assert out.xyz.tolist() == [[1, 2, 3]]
 
 

@@ -31,7 +31,7 @@ from pydantic import Field, model_validator
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.params import Params
-from placerec.types import Scan
+from placerec.types import Scan, valid_points
 
 __all__ = [
     "ImageParams",
@@ -159,10 +159,8 @@ def _scatter_nearest(
 
 
 def _valid_points(scan: Scan) -> tuple[np.ndarray, np.ndarray]:
-    r = scan.ranges
-    ok = np.isfinite(r) & (r > 1e-6) & np.isfinite(scan.intensity)
-    idx = np.flatnonzero(ok)
-    return idx, r[idx]
+    idx = np.flatnonzero(valid_points(scan, intensity=True))
+    return idx, scan.ranges[idx]
 
 
 def _fov(scan: Scan, params: ImageParams, xyz: np.ndarray, r: np.ndarray) -> tuple[float, float]:
@@ -235,7 +233,7 @@ def from_organized(scan: Scan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if scan.shape is None:
         raise ScanDataError(f"{scan.source or 'scan'}: not an organised scan")
     r = scan.ranges
-    ok = np.isfinite(r) & (r > 1e-6) & np.isfinite(scan.intensity)
+    ok = valid_points(scan, intensity=True)
     inten = np.where(ok, scan.intensity, 0.0).astype(np.float32).reshape(scan.shape)
     rng = np.where(ok, r, 0.0).astype(np.float32).reshape(scan.shape)
     pidx = np.where(ok, np.arange(len(scan), dtype=np.int32), -1).reshape(scan.shape)
