@@ -1,21 +1,21 @@
 """DLoopDetector's islands and temporal consistency, as an optional filter of the loop detector.
 
-Following ``DLoopDetector::TemplatedLoopDetector::detectLoop`` (Galvez-Lopez & Tardos 2012), over the candidates a
-recognizer returns for one query (best first; the detector asks for ``max_candidates`` of them):
+Following ``DLoopDetector::TemplatedLoopDetector::detectLoop`` (Galvez-Lopez & Tardos 2012), over the
+candidates a recognizer returns for one query (best first; the detector asks for ``max_candidates`` of them):
 
 1. *Islands*: the candidates are sorted by match id and grouped while consecutive ids differ by less than
-   ``max_intragroup_gap``; groups spanning fewer than ``min_matches_per_group`` ids are dropped. An island's score
-   is the sum of its members' scores, its representative the member with the highest score; the representatives
-   are the filtered candidates, best island first.
+   ``max_intragroup_gap``; groups spanning fewer than ``min_matches_per_group`` ids are dropped. An island's
+   score is the sum of its members' scores, its representative the member with the highest score; the
+   representatives are the filtered candidates, best island first.
 2. *Temporal consistency* (``temporal_k`` > 0): the best island must overlap, or lie within
    ``max_distance_between_groups`` ids of, the best island of the previous query (itself at most
    ``max_distance_between_queries`` queries earlier); a loop needs more than ``temporal_k`` consistent queries
    in a row.
 
-The filter keeps the temporal window of one stream of queries in acquisition order, which is why it belongs to the
-detector (`placerec.loop_closure.LoopClosureDetector`, ``loop_filter``) and not to a recognizer, whose queries
-must not change its state. The normalised similarity score, which needs the bag-of-words vectors, stays with the
-DBoW pipeline (`placerec.retrieval.dbow.loop_detector`).
+The filter keeps the temporal window of one stream of queries in acquisition order, which is why it belongs to
+the detector (`placerec.loop_closure.LoopClosureDetector`, ``loop_filter``) and not to a recognizer, whose
+queries must not change its state. The normalised similarity score, which needs the bag-of-words vectors,
+stays with the DBoW pipeline (`placerec.retrieval.dbow.loop_detector`).
 """
 
 from __future__ import annotations

@@ -13,8 +13,8 @@
   within 40 m of its centre).
 * `PackedCloud` — a `FixedPointCloud` compressed losslessly in memory: each coordinate column delta-coded (int16,
   wrapping), the bytes split into a high-byte and a low-byte plane (the high bytes of neighbouring points agree,
-  the low bytes are noise), then zlib; about 0.68 of the int16 bytes for a KITTI scan at 0.4 m, 1-2 ms to pack
-  and well under 1 ms to unpack. `unpack` gives back the very same codes.
+  the low bytes are noise), then zlib (its size and speed: docs/benchmarks.md, databases at scale). `unpack` gives
+  back the very same codes.
 """
 
 from __future__ import annotations

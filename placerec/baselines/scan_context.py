@@ -34,12 +34,8 @@ for ICP (``cloud``), the database each entry's cloud. The ``verify.top_k`` best 
 distance are verified by ICP alone (`placerec.verify.verify_icp`) from their yaw rotation: ``relative_pose``
 becomes the full 6-DoF ICP pose, ``score`` the verified score in [0, 1] (the Scan Context score moves to
 ``extra["retrieval_score"]``, ``yaw_deg``/``shift`` stay), and the candidates are re-ranked by it. Off, the
-candidates are the reference's (yaw-only pose, ``score = 1 - distance``).
-
-Measured on ``configs/demo.yaml`` (scan-context alone, 2 shared cores): max F1 0.407 unverified, 0.761 / 0.835 /
-0.857 verifying the top 1 / 2 / 3 (default 3; recall at 100 % precision 0.727, accepted closures' median
-translation error 0.019 m, at most 0.045 m); the verify stage adds ~115 ms per scan (ICP from a wrong
-candidate's yaw runs all its iterations).
+candidates are the reference's (yaw-only pose, ``score = 1 - distance``). How ``verify.top_k`` (default 3) was
+chosen, and what verification costs, is in docs/benchmarks.md (Scan Context).
 """
 
 from __future__ import annotations

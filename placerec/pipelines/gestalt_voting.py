@@ -1,39 +1,40 @@
 """Bosse & Zlot's keypoint voting (ICRA 2013) on SHOT: the ISHOT paper's baseline (b) of Table III (Sec. V-C).
 
-The ISHOT paper runs "the original keypoint voting approach with Gestalt3D features", with "a uniform sampling of
-10 %", "K = 10 closest features" and "the voting threshold set to parameters from the original paper", and sums
-up that approach (Sec. II) as: the non-matching votes are modelled by a log-normal distribution, a threshold on it
-eliminates false positives among the place candidates and terminates the keypoint matching.
+The ISHOT paper runs "the original keypoint voting approach with Gestalt3D features", with "a uniform sampling
+of 10 %", "K = 10 closest features" and "the voting threshold set to parameters from the original paper", and
+sums up that approach (Sec. II) as: the non-matching votes are modelled by a log-normal distribution, a
+threshold on it eliminates false positives among the place candidates and terminates the keypoint matching.
 
 What is implemented (`GestaltVoting`, registered as ``shot-gestalt-votes``):
 
-1. The query's keypoints are consumed in a uniformly random order (``seed``), ``sample_fraction`` = 10 % of them
-   per round; each is matched against every map descriptor and its ``knn`` = 10 nearest neighbours vote for the
-   places (map entries) they come from, one vote per (query keypoint, place).
-2. After each round the vote counts of the places *other than the most voted one* (those with at least one vote)
-   are modelled as log-normal: ``mu``, ``sigma`` = mean and standard deviation of their log counts
-   (`lognormal_threshold`). The most voted place is a match candidate when its count exceeds
-   ``exp(mu + z * sigma)`` (``z``: ``lognormal_z``); then matching stops and the ``verify.top_k`` most voted
-   places not verified yet go through the verification stage every localisation pipeline shares (geometric
-   consistency grouping, RANSAC, point-to-plane ICP, eps_ICP = 7 m^2). An accepted place ends the query; otherwise
-   the next round goes on. When every keypoint is consumed, the most voted unverified places are verified
+1. The query's keypoints are consumed in a uniformly random order (``seed``), ``sample_fraction`` = 10 % of
+   them per round; each is matched against every map descriptor and its ``knn`` = 10 nearest neighbours vote
+   for the places (map entries) they come from, one vote per (query keypoint, place).
+2. After each round the vote counts of the places *other than the most voted one* (those with at least one
+   vote) are modelled as log-normal: ``mu``, ``sigma`` = mean and standard deviation of their log counts
+   (`lognormal_threshold`). The most voted place is a match candidate when its count exceeds ``exp(mu + z *
+   sigma)`` (``z``: ``lognormal_z``); then matching stops and the ``verify.top_k`` most voted places not
+   verified yet go through the verification stage every localisation pipeline shares (geometric consistency
+   grouping, RANSAC, point-to-plane ICP, eps_ICP = 7 m^2). An accepted place ends the query; otherwise the
+   next round goes on. When every keypoint is consumed, the most voted unverified places are verified
    (``fallback_top_k`` of them; every verified place at least ``verify_separation_m`` from the others).
 
 Departures, said plainly:
 
-* **Descriptor**: the Gestalt3D descriptor's published definition (Bosse & Zlot 2013) could not be found in the
-  material available here (the ISHOT paper only cites it and gives its radius 7 m and height 12 m), so the voting
-  runs on SHOT, hence the name ``shot-gestalt-votes``. The keypoints are the ISS-BR ones all 3D pipelines share.
-* **Threshold parameters**: the original paper's values (which the ISHOT paper reused) are not available either;
-  ``lognormal_z`` = 3 (the most voted place lies 3 standard deviations above the log-normal of the others, a
-  one-sided tail of 0.13 %) is ours, as is fitting the model per query on the other places' counts.
+* **Descriptor**: the Gestalt3D descriptor's published definition (Bosse & Zlot 2013) could not be found in
+  the material available here (the ISHOT paper only cites it and gives its radius 7 m and height 12 m), so the
+  voting runs on SHOT, hence the name ``shot-gestalt-votes``. The keypoints are the ISS-BR ones all 3D
+  pipelines share.
+* **Threshold parameters**: the original paper's values (which the ISHOT paper reused) are not available
+  either; ``lognormal_z`` = 3 (the most voted place lies 3 standard deviations above the log-normal of the
+  others, a one-sided tail of 0.13 %) is ours, as is fitting the model per query on the other places' counts.
 * **"Uniform sampling of 10 %"** is read as the share of query keypoints matched per round (a uniform random
-  sample), after which the termination test runs; the other reading (keypoints sampled uniformly from the cloud,
-  10 % of the points) would change the front end for this pipeline alone.
+  sample), after which the termination test runs; the other reading (keypoints sampled uniformly from the
+  cloud, 10 % of the points) would change the front end for this pipeline alone.
 
 The query runs in the loop every voting pipeline shares (`placerec.pipelines.voting_engine`), `LognormalVotes`
-its strategy. ``extra``: the engine's diagnostics (``early_stop``: the threshold was passed, ...), ``votes`` and
-``threshold`` (the log-normal threshold when the place was verified).
+its strategy. ``extra``: the engine's diagnostics (``early_stop``: the threshold was passed, ...), ``votes``
+and ``threshold`` (the log-normal threshold when the place was verified).
 """
 
 from __future__ import annotations

@@ -1,24 +1,25 @@
 """Global geometric registration with SHOT: the ISHOT paper's baseline (a) of Table III (Sec. V-C).
 
-`GlobalRegistration` (registered as ``shot-global``) localises a scan in the whole map at once, "similar to Rusu
-et al.": the map is not split into places for retrieval. Its keypoints (ISS-BR, the front end every 3D pipeline
-shares) are described with SHOT and kept in the map frame; each query descriptor is paired with its ``knn`` = 4
-nearest map descriptors (the paper's K = 4), and the query-to-map correspondences go through the verification
-stage every localisation pipeline shares (`placerec.verify`: geometric consistency grouping with consensus
-resolution 7 m and minimum cluster 8, RANSAC), which gives ``T_world_query``. ICP then refines it against the map
-cloud nearest to that pose and accepts it by eps_ICP = 7 m^2, as for every other pipeline.
+`GlobalRegistration` (registered as ``shot-global``) localises a scan in the whole map at once, "similar to
+Rusu et al.": the map is not split into places for retrieval. Its keypoints (ISS-BR, the front end every 3D
+pipeline shares) are described with SHOT and kept in the map frame; each query descriptor is paired with its
+``knn`` = 4 nearest map descriptors (the paper's K = 4), and the query-to-map correspondences go through the
+verification stage every localisation pipeline shares (`placerec.verify`: geometric consistency grouping with
+consensus resolution 7 m and minimum cluster 8, RANSAC), which gives ``T_world_query``. ICP then refines it
+against the map cloud nearest to that pose and accepts it by eps_ICP = 7 m^2, as for every other pipeline.
 
-How a pose in the map becomes a candidate: the match is the map entry (a map scan, ``place_spacing_m`` apart like
-the ISHOT places) whose position is nearest to the RANSAC estimate of the query's position; the correspondences
-are expressed in that entry's frame (a rigid change of frame: grouping and RANSAC give the same pose) and verified
-against its cloud with `placerec.verify.candidates.verify_candidates`, so ``relative_pose`` is ``T_match_query``
-and ``map_poses[match_id] @ relative_pose`` the query's pose in the map. At most one candidate is returned: the
-largest consistent cluster gives one pose; when it is rejected the query has no candidate with a pose.
+How a pose in the map becomes a candidate: the match is the map entry (a map scan, ``place_spacing_m`` apart
+like the ISHOT places) whose position is nearest to the RANSAC estimate of the query's position; the
+correspondences are expressed in that entry's frame (a rigid change of frame: grouping and RANSAC give the
+same pose) and verified against its cloud with `placerec.verify.candidates.verify_candidates`, so
+``relative_pose`` is ``T_match_query`` and ``map_poses[match_id] @ relative_pose`` the query's pose in the
+map. At most one candidate is returned: the largest consistent cluster gives one pose; when it is rejected the
+query has no candidate with a pose.
 
-The query runs in the loop every voting pipeline shares (`placerec.pipelines.voting_engine`), `RegistrationVotes`
-its strategy: one batch of every keypoint, whose registration shortlists the one entry. ``extra``: the engine's
-diagnostics (``match_ms``: the K-NN search, ...), ``correspondences`` (query keypoints x K), ``T_world_ransac``
-(the query's pose in the map before ICP) and ``votes`` (RANSAC inliers).
+The query runs in the loop every voting pipeline shares (`placerec.pipelines.voting_engine`),
+`RegistrationVotes` its strategy: one batch of every keypoint, whose registration shortlists the one entry.
+``extra``: the engine's diagnostics (``match_ms``: the K-NN search, ...), ``correspondences`` (query keypoints
+x K), ``T_world_ransac`` (the query's pose in the map before ICP) and ``votes`` (RANSAC inliers).
 """
 
 from __future__ import annotations

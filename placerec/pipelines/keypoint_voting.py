@@ -1,41 +1,44 @@
 """The 3D pipeline: ISS-BR keypoints + ISHOT (or SHOT/FPFH) descriptors, ratio-tested NN votes per entry.
 
 For every query descriptor the two nearest database descriptors (exact L2, brute force; or approximate with
-``index: ivf``, `placerec.retrieval.nearest.IvfIndex`) give the ratio ``tau = d1 / d2`` (ISHOT paper, eq. 4); when
-``tau < tau_max`` the query descriptor votes for the entry its 1st neighbour belongs to. Candidates are the entries
-with most votes. The paper has no hard ratio threshold (its votes are weighted by a model per tau range); 0.9 was
-chosen in a localisation sweep on the simulator (docs/descriptors.md). The descriptors live in a
-`placerec.retrieval.descriptor_store.DescriptorStore` (``descriptor_store``: float32, float16 or sq8 8-bit codes,
-searched without decoding; a places database's own store by default, float32 for entries added scan by scan).
+``index: ivf``, `placerec.retrieval.nearest.IvfIndex`) give the ratio ``tau = d1 / d2`` (ISHOT paper, eq. 4);
+when ``tau < tau_max`` the query descriptor votes for the entry its 1st neighbour belongs to. Candidates are
+the entries with most votes. The paper has no hard ratio threshold (its votes are weighted by a model per tau
+range); 0.9 was chosen in a localisation sweep on the simulator (docs/benchmarks.md, component figures). The
+descriptors live in a `placerec.retrieval.descriptor_store.DescriptorStore` (``descriptor_store``: float32,
+float16 or sq8 8-bit codes, searched without decoding; a places database's own store by default, float32 for
+entries added scan by scan).
 
 `KeypointVoting` is also the base of the other 3D pipelines: it holds the front end, the entries
-(`placerec.three_d.entries.EntryTable`), their ICP clouds, place aggregation and persistence, and answers a query
-with the shared loop of `placerec.pipelines.voting_engine` and its strategy (``Strategy``: here `RatioVotes`).
+(`placerec.three_d.entries.EntryTable`), their ICP clouds, place aggregation and persistence, and answers a
+query with the shared loop of `placerec.pipelines.voting_engine` and its strategy (``Strategy``: here
+`RatioVotes`).
 
-Score (what thresholds apply to): ``score="fraction"`` (default) is votes / number of query descriptors, in [0, 1];
-``score="votes"`` the raw vote count; with verification the verified score instead.
+Score (what thresholds apply to): ``score="fraction"`` (default) is votes / number of query descriptors, in
+[0, 1]; ``score="votes"`` the raw vote count; with verification the verified score instead.
 
-Verification (``verify.enabled``, ISHOT paper Sec. IV-F; `placerec.verify.candidates`): the description keeps the
-scan voxelised for ICP (``cloud``), the database each entry's cloud. The ``verify.top_k`` most-voted entries are
-matched with the query alone (2-NN among the entry's descriptors, ratio ``< verify_tau_max``), then go through the
-paper's geometric consistency grouping (consensus resolution 7 m, minimum cluster 8), RANSAC and point-to-plane
-ICP; ``relative_pose`` is the 6-DoF ``T_match_query``, ``score`` the verified score (``retrieval_score`` the vote
-score), and a candidate is accepted when its ICP residual is below the paper's eps_ICP (7 m^2). With
-``verify_radius_m > 0`` a candidate is verified as a local map (`placerec.pipelines.local_maps`). The measured
-effect of ``top_k`` and the acceptance rules is in docs/descriptors.md.
+Verification (``verify.enabled``, ISHOT paper Sec. IV-F; `placerec.verify.candidates`): the description keeps
+the scan voxelised for ICP (``cloud``), the database each entry's cloud. The ``verify.top_k`` most-voted
+entries are matched with the query alone (2-NN among the entry's descriptors, ratio ``< verify_tau_max``),
+then go through the paper's geometric consistency grouping (consensus resolution 7 m, minimum cluster 8),
+RANSAC and point-to-plane ICP; ``relative_pose`` is the 6-DoF ``T_match_query``, ``score`` the verified score
+(``retrieval_score`` the vote score), and a candidate is accepted when its ICP residual is below the paper's
+eps_ICP (7 m^2). With ``verify_radius_m > 0`` a candidate is verified as a local map
+(`placerec.pipelines.local_maps`). The measured effect of ``top_k`` and the acceptance rules is in
+docs/benchmarks.md (component figures).
 
 Entries:
 
 * default (``place_spacing_m = 0``, ``place_window_m = 0``): every added scan is one entry, described alone;
   match ids are scan ids, which is what the loop and localize evaluators expect.
-* ``place_window_m > 0``: an entry is described from the scans within that much travel before it, merged in its
-  frame (`placerec.pipelines.place_window`). The paper queries such places with dense static scans; single sweeps
-  match them poorly (docs/descriptors.md), so keep 0 when queries are single sweeps.
+* ``place_window_m > 0``: an entry is described from the scans within that much travel before it, merged in
+  its frame (`placerec.pipelines.place_window`). The paper queries such places with dense static scans; single
+  sweeps match them poorly (docs/descriptors.md), so keep 0 when queries are single sweeps.
 * ``place_spacing_m > 0``: only scans at least that far from every earlier entry become entries
   (`placerec.three_d.entries.far_from_all`, the rule of the offline places database); ids stay scan ids.
-* ``places_db``: a `placerec.three_d.places.PlacesDatabase` file replaces the entries; its place ids are the map's
-  scan indices. ``add`` then only checks that a scan with that id and pose is part of the map the database was
-  built from (`ArtifactError` otherwise).
+* ``places_db``: a `placerec.three_d.places.PlacesDatabase` file replaces the entries; its place ids are the
+  map's scan indices. ``add`` then only checks that a scan with that id and pose is part of the map the
+  database was built from (`ArtifactError` otherwise).
 """
 
 from __future__ import annotations

@@ -1,46 +1,48 @@
 """The ISHOT paper's probabilistic keypoint voting and global localisation (Sec. IV-C to IV-F), end to end.
 
-`ProbabilisticVoting` (registered as ``ishot-prob``) extends `placerec.pipelines.keypoint_voting.KeypointVoting`
-(same front end, places and verification) with the paper's query:
+`ProbabilisticVoting` (registered as ``ishot-prob``) extends
+`placerec.pipelines.keypoint_voting.KeypointVoting` (same front end, places and verification) with the paper's
+query:
 
 1. The query's described keypoints are taken in a random order (``seed``) in batches of ``batch_size`` (16).
-2. Each batch is matched against every place's descriptors (2-NN, eq. 4); each descriptor's vote ``{rho_v, tau}``
-   multiplies the precomputed vector ``P(rho_i | v)`` of its voted place and ``tau`` range into the posterior over
-   places (eq. 6, `placerec.three_d.posterior`), scaled by the keypoint-density correction
+2. Each batch is matched against every place's descriptors (2-NN, eq. 4); each descriptor's vote ``{rho_v,
+   tau}`` multiplies the precomputed vector ``P(rho_i | v)`` of its voted place and ``tau`` range into the
+   posterior over places (eq. 6, `placerec.three_d.posterior`), scaled by the keypoint-density correction
    (``density_correction``, Sec. IV-E). The vote model (eq. 7) is the artifact ``vote_model`` written by
-   ``placerec fit-votes`` (`placerec.pipelines.vote_fitting`), or the inline ``model`` values.
-3. As soon as a place's posterior exceeds ``xi_v`` (15 %) the ``verify.top_k`` most probable places not verified
-   yet go through the verification stage every 3D pipeline shares (`placerec.verify.candidates`: the query's
-   descriptors matched with the candidate place's, geometric consistency grouping with minimum cluster 8 and
-   consensus 7 m, RANSAC, point-to-plane ICP, accepted by eps_ICP = 7 m^2). An accepted candidate ends the query.
-   If none is accepted, voting goes on with the next batch (a place verified once is not verified again).
-   Two departures, off by default and in the registry preset (docs/localization.md measures them):
+   ``placerec fit-votes`` (`placerec.artifacts.votes`), or the inline ``model`` values.
+3. As soon as a place's posterior exceeds ``xi_v`` (15 %) the ``verify.top_k`` most probable places not
+   verified yet go through the verification stage every 3D pipeline shares (`placerec.verify.candidates`: the
+   query's descriptors matched with the candidate place's, geometric consistency grouping with minimum cluster
+   8 and consensus 7 m, RANSAC, point-to-plane ICP, accepted by eps_ICP = 7 m^2). An accepted candidate ends
+   the query. If none is accepted, voting goes on with the next batch (a place verified once is not verified
+   again). Two departures, off by default and in the registry preset (docs/localization.md measures them):
    ``stop_radius_m`` tests the posterior summed within that distance of each place (the region a local-map
    verification tests) instead of each place's own, and ``reject_weight`` treats a rejection as evidence: the
-   posterior of the places within ``verify_separation_m`` of a rejected candidate is scaled by it (the ratio of
-   the verification's rejection rates near the truth and away from it, measured at ~0.02) and the stop test runs
-   again on the same votes before the next batch is matched. Matching also ends once nothing is left to verify.
+   posterior of the places within ``verify_separation_m`` of a rejected candidate is scaled by it (the ratio
+   of the verification's rejection rates near the truth and away from it, measured at ~0.02) and the stop test
+   runs again on the same votes before the next batch is matched. Matching also ends once nothing is left to
+   verify.
 4. When every keypoint is consumed without an accepted candidate, the places are ranked by their vote counts
    (``tau < tau_max``, the paper's fallback) and the top ``fallback_top_k`` not yet verified are verified (the
-   registry preset: 30, at least ``verify_separation_m`` = 7.5 m from every place verified before). Without early
-   stopping (``early_stop = False``: every keypoint matched in one search, the exhaustive variant) the posterior
-   ranks them instead.
+   registry preset: 30, at least ``verify_separation_m`` = 7.5 m from every place verified before). Without
+   early stopping (``early_stop = False``: every keypoint matched in one search, the exhaustive variant) the
+   posterior ranks them instead.
 
 The query runs in the loop every voting pipeline shares (`placerec.pipelines.voting_engine`); `PosteriorVotes`
 is its strategy. Each returned candidate carries the 6-DoF ``relative_pose`` (``T_match_query``, from ICP) and
-``T_world_query`` (the query's pose in the map), and in ``extra``: the engine's diagnostics (``keypoints_consumed``,
-``early_stop``: the posterior passed ``xi_v`` at least once, ...), ``posterior`` (the place's probability when it
-was verified) and ``votes``.
+``T_world_query`` (the query's pose in the map), and in ``extra``: the engine's diagnostics
+(``keypoints_consumed``, ``early_stop``: the posterior passed ``xi_v`` at least once, ...), ``posterior`` (the
+place's probability when it was verified) and ``votes``.
 
 Departures from the paper (measured in docs/localization.md): descriptors are computed for all keypoints in
-``describe`` (shared and cached with ``ishot-votes``), so early stopping saves the matching against the database,
-not the description, which the paper does batch by batch; the ISHOT descriptors already computed are matched with
-the candidate place's instead of SHOT; the registry preset (`placerec.recognizer.LOCALIZE_VERIFY`) verifies each
-candidate as a local map of the places within 15 m (``verify_radius_m``), with every nearest neighbour
-(``verify_tau_max`` 1), ICP clouds cropped at 40 m like the places, RANSAC from 3 inliers and at least 70 % overlap
-(``verify.verify.score.min_fitness``), and skips candidates within 7.5 m of one already verified
-(``verify_separation_m``: their local maps overlap it). ``index: ivf`` searches the database approximately
-(sub-linear in its size).
+``describe`` (shared and cached with ``ishot-votes``), so early stopping saves the matching against the
+database, not the description, which the paper does batch by batch; the ISHOT descriptors already computed are
+matched with the candidate place's instead of SHOT; the registry preset
+(`placerec.recognizer.LOCALIZE_VERIFY`) verifies each candidate as a local map of the places within 15 m
+(``verify_radius_m``), with every nearest neighbour (``verify_tau_max`` 1), ICP clouds cropped at 40 m like
+the places, RANSAC from 3 inliers and at least 70 % overlap (``verify.verify.score.min_fitness``), and skips
+candidates within 7.5 m of one already verified (``verify_separation_m``: their local maps overlap it).
+``index: ivf`` searches the database approximately (sub-linear in its size).
 """
 
 from __future__ import annotations

@@ -6,24 +6,25 @@ One query runs:
    is matched against the eligible database rows and turned into evidence for the entries (``vote``);
 2. **stop test**: ``ready`` returns a `Shortlist` of entries to verify now, or None to keep matching;
 3. **verify**: the shortlist's best ``top_k`` entries not verified yet (at least ``verify_separation_m`` from
-   those verified before) go through the shared verification (`placerec.verify.candidates`), ``verify.top_k`` at a
-   time, until one is accepted; an accepted candidate ends the query. A rejection is reported to the strategy
-   (``rejected``), which may change its evidence and ask for the stop test again on the same votes; when the
-   shortlist was ``final`` and nothing was left to verify, matching stops;
+   those verified before) go through the shared verification (`placerec.verify.candidates`), ``verify.top_k``
+   at a time, until one is accepted; an accepted candidate ends the query. A rejection is reported to the
+   strategy (``rejected``), which may change its evidence and ask for the stop test again on the same votes;
+   when the shortlist was ``final`` and nothing was left to verify, matching stops;
 4. **fallback**: when every keypoint is consumed without an accepted candidate, ``fallback`` ranks the entries
    once more and that shortlist is verified;
-5. **decorate**: the candidates, best verified score first (ties: accepted, then retrieval score), the best ``k``
-   returned (the time of the others' verification shared among them), each with ``T_world_query`` (the entry's
-   pose composed with the verified ``T_match_query``) and the diagnostics ``keypoints_consumed`` (query keypoints
-   matched against the whole database), ``n_keypoints``, ``match_ms``, ``n_verified`` and, for a strategy that
-   can stop early, ``early_stop``.
+5. **decorate**: the candidates, best verified score first (ties: accepted, then retrieval score), the best
+   ``k`` returned (the time of the others' verification shared among them), each with ``T_world_query`` (the
+   entry's pose composed with the verified ``T_match_query``) and the diagnostics ``keypoints_consumed``
+   (query keypoints matched against the whole database), ``n_keypoints``, ``match_ms``, ``n_verified`` and,
+   for a strategy that can stop early, ``early_stop``.
 
-Without verification (``verify.enabled`` false) the first shortlist is the answer: its best ``k`` entries with their
-retrieval scores, ``accepted`` None.
+Without verification (``verify.enabled`` false) the first shortlist is the answer: its best ``k`` entries with
+their retrieval scores, ``accepted`` None.
 
 A strategy is a `VoteStrategy` subclass made once per query: the ratio-test vote counts
 (`placerec.pipelines.keypoint_voting`), the probabilistic posterior (`probabilistic_voting`), Bosse & Zlot's
-log-normal test (`gestalt_voting`), global registration (`global_registration`) and DELIGHT's ranking (`delight`).
+log-normal test (`gestalt_voting`), global registration (`global_registration`) and DELIGHT's ranking
+(`delight`).
 """
 
 from __future__ import annotations

@@ -12,9 +12,8 @@
 
 The compressed stores are searched without decoding the database into float32: ``faiss`` computes distances from
 the query to the decoded codes on the fly (SIMD), which on 1344-d ISHOT rows is faster than float32 brute force for
-small batches (16 queries over 15,250 rows, one thread: 26-33 ms against 39-45 ms); from `BLAS_BATCH` queries on,
-blocks of 4096 rows are decoded one at a time and searched with BLAS (112 queries: ~100 ms against 200-235 ms in
-the code domain and 52-58 ms for float32). Either way the distances are exact for the decoded rows, so the result
+small batches; from `BLAS_BATCH` queries on, blocks of 4096 rows are decoded one at a time and searched with BLAS,
+which is faster there (docs/benchmarks.md, 3D nearest neighbours). Either way the distances are exact for the decoded rows, so the result
 is that of float32 brute force over the decoded database. `StoreView` is a selection of rows (a prefix or a mask)
 searched the same way, its indices local to the selection.
 """

@@ -1,9 +1,9 @@
 """Nearest descriptors for the 3D retrieval pipelines: the 2-NN ratio test and an approximate index.
 
-``tau = d1 / d2`` (ISHOT paper, eq. 4) of a query descriptor's two nearest database descriptors decides whether
-it votes (`ratio_votes`). Exact search is brute force (`placerec.retrieval.descriptor_store`: at 1344-d a k-d tree
-is much slower and HNSW slow to build, docs/benchmarks.md); `IvfIndex` is the sub-linear approximate search
-(faiss IVF) a pipeline uses with ``index: ivf``.
+``tau = d1 / d2`` (ISHOT paper, eq. 4) of a query descriptor's two nearest database descriptors decides
+whether it votes (`ratio_votes`). Exact search is brute force (`placerec.retrieval.descriptor_store`: at
+1344-d a k-d tree is much slower and HNSW slow to build, docs/benchmarks.md); `IvfIndex` is the sub-linear
+approximate search (faiss IVF) a pipeline uses with ``index: ivf``.
 """
 
 from __future__ import annotations

@@ -1,15 +1,15 @@
 """The entry table of the 3D retrieval pipelines: described entries (scans or places) with their poses.
 
-An entry has an id (a scan id, or a place's centre scan), a pose ``T_world_entry``, keypoints in its own frame and
-one descriptor per keypoint. The descriptors of every entry sit in one `DescriptorStore` in insertion order, so
-entry ``e`` owns rows ``starts[e]:starts[e + 1]`` and ``row_entry`` maps a row back to its entry. The same table
-serves the entries a pipeline adds scan by scan and a places database built offline
+An entry has an id (a scan id, or a place's centre scan), a pose ``T_world_entry``, keypoints in its own frame
+and one descriptor per keypoint. The descriptors of every entry sit in one `DescriptorStore` in insertion
+order, so entry ``e`` owns rows ``starts[e]:starts[e + 1]`` and ``row_entry`` maps a row back to its entry.
+The same table serves the entries a pipeline adds scan by scan and a places database built offline
 (`placerec.three_d.places.PlacesDatabase.entry_table`).
 
 ``eligible(max_id)`` restricts a query to the entries with ``id <= max_id`` (loop closure's exclusion window):
 when ids were added in increasing order (the usual case) the eligible rows are a prefix and nothing is copied.
-``version`` grows with every change, so what a pipeline derives from the entries (an approximate index, posterior
-vectors, world keypoints) knows when to rebuild.
+``version`` grows with every change, so what a pipeline derives from the entries (an approximate index,
+posterior vectors, world keypoints) knows when to rebuild.
 """
 
 from __future__ import annotations

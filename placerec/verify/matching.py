@@ -3,8 +3,7 @@
 Compiled single-threaded loops: binary descriptors (packed ``uint8``, e.g. ORB, BRISK) by Hamming distance over
 64-bit words (SWAR popcount), float descriptors (SURF, ...) by Euclidean distance. Sets are a few hundred
 descriptors per image: a threaded library's start-up costs more than the work, and stalls when other processes
-load the cores (faiss's OpenMP search took 40 ms instead of 0.3 ms per image pair, a BLAS product 30 ms instead
-of 1 ms, on a loaded 2-core machine).
+load the cores (docs/benchmarks.md, visual pipeline per scan).
 """
 
 from __future__ import annotations
