@@ -150,9 +150,7 @@ LOCALIZE_VERIFY: dict[str, Any] = {
     "verify_radius_m": 15.0,
     "verify_separation_m": 7.5,
     "fallback_top_k": 30,
-    "verify": {
-        "verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 3}, "score": {"min_fitness": 0.7}}
-    },
+    "verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 3}, "score": {"min_fitness": 0.7}},
 }
 
 

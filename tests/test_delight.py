@@ -131,7 +131,7 @@ def test_the_ranking_is_unchanged_by_the_heading_under_shifts_only(town):
 def test_a_query_from_the_map_finds_itself_with_a_6dof_pose_through_the_shared_verification(town):
     rec = make_pipeline("delight")
     assert isinstance(rec, Delight) and rec.params.descriptor == "shot"
-    assert rec.params.verify.verify.consistency.enabled and rec.params.verify_radius_m == 15.0
+    assert rec.params.verify.consistency.enabled and rec.params.verify_radius_m == 15.0
     for i in (0, 2, 4):
         rec.add(i, town[i], town.poses[i])
     c = rec.query(town[2], k=1, query_id=2)[0]

@@ -10,8 +10,8 @@ from synthetic_places import add_synthetic_places
 
 from placerec.pipelines.gestalt_voting import GestaltVoting, lognormal_threshold, place_votes
 from placerec.pipelines.global_registration import GlobalRegistration
-from placerec.three_d.entries import EntryTable
 from placerec.recognizer import make_pipeline
+from placerec.three_d.entries import EntryTable
 
 
 def test_lognormal_threshold_is_exp_of_mu_plus_z_sigma_of_the_other_places_logs():
@@ -85,7 +85,7 @@ def test_localises_a_simulated_scan_with_a_6dof_pose(town, name):
 
     rec = make_pipeline(name)
     assert rec.params.descriptor == "shot"
-    assert rec.params.verify.verify.consistency.enabled  # the shared verification: grouping, RANSAC, ICP
+    assert rec.params.verify.consistency.enabled  # the shared verification: grouping, RANSAC, ICP
     for i in (0, 2, 4):
         rec.add(i, town[i], town.poses[i])
     cands = rec.query(town[1], k=1, query_id=1)

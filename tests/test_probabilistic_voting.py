@@ -196,7 +196,7 @@ def test_a_rejection_sends_the_stop_to_the_next_place_without_more_keypoints():
 
     seq = SimulatedSequence(world="town", sensor="vlp16", n_scans=5, seed=5, clutter=False, spacing=2.0)
     # every candidate is rejected (eps_ICP ~ 0) and every batch passes the stop test (xi_v ~ 0)
-    strict = {"xi_v": 1e-9, "verify": {"top_k": 1, "verify": {"score": {"eps_icp": 1e-12}}}}
+    strict = {"xi_v": 1e-9, "verify": {"top_k": 1, "score": {"eps_icp": 1e-12}}}
     descs = None
     consumed = {}
     for weight in (1.0, 1e-6):
@@ -238,7 +238,7 @@ def test_fallback_verifies_fallback_top_k_places():
 
     seq = SimulatedSequence(world="town", sensor="vlp16", n_scans=5, seed=5, clutter=False, spacing=2.0)
     # nothing can be accepted (eps_ICP ~ 0) and nothing stops early: the fallback verifies the only candidates
-    strict = {"early_stop": False, "verify": {"top_k": 1, "verify": {"score": {"eps_icp": 1e-12}}}}
+    strict = {"early_stop": False, "verify": {"top_k": 1, "score": {"eps_icp": 1e-12}}}
     descs = None
     for fallback, expected in ((None, 1), (3, 3)):
         rec = ProbabilisticVoting(strict, fallback_top_k=fallback)

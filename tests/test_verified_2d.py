@@ -91,7 +91,7 @@ def test_true_loop_gets_the_6dof_pose_and_a_wrong_place_ranks_lower(sim, name):
     assert t_err < 0.3 and r_err < 2.0
     assert best.inliers >= 8 and best.verification.correspondences >= best.inliers
     assert 0 < best.score <= 1 and best.score == best.verification.score
-    min_score = rec.params.verify.verify.score.min_score
+    min_score = rec.params.verify.score.min_score
     assert all(c.score < min_score and not c.accepted for c in cands[1:])
 
 

@@ -37,7 +37,7 @@ def test_scan_cloud_is_voxelised_and_cropped(sim):
     _, scans = sim
     c = scan_cloud(scans[QUERY])
     assert c.dtype == np.float32 and c.shape[1] == 3 and 1000 < len(c) < len(scans[QUERY]) // 2
-    cropped = scan_cloud(scans[QUERY], VerifiedParams(verify={"icp": {"max_range": 10.0}}).verify)
+    cropped = scan_cloud(scans[QUERY], VerifiedParams(icp={"max_range": 10.0}))
     assert np.linalg.norm(cropped, axis=1).max() <= 10.0 + 0.4 and len(cropped) < len(c)
 
 
@@ -65,7 +65,7 @@ def test_verify_candidates_reranks_and_returns_t_match_query(sim, clouds):
     assert best.retrieval_score == 0.5 and best.extra["votes"] == 4
     assert best.inliers is None  # ICP only
     assert all(c.verify_ms > 0 for c in got) and best.verify_ms > 500.0  # + its matching
-    assert wrong.score < VerifiedParams().verify.score.min_score  # kept, below the acceptance threshold
+    assert wrong.score < VerifiedParams().score.min_score  # kept, below the acceptance threshold
 
 
 def test_verify_candidates_top_k_k_and_the_eps_icp_rule(clouds):
@@ -75,7 +75,7 @@ def test_verify_candidates_top_k_k_and_the_eps_icp_rule(clouds):
     retrieved = [Retrieved(WRONG, 0.9), Retrieved(TRUE, 0.5)]
     only_first = verify_candidates(clouds[QUERY], retrieved, store, VerifiedParams(top_k=1))
     assert [c.match_id for c in only_first] == [WRONG]  # beyond top_k: dropped, not verified
-    p = VerifiedParams(verify={"score": {"acceptance": "eps_icp", "eps_icp": 1e-6}})
+    p = VerifiedParams(score={"acceptance": "eps_icp", "eps_icp": 1e-6})
     got = verify_candidates(clouds[QUERY], retrieved, store, p, k=1)
     assert len(got) == 1 and got[0].score == 0.0 and not got[0].accepted  # rejected by the rule: 0
     assert verify_candidates(clouds[QUERY], [], store, VerifiedParams()) == []
@@ -147,7 +147,7 @@ def voting(sim):
 def test_keypoint_voting_verifies_with_grouping_ransac_and_icp(sim, voting):
     seq, _ = sim
     rec, descs = voting
-    p = rec.params.verify.verify
+    p = rec.params.verify
     assert rec.params.verify.enabled and p.consistency.enabled and p.score.acceptance == "eps_icp"
     assert (p.consistency.min_cluster_size, p.consistency.consensus_resolution, p.score.eps_icp) == (
         8,
@@ -237,7 +237,7 @@ def test_scan_context_save_load_keeps_the_clouds(scan_context, tmp_path):
     with pytest.raises(ArtifactError, match="clouds"):
         ScanContext().load(tmp_path / "plain.npz")
     with pytest.raises(ArtifactError, match="voxel"):  # clouds made at another voxel size
-        ScanContext(verify={"verify": {"icp": {"voxel_size": 0.5}}}).load(tmp_path / "sc.npz")
+        ScanContext(verify={"icp": {"voxel_size": 0.5}}).load(tmp_path / "sc.npz")
     with pytest.raises(ScanDataError, match="cloud"):
         ScanContext().add_description(3, descs[TRUE]["scan_context"])
 

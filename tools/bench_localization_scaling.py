@@ -73,7 +73,7 @@ def fill(rec: KeypointVoting, dbs: list[PlacesDatabase], n: int) -> None:
             kp, desc = db.place_features(p)
             pose = db.poses[p].copy()
             pose[0, 3] += w * OFFSET_M
-            cloud = scan_cloud(db.clouds[p][0], rec.params.verify.verify)
+            cloud = scan_cloud(db.clouds[p][0], rec.params.verify)
             rec.add_description(
                 w * 100000 + int(db.ids[p]), {"keypoints": kp, "descriptors": desc, "cloud": cloud}, pose
             )

@@ -34,7 +34,7 @@ DEFAULT_SETTINGS = [
     {"name": "orb-hbst", "params": {"verify": {"icp_top_k": None}}},
     {"name": "orb-hbst", "params": {"verify": {"icp_top_k": 1}}},
     {"name": "orb-hbst", "params": {"verify": {"top_k": 10}}},
-    {"name": "orb-hbst", "params": {"verify": {"verify": {"ransac": {"mode": "4dof"}}}}},
+    {"name": "orb-hbst", "params": {"verify": {"ransac": {"mode": "4dof"}}}},
     {"name": "orb-dbow", "params": {}},
     {"name": "orb-dbow", "params": {"verify": {"top_k": 5, "icp_top_k": None}}},
     {"name": "orb-dbow", "params": {"verify": {"top_k": 10}}},

@@ -56,7 +56,6 @@ from placerec.params import Params
 from placerec.recognizer import Recognizer, params_key, require_points
 from placerec.types import Candidate, Scan
 from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
-from placerec.verify.params import VerifyParams
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +108,7 @@ class ScanContextParams(Params):
         50, ge=1, description="additions between KD-tree rebuilds (reference: 50)"
     )
     verify: VerifiedParams = Field(
-        default_factory=lambda: VerifiedParams(verify=VerifyParams(icp={"max_iterations": 15})),
+        default_factory=lambda: VerifiedParams(icp={"max_iterations": 15}),
         description="ICP from the Scan Context yaw on the top-k candidates (placerec.verify.candidates); 15 ICP "
         "iterations: the same closures as 30 on the demo, wrong candidates cost half",
     )
@@ -124,7 +123,7 @@ class ScanContextParams(Params):
 
     def cloud_dict(self) -> dict[str, Any] | None:
         """What the description's ICP cloud depends on (None without verification)."""
-        icp = self.verify.verify.icp
+        icp = self.verify.icp
         return {"voxel_size": icp.voxel_size, "max_range": icp.max_range} if self.verify.enabled else None
 
 
@@ -250,7 +249,7 @@ class ScanContext(Recognizer):
         self._n = 0
         self._tree: cKDTree | None = None
         self._n_tree = 0
-        self._clouds = CloudStore(self.params.verify.verify, dtype=self.params.verify.cloud_store)
+        self._clouds = CloudStore(self.params.verify, dtype=self.params.verify.cloud_store)
 
     def __len__(self) -> int:
         return self._n
@@ -274,7 +273,7 @@ class ScanContext(Recognizer):
         require_points(scan, self.name)
         out = {"scan_context": make_descriptor(scan, self.params)}
         if self.params.verify.enabled:
-            out["cloud"] = scan_cloud(scan, self.params.verify.verify)
+            out["cloud"] = scan_cloud(scan, self.params.verify)
         return out
 
     def _cloud(self, description: Mapping[str, np.ndarray] | np.ndarray) -> np.ndarray | None:
@@ -443,7 +442,7 @@ class ScanContext(Recognizer):
         if desc.shape[1:] != (self.params.num_rings, self.params.num_sectors):
             raise ArtifactError(f"{path}: descriptors of shape {desc.shape[1:]} for parameters {mine}")
         check_unique(ids, path, "ids")
-        icp = _walk(saved, "verify", "verify", "icp")
+        icp = _walk(saved, "verify", "icp")
         saved_cloud = (
             {"voxel_size": icp.get("voxel_size"), "max_range": icp.get("max_range")}
             if isinstance(icp, dict) and _walk(saved, "verify", "enabled") is True
@@ -456,7 +455,7 @@ class ScanContext(Recognizer):
                 f"{path}: database saved without the clouds verification needs (or with other voxel "
                 f"parameters): {saved_cloud}"
             )
-        clouds = CloudStore(self.params.verify.verify, dtype=self.params.verify.cloud_store)
+        clouds = CloudStore(self.params.verify, dtype=self.params.verify.cloud_store)
         if self.params.verify.enabled:
             clouds.from_arrays(ids.tolist(), arrays, path)
         n = int(ids.size)

@@ -206,7 +206,7 @@ def operating_point(
 def _min_score(params: dict[str, Any]) -> float | None:
     """The verification's ``min_score`` of a pipeline's resolved parameters when it accepts by score (a candidate
     scoring below it was rejected), else None."""
-    score = _get(params, ("verify", "verify", "score"))
+    score = _get(params, ("verify", "score"))
     if isinstance(score, dict) and score.get("acceptance", "score") == "score":
         return score.get("min_score")
     return None

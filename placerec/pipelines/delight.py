@@ -230,7 +230,7 @@ class Delight(KeypointVoting):
 
     @property
     def frontend_key(self) -> str:
-        icp = self.params.verify.verify.icp
+        icp = self.params.verify.icp
         return params_key(
             self.name,
             {

@@ -79,7 +79,7 @@ class RegistrationVotes(VoteStrategy):
         assert self.pairs is not None
         src, dst, quality = self.pairs
         t0 = time.perf_counter()
-        hyp = hypothesise(src, dst, None, self.p.verify.verify, quality)
+        hyp = hypothesise(src, dst, None, self.p.verify, quality)
         locate_ms = (time.perf_counter() - t0) * 1e3
         if hyp.rejected_at is not None:
             return None

@@ -161,7 +161,7 @@ class VotingParams(FeatureParams):
     places_db: str | None = Field(None, description="a PlacesDatabase file replacing the entries")
     verify: VerifiedParams = Field(
         default_factory=lambda: VerifiedParams(
-            top_k=5, verify=VerifyParams(consistency={"enabled": True}, score={"acceptance": "eps_icp"})
+            top_k=5, consistency={"enabled": True}, score={"acceptance": "eps_icp"}
         ),
         description="consistency grouping, RANSAC and ICP on the top-k voted entries (ISHOT paper Sec. IV-F)",
     )
@@ -213,9 +213,9 @@ class KeypointVoting(Recognizer):
     def _reset(self, entries: EntryTable | None = None) -> None:
         p = self.params
         self.entries = entries or EntryTable.empty(self._dim, p.descriptor_store or "float32")
-        self.clouds = CloudStore(p.verify.verify, dtype=p.verify.cloud_store)
+        self.clouds = CloudStore(p.verify, dtype=p.verify.cloud_store)
         self.local_maps = LocalMaps(
-            self.entries, self.clouds, p.verify_radius_m, p.local_map_cache, p.verify.verify
+            self.entries, self.clouds, p.verify_radius_m, p.local_map_cache, p.verify
         )
         self.window = PlaceWindow(p.place_window_m, self.name)
         #: the scan poses of the map a places database was built from
@@ -258,14 +258,14 @@ class KeypointVoting(Recognizer):
                     f"{self.name}: the places database has {len(db.clouds)} clouds for {len(db)} places"
                 )
             for k, i in enumerate(self.entries.ids):
-                self.clouds.add_deferred(i, partial(_icp_cloud, db.clouds, k, self.params.verify.verify))
+                self.clouds.add_deferred(i, partial(_icp_cloud, db.clouds, k, self.params.verify))
         self._map_poses = np.array(db.scan_poses)
 
     # -- front end -------------------------------------------------------------------------------------------
     @property
     def frontend_key(self) -> str:
         p = self.params
-        icp = p.verify.verify.icp
+        icp = p.verify.icp
         return params_key(
             "keypoint-voting",
             {
@@ -297,7 +297,7 @@ class KeypointVoting(Recognizer):
             why = "ISHOT's intensity signature needs varying intensity (pipeline shot-votes takes scans without it)"
             require_varying_intensity(scan, ok, self.name, why)
         scan = self._normalised(scan)
-        cloud = scan_cloud(scan, self.params.verify.verify)
+        cloud = scan_cloud(scan, self.params.verify)
         try:
             lf = extract_features(scan, self._features)
         except ScanDataError as exc:
@@ -367,7 +367,7 @@ class KeypointVoting(Recognizer):
     def _describe_window(self, T_world_place: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Keypoints, descriptors and ICP cloud of the place accumulated in the window, in its frame."""
         cloud = self.window.cloud(T_world_place)
-        icp_cloud = scan_cloud(cloud, self.params.verify.verify)
+        icp_cloud = scan_cloud(cloud, self.params.verify)
         try:
             lf = extract_features(cloud, self._features)
         except ScanDataError as exc:

@@ -40,7 +40,7 @@ database, not the description, which the paper does batch by batch; the ISHOT de
 matched with the candidate place's instead of SHOT; the registry preset
 (`placerec.recognizer.LOCALIZE_VERIFY`) verifies each candidate as a local map of the places within 15 m
 (``verify_radius_m``), with every nearest neighbour (``verify_tau_max`` 1), ICP clouds cropped at 40 m like
-the places, RANSAC from 3 inliers and at least 70 % overlap (``verify.verify.score.min_fitness``), and skips
+the places, RANSAC from 3 inliers and at least 70 % overlap (``verify.score.min_fitness``), and skips
 candidates within 7.5 m of one already verified (``verify_separation_m``: their local maps overlap it).
 ``index: ivf`` searches the database approximately (sub-linear in its size).
 """

@@ -154,7 +154,7 @@ def visual_frontend_key(params: VisualPipelineParams) -> str:
     and range): equal for every visual pipeline with the same front-end settings, so they share descriptions."""
     front = params.model_dump(mode="json", include={"features", "feature_params", "image"})
     if params.verify.enabled:
-        icp = params.verify.verify.icp
+        icp = params.verify.icp
         front["cloud"] = {"voxel_size": icp.voxel_size, "max_range": icp.max_range}
     return params_key("visual", front)
 
@@ -255,11 +255,11 @@ class VisualFrontend:
 
     def describe(self, scan: Scan) -> Description:
         p = self.params
-        return describe_visual(scan, p.image, self.extractor, p.verify.verify if p.verify.enabled else None)
+        return describe_visual(scan, p.image, self.extractor, p.verify if p.verify.enabled else None)
 
     def _reset_verification(self) -> None:
         self._kp_xyz: dict[int, np.ndarray] = {}
-        self._clouds = CloudStore(self.params.verify.verify, dtype=self.params.verify.cloud_store)
+        self._clouds = CloudStore(self.params.verify, dtype=self.params.verify.cloud_store)
 
     def _add_verification(self, scan_id: int, description: Description) -> None:
         """Keep the keypoints' 3D points and (with verification) the ICP cloud of a description being added."""

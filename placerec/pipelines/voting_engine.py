@@ -180,7 +180,7 @@ class _Verifier:
             return bool(picked)
         picked = rec.pick(short.ranked, self.verified, short.top_k or vp.top_k)
         if self._source is None and picked:
-            self._source = as_source(query.description["cloud"], vp.verify)
+            self._source = as_source(query.description["cloud"], vp)
         retrieve = short.retrieve or (lambda e: rec.local_matches(e, query, short.score(e), short.extra(e)))
         for a in range(0, len(picked), vp.top_k):
             chunk = picked[a : a + vp.top_k]

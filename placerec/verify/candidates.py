@@ -4,13 +4,13 @@
 
     from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
 
-    description["cloud"] = scan_cloud(scan, params.verify.verify)       # in describe(): cached with the rest
+    description["cloud"] = scan_cloud(scan, params.verify)       # in describe(): cached with the rest
     store.add(scan_id, description["cloud"])                            # in add_description(): the database's
     retrieved = [Retrieved(match_id, retrieval_score, src_kp, dst_kp)]  # or init=T_guess for ICP only
     cands = verify_candidates(description["cloud"], retrieved, store, params.verify, query_id, k)
 
-* `VerifiedParams` is the ``verify`` section of a pipeline's Params: ``enabled``, ``top_k`` and the
-  `placerec.verify.VerifyParams` of the stage.
+* `VerifiedParams` is the ``verify`` section of a pipeline's Params: ``enabled``, ``top_k`` and, in the same
+  section, the `placerec.verify.VerifyParams` of the stage.
 * `scan_cloud` voxelises a scan at the ICP target voxel (``icp.voxel_size``), float32: what a description keeps
   so the description cache holds it; the query is prepared from it once per query (`as_source`, at the coarser
   source voxel), each database cloud once (`CloudStore.target`, kept for later queries).
@@ -43,7 +43,6 @@ import numpy as np
 from pydantic import Field
 
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
-from placerec.params import Params
 from placerec.quantise import FixedPointCloud, PackedCloud
 from placerec.types import Candidate
 from placerec.verify.icp import IcpCloud, as_points
@@ -53,8 +52,9 @@ from placerec.verify.verify import Hypothesis, Verification, as_source, as_targe
 __all__ = ["VerifiedParams", "Retrieved", "CloudStore", "scan_cloud", "voxel_points", "verify_candidates"]
 
 
-class VerifiedParams(Params):
-    """The ``verify`` section of a pipeline: whether and how many retrieved candidates are verified."""
+class VerifiedParams(VerifyParams):
+    """The ``verify`` section of a pipeline: whether and how many retrieved candidates are verified, and the
+    verification stage's own settings (`VerifyParams`: RANSAC, consistency grouping, ICP, acceptance)."""
 
     enabled: bool = Field(
         True, description="verify the retrieved candidates geometrically (RANSAC / ICP, placerec.verify)"
@@ -69,9 +69,6 @@ class VerifiedParams(Params):
         ge=1,
         description="of the candidates that pass RANSAC, ICP refines (and may accept) only this many, those with the"
         " most inliers; the rest are rejected at 'rank' (None: all)",
-    )
-    verify: VerifyParams = Field(
-        default_factory=VerifyParams, description="the verification stage (docs/verification.md)"
     )
     cloud_store: Literal["float32", "int16", "int16-zlib"] = Field(
         "int16-zlib",
@@ -258,7 +255,7 @@ def verify_candidates(
     todo = list(retrieved)[: params.top_k]
     if not todo:
         return []
-    vp = params.verify
+    vp = params
     hyps, ms = [], []
     for r in todo:
         t0 = time.perf_counter()
