@@ -45,6 +45,8 @@ __all__ = [
 
 #: Fewest valid points a scan needs to be described; fewer is a `ScanDataError` in every pipeline.
 MIN_POINTS = 100
+
+
 def require_points(scan: Scan, where: str, minimum: int = MIN_POINTS) -> np.ndarray:
     """`valid_points` of ``scan``; `ScanDataError` naming ``where`` when fewer than ``minimum`` are valid."""
     ok = valid_points(scan)
@@ -146,11 +148,15 @@ class Recognizer(ABC):
 #: the local map's radius) of one already verified for the query is skipped; when voting ends without an accepted
 #: place, the voting pipelines verify the 30 most voted (their last resort).
 LOCALIZE_VERIFY: dict[str, Any] = {
-    "verify_tau_max": 1.0,
-    "verify_radius_m": 15.0,
-    "verify_separation_m": 7.5,
-    "fallback_top_k": 30,
-    "verify": {"icp": {"max_range": 40.0}, "ransac": {"min_inliers": 3}, "score": {"min_fitness": 0.7}},
+    "verify": {
+        "tau_max": 1.0,
+        "radius_m": 15.0,
+        "separation_m": 7.5,
+        "fallback_top_k": 30,
+        "icp": {"max_range": 40.0},
+        "ransac": {"min_inliers": 3},
+        "score": {"min_fitness": 0.7},
+    },
 }
 
 
@@ -214,38 +220,42 @@ PIPELINES: dict[str, PipelineEntry] = {
     "ishot-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",
         "ISHOT paper: ISS-BR keypoints, ISHOT descriptors (geometry + intensity), ratio-tested NN votes",
-        {"descriptor": "ishot"},
+        {"features": {"descriptor": "ishot"}},
     ),
     "shot-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",
         "ISHOT paper's baseline: ISS-BR keypoints, SHOT descriptors, ratio-tested NN votes",
-        {"descriptor": "shot"},
+        {"features": {"descriptor": "shot"}},
     ),
     "ishot-prob": PipelineEntry(
         "placerec.pipelines.probabilistic_voting:ProbabilisticVoting",
         "ISHOT paper Sec. IV: probabilistic keypoint voting (batches of 16, stop at 15 %), verification + ICP",
-        {"descriptor": "ishot", **LOCALIZE_VERIFY},
+        {"features": {"descriptor": "ishot"}, **LOCALIZE_VERIFY},
     ),
     "shot-global": PipelineEntry(
         "placerec.pipelines.global_registration:GlobalRegistration",
         "ISHOT paper's baseline (a): SHOT global registration, K = 4 over every map keypoint, verification + ICP",
-        {"descriptor": "shot", **LOCALIZE_VERIFY, "verify": {**LOCALIZE_VERIFY["verify"], "top_k": 1}},
+        {
+            "features": {"descriptor": "shot"},
+            **LOCALIZE_VERIFY,
+            "verify": {**LOCALIZE_VERIFY["verify"], "top_k": 1},
+        },
     ),
     "shot-gestalt-votes": PipelineEntry(
         "placerec.pipelines.gestalt_voting:GestaltVoting",
         "ISHOT paper's baseline (b) on SHOT: Bosse & Zlot voting (10 % rounds, K = 10, log-normal stop), verification",
-        {"descriptor": "shot", **LOCALIZE_VERIFY},
+        {"features": {"descriptor": "shot"}, **LOCALIZE_VERIFY},
     ),
     "delight": PipelineEntry(
         "placerec.pipelines.delight:Delight",
         "ISHOT paper's baseline (c): DELIGHT intensity histograms (2 spheres x 8 sectors, chi-squared) rank the "
         "places, then the shared verification on SHOT",
-        {"descriptor": "shot", **LOCALIZE_VERIFY},
+        {"features": {"descriptor": "shot"}, **LOCALIZE_VERIFY},
     ),
     "fpfh-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",
         "ISHOT paper's baseline: ISS-BR keypoints, FPFH descriptors, ratio-tested NN votes",
-        {"descriptor": "fpfh"},
+        {"features": {"descriptor": "fpfh"}},
     ),
 }
 

@@ -93,5 +93,3 @@ def test_normalised_score_and_alpha():
     assert normalised_results(p, ids[:0], scores[:0], eta=0.25).status == "no_db_results"
     r = normalised_results(LoopDetectorParams(), ids, scores)
     assert r.status == "ok" and r.ids.tolist() == ids.tolist() and not LoopDetectorParams().enabled
-
-

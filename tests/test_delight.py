@@ -130,8 +130,8 @@ def test_the_ranking_is_unchanged_by_the_heading_under_shifts_only(town):
 
 def test_a_query_from_the_map_finds_itself_with_a_6dof_pose_through_the_shared_verification(town):
     rec = make_pipeline("delight")
-    assert isinstance(rec, Delight) and rec.params.descriptor == "shot"
-    assert rec.params.verify.consistency.enabled and rec.params.verify_radius_m == 15.0
+    assert isinstance(rec, Delight) and rec.params.features.descriptor == "shot"
+    assert rec.params.verify.consistency.enabled and rec.params.verify.radius_m == 15.0
     for i in (0, 2, 4):
         rec.add(i, town[i], town.poses[i])
     c = rec.query(town[2], k=1, query_id=2)[0]
@@ -149,7 +149,7 @@ def test_a_query_from_the_map_finds_itself_with_a_6dof_pose_through_the_shared_v
 
 
 def test_entries_kept_apart_carry_their_own_histograms(town):
-    rec = Delight(verify={"enabled": False}, place_spacing_m=3.0)
+    rec = Delight(verify={"enabled": False}, places={"spacing_m": 3.0})
     for i in range(5):
         rec.add(i, town[i], town.poses[i])  # 2 m apart: scans 0, 2, 4 become entries
     assert len(rec) == 3
@@ -176,8 +176,8 @@ def test_bad_input_is_refused(town):
         rec.add_description(0, {**rec.describe(town[0]), "delight": np.zeros((2, 8, 7), np.float32)})
     with pytest.raises(ConfigError, match="inner_radius"):
         Delight(inner_radius=40.0, outer_radius=40.0)
-    with pytest.raises(ConfigError, match="places_db"):
-        Delight(places_db="places.npz")
+    with pytest.raises(ConfigError, match="places.database"):
+        Delight(places={"database": "places.npz"})
     with pytest.raises(ConfigError, match="bins"):
         Delight(bins=1)
 

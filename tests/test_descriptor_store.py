@@ -127,7 +127,9 @@ def test_sq8_store_fills_as_float32_then_fits_its_quantiser():
 def test_voting_on_sq8_equals_float32_on_synthetic_places():
     results = {}
     for dtype in ("float32", "sq8"):
-        rec = KeypointVoting(descriptor="shot", descriptor_store=dtype, verify={"enabled": False})
+        rec = KeypointVoting(
+            features={"descriptor": "shot"}, search={"descriptor_store": dtype}, verify={"enabled": False}
+        )
         descs = add_synthetic_places(rec, np.random.default_rng(5), n_places=12, per_place=40, dim=352)
         assert rec.entries.store.dtype == dtype
         queries = [d[:20] + 0.01 * np.random.default_rng(6).normal(size=d[:20].shape) for d in descs]
@@ -175,15 +177,15 @@ def test_places_database_round_trip_keeps_the_store_and_the_search(compact_db, t
         scale = np.abs(xb - 0.5 * (xb.min(0) + xb.max(0))).max() / 32767
         assert np.abs(xa - xb).max() <= scale / 2 + 1e-5 and np.abs(ia - ib).max() <= 1 / 510 + 1e-7
     # a recognizer serves the compressed store as it is, and a float32 copy of it on request
-    rec = KeypointVoting.from_places(again, iss={"max_keypoints": 40}, verify={"cloud_store": "int16"})
+    rec = KeypointVoting.from_places(again, verify={"cloud_store": "int16"})
     assert rec.entries.store is again.descriptors
-    assert KeypointVoting.from_places(
-        again, iss={"max_keypoints": 40}, descriptor_store="float32"
-    ).entries.store.dtype == ("float32")
+    assert KeypointVoting.from_places(again, search={"descriptor_store": "float32"}).entries.store.dtype == (
+        "float32"
+    )
 
 
 def test_keypoint_voting_database_round_trip_in_sq8(compact_db, tmp_path):
-    rec = KeypointVoting.from_places(compact_db, iss={"max_keypoints": 40}, verify={"enabled": False})
+    rec = KeypointVoting.from_places(compact_db, verify={"enabled": False})
     assert rec.entries.store.dtype == "sq8"
     path = tmp_path / "kv.npz"
     rec.save(path)

@@ -23,10 +23,10 @@ def test_another_world_reads_its_own_places_and_towns_vote_model(tool):
     assert data["dataset"]["simulator"]["world"] == "campus"
     assert [s.get("label", s["name"]) for s in data["pipelines"]] == ["ishot-prob", "scan-context"]
     params = data["pipelines"][0]["params"]
-    assert params["places_db"] == ".cache/localize/places_campus_vlp16_sq8.npz"
+    assert params["places"]["database"] == ".cache/localize/places_campus_vlp16_sq8.npz"
     assert params["vote_model"] == ".cache/localize/votes_town_vlp16.npz"
     town = tool.config_data(str(ROOT / "configs" / "localize.yaml"), "town", None)
-    assert town["pipelines"][0]["params"]["places_db"] == ".cache/localize/places_town_vlp16_sq8.npz"
+    assert town["pipelines"][0]["params"]["places"]["database"] == ".cache/localize/places_town_vlp16_sq8.npz"
     assert len(town["pipelines"]) > 2
 
 

@@ -9,7 +9,7 @@ from placerec.artifacts.places import build_places
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.pipelines.keypoint_voting import KeypointVoting, knn2, ratio_votes
 from placerec.recognizer import make_pipeline
-from placerec.three_d import FeatureParams, ISSParams
+from placerec.three_d import FeatureParams
 from placerec.three_d.places import PlacesParams
 
 D = 1344
@@ -94,31 +94,31 @@ def test_max_id_with_ids_added_out_of_order():
 def test_save_load_round_trip_and_parameter_check(tmp_path):
     rng = np.random.default_rng(3)
     rows, _, query = planted(rng)
-    rec = KeypointVoting(tau_max=0.8, **OFF)
+    rec = KeypointVoting(search={"tau_max": 0.8}, **OFF)
     for i, r in enumerate(rows):
         rec.add_description(i, desc(r), np.eye(4))
     rec.save(tmp_path / "db.npz")
-    again = KeypointVoting(tau_max=0.8, **OFF)
+    again = KeypointVoting(search={"tau_max": 0.8}, **OFF)
     again.load(tmp_path / "db.npz")
     a, b = rec.query_description(desc(query), k=4), again.query_description(desc(query), k=4)
     assert [(c.match_id, c.score) for c in a] == [(c.match_id, c.score) for c in b]
     with pytest.raises(ArtifactError, match="other parameters"):
-        KeypointVoting(tau_max=0.9, **OFF).load(tmp_path / "db.npz")
+        KeypointVoting(search={"tau_max": 0.9}, **OFF).load(tmp_path / "db.npz")
 
 
 def test_registry_presets_and_bad_parameters():
-    assert make_pipeline("shot-votes").params.descriptor == "shot"
-    assert make_pipeline("fpfh-votes").params.descriptor == "fpfh"
-    assert make_pipeline("ishot-votes", {"tau_max": 0.8}).params.tau_max == 0.8
+    assert make_pipeline("shot-votes").params.features.descriptor == "shot"
+    assert make_pipeline("fpfh-votes").params.features.descriptor == "fpfh"
+    assert make_pipeline("ishot-votes", {"search": {"tau_max": 0.8}}).params.search.tau_max == 0.8
     with pytest.raises(ConfigError):
         make_pipeline("ishot-votes", {"tau": 0.8})
     with pytest.raises(ConfigError):
-        KeypointVoting(tau_max=1.5)
+        KeypointVoting(search={"tau_max": 1.5})
 
 
 # -- on the simulator --------------------------------------------------------------------------------------------
 
-FAST = dict(descriptor="ishot", iss=ISSParams(max_keypoints=100))
+FAST = dict(features={"descriptor": "ishot", "iss": {"max_keypoints": 100}})
 
 
 @pytest.fixture(scope="module")
@@ -152,19 +152,19 @@ def test_aggregated_places_and_places_database(sim_map, tmp_path):
     from placerec.intensity import normalize_intensity
 
     seq, scans = sim_map
-    agg = KeypointVoting(place_spacing_m=6.0, place_window_m=6.0, **FAST)
+    agg = KeypointVoting(places={"spacing_m": 6.0, "window_m": 6.0}, **FAST)
     for i, s in enumerate(scans):
         agg.add(i, s, seq.poses[i])
     assert agg.entries.ids == [0, 3, 6, 9, 12, 15] and len(agg.entries.store) > 300
     with pytest.raises(ScanDataError, match="pose"):
-        KeypointVoting(place_window_m=6.0, **FAST).add(0, scans[0])
+        KeypointVoting(places={"window_m": 6.0}, **FAST).add(0, scans[0])
 
     # single-scan places (window 0): a sparse single-scan query meets descriptors of the same density
-    feats = FeatureParams(iss=FAST["iss"])
+    feats = FeatureParams(iss={"max_keypoints": 100})
     db = build_places(seq, PlacesParams(place_spacing=6.0, window_m=0.0, features=feats))
     path = tmp_path / "places.npz"
     db.save(path)
-    rec = KeypointVoting(places_db=str(path), **FAST)
+    rec = KeypointVoting(places={"database": str(path)}, **FAST)
     assert rec.entries.ids == db.ids.tolist()
     for i in range(len(seq)):  # what the localize evaluator does: consistent with the database, no-op
         rec.add(i, scans[i], seq.poses[i])
@@ -178,19 +178,20 @@ def test_aggregated_places_and_places_database(sim_map, tmp_path):
     c = rec.query(q, k=1)
     assert c and c[0].match_id == t
     with pytest.raises(ArtifactError, match="other feature settings"):
-        KeypointVoting(places_db=str(path), descriptor="shot")
+        KeypointVoting(places={"database": str(path)}, features={"descriptor": "shot"})
     assert KeypointVoting.from_places(db).query(q, k=1)[0].match_id == c[0].match_id
 
 
-def test_voting_params_are_the_feature_params_plus_voting():
+def test_voting_params_hold_the_feature_params_as_a_section():
     from placerec.recognizer import make_pipeline
     from placerec.three_d.features import FeatureParams
 
     rec = make_pipeline(
-        "ishot-votes", {"shot": {"normalization": "per_part"}, "iss": {"salient_radius": 2.0}}
+        "ishot-votes", {"features": {"shot": {"normalization": "per_part"}, "iss": {"salient_radius": 2.0}}}
     )
-    feats = rec.params.features()
+    feats = rec.params.features
     assert type(feats) is FeatureParams
     assert feats.shot.normalization == "per_part" and feats.descriptor == "ishot"
     assert feats.iss.salient_radius == 2.0 and feats.iss.max_keypoints == 300
-    assert set(FeatureParams.model_fields) <= set(type(rec.params).model_fields)
+    assert set(type(rec.params).model_fields) >= {"features", "search", "places", "verify"}
+    assert not set(FeatureParams.model_fields) & set(type(rec.params).model_fields)  # no flattened copies

@@ -39,7 +39,7 @@ def _synthetic_db(rec, rng):
 
 def test_voting_stops_after_one_round_of_ten_percent_when_the_place_stands_out():
     rng = np.random.default_rng(2)
-    rec = GestaltVoting(descriptor="shot", verify={"enabled": False})
+    rec = GestaltVoting(features={"descriptor": "shot"}, verify={"enabled": False})
     descs = _synthetic_db(rec, rng)
     query = np.concatenate([descs[7], descs[7]]) + 0.02 * rng.normal(size=(40, 352)).astype(np.float32)
     top = rec.query_description({"keypoints": np.zeros((40, 3)), "descriptors": query}, k=3)[0]
@@ -47,7 +47,7 @@ def test_voting_stops_after_one_round_of_ten_percent_when_the_place_stands_out()
     assert top.extra["keypoints_consumed"] == 4 and top.extra["n_keypoints"] == 40
     assert top.extra["votes"] == 4 and top.extra["threshold"] < 4
     # a threshold never passed: every keypoint is consumed, then the most voted place is the answer
-    strict = GestaltVoting(descriptor="shot", verify={"enabled": False}, lognormal_z=50.0)
+    strict = GestaltVoting(features={"descriptor": "shot"}, verify={"enabled": False}, lognormal_z=50.0)
     _synthetic_db(strict, np.random.default_rng(2))
     top = strict.query_description({"keypoints": np.zeros((40, 3)), "descriptors": query}, k=1)[0]
     assert top.match_id == 7 and not top.extra["early_stop"] and top.extra["keypoints_consumed"] == 40
@@ -84,7 +84,7 @@ def test_localises_a_simulated_scan_with_a_6dof_pose(town, name):
     from placerec.types import relative_pose
 
     rec = make_pipeline(name)
-    assert rec.params.descriptor == "shot"
+    assert rec.params.features.descriptor == "shot"
     assert rec.params.verify.consistency.enabled  # the shared verification: grouping, RANSAC, ICP
     for i in (0, 2, 4):
         rec.add(i, town[i], town.poses[i])
@@ -108,8 +108,6 @@ def test_localize_config_verifies_every_pipeline_as_localize_verify():
     votes = next(r for r in rows if r["name"] == "ishot-votes")
     params = pipeline_class("ishot-votes").Params(**votes["params"])
     # ishot-votes has no early stop, so no fallback; everything else of the shared preset is given by hand
-    expected = pipeline_class("ishot-votes").Params(
-        **{k: v for k, v in LOCALIZE_VERIFY.items() if k != "fallback_top_k"},
-        places_db=votes["params"]["places_db"],
-    )
+    verify = {k: v for k, v in LOCALIZE_VERIFY["verify"].items() if k != "fallback_top_k"}
+    expected = pipeline_class("ishot-votes").Params(verify=verify, places=votes["params"]["places"])
     assert params.model_dump() == expected.model_dump()

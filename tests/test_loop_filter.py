@@ -23,7 +23,10 @@ def test_islands_group_close_ids():
 
 
 def _cands(query, ids, scores):
-    return [Candidate(query, int(i), float(s), extra={"tag": (query, int(i))}) for i, s in zip(ids, scores, strict=True)]
+    return [
+        Candidate(query, int(i), float(s), extra={"tag": (query, int(i))})
+        for i, s in zip(ids, scores, strict=True)
+    ]
 
 
 def test_filter_keeps_each_islands_best_candidate_and_needs_temporal_consistency():

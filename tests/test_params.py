@@ -20,10 +20,10 @@ from placerec.types import ListSequence, Scan
 
 
 def test_a_partial_nested_section_keeps_the_pipeline_defaults():
-    rec = make_pipeline("ishot-votes", {"iss": {"salient_radius": 2.0}})
-    assert rec.params.iss.salient_radius == 2.0
-    assert rec.params.iss.max_keypoints == 300  # the pipeline's default, not ISSParams' None
-    assert rec.params.iss.non_max_radius == 1.6
+    rec = make_pipeline("ishot-votes", {"features": {"iss": {"salient_radius": 2.0}}})
+    assert rec.params.features.iss.salient_radius == 2.0
+    assert rec.params.features.iss.max_keypoints == 300  # the pipeline's default, not ISSParams' None
+    assert rec.params.features.iss.non_max_radius == 1.6
 
 
 def test_preset_and_overrides_merge_deeply():
@@ -69,9 +69,9 @@ def test_feature_parameters_are_validated_by_the_named_extractor():
         ("orb-hbst", {"image": {"percentile": 150}}, "image.percentile"),
         ("orb-dbow", {"loop": {"use_nss": "yes"}}, "loop.use_nss"),
         ("orb-dbow", {"nn_ratio": 0}, "nn_ratio"),
-        ("ishot-votes", {"tau_max": 1.5}, "tau_max"),
-        ("ishot-votes", {"normals": {"max_nn": 2}}, "normals.max_nn"),
-        ("ishot-votes", {"descriptor": "sift"}, "descriptor"),
+        ("ishot-votes", {"search": {"tau_max": 1.5}}, "search.tau_max"),
+        ("ishot-votes", {"features": {"normals": {"max_nn": 2}}}, "features.normals.max_nn"),
+        ("ishot-votes", {"features": {"descriptor": "sift"}}, "features.descriptor"),
         ("map-closures", {"top_k": 0}, "top_k"),
     ],
 )

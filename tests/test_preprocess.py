@@ -18,7 +18,8 @@ from placerec.types import Scan, SensorInfo
 
 def test_remove_invalid_counts_nan_inf_and_no_return():
     xyz = np.array(
-        [[1, 2, 3], [np.nan, 0, 0], [0, 0, 0], [np.inf, 1, 1], [4, 5, 6], [1e5, 0, 0], [1e-8, 0, 0]], np.float32
+        [[1, 2, 3], [np.nan, 0, 0], [0, 0, 0], [np.inf, 1, 1], [4, 5, 6], [1e5, 0, 0], [1e-8, 0, 0]],
+        np.float32,
     )
     s = Scan(xyz, [1, 2, 3, 4, np.nan, 5, 6])
     out, counts = remove_invalid(s)

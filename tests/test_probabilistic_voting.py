@@ -10,6 +10,7 @@ from typer.testing import CliRunner
 
 from placerec.cli import app
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
+from placerec.params import deep_merge
 from placerec.pipelines.probabilistic_voting import ProbabilisticVoting
 from placerec.three_d.places import PlacesDatabase
 from placerec.three_d.posterior import Posterior, PosteriorTable, density_weights
@@ -169,7 +170,7 @@ def test_verify_separation_spreads_the_verified_places():
     desc = {"keypoints": np.zeros((16, 3)), "descriptors": query}
     xs = {}
     for sep in (0.0, 12.0):
-        rec = ProbabilisticVoting(common, verify_separation_m=sep)
+        rec = ProbabilisticVoting(common, verify={"separation_m": sep})
         _synthetic_db(rec, np.random.default_rng(4))
         xs[sep] = [5.0 * c.match_id for c in rec.query_description(desc, k=3)]
     assert xs[0.0][0] == xs[12.0][0] == 35.0  # place 7 first either way
@@ -241,7 +242,7 @@ def test_fallback_verifies_fallback_top_k_places():
     strict = {"early_stop": False, "verify": {"top_k": 1, "score": {"eps_icp": 1e-12}}}
     descs = None
     for fallback, expected in ((None, 1), (3, 3)):
-        rec = ProbabilisticVoting(strict, fallback_top_k=fallback)
+        rec = ProbabilisticVoting(deep_merge(strict, {"verify": {"fallback_top_k": fallback}}))
         descs = descs or {i: rec.describe(seq[i]) for i in range(5)}
         for i in (0, 2, 3, 4):
             rec.add_description(i, descs[i], seq.poses[i])
@@ -263,7 +264,7 @@ def test_build_places_and_fit_votes_commands(tmp_path):
     m = VoteModel.load(model)
     assert m.n_ranges == 2 and m.provenance["places_file"] == str(places) and fig.stat().st_size > 0
     assert m.provenance["n_training_scans"] == 3
-    rec = ProbabilisticVoting(vote_model=str(model), places_db=str(places))
+    rec = ProbabilisticVoting(vote_model=str(model), places={"database": str(places)})
     assert rec.vote_model.n_ranges == 2 and len(rec) == len(PlacesDatabase.load(places))
     # a map other than the one the places were built from is refused
     res = runner.invoke(app, ["fit-votes", "--places", str(places), "--sim-world", "town", "--sim-scans", "20",
@@ -292,7 +293,10 @@ def test_ivf_index_finds_the_exact_neighbours_of_near_duplicates_and_the_pipelin
     assert np.array_equal(i[:, 0], i0[:, 0]) and np.allclose(d[:, 0], d0[:, 0], atol=1e-4)
     common = {"verify": {"enabled": False}, "model": {"tau_edges": [0, 0.8, 1], "sigma": [4, 8],
               "lam": [0.8, 0.1], "d_max": 100}}  # fmt: skip
-    flat, ivf = ProbabilisticVoting(common), ProbabilisticVoting(common, index="ivf", ivf_nlist=8)
+    flat, ivf = (
+        ProbabilisticVoting(common),
+        ProbabilisticVoting(common, search={"index": "ivf", "ivf_nlist": 8}),
+    )
     descs = _synthetic_db(flat, np.random.default_rng(4))
     _synthetic_db(ivf, np.random.default_rng(4))
     query = descs[3][:32] + 0.02 * rng.normal(size=(32, 1344)).astype(np.float32)

@@ -137,7 +137,7 @@ def voting(sim):
     from placerec.pipelines.keypoint_voting import KeypointVoting
 
     seq, scans = sim
-    rec = KeypointVoting(descriptor="ishot", iss={"max_keypoints": 150})
+    rec = KeypointVoting(features={"descriptor": "ishot", "iss": {"max_keypoints": 150}})
     descs = {i: rec.describe(s) for i, s in scans.items()}
     for i in (WRONG, TRUE):
         rec.add_description(i, descs[i], seq.poses[i])
@@ -246,7 +246,9 @@ def test_local_map_verification_matches_and_aligns_in_the_candidates_frame(sim):
     from placerec.pipelines.keypoint_voting import KeypointVoting
 
     seq, _ = sim
-    rec = KeypointVoting(descriptor="ishot", iss={"max_keypoints": 150}, verify_radius_m=10.0)
+    rec = KeypointVoting(
+        features={"descriptor": "ishot", "iss": {"max_keypoints": 150}}, verify={"radius_m": 10.0}
+    )
     descs = {i: rec.describe(seq[i]) for i in (7, TRUE, QUERY, WRONG)}
     for i in (7, TRUE, WRONG):
         rec.add_description(i, descs[i], seq.poses[i])

@@ -114,7 +114,7 @@ def main() -> None:
         "ishot-prob": lambda: make_pipeline("ishot-prob", model),
         "ishot-exhaustive": lambda: make_pipeline("ishot-prob", {**model, "early_stop": False}),
         "ishot-votes": lambda: make_pipeline("ishot-votes", same_verify),
-        "ishot-prob-ivf": lambda: make_pipeline("ishot-prob", {**model, "index": "ivf"}),
+        "ishot-prob-ivf": lambda: make_pipeline("ishot-prob", {**model, "search": {"index": "ivf"}}),
         "ishot-prob-region": lambda: make_pipeline(
             "ishot-prob", {**model, "stop_radius_m": 7.5, "reject_weight": 0.02}
         ),
@@ -156,7 +156,9 @@ def main() -> None:
                 row["table_build_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
                 row["sparse_table_mb"] = round(table.nbytes / 2**20, 3)
                 if n <= 2000:
-                    full = PosteriorTable(rec.vote_model, np.asarray([T[:3, 3] for T in rec.entries.poses]), "full")
+                    full = PosteriorTable(
+                        rec.vote_model, np.asarray([T[:3, 3] for T in rec.entries.poses]), "full"
+                    )
                     row["full_table_mb"] = round(full.nbytes / 2**20, 3)
             if name.endswith("-ivf"):  # the index is built on the first query: time it apart
                 t0 = time.perf_counter()

@@ -8,7 +8,7 @@ The ISHOT store (``--ishot-queries``; 0 skips it) is measured on the places data
 (simulated town, VLP-16, places 2.5 m apart, one sweep each: 121 places, ~126 ISHOT keypoints per place;
 docs/localization.md), built once and saved in each store: ``float32`` (descriptors and clouds float32) and
 ``sq8`` (`placerec.retrieval.descriptor_store`: 8-bit descriptor codes; int16 clouds). Per store: the saved file's
-bytes per place; the anonymous memory of an ``ishot-prob`` pipeline loading it (memory-mapped, as ``places_db``
+bytes per place; the anonymous memory of an ``ishot-prob`` pipeline loading it (memory-mapped, as ``places.database``
 does; a fresh process each, after a warm-up pipeline and a garbage collection) at 121 places and at
 ``--ishot-copies`` (8) copies of them side by side, whose difference per added place is what a place costs
 (fixed costs such as faiss's index objects left out), and the file pages the load left resident (its CRC check
@@ -180,7 +180,11 @@ def _ishot_child(path: str, store: str, queries: list, warm_scan: object) -> dic
     before, before_file = rss_anon_bytes(), rss_anon_bytes("RssFile")
     rec = make_pipeline(
         "ishot-prob",
-        {"places_db": path, "descriptor_store": store, "verify": {"cloud_store": _CLOUDS[store]}},
+        {
+            "places": {"database": path},
+            "search": {"descriptor_store": store},
+            "verify": {"cloud_store": _CLOUDS[store]},
+        },
     )
     loaded, loaded_file = rss_anon_bytes() - before, rss_anon_bytes("RssFile") - before_file
     n = len(rec)

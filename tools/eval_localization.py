@@ -61,14 +61,16 @@ PLACE_SPACING = 2.5
 
 def places_stores(cfg: Any) -> dict[str, str]:
     """The places databases the config's pipelines read, each with the descriptor store it is saved in: that of
-    the first pipeline reading it (its ``descriptor_store``; `PlacesParams`'s default when not set)."""
+    the first pipeline reading it (its ``search.descriptor_store``; `PlacesParams`'s default when not set)."""
     from placerec.three_d.places import PlacesParams
 
     out: dict[str, str] = {}
     for s in cfg.pipelines:
-        if s.params.get("places_db") is not None:
+        path = (s.params.get("places") or {}).get("database")
+        if path is not None:
             out.setdefault(
-                s.params["places_db"], s.params.get("descriptor_store") or PlacesParams().descriptor_store
+                path,
+                (s.params.get("search") or {}).get("descriptor_store") or PlacesParams().descriptor_store,
             )
     return out
 
@@ -199,11 +201,13 @@ def config_data(config: str, world: str, labels: list[str] | None) -> dict[str, 
     for spec, label in zip(specs, known, strict=True):
         if labels is not None and label not in labels:
             continue
-        params = spec.get("params") or {}
-        if world != VOTE_MODEL_WORLD and "places_db" in params:
-            if f"_{VOTE_MODEL_WORLD}_" not in params["places_db"]:
-                raise SystemExit(f"{label}: places_db {params['places_db']} does not name {VOTE_MODEL_WORLD}")
-            params["places_db"] = params["places_db"].replace(f"_{VOTE_MODEL_WORLD}_", f"_{world}_")
+        places = (spec.get("params") or {}).get("places") or {}
+        if world != VOTE_MODEL_WORLD and "database" in places:
+            if f"_{VOTE_MODEL_WORLD}_" not in places["database"]:
+                raise SystemExit(
+                    f"{label}: places.database {places['database']} does not name {VOTE_MODEL_WORLD}"
+                )
+            places["database"] = places["database"].replace(f"_{VOTE_MODEL_WORLD}_", f"_{world}_")
         kept.append(spec)
     data["pipelines"] = kept
     return data

@@ -42,6 +42,7 @@ from placerec.experiment.preprocessing import preprocessed_scan  # noqa: E402
 from placerec.experiment.protocol import LOCALIZE_TEST_DRAW, LOCALIZE_TUNING_DRAW  # noqa: E402
 from placerec.pipelines.delight import DelightParams, delight_distance, make_descriptor  # noqa: E402
 from placerec.sim import make_localization_split  # noqa: E402
+from placerec.three_d.entries import far_from_all  # noqa: E402
 
 CONDITIONS = ("gator", "pole", "occlusion")
 KS = (1, 5, 30)
@@ -50,10 +51,10 @@ WIDE_M = 10.0
 
 def spaced_entries(positions: np.ndarray, spacing: float) -> np.ndarray:
     """Indices of the scans that become entries: each at least ``spacing`` from every earlier entry (the rule of
-    `KeypointVoting`'s ``place_spacing_m``)."""
+    `KeypointVoting`'s ``places.spacing_m``, `far_from_all`)."""
     kept: list[int] = []
     for i, p in enumerate(positions):
-        if spacing <= 0 or not kept or np.min(np.linalg.norm(positions[kept] - p, axis=1)) >= spacing:
+        if spacing <= 0 or far_from_all(positions[kept], p, spacing):
             kept.append(i)
     return np.asarray(kept, np.int64)
 
@@ -99,7 +100,7 @@ def main() -> None:
     ap.add_argument("--n-queries", type=int, default=100, help="queries per condition")
     ap.add_argument("--outer", default=None, help="outer radii (m); the inner one is half (default 20,40,60)")
     ap.add_argument("--bins", default=None, help="histogram bins (default 16,32,64)")
-    ap.add_argument("--spacing", type=float, default=2.5, help="m between map entries (place_spacing_m)")
+    ap.add_argument("--spacing", type=float, default=2.5, help="m between map entries (places.spacing_m)")
     ap.add_argument("--radius", type=float, default=3.0, help="m; a retrieved entry this close is right")
     ap.add_argument("--test", action="store_true", help="measure the stored defaults on the test draw")
     args = ap.parse_args()

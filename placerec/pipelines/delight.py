@@ -36,12 +36,12 @@ pipelines"): the front end's keypoints (ISS-BR) and descriptors (SHOT in the reg
 and (b)) are matched against the candidate's local map, then geometric consistency grouping, RANSAC and ICP
 accepted by eps_ICP (`KeypointVoting`'s verification, with the ``LOCALIZE_VERIFY`` preset: local maps of 15 m,
 candidates 7.5 m apart). ``verify.top_k`` candidates are verified at a time until one is accepted, up to
-``fallback_top_k`` in all: the descriptor discards the rest of the map. ``score``: the verified score
+``verify.fallback_top_k`` in all: the descriptor discards the rest of the map. ``score``: the verified score
 (``extra["retrieval_score"]`` = ``1 - distance / 32``, in [0, 1]); without verification that retrieval score,
 and no pose.
 
-Entries: every added scan, or with ``place_spacing_m`` the scans that far from every earlier entry (as for
-(a) and (b)); a places database (``places_db``) or accumulated places (``place_window_m``) hold no intensity
+Entries: every added scan, or with ``places.spacing_m`` the scans that far from every earlier entry (as for
+(a) and (b)); a places database (``places.database``) or accumulated places (``places.window_m``) hold no intensity
 histograms and are refused. The radii (30 / 60 m) and bins (64) are ours, chosen on the tuning split by the
 first stage's recall (``tools/tune_delight.py``, docs/localization.md): the published values are not available
 here.
@@ -90,7 +90,7 @@ _BLOCK = 2048
 
 class DelightParams(VotingParams):
     """`VotingParams` (front end, entries, the shared verification) plus the DELIGHT descriptor. The voting
-    fields (``tau_max`` beyond ``verify_tau_max``, ``score``, ``index``) do not apply: entries are ranked by the
+    fields (``tau_max`` beyond ``verify.tau_max``, ``score``, ``index``) do not apply: entries are ranked by the
     descriptor."""
 
     inner_radius: float = Field(
@@ -112,10 +112,10 @@ class DelightParams(VotingParams):
             raise ValueError(
                 f"inner_radius ({self.inner_radius}) must be below outer_radius ({self.outer_radius})"
             )
-        if self.places_db is not None or self.place_window_m > 0:
+        if self.places.database is not None or self.places.window_m > 0:
             raise ValueError(
-                "places_db and place_window_m are not supported: DELIGHT describes each added scan "
-                "(use place_spacing_m to keep scans apart)"
+                "places.database and places.window_m are not supported: DELIGHT describes each added scan "
+                "(use places.spacing_m to keep scans apart)"
             )
         return self
 
@@ -179,7 +179,7 @@ def delight_distance(
 
 class HistogramRanking(VoteStrategy):
     """DELIGHT's query: the eligible entries ranked once by the distance of their histograms to the query's (ties:
-    lower id); no keypoint is matched against the database, the best ``fallback_top_k`` (default ``verify.top_k``)
+    lower id); no keypoint is matched against the database, the best ``verify.fallback_top_k`` (default ``verify.top_k``)
     are verified ``verify.top_k`` at a time until one is accepted."""
 
     def __init__(self, rec: Delight, query: Query) -> None:
@@ -210,7 +210,7 @@ class HistogramRanking(VoteStrategy):
             ranked,
             score=lambda e: 1.0 - info[e][0] / (2.0 * N_SPHERES * N_SECTORS),
             extra=extra,
-            top_k=(p.fallback_top_k or p.verify.top_k) if p.verify.enabled else None,
+            top_k=(p.verify.fallback_top_k or p.verify.top_k) if p.verify.enabled else None,
         )
 
 
@@ -266,7 +266,7 @@ class Delight(KeypointVoting):
         h = self.histogram(description)
         n = len(self.entries)
         super().add_description(scan_id, description, pose)
-        if len(self.entries) > n:  # the scan became an entry (place_spacing_m may skip it)
+        if len(self.entries) > n:  # the scan became an entry (places.spacing_m may skip it)
             self._hist = np.concatenate([self._hist, h[None]])
 
     # -- persistence ----------------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ What is implemented (`GestaltVoting`, registered as ``shot-gestalt-votes``):
    verified yet go through the verification stage every localisation pipeline shares (geometric consistency
    grouping, RANSAC, point-to-plane ICP, eps_ICP = 7 m^2). An accepted place ends the query; otherwise the
    next round goes on. When every keypoint is consumed, the most voted unverified places are verified
-   (``fallback_top_k`` of them; every verified place at least ``verify_separation_m`` from the others).
+   (``verify.fallback_top_k`` of them; every verified place at least ``verify.separation_m`` from the others).
 
 Departures, said plainly:
 
@@ -125,7 +125,7 @@ class LognormalVotes(VoteStrategy):
 
     def vote(self, batch: np.ndarray) -> None:
         qr = self.query
-        _, idx = qr.rows.knn(qr.q[batch], self.p.knn, self.p.nn_threads)
+        _, idx = qr.rows.knn(qr.q[batch], self.p.knn, self.p.search.nn_threads)
         self.votes[: qr.n_entries] += place_votes(idx, qr.row_entry, qr.n_entries)
         self.matched += batch.size
         self.threshold = lognormal_threshold(self.votes[qr.eligible], self.p.lognormal_z)
@@ -134,7 +134,7 @@ class LognormalVotes(VoteStrategy):
         return self._shortlist(None) if self.votes.max() > self.threshold else None
 
     def fallback(self) -> Shortlist:
-        return self._shortlist(self.p.fallback_top_k)
+        return self._shortlist(self.p.verify.fallback_top_k)
 
     def _shortlist(self, top_k: int | None) -> Shortlist:
         """The most voted eligible entries with a vote (ties: lower id)."""

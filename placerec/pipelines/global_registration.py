@@ -8,7 +8,7 @@ verification stage every localisation pipeline shares (`placerec.verify`: geomet
 consensus resolution 7 m and minimum cluster 8, RANSAC), which gives ``T_world_query``. ICP then refines it
 against the map cloud nearest to that pose and accepts it by eps_ICP = 7 m^2, as for every other pipeline.
 
-How a pose in the map becomes a candidate: the match is the map entry (a map scan, ``place_spacing_m`` apart
+How a pose in the map becomes a candidate: the match is the map entry (a map scan, ``places.spacing_m`` apart
 like the ISHOT places) whose position is nearest to the RANSAC estimate of the query's position; the
 correspondences are expressed in that entry's frame (a rigid change of frame: grouping and RANSAC give the
 same pose) and verified against its cloud with `placerec.verify.candidates.verify_candidates`, so
@@ -69,7 +69,7 @@ class RegistrationVotes(VoteStrategy):
         wkp = self.rec.derived("world_keypoints", self.rec.entries.world_keypoints)
         if qr.rows.shape[0] < len(self.rec.entries.store):
             wkp = wkp[qr.eligible[self.rec.entries.row_entry]]
-        dist, idx = qr.rows.knn(qr.q[batch], k, self.p.nn_threads)
+        dist, idx = qr.rows.knn(qr.q[batch], k, self.p.search.nn_threads)
         found = idx.ravel() >= 0
         src = np.repeat(np.asarray(qr.qkp, np.float64)[batch], k, axis=0)[found]
         self.pairs = (src, wkp[idx.ravel()[found]], dist.ravel()[found])

@@ -1,11 +1,11 @@
 """The 3D pipeline: ISS-BR keypoints + ISHOT (or SHOT/FPFH) descriptors, ratio-tested NN votes per entry.
 
 For every query descriptor the two nearest database descriptors (exact L2, brute force; or approximate with
-``index: ivf``, `placerec.retrieval.nearest.IvfIndex`) give the ratio ``tau = d1 / d2`` (ISHOT paper, eq. 4);
+``search.index: ivf``, `placerec.retrieval.nearest.IvfIndex`) give the ratio ``tau = d1 / d2`` (ISHOT paper, eq. 4);
 when ``tau < tau_max`` the query descriptor votes for the entry its 1st neighbour belongs to. Candidates are
 the entries with most votes. The paper has no hard ratio threshold (its votes are weighted by a model per tau
 range); 0.9 was chosen in a localisation sweep on the simulator (docs/benchmarks.md, component figures). The
-descriptors live in a `placerec.retrieval.descriptor_store.DescriptorStore` (``descriptor_store``: float32,
+descriptors live in a `placerec.retrieval.descriptor_store.DescriptorStore` (``search.descriptor_store``: float32,
 float16 or sq8 8-bit codes, searched without decoding; a places database's own store by default, float32 for
 entries added scan by scan).
 
@@ -19,24 +19,24 @@ Score (what thresholds apply to): ``score="fraction"`` (default) is votes / numb
 
 Verification (``verify.enabled``, ISHOT paper Sec. IV-F; `placerec.verify.candidates`): the description keeps
 the scan voxelised for ICP (``cloud``), the database each entry's cloud. The ``verify.top_k`` most-voted
-entries are matched with the query alone (2-NN among the entry's descriptors, ratio ``< verify_tau_max``),
+entries are matched with the query alone (2-NN among the entry's descriptors, ratio ``< verify.tau_max``),
 then go through the paper's geometric consistency grouping (consensus resolution 7 m, minimum cluster 8),
 RANSAC and point-to-plane ICP; ``relative_pose`` is the 6-DoF ``T_match_query``, ``score`` the verified score
 (``retrieval_score`` the vote score), and a candidate is accepted when its ICP residual is below the paper's
-eps_ICP (7 m^2). With ``verify_radius_m > 0`` a candidate is verified as a local map
+eps_ICP (7 m^2). With ``verify.radius_m > 0`` a candidate is verified as a local map
 (`placerec.pipelines.local_maps`). The measured effect of ``top_k`` and the acceptance rules is in
 docs/benchmarks.md (component figures).
 
 Entries:
 
-* default (``place_spacing_m = 0``, ``place_window_m = 0``): every added scan is one entry, described alone;
+* default (``places.spacing_m = 0``, ``places.window_m = 0``): every added scan is one entry, described alone;
   match ids are scan ids, which is what the loop and localize evaluators expect.
-* ``place_window_m > 0``: an entry is described from the scans within that much travel before it, merged in
+* ``places.window_m > 0``: an entry is described from the scans within that much travel before it, merged in
   its frame (`placerec.pipelines.place_window`). The paper queries such places with dense static scans; single
   sweeps match them poorly (docs/descriptors.md), so keep 0 when queries are single sweeps.
-* ``place_spacing_m > 0``: only scans at least that far from every earlier entry become entries
+* ``places.spacing_m > 0``: only scans at least that far from every earlier entry become entries
   (`placerec.three_d.entries.far_from_all`, the rule of the offline places database); ids stay scan ids.
-* ``places_db``: a `placerec.three_d.places.PlacesDatabase` file replaces the entries; its place ids are the
+* ``places.database``: a `placerec.three_d.places.PlacesDatabase` file replaces the entries; its place ids are the
   map's scan indices. ``add`` then only checks that a scan with that id and pose is part of the map the
   database was built from (`ArtifactError` otherwise).
 """
@@ -47,19 +47,19 @@ import logging
 from collections.abc import Iterable, Mapping
 from functools import partial
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import Field
 
 from placerec.errors import ArtifactError, ScanDataError
 from placerec.intensity import normalize_intensity
 from placerec.io.artifact_schema import Member, check_counts, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
-from placerec.params import Params
+from placerec.params import Params, deep_merge
 from placerec.pipelines.local_maps import LocalMaps
 from placerec.pipelines.place_window import WINDOW_SCHEMA, PlaceWindow
 from placerec.pipelines.voting_engine import Query, Shortlist, VoteStrategy, run_query
+from placerec.pipelines.voting_params import VotingParams
 from placerec.recognizer import (
     Recognizer,
     check_saved_params,
@@ -67,14 +67,14 @@ from placerec.recognizer import (
     require_points,
     require_varying_intensity,
 )
-from placerec.retrieval.descriptor_store import DescriptorStore, StoreDtype, StoreView, knn, knn2
+from placerec.retrieval.descriptor_store import DescriptorStore, StoreView, knn, knn2
 from placerec.retrieval.nearest import IvfIndex, nn_ratio, ratio_votes
 from placerec.three_d.descriptors import DESCRIPTOR_DIMS
 from placerec.three_d.entries import EntryTable, far_from_all
-from placerec.three_d.features import FeatureParams, extract_features
+from placerec.three_d.features import extract_features
 from placerec.three_d.places import PlacesDatabase
 from placerec.types import Candidate, Description, Scan, as_pose
-from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud
+from placerec.verify.candidates import CloudStore, Retrieved, scan_cloud
 from placerec.verify.params import VerifyParams
 
 log = logging.getLogger(__name__)
@@ -100,77 +100,6 @@ _READ_VERSIONS = (1, 2)
 ARTIFACT_KIND = _KIND
 
 
-class VotingParams(FeatureParams):
-    """The front end (`FeatureParams`: the ISHOT paper's feature settings), ratio test, score, place aggregation
-    and verification."""
-
-    tau_max: float = Field(
-        0.9, gt=0, le=1, description="NN ratio d1/d2 below which a descriptor votes (eq. 4)"
-    )
-    verify_tau_max: float | None = Field(
-        None,
-        gt=0,
-        le=1,
-        description="ratio d1/d2 below which a query descriptor is paired with a candidate's for verification "
-        "(None = tau_max; 1 keeps every nearest neighbour and leaves outliers to the consistency grouping)",
-    )
-    verify_radius_m: float = Field(
-        0.0,
-        ge=0,
-        description="m; a candidate entry is verified as a local map: with the entries within this distance of it, "
-        "their keypoints and ICP clouds in its frame (0: the entry alone)",
-    )
-    verify_separation_m: float = Field(
-        0.0,
-        ge=0,
-        description="m; candidates within this distance of one already verified for the same query are skipped "
-        "(their local maps overlap it), so the verified candidates cover distinct regions (0: none skipped)",
-    )
-    fallback_top_k: int | None = Field(
-        None,
-        ge=1,
-        description="entries the voting pipelines that stop early (ishot-prob, gestalt-voting) verify when every "
-        "query keypoint is consumed without an accepted one (their last resort; None = verify.top_k)",
-    )
-    local_map_cache: int = Field(
-        64,
-        ge=1,
-        description="local maps kept prepared for ICP (least recently used dropped; ~5 MB each in the simulated "
-        "town at 15 m)",
-    )
-    score: Literal["fraction", "votes"] = Field("fraction", description="votes / query descriptors, or votes")
-    backend: Literal["faiss", "numpy"] = Field("faiss", description="exact 2-NN search")
-    index: Literal["flat", "ivf"] = Field(
-        "flat",
-        description="search over the whole database: exact brute force, or approximate (faiss IVF, sub-linear)",
-    )
-    ivf_nlist: int | None = Field(None, ge=1, description="IVF lists (None = sqrt of the descriptors)")
-    ivf_nprobe: int = Field(16, ge=1, description="IVF lists searched per query descriptor")
-    nn_threads: int | None = Field(1, ge=1, description="faiss OpenMP threads (None = faiss's default)")
-    descriptor_store: StoreDtype | None = Field(
-        None,
-        description="how descriptors are kept and searched: float32, float16 or sq8 (8-bit codes, 1 byte per "
-        "dimension; placerec.retrieval.descriptor_store); None = a places database's own, else float32",
-    )
-    place_spacing_m: float = Field(
-        0.0, ge=0, description="m; only scans this far from every entry become entries"
-    )
-    place_window_m: float = Field(
-        0.0, ge=0, description="m; accumulate scans over this path as a place (Sec. IV-B)"
-    )
-    places_db: str | None = Field(None, description="a PlacesDatabase file replacing the entries")
-    verify: VerifiedParams = Field(
-        default_factory=lambda: VerifiedParams(
-            top_k=5, consistency={"enabled": True}, score={"acceptance": "eps_icp"}
-        ),
-        description="consistency grouping, RANSAC and ICP on the top-k voted entries (ISHOT paper Sec. IV-F)",
-    )
-
-    def features(self) -> FeatureParams:
-        """The front-end part of these parameters."""
-        return FeatureParams(**{name: getattr(self, name) for name in FeatureParams.model_fields})
-
-
 class RatioVotes(VoteStrategy):
     """Vote counting: every keypoint matched at once; each whose ratio ``tau < tau_max`` votes for its nearest
     neighbour's entry; the most voted entries (ties: lower id) are the candidates."""
@@ -178,7 +107,7 @@ class RatioVotes(VoteStrategy):
     def vote(self, batch: np.ndarray) -> None:
         qr = self.query
         dist, idx = self.rec.search(qr.q[batch], qr.rows)
-        self.votes = ratio_votes(dist, idx, qr.row_entry, qr.n_entries, self.rec.params.tau_max)
+        self.votes = ratio_votes(dist, idx, qr.row_entry, qr.n_entries, self.rec.params.search.tau_max)
         self.matched += batch.size
 
     def fallback(self) -> Shortlist:
@@ -203,21 +132,21 @@ class KeypointVoting(Recognizer):
     def __init__(self, params: VotingParams | None = None, **overrides: Any) -> None:
         super().__init__(params, **overrides)
         p = self.params
-        self._features = p.features()
-        self._dim = DESCRIPTOR_DIMS[p.descriptor]
+        self._features = p.features
+        self._dim = DESCRIPTOR_DIMS[p.features.descriptor]
         self._warned = False
         self._reset()
-        if p.places_db is not None:
-            self.use_places(PlacesDatabase.load(p.places_db, features=self._features, mmap=True))
+        if p.places.database is not None:
+            self.use_places(PlacesDatabase.load(p.places.database, features=self._features, mmap=True))
 
     def _reset(self, entries: EntryTable | None = None) -> None:
         p = self.params
-        self.entries = entries or EntryTable.empty(self._dim, p.descriptor_store or "float32")
+        self.entries = entries or EntryTable.empty(self._dim, p.search.descriptor_store or "float32")
         self.clouds = CloudStore(p.verify, dtype=p.verify.cloud_store)
         self.local_maps = LocalMaps(
-            self.entries, self.clouds, p.verify_radius_m, p.local_map_cache, p.verify
+            self.entries, self.clouds, p.verify.radius_m, p.verify.local_map_cache, p.verify
         )
-        self.window = PlaceWindow(p.place_window_m, self.name)
+        self.window = PlaceWindow(p.places.window_m, self.name)
         #: the scan poses of the map a places database was built from
         self._map_poses: np.ndarray | None = None
         self._derived: dict[str, tuple[int, Any]] = {}
@@ -236,17 +165,17 @@ class KeypointVoting(Recognizer):
     def from_places(cls, db: PlacesDatabase, **overrides: Any) -> KeypointVoting:
         """A recognizer serving ``db`` (its feature settings are taken; `ArtifactError` if ``overrides`` change
         them)."""
-        rec = cls(**{**db.params.features.model_dump(), **overrides})
+        rec = cls(**deep_merge({"features": db.params.features.model_dump()}, overrides))
         rec.use_places(db)
         return rec
 
     def use_places(self, db: PlacesDatabase) -> None:
         """Replace the entries by the places of ``db`` (ids = place ids, poses = place poses). The descriptors are
-        served from the database's store as it is (shared, not copied) unless ``descriptor_store`` asks for another
+        served from the database's store as it is (shared, not copied) unless ``search.descriptor_store`` asks for another
         kind; a place's ICP cloud is made from its stored cloud when a query first verifies it (a database loaded
-        from ``places_db`` is memory-mapped, so its clouds take no RAM until then)."""
+        from ``places.database`` is memory-mapped, so its clouds take no RAM until then)."""
         db.check_features(self._features)
-        self._reset(db.entry_table(self.params.descriptor_store))
+        self._reset(db.entry_table(self.params.search.descriptor_store))
         if self.params.verify.enabled:
             if db.clouds is None:
                 raise ArtifactError(
@@ -270,7 +199,7 @@ class KeypointVoting(Recognizer):
             "keypoint-voting",
             {
                 "features": self._features.model_dump(mode="json"),
-                "cloud": p.place_window_m > 0,
+                "cloud": p.places.window_m > 0,
                 "icp_cloud": [icp.voxel_size, icp.max_range],
             },
         )
@@ -293,7 +222,7 @@ class KeypointVoting(Recognizer):
         and its scores would not be comparable with those of scans with intensity. SHOT and FPFH ignore intensity
         and take such scans."""
         ok = require_points(scan, self.name)
-        if self.params.descriptor == "ishot":
+        if self.params.features.descriptor == "ishot":
             why = "ISHOT's intensity signature needs varying intensity (pipeline shot-votes takes scans without it)"
             require_varying_intensity(scan, ok, self.name, why)
         scan = self._normalised(scan)
@@ -312,7 +241,7 @@ class KeypointVoting(Recognizer):
             "descriptors": lf.descriptors.astype(np.float32),
             "cloud": cloud,
         }
-        if self.params.place_window_m > 0:
+        if self.params.places.window_m > 0:
             out["cloud_xyz"] = lf.points.astype(np.float32)
             out["cloud_intensity"] = lf.intensity.astype(np.float32)
         return out
@@ -344,21 +273,21 @@ class KeypointVoting(Recognizer):
             return
         if scan_id in self.entries:
             raise ScanDataError(f"{self.name}: id {scan_id} was added already")
-        if p.place_window_m <= 0 and p.place_spacing_m <= 0:
+        if p.places.window_m <= 0 and p.places.spacing_m <= 0:
             self._add_entry(
                 scan_id, description["keypoints"], description["descriptors"], pose, description.get("cloud")
             )
             return
         if pose is None:
             raise ScanDataError(
-                f"{self.name}: place_spacing_m/place_window_m need the pose of every added scan"
+                f"{self.name}: places.spacing_m/places.window_m need the pose of every added scan"
             )
         T = as_pose(pose)
-        if p.place_window_m > 0:
+        if p.places.window_m > 0:
             self.window.push(scan_id, T, description)
-        if p.place_spacing_m > 0 and not far_from_all(self.entries.xyz(), T[:3, 3], p.place_spacing_m):
+        if p.places.spacing_m > 0 and not far_from_all(self.entries.xyz(), T[:3, 3], p.places.spacing_m):
             return
-        if p.place_window_m > 0:
+        if p.places.window_m > 0:
             kp, desc, cloud = self._describe_window(T)
         else:
             kp, desc, cloud = description["keypoints"], description["descriptors"], description.get("cloud")
@@ -397,19 +326,21 @@ class KeypointVoting(Recognizer):
         return run_query(self, self.Strategy, query)
 
     def search(self, q: np.ndarray, rows: StoreView) -> tuple[np.ndarray, np.ndarray]:
-        """2-NN of ``q`` among ``rows`` (the eligible database rows, `StoreView.knn2`), or with ``index = "ivf"``
+        """2-NN of ``q`` among ``rows`` (the eligible database rows, `StoreView.knn2`), or with ``search.index = "ivf"``
         and every row eligible, the `IvfIndex` over the database (built on first use after the entries change)."""
         p = self.params
         store = self.entries.store
-        if p.index == "ivf" and rows.shape[0] == len(store):
-            ivf = self.derived("ivf", lambda: IvfIndex(store, p.ivf_nlist, p.ivf_nprobe, p.nn_threads))
+        if p.search.index == "ivf" and rows.shape[0] == len(store):
+            ivf = self.derived(
+                "ivf", lambda: IvfIndex(store, p.search.ivf_nlist, p.search.ivf_nprobe, p.search.nn_threads)
+            )
             return ivf.knn2(q)
-        return rows.knn2(q, p.backend, p.nn_threads)
+        return rows.knn2(q, p.search.backend, p.search.nn_threads)
 
     def pick(self, ranked: Iterable[Any], taken: Iterable[int], k: int) -> list[int]:
         """The first ``k`` entries of ``ranked`` (entry indices, best first) not in ``taken``, skipping those within
-        ``verify_separation_m`` of an entry taken before (``taken`` and the ones picked here)."""
-        sep = self.params.verify_separation_m
+        ``verify.separation_m`` of an entry taken before (``taken`` and the ones picked here)."""
+        sep = self.params.verify.separation_m
         done = [int(e) for e in taken]
         picked: list[int] = []
         for e in ranked:
@@ -429,9 +360,9 @@ class KeypointVoting(Recognizer):
     def local_matches(self, e: int, query: Query, score: float, extra: dict[str, Any]) -> Retrieved:
         """Entry ``e``'s correspondences with the query, over its local map (`LocalMaps.matches`)."""
         p = self.params
-        tau = p.tau_max if p.verify_tau_max is None else p.verify_tau_max
+        tau = p.search.tau_max if p.verify.tau_max is None else p.verify.tau_max
         return self.local_maps.matches(
-            e, query.q, query.qkp, score, extra, tau, p.backend, p.nn_threads, query.eligible
+            e, query.q, query.qkp, score, extra, tau, p.search.backend, p.search.nn_threads, query.eligible
         )
 
     # -- persistence ----------------------------------------------------------------------------------------
@@ -462,7 +393,7 @@ class KeypointVoting(Recognizer):
         check_saved_params(path, dict(header), self.params)
         check_unique(arrays["ids"], path, "ids")
         check_counts(arrays["counts"], arrays["descriptors"].shape[0], path, "counts")
-        window = PlaceWindow(self.params.place_window_m, self.name)
+        window = PlaceWindow(self.params.places.window_m, self.name)
         window.restore(path, arrays, header["meta"])
         store = DescriptorStore.from_arrays(
             arrays, header["meta"].get("descriptor_store", "float32"), self._dim, path
@@ -473,8 +404,8 @@ class KeypointVoting(Recognizer):
                 raise ArtifactError(f"{path}: database saved without the clouds verification needs")
             self.clouds.from_arrays(self.entries.ids, arrays, path)
         self.window = window
-        if self.params.places_db is not None:
-            db = PlacesDatabase.load(self.params.places_db, features=self._features, mmap=True)
+        if self.params.places.database is not None:
+            db = PlacesDatabase.load(self.params.places.database, features=self._features, mmap=True)
             self._map_poses = np.array(db.scan_poses)
 
     def __len__(self) -> int:

@@ -1,6 +1,6 @@
 """Verifying a candidate entry as a local map: its descriptors and those of its neighbours, in its frame.
 
-With ``verify_radius_m > 0`` a candidate entry ``e`` is verified together with the (eligible) entries within
+With ``verify.radius_m > 0`` a candidate entry ``e`` is verified together with the (eligible) entries within
 that distance of it: the query's descriptors are matched against all of theirs, their keypoints moved into
 ``e``'s frame by the entries' poses, and ICP runs against their clouds merged in that frame and voxelised
 again (the last ``local_map_cache`` merged clouds are kept). At 0 the entry is verified alone.

@@ -1,6 +1,6 @@
 """Online place aggregation: the scans added within a trailing window of travelled distance, merged as a place.
 
-With ``place_window_m > 0`` a 3D pipeline keeps, for every added scan, its pose, the distance travelled up to
+With ``places.window_m > 0`` a 3D pipeline keeps, for every added scan, its pose, the distance travelled up to
 it and its voxelised cloud with intensity; an entry is then described from the clouds of the scans within that
 much travel before it (causal, so it works in loop mode), merged in the entry's frame (a place of the ISHOT
 paper, Sec. IV-B). The window is part of a saved database (`arrays`, `PlaceWindow.from_arrays`).

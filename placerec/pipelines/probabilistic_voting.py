@@ -18,13 +18,13 @@ query:
    again). Two departures, off by default and in the registry preset (docs/localization.md measures them):
    ``stop_radius_m`` tests the posterior summed within that distance of each place (the region a local-map
    verification tests) instead of each place's own, and ``reject_weight`` treats a rejection as evidence: the
-   posterior of the places within ``verify_separation_m`` of a rejected candidate is scaled by it (the ratio
+   posterior of the places within ``verify.separation_m`` of a rejected candidate is scaled by it (the ratio
    of the verification's rejection rates near the truth and away from it, measured at ~0.02) and the stop test
    runs again on the same votes before the next batch is matched. Matching also ends once nothing is left to
    verify.
 4. When every keypoint is consumed without an accepted candidate, the places are ranked by their vote counts
-   (``tau < tau_max``, the paper's fallback) and the top ``fallback_top_k`` not yet verified are verified (the
-   registry preset: 30, at least ``verify_separation_m`` = 7.5 m from every place verified before). Without
+   (``tau < tau_max``, the paper's fallback) and the top ``verify.fallback_top_k`` not yet verified are verified (the
+   registry preset: 30, at least ``verify.separation_m`` = 7.5 m from every place verified before). Without
    early stopping (``early_stop = False``: every keypoint matched in one search, the exhaustive variant) the
    posterior ranks them instead.
 
@@ -39,15 +39,16 @@ Departures from the paper (measured in docs/localization.md): descriptors are co
 database, not the description, which the paper does batch by batch; the ISHOT descriptors already computed are
 matched with the candidate place's instead of SHOT; the registry preset
 (`placerec.recognizer.LOCALIZE_VERIFY`) verifies each candidate as a local map of the places within 15 m
-(``verify_radius_m``), with every nearest neighbour (``verify_tau_max`` 1), ICP clouds cropped at 40 m like
+(``verify.radius_m``), with every nearest neighbour (``verify.tau_max`` 1), ICP clouds cropped at 40 m like
 the places, RANSAC from 3 inliers and at least 70 % overlap (``verify.score.min_fitness``), and skips
-candidates within 7.5 m of one already verified (``verify_separation_m``: their local maps overlap it).
-``index: ivf`` searches the database approximately (sub-linear in its size).
+candidates within 7.5 m of one already verified (``verify.separation_m``: their local maps overlap it).
+``search.index: ivf`` searches the database approximately (sub-linear in its size).
 """
 
 from __future__ import annotations
 
 import logging
+from functools import cached_property
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -106,7 +107,7 @@ class ProbabilisticParams(VotingParams):
         1.0,
         gt=0,
         le=1,
-        description="posterior factor on the places within verify_separation_m of a rejected candidate: a rejection "
+        description="posterior factor on the places within verify.separation_m of a rejected candidate: a rejection "
         "is evidence the query is not there (1: ignored, the paper's query)",
     )
 
@@ -122,10 +123,16 @@ class PosteriorVotes(VoteStrategy):
         p = rec.params
         self.p = p
         self.vote_model = rec.vote_model
-        weights = density_weights(rec.entries.counts) if p.density_correction else None
-        self.post = Posterior(rec.posterior_table(), weights)
-        self.post.log[~query.eligible] = -np.inf
         self.votes = np.zeros(len(rec.entries), np.int64)
+
+    @cached_property
+    def post(self) -> Posterior:
+        """The posterior over the entries (built when the first batch is matched: there are entries then)."""
+        rec = self.rec
+        weights = density_weights(rec.entries.counts) if self.p.density_correction else None
+        post = Posterior(rec.posterior_table(), weights)
+        post.log[~self.query.eligible] = -np.inf
+        return post
 
     def order(self) -> np.ndarray:
         return np.random.default_rng(self.p.seed).permutation(self.n)
@@ -141,7 +148,7 @@ class PosteriorVotes(VoteStrategy):
         voted = qr.row_entry[idx[found, 0]]
         tau = nn_ratio(dist[found])
         self.post.update(voted, self.vote_model.range_of(tau))
-        self.votes += np.bincount(voted[tau < self.p.tau_max], minlength=self.votes.size)
+        self.votes += np.bincount(voted[tau < self.p.search.tau_max], minlength=self.votes.size)
         self.matched += batch.size
 
     def ready(self) -> Shortlist | None:
@@ -166,7 +173,9 @@ class PosteriorVotes(VoteStrategy):
         prob = self.post.probabilities
         ranked = np.lexsort((-prob, -self.votes)) if self.p.early_stop else np.argsort(-prob, kind="stable")
         ranked = [e for e in ranked if self.query.eligible[e]]
-        return self._shortlist(ranked, prob, by_posterior=not self.p.early_stop, top_k=self.p.fallback_top_k)
+        return self._shortlist(
+            ranked, prob, by_posterior=not self.p.early_stop, top_k=self.p.verify.fallback_top_k
+        )
 
     def _shortlist(
         self, ranked: list[Any], prob: np.ndarray, by_posterior: bool, top_k: int | None
@@ -203,10 +212,10 @@ class ProbabilisticVoting(KeypointVoting):
         )
 
     def near(self, entries: list[int]) -> np.ndarray:
-        """Mask of the entries within ``verify_separation_m`` of any of ``entries`` (those themselves included)."""
+        """Mask of the entries within ``verify.separation_m`` of any of ``entries`` (those themselves included)."""
         xyz = self.entries.xyz()
         d = np.linalg.norm(xyz[:, None, :] - xyz[None, entries, :], axis=2)
-        return (d <= self.params.verify_separation_m).any(axis=1)
+        return (d <= self.params.verify.separation_m).any(axis=1)
 
     def stop_mass(self, prob: np.ndarray) -> np.ndarray:
         """What the stop test compares with xi_v: each place's posterior, or the posterior within ``stop_radius_m``."""

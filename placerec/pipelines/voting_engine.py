@@ -5,7 +5,7 @@ One query runs:
 1. **search a batch**: the strategy's next batch of query keypoints (``VoteStrategy.order`` / ``batch_size``)
    is matched against the eligible database rows and turned into evidence for the entries (``vote``);
 2. **stop test**: ``ready`` returns a `Shortlist` of entries to verify now, or None to keep matching;
-3. **verify**: the shortlist's best ``top_k`` entries not verified yet (at least ``verify_separation_m`` from
+3. **verify**: the shortlist's best ``top_k`` entries not verified yet (at least ``verify.separation_m`` from
    those verified before) go through the shared verification (`placerec.verify.candidates`), ``verify.top_k``
    at a time, until one is accepted; an accepted candidate ends the query. A rejection is reported to the
    strategy (``rejected``), which may change its evidence and ask for the stop test again on the same votes;
