@@ -177,7 +177,7 @@ def delight_distance(
     return dist[np.arange(e.shape[0]), best], best.astype(np.int64)
 
 
-class HistogramRanking(VoteStrategy):
+class HistogramRanking(VoteStrategy["Delight"]):
     """DELIGHT's query: the eligible entries ranked once by the distance of their histograms to the query's (ties:
     lower id); no keypoint is matched against the database, the best ``verify.fallback_top_k`` (default ``verify.top_k``)
     are verified ``verify.top_k`` at a time until one is accepted."""
@@ -219,7 +219,7 @@ class Delight(KeypointVoting):
 
     name: ClassVar[str] = "delight"
     Params: ClassVar[type[Params]] = DelightParams
-    Strategy: ClassVar[type[VoteStrategy]] = HistogramRanking
+    Strategy: ClassVar[type[VoteStrategy[Any]]] = HistogramRanking
 
     def _reset(self, entries: EntryTable | None = None) -> None:
         super()._reset(entries)

@@ -40,7 +40,7 @@ and ``threshold`` (the log-normal threshold when the place was verified).
 from __future__ import annotations
 
 import math
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from pydantic import Field
@@ -102,7 +102,7 @@ def lognormal_threshold(votes: np.ndarray, z: float) -> float:
     return float(np.exp(logs.mean() + z * logs.std()))
 
 
-class LognormalVotes(VoteStrategy):
+class LognormalVotes(VoteStrategy["GestaltVoting"]):
     """Bosse & Zlot's query (module docstring): rounds of ``sample_fraction`` of the keypoints, K-NN votes, the
     log-normal stop test after each round."""
 
@@ -153,4 +153,4 @@ class GestaltVoting(KeypointVoting):
 
     name: ClassVar[str] = "gestalt-voting"
     Params: ClassVar[type[Params]] = GestaltParams
-    Strategy: ClassVar[type[VoteStrategy]] = LognormalVotes
+    Strategy: ClassVar[type[VoteStrategy[Any]]] = LognormalVotes

@@ -48,7 +48,7 @@ class GlobalParams(VotingParams):
     )
 
 
-class RegistrationVotes(VoteStrategy):
+class RegistrationVotes(VoteStrategy["GlobalRegistration"]):
     """Every query descriptor paired with its K nearest map descriptors (keypoints in the world frame); grouping
     and RANSAC over all pairs give the query's pose, and the entry nearest to it is the one candidate."""
 
@@ -115,4 +115,4 @@ class GlobalRegistration(KeypointVoting):
 
     name: ClassVar[str] = "global-registration"
     Params: ClassVar[type[Params]] = GlobalParams
-    Strategy: ClassVar[type[VoteStrategy]] = RegistrationVotes
+    Strategy: ClassVar[type[VoteStrategy[Any]]] = RegistrationVotes

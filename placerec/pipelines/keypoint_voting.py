@@ -100,7 +100,7 @@ _READ_VERSIONS = (1, 2)
 ARTIFACT_KIND = _KIND
 
 
-class RatioVotes(VoteStrategy):
+class RatioVotes(VoteStrategy["KeypointVoting"]):
     """Vote counting: every keypoint matched at once; each whose ratio ``tau < tau_max`` votes for its nearest
     neighbour's entry; the most voted entries (ties: lower id) are the candidates."""
 
@@ -127,7 +127,7 @@ class KeypointVoting(Recognizer):
     name: ClassVar[str] = "keypoint-voting"
     Params: ClassVar[type[Params]] = VotingParams
     #: how a query ranks the entries (`placerec.pipelines.voting_engine`)
-    Strategy: ClassVar[type[VoteStrategy]] = RatioVotes
+    Strategy: ClassVar[type[VoteStrategy[Any]]] = RatioVotes
 
     def __init__(self, params: VotingParams | None = None, **overrides: Any) -> None:
         super().__init__(params, **overrides)

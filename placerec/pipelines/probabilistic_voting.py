@@ -112,7 +112,7 @@ class ProbabilisticParams(VotingParams):
     )
 
 
-class PosteriorVotes(VoteStrategy):
+class PosteriorVotes(VoteStrategy["ProbabilisticVoting"]):
     """The paper's query (module docstring): batches of keypoints in a random order update the posterior over the
     entries; a place (or region) above ``xi_v`` is verified; a rejection may scale its region's posterior."""
 
@@ -196,7 +196,7 @@ class ProbabilisticVoting(KeypointVoting):
 
     name: ClassVar[str] = "probabilistic-voting"
     Params: ClassVar[type[Params]] = ProbabilisticParams
-    Strategy: ClassVar[type[VoteStrategy]] = PosteriorVotes
+    Strategy: ClassVar[type[VoteStrategy[Any]]] = PosteriorVotes
 
     def __init__(self, params: ProbabilisticParams | None = None, **overrides: Any) -> None:
         super().__init__(params, **overrides)

@@ -32,7 +32,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 
 import numpy as np
 
@@ -46,6 +46,9 @@ if TYPE_CHECKING:
     from placerec.pipelines.keypoint_voting import KeypointVoting
 
 __all__ = ["Query", "Shortlist", "VoteStrategy", "run_query"]
+
+#: the recognizer a strategy serves (its params and entries)
+R = TypeVar("R", bound="KeypointVoting")
 
 
 @dataclass
@@ -79,14 +82,14 @@ class Shortlist:
     retrieve: Callable[[int], Retrieved] | None = None
 
 
-class VoteStrategy:
+class VoteStrategy(Generic[R]):
     """How one query turns matched keypoints into a ranking of the entries (see the module docstring). The base
     matches every keypoint at once and never stops early; subclasses set what differs."""
 
     #: whether the strategy has a stop test (its candidates then report ``early_stop``)
     stops_early: ClassVar[bool] = False
 
-    def __init__(self, rec: KeypointVoting, query: Query) -> None:
+    def __init__(self, rec: R, query: Query) -> None:
         self.rec = rec
         self.query = query
         self.n = int(query.q.shape[0])
@@ -120,7 +123,7 @@ class VoteStrategy:
         return None
 
 
-def run_query(rec: KeypointVoting, strategy: type[VoteStrategy], query: Query) -> list[Candidate]:
+def run_query(rec: R, strategy: type[VoteStrategy[R]], query: Query) -> list[Candidate]:
     """The query loop (module docstring) of ``rec`` with ``strategy``."""
     s = strategy(rec, query)
     if not s.possible():
@@ -197,7 +200,7 @@ class _Verifier:
 
 def _decorate(
     rec: KeypointVoting,
-    s: VoteStrategy,
+    s: VoteStrategy[Any],
     verified: dict[int, Candidate],
     k: int,
     stopped: bool,
