@@ -42,19 +42,12 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import Field
 
-from placerec.errors import ArtifactError, ScanDataError
+from placerec.errors import ArtifactError
 from placerec.io.artifact_schema import check_members
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
-from placerec.pipelines.visual import (
-    VisualFrontend,
-    VisualPipelineParams,
-    features_schema,
-    pack_features,
-    shift_consensus,
-    stored_features,
-    yaw_pose,
-)
+from placerec.pipelines.visual import VisualFrontend, VisualPipelineParams, shift_consensus, yaw_pose
+from placerec.pipelines.visual_store import features_schema, pack_features, stored_features
 from placerec.recognizer import Recognizer, check_saved_params
 from placerec.retrieval.bits import hamming, to_words
 from placerec.retrieval.dbow.database import BowDatabase, candidate_pairs
@@ -170,21 +163,13 @@ class VisualDBoW(VisualFrontend, Recognizer):
 
     def _reset(self) -> None:
         self.db = BowDatabase(self.vocabulary, self.levels_up)
-        self._keypoints: dict[int, np.ndarray] = {}
-        self._descriptors: dict[int, np.ndarray] = {}
-        self._width: dict[int, int] = {}
-        self._reset_verification()
+        self._reset_features()
 
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
         scan_id = int(scan_id)
-        if scan_id in self._width:
-            raise ScanDataError(f"{self.name}: id {scan_id} was added already")
-        self._add_verification(scan_id, description)
         desc = np.ascontiguousarray(description["descriptors"])
+        self._add_features(scan_id, description, desc)
         self.db.add_descriptors(desc, scan_id)
-        self._keypoints[scan_id] = np.asarray(description["keypoints"], np.float32).reshape(-1, 2)
-        self._descriptors[scan_id] = desc
-        self._width[scan_id] = int(description["width"])
 
     def __len__(self) -> int:
         return len(self.db)

@@ -89,9 +89,8 @@ _BLOCK = 2048
 
 
 class DelightParams(VotingParams):
-    """`VotingParams` (front end, entries, the shared verification) plus the DELIGHT descriptor. The voting
-    fields (``tau_max`` beyond ``verify.tau_max``, ``score``, ``index``) do not apply: entries are ranked by the
-    descriptor."""
+    """`VotingParams` (front end, entries, the shared verification) plus the DELIGHT descriptor. The ``search``
+    section and ``score`` do not apply: entries are ranked by the descriptor."""
 
     inner_radius: float = Field(
         30.0, gt=0, description="m; radius of the inner sphere (ours, tuning split: tools/tune_delight.py)"

@@ -34,12 +34,13 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import Field, SerializeAsAny, ValidationError, model_validator
 
-from placerec.errors import ArtifactError, ScanDataError
+from placerec.errors import ScanDataError
 from placerec.features.registry import ExtractorParams, extractor_params
 from placerec.image import ImageParams, make_image
-from placerec.io.artifact_schema import Member, check_counts, check_members, check_unique
+from placerec.io.artifact_schema import check_members
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params, SectionError
+from placerec.pipelines.visual_store import MAX_IMAGE_WIDTH, features_schema, pack_features, stored_features
 from placerec.recognizer import (
     Recognizer,
     check_saved_params,
@@ -74,9 +75,6 @@ __all__ = [
 
 _KIND = "visual-hbst-db"
 _VERSION = 1
-#: Widest intensity image (px) a visual front end makes and a saved database may record (LiDARs have at most a
-#: few thousand columns); a wider one is a `ScanDataError` when described, an `ArtifactError` when loaded.
-MAX_IMAGE_WIDTH = 1 << 15
 
 
 class VisualFrontendParams(Params):
@@ -242,8 +240,8 @@ def shift_consensus(
 class VisualFrontend:
     """The intensity-image front end and verification state shared by the visual pipelines: needs ``params``
     (`VisualPipelineParams`) and ``extractor``; scans with equal front-end settings share their descriptions.
-    A subclass calls `_reset_verification` with its database, `_add_verification` in ``add_description``
-    and `_verified` for the candidates it retrieved."""
+    A subclass calls `_reset_features` with its database, `_add_features` in ``add_description`` and `_verified`
+    for the candidates it retrieved."""
 
     name: ClassVar[str]
     params: VisualPipelineParams
@@ -257,16 +255,27 @@ class VisualFrontend:
         p = self.params
         return describe_visual(scan, p.image, self.extractor, p.verify if p.verify.enabled else None)
 
-    def _reset_verification(self) -> None:
+    def _reset_features(self) -> None:
+        """Empty the per-image features (keypoints, descriptors, image width), their 3D points and ICP clouds."""
+        self._keypoints: dict[int, np.ndarray] = {}
+        self._descriptors: dict[int, np.ndarray] = {}
+        self._width: dict[int, int] = {}
         self._kp_xyz: dict[int, np.ndarray] = {}
         self._clouds = CloudStore(self.params.verify, dtype=self.params.verify.cloud_store)
 
-    def _add_verification(self, scan_id: int, description: Description) -> None:
-        """Keep the keypoints' 3D points and (with verification) the ICP cloud of a description being added."""
+    def _add_features(self, scan_id: int, description: Description, descriptors: np.ndarray) -> None:
+        """Keep a description being added: its keypoints, ``descriptors`` (as the retrieval stores them), image
+        width, the keypoints' 3D points and (with verification) the ICP cloud; `ScanDataError` for an id added
+        already."""
+        if scan_id in self._width:
+            raise ScanDataError(f"{self.name}: id {scan_id} was added already")
         n = np.asarray(description["keypoints"]).reshape(-1, 2).shape[0]
         self._kp_xyz[scan_id] = _keypoint_xyz(self.name, description, n)
         if self.params.verify.enabled:
             self._clouds.add(scan_id, _cloud(self.name, description))
+        self._keypoints[scan_id] = np.asarray(description["keypoints"], np.float32).reshape(-1, 2)
+        self._descriptors[scan_id] = descriptors
+        self._width[scan_id] = int(description["width"])
 
     def _verified(
         self, description: Description, retrieved: list[Retrieved], query_id: int, k: int
@@ -340,21 +349,13 @@ class VisualHBST(VisualFrontend, Recognizer):
     def _reset(self) -> None:
         hb = self.params.hbst
         self.tree = HBST(hb, threshold=hb.threshold or default_threshold(self.extractor.descriptor_size))
-        self._keypoints: dict[int, np.ndarray] = {}
-        self._descriptors: dict[int, np.ndarray] = {}
-        self._width: dict[int, int] = {}
         self._order: list[int] = []
-        self._reset_verification()
+        self._reset_features()
 
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
         scan_id = int(scan_id)
-        if scan_id in self._width:
-            raise ScanDataError(f"{self.name}: id {scan_id} was added already")
-        self._add_verification(scan_id, description)
+        self._add_features(scan_id, description, np.asarray(description["descriptors"], np.uint8))
         self.tree.add(scan_id, description["descriptors"])
-        self._keypoints[scan_id] = np.asarray(description["keypoints"], np.float32)
-        self._descriptors[scan_id] = np.asarray(description["descriptors"], np.uint8)
-        self._width[scan_id] = int(description["width"])
         self._order.append(scan_id)
 
     def query_description(
@@ -434,78 +435,3 @@ class VisualHBST(VisualFrontend, Recognizer):
         self._reset()
         for scan_id, desc in stored:
             self.add_description(scan_id, desc)
-
-
-def pack_features(
-    rec: VisualFrontend, order: list[int], descriptors: dict[int, np.ndarray], dim: int, dtype: type
-) -> dict[str, np.ndarray]:
-    """The arrays of a visual database ``rec``: per-image counts and widths, stacked keypoints, their 3D points
-    and descriptors; with verification the ICP clouds (`placerec.verify.candidates.CloudStore.arrays`)."""
-    kp = rec._keypoints  # type: ignore[attr-defined]  # every visual pipeline keeps these
-    arrays = {
-        "ids": np.asarray(order, dtype=np.int64),
-        "counts": np.array([kp[i].shape[0] for i in order], dtype=np.int64),
-        "widths": np.array([rec._width[i] for i in order], dtype=np.int64),  # type: ignore[attr-defined]
-        "keypoints": _stack([kp[i] for i in order], (0, 2), np.float32),
-        # a keypoint without a 3D point is stored at the origin (never a scan point), NaN again when loaded
-        "keypoint_xyz": np.nan_to_num(_stack([rec._kp_xyz[i] for i in order], (0, 3), np.float32), nan=0.0),
-        "descriptors": _stack([descriptors[i] for i in order], (0, dim), dtype),
-    }
-    if rec.params.verify.enabled:
-        arrays.update(rec._clouds.arrays(order))
-    return arrays
-
-
-def features_schema(dim: int, binary: bool, clouds: bool) -> dict[str, Member]:
-    """The arrays of a saved visual database (`pack_features`) with ``dim``-wide binary or float descriptors,
-    with ICP clouds when ``clouds``."""
-    schema = {
-        "ids": Member("iu", ("n_images",)),
-        "counts": Member("iu", ("n_images",), min_value=0),
-        "widths": Member("iu", ("n_images",), min_value=1),
-        "keypoints": Member("f", ("n_features", 2), finite=True),
-        "keypoint_xyz": Member("f", ("n_features", 3), finite=True),
-        "descriptors": Member("u" if binary else "f", ("n_features", dim), finite=True),
-    }
-    if clouds:
-        schema["cloud_counts"] = Member("iu", ("n_images",), min_value=0)
-        schema["cloud_xyz"] = Member("f", ("n_points", 3), finite=True)
-    return schema
-
-
-def stored_features(
-    path: str | Path, arrays: Mapping[str, np.ndarray], image: ImageParams
-) -> list[tuple[int, Description]]:
-    """(id, description) of every image of a saved visual database whose arrays passed `features_schema`, after
-    checking that ids are unique, counts add up, widths are ``image.width`` (when set; else at most
-    `MAX_IMAGE_WIDTH`) and keypoints lie in their images (`ArtifactError` otherwise)."""
-    ids, counts, widths, kp = arrays["ids"], arrays["counts"], arrays["widths"], arrays["keypoints"]
-    check_unique(ids, path, "ids")
-    check_counts(counts, kp.shape[0], path, "counts")
-    bad = widths != image.width if image.width is not None else widths > MAX_IMAGE_WIDTH
-    if bad.any():
-        expected = f"{image.width} (image.width)" if image.width is not None else f"at most {MAX_IMAGE_WIDTH}"
-        raise ArtifactError(f"{path}: 'widths' holds {int(widths[bad][0])} px; expected {expected}")
-    u = kp[:, 0]  # sub-pixel positions may reach half a pixel past the border
-    if ((u < -1) | (u > np.repeat(widths, counts))).any():
-        raise ArtifactError(f"{path}: 'keypoints' lie outside their images ('widths')")
-    offsets = np.r_[0, np.cumsum(counts)]
-    desc, xyz = arrays["descriptors"], arrays["keypoint_xyz"].astype(np.float32)
-    xyz[~xyz.any(axis=1)] = np.nan  # the origin: no scan point behind the keypoint (`pack_features`)
-    out: list[tuple[int, Description]] = [
-        (
-            int(i),
-            {"keypoints": kp[a:b], "descriptors": desc[a:b], "width": np.int64(w), "keypoint_xyz": xyz[a:b]},
-        )
-        for i, a, b, w in zip(ids, offsets[:-1], offsets[1:], widths, strict=True)
-    ]
-    if "cloud_counts" in arrays:
-        check_counts(arrays["cloud_counts"], arrays["cloud_xyz"].shape[0], path, "cloud_counts")
-        bounds = np.r_[0, np.cumsum(arrays["cloud_counts"])]
-        for (_, d), a, b in zip(out, bounds[:-1], bounds[1:], strict=True):
-            d["cloud"] = arrays["cloud_xyz"][a:b]
-    return out
-
-
-def _stack(parts: list[np.ndarray], empty_shape: tuple[int, int], dtype: type) -> np.ndarray:
-    return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(empty_shape, dtype)
