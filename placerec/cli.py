@@ -362,7 +362,7 @@ def build_places_cmd(
 
       placerec build-places --sim-world town --set window_m=0 --out places_town.npz
 
-      placerec build-places sim/town_vlp16 --set place_spacing=5 --set features.descriptor=shot --out places.npz
+      placerec build-places sim/town_vlp16 --set spacing_m=5 --set features.descriptor=shot --out places.npz
     """
     from placerec.artifacts.places import PlacesBuild, build_places_db
     from placerec.three_d.places import PlacesDatabase, PlacesParams

@@ -167,9 +167,7 @@ def test_cli_sources_need_exactly_one_of_a_sequence_and_a_simulated_world(tmp_pa
 
 
 def test_cli_overrides_are_checked_by_the_settings_class():
-    params = cli_support.with_overrides(
-        PlacesParams, {"window_m": 3.0}, ["place_spacing=2"], "places parameters"
-    )
-    assert (params.window_m, params.place_spacing) == (3.0, 2.0)
+    params = cli_support.with_overrides(PlacesParams, {"window_m": 3.0}, ["spacing_m=2"], "places parameters")
+    assert (params.window_m, params.spacing_m) == (3.0, 2.0)
     with pytest.raises(ConfigError, match="places parameters: nope: unknown key"):
         cli_support.with_overrides(PlacesParams, {}, ["nope=1"], "places parameters")

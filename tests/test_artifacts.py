@@ -212,7 +212,7 @@ SPECIFIC: dict[str, dict[str, Edit]] = {
         "keypoints-cut": lambda a, h: a.__setitem__("keypoints", a["keypoints"][:-1]),
         "dim": _meta("dim", 9),
         "params": _meta("params", [1, 2]),
-        "params-bad-value": _meta("params", {"place_spacing": "far"}),
+        "params-bad-value": _meta("params", {"spacing_m": "far"}),
         "clouds-partial": lambda a, h: [a.pop("cloud_xyz"), a.pop("cloud_intensity")],
     },
     "intensity-calibration": {

@@ -153,7 +153,7 @@ def compact_db():
     seq = SimulatedSequence("town", "vlp16", n_scans=5, seed=1, spacing=2.0, clutter=False)
     features = FeatureParams(descriptor="ishot", iss=ISSParams(max_keypoints=40))
     params = PlacesParams(
-        place_spacing=4.0, window_m=0.0, features=features, descriptor_store="sq8", cloud_store="int16"
+        spacing_m=4.0, window_m=0.0, features=features, descriptor_store="sq8", cloud_store="int16"
     )
     return build_places(seq, params)
 
@@ -163,7 +163,7 @@ def test_places_database_round_trip_keeps_the_store_and_the_search(compact_db, t
     assert db.descriptors.dtype == "sq8" and db.descriptors.encoded
     path = tmp_path / "places.npz"
     db.save(path)
-    arrays, header = load_artifact(path, "places-db", (3,))
+    arrays, header = load_artifact(path, "places-db", (4,))
     assert arrays["descriptors"].dtype == np.uint8 and arrays["cloud_xyz"].dtype == np.int16
     assert header["meta"]["descriptor_store"] == "sq8" and header["meta"]["cloud_store"] == "int16"
     again = PlacesDatabase.load(path)
@@ -216,12 +216,12 @@ def test_keypoint_voting_database_round_trip_in_sq8(compact_db, tmp_path):
 def test_a_corrupt_or_mismatched_quantiser_is_refused_naming_the_file(compact_db, tmp_path, change, message):
     path = tmp_path / "places.npz"
     compact_db.save(path)
-    arrays, header = load_artifact(path, "places-db", (3,))
+    arrays, header = load_artifact(path, "places-db", (4,))
     arrays = {k: np.array(v) for k, v in arrays.items()}
     meta = dict(header["meta"])
     change(arrays, meta)
     bad = tmp_path / "bad.npz"
-    save_artifact(bad, "places-db", 3, arrays, meta)
+    save_artifact(bad, "places-db", 4, arrays, meta)
     with pytest.raises(ArtifactError, match=message) as err:
         PlacesDatabase.load(bad)
     assert str(bad) in str(err.value)

@@ -161,7 +161,7 @@ def test_aggregated_places_and_places_database(sim_map, tmp_path):
 
     # single-scan places (window 0): a sparse single-scan query meets descriptors of the same density
     feats = FeatureParams(iss={"max_keypoints": 100})
-    db = build_places(seq, PlacesParams(place_spacing=6.0, window_m=0.0, features=feats))
+    db = build_places(seq, PlacesParams(spacing_m=6.0, window_m=0.0, features=feats))
     path = tmp_path / "places.npz"
     db.save(path)
     rec = KeypointVoting(places={"database": str(path)}, **FAST)

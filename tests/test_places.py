@@ -28,7 +28,7 @@ def line_poses(xs: np.ndarray, yaw: float = 0.0) -> np.ndarray:
 
 def test_partition_spacing_windows_and_overlap():
     poses = line_poses(np.arange(41.0))
-    part = partition_places(poses, None, PlacesParams(place_spacing=5.0, window_m=3.0, member_spacing=0.0))
+    part = partition_places(poses, None, PlacesParams(spacing_m=5.0, window_m=3.0, member_spacing=0.0))
     assert part.centres.tolist() == list(range(0, 41, 5))
     assert part.members[2].tolist() == list(range(7, 14))  # centre 10, +-3 m of travel
     assert part.members[0].tolist() == [0, 1, 2, 3]  # clipped at the start
@@ -39,7 +39,7 @@ def test_partition_spacing_windows_and_overlap():
 def test_partition_revisit_adds_no_place_and_windows_stay_on_one_pass():
     xs = np.r_[np.arange(21.0), np.arange(20.0, -1.0, -1.0)]  # out and back along the same line
     part = partition_places(
-        line_poses(xs), None, PlacesParams(place_spacing=5.0, window_m=4.0, member_spacing=0.0)
+        line_poses(xs), None, PlacesParams(spacing_m=5.0, window_m=4.0, member_spacing=0.0)
     )
     assert part.centres.tolist() == [0, 5, 10, 15, 20]
     # place 10 (x = 10 on the way out) holds scans 6..14 only, not the return pass at the same spot (x = 10: 31)
@@ -49,17 +49,17 @@ def test_partition_revisit_adds_no_place_and_windows_stay_on_one_pass():
 def test_partition_time_window_and_member_spacing():
     xs = np.r_[np.arange(10.0), np.full(20, 10.0), np.arange(11.0, 20.0)]  # a 20-scan stop at x = 10
     t = np.arange(len(xs), dtype=float)
-    p = PlacesParams(place_spacing=5.0, window_m=2.0, member_spacing=0.0)
+    p = PlacesParams(spacing_m=5.0, window_m=2.0, member_spacing=0.0)
     centre = int(np.flatnonzero(xs == 10.0)[0])
     no_time = partition_places(line_poses(xs), t, p)
     i = no_time.centres.tolist().index(centre)
     assert len(no_time.members[i]) == 2 + 20 + 2  # the whole stop is within 2 m of travel
     timed = partition_places(
-        line_poses(xs), t, PlacesParams(place_spacing=5.0, window_m=2.0, member_spacing=0.0, window_s=3.0)
+        line_poses(xs), t, PlacesParams(spacing_m=5.0, window_m=2.0, member_spacing=0.0, window_s=3.0)
     )
     assert timed.members[i].tolist() == list(range(centre - 2, centre + 4))
     thin = partition_places(
-        line_poses(np.arange(41.0)), None, PlacesParams(place_spacing=5.0, window_m=4.0, member_spacing=2.0)
+        line_poses(np.arange(41.0)), None, PlacesParams(spacing_m=5.0, window_m=4.0, member_spacing=2.0)
     )
     assert thin.members[2].tolist() == [6, 8, 10, 12, 14]  # one scan per 2 m of travel, shared by all places
     with pytest.raises(ConfigError):
@@ -87,7 +87,7 @@ def small_db():
     from placerec.sim import SimulatedSequence
 
     seq = SimulatedSequence("town", "vlp16", n_scans=9, seed=1, spacing=2.0, clutter=False)
-    params = PlacesParams(place_spacing=6.0, window_m=4.0, member_spacing=2.0, features=FAST)
+    params = PlacesParams(spacing_m=6.0, window_m=4.0, member_spacing=2.0, features=FAST)
     return seq, build_places(seq, params)
 
 
@@ -140,9 +140,17 @@ def test_a_version_1_file_is_read_and_its_descriptor_options_must_be_empty(small
     from placerec.io.atomic import load_artifact
 
     _, db = small_db
-    db.save(tmp_path / "v3.npz")
-    arrays, header = load_artifact(tmp_path / "v3.npz", "places-db", (3,))
+    db.save(tmp_path / "v4.npz")
+    arrays, header = load_artifact(tmp_path / "v4.npz", "places-db", (4,))
     meta = header["meta"]
+    # versions 1-3 named the spacing place_spacing
+    spacing = meta["params"].pop("spacing_m")
+    meta["params"]["place_spacing"] = spacing
+    save_artifact(tmp_path / "v3.npz", "places-db", 3, arrays, meta)
+    assert PlacesDatabase.load(tmp_path / "v3.npz").params == db.params
+    save_artifact(tmp_path / "v4-old-name.npz", "places-db", 4, arrays, meta)
+    with pytest.raises(ArtifactError, match="place_spacing: unknown key"):
+        PlacesDatabase.load(tmp_path / "v4-old-name.npz")
     assert meta["params"]["features"]["shot"] == {
         "lrf_radius": None,
         "normalization": "joint",

@@ -55,7 +55,7 @@ def town_places(seed: int, cache: Path, descriptor: str = "ishot") -> PlacesData
         seq = SimulatedSequence(world="town", sensor="vlp16", seed=seed, unit_seed=0)
         path.parent.mkdir(parents=True, exist_ok=True)
         params = PlacesParams(
-            window_m=0.0, place_spacing=2.5, features={"descriptor": descriptor}, descriptor_store="float32"
+            window_m=0.0, spacing_m=2.5, features={"descriptor": descriptor}, descriptor_store="float32"
         )  # the float32 descriptors its figures were measured with
         build_places(seq, params).save(path)
     return PlacesDatabase.load(path)

@@ -248,7 +248,7 @@ def bench_ishot(n_queries: int, copies: int) -> list[dict]:
     split = make_localization_split("town", "vlp16", 0, n_queries=max(n_queries, 1))
     queries = [preprocessed_scan(split.queries["gator"], i, PreprocessConfig())[0] for i in range(n_queries)]
     warm_scan = preprocessed_scan(split.map, 0, PreprocessConfig())[0]
-    params = PlacesParams(window_m=0.0, place_spacing=2.5, descriptor_store="float32", cloud_store="float32")
+    params = PlacesParams(window_m=0.0, spacing_m=2.5, descriptor_store="float32", cloud_store="float32")
     db = build_places(split.map, params)  # float32, saved in each store below
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

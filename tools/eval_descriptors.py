@@ -274,7 +274,7 @@ def main() -> None:
     ap.add_argument("--n-queries", type=int, default=30, help="query scans per condition")
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--descriptors", default="shot,ishot,ishot-c,ishot-c-oracle,fpfh")
-    ap.add_argument("--place-spacing", type=float, default=PlacesParams.model_fields["place_spacing"].default)
+    ap.add_argument("--place-spacing", type=float, default=PlacesParams.model_fields["spacing_m"].default)
     ap.add_argument(
         "--window-m", type=float, default=0.0, help="0: one sweep per place; 10: Sec. IV-B places"
     )
@@ -298,7 +298,7 @@ def main() -> None:
     gt_xy = {c: split.queries[c].poses[:, :2, 3] for c in conds}
     near = {c: split.nearest_map(c)[1] for c in conds}
     places_params = PlacesParams(
-        place_spacing=args.place_spacing, window_m=args.window_m, member_spacing=args.member_spacing,
+        spacing_m=args.place_spacing, window_m=args.window_m, member_spacing=args.member_spacing,
         store_clouds=False, descriptor_store="float32",  # the descriptors themselves, not their 8-bit codes
     )  # fmt: skip
     print(

@@ -99,7 +99,7 @@ def ensure_artifacts(cfg: Any, rebuild: bool, figure: Path | None, world: str = 
         if missing:
             t0 = time.perf_counter()
             params = PlacesParams(
-                window_m=0.0, place_spacing=PLACE_SPACING, descriptor_store="float32", cloud_store="float32"
+                window_m=0.0, spacing_m=PLACE_SPACING, descriptor_store="float32", cloud_store="float32"
             )
             full = build_places(split.map, params)
             for name in missing:

@@ -1,7 +1,7 @@
 """The global places database of the ISHOT paper (Sec. IV-B): a mapping sequence cut into described places.
 
 A map is partitioned into places along the trajectory that made it. Place centres are mapping scans at least
-``place_spacing`` metres from every earlier centre (greedy, in acquisition order, so a revisit adds no place
+``spacing_m`` metres from every earlier centre (greedy, in acquisition order, so a revisit adds no place
 where one exists already). A place holds the points of every scan within ``window_m`` metres of travelled
 distance (and, optionally, ``window_s`` seconds) of its centre scan, i.e. a contiguous stretch of one pass, in
 the SLAM sense; ``member_spacing`` thins those scans to one per that many metres of travel (the same scans for
@@ -16,15 +16,16 @@ three quarters.
 
 `PlacesDatabase` stores the place ids (= centre scan index in the mapping sequence, so the ids index into the
 map's poses), place poses, source scans, keypoints (place frame), descriptors and, optionally, the voxelised
-place clouds (for later verification), in an atomic versioned artifact (kind ``places-db``, version 3) with the
+place clouds (for later verification), in an atomic versioned artifact (kind ``places-db``, version 4) with the
 parameters that made it; `PlacesDatabase.load` refuses a file made with other feature settings.
 
 Compact storage (docs/localization.md, 'The places database's size'): ``descriptor_store`` keeps the descriptors
 as float32, float16 or sq8 (one byte per dimension, `placerec.retrieval.descriptor_store`), searched in that form;
 ``cloud_store = "int16"`` saves each place cloud as int16 fixed point around its centre
 (`placerec.quantise.FixedPointCloud`, with ``cloud_centre`` / ``cloud_scale``) and its intensities as uint8.
-Version 3 records both in the header (``descriptor_store``, ``cloud_store``) and `load` checks every array's
-dtype against them. Versions 1 and 2 (float32 throughout; version 1's feature settings hold an empty
+Versions 3 and 4 record both in the header (``descriptor_store``, ``cloud_store``) and `load` checks every array's
+dtype against them; version 4 names the spacing ``spacing_m``, as the 3D pipelines' ``places`` section does.
+Versions 1 to 3 (``place_spacing``; 1 and 2 float32 throughout; version 1's feature settings hold an empty
 ``descriptor_options`` list instead of the ``shot`` / ``fpfh`` sections) are read too.
 """
 
@@ -60,8 +61,8 @@ __all__ = [
 ]
 
 KIND = "places-db"
-FORMAT_VERSION = 3
-_READ_VERSIONS = (1, 2, 3)
+FORMAT_VERSION = 4
+_READ_VERSIONS = (1, 2, 3, 4)
 # the arrays of a saved database; n_places, n_rows (keypoints), n_sources and n_cloud (points) tie them together
 _SCHEMA = {
     "ids": Member("iu", ("n_places",), min_value=0),
@@ -95,7 +96,7 @@ _CLOUD_ARRAYS = {
 class PlacesParams(Params):
     """How a mapping sequence becomes places (see the module docstring) and how places are described."""
 
-    place_spacing: float = Field(5.0, ge=0, description="m between place centres (ISHOT paper Sec. IV-B)")
+    spacing_m: float = Field(5.0, ge=0, description="m between place centres (ISHOT paper Sec. IV-B)")
     window_m: float = Field(10.0, ge=0, description="m travelled merged into a place (ISHOT paper Sec. IV-B)")
     window_s: float | None = Field(None, ge=0, description="s of acquisition merged instead (None = off)")
     member_spacing: float = Field(2.0, ge=0, description="m between the scans merged into a place")
@@ -132,7 +133,7 @@ def features_json(features: FeatureParams) -> Any:
 def partition_places(
     poses: np.ndarray, timestamps: np.ndarray | None, params: PlacesParams
 ) -> PlacePartition:
-    """Place centres at least ``place_spacing`` apart (greedy in order) and their time/space windows."""
+    """Place centres at least ``spacing_m`` apart (greedy in order) and their time/space windows."""
     P = np.asarray(poses, dtype=np.float64)
     if P.ndim != 3 or P.shape[1:] != (4, 4) or P.shape[0] == 0:
         raise ScanDataError(f"places: poses must have shape (N, 4, 4) with N > 0, got {P.shape}")
@@ -141,7 +142,7 @@ def partition_places(
     xyz = P[:, :3, 3]
     centres: list[int] = []
     for i in range(xyz.shape[0]):
-        if far_from_all(xyz[centres], xyz[i], params.place_spacing):
+        if far_from_all(xyz[centres], xyz[i], params.spacing_m):
             centres.append(i)
     s = path_length(xyz)
     if params.member_spacing > 0:
@@ -332,7 +333,10 @@ class PlacesDatabase:
 
 def _read_params(stored: Any, version: int) -> PlacesParams:
     """The stored parameters as `PlacesParams`; a version 1 file's empty ``features.descriptor_options`` (the
-    descriptors' defaults) is dropped, anything else there is refused."""
+    descriptors' defaults) is dropped, anything else there is refused; versions 1-3 call ``spacing_m``
+    ``place_spacing``."""
+    if version <= 3 and isinstance(stored, dict) and "place_spacing" in stored:
+        stored = {("spacing_m" if k == "place_spacing" else k): v for k, v in stored.items()}
     if version == 1 and isinstance(stored, dict) and isinstance(stored.get("features"), dict):
         features = dict(stored["features"])
         if features.pop("descriptor_options", []) != []:
