@@ -17,7 +17,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Generic, TypeVar, cast
 
 import numpy as np
 
@@ -86,7 +86,11 @@ def params_key(name: str, params: Any) -> str:
     return f"{name}-{stable_hash({'name': name, 'params': params})}"
 
 
-class Recognizer(ABC):
+#: the parameters class of a recognizer
+P = TypeVar("P", bound=Params)
+
+
+class Recognizer(ABC, Generic[P]):
     """Base class of every place recognizer: implements ``add``/``query`` from the three primitives.
 
     Subclasses set ``name`` and ``Params`` and implement ``describe``, ``add_description``,
@@ -100,6 +104,7 @@ class Recognizer(ABC):
     name: ClassVar[str] = "recognizer"
     Params: ClassVar[type[Params]] = Params
     cache_descriptions: ClassVar[bool] = True
+    params: P
 
     def __init__(self, params: Params | Mapping[str, Any] | None = None, **overrides: Any) -> None:
         if isinstance(params, Params) and not isinstance(params, self.Params):
@@ -109,7 +114,7 @@ class Recognizer(ABC):
         if not isinstance(params, Params) or overrides:
             base = params.model_dump() if isinstance(params, Params) else params
             params = resolve(self.Params, base, overrides, where=self.name)
-        self.params = params
+        self.params = cast(P, params)
 
     @property
     def frontend_key(self) -> str:

@@ -124,7 +124,7 @@ class _LocalMap:
     poses: list[np.ndarray] = field(default_factory=list)
 
 
-class MapClosuresPeer(Recognizer):
+class MapClosuresPeer(Recognizer[MapClosuresParams]):
     """`placerec.types.PlaceRecognizer` over ``map_closures.MapClosures`` (optional extra ``peers``)."""
 
     name: ClassVar[str] = "map-closures"

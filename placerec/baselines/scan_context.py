@@ -228,7 +228,7 @@ def _yaw_pose(yaw_deg: float) -> np.ndarray:
     return T
 
 
-class ScanContext(Recognizer):
+class ScanContext(Recognizer[ScanContextParams]):
     """Scan Context place recognizer, a `placerec.recognizer.Recognizer` (see module docstring).
 
     ``ScanContext()`` uses the paper's defaults; ``ScanContext(params)`` or keyword overrides

@@ -218,6 +218,7 @@ class Delight(KeypointVoting):
 
     name: ClassVar[str] = "delight"
     Params: ClassVar[type[Params]] = DelightParams
+    params: DelightParams
     Strategy: ClassVar[type[VoteStrategy[Any]]] = HistogramRanking
 
     def _reset(self, entries: EntryTable | None = None) -> None:

@@ -153,4 +153,5 @@ class GestaltVoting(KeypointVoting):
 
     name: ClassVar[str] = "gestalt-voting"
     Params: ClassVar[type[Params]] = GestaltParams
+    params: GestaltParams
     Strategy: ClassVar[type[VoteStrategy[Any]]] = LognormalVotes

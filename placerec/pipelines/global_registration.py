@@ -115,4 +115,5 @@ class GlobalRegistration(KeypointVoting):
 
     name: ClassVar[str] = "global-registration"
     Params: ClassVar[type[Params]] = GlobalParams
+    params: GlobalParams
     Strategy: ClassVar[type[VoteStrategy[Any]]] = RegistrationVotes

@@ -121,7 +121,7 @@ class RatioVotes(VoteStrategy["KeypointVoting"]):
         )
 
 
-class KeypointVoting(Recognizer):
+class KeypointVoting(Recognizer[VotingParams]):
     """`PlaceRecognizer`: 3D local descriptors, 2-NN ratio test, vote counting (see the module docstring)."""
 
     name: ClassVar[str] = "keypoint-voting"

@@ -196,6 +196,7 @@ class ProbabilisticVoting(KeypointVoting):
 
     name: ClassVar[str] = "probabilistic-voting"
     Params: ClassVar[type[Params]] = ProbabilisticParams
+    params: ProbabilisticParams
     Strategy: ClassVar[type[VoteStrategy[Any]]] = PosteriorVotes
 
     def __init__(self, params: ProbabilisticParams | None = None, **overrides: Any) -> None:

@@ -333,7 +333,7 @@ def _cloud(name: str, description: Description) -> np.ndarray:
     return description["cloud"]
 
 
-class VisualHBST(VisualFrontend, Recognizer):
+class VisualHBST(VisualFrontend, Recognizer[VisualParams]):
     """`PlaceRecognizer` of the VPR paper's 2D modality with HBST retrieval (ORB-HBST, BRISK-HBST)."""
 
     name: ClassVar[str] = "visual-hbst"

@@ -72,6 +72,22 @@ def choose_split_bits(
 class FlatTree:
     """Nodes and leaf-contiguous descriptor pool of an HBST; see the module docstring."""
 
+    #: per node (capacity rows, the first ``n_nodes`` in use; made by `_alloc_nodes`)
+    split_bit: np.ndarray
+    sbit: np.ndarray
+    child: np.ndarray
+    depth: np.ndarray
+    used: np.ndarray
+    start: np.ndarray
+    count: np.ndarray
+    cap: np.ndarray
+    fail_score: np.ndarray
+    fail_count: np.ndarray
+    #: per pool row (the first ``top`` handed out; made by `_alloc_pool`)
+    words: np.ndarray
+    image: np.ndarray
+    keypoint: np.ndarray
+
     def __init__(self, n_bytes: int, leaf_size: int, delta_max: float, max_depth: int) -> None:
         self.n_bytes = int(n_bytes)
         self.n_words = -(-self.n_bytes // 8)
@@ -89,7 +105,7 @@ class FlatTree:
     # ----------------------------------------------------------------------------------------------- storage
     def _alloc_nodes(self, capacity: int) -> None:
         old = self.n_nodes if hasattr(self, "split_bit") else 0
-        fresh = {
+        fresh: dict[str, np.ndarray] = {
             "split_bit": np.full(capacity, -1, dtype=np.int32),
             "sbit": np.zeros(capacity, dtype=np.int64),  # split bit, 0 for leaves (safe gather index)
             "child": np.zeros((capacity, 2), dtype=np.int64),

@@ -12,6 +12,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from placerec.sim.materials import PARAM_COUNT
 
@@ -120,10 +121,10 @@ class MeshBuilder:
 
     def add_objects(
         self,
-        origin: np.ndarray,
-        yaw: np.ndarray | float = 0.0,
-        params: np.ndarray | None = None,
-        seed: np.ndarray | int = 0,
+        origin: ArrayLike,
+        yaw: ArrayLike = 0.0,
+        params: ArrayLike | None = None,
+        seed: ArrayLike = 0,
     ) -> np.ndarray:
         """Register K objects; returns their ids (with ``object_offset`` added)."""
         origin = np.atleast_2d(np.asarray(origin, dtype=np.float64))
@@ -168,14 +169,14 @@ class MeshBuilder:
 
     def add_boxes(
         self,
-        base: np.ndarray,
-        size: np.ndarray,
-        yaw: np.ndarray | float,
-        side_mat: np.ndarray | int,
-        top_mat: np.ndarray | int | None = None,
-        obj: np.ndarray | int | None = None,
-        params: np.ndarray | None = None,
-        seed: np.ndarray | int = 0,
+        base: ArrayLike,
+        size: ArrayLike,
+        yaw: ArrayLike,
+        side_mat: ArrayLike,
+        top_mat: ArrayLike | None = None,
+        obj: ArrayLike | None = None,
+        params: ArrayLike | None = None,
+        seed: ArrayLike = 0,
         bottom: bool = False,
     ) -> np.ndarray:
         """K oriented boxes: ``base`` = centre of the bottom face, ``size`` = (length x, width y, height z).

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 
 from placerec.sim.geometry import MeshBuilder
 from placerec.sim.materials import M
@@ -95,10 +96,10 @@ class Canvas:
 
     def boxes(
         self,
-        center: np.ndarray,
-        length: np.ndarray,
-        width: np.ndarray,
-        yaw: np.ndarray,
+        center: ArrayLike,
+        length: ArrayLike,
+        width: ArrayLike,
+        yaw: ArrayLike,
         value: int,
         margin: float = 0.0,
     ) -> None:
