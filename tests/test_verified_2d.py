@@ -7,7 +7,8 @@ import pytest
 
 from placerec.errors import ScanDataError
 from placerec.image import make_image
-from placerec.pipelines.visual import keypoint_points, mutual_nearest
+from placerec.image.correspondence import keypoint_points
+from placerec.pipelines.visual import mutual_nearest
 from placerec.recognizer import make_pipeline
 from placerec.sim import SimulatedSequence
 from placerec.types import relative_pose

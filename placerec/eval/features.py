@@ -3,7 +3,7 @@
 The image-matching measures of SuperPoint / HPatches, with the homography replaced by the scans' 3D points and
 their relative pose. Each image pixel holds at most one scan point (`placerec.image.correspondence.pixel_points`),
 and a keypoint's 3D point is the point of its pixel or of the nearest of its 8 neighbours that has one
-(`placerec.pipelines.visual.keypoint_points`).
+(`placerec.image.correspondence.keypoint_points`).
 
 Ground truth, for a pair of images A, B and ``a_to_b`` (A's sensor frame -> B's, ``inv(pose_b) @ pose_a``):
 
@@ -46,8 +46,12 @@ import numpy as np
 from placerec.errors import ScanDataError
 from placerec.features.base import Features
 from placerec.image import ImageParams, make_image
-from placerec.image.correspondence import pixel_correspondences, pixel_points, transform_points
-from placerec.pipelines.visual import keypoint_points
+from placerec.image.correspondence import (
+    keypoint_points,
+    pixel_correspondences,
+    pixel_points,
+    transform_points,
+)
 from placerec.types import Scan
 from placerec.verify.matching import mutual_nearest
 

@@ -24,7 +24,13 @@ from placerec.errors import ScanDataError
 from placerec.image.projection import IntensityImage
 from placerec.types import Scan
 
-__all__ = ["PixelCorrespondences", "pixel_points", "pixel_correspondences", "transform_points"]
+__all__ = [
+    "PixelCorrespondences",
+    "keypoint_points",
+    "pixel_points",
+    "pixel_correspondences",
+    "transform_points",
+]
 
 
 @dataclass(frozen=True)
@@ -89,3 +95,28 @@ def pixel_correspondences(
     uv_a = np.stack([ia % wa, ia // wa], axis=1).astype(np.int32)
     uv_b = np.stack([ib % wb, ib // wb], axis=1).astype(np.int32)
     return PixelCorrespondences(uv_a, uv_b, dist.astype(np.float32))
+
+
+#: Pixel offsets (row, column) searched, nearest first, for a keypoint whose own pixel holds no scan point.
+_NEIGHBOURS = ((0, 0), (0, -1), (0, 1), (-1, 0), (1, 0), (-1, -1), (-1, 1), (1, -1), (1, 1))
+
+
+def keypoint_points(keypoints: np.ndarray, point_index: np.ndarray) -> np.ndarray:
+    """Index of the scan point behind each keypoint (K,): the point the projection kept in the keypoint's pixel
+    (OpenCV's pixel centres are integers), else in the nearest of its 8 neighbours that holds one (columns
+    wrap around); -1 where none does (an interpolated row or a hole)."""
+    h, w = point_index.shape
+    kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
+    u = np.rint(kp[:, 0]).astype(np.int64)
+    v = np.rint(kp[:, 1]).astype(np.int64)
+    out = np.full(kp.shape[0], -1, np.int64)
+    for dv, du in _NEIGHBOURS:
+        todo = out < 0
+        if not todo.any():
+            break
+        rows = v[todo] + dv
+        inside = (rows >= 0) & (rows < h)
+        found = np.full(rows.shape, -1, np.int64)
+        found[inside] = point_index[rows[inside], np.mod(u[todo][inside] + du, w)]
+        out[todo] = found
+    return out

@@ -37,6 +37,7 @@ from pydantic import Field, SerializeAsAny, ValidationError, model_validator
 from placerec.errors import ScanDataError
 from placerec.features.registry import ExtractorParams, extractor_params
 from placerec.image import ImageParams, make_image
+from placerec.image.correspondence import keypoint_points
 from placerec.io.artifact_schema import check_members
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params, SectionError
@@ -66,7 +67,6 @@ __all__ = [
     "visual_frontend_key",
     "describe_visual",
     "mutual_nearest",
-    "keypoint_points",
     "pack_features",
     "features_schema",
     "stored_features",
@@ -155,31 +155,6 @@ def visual_frontend_key(params: VisualPipelineParams) -> str:
         icp = params.verify.icp
         front["cloud"] = {"voxel_size": icp.voxel_size, "max_range": icp.max_range}
     return params_key("visual", front)
-
-
-#: Pixel offsets (row, column) searched, nearest first, for a keypoint whose own pixel holds no scan point.
-_NEIGHBOURS = ((0, 0), (0, -1), (0, 1), (-1, 0), (1, 0), (-1, -1), (-1, 1), (1, -1), (1, 1))
-
-
-def keypoint_points(keypoints: np.ndarray, point_index: np.ndarray) -> np.ndarray:
-    """Index of the scan point behind each keypoint (K,): the point the projection kept in the keypoint's pixel
-    (OpenCV's pixel centres are integers), else in the nearest of its 8 neighbours that holds one (columns
-    wrap around); -1 where none does (an interpolated row or a hole)."""
-    h, w = point_index.shape
-    kp = np.asarray(keypoints, np.float64).reshape(-1, 2)
-    u = np.rint(kp[:, 0]).astype(np.int64)
-    v = np.rint(kp[:, 1]).astype(np.int64)
-    out = np.full(kp.shape[0], -1, np.int64)
-    for dv, du in _NEIGHBOURS:
-        todo = out < 0
-        if not todo.any():
-            break
-        rows = v[todo] + dv
-        inside = (rows >= 0) & (rows < h)
-        found = np.full(rows.shape, -1, np.int64)
-        found[inside] = point_index[rows[inside], np.mod(u[todo][inside] + du, w)]
-        out[todo] = found
-    return out
 
 
 def describe_visual(
