@@ -141,7 +141,7 @@ def run(
     """
     from placerec.config import load_config
     from placerec.experiment import run_experiment
-    from placerec.experiment.report import print_table
+    from placerec.experiment.tables import print_table
 
     overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
     cfg = load_config(config, overrides)
@@ -182,7 +182,7 @@ def bench(
         run_benchmark,
         suggest_thresholds,
     )
-    from placerec.experiment.report import print_rows
+    from placerec.experiment.tables import print_rows
 
     overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
     cfg = load_benchmark_config(config, overrides)

@@ -7,7 +7,8 @@ import pytest
 
 from placerec.config import load_config
 from placerec.errors import ScanDataError
-from placerec.experiment.report import make_run_dir, recompute_loop_metrics, report_loop
+from placerec.experiment.report import recompute_loop_metrics, report_loop
+from placerec.experiment.run_folder import make_run_dir
 from placerec.experiment.runner import run_loop
 from placerec.loop_closure import LoopClosureDetector
 from placerec.recognizer import make_pipeline

@@ -12,7 +12,8 @@ from typer.testing import CliRunner
 from placerec.cli import app
 from placerec.config import load_config
 from placerec.errors import ConfigError
-from placerec.experiment.report import make_run_dir, report_loop
+from placerec.experiment.report import report_loop
+from placerec.experiment.run_folder import make_run_dir
 from placerec.experiment.runner import run_loop
 from placerec.recognizer import PIPELINES, make_pipeline, pipeline_params
 from placerec.sim import SimulatedSequence

@@ -14,15 +14,10 @@ from placerec.errors import ConfigError, ScanDataError, ScanFormatError
 from placerec.eval import ExclusionWindow, loop_ground_truth
 from placerec.experiment import run_experiment
 from placerec.experiment.candidates import CandidateTable, read_candidates, write_candidates
-from placerec.experiment.report import (
-    make_run_dir,
-    print_table,
-    recompute_loop_metrics,
-    report_localize,
-    report_loop,
-    table_rows,
-)
+from placerec.experiment.report import recompute_loop_metrics, report_localize, report_loop
+from placerec.experiment.run_folder import make_run_dir
 from placerec.experiment.runner import STAGES, PipelineRecord
+from placerec.experiment.tables import print_table, table_rows
 from placerec.io import read_poses, write_kitti_poses
 from placerec.loop_closure import split_verify_time
 from placerec.types import Candidate, ListSequence, Scan, Verification, relative_pose

@@ -10,7 +10,8 @@ from typer.testing import CliRunner
 
 from placerec.cli import app
 from placerec.config import load_config
-from placerec.experiment.report import make_run_dir, recompute_loop_metrics, report_localize, report_loop
+from placerec.experiment.report import recompute_loop_metrics, report_localize, report_loop
+from placerec.experiment.run_folder import make_run_dir
 from placerec.experiment.runner import build_pipelines, run_localize, run_loop
 from placerec.recognizer import PIPELINES
 from placerec.sim import SimulatedSequence

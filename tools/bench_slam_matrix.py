@@ -50,7 +50,7 @@ from placerec.config import config_to_yaml
 from placerec.eval.pose_error import full_pose_mask, pose_errors
 from placerec.eval.trajectory import trajectory_errors
 from placerec.experiment.protocol import TEST_SEEDS, TEST_WORLDS, TUNING_SEEDS, TUNING_WORLDS
-from placerec.experiment.report import print_rows
+from placerec.experiment.tables import print_rows
 from placerec.io import read_poses
 from placerec.io.atomic import atomic_write
 from placerec.sim.odometry import OdometryDrift

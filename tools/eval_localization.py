@@ -48,7 +48,8 @@ sys.path.insert(0, str(ROOT))
 
 from placerec.config import apply_overrides, parse_config, read_config_file  # noqa: E402
 from placerec.experiment.protocol import LOCALIZE_TEST_DRAW, LOCALIZE_TUNING_DRAW  # noqa: E402
-from placerec.experiment.report import make_run_dir, report_localize  # noqa: E402
+from placerec.experiment.report import report_localize  # noqa: E402
+from placerec.experiment.run_folder import make_run_dir  # noqa: E402
 from placerec.experiment.runner import PipelineRecord, build_pipelines, run_localize  # noqa: E402
 
 CONDITIONS = ("gator", "pole", "occlusion")

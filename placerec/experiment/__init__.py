@@ -27,7 +27,8 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> 
     window needs) before the results folder is made, so a config that cannot run leaves no folder behind. The run
     opens them again (the simulator and file sequences open in milliseconds once built), so that its description
     cache is keyed by the config's dataset."""
-    from placerec.experiment.report import make_run_dir, report_localize, report_loop, require_poses
+    from placerec.experiment.report import report_localize, report_loop, require_poses
+    from placerec.experiment.run_folder import make_run_dir
     from placerec.experiment.runner import (
         build_pipelines,
         localize_sequences,

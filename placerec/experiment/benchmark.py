@@ -202,7 +202,8 @@ def run_cell(cell_cfg_json: dict[str, Any], folder: str) -> dict[str, Any]:
     """Run one cell (a loop-mode config as JSON) into ``folder``; returns ``{"cell", "seconds", "metrics"}`` and
     writes it as ``folder/cell.json`` last, so a cell with a ``cell.json`` is complete. Runs in a worker process."""
     from placerec.config import parse_config
-    from placerec.experiment.report import _finite_or_null, report_loop
+    from placerec.experiment.report import report_loop
+    from placerec.experiment.run_folder import finite_or_null
     from placerec.experiment.runner import build_pipelines, loop_sequence, run_loop
     from placerec.experiment.truth import TruthClouds
 
@@ -230,7 +231,7 @@ def run_cell(cell_cfg_json: dict[str, Any], folder: str) -> dict[str, Any]:
         "cell": out.name,
         "seconds": time.perf_counter() - t0,
         "n_scans": payload["n_scans"],
-        "metrics": _finite_or_null(payload["pipelines"]),
+        "metrics": finite_or_null(payload["pipelines"]),
     }
     with atomic_write(out / "cell.json", "w") as fh:
         json.dump(result, fh, allow_nan=False, default=_jsonable)
@@ -334,7 +335,8 @@ def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[
     its files (poses, candidates, the scans' voxels in ``truth.npz``) at the thresholds in force now; the stored
     entries give the rest (times). `ArtifactError` naming the file when one is missing or damaged."""
     from placerec.experiment.candidates import read_candidates
-    from placerec.experiment.report import _finite_or_null, _loop_summary, _slug, pose_truths
+    from placerec.experiment.report import loop_summary, pose_truths
+    from placerec.experiment.run_folder import finite_or_null, slug
     from placerec.experiment.truth import TruthClouds
     from placerec.io import read_poses
 
@@ -353,14 +355,14 @@ def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[
     truth.voxels = [keys[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
     truth.overlap = overlap  # the overlap search of the run, not made again
     specs = list(bench.pipelines)
-    tables = [read_candidates(folder / f"candidates_{_slug(p.display_name)}.csv") for p in specs]
+    tables = [read_candidates(folder / f"candidates_{slug(p.display_name)}.csv") for p in specs]
     pose_gts = pose_truths(cfg, tables, poses, stamps, truth)
     out = {}
     for spec, table, pose_gt in zip(specs, tables, pose_gts, strict=True):
         label = spec.display_name
-        _, summary = _loop_summary(cfg, table, poses, stamps, _threshold(spec), truth, pose_gt)
+        _, summary = loop_summary(cfg, table, poses, stamps, _threshold(spec), truth, pose_gt)
         kept = stored.get(label, {})
-        out[label] = {**kept, **_finite_or_null(summary)}
+        out[label] = {**kept, **finite_or_null(summary)}
     return out
 
 
@@ -545,10 +547,11 @@ def _fmt(x: Any, digits: int = 3) -> str:
 
 
 def _write_outputs(bench: BenchmarkConfig, root: Path, payload: dict[str, Any]) -> None:
-    from placerec.experiment.report import _finite_or_null, write_html_page
+    from placerec.experiment.run_folder import finite_or_null
+    from placerec.experiment.tables import write_html_page
 
     with atomic_write(root / "benchmark.json", "w") as fh:
-        json.dump(_finite_or_null(payload), fh, indent=1, allow_nan=False, default=_jsonable)
+        json.dump(finite_or_null(payload), fh, indent=1, allow_nan=False, default=_jsonable)
     with atomic_write(root / "config.yaml", "w") as fh:
         import yaml
 

@@ -28,21 +28,16 @@ inspection) but leaves ``latest`` on the last complete run.
 
 from __future__ import annotations
 
-import html
 import json
-import os
-import re
 import resource
 import sys
-from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
-from pydantic import BaseModel
 
-from placerec.config import ExperimentConfig, config_to_yaml
+from placerec.config import ExperimentConfig
 from placerec.errors import ConfigError
 from placerec.eval import (
     ExclusionWindow,
@@ -62,61 +57,23 @@ from placerec.eval.icp_truth import icp_ground_truth
 from placerec.eval.pose_truth import PoseGroundTruth, correct_candidates, overlap_truth, with_candidates
 from placerec.experiment import figures
 from placerec.experiment.candidates import CandidateTable, read_candidates, write_candidates
+from placerec.experiment.run_folder import finite_or_null, json_default, point_latest, slug
 from placerec.experiment.runner import STAGES, PipelineRecord
+from placerec.experiment.tables import lookup, write_index_html
 from placerec.experiment.truth import TruthClouds
 from placerec.io import read_poses, write_kitti_poses
 from placerec.io.atomic import atomic_write
 from placerec.types import Sequence
 
 __all__ = [
-    "make_run_dir",
-    "point_latest",
+    "loop_summary",
+    "operating_point",
+    "pose_truths",
     "require_poses",
     "report_loop",
     "report_localize",
     "recompute_loop_metrics",
-    "print_table",
-    "print_rows",
-    "write_html_page",
 ]
-
-
-def _slug(label: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", label).strip("_") or "pipeline"
-
-
-def make_run_dir(cfg: BaseModel, out_dir: str | Path | None = None) -> Path:
-    """A new timestamped folder for a config with ``name`` and ``output.dir`` (an `ExperimentConfig`, a SLAM
-    config) with the config written into it (``latest`` is moved to it only
-    when its report is complete, by `point_latest`); `ConfigError` when the results root cannot hold it."""
-    root = Path(out_dir or cfg.output.dir)
-    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    run = root / f"{_slug(cfg.name)}_{stamp}"
-    n = 1
-    while run.exists():
-        n += 1
-        run = root / f"{_slug(cfg.name)}_{stamp}-{n}"
-    try:
-        run.mkdir(parents=True)
-    except OSError as exc:
-        where = "--out" if out_dir else "output.dir"
-        raise ConfigError(f"{where}: cannot make the results folder {run}: {exc.strerror or exc}") from None
-    with atomic_write(run / "config.yaml", "w") as fh:
-        fh.write(config_to_yaml(cfg))
-    return run
-
-
-def point_latest(run: Path) -> None:
-    """Point ``<run's parent>/latest`` at ``run``, atomically (a new link renamed over the old one)."""
-    tmp = run.parent / f".latest-{os.getpid()}"
-    try:
-        if tmp.is_symlink():
-            tmp.unlink()
-        tmp.symlink_to(run.name, target_is_directory=True)
-        os.replace(tmp, run.parent / "latest")
-    except OSError:  # filesystems without symlinks, or a real folder named latest: no link
-        if tmp.is_symlink():
-            tmp.unlink()
 
 
 def _timing(record: PipelineRecord) -> dict[str, Any]:
@@ -150,8 +107,8 @@ def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
     poses = _read_or_empty(run_dir / "poses.txt", lambda p: read_poses(p)[0], (0, 4, 4))
     times = run_dir / "times.txt"
     stamps = _read_or_empty(times, lambda p: np.loadtxt(p, ndmin=1), (0,)) if times.is_file() else None
-    table = read_candidates(run_dir / f"candidates_{_slug(label)}.csv")
-    return _loop_summary(cfg, table, poses, stamps)[1]
+    table = read_candidates(run_dir / f"candidates_{slug(label)}.csv")
+    return loop_summary(cfg, table, poses, stamps)[1]
 
 
 def operating_point(
@@ -206,7 +163,7 @@ def operating_point(
 def _min_score(params: dict[str, Any]) -> float | None:
     """The verification's ``min_score`` of a pipeline's resolved parameters when it accepts by score (a candidate
     scoring below it was rejected), else None."""
-    score = _get(params, ("verify", "score"))
+    score = lookup(params, ("verify", "score"))
     if isinstance(score, dict) and score.get("acceptance", "score") == "score":
         return score.get("min_score")
     return None
@@ -238,7 +195,7 @@ def _other_truth_summary(
     }
 
 
-def _loop_summary(
+def loop_summary(
     cfg: ExperimentConfig,
     table: CandidateTable,
     poses: np.ndarray,
@@ -338,8 +295,8 @@ def report_loop(
     tables = [record.table() for record in records]
     pose_gts = pose_truths(cfg, tables, poses, seq.timestamps, truth)
     for record, table, pose_gt in zip(records, tables, pose_gts, strict=True):
-        write_candidates(run / f"candidates_{_slug(record.label)}.csv", record.query_ids, record.candidates)
-        metrics, summary = _loop_summary(cfg, table, poses, seq.timestamps, record.threshold, truth, pose_gt)
+        write_candidates(run / f"candidates_{slug(record.label)}.csv", record.query_ids, record.candidates)
+        metrics, summary = loop_summary(cfg, table, poses, seq.timestamps, record.threshold, truth, pose_gt)
         q, m = metrics.query_ids, metrics.match_ids
         summary["time_ms"] = _timing(record)
         summary["min_score"] = _min_score(record.params)
@@ -363,7 +320,7 @@ def report_loop(
                 metrics.correct,
                 accepted,
                 metrics.revisit,
-                run / f"trajectory_{_slug(record.label)}.png",
+                run / f"trajectory_{slug(record.label)}.png",
                 f"{record.label}: closures at max F1 (threshold {metrics.threshold_at_max_f1:.3g})",
             )
     payload = {
@@ -387,7 +344,7 @@ def report_localize(
     success_distance = cfg.evaluation.localize.success_distance
     results: dict[str, Any] = {}
     for record in records:
-        write_candidates(run / f"candidates_{_slug(record.label)}.csv", record.query_ids, record.candidates)
+        write_candidates(run / f"candidates_{slug(record.label)}.csv", record.query_ids, record.candidates)
         estimates, basis, rule = _localize_estimates(record.table(), map_poses)
         metrics = localization_metrics(
             estimates,
@@ -405,7 +362,7 @@ def report_localize(
                 query_poses[:, :3, 3],
                 np.where(np.isfinite(estimates[:, :3, 3]), estimates[:, :3, 3], query_poses[:, :3, 3]),
                 metrics.success,
-                run / f"localization_{_slug(record.label)}.png",
+                run / f"localization_{slug(record.label)}.png",
                 f"{record.label}\nlocalised {metrics.success_rate:.1%} ({rule} answers within {success_distance} m,"
                 f" {basis})",
                 answered=metrics.answered,
@@ -463,7 +420,7 @@ def _finish(
     link_latest: bool = True,
 ) -> None:
     with atomic_write(run / "metrics.json", "w") as fh:
-        json.dump(_finite_or_null(payload), fh, indent=2, default=_json_default, allow_nan=False)
+        json.dump(finite_or_null(payload), fh, indent=2, default=json_default, allow_nan=False)
     with atomic_write(run / "pipelines.yaml", "w") as fh:  # resolved parameters: presets and defaults applied
         resolved = {r.label: {"pipeline": r.pipeline, "class": r.name, "params": r.params} for r in records}
         yaml.safe_dump(resolved, fh, sort_keys=False)
@@ -478,212 +435,3 @@ def _finish(
         write_index_html(run, cfg, payload)
     if link_latest:
         point_latest(run)  # last: a run that failed before this point leaves latest where it was
-
-
-def _finite_or_null(value: Any) -> Any:
-    """``value`` with every NaN or infinite float (numpy ones included) replaced by None, recursively."""
-    if isinstance(value, dict):
-        return {k: _finite_or_null(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_finite_or_null(v) for v in value]
-    if isinstance(value, float | np.floating):
-        return float(value) if np.isfinite(value) else None
-    return value
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)
-
-
-def _fmt(value: Any) -> str:
-    if isinstance(value, float):
-        return "-" if np.isnan(value) else f"{value:.3f}"
-    return "-" if value is None else str(value)
-
-
-_LOOP_COLUMNS = (
-    ("max F1", ("max_f1",)),
-    ("P@maxF1", ("precision_at_max_f1",)),
-    ("R@maxF1", ("recall_at_max_f1",)),
-    ("AUC", ("auc",)),
-    ("R@P100", ("recall_at_100_precision",)),
-    ("EP", ("extended_precision",)),
-    ("R@1", ("recall_at_1",)),
-    ("TP t err [m] median", ("pose_error", "tp_translation_m", "median")),
-    ("p95", ("pose_error", "tp_translation_m", "p95")),
-    ("TP rot err [deg] median", ("pose_error", "tp_rotation_deg", "median")),
-    ("p95", ("pose_error", "tp_rotation_deg", "p95")),
-    ("max accepted t err [m]", ("pose_error", "accepted_max_translation_m")),
-)
-#: the protocols beside the loop protocol (`placerec.eval.retrieval`): a second table in loop mode
-_PROTOCOL_COLUMNS = (
-    ("R@1 25 m", ("retrieval", "recall_at_1")),
-    ("R@1% 25 m", ("retrieval", "recall_at_1pct")),
-    ("retrieval queries", ("retrieval", "n_queries")),
-    ("same: revisits", ("directions", "same", "n_revisits")),
-    ("R@1", ("directions", "same", "recall_at_1")),
-    ("R@maxF1", ("directions", "same", "recall_at_max_f1")),
-    ("reverse: revisits", ("directions", "reverse", "n_revisits")),
-    ("R@1", ("directions", "reverse", "recall_at_1")),
-    ("R@maxF1", ("directions", "reverse", "recall_at_max_f1")),
-)
-_LOCALIZE_COLUMNS = (
-    ("basis", ("success_basis",)),
-    ("answers", ("answer_rule",)),
-    ("localised", ("success_rate",)),
-    ("no answer", ("no_answer_rate",)),
-    ("wrong", ("wrong_rate",)),
-    ("success 1 m/5 deg", ("fine_success_rate",)),
-    ("median err [m]", ("median_error",)),
-    ("median rot err [deg]", ("median_rotation_error_deg",)),
-)
-_TIME_COLUMNS = (
-    ("mean", ("time_ms", "mean")),
-    ("median", ("time_ms", "median")),
-    ("p95", ("time_ms", "p95")),
-    ("verify mean", ("time_ms", "stages", "verify", "mean")),
-)
-
-
-def _get(entry: dict[str, Any], path: tuple[str, ...]) -> Any:
-    for key in path:
-        if not isinstance(entry, dict) or key not in entry:
-            return None
-        entry = entry[key]
-    return entry
-
-
-def table_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
-    """Header and rows of the results table (shared by the console and the HTML report). Pose errors are those
-    of the closures accepted at the max-F1 threshold; ``-`` marks a value that is undefined (no 6-DoF pose, no
-    verification stage)."""
-    loop = payload["mode"] == "loop"
-    columns = (_LOOP_COLUMNS if loop else _LOCALIZE_COLUMNS) + tuple(
-        (f"ms/{'scan' if loop else 'query'} {h}" if h == "mean" else h, k) for h, k in _TIME_COLUMNS
-    )
-    tail = ("revisits", ("n_revisits",)) if loop else ("queries", ("n_queries",))
-    header = ["pipeline"] + [h for h, _ in columns] + [tail[0]]
-    rows = [
-        [label] + [_fmt(_get(m, k)) for _, k in columns] + [_fmt(_get(m, tail[1]))]
-        for label, m in payload["pipelines"].items()
-    ]
-    return header, rows
-
-
-def protocol_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]] | None:
-    """Header and rows of the loop-mode table of retrieval recalls (25 m) and same- / reverse-direction revisits
-    (None in localize mode)."""
-    if payload["mode"] != "loop":
-        return None
-    return _column_rows(payload, _PROTOCOL_COLUMNS)
-
-
-def _column_rows(payload: dict[str, Any], columns: Any) -> tuple[list[str], list[list[str]]]:
-    """Header and one row per pipeline of ``columns`` ((heading, key path) pairs)."""
-    header = ["pipeline"] + [h for h, _ in columns]
-    rows = [[label] + [_fmt(_get(m, k)) for _, k in columns] for label, m in payload["pipelines"].items()]
-    return header, rows
-
-
-_OPERATING_COLUMNS = (
-    ("threshold", ("operating", "threshold")),
-    ("P", ("operating", "precision")),
-    ("R", ("operating", "recall")),
-    ("pose truth: P", ("pose_truth", "operating", "precision")),
-    ("R", ("pose_truth", "operating", "recall")),
-    ("false", ("pose_truth", "operating", "fp")),
-    ("revisits", ("pose_truth", "n_revisits")),
-    ("t err p95 [m]", ("pose_truth", "operating", "translation_m", "p95")),
-)
-
-
-def operating_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]] | None:
-    """Header and rows of the loop-mode table at each pipeline's fixed operating threshold, under the distance and
-    the pose ground truths (None in localize mode or when no pipeline has a threshold)."""
-    if payload["mode"] != "loop" or not any(m.get("operating") for m in payload["pipelines"].values()):
-        return None
-    return _column_rows(payload, _OPERATING_COLUMNS)
-
-
-def print_table(payload: dict[str, Any], title: str) -> None:
-    """The results as rich console tables: the main one, and in loop mode the retrieval / direction one and the
-    one at the fixed operating thresholds."""
-    print_rows(*table_rows(payload), title)
-    protocols = protocol_rows(payload)
-    if protocols is not None:
-        print_rows(*protocols, f"{title}: retrieval within 25 m, same- / reverse-direction revisits")
-    operating = operating_rows(payload)
-    if operating is not None:
-        print_rows(*operating, f"{title}: at the fixed operating thresholds (docs/protocol.md)")
-
-
-def print_rows(header: list[str], rows: list[list[str]], title: str) -> None:
-    """A rich console table: the first column left-aligned, bold and never cut, the others right-aligned."""
-    from rich.console import Console
-    from rich.measure import Measurement
-    from rich.table import Table
-    from rich.text import Text
-
-    table = Table(title=Text(title))
-    names = max((len(r[0]) for r in rows), default=0)
-    for i, h in enumerate(header):  # Text: "[m]" is a unit, not rich markup
-        first = i == 0
-        table.add_column(
-            Text(h),
-            justify="left" if first else "right",
-            style="bold" if first else None,
-            no_wrap=first,
-            min_width=names if first else None,
-        )
-    for row in rows:
-        table.add_row(*(Text(c) for c in row))
-    console = Console()
-    if not console.is_terminal:  # logs and pipes: as wide as the table, so that no column is cut
-        wide = Console(width=10_000)
-        console = Console(width=Measurement.get(wide, wide.options, table).maximum)
-    console.print(table)
-
-
-def write_index_html(run: Path, cfg: ExperimentConfig, payload: dict[str, Any]) -> Path:
-    """A single page with the tables and every figure of the run."""
-    tables = [table_rows(payload)] + [
-        t for t in [protocol_rows(payload), operating_rows(payload)] if t is not None
-    ]
-    return write_html_page(run, cfg.name, f"mode: {html.escape(payload['mode'])}", tables)
-
-
-def write_html_page(
-    run: Path,
-    title: str,
-    subtitle: str,
-    tables: list[tuple[list[str], list[list[str]]]],
-    first: tuple[str, ...] = ("pr_curves.png",),
-    last: tuple[str, ...] = ("timing.png",),
-) -> Path:
-    """``run/index.html``: ``title``, ``subtitle`` (HTML) with links to metrics.json and config.yaml, the
-    ``tables`` (header, rows) and every PNG of the folder (``first`` ones first, ``last`` ones last)."""
-    body = ""
-    for header, rows in tables:
-        head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
-        cells = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
-        body += f"<table><tr>{head}</tr>{cells}</table>"
-    images = sorted(p.name for p in run.glob("*.png"))
-    order = {**{n: 0 for n in first}, **{n: 2 for n in last}}
-    images.sort(key=lambda n: (order.get(n, 1), n))
-    figs = "".join(
-        f'<figure><img src="{html.escape(n)}"><figcaption>{html.escape(n)}</figcaption></figure>'
-        for n in images
-    )
-    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(title)}</title>
-<style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse;margin-bottom:1em}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}
-td:first-child{{text-align:left;font-weight:bold}}figure{{display:inline-block;margin:1em}}img{{max-width:560px}}</style></head><body>
-<h1>{html.escape(title)}</h1><p>{subtitle} &middot; files: <a href="metrics.json">metrics.json</a>,
-<a href="config.yaml">config.yaml</a></p>{body}{figs}</body></html>"""
-    path = run / "index.html"
-    with atomic_write(path, "w") as fh:
-        fh.write(page)
-    return path

@@ -30,13 +30,8 @@ from placerec.eval.trajectory import trajectory_errors
 from placerec.experiment import figures
 from placerec.experiment.candidates import pose_to_xyzrpy
 from placerec.experiment.preprocessing import preprocess_params
-from placerec.experiment.report import (
-    _finite_or_null,
-    _json_default,
-    point_latest,
-    print_rows,
-    write_html_page,
-)
+from placerec.experiment.run_folder import finite_or_null, json_default, point_latest
+from placerec.experiment.tables import print_rows, write_html_page
 from placerec.io import write_kitti_poses, write_tum_poses
 from placerec.io.atomic import atomic_write
 from placerec.preprocess import preprocess_scan
@@ -262,7 +257,7 @@ def report_slam(cfg: SlamConfig, run: Path, seq: Sequence, result: SlamResult) -
     _write_loops(run / "loops.csv", cols)
     payload = slam_metrics(cfg, result, cols)
     with atomic_write(run / "metrics.json", "w") as fh:
-        json.dump(_finite_or_null(payload), fh, indent=2, default=_json_default, allow_nan=False)
+        json.dump(finite_or_null(payload), fh, indent=2, default=json_default, allow_nan=False)
     if cfg.output.figures:
         traj = {}
         if result.ground_truth is not None:

@@ -18,7 +18,7 @@ import numpy as np
 from placerec.errors import ConfigError
 from placerec.experiment.datasets import SlicedSequence, open_dataset
 from placerec.experiment.preprocessing import preprocess_params
-from placerec.experiment.report import make_run_dir
+from placerec.experiment.run_folder import make_run_dir
 from placerec.experiment.runner import progress_bars
 from placerec.io import read_poses
 from placerec.preprocess import preprocess_scan
