@@ -220,7 +220,7 @@ def slam(
 
       placerec slam configs/slam_demo.yaml --set robustness.false_loops=10
     """
-    from placerec.slam.config import load_slam_config
+    from placerec.slam_app.config import load_slam_config
 
     cfg = load_slam_config(config, set_ or [])
     if dump:
@@ -228,8 +228,8 @@ def slam(
 
         typer.echo(config_to_yaml(cfg), nl=False)
         return
-    from placerec.slam.report import print_slam_table
-    from placerec.slam.run import run_slam
+    from placerec.slam_app.report import print_slam_table
+    from placerec.slam_app.run import run_slam
 
     run_dir, payload = run_slam(cfg, out)
     print_slam_table(payload, f"{cfg.name} (slam, {payload['n_scans']} scans)")

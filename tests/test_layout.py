@@ -27,9 +27,9 @@ EXPERIMENT_LAYER = (
     "placerec.cli_support",
     "placerec.artifacts",
     "placerec.experiment",
-    "placerec.slam.config",
-    "placerec.slam.run",
-    "placerec.slam.report",
+    "placerec.slam_app.config",
+    "placerec.slam_app.run",
+    "placerec.slam_app.report",
 )
 #: Data sources an experiment picks; an algorithm gets scans, not the simulator.
 DATA_SOURCES = ("placerec.sim",)

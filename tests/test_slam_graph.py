@@ -8,9 +8,9 @@ from placerec.errors import ScanDataError
 from placerec.eval.trajectory import trajectory_errors
 from placerec.sim.geometry import euler_rotation
 from placerec.sim.odometry import OdometryDrift, drift_poses
-from placerec.slam.config import SlamConfig
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
-from placerec.slam.run import false_loops
+from placerec.slam_app.config import SlamConfig
+from placerec.slam_app.run import false_loops
 from placerec.types import relative_pose
 
 

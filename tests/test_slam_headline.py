@@ -10,9 +10,9 @@ from pathlib import Path
 
 from placerec.experiment.datasets import open_dataset
 from placerec.sim.odometry import OdometryDrift
-from placerec.slam.config import load_slam_config
-from placerec.slam.report import loop_table, slam_metrics
-from placerec.slam.run import slam_sequence
+from placerec.slam_app.config import load_slam_config
+from placerec.slam_app.report import loop_table, slam_metrics
+from placerec.slam_app.run import slam_sequence
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -17,8 +17,8 @@ from placerec.errors import ConfigError
 from placerec.io import read_poses
 from placerec.sim import SimulatedSequence, write_kitti_sequence
 from placerec.sim.routes import Route
-from placerec.slam.config import load_slam_config
-from placerec.slam.run import run_slam
+from placerec.slam_app.config import load_slam_config
+from placerec.slam_app.run import run_slam
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "real" / "kitti_raw_hdl64_sequence"
@@ -159,7 +159,7 @@ def test_slam_demo_targets(tmp_path):
 def test_corrected_map_ply(tmp_path):
     """Two scans of the same wall seen from poses 1 m apart land on the same voxels of the map."""
     from placerec.io.ply import read_ply
-    from placerec.slam.report import write_map_ply
+    from placerec.slam_app.report import write_map_ply
     from placerec.types import ListSequence, Scan
 
     wall = np.stack(np.meshgrid(np.arange(0, 4, 0.1), np.arange(0, 2, 0.1)), -1).reshape(-1, 2)
@@ -180,7 +180,7 @@ def test_a_poses_file_follows_the_dataset_slice(tmp_path):
     """odometry.source 'file' with a sliced dataset (every 2nd scan): the file's poses of those scans."""
     from placerec.experiment.datasets import open_dataset
     from placerec.io import write_kitti_poses
-    from placerec.slam.run import odometry_source
+    from placerec.slam_app.run import odometry_source
 
     poses = np.tile(np.eye(4), (6, 1, 1))
     poses[:, 0, 3] = np.arange(6) * 1.5

@@ -1,12 +1,12 @@
 """The SLAM back end on configs/slam_demo.yaml: trajectory error, robustness to injected false loops, per-scan cost.
 
-1. The online loop over the config's sequence (`placerec.slam.run.slam_sequence`): per-scan cost of preprocess +
+1. The online loop over the config's sequence (`placerec.slam_app.run.slam_sequence`): per-scan cost of preprocess +
    loop closure (describe, query, verify, insert) + graph + iSAM2, odometry excluded (the config's odometry is
    the simulator's drift model, which costs nothing) and the iSAM2 update times (with and without a loop); ATE of
    odometry, iSAM2 and batch estimates; loops accepted, false (pose off by > 1 m / 5 deg), opposite-direction.
 2. Robustness: the same odometry and accepted loops replayed into a fresh graph scan by scan (what `OnlineSlam`
    does; the loop closures do not depend on the graph), plus ``--false-loops`` injected wrong edges
-   (`placerec.slam.run.false_loops`) for ``--seeds`` seeds, with the config's graph (Cauchy loop factors in
+   (`placerec.slam_app.run.false_loops`) for ``--seeds`` seeds, with the config's graph (Cauchy loop factors in
    iSAM2, GNC batch), with an LM batch instead, and with the peer: plain least squares (no kernel, LM).
    Target: ATE within 10 % of clean.
 3. With odometry: KISS-ICP registering the first ``--kiss-scans`` scans, its time added to the online cost of
@@ -30,11 +30,11 @@ import numpy as np
 from placerec.eval.trajectory import trajectory_errors
 from placerec.experiment.datasets import open_dataset
 from placerec.sim.odometry import OdometryDrift, drift_poses
-from placerec.slam.config import load_slam_config
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
 from placerec.slam.odometry import KissIcpOdometry
-from placerec.slam.report import loop_table, slam_metrics
-from placerec.slam.run import false_loops, slam_sequence
+from placerec.slam_app.config import load_slam_config
+from placerec.slam_app.report import loop_table, slam_metrics
+from placerec.slam_app.run import false_loops, slam_sequence
 
 #: (label, translation, rotation_deg, yaw_bias_deg_per_100m, scale_bias) of `placerec.sim.odometry.OdometryDrift`
 DRIFTS = (

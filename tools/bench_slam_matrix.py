@@ -1,4 +1,4 @@
-"""SLAM over the matrix: `placerec.slam.run.slam_sequence` per odometry source x world x seed, KISS-SLAM beside it.
+"""SLAM over the matrix: `placerec.slam_app.run.slam_sequence` per odometry source x world x seed, KISS-SLAM beside it.
 
 Cells: the odometry sources of `SOURCES` (the simulator's default drift, ``OdometryDrift()``; the drift of
 configs/slam_demo.yaml; KISS-ICP on the scans) x the split's worlds and seeds (``--split test``:
@@ -54,8 +54,8 @@ from placerec.experiment.tables import print_rows
 from placerec.io import read_poses
 from placerec.io.atomic import atomic_write
 from placerec.sim.odometry import OdometryDrift
-from placerec.slam.config import SlamConfig, load_slam_config
 from placerec.slam.result import SlamResult
+from placerec.slam_app.config import SlamConfig, load_slam_config
 from placerec.types import relative_pose
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -139,8 +139,8 @@ def candidate_scores(cfg: SlamConfig, result: SlamResult) -> dict[str, Any]:
 def run_placerec_cell(cfg: SlamConfig) -> dict[str, Any]:
     """One `placerec slam` run (no results folder): trajectory errors, loop counts, candidate scores."""
     from placerec.experiment.datasets import open_dataset
-    from placerec.slam.report import loop_table, slam_metrics
-    from placerec.slam.run import slam_sequence
+    from placerec.slam_app.report import loop_table, slam_metrics
+    from placerec.slam_app.run import slam_sequence
 
     seq = open_dataset(cfg.dataset)
     t0 = time.perf_counter()
@@ -166,7 +166,7 @@ def noise_grid(cfg: SlamConfig) -> dict[str, float]:
     from bench_slam import replay  # tools/ is on sys.path when this file runs as a script
 
     from placerec.experiment.datasets import open_dataset
-    from placerec.slam.run import slam_sequence
+    from placerec.slam_app.run import slam_sequence
 
     result = slam_sequence(cfg, open_dataset(cfg.dataset))
     loops = [lp for lp in result.loops if not lp.injected]

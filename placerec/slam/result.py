@@ -1,4 +1,4 @@
-"""What a SLAM run produced (`placerec.slam.run.slam_sequence`), for the report and the benchmarks."""
+"""What a SLAM run produced (`placerec.slam_app.run.slam_sequence`), for the report and the benchmarks."""
 
 from __future__ import annotations
 

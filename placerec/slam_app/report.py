@@ -35,8 +35,8 @@ from placerec.experiment.tables import print_rows, write_html_page
 from placerec.io import write_kitti_poses, write_tum_poses
 from placerec.io.atomic import atomic_write
 from placerec.preprocess import preprocess_scan
-from placerec.slam.config import SlamConfig
 from placerec.slam.result import ONLINE_STAGES, SlamResult
+from placerec.slam_app.config import SlamConfig
 from placerec.types import Scan, Sequence, relative_pose
 
 __all__ = ["report_slam", "loop_table", "slam_metrics", "print_slam_table", "write_map_ply"]

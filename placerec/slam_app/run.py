@@ -1,7 +1,7 @@
 """``placerec slam``: a config's sequence through odometry, verified loop closure and the pose graph.
 
 `run_slam` opens the dataset, builds the loop-closure pipeline and the odometry source (all checked before a
-results folder is made), runs `slam_sequence` and writes the results (`placerec.slam.report`).
+results folder is made), runs `slam_sequence` and writes the results (`placerec.slam_app.report`).
 `slam_sequence` is the online loop: for every scan, in order, read + preprocess it, get its odometry pose, feed
 `placerec.slam.online.OnlineSlam` (loop closure, graph, iSAM2); then the final batch optimisation.
 """
@@ -23,11 +23,11 @@ from placerec.experiment.runner import progress_bars
 from placerec.io import read_poses
 from placerec.preprocess import preprocess_scan
 from placerec.recognizer import make_pipeline
-from placerec.slam.config import SlamConfig
 from placerec.slam.graph import LoopFactor
 from placerec.slam.online import OnlineSlam
-from placerec.slam.report import report_slam
 from placerec.slam.result import ONLINE_STAGES, SlamResult
+from placerec.slam_app.config import SlamConfig
+from placerec.slam_app.report import report_slam
 from placerec.types import PlaceRecognizer, Scan, Sequence
 
 __all__ = ["slam_sequence", "run_slam", "odometry_source", "false_loops"]
