@@ -14,25 +14,15 @@ import zipfile
 from pathlib import Path
 
 import pytest
+import tomllib
 
 from placerec.errors import ArtifactError
 from placerec.pipelines.dbow import SHIPPED, default_vocabulary_path, resolve_vocabulary
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "placerec"
-#: The experiment layer: it reads configs and data sources and drives the algorithms, never the other way round.
-EXPERIMENT_LAYER = (
-    "placerec.config",
-    "placerec.cli",
-    "placerec.cli_support",
-    "placerec.artifacts",
-    "placerec.experiment",
-    "placerec.slam_app.config",
-    "placerec.slam_app.run",
-    "placerec.slam_app.report",
-)
-#: Data sources an experiment picks; an algorithm gets scans, not the simulator.
-DATA_SOURCES = ("placerec.sim",)
+#: The intended layering, top to bottom (see the file's own comments).
+LAYERS_FILE = ROOT / "layers.toml"
 
 
 def _module_name(path: Path) -> str:
@@ -158,20 +148,75 @@ def test_no_import_cycles():
     assert not cycles, "import cycles:\n" + "\n".join(lines)
 
 
-def test_algorithm_layers_do_not_import_the_experiment_layer_or_the_simulator():
-    """Configs, datasets, the simulator and the CLI sit on top: algorithms take their own parameter objects."""
+def read_layers(path: Path = LAYERS_FILE) -> list[tuple[str, list[str]]]:
+    """(name, module prefixes) of every layer in ``path``, top to bottom; `ValueError` for a prefix listed twice."""
+    data = tomllib.loads(path.read_text(encoding="utf-8"))
+    layers = [(str(layer["name"]), [str(m) for m in layer["modules"]]) for layer in data["layer"]]
+    listed = [m for _, modules in layers for m in modules]
+    twice = sorted({m for m in listed if listed.count(m) > 1})
+    if twice:
+        raise ValueError(f"{path.name}: listed in more than one layer: {twice}")
+    return layers
 
-    def within(name: str, prefixes: tuple[str, ...]) -> bool:
-        return any(name == p or name.startswith(p + ".") for p in prefixes)
 
-    bad = [
-        f"{m} -> {t}{' (lazy)' if lazy else ''}"
-        for m, edges in sorted(import_graph().items())
-        if not within(m, EXPERIMENT_LAYER + DATA_SOURCES) and m != "placerec"
-        for t, lazy in sorted(edges)
-        if within(t, EXPERIMENT_LAYER + DATA_SOURCES)
-    ]
-    assert not bad, "algorithm modules importing the experiment layer or the simulator:\n" + "\n".join(bad)
+def layer_of(module: str, layers: list[tuple[str, list[str]]]) -> int | None:
+    """Index (0 = top) of the layer listing the longest prefix of ``module`` (the bare package name matches only
+    the package's ``__init__``); None when no layer lists it."""
+    best: tuple[int, int] | None = None
+    for i, (_, prefixes) in enumerate(layers):
+        for p in prefixes:
+            hit = module == p or (module.startswith(p + ".") and "." in p)
+            if hit and (best is None or len(p) > best[1]):
+                best = (i, len(p))
+    return None if best is None else best[0]
+
+
+def layering_violations(
+    graph: dict[str, set[tuple[str, bool]]], layers: list[tuple[str, list[str]]]
+) -> tuple[list[str], list[str]]:
+    """(modules in no layer, imports that go up: ``module (layer) -> target (layer)``) of an import graph."""
+    unlisted = sorted(m for m in graph if layer_of(m, layers) is None)
+    upward = []
+    for m, edges in sorted(graph.items()):
+        mine = layer_of(m, layers)
+        for t, lazy in sorted(edges):
+            theirs = layer_of(t, layers)
+            if mine is not None and theirs is not None and theirs < mine:
+                upward.append(
+                    f"{m} ({layers[mine][0]}) -> {t} ({layers[theirs][0]}){' (lazy)' if lazy else ''}"
+                )
+    return unlisted, upward
+
+
+def test_layering_checker_catches_an_upward_import_and_an_unlisted_module(tmp_path):
+    layers_file = tmp_path / "layers.toml"
+    layers_file.write_text(
+        '[[layer]]\nname = "app"\nmodules = ["pkg.app"]\n'
+        '[[layer]]\nname = "core"\nmodules = ["pkg", "pkg.core", "pkg.core.special"]\n'
+    )
+    layers = read_layers(layers_file)
+    graph = {
+        "pkg": set(),
+        "pkg.app.run": {("pkg.core.math", False)},  # down: fine
+        "pkg.core.math": {("pkg.app.run", True)},  # up, inside a function: still a violation
+        "pkg.core.special.x": {("pkg.core.math", False)},  # same layer: fine
+        "pkg.stray": {("pkg.core.math", False)},  # no layer lists it (the bare "pkg" names only the package)
+    }
+    unlisted, upward = layering_violations(graph, layers)
+    assert unlisted == ["pkg.stray"]
+    assert upward == ["pkg.core.math (core) -> pkg.app.run (app) (lazy)"]
+    layers_file.write_text(
+        '[[layer]]\nname = "a"\nmodules = ["pkg.x"]\n[[layer]]\nname = "b"\nmodules = ["pkg.x"]\n'
+    )
+    with pytest.raises(ValueError, match="more than one layer"):
+        read_layers(layers_file)
+
+
+def test_every_import_follows_the_layers_file():
+    """layers.toml says which layer every module is in; no module imports a layer above its own."""
+    unlisted, upward = layering_violations(import_graph(), read_layers())
+    assert not unlisted, "modules that layers.toml does not place in a layer:\n" + "\n".join(unlisted)
+    assert not upward, "imports of a higher layer (layers.toml):\n" + "\n".join(upward)
 
 
 def test_shipped_vocabularies_are_package_data():

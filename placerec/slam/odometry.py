@@ -14,8 +14,7 @@ from pydantic import Field
 
 from placerec.errors import DependencyError, ScanDataError
 from placerec.params import Params
-from placerec.recognizer import valid_points
-from placerec.types import Scan, as_pose
+from placerec.types import Scan, as_pose, valid_points
 
 __all__ = ["KissIcpParams", "KissIcpOdometry"]
 
