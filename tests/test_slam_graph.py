@@ -43,7 +43,11 @@ def drive():
     gt = np.concatenate(
         [_rectangle(50, 30, 0, False), _rectangle(50, 30, 2, False), _rectangle(50, 30, 0, True)]
     )
-    odo = drift_poses(gt, OdometryDrift(0.02, 0.05, 2.0, 0.0), seed=4)
+    odo = drift_poses(
+        gt,
+        OdometryDrift(translation=0.02, rotation_deg=0.05, yaw_bias_deg_per_100m=2.0, scale_bias=0.0),
+        seed=4,
+    )
     rng = np.random.default_rng(1)
     loops = []
     pos = gt[:, :3, 3]
@@ -162,7 +166,11 @@ def test_large_drift_true_loops_are_not_taken_for_outliers(drive):
     """Odometry 5x worse (several metres off at the first closure): the default kernel (3 sigmas) and GNC still
     reach the least-squares solution of the clean loops, where a 1-sigma Cauchy kernel stays metres off."""
     gt, _, loops = drive
-    odo = drift_poses(gt, OdometryDrift(0.1, 0.25, 10.0, 0.0), seed=4)
+    odo = drift_poses(
+        gt,
+        OdometryDrift(translation=0.1, rotation_deg=0.25, yaw_bias_deg_per_100m=10.0, scale_bias=0.0),
+        seed=4,
+    )
     exact = trajectory_errors(_solve(odo, loops, GraphParams(robust="none", batch="lm"), online=False)[2], gt)
     default = trajectory_errors(_solve(odo, loops, online=False)[2], gt)
     narrow = trajectory_errors(_solve(odo, loops, GraphParams(robust_k=1.0, batch="lm"), online=False)[2], gt)

@@ -4,7 +4,6 @@ sources of tools/bench_slam_matrix.py are the settings it says they are."""
 
 from __future__ import annotations
 
-import dataclasses
 import importlib.util
 from pathlib import Path
 
@@ -59,7 +58,7 @@ def test_matrix_sources_are_the_settings_they_name():
     seed = 0
     default = tool.cell_config("campus", seed, "sim-default", [])
     drift = default.odometry.drift.model_dump(exclude={"seed"})
-    assert drift == dataclasses.asdict(OdometryDrift()) and default.odometry.source == "dataset"
+    assert drift == OdometryDrift().model_dump() and default.odometry.source == "dataset"
     assert tool.cell_config("campus", seed, "demo-drift", []).odometry.drift == demo.odometry.drift
     assert tool.cell_config("campus", seed, "kiss-icp", []).odometry.source == "kiss-icp"
     sim = default.dataset.simulator

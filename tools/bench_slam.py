@@ -146,7 +146,9 @@ def main() -> None:
     for label, *values in DRIFTS:
         row = []
         for seed in range(3):
-            odo = drift_poses(gt, OdometryDrift(*values), seed)
+            odo = drift_poses(
+                gt, OdometryDrift(**dict(zip(OdometryDrift.model_fields, values, strict=True))), seed
+            )
             row.append(
                 (
                     trajectory_errors(odo, gt).ate_rmse,

@@ -32,7 +32,6 @@ setting may be chosen on the tuning worlds only).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import hashlib
 import json
 import os
@@ -77,7 +76,7 @@ NOISE_GRID = {
 
 
 def _drift_overrides(drift: OdometryDrift) -> list[str]:
-    return [f"odometry.drift.{f.name}={getattr(drift, f.name)}" for f in dataclasses.fields(drift)]
+    return [f"odometry.drift.{name}={value}" for name, value in drift.model_dump().items()]
 
 
 #: Odometry source -> config overrides on top of configs/slam_demo.yaml.

@@ -7,24 +7,22 @@ LiDAR or wheel odometry would drift. The first odometry pose equals the first tr
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
+from pydantic import Field
 
+from placerec.params import Params
 from placerec.sim.geometry import euler_rotation
 
 __all__ = ["OdometryDrift", "drift_poses"]
 
 
-@dataclass(frozen=True)
-class OdometryDrift:
-    """Drift parameters: ``translation`` (1-sigma relative translation noise per metre), ``rotation_deg`` (yaw noise,
-    deg per sqrt(metre)), ``yaw_bias_deg_per_100m`` and ``scale_bias`` (relative)."""
+class OdometryDrift(Params):
+    """Drift parameters: noise that grows with the distance travelled and systematic errors (module docstring)."""
 
-    translation: float = 0.01
-    rotation_deg: float = 0.03
-    yaw_bias_deg_per_100m: float = 0.5
-    scale_bias: float = 0.005
+    translation: float = Field(0.01, ge=0, description="relative translation noise per metre (1 sigma)")
+    rotation_deg: float = Field(0.03, ge=0, description="yaw noise, deg per sqrt(metre)")
+    yaw_bias_deg_per_100m: float = Field(0.5, description="heading drift")
+    scale_bias: float = Field(0.005, description="relative scale error")
 
     @classmethod
     def coerce(cls, value: OdometryDrift | float | bool | None) -> OdometryDrift | None:
@@ -35,12 +33,13 @@ class OdometryDrift:
             return cls()
         if isinstance(value, OdometryDrift):
             return value
-        f = float(value) / cls.translation
+        base = cls()
+        f = float(value) / base.translation
         return cls(
             translation=float(value),
-            rotation_deg=cls.rotation_deg * f,
-            yaw_bias_deg_per_100m=cls.yaw_bias_deg_per_100m * f,
-            scale_bias=cls.scale_bias * f,
+            rotation_deg=base.rotation_deg * f,
+            yaw_bias_deg_per_100m=base.yaw_bias_deg_per_100m * f,
+            scale_bias=base.scale_bias * f,
         )
 
 

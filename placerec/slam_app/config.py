@@ -39,18 +39,10 @@ __all__ = [
 ]
 
 
-class DriftConfig(Params):
-    """Drifting odometry made from the dataset's true poses: the fields (and defaults) of
-    `placerec.sim.odometry.OdometryDrift` (noise per metre, a heading bias, a scale error) and its seed."""
+class DriftConfig(OdometryDrift):
+    """Drifting odometry made from the dataset's true poses: `placerec.sim.odometry.OdometryDrift` (noise per
+    metre, a heading bias, a scale error) and its seed."""
 
-    translation: float = Field(
-        OdometryDrift.translation, ge=0, description="relative translation noise per metre (1 sigma)"
-    )
-    rotation_deg: float = Field(
-        OdometryDrift.rotation_deg, ge=0, description="yaw noise, deg per sqrt(metre)"
-    )
-    yaw_bias_deg_per_100m: float = Field(OdometryDrift.yaw_bias_deg_per_100m, description="heading drift")
-    scale_bias: float = Field(OdometryDrift.scale_bias, description="relative scale error")
     seed: int | None = Field(None, description="noise seed (None: the simulator's seed, else 0)")
 
 

@@ -36,17 +36,16 @@ Odometry = Callable[[int, Scan], np.ndarray]
 
 
 def _drift_odometry(cfg: SlamConfig, seq: Sequence) -> np.ndarray:
-    from placerec.sim.odometry import OdometryDrift, drift_poses
+    from placerec.sim.odometry import drift_poses
 
     if seq.poses is None:
         raise ConfigError(
             f"odometry.source 'dataset' makes drifting odometry from true poses; {seq.name} has none"
         )
-    d = cfg.odometry.drift
-    seed = d.seed
+    drift = cfg.odometry.drift
+    seed = drift.seed
     if seed is None:
         seed = cfg.dataset.simulator.seed if cfg.dataset.source == "simulator" else 0
-    drift = OdometryDrift(**d.model_dump(exclude={"seed"}))
     return drift_poses(seq.poses, drift, seed)
 
 
