@@ -16,9 +16,9 @@ from pydantic import BaseModel, Field, model_validator
 
 from placerec.errors import ConfigError, short_repr
 from placerec.eval.exclusion import ExclusionWindow
-from placerec.intensity import IntensitySpec
 from placerec.loop_filter import LoopFilterParams
 from placerec.params import Params, resolve
+from placerec.preprocess import PreprocessParams
 from placerec.safe_yaml import load_yaml, load_yaml_file
 
 P = TypeVar("P", bound=Params)
@@ -26,8 +26,7 @@ P = TypeVar("P", bound=Params)
 __all__ = [
     "SimulatorConfig",
     "DatasetConfig",
-    "IntensityConfig",
-    "PreprocessConfig",
+    "experiment_preprocess",
     "PipelineSpec",
     "ExclusionConfig",
     "LocalizeConfig",
@@ -84,30 +83,10 @@ class DatasetConfig(Params):
         return self
 
 
-class IntensityConfig(IntensitySpec):
-    """Intensity normalisation: a `placerec.intensity.IntensitySpec` whose ``mode`` may also be ``auto`` (the
-    per-sensor default).
-
-    ``calibration``: path of a per-beam calibration table (``placerec calibrate``); when set, each point's raw
-    intensity is mapped through its beam's table (already in [0, 1], so ``mode`` is not applied) and points beyond
-    the table's intensity range cut-off (30 m) are dropped (zeroed in organised scans).
-    """
-
-    mode: Literal["auto", "raw", "linear", "percentile"] = Field(  # type: ignore[assignment]
-        "auto", description="auto (the sensor's default), raw, linear or percentile"
-    )
-    calibration: str | None = Field(None, description="per-beam calibration table file")
-
-
-class PreprocessConfig(Params):
-    """Point filtering applied to every scan before any pipeline sees it (None = no limit)."""
-
-    min_range: float | None = Field(0.5, ge=0)
-    max_range: float | None = Field(None, gt=0)
-    min_z: float | None = None
-    max_z: float | None = None
-    voxel_size: float | None = Field(None, gt=0)
-    intensity: IntensityConfig = Field(default_factory=IntensityConfig)
+def experiment_preprocess() -> PreprocessParams:
+    """An experiment's preprocessing unless its config says otherwise (`placerec.preprocess.PreprocessParams`):
+    returns nearer than 0.5 m dropped, the sensor's default intensity normalisation."""
+    return PreprocessParams(min_range=0.5)
 
 
 class PipelineSpec(Params):
@@ -239,7 +218,7 @@ class ExperimentConfig(Params):
 
     name: str = "experiment"
     dataset: DatasetConfig = Field(default_factory=DatasetConfig)
-    preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
+    preprocess: PreprocessParams = Field(default_factory=experiment_preprocess)
     pipelines: list[PipelineSpec] = Field(default_factory=lambda: [PipelineSpec(name="scan-context")])
     evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)

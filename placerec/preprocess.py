@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
-from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -127,21 +127,38 @@ def voxel_downsample(scan: Scan, voxel_size: float) -> Scan:
     )
 
 
-class PreprocessParams(Params):
-    """What `preprocess_scan` does (None = no limit / not applied).
+class IntensityParams(IntensitySpec):
+    """Intensity normalisation: a `placerec.intensity.IntensitySpec` whose ``mode`` may also be ``auto`` (the
+    sensor's default, `placerec.intensity.default_intensity_spec`).
 
-    Points are kept within ``[min_range, max_range]`` and ``[min_z, max_z]``. Intensity: a per-beam
-    ``calibration`` table (path of a ``placerec calibrate`` result) when given, else normalised with ``intensity``
-    (None: the sensor's default, `placerec.intensity.default_intensity_spec`). ``voxel_size``: voxel downsampling.
+    ``calibration``: path of a per-beam calibration table (``placerec calibrate``); when set, each point's raw
+    intensity is mapped through its beam's table (already in [0, 1], so ``mode`` is not applied) and points beyond
+    the table's intensity range cut-off (30 m) are dropped (zeroed in organised scans).
     """
+
+    mode: Literal["auto", "raw", "linear", "percentile"] = Field(  # type: ignore[assignment]
+        "auto", description="auto (the sensor's default), raw, linear or percentile"
+    )
+    calibration: str | None = Field(None, description="per-beam calibration table file")
+
+    def spec(self) -> IntensitySpec | None:
+        """The normalisation to apply (None: the sensor's default)."""
+        if self.mode == "auto":
+            return None
+        return IntensitySpec(**self.model_dump(include=set(IntensitySpec.model_fields)))
+
+
+class PreprocessParams(Params):
+    """What `preprocess_scan` does (None = no limit / not applied): points kept within ``[min_range, max_range]``
+    and ``[min_z, max_z]``, intensity normalised or calibrated (``intensity``), voxel downsampling
+    (``voxel_size``). An experiment config's ``preprocess`` section is one of these."""
 
     min_range: float | None = Field(None, ge=0, description="m; nearer points are dropped")
     max_range: float | None = Field(None, gt=0, description="m; farther points are dropped")
     min_z: float | None = Field(None, description="m; lower points are dropped")
     max_z: float | None = Field(None, description="m; higher points are dropped")
     voxel_size: float | None = Field(None, gt=0, description="m; voxel downsampling (None = off)")
-    intensity: IntensitySpec | None = Field(None, description="None = the sensor's default normalisation")
-    calibration: Path | None = Field(None, strict=False, description="per-beam calibration table file")
+    intensity: IntensityParams = Field(default_factory=IntensityParams)
 
 
 def preprocess_scan(scan: Scan, params: PreprocessParams | None = None, keep_organized: bool = False) -> Scan:
@@ -153,14 +170,14 @@ def preprocess_scan(scan: Scan, params: PreprocessParams | None = None, keep_org
     p = params or PreprocessParams()
     scan, _ = remove_invalid(scan, keep_organized)
     scan = crop(scan, p.min_range, p.max_range, p.min_z, p.max_z, keep_organized)
-    if p.calibration:
+    if p.intensity.calibration:
         # per-beam calibration table: output already in [0, 1]; NaN (beyond its range cut-off) -> dropped
         from placerec.calibration.table import load_calibration
 
-        scan = load_calibration(p.calibration).apply(scan)
+        scan = load_calibration(p.intensity.calibration).apply(scan)
         scan = _keep(scan, np.isfinite(scan.intensity), keep_organized)
     else:
-        scan = normalize_intensity(scan, p.intensity)
+        scan = normalize_intensity(scan, p.intensity.spec())
     if p.voxel_size and not (keep_organized and scan.shape is not None):
         scan = voxel_downsample(scan, p.voxel_size)
     return scan

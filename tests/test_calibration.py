@@ -185,7 +185,7 @@ def test_preprocess_applies_the_table_and_drops_points_beyond_the_cut_off(tmp_pa
     path = tmp_path / "t.npz"
     _table().save(path)
     scan = _scan()
-    out = preprocess_scan(scan, PreprocessParams(min_range=0.5, calibration=path))
+    out = preprocess_scan(scan, PreprocessParams(min_range=0.5, intensity={"calibration": str(path)}))
     near = scan.ranges <= 30.0
     assert len(out) == near.sum() and np.isfinite(out.intensity).all()
     assert np.allclose(out.intensity, _table().apply(scan).intensity[near])

@@ -85,7 +85,7 @@ def test_every_config_section_is_a_strict_params_model():
     # a pipeline's ``params`` are validated by the pipeline named beside them (the test above)
     _assert_strict(seen, {PipelineSpec: {"params"}})
     names = {m.__name__ for m in seen}
-    assert {"DatasetConfig", "IntensityConfig", "LocalizeConfig", "TrainingSimulator", "ImageParams"} <= names
+    assert {"DatasetConfig", "IntensityParams", "LocalizeConfig", "TrainingSimulator", "ImageParams"} <= names
     assert ExperimentConfig in seen
 
 

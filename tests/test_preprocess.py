@@ -3,9 +3,8 @@ from typing import get_args
 import numpy as np
 import pytest
 
-from placerec.config import PreprocessConfig
+from placerec.config import load_config
 from placerec.errors import ConfigError, ScanDataError
-from placerec.experiment.preprocessing import preprocess_params
 from placerec.intensity import (
     INTENSITY_NORMALIZERS,
     IntensitySpec,
@@ -104,7 +103,7 @@ def test_preprocess_params_are_checked_when_built():
     with pytest.raises(ConfigError, match=r"intensity\.mode: Input should be"):
         PreprocessParams(intensity={"mode": "bogus"})
     with pytest.raises(
-        ConfigError, match=r"min_rnage: unknown key; allowed keys there: calibration, intensity"
+        ConfigError, match=r"min_rnage: unknown key; allowed keys there: intensity, max_range"
     ):
         PreprocessParams(min_rnage=1.0)
     assert default_intensity_spec("OS1-64").mode == "percentile"
@@ -125,14 +124,16 @@ def test_preprocess_scan_applies_params():
     assert len(plain) == len(s) - 10 and plain.intensity.max() == 1.0
 
 
-def test_config_section_becomes_preprocess_params():
-    """The experiment layer converts its config section; ``auto`` intensity means the sensor's default."""
-    cfg = PreprocessConfig(min_range=1.0, max_z=3.0, voxel_size=0.5, intensity={"calibration": "t.npz"})
-    assert preprocess_params(cfg) == PreprocessParams(
-        min_range=1.0, max_z=3.0, voxel_size=0.5, calibration="t.npz"
+def test_the_config_section_is_the_preprocess_params():
+    """An experiment config's ``preprocess`` section is `PreprocessParams` (0.5 m min_range by default); ``auto``
+    intensity means the sensor's default, a calibration table replaces the normalisation."""
+    cfg = load_config(None, ["preprocess.max_z=3.0", "preprocess.intensity.calibration=t.npz"])
+    assert type(cfg.preprocess) is PreprocessParams and cfg.preprocess == PreprocessParams(
+        min_range=0.5, max_z=3.0, intensity={"calibration": "t.npz"}
     )
-    linear = preprocess_params(PreprocessConfig(intensity={"mode": "linear", "saturation": 50.0}))
-    assert linear.intensity == IntensitySpec(mode="linear", saturation=50.0) and linear.min_range == 0.5
+    assert cfg.preprocess.intensity.spec() is None  # auto: the sensor's default
+    linear = PreprocessParams(min_range=0.5, intensity={"mode": "linear", "saturation": 50.0})
+    assert linear.intensity.spec() == IntensitySpec(mode="linear", saturation=50.0)
     s = Scan([[1, 0, 0], [2, 0, 0]], [25.0, 100.0], sensor=SensorInfo("vlp16"))
     assert preprocess_scan(s, linear).intensity.tolist() == [0.5, 1.0]
 

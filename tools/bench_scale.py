@@ -62,7 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
-from placerec.config import PreprocessConfig, load_config
+from placerec.config import experiment_preprocess, load_config
 from placerec.experiment.preprocessing import preprocessed_scan
 from placerec.recognizer import make_pipeline
 from placerec.sim import SimulatedSequence
@@ -94,7 +94,7 @@ def base_descriptions(n: int) -> tuple[list[dict], list[dict], list[dict]]:
     sc = make_pipeline("scan-context", {"verify": {"enabled": False}})
     visual, scs = [], []
     for i in range(n):
-        scan, _ = preprocessed_scan(seq, i, PreprocessConfig())
+        scan, _ = preprocessed_scan(seq, i, experiment_preprocess())
         visual.append(full.describe(scan))
         scs.append(sc.describe(scan))
     slim = [{k: v for k, v in d.items() if k != "cloud"} for d in visual]
@@ -246,8 +246,10 @@ def bench_ishot(n_queries: int, copies: int) -> list[dict]:
     from placerec.three_d.places import PlacesParams
 
     split = make_localization_split("town", "vlp16", 0, n_queries=max(n_queries, 1))
-    queries = [preprocessed_scan(split.queries["gator"], i, PreprocessConfig())[0] for i in range(n_queries)]
-    warm_scan = preprocessed_scan(split.map, 0, PreprocessConfig())[0]
+    queries = [
+        preprocessed_scan(split.queries["gator"], i, experiment_preprocess())[0] for i in range(n_queries)
+    ]
+    warm_scan = preprocessed_scan(split.map, 0, experiment_preprocess())[0]
     params = PlacesParams(window_m=0.0, spacing_m=2.5, descriptor_store="float32", cloud_store="float32")
     db = build_places(split.map, params)  # float32, saved in each store below
     rows = []

@@ -85,11 +85,10 @@ SETS = ("sim", "sim-ahead", "sim-revisit", "os1", "kitti", "real")
 
 
 def _preprocess(scan: Any) -> Any:
-    from placerec.config import PreprocessConfig
-    from placerec.experiment.preprocessing import preprocess_params
+    from placerec.config import experiment_preprocess
     from placerec.preprocess import preprocess_scan
 
-    return preprocess_scan(scan, preprocess_params(PreprocessConfig(min_range=0.5)), keep_organized=True)
+    return preprocess_scan(scan, experiment_preprocess(), keep_organized=True)
 
 
 def view_of(scan: Any, params: ImageParams | None = None) -> View:

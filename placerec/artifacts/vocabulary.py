@@ -33,12 +33,13 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from placerec.config import DatasetConfig, PreprocessConfig, load_params_file
+from placerec.config import DatasetConfig, experiment_preprocess, load_params_file
 from placerec.errors import ArtifactError, ConfigError
 from placerec.hashing import stable_hash
 from placerec.io.npz import read_npz_arrays
 from placerec.params import Params
 from placerec.pipelines.visual import VisualFrontendParams
+from placerec.preprocess import PreprocessParams
 from placerec.retrieval.dbow.vocabulary import VocabularyParams
 
 log = logging.getLogger(__name__)
@@ -74,7 +75,7 @@ class VocabTrainingConfig(VisualFrontendParams, VocabularyParams):
     ``k``, ``L``, ``weighting``, ... (`placerec.retrieval.dbow.vocabulary.VocabularyParams`), and where the
     training images come from."""
 
-    preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
+    preprocess: PreprocessParams = Field(default_factory=experiment_preprocess)
     n_images: int = Field(3000, ge=1)
     simulator: TrainingSimulator | None = Field(default_factory=TrainingSimulator)
     datasets: list[DatasetConfig] = Field(default_factory=list, description="extra sequences (e.g. recorded)")
@@ -124,7 +125,6 @@ def _sequences(cfg: VocabTrainingConfig) -> list[tuple[str, dict[str, Any]]]:
 def _extract(job: tuple[dict[str, Any], int, dict[str, Any]]) -> list[np.ndarray]:
     """Descriptors of ``count`` evenly spaced scans of one sequence (runs in a worker process)."""
     from placerec.experiment.datasets import open_dataset
-    from placerec.experiment.preprocessing import preprocess_params
     from placerec.features import make_extractor
     from placerec.image import make_image
     from placerec.preprocess import preprocess_scan
@@ -133,7 +133,7 @@ def _extract(job: tuple[dict[str, Any], int, dict[str, Any]]) -> list[np.ndarray
     cfg = VocabTrainingConfig.model_validate(c)
     seq = open_dataset(DatasetConfig.model_validate(spec))
     extractor = make_extractor(cfg.features, cfg.feature_params)
-    preprocess = preprocess_params(cfg.preprocess)
+    preprocess = cfg.preprocess
     index = np.unique(np.linspace(0, len(seq) - 1, min(count, len(seq))).round().astype(int))
     out = []
     for i in index:

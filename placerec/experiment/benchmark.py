@@ -37,8 +37,8 @@ from placerec.config import (
     ExecutionConfig,
     ExperimentConfig,
     PipelineSpec,
-    PreprocessConfig,
     apply_overrides,
+    experiment_preprocess,
     read_config_file,
 )
 from placerec.errors import ArtifactError, ConfigError
@@ -46,6 +46,7 @@ from placerec.experiment import protocol
 from placerec.hashing import stable_hash
 from placerec.io.atomic import atomic_write
 from placerec.params import Params, resolve
+from placerec.preprocess import PreprocessParams
 
 __all__ = [
     "BenchmarkConfig",
@@ -87,7 +88,7 @@ class BenchmarkConfig(Params):
     route: str = "default"
     n_scans: int | None = Field(None, ge=1, description="scans per cell (None: the whole route)")
     spacing: float = Field(1.0, gt=0, allow_inf_nan=False, description="metres between scans")
-    preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
+    preprocess: PreprocessParams = Field(default_factory=experiment_preprocess)
     pipelines: list[PipelineSpec] = Field(min_length=1)
     evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
     output: BenchOutputConfig = Field(default_factory=BenchOutputConfig)

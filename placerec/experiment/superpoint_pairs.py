@@ -26,11 +26,12 @@ import numpy as np
 from pydantic import Field
 from scipy.spatial import cKDTree
 
-from placerec.config import DatasetConfig, PreprocessConfig
+from placerec.config import DatasetConfig, experiment_preprocess
 from placerec.errors import ConfigError
 from placerec.features.superpoint.arch import CELL, DETECTOR_CHANNELS
 from placerec.hashing import stable_hash
 from placerec.params import Params
+from placerec.preprocess import PreprocessParams
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +67,7 @@ class TrainingData(Params):
     keep_correspondences: int = Field(4000, gt=0, description="correspondences stored per pair")
     candidates: int = Field(1000, gt=0, description="corner candidates per image")
     repeat_px: float = Field(2.0, gt=0, description="px; a candidate is repeatable within this")
-    preprocess: PreprocessConfig = Field(default_factory=lambda: PreprocessConfig(min_range=0.5))
+    preprocess: PreprocessParams = Field(default_factory=experiment_preprocess)
     workers: int = Field(2, ge=1, description="processes rendering the sequences")
 
 
@@ -151,7 +152,6 @@ def _pair_indices(seq: Any, cfg: TrainingData, rng: np.random.Generator) -> list
 def _sequence_pairs(job: tuple[dict[str, Any], dict[str, Any], int, str]) -> list[PairData]:
     """Render one sequence's pairs (runs in a worker process)."""
     from placerec.experiment.datasets import open_dataset
-    from placerec.experiment.preprocessing import preprocess_params
     from placerec.image import make_image
     from placerec.image.correspondence import pixel_correspondences, pixel_points
     from placerec.preprocess import preprocess_scan
@@ -161,7 +161,7 @@ def _sequence_pairs(job: tuple[dict[str, Any], dict[str, Any], int, str]) -> lis
     seq = open_dataset(DatasetConfig.model_validate(spec))
     rng = np.random.default_rng(seed)
     pairs = _pair_indices(seq, cfg, rng)
-    pp = preprocess_params(cfg.preprocess)
+    pp = cfg.preprocess
     views: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def view(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -16,12 +16,13 @@ from placerec.config import (
     DatasetConfig,
     ExclusionConfig,
     PipelineSpec,
-    PreprocessConfig,
     apply_overrides,
     config_to_yaml,
+    experiment_preprocess,
     read_config_file,
 )
 from placerec.params import Params, resolve
+from placerec.preprocess import PreprocessParams
 from placerec.sim.odometry import OdometryDrift
 from placerec.slam.graph import GraphParams
 from placerec.slam.odometry import KissIcpParams
@@ -113,7 +114,7 @@ class SlamConfig(Params):
 
     name: str = "slam"
     dataset: DatasetConfig = Field(default_factory=DatasetConfig)
-    preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
+    preprocess: PreprocessParams = Field(default_factory=experiment_preprocess)
     odometry: OdometryConfig = Field(default_factory=OdometryConfig)
     loops: LoopsConfig = Field(default_factory=LoopsConfig)
     graph: GraphParams = Field(default_factory=GraphParams)

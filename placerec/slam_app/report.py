@@ -29,7 +29,6 @@ from placerec.eval.pose_error import pose_errors
 from placerec.eval.trajectory import trajectory_errors
 from placerec.experiment import figures
 from placerec.experiment.candidates import pose_to_xyzrpy
-from placerec.experiment.preprocessing import preprocess_params
 from placerec.experiment.run_folder import finite_or_null, json_default, point_latest
 from placerec.experiment.tables import print_rows, write_html_page
 from placerec.io import write_kitti_poses, write_tum_poses
@@ -220,7 +219,7 @@ def write_map_ply(cfg: SlamConfig, seq: Sequence, poses: np.ndarray, path: Path)
     from placerec.io.ply import write_ply
 
     voxel = cfg.output.map_voxel
-    pre = preprocess_params(cfg.preprocess)
+    pre = cfg.preprocess
     cells, xyz, inten = [], [], []
     for i in range(len(seq)):
         scan = preprocess_scan(seq[i], pre)

@@ -17,7 +17,6 @@ import numpy as np
 
 from placerec.errors import ConfigError
 from placerec.experiment.datasets import SlicedSequence, open_dataset
-from placerec.experiment.preprocessing import preprocess_params
 from placerec.experiment.run_folder import make_run_dir
 from placerec.experiment.runner import progress_bars
 from placerec.io import read_poses
@@ -133,7 +132,7 @@ def slam_sequence(
     n = len(seq)
     stamps = seq.timestamps
     injected = _injected(cfg, seq)
-    pre = preprocess_params(cfg.preprocess)
+    pre = cfg.preprocess
     timing: dict[str, list[float]] = {s: [] for s in (*ONLINE_STAGES, "odometry", "cpu")}
     odo = np.empty((n, 4, 4))
     queried = []
