@@ -175,13 +175,8 @@ def bench(
     one JSON object. Example: placerec bench configs/benchmark.yaml --workers 2
     """
     from placerec.errors import ConfigError
-    from placerec.experiment.benchmark import (
-        bench_line,
-        load_benchmark_config,
-        rows,
-        run_benchmark,
-        suggest_thresholds,
-    )
+    from placerec.experiment.benchmark import load_benchmark_config, run_benchmark
+    from placerec.experiment.benchmark_summary import bench_line, rows, suggest_thresholds
     from placerec.experiment.tables import print_rows
 
     overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])

@@ -9,13 +9,8 @@ import yaml
 
 from placerec.errors import ConfigError
 from placerec.experiment import protocol
-from placerec.experiment.benchmark import (
-    BenchmarkConfig,
-    bench_line,
-    load_benchmark_config,
-    run_benchmark,
-    suggest_thresholds,
-)
+from placerec.experiment.benchmark import BenchmarkConfig, load_benchmark_config, run_benchmark
+from placerec.experiment.benchmark_summary import bench_line, suggest_thresholds
 from placerec.params import resolve
 
 

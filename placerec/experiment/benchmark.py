@@ -20,10 +20,8 @@ JSON line (`bench_line`).
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +41,8 @@ from placerec.config import (
 )
 from placerec.errors import ArtifactError, ConfigError
 from placerec.experiment import protocol
+from placerec.experiment.benchmark_summary import BENCH_VERSION, summarise, write_outputs
+from placerec.experiment.run_folder import json_default
 from placerec.hashing import stable_hash
 from placerec.io.atomic import atomic_write
 from placerec.params import Params, resolve
@@ -54,15 +54,10 @@ __all__ = [
     "load_benchmark_config",
     "run_cell",
     "run_benchmark",
-    "summarise",
-    "suggest_thresholds",
-    "bench_line",
+    "read_benchmark",
 ]
 
 log = logging.getLogger(__name__)
-
-#: The version of ``cell.json`` and ``benchmark.json``.
-BENCH_VERSION = 1
 
 
 class BenchOutputConfig(Params):
@@ -235,14 +230,8 @@ def run_cell(cell_cfg_json: dict[str, Any], folder: str) -> dict[str, Any]:
         "metrics": finite_or_null(payload["pipelines"]),
     }
     with atomic_write(out / "cell.json", "w") as fh:
-        json.dump(result, fh, allow_nan=False, default=_jsonable)
+        json.dump(result, fh, allow_nan=False, default=json_default)
     return result
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"not JSON: {type(value).__name__}")
 
 
 def _done_cell(folder: Path, key: str) -> dict[str, Any] | None:
@@ -320,7 +309,7 @@ def run_benchmark(
     payload = summarise(bench, ordered)
     payload["seconds"] = time.perf_counter() - t0
     payload["cells_run"] = len(todo)
-    _write_outputs(bench, root, payload)
+    write_outputs(bench, root, payload)
     return root, payload
 
 
@@ -365,219 +354,6 @@ def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[
         kept = stored.get(label, {})
         out[label] = {**kept, **finite_or_null(summary)}
     return out
-
-
-def _get(entry: Any, *path: str) -> Any:
-    for key in path:
-        if not isinstance(entry, dict) or key not in entry:
-            return None
-        entry = entry[key]
-    return entry
-
-
-def _num(x: Any) -> float:
-    return float(x) if isinstance(x, int | float) and x is not None and math.isfinite(float(x)) else math.nan
-
-
-#: Figures per cell and pipeline: (name, path in metrics.json, "high" if higher is better else "low")
-CELL_FIGURES: tuple[tuple[str, tuple[str, ...], str], ...] = (
-    ("max_f1", ("max_f1",), "high"),
-    ("pose_max_f1", ("pose_truth", "max_f1"), "high"),
-    ("precision", ("pose_truth", "operating", "precision"), "high"),
-    ("recall", ("pose_truth", "operating", "recall"), "high"),
-    ("f1", ("pose_truth", "operating", "f1"), "high"),
-    ("false_closures", ("pose_truth", "operating", "fp"), "low"),
-    ("distance_precision", ("operating", "precision"), "high"),
-    ("distance_recall", ("operating", "recall"), "high"),
-    ("recall_at_100_precision", ("recall_at_100_precision",), "high"),
-    ("pose_recall_at_100_precision", ("pose_truth", "recall_at_100_precision"), "high"),
-    ("describe_ms", ("time_ms", "stages", "describe", "mean"), "low"),
-    ("query_ms", ("time_ms", "stages", "query", "mean"), "low"),
-    ("verify_ms", ("time_ms", "stages", "verify", "mean"), "low"),
-    ("ms_per_scan", ("time_ms", "mean"), "low"),
-)
-
-
-def summarise(bench: BenchmarkConfig, cells: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """``benchmark.json``: per pipeline, each figure per cell and over the matrix (mean, worst), the accepted
-    closures' pose errors pooled over the matrix, and the threshold each pipeline was judged at."""
-    labels = [p.display_name for p in bench.pipelines]
-    pipelines: dict[str, Any] = {}
-    for label in labels:
-        per_cell = {name: c["metrics"].get(label, {}) for name, c in cells.items()}
-        figures: dict[str, Any] = {}
-        for fig, path, better in CELL_FIGURES:
-            values = {name: _num(_get(m, *path)) for name, m in per_cell.items()}
-            arr = np.array([v for v in values.values() if math.isfinite(v)])
-            worst = (arr.min() if better == "high" else arr.max()) if arr.size else math.nan
-            figures[fig] = {"cells": values, "mean": float(arr.mean()) if arr.size else math.nan,
-                            "worst": float(worst)}  # fmt: skip
-        t_err, r_err = [], []
-        for m in per_cell.values():
-            op = _get(m, "pose_truth", "operating") or {}
-            t_err += [v for v in op.get("accepted_translation_m", []) if v is not None]
-            r_err += [v for v in op.get("accepted_rotation_deg", []) if v is not None]
-        missed: dict[str, Any] = {}
-        for m in per_cell.values():
-            for key, value in (_get(m, "pose_truth", "operating", "missed") or {}).items():
-                if isinstance(value, list):
-                    old = missed.get(key, [0, 0])
-                    missed[key] = [old[0] + value[0], old[1] + value[1]]
-                else:
-                    missed[key] = missed.get(key, 0) + value
-        thresholds = {_get(m, "operating", "threshold") for m in per_cell.values()}
-        pipelines[label] = {
-            "threshold": next(iter(thresholds)) if len(thresholds) == 1 else sorted(map(str, thresholds)),
-            "figures": figures,
-            "accepted_translation_m": _stats(t_err),
-            "accepted_rotation_deg": _stats(r_err),
-            "missed": missed,
-            "cells_with_false_closures": sorted(
-                name for name, v in figures["false_closures"]["cells"].items() if v and v > 0
-            ),
-        }
-    return {
-        "version": BENCH_VERSION,
-        "name": bench.name,
-        "split": bench.split,
-        "cells": list(cells),
-        "n_scans": {name: c.get("n_scans") for name, c in cells.items()},
-        "pipelines": pipelines,
-    }
-
-
-def _stats(values: list[float]) -> dict[str, Any]:
-    a = np.asarray(values, dtype=np.float64)
-    if a.size == 0:
-        return {"n": 0, "median": math.nan, "p95": math.nan, "max": math.nan}
-    return {"n": int(a.size), "median": float(np.median(a)), "p95": float(np.percentile(a, 95)),
-            "max": float(a.max())}  # fmt: skip
-
-
-def suggest_thresholds(
-    bench: BenchmarkConfig, cells: dict[str, dict[str, Any]], step: float = 0.05
-) -> dict[str, float | None]:
-    """Per pipeline, the operating threshold the tuning rule picks (docs/protocol.md): above the best score of any
-    false closure (pose ground truth) in any cell, rounded up to the next multiple of ``step`` (scores in [0, 1];
-    1 for counts), and never below the verification's ``min_score`` (a rejected candidate is no answer)."""
-    out: dict[str, float | None] = {}
-    for spec in bench.pipelines:
-        label = spec.display_name
-        false = [
-            _num(_get(c["metrics"].get(label, {}), "pose_truth", "max_false_score")) for c in cells.values()
-        ]
-        top = [_num(_get(c["metrics"].get(label, {}), "max_score")) for c in cells.values()]
-        if not any(math.isfinite(t) for t in top):
-            out[label] = None
-            continue
-        unit = step if max(t for t in top if math.isfinite(t)) <= 1.0 else 1.0
-        worst = max((f for f in false if math.isfinite(f)), default=-math.inf)
-        pick = 0.0 if worst == -math.inf else (math.floor(worst / unit + 1e-9) + 1) * unit
-        floors = [_get(c["metrics"].get(label, {}), "min_score") for c in cells.values()]
-        floor = max((f for f in floors if isinstance(f, int | float)), default=0.0)
-        out[label] = round(max(pick, floor), 6)
-    return out
-
-
-def bench_line(payload: dict[str, Any]) -> str:
-    """The one JSON line the benchmark ends with: per pipeline the matrix means / worsts of the headline figures."""
-    short = {}
-    for label, p in payload["pipelines"].items():
-        f = p["figures"]
-        short[label] = {
-            "threshold": p["threshold"],
-            "max_f1_mean": f["max_f1"]["mean"],
-            "precision_mean": f["precision"]["mean"],
-            "precision_worst": f["precision"]["worst"],
-            "recall_mean": f["recall"]["mean"],
-            "recall_worst": f["recall"]["worst"],
-            "false_closures": int(np.nansum(list(f["false_closures"]["cells"].values()))),
-            "t_err_p95_m": p["accepted_translation_m"]["p95"],
-            "ms_per_scan_mean": f["ms_per_scan"]["mean"],
-        }
-    line = {"tool": "bench", "name": payload["name"], "split": payload["split"], "cells": len(payload["cells"]),
-            "seconds": payload.get("seconds"), "pipelines": short}  # fmt: skip
-    return json.dumps(_finite(line), separators=(",", ":"))
-
-
-def _finite(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_finite(v) for v in value]
-    if isinstance(value, float):
-        return round(value, 4) if math.isfinite(value) else None
-    return value
-
-
-def rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
-    """The console / HTML table: one row per pipeline, the matrix mean and worst of the headline figures."""
-    header = [
-        "pipeline",
-        "thr",
-        "maxF1",
-        "P mean",
-        "P worst",
-        "R mean",
-        "R worst",
-        "FP",
-        "t p95 m",
-        "ms/scan",
-    ]
-    out = []
-    for label, p in payload["pipelines"].items():
-        f = p["figures"]
-        thr = p["threshold"]
-        out.append([
-            label,
-            "-" if thr is None else f"{thr:g}" if isinstance(thr, float | int) else "mixed",
-            _fmt(f["max_f1"]["mean"]),
-            _fmt(f["precision"]["mean"]),
-            _fmt(f["precision"]["worst"]),
-            _fmt(f["recall"]["mean"]),
-            _fmt(f["recall"]["worst"]),
-            str(int(np.nansum(list(f["false_closures"]["cells"].values())))),
-            _fmt(p["accepted_translation_m"]["p95"]),
-            _fmt(f["ms_per_scan"]["mean"], 0),
-        ])  # fmt: skip
-    return header, out
-
-
-def _fmt(x: Any, digits: int = 3) -> str:
-    return "-" if x is None or not math.isfinite(float(x)) else f"{float(x):.{digits}f}"
-
-
-def _write_outputs(bench: BenchmarkConfig, root: Path, payload: dict[str, Any]) -> None:
-    from placerec.experiment.run_folder import finite_or_null
-    from placerec.experiment.tables import write_html_page
-
-    with atomic_write(root / "benchmark.json", "w") as fh:
-        json.dump(finite_or_null(payload), fh, indent=1, allow_nan=False, default=_jsonable)
-    with atomic_write(root / "config.yaml", "w") as fh:
-        import yaml
-
-        yaml.safe_dump(bench.model_dump(mode="json"), fh, sort_keys=False)
-    with atomic_write(root / "cells.csv", "w") as fh:
-        w = csv.writer(fh, lineterminator="\n")
-        names = [f for f, _, _ in CELL_FIGURES]
-        w.writerow(["pipeline", "cell", *names])
-        for label, p in payload["pipelines"].items():
-            for cell in payload["cells"]:
-                w.writerow([label, cell, *(_fmt(p["figures"][n]["cells"].get(cell), 4) for n in names)])
-    if bench.output.figures:
-        from placerec.experiment.figures import plot_heatmap
-
-        for fig, title in (("recall", "recall at the fixed threshold (pose truth); x: a false closure"),
-                           ("max_f1", "max F1 (distance truth, threshold chosen after the fact)")):  # fmt: skip
-            labels = list(payload["pipelines"])
-            values = np.array([[_num(payload["pipelines"][lb]["figures"][fig]["cells"][c]) for c in payload["cells"]]
-                               for lb in labels])  # fmt: skip
-            marks = np.array([[(_num(payload["pipelines"][lb]["figures"]["false_closures"]["cells"][c]) or 0) > 0
-                               for c in payload["cells"]] for lb in labels])  # fmt: skip
-            plot_heatmap(values, labels, payload["cells"], root / f"heatmap_{fig}.png",
-                         f"{bench.name} ({bench.split} split): {title}", marks if fig == "recall" else None)  # fmt: skip
-        write_html_page(root, f"{bench.name} ({bench.split} split)",
-                        f"{len(payload['cells'])} cells", [rows(payload)], first=("heatmap_recall.png",))  # fmt: skip
 
 
 def read_benchmark(path: str | Path) -> dict[str, Any]:
