@@ -94,20 +94,14 @@ class BenchmarkConfig(Params):
     def _known_worlds(cls, v: list[str] | None) -> list[str] | None:
         from placerec.sim.presets import preset_names
 
-        bad = [w for w in v or [] if w not in preset_names()]
-        if bad:
-            raise ValueError(f"unknown world {bad[0]!r}; known: {', '.join(preset_names())}")
-        return v
+        return _known("world", v, preset_names())
 
     @field_validator("sensors")
     @classmethod
     def _known_sensors(cls, v: list[str] | None) -> list[str] | None:
         from placerec.sim.sensors import sensor_names
 
-        bad = [s for s in v or [] if s not in sensor_names()]
-        if bad:
-            raise ValueError(f"unknown sensor {bad[0]!r}; known: {', '.join(sensor_names())}")
-        return v
+        return _known("sensor", v, sensor_names())
 
     @model_validator(mode="after")
     def _split_rules(self) -> BenchmarkConfig:
@@ -172,6 +166,14 @@ class Cell:
     @property
     def name(self) -> str:
         return f"{self.world}_{self.sensor}_{self.seed}"
+
+
+def _known(kind: str, names: list[str] | None, known: list[str]) -> list[str] | None:
+    """``names`` when every one is ``known``; a `ValueError` naming the first unknown one otherwise."""
+    bad = [n for n in names or [] if n not in known]
+    if bad:
+        raise ValueError(f"unknown {kind} {bad[0]!r}; known: {', '.join(known)}")
+    return names
 
 
 def load_benchmark_config(path: str | Path, overrides: list[str] | None = None) -> BenchmarkConfig:

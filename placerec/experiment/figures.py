@@ -58,9 +58,7 @@ def plot_pr_curves(curves: dict[str, dict[str, Any]], path: Path, title: str = "
         if c.get("best") is not None:
             ax.plot([c["best"][0]], [c["best"][1]], "o", color=ax.lines[-1].get_color(), ms=5)
     ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.02), ylim=(0, 1.02), title=title)
-    ax.grid(alpha=0.3)
-    _legend(ax, loc="lower left", fontsize=8)
-    return _save(fig, path)
+    return _finish(fig, ax, path, loc="lower left")
 
 
 def plot_trajectory_closures(
@@ -109,11 +107,7 @@ def plot_trajectory_closures(
         )
     if len(positions):
         ax.plot(*positions[0, :2], "k^", ms=7, label="start")
-    ax.set(xlabel="x [m]", ylabel="y [m]", title=title)
-    _frame(ax, positions)
-    ax.grid(alpha=0.3)
-    _legend(ax, loc="best", fontsize=8)
-    return _save(fig, path)
+    return _finish_map(fig, ax, path, title, (positions,), loc="best")
 
 
 def plot_timing(timing: dict[str, dict[str, float]], path: Path) -> Path:
@@ -180,11 +174,23 @@ def plot_localization(
                 ms=3 if marker == "o" else 4,
                 label=f"{label} ({mask.sum()})",
             )
-    ax.set(xlabel="x [m]", ylabel="y [m]", title=title)
-    _frame(ax, map_positions, query_positions, estimates)
+    return _finish_map(fig, ax, path, title, (map_positions, query_positions, estimates))
+
+
+def _finish(fig: Any, ax: Any, path: Path, **legend: Any) -> Path:
+    """Grid, legend (small font) and save: the last steps of every plot."""
     ax.grid(alpha=0.3)
-    _legend(ax, fontsize=8)
+    _legend(ax, fontsize=8, **legend)
     return _save(fig, path)
+
+
+def _finish_map(
+    fig: Any, ax: Any, path: Path, title: str, points: tuple[np.ndarray, ...], **legend: Any
+) -> Path:
+    """`_finish` for a top view in metres, framed around ``points``."""
+    ax.set(xlabel="x [m]", ylabel="y [m]", title=title)
+    _frame(ax, *points)
+    return _finish(fig, ax, path, **legend)
 
 
 def _legend(ax: Any, **kwargs: Any) -> None:
@@ -220,11 +226,7 @@ def plot_slam_trajectories(
             segs = np.stack([base[loops[mask, 0], :2], base[loops[mask, 1], :2]], axis=1)
             ax.add_collection(LineCollection(segs, colors=color, lw=0.9, alpha=0.7, zorder=6))
             ax.plot([], [], color=color, lw=0.9, label=f"{label} ({int(mask.sum())})")
-    ax.set(xlabel="x [m]", ylabel="y [m]", title=title)
-    _frame(ax, *trajectories.values())
-    ax.grid(alpha=0.3)
-    _legend(ax, loc="best", fontsize=8)
-    return _save(fig, path)
+    return _finish_map(fig, ax, path, title, tuple(trajectories.values()), loc="best")
 
 
 def plot_feature_matches(

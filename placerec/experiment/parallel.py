@@ -95,6 +95,18 @@ def describe_chunk(
     return ChunkResult(len(indices), described, cached, failed, time.perf_counter() - t0)
 
 
+def _gather(
+    futures: list[Any], completed: Callable[[list[Any]], Any], done: Callable[[Any], None]
+) -> list[Any]:
+    """The futures' results in the order they complete (``completed``: the executor's ``as_completed``), each
+    passed to ``done`` as it arrives."""
+    out = []
+    for fut in completed(futures):
+        out.append(fut.result())
+        done(out[-1])
+    return out
+
+
 @contextmanager
 def _local_pool(workers: int) -> Iterator[Callable[..., list[Any]]]:
     with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -102,12 +114,7 @@ def _local_pool(workers: int) -> Iterator[Callable[..., list[Any]]]:
         def submit(
             fn: Callable[..., Any], args: list[tuple[Any, ...]], done: Callable[[Any], None]
         ) -> list[Any]:
-            futures = [pool.submit(fn, *a) for a in args]
-            out = []
-            for fut in as_completed(futures):
-                out.append(fut.result())
-                done(out[-1])
-            return out
+            return _gather([pool.submit(fn, *a) for a in args], as_completed, done)
 
         yield submit
 
@@ -139,12 +146,7 @@ def _dask_pool(workers: int, scheduler: str | None) -> Iterator[Callable[..., li
             def submit(
                 fn: Callable[..., Any], args: list[tuple[Any, ...]], done: Callable[[Any], None]
             ) -> list[Any]:
-                futures = [client.submit(fn, *a, pure=False) for a in args]
-                out = []
-                for fut in dask_completed(futures):
-                    out.append(fut.result())
-                    done(out[-1])
-                return out
+                return _gather([client.submit(fn, *a, pure=False) for a in args], dask_completed, done)
 
             yield submit
     finally:
