@@ -106,15 +106,17 @@ class Recognizer(ABC, Generic[P]):
     cache_descriptions: ClassVar[bool] = True
     params: P
 
-    def __init__(self, params: Params | Mapping[str, Any] | None = None, **overrides: Any) -> None:
+    def __init__(self, params: P | Mapping[str, Any] | None = None, **overrides: Any) -> None:
         if isinstance(params, Params) and not isinstance(params, self.Params):
             raise ConfigError(
                 f"{self.name}: params must be a {self.Params.__name__}, got {type(params).__name__}"
             )
-        if not isinstance(params, Params) or overrides:
+        if isinstance(params, Params) and not overrides:
+            resolved: Params = params
+        else:
             base = params.model_dump() if isinstance(params, Params) else params
-            params = resolve(self.Params, base, overrides, where=self.name)
-        self.params = cast(P, params)
+            resolved = resolve(self.Params, base, overrides, where=self.name)
+        self.params = cast(P, resolved)
 
     @property
     def frontend_key(self) -> str:

@@ -136,7 +136,7 @@ def _load_cached(path: Path) -> Vocabulary:
     return _CACHE[key]
 
 
-class VisualDBoW(VisualFrontend, Recognizer[DBoWParams]):
+class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
     """`PlaceRecognizer` of the VPR paper's 2D modality with DBoW2 retrieval (ORB-DBoW, SURF-DBoW)."""
 
     name: ClassVar[str] = "visual-dbow"

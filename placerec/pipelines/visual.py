@@ -29,7 +29,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Generic, Literal, TypeVar
 
 import numpy as np
 from pydantic import Field, SerializeAsAny, ValidationError, model_validator
@@ -212,14 +212,18 @@ def shift_consensus(
     return int(inl.sum()), refined
 
 
-class VisualFrontend:
+#: the parameters class of a visual pipeline
+VP = TypeVar("VP", bound=VisualPipelineParams)
+
+
+class VisualFrontend(Generic[VP]):
     """The intensity-image front end and verification state shared by the visual pipelines: needs ``params``
     (`VisualPipelineParams`) and ``extractor``; scans with equal front-end settings share their descriptions.
     A subclass calls `_reset_features` with its database, `_add_features` in ``add_description`` and `_verified`
     for the candidates it retrieved."""
 
     name: ClassVar[str]
-    params: VisualPipelineParams
+    params: VP
     extractor: Any
 
     @property
@@ -308,7 +312,7 @@ def _cloud(name: str, description: Description) -> np.ndarray:
     return description["cloud"]
 
 
-class VisualHBST(VisualFrontend, Recognizer[VisualParams]):
+class VisualHBST(VisualFrontend[VisualParams], Recognizer[VisualParams]):
     """`PlaceRecognizer` of the VPR paper's 2D modality with HBST retrieval (ORB-HBST, BRISK-HBST)."""
 
     name: ClassVar[str] = "visual-hbst"
