@@ -113,7 +113,7 @@ class LoopFilter:
             self._update_window(islands[0], query)
             if self._window_n <= p.temporal_k:
                 return [], "no_temporal_consistency"
-        best = {}
+        best: dict[int, Candidate] = {}
         for c in cands:  # the first (best) candidate of each id represents it
             best.setdefault(c.match_id, c)
         return [best[isl.best_id] for isl in islands], "ok"

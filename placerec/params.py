@@ -151,7 +151,7 @@ class SectionError(ValueError):
 
 def error_lines(exc: ValidationError, model: type[BaseModel], path: str = "") -> list[str]:
     """One line per validation error: ``path.key: what was wrong`` (the allowed keys for an unknown one)."""
-    lines = []
+    lines: list[str] = []
     for err in exc.errors():
         loc = tuple(err["loc"])
         key = ".".join(x for x in (path, _dotted(loc)) if x)

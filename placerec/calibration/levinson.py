@@ -138,7 +138,7 @@ def _relative_log_gains(obs: Observations, min_bin: float) -> np.ndarray:
     n = np.bincount(pair, w)
     logx = np.log(obs.raw_bin[ok])
     if obs.inc_factor is not None:
-        logx = logx - np.log(obs.inc_factor[obs.inc[ok]])
+        logx = logx - np.log(obs.inc_factor[obs.inc_index[ok]])
     y = np.bincount(pair, w * logx) / n
     cell, beam = uniq // B, uniq % B
     rows_i, rows_j, diffs, wts = [], [], [], []

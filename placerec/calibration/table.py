@@ -163,6 +163,7 @@ class CalibrationTable:
         """Write the table atomically (kind ``intensity-calibration``, format version 1)."""
         from placerec.io.atomic import save_artifact
 
+        assert self.counts is not None  # set by __post_init__
         save_artifact(
             path, KIND, FORMAT_VERSION, {"values": self.values, "counts": self.counts}, self.header_meta()
         )

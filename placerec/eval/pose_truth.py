@@ -113,7 +113,7 @@ def overlap_revisits(
         near = np.asarray(tree.query_ball_point(pos[q], settings.search_radius), dtype=np.int64)
         near = near[near <= max_eligible[q]]
         near = near[np.argsort(np.linalg.norm(pos[near] - pos[q], axis=1), kind="stable")]
-        for m in near:
+        for m in near.tolist():
             o = _overlap(voxels[q], voxels[m])
             best[q] = max(best[q], o)
             if o >= settings.min_overlap:

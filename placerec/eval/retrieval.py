@@ -93,7 +93,7 @@ def revisit_directions(gt: LoopGroundTruth, reverse_yaw_deg: float = 90.0) -> np
         return out
     near = gt.nearest_index[rev]
     if gt.gt_yaw_deg is not None:  # the nearest scan may fail the yaw limit: take the nearest true match
-        near = np.array([gt.true_matches(i)[np.argmin(_dist(gt, i))] for i in rev], dtype=np.int64)
+        near = np.array([gt.true_matches(i)[np.argmin(_dist(gt, i))] for i in rev.tolist()], dtype=np.int64)
     d = np.degrees(np.abs(np.angle(np.exp(1j * (gt.yaws[rev] - gt.yaws[near])))))
     out[rev] = np.where(d > reverse_yaw_deg, 2, 1)
     return out

@@ -293,7 +293,7 @@ def to_uint8(intensity: np.ndarray, valid: np.ndarray, params: ImageParams = _DE
         vals = intensity[valid]
         top = float(np.percentile(vals, params.percentile)) if vals.size else 1.0
     scale = 255.0 / top if top > 0 else 0.0
-    img = np.clip(intensity * scale, 0, 255).astype(np.uint8)
+    img: np.ndarray = np.clip(intensity * scale, 0, 255).astype(np.uint8)
     img[~valid] = 0
     if params.equalize:
         import cv2

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
+import numpy.typing as npt
 
 from placerec.errors import ConfigError, DependencyError, ScanDataError, ScanFormatError
 from placerec.io.limits import check_size
@@ -131,7 +132,7 @@ def pick(columns: Mapping[str, np.ndarray], names: tuple[str, ...]) -> tuple[str
     return None
 
 
-def checked_ints(values: np.ndarray, dtype: np.dtype | str, where: str | Path, what: str) -> np.ndarray:
+def checked_ints(values: np.ndarray, dtype: npt.DTypeLike, where: str | Path, what: str) -> np.ndarray:
     """``values`` (parsed as float64) as integers of ``dtype``; ScanFormatError naming ``where`` and ``what`` for
     NaN/inf, a fraction or a value outside the type's range (instead of a silent wrap-around)."""
     dt = np.dtype(dtype)

@@ -150,7 +150,7 @@ def save_artifact(
     header = {"kind": kind, "format_version": int(format_version), "meta": meta or {}}
     if HEADER_KEY in arrays:
         raise ArtifactError(f"array name {HEADER_KEY!r} is reserved")
-    payload = dict(arrays)
+    payload: dict[str, Any] = dict(arrays)
     payload[HEADER_KEY] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
     with atomic_write(path) as fh:
         np.savez(fh, **payload)

@@ -71,7 +71,7 @@ def _read_records(path: Path, n: int) -> tuple[np.ndarray, np.ndarray]:
     with open(path, "rb") as fh:
         for k in range(0, n, _CHUNK):
             view = buf[: min(_CHUNK, n - k)]
-            got = fh.readinto(memoryview(view).cast("B"))
+            got = fh.readinto(view.data.cast("B"))
             if got != view.nbytes:
                 raise ScanFormatError(f"{path}: file shrank while reading ({got} of {view.nbytes} bytes)")
             xyz[k : k + len(view)] = view[:, :3]

@@ -15,7 +15,7 @@ import zipfile
 import zlib
 from collections.abc import Iterable
 from pathlib import Path
-from typing import BinaryIO
+from typing import IO, cast
 
 import numpy as np
 
@@ -39,7 +39,7 @@ _ZIP_ERRORS = (
 
 
 def _read_header(
-    fp: BinaryIO, where: str, error: type[PlacerecError]
+    fp: IO[bytes], where: str, error: type[PlacerecError]
 ) -> tuple[tuple[int, ...], bool, np.dtype]:
     try:
         version = np.lib.format.read_magic(fp)
@@ -146,6 +146,7 @@ def read_npz_arrays(
                     if info in read:
                         out[key] = _read_member(zf, info, f"{where}[{key}]", error)
                     else:
+                        assert not isinstance(source, bytes)  # mapped members come from a path
                         out[key] = _map_member(Path(source), zf, info, f"{where}[{key}]", error)
     except PlacerecError:
         raise
@@ -166,7 +167,7 @@ def _read_member(
                 f"{info.file_size - fh.tell()} data bytes"
             )
         data = bytearray(need)
-        got = fh.readinto(data) if need else 0
+        got = cast(io.BufferedIOBase, fh).readinto(data) if need else 0  # a zipfile.ZipExtFile
         if got != need:
             raise error(f"{where}: .npy data truncated: {got} bytes, expected {need}")
     arr = np.frombuffer(data, dtype=dtype, count=math.prod(shape))
@@ -199,7 +200,7 @@ def _map_member(
     member = np.memmap(path, dtype=np.uint8, mode="c", offset=start, shape=(info.file_size,))
     crc = 0
     for k in range(0, info.file_size, _CRC_CHUNK):
-        crc = zlib.crc32(member[k : k + _CRC_CHUNK], crc)
+        crc = zlib.crc32(member[k : k + _CRC_CHUNK].data, crc)
     if crc != info.CRC:
         raise error(f"{where}: CRC-32 mismatch (the member's bytes are corrupt)")
     arr = np.frombuffer(member, dtype=dtype, count=math.prod(shape), offset=header_len)

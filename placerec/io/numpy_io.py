@@ -16,6 +16,7 @@ from __future__ import annotations
 import io
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -101,7 +102,7 @@ def read_npz(path: str | Path, *, organized: bool = False) -> Scan:
 
 def write_npz(path: str | Path, scan: Scan) -> None:
     """Write every field of ``scan`` (and its sensor and timestamp) into an uncompressed ``.npz``; atomic."""
-    arrays: dict[str, np.ndarray] = {"xyz": scan.xyz, "intensity": scan.intensity}
+    arrays: dict[str, Any] = {"xyz": scan.xyz, "intensity": scan.intensity}
     if scan.ring is not None:
         arrays["ring"] = scan.ring
     if scan.time is not None:

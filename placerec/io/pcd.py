@@ -184,7 +184,7 @@ def _compressed(buf: bytes, h: PcdHeader, where: Path) -> dict[str, np.ndarray]:
     cols: dict[str, np.ndarray] = {}
     o = 0
     for name in dt.names or ():
-        fdt = dt.fields[name][0]
+        fdt = dt[name]
         cols[name] = (
             np.frombuffer(data, dtype=fdt, count=h.points, offset=o) if h.points else np.empty(0, fdt)
         )
@@ -213,7 +213,7 @@ def _ascii(buf: bytes, h: PcdHeader, where: Path) -> dict[str, np.ndarray]:
     for name, c in zip(dt.names or (), h.counts, strict=True):
         if c == 1:
             col = vals[:, j]
-            fdt = dt.fields[name][0]
+            fdt = dt[name]
             if fdt.kind in "iu":
                 col = checked_ints(col, fdt, where, f"PCD ascii integer field {name!r}")
             cols[name] = col
@@ -271,9 +271,7 @@ def write_pcd(path: str | Path, scan: Scan, data: str = "binary") -> None:
             rec[name] = arr
         body = rec.tobytes()
     elif data == "binary_compressed":
-        raw = b"".join(
-            np.ascontiguousarray(arr, dtype=dt.fields[name][0]).tobytes() for name, arr, _, _ in fields
-        )
+        raw = b"".join(np.ascontiguousarray(arr, dtype=dt[name]).tobytes() for name, arr, _, _ in fields)
         comp = lzf_compress(raw)
         body = struct.pack("<II", len(comp), len(raw)) + comp
     else:

@@ -65,7 +65,7 @@ def _rows(path: Path, fmt: str | None) -> tuple[str, np.ndarray, list[int]]:
             raise ScanFormatError(f"{p}:{no}: {len(parts)} columns, expected {width} ({fmt} poses)")
         tokens.extend(parts)
         line_nos.append(no)
-    if not line_nos or fmt is None:
+    if not line_nos or fmt is None or width is None:
         raise ScanFormatError(f"{p}: no poses found (only blank or comment lines)")
     try:
         vals = np.array(tokens, dtype=np.float64).reshape(len(line_nos), width)

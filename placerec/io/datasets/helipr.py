@@ -86,7 +86,7 @@ def read_helipr_bin(path: str | Path, sensor: str) -> Scan:
     if size % dtype.itemsize:
         raise ScanFormatError(
             f"{p}: size {size} bytes is not a multiple of the HeLiPR {sensor} record size {dtype.itemsize} "
-            f"({', '.join(dtype.names)})"
+            f"({', '.join(dtype.names or ())})"
         )
     cols = structured_columns(np.fromfile(p, dtype=dtype))
     named = {"x": cols["x"], "y": cols["y"], "z": cols["z"], "intensity": cols[field]}

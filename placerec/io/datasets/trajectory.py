@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from placerec.errors import ScanFormatError
 from placerec.io._common import check_file
@@ -79,7 +80,7 @@ def _is_float(token: str) -> bool:
     return True
 
 
-def pose_from_xyz_quat(xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+def pose_from_xyz_quat(xyz: npt.ArrayLike, quat_xyzw: npt.ArrayLike) -> np.ndarray:
     """(N, 4, 4) poses from (N, 3) positions and (N, 4) quaternions (qx, qy, qz, qw)."""
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     P = np.tile(np.eye(4), (xyz.shape[0], 1, 1))
@@ -88,7 +89,7 @@ def pose_from_xyz_quat(xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
     return P
 
 
-def pose_from_xyz_rpy(xyz: np.ndarray, rpy: np.ndarray) -> np.ndarray:
+def pose_from_xyz_rpy(xyz: npt.ArrayLike, rpy: npt.ArrayLike) -> np.ndarray:
     """(N, 4, 4) poses from positions and (roll, pitch, yaw) in radians, ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     cr, cp, cy = np.cos(np.asarray(rpy, dtype=np.float64).reshape(-1, 3)).T
