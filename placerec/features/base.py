@@ -8,13 +8,14 @@ The registered extractors and their VPR paper Table I defaults are in `placerec.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Generic, Literal, TypeVar, cast
 
 import cv2
 import numpy as np
 from pydantic import Field
 
 from placerec.errors import ConfigError, ScanDataError
+from placerec.features.compat import keypoint_xy
 from placerec.features.low_rows import row_factor, rows_back, upsample_rows, warn_few_features
 from placerec.params import Params, resolve
 
@@ -108,7 +109,7 @@ class _Keypoints:
     @classmethod
     def from_cv(cls, kps: list[cv2.KeyPoint] | tuple[cv2.KeyPoint, ...]) -> _Keypoints:
         n = len(kps)
-        xy = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2) if n else np.zeros((0, 2))
+        xy = keypoint_xy(kps).astype(np.float64).reshape(-1, 2) if n else np.zeros((0, 2))
 
         def attr(name: str, dtype: type) -> np.ndarray:
             return np.fromiter((getattr(k, name) for k in kps), dtype, count=n)
@@ -140,7 +141,11 @@ class ExtractorParams(Params):
     )
 
 
-class FeatureExtractor:
+#: the parameters class of an extractor
+EP = TypeVar("EP", bound=ExtractorParams)
+
+
+class FeatureExtractor(Generic[EP]):
     """Base class of the registered extractors.
 
     A subclass sets ``name``, ``descriptor_kind`` and ``Params`` (an `ExtractorParams` subclass with its Table I
@@ -152,6 +157,9 @@ class FeatureExtractor:
     name: ClassVar[str] = ""
     descriptor_kind: ClassVar[Literal["binary", "float"]] = "binary"
     Params: ClassVar[type[ExtractorParams]] = ExtractorParams
+    params: EP
+    #: the FAST detector of the extractors that run `_fast_keypoints` (built in their ``_setup``)
+    _fast: Any
 
     def __init__(self, params: ExtractorParams | None = None, **overrides: Any) -> None:
         if params is not None and type(params) is not self.Params:
@@ -159,7 +167,7 @@ class FeatureExtractor:
                 f"features.{self.name}: params must be a {self.Params.__name__}, got {type(params).__name__}"
             )
         base = params.model_dump() if params is not None else None
-        self.params = resolve(self.Params, base, overrides, where=f"features.{self.name}")
+        self.params = cast(EP, resolve(self.Params, base, overrides, where=f"features.{self.name}"))
         self._setup()
 
     # --------------------------------------------------------------------- subclass hooks
@@ -234,6 +242,6 @@ class FeatureExtractor:
         if len(kps) <= keep:
             return list(kps)
         resp = np.fromiter((k.response for k in kps), np.float64, count=len(kps))
-        xy = cv2.KeyPoint_convert(kps)
+        xy = keypoint_xy(kps)
         order = np.lexsort((xy[:, 0], xy[:, 1], -resp))[:keep]
         return [kps[i] for i in order]

@@ -10,10 +10,11 @@ from __future__ import annotations
 from typing import Any
 
 import cv2
+import numpy as np
 
 from placerec.errors import DependencyError
 
-__all__ = ["brisk_create", "fast_create", "orb_create", "orb_score_type"]
+__all__ = ["brisk_create", "fast_create", "keypoint_xy", "orb_create", "orb_score_type"]
 
 
 def brisk_create(threshold: int = 30, octaves: int = 3, pattern_scale: float = 1.0) -> Any:
@@ -30,9 +31,14 @@ def brisk_create(threshold: int = 30, octaves: int = 3, pattern_scale: float = 1
 
 def fast_create(threshold: int = 40, nonmax_suppression: bool = True) -> Any:
     """FAST-9/16 corner detector (``cv2.FastFeatureDetector``)."""
-    return cv2.FastFeatureDetector_create(
+    return cv2.FastFeatureDetector_create(  # type: ignore[attr-defined]  # not in cv2's stubs
         int(threshold), bool(nonmax_suppression), cv2.FAST_FEATURE_DETECTOR_TYPE_9_16
     )
+
+
+def keypoint_xy(kps: Any) -> np.ndarray:
+    """(N, 2) float32 positions of a sequence of ``cv2.KeyPoint`` (``cv2.KeyPoint_convert``)."""
+    return cv2.KeyPoint_convert(kps)  # type: ignore[attr-defined]  # not in cv2's stubs
 
 
 def orb_score_type(name: str) -> int:
@@ -56,7 +62,7 @@ def orb_create(
     fast_threshold: int,
 ) -> Any:
     """``cv2.ORB`` with named arguments (the positional order is the same in OpenCV 4 and 5)."""
-    return cv2.ORB_create(
+    return cv2.ORB_create(  # type: ignore[attr-defined]  # not in cv2's stubs
         int(nfeatures),
         float(scale_factor),
         int(n_levels),

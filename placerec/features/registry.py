@@ -29,7 +29,7 @@ mapped back to its rows; an image that gives fewer than 20 features is reported 
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 from pydantic import Field
@@ -84,19 +84,24 @@ class BriskParams(ExtractorParams):
     detector: Literal["fast", "brisk"] = Field("fast", description="fast: Table I; brisk: BRISK's own AGAST")
 
 
+def _surf_field(name: str) -> Any:
+    """The field of `SURFParams` called ``name`` (its default, constraints and description)."""
+    return SURFParams.model_fields[name]
+
+
 class FastSurfParams(ExtractorParams):
     """FAST keypoints described by our SURF (VPR paper Table I)."""
 
     fast_threshold: int = Field(40, gt=0, description="FAST threshold (VPR paper Table I)")
-    extended: bool = SURFParams.model_fields["extended"]
-    upright: bool = SURFParams.model_fields["upright"]
+    extended: bool = _surf_field("extended")
+    upright: bool = _surf_field("upright")
 
 
 class SurfParams(SURFParams, ExtractorParams):
     """Our SURF detector and descriptor (`placerec.features.surf.SURFParams`; VPR paper Table I)."""
 
 
-class OrbExtractor(FeatureExtractor):
+class OrbExtractor(FeatureExtractor[OrbParams]):
     """ORB (oriented FAST + rotated BRIEF) as in the VPR paper's Table I."""
 
     name = "orb"
@@ -126,7 +131,7 @@ class OrbExtractor(FeatureExtractor):
         return _Keypoints.from_cv(kps), (np.zeros((0, 32), np.uint8) if desc is None else desc)
 
 
-class BriskExtractor(FeatureExtractor):
+class BriskExtractor(FeatureExtractor[BriskParams]):
     """FAST keypoints described by BRISK (Table I); ``detector="brisk"`` uses BRISK's own AGAST detector."""
 
     name = "brisk"
@@ -154,7 +159,11 @@ class BriskExtractor(FeatureExtractor):
         return _Keypoints.from_cv(kps), (np.zeros((0, 64), np.uint8) if desc is None else desc)
 
 
-class _SurfDescribed(FeatureExtractor):
+#: the parameters of an extractor with the SURF descriptor
+SP = TypeVar("SP", FastSurfParams, SurfParams)
+
+
+class _SurfDescribed(FeatureExtractor[SP]):
     descriptor_kind = "float"
 
     @property
@@ -162,7 +171,7 @@ class _SurfDescribed(FeatureExtractor):
         return 128 if self.params.extended else 64
 
 
-class FastSurfExtractor(_SurfDescribed):
+class FastSurfExtractor(_SurfDescribed[FastSurfParams]):
     """FAST keypoints (Table I threshold 40) described by our SURF at the FAST keypoint size (7 px)."""
 
     name = "fast-surf"
@@ -178,14 +187,14 @@ class FastSurfExtractor(_SurfDescribed):
         return kps, desc
 
 
-class SurfExtractor(_SurfDescribed):
+class SurfExtractor(_SurfDescribed[SurfParams]):
     """Our SURF detector and descriptor (Table I: hessian threshold 400, 4 octaves, 3 layers per octave)."""
 
     name = "surf"
     Params = SurfParams
 
     def _setup(self) -> None:
-        self._surf = SURF(self.params)  # type: ignore[arg-type]  # a SurfParams is a SURFParams
+        self._surf = SURF(self.params)
 
     def _run(self, image: np.ndarray, mask: np.ndarray) -> tuple[_Keypoints, np.ndarray]:
         det = self._surf.detect_arrays(image, mask)

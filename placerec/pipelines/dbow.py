@@ -62,7 +62,7 @@ __all__ = ["DBoWParams", "VisualDBoW", "default_vocabulary_path", "resolve_vocab
 _KIND = "visual-dbow-db"
 _VERSION = 1
 #: The shipped vocabularies: package data, installed as files with the package (editable install or wheel).
-VOCAB_DIR = Path(importlib.resources.files("placerec").joinpath("vocab"))
+VOCAB_DIR = Path(str(importlib.resources.files("placerec").joinpath("vocab")))
 #: Shipped vocabulary per feature extractor (SURF's descriptor with FAST or SURF keypoints share one).
 SHIPPED = {
     "orb": "orb_k10L5.dbow",

@@ -141,7 +141,7 @@ class DescriptorStore:
             store._rows, store._n = np.ascontiguousarray(x), x.shape[0]
         elif dtype == "sq8" and (quantiser is not None or x.shape[0]):
             store._fit(quantiser or ScalarQuantiser.fit(x))
-            store._add_codes(store.quantiser.encode(x))
+            store._add_codes(store._sq8.encode(x))
         else:
             store.append(x)
         return store
@@ -161,6 +161,12 @@ class DescriptorStore:
         self.quantiser = quantiser
         self._index = self._new_index()
 
+    @property
+    def _sq8(self) -> ScalarQuantiser:
+        """The quantiser of a fitted sq8 store."""
+        assert self.quantiser is not None
+        return self.quantiser
+
     def _add_codes(self, codes: np.ndarray) -> None:
         if codes.shape[0]:
             self._index.add_sa_codes(np.ascontiguousarray(codes).view(np.uint8).reshape(codes.shape[0], -1))
@@ -173,7 +179,7 @@ class DescriptorStore:
             if self.dtype == "float16":
                 self._add_codes(x.astype(np.float16))
             else:
-                self._add_codes(self.quantiser.encode(x))
+                self._add_codes(self._sq8.encode(x))
             return
         if self._n + x.shape[0] > self._rows.shape[0]:  # float32 rows, grown by doubling
             cap = max(1024, 2 * self._rows.shape[0], self._n + x.shape[0])
@@ -185,7 +191,7 @@ class DescriptorStore:
         if self.dtype == "sq8" and self._n >= self.fit_rows:
             pending, self._rows = self._rows[: self._n], np.zeros((0, self.dim), np.float32)
             self._fit(ScalarQuantiser.fit(pending))
-            self._add_codes(self.quantiser.encode(pending))
+            self._add_codes(self._sq8.encode(pending))
 
     # -- reading ----------------------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -221,7 +227,7 @@ class DescriptorStore:
     def _decode(self, codes: np.ndarray) -> np.ndarray:
         if self.dtype == "float16":
             return codes.astype(np.float32)
-        return self.quantiser.decode(codes)
+        return self._sq8.decode(codes)
 
     def rows(self, start: int = 0, stop: int | None = None) -> np.ndarray:
         """Rows ``start:stop`` as float32 (decoded; with NumPy, which is 20x faster than faiss's

@@ -45,7 +45,7 @@ class IvfIndex:
         self.threads = threads
         if store.encoded:
             qt = faiss.ScalarQuantizer.QT_fp16 if store.dtype == "float16" else faiss.ScalarQuantizer.QT_8bit
-            self.index = faiss.IndexIVFScalarQuantizer(
+            self.index: faiss.IndexIVF = faiss.IndexIVFScalarQuantizer(
                 faiss.IndexFlatL2(d), d, self.nlist, qt, faiss.METRIC_L2, False
             )
         else:

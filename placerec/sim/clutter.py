@@ -54,7 +54,7 @@ class _Templates:
     seeds: np.ndarray  # (K,)
 
     @classmethod
-    def build(cls, add: Callable[[MeshBuilder, int], None], k: int) -> _Templates:
+    def build(cls, add: Callable[..., object], k: int) -> _Templates:
         b = MeshBuilder()
         add(b, k)
         m = b.build()

@@ -354,7 +354,7 @@ class IntensityModel:
         """Multiplier from surface response to apparent reflectance, as a function of range."""
         return self.apparent(1.0, rng_m)
 
-    def apparent(self, beta: np.ndarray, rng_m: np.ndarray) -> np.ndarray:
+    def apparent(self, beta: np.ndarray | float, rng_m: np.ndarray) -> np.ndarray:
         """Noise-free apparent reflectance the sensor reports before its per-beam response."""
         return elementwise(_apparent_n, (beta, rng_m), (_F4, _F4), np.float32, self.packed())
 

@@ -44,7 +44,7 @@ _LATTICE_SEED = 0x7AB1E  # mixed into the seed of lattice values, so value noise
 
 # -- scalar kernels -------------------------------------------------------------------------------------------------
 @inline
-def hash_u32_1(a: int, b: int, c: int, seed: int) -> int:
+def hash_u32_1(a: int, b: int, c: int, seed: int) -> np.uint64:
     """Well-mixed 32-bit hash of three int64 lattice coordinates and a seed (each taken modulo 2**32)."""
     h = (np.uint64(a) & _MASK) * _P1 & _MASK
     h ^= (np.uint64(b) & _MASK) * _P2 & _MASK
@@ -59,7 +59,7 @@ def hash_u32_1(a: int, b: int, c: int, seed: int) -> int:
 
 
 @inline
-def hash_unit_1(a: int, b: int, c: int, seed: int) -> float:
+def hash_unit_1(a: int, b: int, c: int, seed: int) -> np.float32:
     """Uniform float32 in [0, 1) from `hash_u32_1`."""
     return np.float32(hash_u32_1(a, b, c, seed) >> _S8) * _INV24
 
@@ -110,7 +110,7 @@ def value_noise3_1(x: float, y: float, z: float, seed: int) -> float:
 
 
 @njit
-def fbm2_1(x: float, y: float, seed: int, octaves: int) -> float:
+def fbm2_1(x: float, y: float, seed: int, octaves: int) -> np.float32:
     """Fractal sum of `value_noise2_1` octaves (frequency x2.03, amplitude x0.5), centred: roughly in [-1, 1]."""
     total = np.float32(0.0)
     amp = np.float32(1.0)

@@ -211,7 +211,7 @@ def build_campus(seed: int) -> PresetResult:
         yaw = np.arctan2(d[1], d[0])
         b.add_boxes(
             np.r_[mid, h(mid[0], mid[1]) - 0.1],
-            [np.linalg.norm(d), 1.0, rng.uniform(1.1, 1.8)],
+            [float(np.linalg.norm(d)), 1.0, rng.uniform(1.1, 1.8)],
             yaw,
             M.FOLIAGE,
             params=[[0.45]],

@@ -14,6 +14,7 @@ import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -46,7 +47,7 @@ class RawHits:
     clutter: MeshArrays | None = None
 
 
-def _cast(scene: object, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _cast(scene: Any, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     import open3d as o3d
 
     res = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
@@ -109,7 +110,7 @@ class Renderer:
                 nrm[idx] = nrm2[closer]
         return RawHits(t=t, material=mat, obj=obj, normal=nrm, rays=rays, clutter=mesh)
 
-    def _clutter_candidates(self, mesh: object, pose: np.ndarray, everything: bool) -> np.ndarray:
+    def _clutter_candidates(self, mesh: MeshArrays, pose: np.ndarray, everything: bool) -> np.ndarray:
         """Indices of the rays that can hit the clutter: columns spanned by some clutter object, rows within the
         clutter's elevation range (all rays when near-sensor occluders may surround the sensor)."""
         n = self.grid.directions.shape[0]

@@ -119,8 +119,8 @@ def _bfs(roads: RoadGraph, start: Node, goal_fn) -> list[Node]:
         n = q.popleft()
         if goal_fn(n) and n != start:
             path = [n]
-            while prev[path[-1]] is not None:
-                path.append(prev[path[-1]])
+            while (back := prev[path[-1]]) is not None:
+                path.append(back)
             return path[::-1]
         for m in roads.neighbours(n):
             if m not in prev:
@@ -226,6 +226,7 @@ def _path(roads: RoadGraph, nodes: list[Node], lanes: list[int]) -> np.ndarray:
         q = _offset(p, offs)
         path = q if path is None else _join(path, q)
         prev_off = off
+    assert path is not None  # a route has at least one edge
     return _smooth(_densify(path, 0.5), 13)
 
 

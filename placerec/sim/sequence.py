@@ -231,7 +231,7 @@ class SimulatedSequence:
         return self._init_args
 
     def __setstate__(self, state: dict) -> None:
-        self.__init__(**state)
+        type(self).__init__(self, **state)
 
     def __repr__(self) -> str:
         return f"SimulatedSequence({self._name!r}, {len(self)} scans)"

@@ -387,7 +387,7 @@ def shade(
     n = pw.shape[0]
     pl = pw if pl is None else np.ascontiguousarray(pl, dtype=np.float32).reshape(n, 3)
     nl = (
-        np.tile(np.float32([0, 0, 1]), (n, 1))
+        np.tile(np.array([0, 0, 1], np.float32), (n, 1))
         if nl is None
         else np.ascontiguousarray(nl, dtype=np.float32).reshape(n, 3)
     )

@@ -75,9 +75,10 @@ def make_scene(vertices: np.ndarray, triangles: np.ndarray) -> object:
         raise DependencyError("the simulator needs open3d (pip install open3d)") from exc
     scene = o3d.t.geometry.RaycastingScene()
     if len(triangles):
+        # open3d's stubs make Tensor's dtype and device required
         scene.add_triangles(
-            o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
-            o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)),
+            o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),  # type: ignore[call-overload]
+            o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)),  # type: ignore[call-overload]
         )
     return scene
 

@@ -60,6 +60,7 @@ class SuperPointNet:
         self.arch, self.weights = load_weights(path)
         self.backend = backend
         self._lock = threading.Lock()  # a cv2.dnn.Net is not safe to share between threads
+        self._net: Any  # a cv2.dnn.Net or a torch module
         if backend == "cv2":
             model = onnx_path(path)
             try:
@@ -101,7 +102,7 @@ def _net(weights: str | None, backend: str) -> SuperPointNet:
         return _NETS[key]
 
 
-class SuperPointExtractor(FeatureExtractor):
+class SuperPointExtractor(FeatureExtractor[SuperPointParams]):
     """SuperPoint keypoints and 256-d unit descriptors (float)."""
 
     name = "superpoint"

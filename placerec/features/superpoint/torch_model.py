@@ -42,7 +42,9 @@ def build_torch_model(arch: SuperPointArch, weights: dict[str, np.ndarray] | Non
                 mods.append(nn.MaxPool2d(2, 2))
         return nn.Sequential(*mods)
 
-    class SuperPointNet(nn.Module):
+    module: Any = nn.Module  # torch is imported here, so its classes are values to the type checker
+
+    class SuperPointNet(module):
         def __init__(self) -> None:
             super().__init__()
             enc, det, desc = conv_layers(arch)

@@ -24,7 +24,7 @@ __all__ = ["SHIPPED_WEIGHTS", "save_weights", "load_weights", "resolve_weights",
 KIND = "superpoint-weights"
 VERSION = 1
 #: The shipped weights (package data).
-SHIPPED_WEIGHTS = Path(importlib.resources.files("placerec").joinpath("vocab", "superpoint_lidar.npz"))
+SHIPPED_WEIGHTS = Path(str(importlib.resources.files("placerec").joinpath("vocab", "superpoint_lidar.npz")))
 
 
 def _schema(arch: SuperPointArch) -> dict[str, Member]:

@@ -177,7 +177,7 @@ _INT, _STR, _NUM, _OBJ = (
     ((int, float), "a number"),
     (dict, "an object"),
 )
-_HEADER_TYPES = {
+_HEADER_TYPES: dict[str, tuple[type | tuple[type, ...], str]] = {
     "k": _INT, "L": _INT, "weighting": _STR, "scoring": _STR, "kind": _STR, "descriptor_size": _INT, "n_nodes": _INT,
     "n_words": _INT, "centre_dtype": _STR, "centre_scale": _NUM, "arrays": _OBJ, "meta": _OBJ,
 }  # fmt: skip
@@ -264,6 +264,7 @@ def _read_array(
     blob = memoryview(data)[a : a + stored]
     if zlib.crc32(blob) != spec.get("crc32"):
         raise ArtifactError(f"{path}: corrupt vocabulary file (checksum of {name!r})")
+    raw: bytes | memoryview
     if codec == "zlib":
         try:
             inflater = zlib.decompressobj()

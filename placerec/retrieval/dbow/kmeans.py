@@ -62,7 +62,10 @@ class DescriptorSpace:
 
     def features(self) -> np.ndarray:
         """The array distances are computed on (uint64 words or float32 vectors)."""
-        return self.words if self.kind == "binary" else self.raw
+        if self.kind == "binary":
+            assert self.words is not None  # `of` sets them for binary descriptors
+            return self.words
+        return self.raw
 
     def distance_to(self, rows: np.ndarray, centres: np.ndarray) -> np.ndarray:
         """DBoW2 distance of ``rows`` (of features()) to one centre per row: Hamming or squared L2 (float64)."""
@@ -183,7 +186,7 @@ def _kmeans_segments(
     seg = _segment_ids(lengths)
     fit_rows, fit_len = rows, lengths
     subsample = max_fit is not None and bool((lengths > max_fit).any())
-    if subsample:
+    if subsample and max_fit is not None:
         keep = np.ones(rows.size, bool)
         starts = np.r_[0, np.cumsum(lengths)[:-1]]
         for s in np.flatnonzero(lengths > max_fit):

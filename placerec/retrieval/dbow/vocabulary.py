@@ -19,7 +19,7 @@ import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, NamedTuple, get_args
+from typing import Any, Literal, NamedTuple, get_args, overload
 
 import numpy as np
 from pydantic import Field
@@ -216,7 +216,7 @@ class Vocabulary:
     def _descend_chunk(self, d: np.ndarray, node_depth: int | None) -> tuple[np.ndarray, np.ndarray]:
         n = d.shape[0]
         kmax = self._next.shape[1]
-        cur = np.zeros(n, np.int64)
+        cur: np.ndarray = np.zeros(n, np.int64)
         at_depth = cur
         # np.take and same-shape operands: several times faster than fancy indexing and broadcasting here
         if self.binary:
@@ -245,6 +245,12 @@ class Vocabulary:
         leaf, _ = self.descend(descriptors)
         return self.word_of_node[leaf]
 
+    @overload
+    def transform(self, descriptors: np.ndarray, levels_up: None = None) -> BowVector: ...
+
+    @overload
+    def transform(self, descriptors: np.ndarray, levels_up: int) -> tuple[BowVector, np.ndarray]: ...
+
     def transform(
         self, descriptors: np.ndarray, levels_up: int | None = None
     ) -> BowVector | tuple[BowVector, np.ndarray]:
@@ -272,6 +278,7 @@ class Vocabulary:
         if words.size == 0:
             return BowVector.empty()
         uniq, inv = np.unique(words, return_inverse=True)
+        vals: np.ndarray
         if self.weighting in ("tf-idf", "tf"):
             vals = np.bincount(inv, weights=w, minlength=uniq.size)
         else:  # idf / binary: once per word
