@@ -194,3 +194,12 @@ def test_a_poses_file_follows_the_dataset_slice(tmp_path):
     odometry = odometry_source(cfg, seq)
     assert len(seq) == 3
     assert [odometry(i, None)[0, 3] for i in range(3)] == [0.0, 3.0, 6.0]
+
+
+def test_the_back_end_names_where_the_application_went():
+    import placerec.slam
+    import placerec.slam_app
+
+    with pytest.raises(AttributeError, match="import it from placerec.slam_app"):
+        placerec.slam.run_slam  # noqa: B018
+    assert callable(placerec.slam_app.run_slam) and placerec.slam.OnlineSlam.__name__ == "OnlineSlam"

@@ -23,5 +23,16 @@ _EXPORTS = {
     "trajectory_errors": "placerec.eval.trajectory",
 }
 
+#: names of the SLAM application, which lives above the back end (`placerec.slam_app`)
+_APPLICATION = ("SlamConfig", "load_slam_config", "run_slam", "slam_sequence")
+
 __all__ = sorted(_EXPORTS)
-__getattr__ = lazy_exports(__name__, _EXPORTS)
+_exports = lazy_exports(__name__, _EXPORTS)
+
+
+def __getattr__(name: str) -> object:
+    if name in _APPLICATION:
+        raise AttributeError(
+            f"placerec.slam.{name} is the SLAM application's: import it from placerec.slam_app"
+        )
+    return _exports(name)
