@@ -56,6 +56,7 @@ from placerec.params import Params
 from placerec.recognizer import Recognizer, params_key, require_points
 from placerec.types import Candidate, Scan
 from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
+from placerec.verify.params import IcpParams
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +109,7 @@ class ScanContextParams(Params):
         50, ge=1, description="additions between KD-tree rebuilds (reference: 50)"
     )
     verify: VerifiedParams = Field(
-        default_factory=lambda: VerifiedParams(icp={"max_iterations": 15}),
+        default_factory=lambda: VerifiedParams(icp=IcpParams(max_iterations=15)),
         description="ICP from the Scan Context yaw on the top-k candidates (placerec.verify.candidates); 15 ICP "
         "iterations: the same closures as 30 on the demo, wrong candidates cost half",
     )
@@ -419,7 +420,7 @@ class ScanContext(Recognizer[ScanContextParams]):
     def save(self, path: str | Path) -> None:
         """Write the database atomically (kind ``scan-context-db``, format version 1, parameters in the header)."""
         n = self._n
-        arrays = {"descriptors": self._desc[:n], "ids": self._ids[:n]}
+        arrays: dict[str, np.ndarray] = {"descriptors": self._desc[:n], "ids": self._ids[:n]}
         if self.params.verify.enabled:
             arrays.update(self._clouds.arrays(self._ids[:n].tolist()))
         save_artifact(

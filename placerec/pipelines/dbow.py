@@ -37,7 +37,7 @@ import logging
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import numpy as np
 from pydantic import Field
@@ -284,7 +284,8 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
         distance cap; then at most one query feature per candidate feature (the closest). Returns (candidate
         index, query feature, candidate feature), sorted by candidate."""
         n_nodes = self.vocabulary.n_nodes
-        r_nodes = [self.db.feature_nodes(i) for i in image_ids]
+        # the database keeps a direct index whenever matches come from retrieval
+        r_nodes = cast(list[np.ndarray], [self.db.feature_nodes(i) for i in image_ids])
         sizes = np.array([x.size for x in r_nodes])
         r_cand = np.repeat(np.arange(len(image_ids)), sizes)
         r_local = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)

@@ -287,6 +287,7 @@ class KeypointVoting(Recognizer[VotingParams]):
             self.window.push(scan_id, T, description)
         if p.places.spacing_m > 0 and not far_from_all(self.entries.xyz(), T[:3, 3], p.places.spacing_m):
             return
+        cloud: np.ndarray | None
         if p.places.window_m > 0:
             kp, desc, cloud = self._describe_window(T)
         else:

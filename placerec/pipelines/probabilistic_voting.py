@@ -80,7 +80,13 @@ class InlineVoteModel(Params):
     d_max: float = Field(95.979, gt=0, description="m; extent of the uniform tail")
 
     def build(self) -> VoteModel:
-        return VoteModel(self.tau_edges, self.sigma, self.lam, self.d_max, provenance={"source": "inline"})
+        return VoteModel(
+            np.asarray(self.tau_edges, np.float64),
+            np.asarray(self.sigma, np.float64),
+            np.asarray(self.lam, np.float64),
+            self.d_max,
+            provenance={"source": "inline"},
+        )
 
 
 class ProbabilisticParams(VotingParams):
@@ -171,8 +177,8 @@ class PosteriorVotes(VoteStrategy["ProbabilisticVoting"]):
         # the threshold never led to an accepted place: vote counts first (the paper's fallback), then the
         # posterior; without early stopping (exhaustive matching) the posterior ranks
         prob = self.post.probabilities
-        ranked = np.lexsort((-prob, -self.votes)) if self.p.early_stop else np.argsort(-prob, kind="stable")
-        ranked = [e for e in ranked if self.query.eligible[e]]
+        order = np.lexsort((-prob, -self.votes)) if self.p.early_stop else np.argsort(-prob, kind="stable")
+        ranked = [e for e in order if self.query.eligible[e]]
         return self._shortlist(
             ranked, prob, by_posterior=not self.p.early_stop, top_k=self.p.verify.fallback_top_k
         )

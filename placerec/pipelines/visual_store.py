@@ -83,7 +83,12 @@ def stored_features(
     out: list[tuple[int, Description]] = [
         (
             int(i),
-            {"keypoints": kp[a:b], "descriptors": desc[a:b], "width": np.int64(w), "keypoint_xyz": xyz[a:b]},
+            {
+                "keypoints": kp[a:b],
+                "descriptors": desc[a:b],
+                "width": np.array(w, np.int64),
+                "keypoint_xyz": xyz[a:b],
+            },
         )
         for i, a, b, w in zip(ids, offsets[:-1], offsets[1:], widths, strict=True)
     ]

@@ -20,6 +20,7 @@ from placerec.params import Params
 from placerec.retrieval.descriptor_store import StoreDtype
 from placerec.three_d.features import FeatureParams
 from placerec.verify.candidates import VerifiedParams
+from placerec.verify.params import ConsistencyParams, ScoreParams
 
 __all__ = ["EntryParams", "SearchParams", "VotingParams", "VotingVerifyParams"]
 
@@ -95,7 +96,9 @@ class VotingVerifyParams(VerifiedParams):
 
 
 def _verify_defaults() -> VotingVerifyParams:
-    return VotingVerifyParams(consistency={"enabled": True}, score={"acceptance": "eps_icp"})
+    return VotingVerifyParams(
+        consistency=ConsistencyParams(enabled=True), score=ScoreParams(acceptance="eps_icp")
+    )
 
 
 class VotingParams(Params):

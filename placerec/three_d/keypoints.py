@@ -229,6 +229,7 @@ def detect_iss(
     boundary = np.zeros(n, dtype=bool)
     border = np.zeros(n, dtype=bool)
     if use_br:
+        assert normals is not None  # checked above
         br_pairs = pairs.within(params.border_radius)
         boundary = boundary_points(
             P, normals, params.border_radius, params.angle_threshold, params.min_neighbors, br_pairs

@@ -69,15 +69,15 @@ def lrf_from_offsets(
     M[~valid] = np.eye(3)
     _, vecs = np.linalg.eigh(M)  # ascending eigenvalues
     axes = []
-    for a in (vecs[:, :, 2], vecs[:, :, 0]):  # x: largest, z: smallest
-        rep = np.repeat(a.astype(d.dtype), counts, axis=0)
+    for axis in (vecs[:, :, 2], vecs[:, :, 0]):  # x: largest, z: smallest
+        rep = np.repeat(axis.astype(d.dtype), counts, axis=0)
         dots = d[0] * rep[:, 0] + d[1] * rep[:, 1] + d[2] * rep[:, 2]
         balance = 2 * np.bincount(q, weights=use & (dots >= 0), minlength=K) - n
         sign_pos = balance >= 0
         ties = np.flatnonzero((balance == 0) & valid)
         if ties.size:
             _tie_break(sign_pos, ties, q, dist, dots, use)
-        axes.append(np.where(sign_pos[:, None], a, -a))
+        axes.append(np.where(sign_pos[:, None], axis, -axis))
     x, z = axes
     frames = np.full((K, 3, 3), np.nan)
     frames[valid] = np.stack([x, np.cross(z, x), z], axis=1)[valid]

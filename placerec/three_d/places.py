@@ -82,7 +82,7 @@ _SCHEMA = {
     "cloud_scale": Member("f", ("n_places",), optional=True, finite=True, min_value=0),
 }
 #: the arrays of each cloud store besides ``cloud_counts``, and their dtypes
-_CLOUD_ARRAYS = {
+_CLOUD_ARRAYS: dict[str, dict[str, type[np.generic]]] = {
     "float32": {"cloud_xyz": np.float32, "cloud_intensity": np.float32},
     "int16": {
         "cloud_xyz": np.int16,
@@ -175,11 +175,11 @@ def merge_clouds(T_world_frame: np.ndarray, parts: Iterable[tuple[np.ndarray, Sc
     for T_world_scan, scan in parts:
         T = T_frame_world @ T_world_scan
         xyz.append(scan.xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3])
-    rings = [scan.ring for _, scan in parts]
+    rings = [scan.ring for _, scan in parts if scan.ring is not None]
     return Scan(
         np.concatenate(xyz),
         np.concatenate([scan.intensity for _, scan in parts]),
-        ring=None if any(r is None for r in rings) else np.concatenate(rings),
+        ring=np.concatenate(rings) if len(rings) == len(parts) else None,
         sensor=parts[0][1].sensor,
         source=source,
     )
@@ -257,7 +257,7 @@ class PlacesDatabase:
 
     def save(self, path: str | Path) -> None:
         counts = np.array([len(s) for s in self.sources], dtype=np.int64)
-        arrays = {
+        arrays: dict[str, np.ndarray] = {
             "ids": self.ids.astype(np.int64),
             "poses": self.poses.astype(np.float64),
             "source_counts": counts,
@@ -389,11 +389,11 @@ def _cat(parts: list[np.ndarray], empty: tuple[int, ...]) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros(empty, np.float32)
 
 
-def _cloud_arrays(clouds: list[tuple[np.ndarray, np.ndarray]], kind: str) -> dict[str, np.ndarray]:
+def _cloud_arrays(clouds: SequenceABC[tuple[np.ndarray, np.ndarray]], kind: str) -> dict[str, np.ndarray]:
     """The saved arrays of the place clouds (``cloud_store`` ``kind``)."""
     if kind == "int16" and isinstance(clouds, _FixedPointClouds):
         return clouds.arrays()  # as read: saved again unchanged
-    out = {"cloud_counts": np.array([c[0].shape[0] for c in clouds], dtype=np.int64)}
+    out: dict[str, np.ndarray] = {"cloud_counts": np.array([c[0].shape[0] for c in clouds], dtype=np.int64)}
     if kind == "float32":
         out["cloud_xyz"] = _cat([c[0] for c in clouds], (0, 3)).astype(np.float32)
         out["cloud_intensity"] = _cat([c[1] for c in clouds], (0,)).astype(np.float32)

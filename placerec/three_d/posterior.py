@@ -25,6 +25,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
+import numpy.typing as npt
 
 from placerec.errors import ScanDataError
 from placerec.three_d.vote_model import VoteModel
@@ -32,7 +33,7 @@ from placerec.three_d.vote_model import VoteModel
 __all__ = ["PosteriorTable", "Posterior", "density_weights"]
 
 
-def density_weights(counts: np.ndarray) -> np.ndarray:
+def density_weights(counts: npt.ArrayLike) -> np.ndarray:
     """``mean(counts) / counts`` per place (keypoint-density correction); 0 for a place without keypoints (it
     gets no votes)."""
     c = np.asarray(counts, np.float64)

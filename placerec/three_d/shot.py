@@ -31,7 +31,7 @@ than 5 neighbours) get an all-zero row and ``valid=False`` instead of PCL's NaN 
 from __future__ import annotations
 
 import logging
-from typing import Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 from pydantic import Field
@@ -192,14 +192,16 @@ def compute_shot(
         if frames.shape != (K, 3, 3):
             raise ScanDataError(f"frames must have shape ({K}, 3, 3), got {frames.shape}")
         valid = np.isfinite(frames).all(axis=(1, 2))
-    good_normal = np.isfinite(Nrm).all(axis=1)
+    good_normal = cast(np.ndarray, np.isfinite(Nrm).all(axis=1))  # (N,): Nrm is 2-D
     NT = np.ascontiguousarray(np.where(good_normal[:, None], Nrm, 0.0).T, dtype=np.float32)
     use = (dist > 0) & (dist <= R) & np.repeat(valid, counts) & good_normal[j]
     F = np.where(valid[:, None, None], frames, np.eye(3)).astype(np.float32)
     Frep = [[np.repeat(F[:, a, b], counts) for b in range(3)] for a in range(3)]
     loc = np.stack([Fa[0] * d[0] + Fa[1] * d[1] + Fa[2] * d[2] for Fa in Frep])
     vol, own, nbs = _spatial_layout(loc, np.maximum(dist, np.float32(1e-30)), R)
-    itype = np.int32 if K * D < 2**31 else np.int64  # flat bin indices; int32 halves memory traffic
+    itype: type[np.signedinteger[Any]] = (
+        np.int32 if K * D < 2**31 else np.int64
+    )  # flat bin indices; int32 halves memory traffic
     base = q.astype(itype) * itype(D)
     Fz = Frep[2]
     cos_z = NT[0, j] * Fz[0] + NT[1, j] * Fz[1] + NT[2, j] * Fz[2]
@@ -225,7 +227,7 @@ def compute_shot(
             params.pcl_bin_wrap,
             use,
         )
-    hist = np.bincount(idx.ravel(), weights=w.ravel(), minlength=K * D).reshape(K, D)
+    hist: np.ndarray = np.bincount(idx.ravel(), weights=w.ravel(), minlength=K * D).reshape(K, D)
     if inten is not None and params.normalization == "per_part":
         parts = [hist[:, :SHAPE_DIM], hist[:, SHAPE_DIM:]]
         norms = [np.linalg.norm(p, axis=1) for p in parts]
