@@ -109,7 +109,7 @@ def overlap_revisits(
     if n == 0:
         return revisit, best
     tree = cKDTree(pos)
-    for q in np.flatnonzero(np.asarray(max_eligible) >= 0):
+    for q in np.flatnonzero(np.asarray(max_eligible) >= 0).tolist():
         near = np.asarray(tree.query_ball_point(pos[q], settings.search_radius), dtype=np.int64)
         near = near[near <= max_eligible[q]]
         near = near[np.argsort(np.linalg.norm(pos[near] - pos[q], axis=1), kind="stable")]

@@ -82,8 +82,10 @@ class _Row:
             float(c.score),
             -1 if c.inliers is None else int(c.inliers),
             None if c.relative_pose is None else as_pose(c.relative_pose),
-            *(_float_or_nan(v.get(k)) for k in ("score", "fitness", "rmse")),
-            -1 if acc is None else int(bool(acc)),
+            verified_score=_float_or_nan(v.get("score")),
+            fitness=_float_or_nan(v.get("fitness")),
+            rmse=_float_or_nan(v.get("rmse")),
+            accepted=-1 if acc is None else int(bool(acc)),
         )
 
     def cells(self) -> list[Any]:
@@ -210,8 +212,10 @@ def _parse(path: Path, line: int, r: dict[str, str]) -> _Row:
         _float(path, line, "score", r["score"]),
         _int(path, line, "inliers", r["inliers"]) if r.get("inliers") else -1,
         xyzrpy_to_pose(pose_cells) if all(known) else None,
-        *(_float(path, line, k, r.get(k)) for k in VERIFY_COLUMNS),
-        int(acc) if acc else -1,
+        verified_score=_float(path, line, "verified_score", r.get("verified_score")),
+        fitness=_float(path, line, "fitness", r.get("fitness")),
+        rmse=_float(path, line, "rmse", r.get("rmse")),
+        accepted=int(acc) if acc else -1,
     )
 
 

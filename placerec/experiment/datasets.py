@@ -69,6 +69,7 @@ def _path(cfg: DatasetConfig) -> Sequence:
         kwargs["format"] = cfg.format
     if cfg.poses:
         kwargs["poses"] = cfg.poses
+    assert cfg.path is not None  # DatasetConfig requires it for source "path"
     return open_sequence(cfg.path, **kwargs)
 
 

@@ -84,7 +84,7 @@ def plot_trajectory_closures(
             segs = np.stack([positions[q, :2], positions[m, :2]], axis=1)
             from matplotlib.collections import LineCollection
 
-            ax.add_collection(LineCollection(segs, colors=color, lw=1.2, alpha=0.8, zorder=3))
+            ax.add_collection(LineCollection(list(segs), colors=color, lw=1.2, alpha=0.8, zorder=3))
             ax.plot(
                 positions[q, 0],
                 positions[q, 1],
@@ -165,7 +165,7 @@ def plot_localization(
         if mask.any():
             if label != "no answer":
                 segs = np.stack([query_positions[mask, :2], estimates[mask, :2]], axis=1)
-                ax.add_collection(LineCollection(segs, colors=color, lw=1))
+                ax.add_collection(LineCollection(list(segs), colors=color, lw=1))
             ax.plot(
                 query_positions[mask, 0],
                 query_positions[mask, 1],
@@ -224,7 +224,7 @@ def plot_slam_trajectories(
     for mask, color, label in ((ok, "tab:green", "loop edge"), (~ok, "tab:red", "false loop edge")):
         if mask.any():
             segs = np.stack([base[loops[mask, 0], :2], base[loops[mask, 1], :2]], axis=1)
-            ax.add_collection(LineCollection(segs, colors=color, lw=0.9, alpha=0.7, zorder=6))
+            ax.add_collection(LineCollection(list(segs), colors=color, lw=0.9, alpha=0.7, zorder=6))
             ax.plot([], [], color=color, lw=0.9, label=f"{label} ({int(mask.sum())})")
     return _finish_map(fig, ax, path, title, tuple(trajectories.values()), loc="best")
 

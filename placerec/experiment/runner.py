@@ -325,12 +325,14 @@ def run_localize(
         else:
             cache = DescriptionCache(cache_dir, _data_key(cfg, map_cfg))
         map_front = _Frontends(cache)
+        map_poses = map_seq.poses
+        assert map_poses is not None  # localize_sequences and _with_poses require them
         tasks = [progress.add_task(f"{record.label} (map)", total=len(map_seq)) for record, _ in pipelines]
         for i in range(len(map_seq)):
             scan, _ = preprocessed_scan(map_seq, i, cfg.preprocess)
             for (record, rec), task in zip(pipelines, tasks, strict=True):
                 try:
-                    rec.add_description(i, map_front.describe(rec, i, scan)[0], map_seq.poses[i])
+                    rec.add_description(i, map_front.describe(rec, i, scan)[0], map_poses[i])
                 except ScanDataError as exc:
                     log.warning("%s: map scan %d not added: %s", record.label, i, exc)
                 progress.advance(task)

@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +27,7 @@ import numpy as np
 from pydantic import Field
 from scipy.spatial import cKDTree
 
-from placerec.config import DatasetConfig, experiment_preprocess
+from placerec.config import DatasetConfig, SimulatorConfig, experiment_preprocess
 from placerec.errors import ConfigError
 from placerec.features.superpoint.arch import CELL, DETECTOR_CHANNELS
 from placerec.hashing import stable_hash
@@ -77,7 +78,7 @@ class TrainingData(Params):
 def corner_candidates(image: np.ndarray, valid: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """The ``n`` strongest local maxima (3x3) of the Shi-Tomasi minimum eigenvalue on valid pixels: (K, 2)
     ``(u, v)`` int and (K,) responses."""
-    r = cv2.cornerMinEigenVal(image, 3, 3)
+    r = cv2.cornerMinEigenVal(image, 3, ksize=3)
     peak = (r >= cv2.dilate(r, np.ones((3, 3), np.uint8))) & valid & (r > 0)
     v, u = np.nonzero(peak)
     order = np.argsort(-r[v, u], kind="stable")[:n]
@@ -134,7 +135,7 @@ def _pair_indices(seq: Any, cfg: TrainingData, rng: np.random.Generator) -> list
     along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
     pairs = []
     for i in np.unique(np.linspace(0, len(pos) - 1, cfg.anchors).round().astype(int)):
-        d = rng.uniform(*cfg.offset_m)
+        d = rng.uniform(cfg.offset_m[0], cfg.offset_m[1])
         ahead = along[i] + d if along[i] + d <= along[-1] else along[i] - d
         pairs.append((int(i), int(np.argmin(np.abs(along - ahead)))))
     revisits = []
@@ -225,7 +226,9 @@ def _jobs(cfg: TrainingData, split: str) -> list[tuple[dict[str, Any], dict[str,
     for w in cfg.worlds:
         for s in cfg.sensors:
             for seed in seeds:
-                spec = DatasetConfig(source="simulator", simulator={"world": w, "sensor": s, "seed": seed})
+                spec = DatasetConfig(
+                    source="simulator", simulator=SimulatorConfig(world=w, sensor=s, seed=seed)
+                )
                 label = f"{w}/{s}/seed{seed}"
                 jobs.append((spec.model_dump(mode="json"), cfg.model_dump(mode="json"), seed, label))
     return jobs
@@ -255,7 +258,7 @@ def build_pairs(
         jobs = _jobs(cfg, split)
         res: list[PairData] = []
         with ProcessPoolExecutor(cfg.workers) as pool:
-            it = pool.map(_sequence_pairs, jobs)
+            it: Iterable[list[PairData]] = pool.map(_sequence_pairs, jobs)
             if progress:
                 from rich.progress import track
 
@@ -271,7 +274,7 @@ def build_pairs(
 def _write_pairs(path: Path, pairs: dict[str, list[PairData]]) -> None:
     from placerec.io.atomic import atomic_write
 
-    arrays: dict[str, np.ndarray] = {}
+    arrays: dict[str, Any] = {}
     for split, items in pairs.items():
         arrays[f"{split}.labels"] = np.array([p.label for p in items])
         for k, p in enumerate(items):
@@ -287,7 +290,7 @@ def _read_pairs(path: Path) -> dict[str, list[PairData]]:
         for split in ("train", "validation"):
             labels = [str(s) for s in z[f"{split}.labels"]]
             out[split] = [
-                PairData(*(z[f"{split}.{k}.{f}"] for f in _PAIR_FIELDS), label=lab)
+                PairData(**{f: z[f"{split}.{k}.{f}"] for f in _PAIR_FIELDS}, label=lab)
                 for k, lab in enumerate(labels)
             ]
     log.info("training pairs from the cache %s", path)
