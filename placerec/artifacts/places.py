@@ -75,7 +75,8 @@ def build_places(
     fn = intensity or normalize_intensity
     feats = params.features
     cache: dict[int, Scan] = {}
-    kps, descs, clouds = [], [], []
+    kps, clouds = [], []
+    descs: list[np.ndarray | None] = []  # None: a place that could not be described
     dim = None
     for p, (c, members) in enumerate(zip(part.centres, part.members, strict=True)):
         cache = {
@@ -99,7 +100,7 @@ def build_places(
             progress(p + 1, len(part))
     if dim is None:
         raise ScanDataError(f"{seq.name}: no place had enough points to be described")
-    descs = [np.zeros((0, dim), np.float32) if d is None else d for d in descs]
+    rows = [np.zeros((0, dim), np.float32) if d is None else d for d in descs]
     counts = np.array([k.shape[0] for k in kps], dtype=np.int64)
     log.info(
         "%s: %d places, %d keypoints (%.0f per place), %s", seq.name, len(part), counts.sum(), counts.mean(),
@@ -111,7 +112,7 @@ def build_places(
         sources=part.members,
         kp_offsets=np.r_[0, np.cumsum(counts)].astype(np.int64),
         keypoints=np.concatenate(kps),
-        descriptors=DescriptorStore.from_rows(np.concatenate(descs), params.descriptor_store),
+        descriptors=DescriptorStore.from_rows(np.concatenate(rows), params.descriptor_store),
         params=params,
         scan_poses=poses.copy(),
         clouds=clouds if params.store_clouds else None,

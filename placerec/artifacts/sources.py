@@ -8,7 +8,7 @@ simulated world (`SimWorld`) gives a whole route (`SimWorld.route`), the map of 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 from pydantic import Field
 
@@ -46,7 +46,7 @@ class SimWorld(Params):
         draw ``draw`` (`placerec.sim.make_localization_split`)."""
         from placerec.sim import make_localization_split
 
-        extra = {} if conditions is None else {"conditions": conditions}
+        extra: dict[str, Any] = {} if conditions is None else {"conditions": conditions}
         return make_localization_split(
             self.world, self.sensor, self.seed, n_queries, n_map=self.scans, draw=draw, **extra
         )
@@ -66,7 +66,7 @@ def open_path(path: str | Path, format: str | None = None, poses: str | Path | N
     """The sequence at ``path`` (`placerec.io.open_sequence`, with ``format`` and ``poses`` when given)."""
     from placerec.io import open_sequence
 
-    options = {k: v for k, v in (("format", format), ("poses", poses)) if v is not None}
+    options: dict[str, Any] = {k: v for k, v in (("format", format), ("poses", poses)) if v is not None}
     return open_sequence(path, **options)
 
 
@@ -86,11 +86,15 @@ class SequenceSource(Params):
     def route(self) -> Sequence:
         """The sequence at ``path``, or the simulated world's route."""
         self.check()
-        return self.sim.route() if self.sim is not None else open_path(self.path, self.format, self.poses)
+        return self.sim.route() if self.sim is not None else self._open_path()
 
     def localization_map(self) -> Sequence:
         """The sequence at ``path``, or the map of the simulated world's localisation split."""
         self.check()
         if self.sim is not None:
             return self.sim.localization_map()
+        return self._open_path()
+
+    def _open_path(self) -> Sequence:
+        assert self.path is not None  # `check`: a path when there is no simulated world
         return open_path(self.path, self.format, self.poses)

@@ -109,7 +109,7 @@ def _inside(u: np.ndarray, start: int, width: int, total: int) -> tuple[np.ndarr
 
 def _photometric(img: np.ndarray, s: TrainingSchedule, rng: np.random.Generator) -> np.ndarray:
     x = img.astype(np.float32) / 255.0
-    x = rng.uniform(*s.gain) * np.power(x, rng.uniform(*s.gamma))
+    x = rng.uniform(s.gain[0], s.gain[1]) * np.power(x, rng.uniform(s.gamma[0], s.gamma[1]))
     x = x + rng.normal(0.0, s.noise, x.shape).astype(np.float32)
     return np.clip(x, 0.0, 1.0)
 

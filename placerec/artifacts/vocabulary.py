@@ -33,7 +33,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from placerec.config import DatasetConfig, experiment_preprocess, load_params_file
+from placerec.config import DatasetConfig, SimulatorConfig, experiment_preprocess, load_params_file
 from placerec.errors import ArtifactError, ConfigError
 from placerec.hashing import stable_hash
 from placerec.io.npz import read_npz_arrays
@@ -105,14 +105,14 @@ def _sequences(cfg: VocabTrainingConfig) -> list[tuple[str, dict[str, Any]]]:
                         log.warning("training on town seed %d, which the evaluation configs use", seed)
                     spec = DatasetConfig(
                         source="simulator",
-                        simulator={
-                            "world": world,
-                            "sensor": sensor,
-                            "seed": seed,
-                            "route": sim.route,
-                            "spacing": sim.spacing,
-                            "clutter": sim.clutter,
-                        },
+                        simulator=SimulatorConfig(
+                            world=world,
+                            sensor=sensor,
+                            seed=seed,
+                            route=sim.route,
+                            spacing=sim.spacing,
+                            clutter=sim.clutter,
+                        ),
                     )
                     out.append((f"{world}/{sensor}/seed{seed}", spec.model_dump(mode="json")))
     for i, ds in enumerate(cfg.datasets):

@@ -67,6 +67,7 @@ def build_vote_model(config: VoteModelBuild, progress: Callable[[int, int], None
     """
     db = PlacesDatabase.load(config.places)
     require_one_source(bool(config.training), config.sim, "TRAINING sequence paths")
+    seqs: list[Sequence]
     if config.sim is not None:
         split = config.sim.localization_split(config.n_training, draw=1)
         check_same_map(db, split.map, config.places)
@@ -86,6 +87,7 @@ def build_vote_model(config: VoteModelBuild, progress: Callable[[int, int], None
 def check_same_map(db: PlacesDatabase, map_seq: Sequence, where: str | Path) -> None:
     """`ConfigError` unless ``map_seq`` (a simulated localisation map) has the poses of the map the places
     database ``db`` (read from ``where``) was built from."""
+    assert map_seq.poses is not None  # a simulated map has its poses
     same = map_seq.poses.shape == db.scan_poses.shape and np.allclose(map_seq.poses, db.scan_poses)
     if not same:
         raise ConfigError(

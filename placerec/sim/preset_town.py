@@ -12,6 +12,7 @@ block of similar size, so similar-looking places exist in different parts of tow
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -403,7 +404,7 @@ def _block_rows(brng: np.random.Generator, W: float, H: float, shop_p: float) ->
     """Row-house specs of a ``W`` x ``H`` lot: the rows along its two x sides, then its two y sides (between
     those, when there is room), then the depths of the first two ``[dn, dn2]``."""
     ds = min(14.0, H / 2 - 1)
-    rows = [_row(brng, W, ds, shop_p), _row(brng, W, ds, shop_p)]
+    rows: list[list[Any]] = [_row(brng, W, ds, shop_p), _row(brng, W, ds, shop_p)]
     dn = max((s["d"] for s in rows[0]), default=10.0)
     dn2 = max((s["d"] for s in rows[1]), default=10.0)
     side_len = H - dn - dn2
