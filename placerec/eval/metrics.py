@@ -36,7 +36,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -47,6 +47,7 @@ from placerec.eval.pose_error import pose_errors
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "GroundTruth",
     "LoopMetrics",
     "loop_metrics",
     "evaluate_loop",
@@ -54,6 +55,21 @@ __all__ = [
     "localization_metrics",
     "timing_summary",
 ]
+
+
+class GroundTruth(Protocol):
+    """What `loop_metrics` reads of a ground truth (`LoopGroundTruth`, `placerec.eval.pose_truth.PoseGroundTruth`,
+    `placerec.eval.icp_truth.IcpGroundTruth`)."""
+
+    @property
+    def max_eligible(self) -> np.ndarray: ...
+
+    @property
+    def is_revisit(self) -> np.ndarray: ...
+
+    def __len__(self) -> int: ...
+
+    def is_true_match(self, query: np.ndarray, match: np.ndarray) -> np.ndarray: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,7 +164,7 @@ def loop_metrics(
     query_ids: Sequence[int] | np.ndarray,
     match_ids: Sequence[int] | np.ndarray,
     scores: Sequence[float] | np.ndarray,
-    gt: LoopGroundTruth,
+    gt: GroundTruth,
     topn_match_ids: np.ndarray | None = None,
 ) -> LoopMetrics:
     """Loop-mode metrics from the top candidate of every evaluated query.

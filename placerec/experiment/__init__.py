@@ -41,8 +41,7 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> 
     if cfg.evaluation.mode == "loop":
         from placerec.experiment.truth import TruthClouds
 
-        seq = require_poses(loop_sequence(cfg))
-        truth = TruthClouds(cfg.evaluation, seq.poses)
+        truth = TruthClouds(cfg.evaluation, require_poses(loop_sequence(cfg)))
         run = make_run_dir(cfg, out_dir)
         seq, records = run_loop(cfg, None, pipelines, on_scan=truth)
         payload = report_loop(cfg, run, seq, records, truth)

@@ -77,7 +77,7 @@ __all__ = [
 
 
 def _timing(record: PipelineRecord) -> dict[str, Any]:
-    out = timing_summary(record.per_scan_ms())
+    out: dict[str, Any] = timing_summary(record.per_scan_ms())
     out["stages"] = {s: timing_summary(record.timing_ms[s]) for s in STAGES if any(record.timing_ms[s])}
     return out
 
@@ -285,7 +285,7 @@ def report_loop(
     """Loop-mode metrics and all outputs; returns the metrics dict written to ``metrics.json``. ``truth`` (the
     scans' voxels collected by the run) adds the pose and ICP ground truths' figures; ``link_latest`` False leaves
     ``latest`` alone (a benchmark's cells)."""
-    poses = require_poses(seq).poses
+    poses = require_poses(seq)
     write_kitti_poses(run / "poses.txt", poses)
     if seq.timestamps is not None:
         with atomic_write(run / "times.txt", "w") as fh:
@@ -339,6 +339,7 @@ def report_localize(
 ) -> dict[str, Any]:
     """Localize-mode metrics (success within ``success_distance``) and outputs."""
     map_poses, query_poses = map_seq.poses, query_seq.poses
+    assert map_poses is not None and query_poses is not None  # localize mode checks them before it runs
     write_kitti_poses(run / "map_poses.txt", map_poses)
     write_kitti_poses(run / "query_poses.txt", query_poses)
     success_distance = cfg.evaluation.localize.success_distance
@@ -404,11 +405,11 @@ def _localize_estimates(table: CandidateTable, map_poses: np.ndarray) -> tuple[n
     return estimates, "retrieval", rule
 
 
-def require_poses(seq: Sequence) -> Sequence:
-    """``seq``, or `ConfigError` when it has no poses: loop-mode evaluation needs ground-truth poses."""
+def require_poses(seq: Sequence) -> np.ndarray:
+    """The poses of ``seq``, or `ConfigError` when it has none: loop-mode evaluation needs ground-truth poses."""
     if seq.poses is None:
         raise ConfigError(f"dataset {seq.name} has no poses: loop-mode evaluation needs ground-truth poses")
-    return seq
+    return seq.poses
 
 
 def _finish(
