@@ -45,7 +45,7 @@ class Params(BaseModel):
             _DEPTH.reset(token)
 
     @classmethod
-    def model_validate(cls, obj: Any, **kwargs: Any) -> Any:  # type: ignore[override]
+    def model_validate(cls, obj: Any, **kwargs: Any) -> Any:
         """As pydantic's, but an invalid ``obj`` is a `ConfigError` (as when the model is built directly)."""
         token = _DEPTH.set(_DEPTH.get() + 1)
         try:

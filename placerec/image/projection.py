@@ -123,7 +123,7 @@ class IntensityImage:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.intensity.shape  # type: ignore[return-value]
+        return self.intensity.shape
 
 
 def _columns(xyz: np.ndarray, width: int) -> np.ndarray:

@@ -282,7 +282,7 @@ class VisualFrontend(Generic[VP]):
         desc = description["descriptors"]
         quality = None
         if self.params.verify_matches == "brute-force":
-            query_idx, match_idx, quality = mutual_nearest(desc, self._descriptors[match_id])  # type: ignore[attr-defined]
+            query_idx, match_idx, quality = mutual_nearest(desc, self._descriptors[match_id])
         n = np.asarray(desc).shape[0]
         src = _keypoint_xyz(self.name, description, n)[query_idx]
         dst = self._kp_xyz[match_id][match_idx]

@@ -29,11 +29,11 @@ def pack_features(
 ) -> dict[str, np.ndarray]:
     """The arrays of a visual database ``rec``: per-image counts and widths, stacked keypoints, their 3D points
     and descriptors; with verification the ICP clouds (`placerec.verify.candidates.CloudStore.arrays`)."""
-    kp = rec._keypoints  # type: ignore[attr-defined]  # every visual pipeline keeps these
+    kp = rec._keypoints
     arrays = {
         "ids": np.asarray(order, dtype=np.int64),
         "counts": np.array([kp[i].shape[0] for i in order], dtype=np.int64),
-        "widths": np.array([rec._width[i] for i in order], dtype=np.int64),  # type: ignore[attr-defined]
+        "widths": np.array([rec._width[i] for i in order], dtype=np.int64),
         "keypoints": _stack([kp[i] for i in order], (0, 2), np.float32),
         # a keypoint without a 3D point is stored at the origin (never a scan point), NaN again when loaded
         "keypoint_xyz": np.nan_to_num(_stack([rec._kp_xyz[i] for i in order], (0, 3), np.float32), nan=0.0),
