@@ -277,7 +277,7 @@ _PROTOCOL_METHODS = (
 )
 
 
-def pipeline_class(name: str) -> type:
+def pipeline_class(name: str) -> type[Any]:
     """The class of a registered pipeline, or of a ``"package.module:Class"`` path.
 
     A path imports its module (running that module's code: name trusted packages only); a module that fails to
