@@ -158,6 +158,7 @@ class PoseGraph:
             self._new.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(T), noise))
             self._new_values.insert(0, gtsam.Pose3(T))
         else:
+            assert self._last_pose is not None  # every earlier add_pose set it
             rel = _rigid(np.linalg.solve(self._last_pose, T) if step_pose is None else step_pose)
             sig = self._sigmas(float(np.linalg.norm(rel[:3, 3])))
             self.odometry.append((i - 1, i, rel, sig))

@@ -267,7 +267,7 @@ def verify_candidates(
         t0 = time.perf_counter()
         source = as_source(query_cloud, vp)
         shared = (time.perf_counter() - t0) * 1e3 / len(refined)
-    out: list[tuple[Candidate, float]] = []
+    out: list[Candidate] = []
     for j, (r, h) in enumerate(zip(todo, hyps, strict=True)):
         t1 = time.perf_counter()
         if j in refined:  # the match is prepared (and cached) only here
@@ -288,7 +288,8 @@ def verify_candidates(
             verify_ms=ms[j],
         )
         out.append(cand)
-    out.sort(key=lambda c: (-c.score, not c.accepted, -c.retrieval_score))
+    # retrieval_score is set on every candidate above (`or 0.0` only narrows its Optional type)
+    out.sort(key=lambda c: (-c.score, not c.accepted, -(c.retrieval_score or 0.0)))
     kept = out[: k if k is not None else len(out)]
     # the candidates not returned were verified too: their time is shared by those returned
     dropped_ms = sum(c.verify_ms for c in out[len(kept) :])
