@@ -200,7 +200,7 @@ def run_cell(cell_cfg_json: dict[str, Any], folder: str) -> dict[str, Any]:
     """Run one cell (a loop-mode config as JSON) into ``folder``; returns ``{"cell", "seconds", "metrics"}`` and
     writes it as ``folder/cell.json`` last, so a cell with a ``cell.json`` is complete. Runs in a worker process."""
     from placerec.config import parse_config
-    from placerec.experiment.report import report_loop
+    from placerec.experiment.report import report_loop, require_poses
     from placerec.experiment.run_folder import finite_or_null
     from placerec.experiment.runner import build_pipelines, loop_sequence, run_loop
     from placerec.experiment.truth import TruthClouds
@@ -210,7 +210,7 @@ def run_cell(cell_cfg_json: dict[str, Any], folder: str) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     seq = loop_sequence(cfg)
-    truth = TruthClouds(cfg.evaluation, seq.poses)
+    truth = TruthClouds(cfg.evaluation, require_poses(seq))
     seq, records = run_loop(cfg, None, build_pipelines(cfg), on_scan=truth)
     payload = report_loop(cfg, out, seq, records, truth, link_latest=False)
     offsets = np.cumsum([0] + [v.size for v in truth.voxels])

@@ -12,14 +12,17 @@ import os
 import re
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from pydantic import BaseModel
 
 from placerec.config import config_to_yaml
 from placerec.errors import ConfigError
 from placerec.io.atomic import atomic_write
+
+if TYPE_CHECKING:
+    from placerec.config import ExperimentConfig
+    from placerec.slam_app.config import SlamConfig
 
 __all__ = ["finite_or_null", "json_default", "make_run_dir", "point_latest", "slug"]
 
@@ -29,7 +32,7 @@ def slug(label: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", label).strip("_") or "pipeline"
 
 
-def make_run_dir(cfg: BaseModel, out_dir: str | Path | None = None) -> Path:
+def make_run_dir(cfg: ExperimentConfig | SlamConfig, out_dir: str | Path | None = None) -> Path:
     """A new timestamped folder for a config with ``name`` and ``output.dir`` (an `ExperimentConfig`, a SLAM
     config) with the config written into it (``latest`` is moved to it only
     when its report is complete, by `point_latest`); `ConfigError` when the results root cannot hold it."""

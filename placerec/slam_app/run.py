@@ -49,6 +49,7 @@ def _drift_odometry(cfg: SlamConfig, seq: Sequence) -> np.ndarray:
 
 
 def _file_odometry(cfg: SlamConfig, seq: Sequence) -> np.ndarray:
+    assert cfg.odometry.path is not None  # OdometryConfig requires it for source 'file'
     poses, _ = read_poses(cfg.odometry.path, cfg.odometry.format)
     if len(poses) == len(seq):
         return poses
@@ -180,11 +181,13 @@ def run_slam(
     """Run ``cfg`` and write its results folder; returns (folder, metrics dict). The pipeline, dataset and
     odometry are set up before the folder is made, so a config that cannot run leaves none behind."""
     if seq is None:
-        if cfg.dataset.source == "path" and not Path(cfg.dataset.path).expanduser().exists():
-            raise ConfigError(
-                f"dataset.path {cfg.dataset.path}: no such folder or file (point it at your sequence: "
-                "--set dataset.path=/path/to/sequence)"
-            )
+        if cfg.dataset.source == "path":
+            assert cfg.dataset.path is not None  # DatasetConfig requires it for source 'path'
+            if not Path(cfg.dataset.path).expanduser().exists():
+                raise ConfigError(
+                    f"dataset.path {cfg.dataset.path}: no such folder or file (point it at your sequence: "
+                    "--set dataset.path=/path/to/sequence)"
+                )
         seq = open_dataset(cfg.dataset)
     rec = make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
     odometry = odometry_source(cfg, seq)
