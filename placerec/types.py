@@ -424,7 +424,8 @@ class PlaceRecognizer(Protocol):
     * ``save(path)`` / ``load(path)`` persist the database (atomic, versioned; `ArtifactError` on a wrong file).
     """
 
-    name: str
+    @property
+    def name(self) -> str: ...
 
     @property
     def frontend_key(self) -> str: ...
