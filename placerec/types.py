@@ -286,14 +286,58 @@ def as_pose(pose: np.ndarray) -> np.ndarray:
     return T
 
 
+#: Largest ``max |R^T R - I|`` of a pose's rotation block taken as a rotation: files with 6 significant digits
+#: round off about 1e-6; a scaled, sheared or zero block is off by far more.
+ROTATION_TOLERANCE = 1e-3
+#: Largest pose translation (m) taken as a position: beyond Earth-centred coordinates (6.4e6 m), a unit error.
+MAX_TRANSLATION_M = 1e8
+
+
+def rigid_problem(poses: np.ndarray) -> tuple[int, str] | None:
+    """The first (N, 4, 4) pose that is no rigid motion and why: not finite, a bottom row other than (0, 0, 0, 1),
+    a rotation block that is not orthonormal (`ROTATION_TOLERANCE`) or a reflection (det < 0), a translation beyond
+    `MAX_TRANSLATION_M`; None when every pose is one."""
+    P = np.asarray(poses, dtype=np.float64)
+    if P.shape[0] == 0:
+        return None
+    finite = np.isfinite(P).all(axis=(1, 2))
+    if not finite.all():
+        return int(np.argmin(finite)), "contains NaN or inf"
+    bottom = np.abs(P[:, 3, :] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) > 1e-9
+    if bottom.any():
+        return int(
+            np.argmax(bottom)
+        ), f"bottom row {P[int(np.argmax(bottom)), 3].tolist()}, expected [0, 0, 0, 1]"
+    R = P[:, :3, :3]
+    off = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+    if (off > ROTATION_TOLERANCE).any():
+        i = int(np.argmax(off > ROTATION_TOLERANCE))
+        return (
+            i,
+            f"rotation block is not a rotation (max |R^T R - I| = {off[i]:.3g} > {ROTATION_TOLERANCE:g})",
+        )
+    det = np.linalg.det(R)
+    if (det < 0).any():
+        return int(
+            np.argmax(det < 0)
+        ), f"rotation block is a reflection (det {det[int(np.argmax(det < 0))]:.3g})"
+    far = np.abs(P[:, :3, 3]).max(axis=1) > MAX_TRANSLATION_M
+    if far.any():
+        return int(np.argmax(far)), f"translation beyond {MAX_TRANSLATION_M:g} m"
+    return None
+
+
 def check_poses(poses: np.ndarray, n: int | None, where: str) -> np.ndarray:
+    """``poses`` as (N, 4, 4) float64 rigid motions (`rigid_problem`), ``n`` of them when given; `ScanDataError`
+    naming ``where`` and the first bad pose otherwise."""
     P = np.asarray(poses, dtype=np.float64)
     if P.ndim != 3 or P.shape[1:] != (4, 4):
         raise ScanDataError(f"{where}: poses must have shape (N, 4, 4), got {P.shape}")
     if n is not None and P.shape[0] != n:
         raise ScanDataError(f"{where}: {P.shape[0]} poses for {n} scans")
-    if not np.all(np.isfinite(P)):
-        raise ScanDataError(f"{where}: poses contain NaN or inf")
+    problem = rigid_problem(P)
+    if problem is not None:
+        raise ScanDataError(f"{where}: pose {problem[0]} is no rigid motion: {problem[1]}")
     return P
 
 

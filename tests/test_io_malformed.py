@@ -68,8 +68,12 @@ def _ply_ascii() -> bytes:
 
 def _poses(fmt: str) -> bytes:
     rng = np.random.default_rng(1)
-    if fmt == "kitti":
-        return "".join(" ".join(f"{v:.6e}" for v in row) + "\n" for row in rng.normal(size=(6, 12))).encode()
+    if fmt == "kitti":  # rigid motions: random rotations and translations, 7 significant digits
+        from scipy.spatial.transform import Rotation
+
+        R = Rotation.random(6, random_state=1).as_matrix()
+        rows = np.concatenate([R, rng.normal(size=(6, 3, 1)) * 10], axis=2).reshape(6, 12)
+        return "".join(" ".join(f"{v:.6e}" for v in row) + "\n" for row in rows).encode()
     return "".join(
         f"{k * 0.1:.3f} " + " ".join(f"{v:.5f}" for v in rng.normal(size=7)) + "\n" for k in range(6)
     ).encode()

@@ -86,3 +86,53 @@ def test_missing_empty_and_binary_pose_files(tmp_path: Path) -> None:
         read_poses(tmp_path / "k.txt", format="tum")
     with pytest.raises(ScanFormatError, match="unknown pose format"):
         read_poses(tmp_path / "k.txt", format="euroc")
+
+
+@pytest.mark.parametrize(
+    ("rows", "why"),
+    [
+        ("1000 0 0 1 0 1000 0 2 0 0 1000 3", "not a rotation"),  # rotation block scaled x1000
+        ("1 0.5 0 1 0 1 0 2 0 0 1 3", "not a rotation"),  # sheared
+        ("0 0 0 1 0 0 0 2 0 0 0 3", "not a rotation"),  # all-zero rotation
+        ("-1 0 0 1 0 1 0 2 0 0 1 3", "reflection"),  # det -1
+        ("1 0 0 1e12 0 1 0 2 0 0 1 3", "translation beyond"),
+    ],
+)
+def test_poses_that_are_no_rigid_motion_are_refused_naming_the_line(tmp_path, rows, why):
+    path = tmp_path / "poses.txt"
+    path.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" + rows + "\n")
+    with pytest.raises(ScanFormatError, match=rf"poses.txt:2: pose is no rigid motion: .*{why}"):
+        read_poses(path)
+
+
+def test_in_memory_poses_must_be_rigid_motions():
+    from placerec.errors import ScanDataError
+    from placerec.types import ListSequence, Scan
+
+    bad = np.tile(np.eye(4), (2, 1, 1))
+    bad[1, 0, 0] = -1.0
+    scans = [Scan(np.zeros((3, 3), np.float32), np.zeros(3, np.float32))] * 2
+    with pytest.raises(ScanDataError, match="seq: pose 1 is no rigid motion: rotation block is a reflection"):
+        ListSequence(scans, bad, name="seq")
+    # rounding a file with 6 significant digits leaves a rotation a rotation
+    ok = np.tile(np.eye(4), (2, 1, 1))
+    ok[1, :3, :3] = np.round(Rotation.from_euler("z", 0.3).as_matrix(), 6)
+    assert ListSequence(scans, ok, name="seq").poses.shape == (2, 4, 4)
+
+
+def test_ground_truth_rows_and_times_are_checked_before_use():
+    from placerec.io.datasets.trajectory import interpolate_poses, match_nearest
+
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    times = np.array([0.0, 1.0, 2.0])
+    got, inside = interpolate_poses(times, poses, np.array([0.5, 5.0]), "gt.csv")
+    assert got.shape == (1, 4, 4) and inside.tolist() == [True, False]
+    flipped = poses.copy()
+    flipped[2, 1, 1] = -1.0  # a reflection, which scipy would reject with a ValueError
+    with pytest.raises(ScanFormatError, match="gt.csv: ground-truth row 2 is no rigid motion: .*reflection"):
+        interpolate_poses(times, flipped, np.array([0.5]), "gt.csv")
+    for bad in ([0.0, np.nan, 2.0], [0.0, 2.0, 1.0]):
+        with pytest.raises(ScanFormatError, match="gt.csv: ground-truth times must be finite"):
+            interpolate_poses(np.array(bad), poses, np.array([0.5]), "gt.csv")
+    with pytest.raises(ScanFormatError, match="times.txt: ground-truth times must be finite"):
+        match_nearest(np.array([0.0, np.inf]), np.array([0.5]), 0.1, "times.txt")

@@ -11,7 +11,7 @@ import numpy as np
 from placerec.errors import ScanFormatError
 from placerec.io._common import check_file
 from placerec.io.atomic import atomic_write
-from placerec.types import check_poses
+from placerec.types import check_poses, rigid_problem
 
 __all__ = ["read_poses", "write_kitti_poses", "write_tum_poses", "quat_to_matrix", "POSE_FORMATS"]
 
@@ -96,6 +96,9 @@ def read_poses(path: str | Path, format: str | None = None) -> tuple[np.ndarray,
     poses[:, 3, 3] = 1.0
     if fmt == "kitti":
         poses[:, :3, :] = vals.reshape(n, 3, 4)
+        problem = rigid_problem(poses)
+        if problem is not None:
+            raise ScanFormatError(f"{p}:{line_nos[problem[0]]}: pose is no rigid motion: {problem[1]}")
         return poses, None
     q = vals[:, 4:8]
     norm = np.linalg.norm(q, axis=1)
@@ -103,6 +106,9 @@ def read_poses(path: str | Path, format: str | None = None) -> tuple[np.ndarray,
         raise ScanFormatError(f"{p}:{line_nos[int(np.argmax(norm < 1e-12))]}: quaternion has zero norm")
     poses[:, :3, :3] = quat_to_matrix(q)
     poses[:, :3, 3] = vals[:, 1:4]
+    problem = rigid_problem(poses)
+    if problem is not None:
+        raise ScanFormatError(f"{p}:{line_nos[problem[0]]}: pose is no rigid motion: {problem[1]}")
     return poses, vals[:, 0].copy()
 
 

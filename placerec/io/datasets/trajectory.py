@@ -16,6 +16,7 @@ from placerec.errors import ScanFormatError
 from placerec.io._common import check_file
 from placerec.io.file_sequence import FileSequence
 from placerec.io.poses import quat_to_matrix
+from placerec.types import rigid_problem
 
 __all__ = [
     "read_table",
@@ -111,8 +112,13 @@ def interpolate_poses(
     from scipy.spatial.transform import Rotation, Slerp
 
     times = np.asarray(times, dtype=np.float64)
-    if times.size < 2 or np.any(np.diff(times) <= 0):
-        raise ScanFormatError(f"{where}: ground-truth times must increase strictly (at least two rows)")
+    if times.size < 2 or not np.isfinite(times).all() or np.any(np.diff(times) <= 0):
+        raise ScanFormatError(
+            f"{where}: ground-truth times must be finite and increase strictly (at least two rows)"
+        )
+    problem = rigid_problem(poses)
+    if problem is not None:
+        raise ScanFormatError(f"{where}: ground-truth row {problem[0]} is no rigid motion: {problem[1]}")
     at = np.asarray(at, dtype=np.float64)
     inside = (at >= times[0]) & (at <= times[-1])
     t = at[inside]
@@ -130,8 +136,8 @@ def match_nearest(
     """For each time of ``at``, the index of the nearest of ``times`` (sorted increasing) and the mask of those
     within ``max_gap`` seconds of it (the indices returned are those of these)."""
     times = np.asarray(times, dtype=np.float64)
-    if np.any(np.diff(times) < 0):
-        raise ScanFormatError(f"{where}: ground-truth times must not decrease")
+    if not np.isfinite(times).all() or np.any(np.diff(times) < 0):
+        raise ScanFormatError(f"{where}: ground-truth times must be finite and must not decrease")
     at = np.asarray(at, dtype=np.float64)
     hi = np.clip(np.searchsorted(times, at), 1, times.size - 1) if times.size > 1 else np.zeros(at.size, int)
     lo = np.maximum(hi - 1, 0)
