@@ -125,7 +125,7 @@ class LocalizeConfig(Params):
     (gator, pole, occlusion); ``map``/``queries`` give real sequences instead."""
 
     condition: Literal["gator", "pole", "occlusion"] = "gator"
-    n_queries: int = Field(50, ge=1)
+    n_queries: int = Field(50, ge=1, le=100_000, description="simulated query scans (at most 100,000)")
     draw: int = Field(
         0,
         ge=0,
@@ -194,7 +194,9 @@ class ExecutionConfig(Params):
     folder for the run when it is off); the run then queries and inserts in scan order as usual, so results are
     those of a serial run."""
 
-    workers: int = Field(1, ge=1, description="processes describing scans (1 = the main process)")
+    workers: int = Field(
+        1, ge=1, le=1024, description="processes describing scans (1 = the main process; at most 1024)"
+    )
     executor: Literal["local", "dask"] = "local"
     scheduler: str | None = Field(
         None, description="Dask scheduler address (tcp://host:port); None = LocalCluster"

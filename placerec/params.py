@@ -31,7 +31,7 @@ _DEPTH: contextvars.ContextVar[int] = contextvars.ContextVar("placerec_params_de
 class Params(BaseModel):
     """Base of every parameter section (see the module docstring)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
     def __init__(self, **data: Any) -> None:
         token = _DEPTH.set(_DEPTH.get() + 1)

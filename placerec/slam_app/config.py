@@ -93,7 +93,10 @@ class RobustnessConfig(Params):
     """False loop edges injected into the graph, to test the robust back end (0: none)."""
 
     false_loops: int = Field(
-        0, ge=0, description="random scan pairs at least 30 m apart, given plausible poses"
+        0,
+        ge=0,
+        le=100_000,
+        description="random scan pairs at least 30 m apart, given plausible poses (at most 100,000)",
     )
     seed: int = 0
     min_distance: float = Field(30.0, gt=0, description="the pair's true distance at least this (m)")
