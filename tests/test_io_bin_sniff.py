@@ -90,3 +90,15 @@ def test_far_points_in_a_few_records_do_not_change_the_format(tmp_path: Path) ->
     path = tmp_path / "outliers.bin"
     write_scan(path, Scan(xyz, rng.random(1000)))
     assert len(read_scan(path)) == 1000
+
+
+def test_a_fifo_is_refused_without_blocking(tmp_path):
+    import os
+
+    from placerec.errors import ScanFormatError
+    from placerec.io import read_scan
+
+    fifo = tmp_path / "scan.bin"
+    os.mkfifo(fifo)  # opening it for reading would wait for a writer forever
+    with pytest.raises(ScanFormatError, match="special file"):
+        read_scan(fifo)

@@ -57,6 +57,8 @@ def sniff_bin_format(path: Path) -> str:
     A file that is neither plausible KITTI nor plausible NCLT is a `ScanFormatError` that names both
     ``format=`` values; a file that cannot be read, or is too short to judge, is left to the KITTI reader.
     """
+    if not path.is_file():  # a FIFO or device would block the read: the reader refuses it with a clear error
+        return "kitti"
     try:
         size = path.stat().st_size
         with open(path, "rb") as fh:
