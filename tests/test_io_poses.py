@@ -136,3 +136,15 @@ def test_ground_truth_rows_and_times_are_checked_before_use():
             interpolate_poses(np.array(bad), poses, np.array([0.5]), "gt.csv")
     with pytest.raises(ScanFormatError, match="times.txt: ground-truth times must be finite"):
         match_nearest(np.array([0.0, np.inf]), np.array([0.5]), 0.1, "times.txt")
+
+
+def test_a_calibration_with_two_different_tr_lines_is_refused(tmp_path):
+    from placerec.io.datasets.kitti import read_kitti_calib
+
+    eye = "1 0 0 0 0 1 0 0 0 0 1 0"
+    calib = tmp_path / "calib.txt"
+    calib.write_text(f"P0: {eye}\nTr: {eye}\nTr: {eye}\n")  # the same line twice: one transform
+    assert np.array_equal(read_kitti_calib(calib)["Tr"], np.eye(4))
+    calib.write_text(f"P0: {eye}\nTr: {eye}\nTr: 0 -1 0 0 1 0 0 0 0 0 1 0\n")
+    with pytest.raises(ScanFormatError, match=r"calib.txt:3: a second, different 'Tr' line"):
+        read_kitti_calib(calib)

@@ -19,6 +19,7 @@ from placerec.errors import ConfigError, ScanFormatError
 from placerec.io._common import natural_key, read_bytes
 from placerec.io.file_sequence import FileSequence, read_times
 from placerec.io.poses import read_poses
+from placerec.types import rigid_problem
 
 __all__ = ["KittiSequence", "read_kitti_calib", "open_kitti_odometry", "detect_kitti", "KITTI_LAYOUT"]
 
@@ -39,17 +40,20 @@ def read_kitti_calib(path: str | Path) -> dict[str, np.ndarray]:
             raise ScanFormatError(f"{p}:{no}: calibration values are not numbers") from None
         if not sep or vals.size != 12:
             raise ScanFormatError(f"{p}:{no}: expected 'KEY: 12 numbers', got {line[:60]!r}")
-        out[key.strip()] = np.vstack([vals.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
+        T = np.vstack([vals.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
+        k = key.strip()
+        if k in out and not np.array_equal(out[k], T):
+            raise ScanFormatError(f"{p}:{no}: a second, different {k!r} line (which one holds is unknowable)")
+        out[k] = T
     return out
 
 
-def check_rigid(T: np.ndarray, what: str, tol: float = 1e-2) -> None:
-    """ScanFormatError unless the 4x4 ``T`` is a rigid transform (orthonormal rotation, determinant +1)."""
-    R = T[:3, :3]
-    if not np.isfinite(T).all() or not np.allclose(R @ R.T, np.eye(3), atol=tol) or np.linalg.det(R) < 0:
+def check_rigid(T: np.ndarray, what: str) -> None:
+    """ScanFormatError unless the 4x4 ``T`` is a rigid transform (`placerec.types.rigid_problem`)."""
+    problem = rigid_problem(np.asarray(T, np.float64)[None])
+    if problem is not None:
         raise ScanFormatError(
-            f"{what} is not a rigid transform (rotation {np.round(R, 4).tolist()} is not orthonormal with "
-            "determinant +1); expected the velodyne -> camera 0 calibration"
+            f"{what} is not a rigid transform ({problem[1]}); expected the velodyne -> camera 0 calibration"
         )
 
 
