@@ -11,7 +11,7 @@ from dataclasses import replace
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from placerec.errors import ScanDataError
 from placerec.intensity import IntensitySpec, normalize_intensity
@@ -159,6 +159,14 @@ class PreprocessParams(Params):
     max_z: float | None = Field(None, description="m; higher points are dropped")
     voxel_size: float | None = Field(None, gt=0, description="m; voxel downsampling (None = off)")
     intensity: IntensityParams = Field(default_factory=IntensityParams)
+
+    @model_validator(mode="after")
+    def _ranges_not_empty(self) -> PreprocessParams:
+        for lo, hi in (("min_range", "max_range"), ("min_z", "max_z")):
+            a, b = getattr(self, lo), getattr(self, hi)
+            if a is not None and b is not None and a >= b:
+                raise ValueError(f"{lo} ({a}) must be below {hi} ({b}): every point would be dropped")
+        return self
 
 
 def preprocess_scan(scan: Scan, params: PreprocessParams | None = None, keep_organized: bool = False) -> Scan:

@@ -43,3 +43,23 @@ def test_pipeline_parameters_refuse_non_finite_values():
 
     with pytest.raises(ConfigError, match=r"search\.tau_max: Input should be a finite number"):
         make_pipeline("ishot-votes", {"search": {"tau_max": float("nan")}})
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [
+        ("preprocess.min_z=3.0", "min_z"),
+        ("preprocess.max_range=0.2", "min_range"),
+    ],  # max_z 2.0 / min_range 0.5
+)
+def test_a_preprocess_window_that_drops_every_point_is_refused(override, key):
+    with pytest.raises(ConfigError, match=rf"preprocess: .*{key} .* every point would be dropped"):
+        load_config(None, [override, "preprocess.max_z=2.0"])
+
+
+def test_a_cache_dir_that_is_a_file_is_a_config_error(tmp_path):
+    from placerec.experiment.cache import DescriptionCache
+
+    (tmp_path / "cache").write_text("not a folder")
+    with pytest.raises(ConfigError, match="output.cache_dir .* is a file"):
+        DescriptionCache(tmp_path / "cache", "key")

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from placerec.errors import ArtifactError, short_repr
+from placerec.errors import ArtifactError, ConfigError, short_repr
 from placerec.hashing import stable_hash
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.types import Description
@@ -43,6 +43,10 @@ class DescriptionCache:
     """
 
     def __init__(self, root: str | Path | None, data_key: str) -> None:
+        if root is not None and Path(root).exists() and not Path(root).is_dir():
+            raise ConfigError(
+                f"output.cache_dir {str(root)!r} is a file, not a folder (null turns the cache off)"
+            )
         self.root = None if root is None else Path(root) / data_key
         self.hits = 0
         self.misses = 0
