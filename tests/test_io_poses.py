@@ -148,3 +148,20 @@ def test_a_calibration_with_two_different_tr_lines_is_refused(tmp_path):
     calib.write_text(f"P0: {eye}\nTr: {eye}\nTr: 0 -1 0 0 1 0 0 0 0 0 1 0\n")
     with pytest.raises(ScanFormatError, match=r"calib.txt:3: a second, different 'Tr' line"):
         read_kitti_calib(calib)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("0.0\nnan\n0.2\n", r"times.txt:2: timestamp nan is not a finite"),
+        ("0.0\n0.2\n0.1\n", r"times.txt:3: .*before"),
+    ],
+)
+def test_times_must_be_finite_and_not_decrease(tmp_path, text, match):
+    from placerec.io.file_sequence import read_times
+
+    (tmp_path / "times.txt").write_text(text)
+    with pytest.raises(ScanFormatError, match=match):
+        read_times(tmp_path / "times.txt", 3)
+    (tmp_path / "ok.txt").write_text("0.0\n0.1\n0.1\n")  # equal stamps happen (rounded to the ms)
+    assert read_times(tmp_path / "ok.txt", 3).tolist() == [0.0, 0.1, 0.1]

@@ -42,7 +42,8 @@ def load_sensor_yaml(path: str | Path) -> SensorInfo:
 
 
 def read_times(path: Path, n: int) -> np.ndarray:
-    """``n`` timestamps (seconds, one a line) from a ``times.txt``; ScanFormatError for another count."""
+    """``n`` timestamps (seconds, one a line) from a ``times.txt``; ScanFormatError for another count, a value
+    that is not finite, or one earlier than the line before."""
     p, buf = read_bytes(path, "times.txt")
     try:
         t = np.array(buf.decode("utf-8").split(), dtype=np.float64)
@@ -50,6 +51,15 @@ def read_times(path: Path, n: int) -> np.ndarray:
         raise ScanFormatError(f"{p}: expected one number (seconds) per line") from None
     if t.size != n:
         raise ScanFormatError(f"{p}: {t.size} timestamps for {n} scans")
+    bad = ~np.isfinite(t)
+    if bad.any():
+        raise ScanFormatError(f"{p}:{int(np.argmax(bad)) + 1}: timestamp {t[bad][0]} is not a finite number")
+    back = np.flatnonzero(np.diff(t) < 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise ScanFormatError(
+            f"{p}:{i + 1}: timestamp {t[i]:g} s comes before the previous one ({t[i - 1]:g} s)"
+        )
     return t
 
 
