@@ -71,7 +71,8 @@ def test_errors_inside_lists_and_optional_sections(tmp_path):
     path = tmp_path / "p.yaml"
     path.write_text("pipelines:\n  - name: scan-context\n    lable: sc\n")
     with pytest.raises(
-        ConfigError, match=r"pipelines\[0\]\.lable: unknown key; allowed keys there: label, loop_filter, name, params"
+        ConfigError,
+        match=r"pipelines\[0\]\.lable: unknown key; allowed keys there: label, loop_filter, name, params",
     ):
         load_config(path)
     with pytest.raises(ConfigError, match=r"evaluation\.localize\.map\.pth.*path"):
