@@ -47,6 +47,7 @@ class EntryTable:
         self._idset: set[int] = set()
         self._sorted = True
         self._xyz: np.ndarray | None = None
+        self._starts: np.ndarray | None = None
 
     @classmethod
     def empty(cls, dim: int, dtype: str = "float32") -> EntryTable:
@@ -117,8 +118,10 @@ class EntryTable:
         return self._xyz
 
     def starts(self) -> np.ndarray:
-        """First descriptor row of every entry, and the row count last."""
-        return np.concatenate([[0], np.cumsum(self.counts)])
+        """First descriptor row of every entry, and the row count last (kept until the entries change)."""
+        if self._starts is None or len(self._starts) != len(self.counts) + 1:
+            self._starts = np.concatenate([[0], np.cumsum(self.counts)])
+        return self._starts
 
     def rows_of(self, entries: list[int]) -> np.ndarray:
         """The descriptors of ``entries`` (decoded), stacked in that order."""
