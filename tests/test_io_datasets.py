@@ -357,3 +357,38 @@ def test_helipr_record_layouts(tmp_path, sensor):
         scan = read_helipr_bin(tmp_path / "1691936557946849179.bin", sensor)
         assert _AEVA_OLD.itemsize == 25 and len(scan) == 500
         np.testing.assert_array_equal(scan.intensity, np.arange(500, dtype=np.float32))
+
+
+def test_helipr_aeva_layout_decided_by_content(tmp_path):
+    """A file of 725·k bytes fits both Aeva record sizes (29 and 25 bytes): the layout is the one under which the
+    points are plausible, whatever the file name's date says; neither or both plausible is refused."""
+    from placerec.io.datasets.helipr import _AEVA_OLD, HELIPR_RECORDS, read_helipr_bin
+
+    new = HELIPR_RECORDS["Aeva"][0]
+    rng = np.random.default_rng(1)
+    late, early = "1700000000000000000.bin", "1691936557946849179.bin"
+    for dtype, n in ((new, 250), (_AEVA_OLD, 290)):  # both 7250 bytes
+        rec = np.zeros(n, dtype=dtype)
+        for c in "xyz":
+            rec[c] = rng.uniform(-80, 80, n)
+        rec["reflectivity"] = rng.uniform(0, 100, n)
+        rec["velocity"] = rng.uniform(-20, 20, n)
+        rec["time_offset"] = rng.integers(0, 100_000_000, n)
+        rec["line"] = rng.integers(0, 64, n)
+        if "intensity" in dtype.names:
+            rec["intensity"] = rng.uniform(0, 1, n)
+        for name in (late, early):  # the date names the other layout for one of the two
+            rec.tofile(tmp_path / name)
+            scan = read_helipr_bin(tmp_path / name, "Aeva")
+            assert len(scan) == n and scan.ranges.max() < 1000
+            np.testing.assert_array_equal(scan.xyz[:, 0], rec["x"])
+    zeros = tmp_path / late
+    np.zeros(7250, np.uint8).tofile(zeros)  # plausible either way: ambiguous
+    with pytest.raises(ScanFormatError, match=r"fits both HeLiPR Aeva record sizes.*100% of the points"):
+        read_helipr_bin(zeros, "Aeva")
+    rng.integers(0, 256, 7250, dtype=np.uint8).tofile(zeros)  # plausible neither way
+    with pytest.raises(ScanFormatError, match=f"{zeros}: size 7250 bytes fits both"):
+        read_helipr_bin(zeros, "Aeva")
+    np.zeros(31, np.uint8).tofile(zeros)
+    with pytest.raises(ScanFormatError, match="multiple of neither HeLiPR Aeva record size"):
+        read_helipr_bin(zeros, "Aeva")

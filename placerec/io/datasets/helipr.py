@@ -6,7 +6,9 @@ Each sensor's ``.bin`` is a packed record per point (HeLiPR file player's layout
 * Ouster: x, y, z, intensity float32, t uint32, reflectivity, ring, ambient uint16 (26 bytes);
 * Velodyne: x, y, z, intensity float32, ring uint16, time float32 (22 bytes);
 * Aeva: x, y, z, reflectivity, velocity float32, time offset int32, line index uint8, intensity float32
-  (29 bytes; 25 bytes without intensity for scans up to 1691936557946849179 ns, as the file player reads them);
+  (29 bytes; 25 bytes without intensity for scans up to 1691936557946849179 ns, as the file player reads them;
+  placerec takes the size that divides the file's, and for a size that both divide, the layout under which the
+  points are plausible, refusing the file when that does not decide);
 * Avia: x, y, z float32, reflectivity, tag, line uint8, offset time uint32 (19 bytes).
 
 The ground truth ``<sensor>_gt.txt`` has rows ``timestamp_ns x y z qx qy qz qw`` (space-separated): poses of
@@ -73,6 +75,60 @@ _AEVA_NO_INTENSITY_UNTIL = 1691936557946849179
 _AEVA_OLD = _packed(*_F, ("reflectivity", "f4"), ("velocity", "f4"), ("time_offset", "i4"), ("line", "u1"))
 
 
+#: Aeva points farther than this (m), or faster (m/s), are not returns: a sign of the wrong record layout.
+AEVA_PLAUSIBLE_M = 1000.0
+#: Share of an Aeva file's points that must be plausible under a record layout for that layout to be taken.
+AEVA_PLAUSIBLE_SHARE = 0.95
+
+
+def _aeva_plausible(rec: np.ndarray) -> float:
+    """Share of the records whose fields are plausible Aeva values: finite x, y, z within `AEVA_PLAUSIBLE_M`,
+    finite reflectivity (and intensity), a finite velocity within `AEVA_PLAUSIBLE_M` m/s."""
+    if len(rec) == 0:
+        return 0.0
+    with np.errstate(invalid="ignore", over="ignore"):
+        ok = np.ones(len(rec), dtype=bool)
+        for c in ("x", "y", "z", "velocity"):
+            ok &= np.abs(rec[c]) < AEVA_PLAUSIBLE_M  # False for NaN
+        for c in rec.dtype.names or ():
+            if rec.dtype[c].kind == "f":
+                ok &= np.isfinite(rec[c])
+    return float(ok.mean())
+
+
+def _aeva_records(p: Path) -> tuple[np.ndarray, str]:
+    """An Aeva file's records and intensity field. The layout (29-byte records with intensity, or the 25-byte
+    records of scans up to ``_AEVA_NO_INTENSITY_UNTIL``) is the one the file size allows; a size that fits both
+    (a multiple of 725 bytes) is decided by the content: the layout under which nearly every point is plausible
+    (`_aeva_plausible`). The file name's date only names the expected layout in messages."""
+    new, old = HELIPR_RECORDS["Aeva"][0], _AEVA_OLD
+    size = p.stat().st_size
+    fits = [dt for dt in (new, old) if size % dt.itemsize == 0]
+    dated_old = p.stem.isdecimal() and p.stem.isascii() and int(p.stem) <= _AEVA_NO_INTENSITY_UNTIL
+    expected = f"{old.itemsize} bytes by its date" if dated_old else f"{new.itemsize} bytes by its date"
+    if not fits:
+        raise ScanFormatError(
+            f"{p}: size {size} bytes is a multiple of neither HeLiPR Aeva record size, {new.itemsize} "
+            f"({', '.join(new.names or ())}) nor {old.itemsize} (without intensity; {expected})"
+        )
+    buf = p.read_bytes()
+    parsed = {dt.itemsize: np.frombuffer(buf, dtype=dt) for dt in fits}
+    if len(fits) == 2:
+        share = {k: _aeva_plausible(v) for k, v in parsed.items()}
+        good = [k for k, v in share.items() if v >= AEVA_PLAUSIBLE_SHARE]
+        if len(good) != 1:
+            raise ScanFormatError(
+                f"{p}: size {size} bytes fits both HeLiPR Aeva record sizes ({new.itemsize} and {old.itemsize} "
+                f"bytes; {expected}) and the content does not tell them apart: "
+                + ", ".join(f"{share[k]:.0%} of the points plausible with {k}-byte records" for k in share)
+                + f" (finite, within {AEVA_PLAUSIBLE_M:g} m; {AEVA_PLAUSIBLE_SHARE:.0%} needed)"
+            )
+        itemsize = good[0]
+    else:
+        itemsize = fits[0].itemsize
+    return parsed[itemsize], "intensity" if itemsize == new.itemsize else "reflectivity"
+
+
 @guard("HeLiPR .bin")
 def read_helipr_bin(path: str | Path, sensor: str) -> Scan:
     """One HeLiPR scan of ``sensor`` (module docstring); intensity from the sensor's intensity field."""
@@ -80,15 +136,17 @@ def read_helipr_bin(path: str | Path, sensor: str) -> Scan:
         raise ConfigError(f"unknown HeLiPR sensor {sensor!r}; known: {sorted(HELIPR_RECORDS)}")
     p = check_file(path, f"HeLiPR {sensor} .bin")
     dtype, field, imax = HELIPR_RECORDS[sensor]
-    if sensor == "Aeva" and p.stem.isdigit() and int(p.stem) <= _AEVA_NO_INTENSITY_UNTIL:
-        dtype, field = _AEVA_OLD, "reflectivity"
-    size = p.stat().st_size
-    if size % dtype.itemsize:
-        raise ScanFormatError(
-            f"{p}: size {size} bytes is not a multiple of the HeLiPR {sensor} record size {dtype.itemsize} "
-            f"({', '.join(dtype.names or ())})"
-        )
-    cols = structured_columns(np.fromfile(p, dtype=dtype))
+    if sensor == "Aeva":
+        records, field = _aeva_records(p)
+    else:
+        size = p.stat().st_size
+        if size % dtype.itemsize:
+            raise ScanFormatError(
+                f"{p}: size {size} bytes is not a multiple of the HeLiPR {sensor} record size {dtype.itemsize} "
+                f"({', '.join(dtype.names or ())})"
+            )
+        records = np.fromfile(p, dtype=dtype)
+    cols = structured_columns(records)
     named = {"x": cols["x"], "y": cols["y"], "z": cols["z"], "intensity": cols[field]}
     if "ring" in cols:
         named["ring"] = cols["ring"]
