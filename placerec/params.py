@@ -57,6 +57,18 @@ class Params(BaseModel):
         finally:
             _DEPTH.reset(token)
 
+    def saved_dump(self) -> dict[str, Any]:
+        """``model_dump(mode="json")`` without the run-time fields (``json_schema_extra={"runtime": True}``, e.g.
+        a RAM budget): what a saved database records of its parameters, and what loading it compares."""
+        out = self.model_dump(mode="json")
+        for name, field in type(self).model_fields.items():
+            extra = field.json_schema_extra
+            if isinstance(extra, dict) and extra.get("runtime"):
+                out.pop(name, None)
+            elif isinstance(value := getattr(self, name), Params):
+                out[name] = value.saved_dump()
+        return out
+
     @model_validator(mode="before")
     @classmethod
     def _merge_sections(cls, data: Any) -> Any:

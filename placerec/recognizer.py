@@ -75,14 +75,14 @@ def require_varying_intensity(scan: Scan, valid: np.ndarray, where: str, why: st
 def check_saved_params(path: str | Path, header: dict[str, Any], params: Params) -> None:
     """`ArtifactError` unless a saved database's header records exactly ``params`` (it was made with them)."""
     saved = (header.get("meta") or {}).get("params")
-    if saved != params.model_dump(mode="json"):
+    if saved != params.saved_dump():
         raise ArtifactError(f"{path}: database was made with other parameters: {short_repr(saved, 200)}")
 
 
 def params_key(name: str, params: Any) -> str:
     """A short stable hash of a front-end name and its parameters (a `Params` model or plain JSON data)."""
     if isinstance(params, Params):
-        params = params.model_dump(mode="json")
+        params = params.saved_dump()
     return f"{name}-{stable_hash({'name': name, 'params': params})}"
 
 

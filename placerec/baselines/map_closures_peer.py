@@ -252,7 +252,7 @@ class MapClosuresPeer(Recognizer[MapClosuresParams]):
             "counts": np.asarray([self._points[i].shape[0] for i in ids], np.int64),
             "points": np.concatenate([self._points[i] for i in ids]) if ids else np.zeros((0, 3)),
         }
-        save_artifact(path, _KIND, _VERSION, arrays, {"params": self.params.model_dump(mode="json")})
+        save_artifact(path, _KIND, _VERSION, arrays, {"params": self.params.saved_dump()})
 
     def load(self, path: str | Path) -> None:
         self._no_local_map_artifacts()

@@ -250,7 +250,7 @@ class ScanContext(Recognizer[ScanContextParams]):
         self._n = 0
         self._tree: cKDTree | None = None
         self._n_tree = 0
-        self._clouds = CloudStore(self.params.verify, dtype=self.params.verify.cloud_store)
+        self._clouds = CloudStore.for_pipeline(self.params.verify)
 
     def __len__(self) -> int:
         return self._n
@@ -423,9 +423,7 @@ class ScanContext(Recognizer[ScanContextParams]):
         arrays: dict[str, np.ndarray] = {"descriptors": self._desc[:n], "ids": self._ids[:n]}
         if self.params.verify.enabled:
             arrays.update(self._clouds.arrays(self._ids[:n].tolist()))
-        save_artifact(
-            path, ARTIFACT_KIND, FORMAT_VERSION, arrays, meta={"params": self.params.model_dump(mode="json")}
-        )
+        save_artifact(path, ARTIFACT_KIND, FORMAT_VERSION, arrays, meta={"params": self.params.saved_dump()})
 
     def load(self, path: str | Path) -> None:
         """Replace the database with a saved one; `ArtifactError` if it is corrupt or its descriptor parameters
@@ -456,7 +454,7 @@ class ScanContext(Recognizer[ScanContextParams]):
                 f"{path}: database saved without the clouds verification needs (or with other voxel "
                 f"parameters): {saved_cloud}"
             )
-        clouds = CloudStore(self.params.verify, dtype=self.params.verify.cloud_store)
+        clouds = CloudStore.for_pipeline(self.params.verify)
         if self.params.verify.enabled:
             clouds.from_arrays(ids.tolist(), arrays, path)
         n = int(ids.size)

@@ -339,7 +339,7 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
         arrays = pack_features(
             self, self.db.ids.tolist(), self._descriptors, self.vocabulary.descriptor_size, self._dtype
         )
-        meta = {"params": self.params.model_dump(mode="json"), "vocabulary": self.vocabulary.fingerprint}
+        meta = {"params": self.params.saved_dump(), "vocabulary": self.vocabulary.fingerprint}
         save_artifact(path, _KIND, _VERSION, arrays, meta)
 
     @property

@@ -142,7 +142,7 @@ class KeypointVoting(Recognizer[VotingParams]):
     def _reset(self, entries: EntryTable | None = None) -> None:
         p = self.params
         self.entries = entries or EntryTable.empty(self._dim, p.search.descriptor_store or "float32")
-        self.clouds = CloudStore(p.verify, dtype=p.verify.cloud_store)
+        self.clouds = CloudStore.for_pipeline(p.verify)
         self.local_maps = LocalMaps(
             self.entries, self.clouds, p.verify.radius_m, p.verify.local_map_cache, p.verify
         )
@@ -378,7 +378,7 @@ class KeypointVoting(Recognizer[VotingParams]):
         if self.params.verify.enabled:
             arrays.update(self.clouds.arrays(self.entries.ids))
         meta = {
-            "params": self.params.model_dump(mode="json"),
+            "params": self.params.saved_dump(),
             "travelled": self.window.travelled,
             "descriptor_store": self.entries.store.dtype,
         }

@@ -240,7 +240,7 @@ class VisualFrontend(Generic[VP]):
         self._descriptors: dict[int, np.ndarray] = {}
         self._width: dict[int, int] = {}
         self._kp_xyz: dict[int, np.ndarray] = {}
-        self._clouds = CloudStore(self.params.verify, dtype=self.params.verify.cloud_store)
+        self._clouds = CloudStore.for_pipeline(self.params.verify)
 
     def _add_features(self, scan_id: int, description: Description, descriptors: np.ndarray) -> None:
         """Keep a description being added: its keypoints, ``descriptors`` (as the retrieval stores them), image
@@ -403,7 +403,7 @@ class VisualHBST(VisualFrontend[VisualParams], Recognizer[VisualParams]):
         cloud (in insertion order) with the parameters; `load` re-inserts them, which rebuilds the identical tree
         (HBST is deterministic in the insertion order)."""
         arrays = pack_features(self, self._order, self._descriptors, self.extractor.descriptor_size, np.uint8)
-        save_artifact(path, _KIND, _VERSION, arrays, {"params": self.params.model_dump(mode="json")})
+        save_artifact(path, _KIND, _VERSION, arrays, {"params": self.params.saved_dump()})
 
     def load(self, path: str | Path) -> None:
         arrays, header = load_artifact(path, _KIND, (_VERSION,), mmap=True)

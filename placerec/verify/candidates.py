@@ -47,6 +47,7 @@ from placerec.quantise import FixedPointCloud, PackedCloud
 from placerec.types import Candidate
 from placerec.verify.icp import IcpCloud, as_points
 from placerec.verify.params import VerifyParams
+from placerec.verify.spill import SpillFile, SpillRef
 from placerec.verify.verify import Hypothesis, Verification, as_source, as_target, complete, hypothesise
 
 __all__ = ["VerifiedParams", "Retrieved", "CloudStore", "scan_cloud", "voxel_points", "verify_candidates"]
@@ -77,6 +78,22 @@ class VerifiedParams(VerifyParams):
         "cloud is first prepared for ICP); int16 fixed point around the cloud's centre (6 bytes a point; error at "
         "most half a step: 0.6 mm within 40 m, 1.8 mm within 120 m; verified F1 unchanged, docs/benchmarks.md); "
         "or float32 (12 bytes)",
+    )
+    cloud_budget_mb: float | None = Field(
+        256.0,
+        gt=0,
+        le=1e6,
+        description="RAM (MB) for the ICP clouds the database keeps: beyond it, the oldest stored clouds move to a "
+        "temporary file (cloud_spill_dir) and are read back when a candidate reaches ICP, and the ICP targets "
+        "prepared for reuse are kept within half of it; None: everything in RAM. Results do not depend on it. "
+        "A run-time setting: not recorded in a saved database",
+        json_schema_extra={"runtime": True},
+    )
+    cloud_spill_dir: str | None = Field(
+        None,
+        description="folder of the file the clouds over cloud_budget_mb move to (None: the system's temporary "
+        "folder); the file has no name there and is gone when the process ends",
+        json_schema_extra={"runtime": True},
     )
 
 
@@ -121,25 +138,59 @@ def voxel_points(points: np.ndarray, voxel_size: float) -> np.ndarray:
 
 
 class CloudStore:
-    """Each database entry's cloud (from `scan_cloud`), prepared as an ICP target on first use; the last
-    ``max_prepared`` prepared clouds are kept (least recently used dropped; one takes ~3 MB for an OS1-64 scan at
-    0.4 m and 30-90 ms to prepare). ``arrays`` / `from_arrays` give the clouds for a pipeline's saved database
-    (float32 points either way). ``dtype = "int16"`` keeps each cloud added as `placerec.quantise.FixedPointCloud`
-    (half the bytes; decoded when prepared), ``"int16-zlib"`` as `placerec.quantise.PackedCloud` (the same codes
-    compressed losslessly, about a third of the bytes; unpacked when prepared); memory-mapped clouds (a database loaded with ``mmap``) and those read
-    by `from_arrays` stay as they are (a mapped file's pages take no RAM until used). `add_deferred` stores a function making the cloud instead, called
-    when the cloud is first needed (e.g. from a memory-mapped places database: no RAM until then)."""
+    """Each database entry's cloud (from `scan_cloud`), prepared as an ICP target on first use.
+
+    * Stored clouds are kept as ``dtype`` says (``VerifiedParams.cloud_store``): ``"float32"``, ``"int16"``
+      (`placerec.quantise.FixedPointCloud`: half the bytes; decoded when prepared) or ``"int16-zlib"``
+      (`placerec.quantise.PackedCloud`: the same codes compressed losslessly, about a third of the bytes).
+      Memory-mapped clouds (a database loaded with ``mmap``) and those read by `from_arrays` stay as they are (a
+      mapped file's pages take no RAM until used). `add_deferred` stores a function making the cloud instead,
+      called when the cloud is first needed (e.g. from a memory-mapped places database).
+    * ``budget_mb`` (``VerifiedParams.cloud_budget_mb``; None: no limit) bounds the RAM of both: once the stored
+      clouds pass half of it, the oldest move, in the same form, to an unnamed temporary file in ``spill_dir``
+      (`placerec.verify.spill.SpillFile`) and are read back when prepared (`nbytes`, `spilled`); the prepared
+      targets, counted at their arrays' bytes (`prepared_bytes`), are kept within the other half and within
+      ``max_prepared`` of them, least recently used dropped (one takes ~1-3 MB for an OS1-64 scan at 0.4 m and
+      30-90 ms to prepare). Either way a cloud reads back bit for bit: results do not depend on the budget.
+    * ``arrays`` / `from_arrays` give the clouds for a pipeline's saved database (float32 points either way).
+    """
 
     def __init__(
-        self, params: VerifyParams | None = None, max_prepared: int = 128, dtype: str = "float32"
+        self,
+        params: VerifyParams | None = None,
+        max_prepared: int = 128,
+        dtype: str = "float32",
+        budget_mb: float | None = None,
+        spill_dir: str | None = None,
     ) -> None:
         if dtype not in _ENCODERS:
             raise ConfigError(f"cloud store {dtype!r} is unknown; allowed: {sorted(_ENCODERS)}")
+        if budget_mb is not None and not (np.isfinite(budget_mb) and budget_mb > 0):
+            raise ConfigError(
+                f"verify.cloud_budget_mb must be a positive number of MB or None, got {budget_mb}"
+            )
         self.params = params or VerifyParams()
         self.max_prepared = max_prepared
         self.dtype = dtype
-        self._clouds: dict[int, np.ndarray | FixedPointCloud | PackedCloud | Callable[[], np.ndarray]] = {}
+        self.budget_bytes = None if budget_mb is None else int(budget_mb * 1e6)
+        self._clouds: dict[int, _Stored] = {}
         self._prepared: OrderedDict[int, IcpCloud] = OrderedDict()
+        self._ram = 0  # bytes of the stored clouds held in RAM (`_ram_bytes` of each)
+        self._prepared_ram = 0
+        self._spill = SpillFile(spill_dir)
+        self._in_ram: OrderedDict[int, None] = (
+            OrderedDict()
+        )  # ids whose cloud may move to the file, oldest first
+
+    @classmethod
+    def for_pipeline(cls, verify: VerifiedParams) -> CloudStore:
+        """The store of a pipeline's ``verify`` section: its ``cloud_store``, budget and spill folder."""
+        return cls(
+            verify,
+            dtype=verify.cloud_store,
+            budget_mb=verify.cloud_budget_mb,
+            spill_dir=verify.cloud_spill_dir,
+        )
 
     def __len__(self) -> int:
         return len(self._clouds)
@@ -147,33 +198,73 @@ class CloudStore:
     def __contains__(self, scan_id: object) -> bool:
         return scan_id in self._clouds
 
+    def _put(self, scan_id: int, value: _Stored) -> None:
+        self._drop(scan_id)
+        self._clouds[scan_id] = value
+        size = _ram_bytes(value)
+        if size:
+            self._ram += size
+            self._in_ram[scan_id] = None
+            self._spill_over_budget()
+
+    def _drop(self, scan_id: int) -> None:
+        old = self._clouds.pop(scan_id, None)
+        if old is not None and scan_id in self._in_ram:
+            del self._in_ram[scan_id]
+            self._ram -= _ram_bytes(old)
+        tgt = self._prepared.pop(scan_id, None)
+        if tgt is not None:
+            self._prepared_ram -= _target_bytes(tgt)
+
+    def _spill_over_budget(self) -> None:
+        if self.budget_bytes is None:
+            return
+        while self._ram > self.budget_bytes // 2 and self._in_ram:
+            sid, _ = self._in_ram.popitem(last=False)
+            value = self._clouds[sid]
+            self._ram -= _ram_bytes(value)
+            self._clouds[sid] = _spilled(value, self._spill)
+
     def add(self, scan_id: int, cloud: np.ndarray) -> None:
         mapped = _memory_mapped(cloud)  # a memory-mapped file's pages cost no RAM: kept as they are
         c = np.asarray(cloud, dtype=np.float32)
         if c.ndim != 2 or c.shape[1] != 3:
             raise ScanDataError(f"cloud of entry {scan_id} must have shape (M, 3), got {c.shape}")
-        self._clouds[int(scan_id)] = c if mapped else _ENCODERS[self.dtype](c)
-        self._prepared.pop(int(scan_id), None)
+        self._put(int(scan_id), c if mapped else _ENCODERS[self.dtype](c))
 
     def add_deferred(self, scan_id: int, make: Callable[[], np.ndarray]) -> None:
         """Store ``make`` (no arguments, returns the (M, 3) cloud) for entry ``scan_id``: called on each use."""
-        self._clouds[int(scan_id)] = make
-        self._prepared.pop(int(scan_id), None)
+        self._put(int(scan_id), make)
 
     def cloud(self, scan_id: int) -> np.ndarray:
-        """Entry ``scan_id``'s cloud, (M, 3) float32 (decoded when kept as int16, made when deferred)."""
+        """Entry ``scan_id``'s cloud, (M, 3) float32 (decoded when kept as int16, read back when spilled, made
+        when deferred)."""
         try:
             c = self._clouds[int(scan_id)]
         except KeyError:
             raise ScanDataError(f"no cloud stored for entry {scan_id}") from None
+        if isinstance(c, _Spill):
+            c = c.restore(self._spill)
         if isinstance(c, FixedPointCloud | PackedCloud):
             return c.decode()
         return np.asarray(c(), np.float32) if callable(c) else c
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the clouds held in memory (not the prepared targets, deferred or memory-mapped clouds)."""
-        return sum(int(c.nbytes) for c in self._clouds.values() if not callable(c) and not _memory_mapped(c))
+        """Bytes of the stored clouds held in RAM (not the prepared targets, nor spilled, deferred or
+        memory-mapped clouds)."""
+        return self._ram
+
+    @property
+    def spilled(self) -> tuple[int, int]:
+        """(clouds, bytes) moved to the spill file."""
+        n = sum(isinstance(c, _Spill) for c in self._clouds.values())
+        return n, self._spill.nbytes
+
+    @property
+    def prepared_bytes(self) -> int:
+        """Bytes of the prepared ICP targets kept for reuse (their arrays: points, normals, covariances)."""
+        return self._prepared_ram
 
     def target(self, scan_id: int) -> IcpCloud:
         """Entry ``scan_id``'s cloud prepared for ICP (`as_target`), cached."""
@@ -183,8 +274,13 @@ class CloudStore:
             return self._prepared[sid]
         tgt = as_target(self.cloud(sid), self.params)
         self._prepared[sid] = tgt
-        while len(self._prepared) > self.max_prepared:
-            self._prepared.popitem(last=False)
+        self._prepared_ram += _target_bytes(tgt)
+        cap = None if self.budget_bytes is None else self.budget_bytes - self.budget_bytes // 2
+        while len(self._prepared) > 1 and (
+            len(self._prepared) > self.max_prepared or (cap is not None and self._prepared_ram > cap)
+        ):
+            _, old = self._prepared.popitem(last=False)
+            self._prepared_ram -= _target_bytes(old)
         return tgt
 
     def arrays(self, ids: Iterable[int]) -> dict[str, np.ndarray]:
@@ -202,6 +298,10 @@ class CloudStore:
         c = self._clouds.get(scan_id)
         return len(self.cloud(scan_id)) if c is None or callable(c) else len(c)
 
+    def close(self) -> None:
+        """Give back the spill file now (it also goes when the store is garbage collected)."""
+        self._spill.close()
+
     def from_arrays(self, ids: Sequence[int], arrays: Mapping[str, np.ndarray], path: Any = "") -> None:
         """Replace the clouds by those of `arrays` (saved for ``ids``); `ArtifactError` when they disagree."""
         missing = [k for k in ("cloud_counts", "cloud_xyz") if k not in arrays]
@@ -212,11 +312,12 @@ class CloudStore:
         counts, xyz = np.asarray(arrays["cloud_counts"]), np.asarray(arrays["cloud_xyz"], np.float32)
         if counts.shape != (len(ids),) or (counts < 0).any() or int(counts.sum()) != xyz.shape[0]:
             raise ArtifactError(f"{path}: cloud_counts do not match the entries and cloud_xyz")
-        self._clouds.clear()
-        self._prepared.clear()
+        for sid in list(self._clouds):
+            self._drop(sid)
+        self._spill.close()
         # kept as read, int16 or not: views of the file's pages when the database was loaded memory-mapped
         for i, c in zip(ids, np.split(xyz, np.cumsum(counts)[:-1]) if len(ids) else [], strict=True):
-            self._clouds[int(i)] = c
+            self._clouds[int(i)] = c  # views of one array: neither counted in the budget nor spilled
 
 
 #: how `CloudStore.add` keeps a cloud per ``dtype`` (``VerifiedParams.cloud_store``)
@@ -225,6 +326,62 @@ _ENCODERS: dict[str, Callable[[np.ndarray], np.ndarray | FixedPointCloud | Packe
     "int16": FixedPointCloud.encode,
     "int16-zlib": partial(PackedCloud.encode, level=2),
 }
+
+
+@dataclass(frozen=True)
+class _Spill:
+    """A stored cloud moved to the spill file: its bytes at ``ref``, and what rebuilds it in its ``form``."""
+
+    form: str  # "float32", "int16" or "int16-zlib"
+    ref: SpillRef
+    n: int
+    centre: np.ndarray | None = None
+    scale: float = 1.0
+
+    def __len__(self) -> int:
+        return self.n
+
+    def restore(self, spill: SpillFile) -> np.ndarray | FixedPointCloud | PackedCloud:
+        data = spill.read(self.ref)
+        if self.form == "int16-zlib":
+            return PackedCloud(data, self.n, self.centre, self.scale)  # type: ignore[arg-type]
+        if self.form == "int16":
+            codes = np.frombuffer(data, np.int16).reshape(self.n, 3).copy()
+            return FixedPointCloud(codes, self.centre, self.scale)  # type: ignore[arg-type]
+        return np.frombuffer(data, np.float32).reshape(self.n, 3).copy()
+
+
+#: what `CloudStore` keeps per entry: a cloud (float32, int16 codes or packed), one moved to the spill file, or
+#: a function making it
+_Stored = np.ndarray | FixedPointCloud | PackedCloud | _Spill | Callable[[], np.ndarray]
+
+
+def _spilled(value: _Stored, spill: SpillFile) -> _Spill:
+    """``value`` (a cloud in RAM) written to ``spill``."""
+    if isinstance(value, PackedCloud):
+        return _Spill("int16-zlib", spill.write(value.data), value.n, value.centre, value.scale)
+    if isinstance(value, FixedPointCloud):
+        codes = np.ascontiguousarray(value.codes, np.int16)
+        return _Spill("int16", spill.write(codes.tobytes()), len(codes), value.centre, value.scale)
+    c = np.ascontiguousarray(value, np.float32)
+    return _Spill("float32", spill.write(c.tobytes()), len(c))
+
+
+def _ram_bytes(value: _Stored) -> int:
+    """RAM a stored value holds that the budget counts: 0 for spilled, deferred and memory-mapped clouds."""
+    if isinstance(value, _Spill) or callable(value) or _memory_mapped(value):
+        return 0
+    return int(value.nbytes)
+
+
+def _target_bytes(t: IcpCloud) -> int:
+    """The bytes a prepared target holds: its float64 points, and the backend's cloud (points, normals and
+    covariances as 4-vectors / 4x4 float64) and search tree, ~`_NATIVE_BYTES_PER_POINT` a point."""
+    return int(t.points.nbytes) + len(t) * _NATIVE_BYTES_PER_POINT
+
+
+#: small_gicp's target per point: points and normals (2 x 32 bytes), covariances (128), KD-tree (~16)
+_NATIVE_BYTES_PER_POINT = 208
 
 
 def _memory_mapped(a: Any) -> bool:
