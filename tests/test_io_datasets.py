@@ -392,3 +392,85 @@ def test_helipr_aeva_layout_decided_by_content(tmp_path):
     np.zeros(31, np.uint8).tofile(zeros)
     with pytest.raises(ScanFormatError, match="multiple of neither HeLiPR Aeva record size"):
         read_helipr_bin(zeros, "Aeva")
+
+
+def _ncd_fake(root: Path, names: list[str], gt: str) -> Path:
+    """A Newer College layout whose scans are never read (the names and the ground truth are refused first)."""
+    (root / "raw_format" / "ouster_scan").mkdir(parents=True)
+    for n in names:
+        (root / "raw_format" / "ouster_scan" / n).write_bytes(b"x")
+    (root / "ground_truth").mkdir()
+    (root / "ground_truth" / "registered_poses.csv").write_text(gt)
+    return root
+
+
+def test_newer_college_refuses_nanoseconds_of_a_second_or_more(tmp_path):
+    gt = "1583836591,82590976,1.0,0,0,0,0,0,1\n"
+    root = _ncd_fake(tmp_path / "a", ["cloud_1583836591_82590976.pcd", "cloud_1583836590_1000000000.pcd"], gt)
+    with pytest.raises(
+        ScanFormatError, match=r"cloud_1583836590_1000000000\.pcd: nanoseconds field '1000000000'"
+    ):
+        open_sequence(root, dataset="newer-college")
+    root = _ncd_fake(tmp_path / "b", ["cloud_1583836591_٣.pcd"], gt)  # other scripts' digits: not a stamp
+    with pytest.raises(ScanFormatError, match=r"expected a scan named cloud_<sec>_<nsec>\.pcd"):
+        open_sequence(root, dataset="newer-college")
+    bad_gt = gt + "1583836592,2000000000,1.0,0,0,0,0,0,1\n"
+    root = _ncd_fake(tmp_path / "c", ["cloud_1583836591_82590976.pcd"], bad_gt)
+    with pytest.raises(
+        ScanFormatError, match=r"registered_poses\.csv: ground-truth data row 2 has .*nsec 2000000000;"
+    ):
+        open_sequence(root, dataset="newer-college")
+
+
+def _mulran_fake(root: Path, stems: list[str], rows: list[str]) -> Path:
+    (root / "Ouster").mkdir(parents=True)
+    for s in stems:
+        (root / "Ouster" / f"{s}.bin").write_bytes(b"\0" * 16)
+    (root / "global_pose.csv").write_text("\n".join(rows) + "\n")
+    return root
+
+
+def test_timestamp_names_and_max_gap_are_checked(tmp_path):
+    """Superscript digits pass `str.isdigit` but not `int`; a string max_gap reached a NumPy ufunc."""
+    eye = ",".join(f"{v:g}" for v in np.eye(4)[:3].ravel())
+    rows = [f"{MULRAN_T0},{eye}", f"{MULRAN_T0 + 10**9},{eye}"]
+    root = _mulran_fake(tmp_path / "m", [str(MULRAN_T0), "¹²³"], rows)
+    with pytest.raises(ScanFormatError, match=r"¹²³\.bin: expected a file named by its integer timestamp"):
+        open_sequence(root, dataset="mulran")
+    (tmp_path / "k" / "sequences" / "¹²").mkdir(parents=True)
+    with pytest.raises(ScanFormatError, match="no such KITTI sequence"):
+        open_sequence(tmp_path / "k", dataset="kitti", sequence="¹²")
+    from placerec.io._common import natural_key
+
+    assert natural_key(Path("a1¹2.bin")) < natural_key(Path("a2.bin"))
+    heli = tmp_path / "h"
+    (heli / "LiDAR" / "Aeva").mkdir(parents=True)
+    (heli / "LiDAR_GT").mkdir()
+    (heli / "LiDAR" / "Aeva" / "1700000000000000000.bin").write_bytes(b"\0" * 29)
+    (heli / "LiDAR_GT" / "Aeva_gt.txt").write_text("1700000000000000000 0 0 0 0 0 0 1\n")
+    assert len(open_sequence(heli, dataset="helipr", max_gap=0.1)) == 1
+    for gap in ("0.1", None, True, float("nan"), -1.0):
+        with pytest.raises(ConfigError, match="max_gap must be a"):
+            open_sequence(heli, dataset="helipr", max_gap=gap)
+
+
+@pytest.mark.parametrize(
+    "rotation, why",
+    [
+        (np.diag([1.0, 1.0, -1.0]), "reflection"),
+        (np.zeros((3, 3)), "not a rotation"),
+        (np.eye(3) * 2, "not a"),
+    ],
+)
+def test_mulran_refuses_rotations_that_are_not_rotations(tmp_path, rotation, why):
+    """A mirrored or zero rotation in global_pose.csv is refused naming the row, before scipy's Rotation
+    (which raised a bare `ValueError: Non-positive determinant`)."""
+    pose = np.eye(4)[:3]
+    pose[:, :3] = rotation
+    good = ",".join(f"{v:g}" for v in np.eye(4)[:3].ravel())
+    rows = [f"{MULRAN_T0},{good}", f"{MULRAN_T0 + 10**9}," + ",".join(f"{v:g}" for v in pose.ravel())]
+    root = _mulran_fake(tmp_path / "m", [str(MULRAN_T0 + 5 * 10**8)], rows)
+    with pytest.raises(
+        ScanFormatError, match=rf"global_pose\.csv: ground-truth data row 2 is no rigid motion.*{why}"
+    ):
+        open_sequence(root, dataset="mulran")

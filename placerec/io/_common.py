@@ -234,9 +234,15 @@ def structured_columns(arr: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-_NAT = re.compile(r"(\d+)")
+_NAT = re.compile(r"([0-9]+)")
+
+
+def ascii_digits(text: str) -> bool:
+    """Whether ``text`` is a non-empty run of the digits 0-9. (`str.isdigit` also takes superscripts such as
+    ``'¹²³'``, on which `int` fails, and `str.isdecimal` other scripts' digits.)"""
+    return text.isascii() and text.isdecimal()
 
 
 def natural_key(path: Path) -> tuple[object, ...]:
     """Sort key ordering ``scan2`` before ``scan10``."""
-    return tuple(int(t) if t.isdigit() else t.lower() for t in _NAT.split(path.name))
+    return tuple(int(t) if ascii_digits(t) else t.lower() for t in _NAT.split(path.name))

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from placerec.errors import ConfigError, ScanFormatError
-from placerec.io._common import check_file, columns_to_scan, guard, structured_columns
+from placerec.io._common import ascii_digits, check_file, columns_to_scan, guard, structured_columns
 from placerec.io.datasets.trajectory import (
     TimedSequence,
     match_nearest,
@@ -104,7 +104,7 @@ def _aeva_records(p: Path) -> tuple[np.ndarray, str]:
     new, old = HELIPR_RECORDS["Aeva"][0], _AEVA_OLD
     size = p.stat().st_size
     fits = [dt for dt in (new, old) if size % dt.itemsize == 0]
-    dated_old = p.stem.isdecimal() and p.stem.isascii() and int(p.stem) <= _AEVA_NO_INTENSITY_UNTIL
+    dated_old = ascii_digits(p.stem) and int(p.stem) <= _AEVA_NO_INTENSITY_UNTIL
     expected = f"{old.itemsize} bytes by its date" if dated_old else f"{new.itemsize} bytes by its date"
     if not fits:
         raise ScanFormatError(

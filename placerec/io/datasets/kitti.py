@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from placerec.errors import ConfigError, ScanFormatError
-from placerec.io._common import natural_key, read_bytes
+from placerec.io._common import ascii_digits, natural_key, read_bytes
 from placerec.io.file_sequence import FileSequence, read_times
 from placerec.io.poses import read_poses
 from placerec.types import rigid_problem
@@ -124,7 +124,9 @@ def _sequence_root(path: Path, sequence: str | int | None) -> Path:
 
 
 def _seq_name(sequence: str | int) -> str:
-    return f"{int(sequence):02d}" if isinstance(sequence, int) or str(sequence).isdigit() else str(sequence)
+    return (
+        f"{int(sequence):02d}" if isinstance(sequence, int) or ascii_digits(str(sequence)) else str(sequence)
+    )
 
 
 def detect_kitti(path: Path) -> bool:

@@ -27,7 +27,7 @@ from placerec.io.datasets.trajectory import (
 )
 from placerec.io.kitti import KITTI_RECORD_SIZE
 from placerec.io.registry import read_scan
-from placerec.types import Scan, SensorInfo
+from placerec.types import Scan, SensorInfo, rigid_problem
 
 __all__ = ["MulranSequence", "detect_mulran", "MULRAN_LAYOUT", "MULRAN_T_BASE_LIDAR"]
 
@@ -66,6 +66,11 @@ class MulranSequence(TimedSequence):
         gt = read_table(pose_file, 13, "MulRan global_pose.csv (timestamp_ns + 3x4 pose)")
         P = np.tile(np.eye(4), (gt.shape[0], 1, 1))
         P[:, :3, :] = gt[:, 1:].reshape(-1, 3, 4)
+        problem = rigid_problem(P)  # here, to name the file's row (and before scipy's Rotation sees it)
+        if problem is not None:
+            raise ScanFormatError(
+                f"{pose_file}: ground-truth data row {problem[0] + 1} is no rigid motion: {problem[1]}"
+            )
         order = np.argsort(gt[:, 0], kind="stable")
         lidar, inside = interpolate_poses(
             gt[order, 0] * 1e-9, P[order] @ MULRAN_T_BASE_LIDAR, stamps, pose_file

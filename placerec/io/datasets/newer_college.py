@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from placerec.errors import ScanFormatError
+from placerec.errors import ScanFormatError, short_repr
 from placerec.io.datasets.trajectory import TimedSequence, match_nearest, pose_from_xyz_quat, read_table
 
 __all__ = ["NewerCollegeSequence", "detect_newer_college", "NEWER_COLLEGE_LAYOUT", "NCD_T_BASE_LIDAR"]
@@ -23,7 +23,8 @@ NEWER_COLLEGE_LAYOUT = (
     "<seq>/raw_format/ouster_scan/cloud_<sec>_<nsec>.pcd + <seq>/ground_truth/registered_poses.csv"
 )
 NCD_T_BASE_LIDAR = pose_from_xyz_quat([-0.084, -0.025, 0.050], [0.0, 0.0, 0.924, 0.383])[0]
-_NAME = re.compile(r"^cloud_(\d+)_(\d+)\.pcd$")
+_NAME = re.compile(r"^cloud_([0-9]+)_([0-9]+)\.pcd$")
+_NS_PER_S = 1_000_000_000
 
 
 def detect_newer_college(path: Path) -> bool:
@@ -54,12 +55,24 @@ class NewerCollegeSequence(TimedSequence):
             m = _NAME.match(f.name)
             if m is None:
                 raise ScanFormatError(f"{f}: expected a scan named cloud_<sec>_<nsec>.pcd")
+            if int(m.group(2)) >= _NS_PER_S:
+                raise ScanFormatError(
+                    f"{f}: nanoseconds field {short_repr(m.group(2))} is not below 10^9 "
+                    "(expected a scan named cloud_<sec>_<nsec>.pcd, 0 <= nsec < 10^9)"
+                )
             files.append(f)
             stamps.append(int(m.group(1)) + int(m.group(2)) * 1e-9)
         if not files:
             raise ScanFormatError(f"{folder}: no cloud_<sec>_<nsec>.pcd scans")
         pose_file = Path(poses) if poses is not None else root / "ground_truth" / "registered_poses.csv"
         gt = read_table(pose_file, 9, "Newer College ground truth (sec, nsec, x, y, z, qx, qy, qz, qw)")
+        bad = (gt[:, 0] < 0) | (gt[:, 1] < 0) | (gt[:, 1] >= _NS_PER_S)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ScanFormatError(
+                f"{pose_file}: ground-truth data row {i + 1} has sec {gt[i, 0]:.10g}, nsec {gt[i, 1]:.10g}; expected "
+                "sec >= 0 and 0 <= nsec < 10^9"
+            )
         gt = gt[np.argsort(gt[:, 0] + gt[:, 1] * 1e-9, kind="stable")]
         t_gt = gt[:, 0] + gt[:, 1] * 1e-9
         P = pose_from_xyz_quat(gt[:, 2:5], gt[:, 5:9]) @ NCD_T_BASE_LIDAR

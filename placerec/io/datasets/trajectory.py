@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from placerec.errors import ScanFormatError
-from placerec.io._common import check_file
+from placerec.errors import ConfigError, ScanFormatError, short_repr
+from placerec.io._common import ascii_digits, check_file
 from placerec.io.file_sequence import FileSequence
 from placerec.io.poses import quat_to_matrix
 from placerec.types import rigid_problem
@@ -24,6 +24,7 @@ __all__ = [
     "pose_from_xyz_rpy",
     "interpolate_poses",
     "match_nearest",
+    "check_max_gap",
     "stamped_files",
     "TimedSequence",
 ]
@@ -130,11 +131,23 @@ def interpolate_poses(
     return out, inside
 
 
+def check_max_gap(max_gap: object) -> float:
+    """``max_gap`` (seconds a ground-truth row may be from a scan) as a float; `ConfigError` naming ``max_gap``
+    unless it is a finite real number >= 0 (a bool or a string is no number of seconds)."""
+    if isinstance(max_gap, bool) or not isinstance(max_gap, (int, float, np.integer, np.floating)):
+        raise ConfigError(f"max_gap must be a number of seconds, got {short_repr(max_gap)}")
+    gap = float(max_gap)
+    if not (np.isfinite(gap) and gap >= 0):
+        raise ConfigError(f"max_gap must be a finite number of seconds >= 0, got {short_repr(max_gap)}")
+    return gap
+
+
 def match_nearest(
     times: np.ndarray, at: np.ndarray, max_gap: float, where: str | Path
 ) -> tuple[np.ndarray, np.ndarray]:
     """For each time of ``at``, the index of the nearest of ``times`` (sorted increasing) and the mask of those
     within ``max_gap`` seconds of it (the indices returned are those of these)."""
+    max_gap = check_max_gap(max_gap)
     times = np.asarray(times, dtype=np.float64)
     if not np.isfinite(times).all() or np.any(np.diff(times) < 0):
         raise ScanFormatError(f"{where}: ground-truth times must be finite and must not decrease")
@@ -186,7 +199,7 @@ def stamped_files(folder: Path, suffix: str, scale: float, what: str) -> tuple[l
     files = sorted(f for f in folder.iterdir() if f.is_file() and f.suffix.lower() == suffix)
     if not files:
         raise ScanFormatError(f"{folder}: no {suffix} scan files ({what})")
-    bad = [f.name for f in files if not f.stem.isdigit()]
+    bad = [f.name for f in files if not ascii_digits(f.stem)]
     if bad:
         raise ScanFormatError(f"{folder / bad[0]}: expected a file named by its integer timestamp ({what})")
     per_second = round(1 / scale)
