@@ -155,3 +155,21 @@ def test_garbled_files_fail_cleanly(name: str, data: st.DataObject, tmp_path: Pa
     else:
         poses, _ = out
         assert poses.ndim == 3 and poses.shape[1:] == (4, 4) and np.isfinite(poses).all()
+
+
+@pytest.mark.parametrize("shape", [(-2, -3), (-1, 4), (4, -1), (True, 4)])
+def test_npy_headers_with_negative_or_non_integer_sizes_are_refused(shape: tuple, tmp_path: Path) -> None:
+    """numpy's header parser takes a negative size; ``(-1, 4)`` read every point as if the shape were inferred."""
+    header = {"descr": "<f4", "fortran_order": False, "shape": shape}
+    data = np.arange(16, dtype="<f4").tobytes()
+    bio = io.BytesIO()
+    np.lib.format.write_array_header_1_0(bio, header)
+    (tmp_path / "a.npy").write_bytes(bio.getvalue() + data)
+    with pytest.raises(ScanFormatError, match=r"a\.npy: \.npy header declares shape .*expected non-negative"):
+        read_scan(tmp_path / "a.npy")
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "b.npz", "w") as zf:
+        zf.writestr("xyz.npy", bio.getvalue() + data)
+    with pytest.raises(ScanFormatError, match=r"b\.npz\[xyz\]: \.npy header declares shape"):
+        read_scan(tmp_path / "b.npz")

@@ -19,7 +19,7 @@ from typing import IO, cast
 
 import numpy as np
 
-from placerec.errors import PlacerecError
+from placerec.errors import PlacerecError, short_repr
 from placerec.io.limits import FileClass, check_size
 
 __all__ = ["parse_npy", "read_npz_arrays"]
@@ -53,6 +53,10 @@ def _read_header(
         raise
     except Exception as exc:  # numpy's header parser raises ValueError, SyntaxError, tokenize.TokenError, ...
         raise error(f"{where}: not a valid .npy array ({type(exc).__name__}: {exc})") from None
+    if not all(type(v) is int and v >= 0 for v in shape):  # numpy takes negative sizes, and True for 1
+        raise error(
+            f"{where}: .npy header declares shape {short_repr(shape)}; expected non-negative integers"
+        )
     if dtype.hasobject:
         raise error(f"{where}: .npy holds Python objects (pickles are not loaded)")
     if dtype.itemsize == 0:
