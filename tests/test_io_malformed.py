@@ -173,3 +173,59 @@ def test_npy_headers_with_negative_or_non_integer_sizes_are_refused(shape: tuple
         zf.writestr("xyz.npy", bio.getvalue() + data)
     with pytest.raises(ScanFormatError, match=r"b\.npz\[xyz\]: \.npy header declares shape"):
         read_scan(tmp_path / "b.npz")
+
+
+def _make_unreadable(path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """chmod 000, or, as root (who reads any file), an `open` that refuses ``path`` with `PermissionError`."""
+    import os
+
+    if os.geteuid() != 0:
+        path.chmod(0)
+        return
+    import builtins
+
+    real_open = io.open
+
+    def refusing_open(file: object, *args: object, **kwargs: object) -> object:
+        if isinstance(file, (str, Path)) and Path(file) == path:
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, *args, **kwargs)  # type: ignore[call-overload]
+
+    monkeypatch.setattr(builtins, "open", refusing_open)
+    monkeypatch.setattr(io, "open", refusing_open)
+
+
+@pytest.mark.parametrize(
+    "suffix", [".bin", ".npy", ".npz", ".pcd", ".ply", "poses.txt", "config.yaml", "db.npz"]
+)
+def test_unreadable_files_are_placerec_errors(
+    suffix: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A file without read permission is the reader's own error naming the file, not a bare PermissionError."""
+    from placerec.config import load_config
+    from placerec.errors import ArtifactError, ConfigError
+    from placerec.io.atomic import load_artifact, save_artifact
+
+    path = tmp_path / ("a" + suffix if suffix.startswith(".") else suffix)
+    read: Callable[[], object]
+    if suffix == "poses.txt":
+        path.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+        read, error = (lambda: read_poses(path)), ScanFormatError
+    elif suffix == "config.yaml":
+        path.write_text("{}\n")
+        read, error = (lambda: load_config(path)), ConfigError
+    elif suffix == "db.npz":
+        save_artifact(path, "test-db", 1, {"x": np.zeros(3)})
+        read, error = (lambda: load_artifact(path, "test-db", (1,))), ArtifactError
+    else:
+        writer = {".bin": write_kitti_bin, ".npz": write_npz, ".pcd": write_pcd, ".ply": write_ply}.get(
+            suffix
+        )
+        if writer is None:
+            np.save(path, np.ones((4, 3), np.float32))
+        else:
+            writer(path, _scan())
+        read, error = (lambda: read_scan(path)), ScanFormatError
+    _make_unreadable(path, monkeypatch)
+    with pytest.raises(error, match=rf"{path}: cannot read .*Permission denied"):
+        read()

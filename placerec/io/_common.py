@@ -46,18 +46,29 @@ _DECODE_ERRORS = (
 
 
 def check_file(path: str | Path, what: str) -> Path:
-    """The path as a `Path`; ScanFormatError if it is missing, not a file, empty, or larger than the scan load cap
-    (`placerec.io.limits`: 1 GiB unless ``PLACEREC_MAX_SCAN_BYTES`` says otherwise)."""
+    """The path as a `Path`; ScanFormatError if it is missing, not a file, empty, larger than the scan load cap
+    (`placerec.io.limits`: 1 GiB unless ``PLACEREC_MAX_SCAN_BYTES`` says otherwise) or cannot be opened for
+    reading (permissions: the file is opened once here, so that no reader meets a bare `PermissionError`)."""
     p = Path(path)
-    if not p.exists():
-        raise ScanFormatError(f"{p}: no such {what} file")
-    if not p.is_file():
-        raise ScanFormatError(f"{p}: expected a {what} file, found a directory or special file")
-    size = p.stat().st_size
-    if size == 0:
-        raise ScanFormatError(f"{p}: empty file, expected {what} data")
-    check_size(size, p, f"{what} file size", ScanFormatError, "scan")
+    try:
+        if not p.exists():
+            raise ScanFormatError(f"{p}: no such {what} file")
+        if not p.is_file():
+            raise ScanFormatError(f"{p}: expected a {what} file, found a directory or special file")
+        size = p.stat().st_size
+        if size == 0:
+            raise ScanFormatError(f"{p}: empty file, expected {what} data")
+        check_size(size, p, f"{what} file size", ScanFormatError, "scan")
+        with open(p, "rb"):
+            pass
+    except OSError as exc:
+        raise ScanFormatError(f"{p}: cannot read {what} file ({unreadable(exc)})") from None
     return p
+
+
+def unreadable(exc: OSError) -> str:
+    """Why a file could not be opened or read, for a message that already names the file."""
+    return exc.strerror if exc.strerror else f"{type(exc).__name__}: {exc}"
 
 
 def check_count(count: int, item_bytes: int, available: int, where: str | Path, what: str) -> int:
@@ -78,7 +89,7 @@ def read_bytes(path: str | Path, what: str) -> tuple[Path, bytes]:
     try:
         return p, p.read_bytes()
     except OSError as exc:
-        raise ScanFormatError(f"{p}: cannot read {what} file ({exc})") from exc
+        raise ScanFormatError(f"{p}: cannot read {what} file ({unreadable(exc)})") from exc
 
 
 def guard(what: str) -> Callable[[_F], _F]:
@@ -91,6 +102,8 @@ def guard(what: str) -> Callable[[_F], _F]:
                 return fn(path, *args, **kwargs)
             except (ScanFormatError, ConfigError, DependencyError):
                 raise
+            except OSError as exc:  # e.g. permissions changed after `check_file`, or an I/O error
+                raise ScanFormatError(f"{path}: cannot read {what} file ({unreadable(exc)})") from exc
             except _DECODE_ERRORS as exc:
                 raise ScanFormatError(
                     f"{path}: not a valid {what} file ({type(exc).__name__}: {exc})"

@@ -154,6 +154,8 @@ def read_npz_arrays(
                         out[key] = _map_member(Path(source), zf, info, f"{where}[{key}]", error)
     except PlacerecError:
         raise
+    except (PermissionError, FileNotFoundError, IsADirectoryError) as exc:
+        raise error(f"{where}: cannot read the file ({exc.strerror or type(exc).__name__})") from None
     except _ZIP_ERRORS as exc:
         raise error(f"{where}: not a valid .npz archive ({type(exc).__name__}: {exc})") from None
     return out
