@@ -172,3 +172,36 @@ def test_a_version_1_file_is_read_and_its_descriptor_options_must_be_empty(small
     save_artifact(tmp_path / "bad.npz", "places-db", 2, arrays, bad)
     with pytest.raises(ArtifactError, match=r"features\.shot\.lrf: unknown key"):
         PlacesDatabase.load(tmp_path / "bad.npz")
+
+
+@pytest.mark.parametrize(
+    "member, value, match",
+    [
+        ("cloud_intensity", np.nan, "'cloud_intensity' holds NaN"),
+        (
+            "cloud_intensity",
+            1e9,
+            r"'cloud_intensity' holds 1e\+09 \(place 0\); expected normalised intensities",
+        ),
+        ("cloud_intensity", -0.5, r"'cloud_intensity' holds -0.5, expected values >= 0"),
+        ("cloud_scale", 0.0, r"'cloud_scale' of place 0 is 0; expected a positive step"),
+        ("cloud_scale", -0.01, "'cloud_scale' holds -0.01, expected values >= 0"),
+        ("cloud_scale", np.inf, "'cloud_scale' holds NaN or infinite"),
+        ("cloud_scale", 1e300, r"'cloud_scale' 1e\+300 and 'cloud_centre' of place 0 put its points"),
+    ],
+)
+def test_place_cloud_values_are_checked_on_load(small_db, tmp_path, member, value, match):
+    """A database whose cloud intensities are NaN or 1e9, or whose int16 clouds have a zero, negative or huge
+    step, is refused on load naming the file and the member (a zero step failed only at query time, in ICP)."""
+    from placerec.io.atomic import load_artifact
+
+    _, db = small_db
+    store = "float32" if member == "cloud_intensity" else "int16"
+    db.stored_as(db.params.descriptor_store, store).save(tmp_path / "db.npz")
+    arrays, header = load_artifact(tmp_path / "db.npz", "places-db", (4,))
+    assert PlacesDatabase.load(tmp_path / "db.npz").clouds is not None
+    arrays[member] = arrays[member].copy()
+    arrays[member][0] = value
+    save_artifact(tmp_path / "bad.npz", "places-db", header["format_version"], arrays, header["meta"])
+    with pytest.raises(ArtifactError, match=rf"bad\.npz: (array )?{match}"):
+        PlacesDatabase.load(tmp_path / "bad.npz")

@@ -48,7 +48,7 @@ from placerec.quantise import FixedPointCloud, decode_unit, encode_unit
 from placerec.retrieval.descriptor_store import DescriptorStore, StoreDtype
 from placerec.three_d.entries import EntryTable, far_from_all
 from placerec.three_d.features import FeatureParams
-from placerec.types import Scan, path_length
+from placerec.types import MAX_TRANSLATION_M, Scan, path_length
 
 __all__ = [
     "PlacesParams",
@@ -77,7 +77,7 @@ _SCHEMA = {
     "scan_poses": Member("f", ("n_scans", 4, 4), finite=True),
     "cloud_counts": Member("iu", ("n_places",), optional=True, min_value=0),
     "cloud_xyz": Member("fi", ("n_cloud", 3), optional=True, finite=True),
-    "cloud_intensity": Member("fu", ("n_cloud",), optional=True),
+    "cloud_intensity": Member("fu", ("n_cloud",), optional=True, finite=True, min_value=0),
     "cloud_centre": Member("f", ("n_places", 3), optional=True, finite=True),
     "cloud_scale": Member("f", ("n_places",), optional=True, finite=True, min_value=0),
 }
@@ -383,6 +383,40 @@ def _check_layout(arrays: dict[str, np.ndarray], meta: dict[str, Any], path: str
                 raise ArtifactError(
                     f"{path}: {name!r} is {arrays[name].dtype}, expected {np.dtype(dtype)} for {kind} clouds"
                 )
+        _check_cloud_values(arrays, path)
+
+
+#: Largest float32 place-cloud intensity: clouds hold intensity normalised to [0, 1] (uint8 codes 0-255 map there).
+_MAX_CLOUD_INTENSITY = 1.0 + 1e-6
+
+
+def _check_cloud_values(arrays: dict[str, np.ndarray], path: str | Path) -> None:
+    """Values of the place clouds the schema does not bound: float32 intensities within [0, 1] (NaN and negative
+    ones the schema refuses), int16 clouds' ``cloud_scale`` positive (a zero step collapses a cloud onto its centre
+    and fails only at query time, in ICP), and their decoded extent within `MAX_TRANSLATION_M`."""
+    inten = arrays["cloud_intensity"]
+    if inten.dtype.kind == "f" and inten.size and (top := float(inten.max())) > _MAX_CLOUD_INTENSITY:
+        place = int(np.searchsorted(np.cumsum(arrays["cloud_counts"]), int(np.argmax(inten)), side="right"))
+        raise ArtifactError(
+            f"{path}: 'cloud_intensity' holds {top:.6g} (place {place}); expected normalised intensities in [0, 1]"
+        )
+    if "cloud_scale" not in arrays:
+        return
+    scale, centre = arrays["cloud_scale"], arrays["cloud_centre"]
+    bad = scale <= 0
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ArtifactError(
+            f"{path}: 'cloud_scale' of place {i} is {scale[i]:.6g}; expected a positive step (metres per code)"
+        )
+    extent = scale * 32767 + (np.abs(centre).max(axis=1) if centre.size else 0.0)
+    far = extent > MAX_TRANSLATION_M
+    if far.any():
+        i = int(np.argmax(far))
+        raise ArtifactError(
+            f"{path}: 'cloud_scale' {scale[i]:.6g} and 'cloud_centre' of place {i} put its points up to "
+            f"{extent[i]:.3g} m away; expected at most {MAX_TRANSLATION_M:g} m"
+        )
 
 
 def _cat(parts: list[np.ndarray], empty: tuple[int, ...]) -> np.ndarray:
