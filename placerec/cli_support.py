@@ -134,8 +134,13 @@ def sequence_source(
 def summarise(path: Path, format: str | None, dataset: str | None = None) -> dict:
     """``placerec info``'s summary of a scan file, or of a sequence (a folder, a bag, or ``dataset`` given)."""
     from placerec.io import open_sequence, read_scan
-    from placerec.summary import scan_summary, sequence_summary
+    from placerec.io.atomic import peek_artifact
+    from placerec.summary import artifact_summary, scan_summary, sequence_summary
 
+    if path.suffix.lower() == ".npz" and path.is_file() and not format and not dataset:
+        artifact = peek_artifact(path)
+        if artifact is not None:
+            return artifact_summary(path, *artifact)
     if dataset or path.is_dir() or path.suffix.lower() in {".bag", ".db3", ".mcap", ".pcap"}:
         kwargs = {k: v for k, v in (("format", format), ("dataset", dataset)) if v}
         return sequence_summary(open_sequence(path, **kwargs))

@@ -8,7 +8,7 @@ import numpy as np
 
 from placerec.types import Scan, Sequence
 
-__all__ = ["estimate_beams", "scan_summary", "sequence_summary"]
+__all__ = ["estimate_beams", "scan_summary", "sequence_summary", "artifact_summary"]
 
 _PCTS = (1, 5, 25, 50, 75, 95, 99)
 
@@ -76,4 +76,60 @@ def sequence_summary(seq: Sequence) -> dict[str, Any]:
         out["timestamps"] = {"first": float(ts[0]), "last": float(ts[-1]), "count": int(len(ts))}
     if len(seq):
         out["first_scan"] = scan_summary(seq[0])
+    return out
+
+
+def artifact_summary(path: Any, arrays: dict[str, np.ndarray], header: dict[str, Any]) -> dict[str, Any]:
+    """A saved artifact (`placerec.io.atomic.peek_artifact`): kind, version, entries, members and, for a database
+    with verification clouds, what each entry costs: on disk, in RAM when built (in its ``verify.cloud_store``
+    form: ``int16-zlib`` measured by packing up to 32 of its clouds), and how many entries' clouds the default
+    ``verify.cloud_budget_mb`` keeps in RAM before spilling (a database loaded memory-mapped keeps its clouds as
+    file pages instead)."""
+    from pathlib import Path
+
+    from placerec.quantise import PackedCloud
+    from placerec.verify.candidates import VerifiedParams
+
+    size = Path(path).stat().st_size
+    out: dict[str, Any] = {
+        "file": str(path),
+        "kind": header["kind"],
+        "format_version": header["format_version"],
+        "file_mb": round(size / 1e6, 3),
+    }
+    ids = arrays.get("ids")
+    n = int(ids.shape[0]) if ids is not None and ids.ndim == 1 else None
+    if n:
+        out["entries"] = n
+        out["file_kib_per_entry"] = round(size / n / 1024, 2)
+    out["members"] = {k: f"{a.dtype} {tuple(a.shape)}" for k, a in sorted(arrays.items())}
+    counts, xyz = arrays.get("cloud_counts"), arrays.get("cloud_xyz")
+    if counts is None or xyz is None or counts.ndim != 1 or not counts.size or int(counts.sum()) != len(xyz):
+        return out
+    verify = ((header.get("meta") or {}).get("params") or {}).get("verify") or {}
+    form = verify.get("cloud_store", "int16-zlib")
+    pts = float(counts.mean())
+    ends = np.cumsum(counts)
+    sample = np.unique(np.linspace(0, counts.size - 1, min(32, counts.size)).astype(int))
+    packed = [
+        PackedCloud.encode(np.asarray(xyz[ends[i] - counts[i] : ends[i]], np.float32), level=2).nbytes
+        for i in sample
+        if counts[i]
+    ]
+    per_entry = {
+        "float32": 12 * pts,
+        "int16": 6 * pts + 32,
+        "int16-zlib": float(np.mean(packed)) if packed else 0.0,
+    }
+    ram = per_entry.get(form, per_entry["float32"])
+    budget = VerifiedParams().cloud_budget_mb
+    out["clouds"] = {
+        "points_per_entry": round(pts, 1),
+        "file_kib_per_entry": round(12 * pts / 1024, 2),
+        "cloud_store": form,
+        "ram_kib_per_entry_built": round(ram / 1024, 2),
+        "default_cloud_budget_mb": budget,
+        "entries_in_ram_within_budget": int(budget * 1e6 / 2 // ram) if budget and ram else None,
+        "when_loaded": "memory-mapped: the clouds stay file pages, read when a candidate reaches ICP",
+    }
     return out

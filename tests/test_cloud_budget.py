@@ -129,3 +129,32 @@ def test_pipelines_give_the_same_answers_and_save_the_same_database_with_any_bud
     other = make_pipeline(name, {"verify": {"cloud_budget_mb": 1000}})
     other.load(tmp_path / "0.05.npz")
     assert len(other._clouds) == 4
+
+
+def test_placerec_info_reports_what_a_saved_database_entry_costs(scans, tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from placerec.cli import app
+
+    rec = make_pipeline("orb-hbst")
+    for i, s in enumerate(scans[:3]):
+        rec.add_description(i, rec.describe(s))
+    rec.save(tmp_path / "db.npz")
+    result = CliRunner().invoke(app, ["info", str(tmp_path / "db.npz"), "--json"])
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.output)
+    assert info["kind"] and info["format_version"] >= 1
+    assert info["entries"] == 3
+    clouds = info["clouds"]
+    points = sum(len(rec._clouds.cloud(i)) for i in range(3)) / 3
+    assert clouds["points_per_entry"] == pytest.approx(points, abs=0.1)
+    assert clouds["cloud_store"] == "int16-zlib"
+    # the packed size measured on the saved clouds: what the store holds in RAM for them
+    assert clouds["ram_kib_per_entry_built"] == pytest.approx(rec._clouds.nbytes / 3 / 1024, rel=0.02)
+    assert abs(clouds["entries_in_ram_within_budget"] - 128e6 / (rec._clouds.nbytes / 3)) <= 1
+    # a scan .npz is still summarised as a scan
+    np.savez(tmp_path / "scan.npz", xyz=np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32))
+    result = CliRunner().invoke(app, ["info", str(tmp_path / "scan.npz"), "--json"])
+    assert result.exit_code == 0 and "points" in json.loads(result.output)

@@ -30,7 +30,7 @@ from placerec.io.artifact_schema import Schema, check_members
 from placerec.io.limits import check_size
 from placerec.io.npz import read_npz_arrays
 
-__all__ = ["atomic_write", "save_artifact", "load_artifact", "HEADER_KEY"]
+__all__ = ["atomic_write", "save_artifact", "load_artifact", "peek_artifact", "HEADER_KEY"]
 
 HEADER_KEY = "__header__"
 _MAX_HEADER_BYTES = 16 << 20
@@ -195,6 +195,18 @@ def load_artifact(
     if schema is not None:
         check_members(arrays, schema, path)
     return arrays, header
+
+
+def peek_artifact(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]] | None:
+    """(arrays memory-mapped, header) of the placerec artifact at ``path``, whatever its kind and version, or None
+    for an ``.npz`` that has no header (e.g. a scan); for ``placerec info``. The archive checks of
+    `load_artifact` apply (`ArtifactError`)."""
+    path = Path(path)
+    first = read_npz_arrays(path, path, ArtifactError, "artifact", keys=[HEADER_KEY], mmap=True)
+    if HEADER_KEY not in first:
+        return None
+    arrays = read_npz_arrays(path, path, ArtifactError, "artifact", allow_deflate=False, mmap=True)
+    return arrays, _parse_header(arrays.pop(HEADER_KEY), path)
 
 
 def _parse_header(raw: np.ndarray | None, path: Path) -> dict[str, Any]:
