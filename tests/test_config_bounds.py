@@ -63,3 +63,24 @@ def test_a_cache_dir_that_is_a_file_is_a_config_error(tmp_path):
     (tmp_path / "cache").write_text("not a folder")
     with pytest.raises(ConfigError, match="output.cache_dir .* is a file"):
         DescriptionCache(tmp_path / "cache", "key")
+
+
+def test_unsorted_tau_edges_are_refused_naming_the_key():
+    """Unsorted inline ``tau_edges`` were reported as a count mismatch of sigma and lambda values."""
+    from placerec.params import resolve
+    from placerec.recognizer import make_pipeline
+    from placerec.three_d.vote_model import VoteModel, VoteModelParams
+
+    edges = [0.0, 0.7, 0.9, 0.8, 0.85, 0.95, 1.0]
+    with pytest.raises(
+        ConfigError, match=r"model\.tau_edges: tau_edges must increase strictly: edge 3 is 0.8"
+    ):
+        make_pipeline("ishot-prob", {"model": {"tau_edges": edges}})
+    with pytest.raises(ConfigError, match=r"params\.model: 3 tau_edges make 2 ranges: sigma and lam need 2"):
+        make_pipeline("ishot-prob", {"model": {"tau_edges": [0.0, 0.8, 1.0]}})
+    with pytest.raises(ConfigError, match=r"fit: tau_edges: tau_edges must increase strictly: edge 2 is 0.5"):
+        resolve(VoteModelParams, {"tau_edges": [0.0, 0.9, 0.5]}, where="fit")
+    with pytest.raises(
+        ConfigError, match="vote model: tau_edges must increase strictly: edge 2 is 0.5 after 0.9"
+    ):
+        VoteModel([0.0, 0.9, 0.5], [1.0, 1.0], [0.5, 0.5], 10.0)

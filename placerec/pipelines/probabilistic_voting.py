@@ -52,14 +52,14 @@ from functools import cached_property
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator, model_validator
 
 from placerec.params import Params
 from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams
 from placerec.pipelines.voting_engine import Query, Shortlist, VoteStrategy
 from placerec.retrieval.nearest import nn_ratio
 from placerec.three_d.posterior import Posterior, PosteriorTable, density_weights
-from placerec.three_d.vote_model import VoteModel
+from placerec.three_d.vote_model import VoteModel, tau_edges_problem
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +78,24 @@ class InlineVoteModel(Params):
         [0.8886, 0.7239, 0.6197, 0.4683, 0.8014, 0.8367], description="half-normal weight per range"
     )
     d_max: float = Field(95.979, gt=0, description="m; extent of the uniform tail")
+
+    @field_validator("tau_edges")
+    @classmethod
+    def _ascending(cls, v: list[float]) -> list[float]:
+        problem = tau_edges_problem(v)
+        if problem is not None:
+            raise ValueError(problem)
+        return v
+
+    @model_validator(mode="after")
+    def _one_value_per_range(self) -> InlineVoteModel:
+        r = len(self.tau_edges) - 1
+        if len(self.sigma) != r or len(self.lam) != r:
+            raise ValueError(
+                f"{len(self.tau_edges)} tau_edges make {r} ranges: sigma and lam need {r} values each, got "
+                f"{len(self.sigma)} and {len(self.lam)}"
+            )
+        return self
 
     def build(self) -> VoteModel:
         return VoteModel(

@@ -34,7 +34,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from placerec._version import __version__
-from placerec.errors import ArtifactError, ConfigError, ScanDataError
+from placerec.errors import ArtifactError, ConfigError, ScanDataError, short_repr
 from placerec.io.artifact_schema import Member
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
@@ -77,9 +77,28 @@ class VoteModelParams(Params):
     @field_validator("tau_edges")
     @classmethod
     def _ascending(cls, v: list[float]) -> list[float]:
-        if len(v) < 2 or any(b <= a for a, b in zip(v, v[1:], strict=False)) or v[0] < 0:
-            raise ValueError(f"tau_edges must be >= 0 and strictly ascending with at least 2 values, got {v}")
+        problem = tau_edges_problem(v)
+        if problem is not None:
+            raise ValueError(problem)
         return v
+
+
+def tau_edges_problem(edges: Any) -> str | None:
+    """Why ``edges`` are no tau range edges (at least 2 values, the first >= 0, strictly increasing), naming the
+    first edge out of order; None when they are."""
+    v = np.asarray(edges, np.float64).reshape(-1)
+    if v.size < 2:
+        return f"tau_edges need at least 2 values, got {v.size}"
+    if v[0] < 0:
+        return f"tau_edges must be >= 0, got {v[0]:g} first"
+    back = np.flatnonzero(np.diff(v) <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        return (
+            f"tau_edges must increase strictly: edge {i} is {v[i]:g} after {v[i - 1]:g} "
+            f"(got {short_repr(v.tolist())})"
+        )
+    return None
 
 
 def mixture_pdf(d: np.ndarray, sigma: float, lam: float, d_max: float) -> np.ndarray:
@@ -149,14 +168,12 @@ class VoteModel:
         self.sigma = np.asarray(self.sigma, np.float64)
         self.lam = np.asarray(self.lam, np.float64)
         r = self.tau_edges.size - 1
-        if (
-            r < 1
-            or self.sigma.shape != (r,)
-            or self.lam.shape != (r,)
-            or np.any(np.diff(self.tau_edges) <= 0)
-        ):
+        problem = tau_edges_problem(self.tau_edges) if self.tau_edges.ndim == 1 else "tau_edges must be 1-D"
+        if problem is not None:
+            raise ConfigError(f"vote model: {problem}")
+        if self.sigma.shape != (r,) or self.lam.shape != (r,):
             raise ConfigError(
-                f"vote model: {self.tau_edges.size} ascending tau edges need {r} sigma and lambda values, got "
+                f"vote model: {self.tau_edges.size} tau_edges need {r} sigma and lambda values, got "
                 f"{self.sigma.shape} and {self.lam.shape}"
             )
         if not (np.all(self.sigma > 0) and np.all((self.lam >= 0) & (self.lam < 1)) and self.d_max > 0):
