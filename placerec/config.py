@@ -8,11 +8,13 @@ and the allowed keys (`placerec.params.format_errors`). `dump_default_config` wr
 
 from __future__ import annotations
 
+import ipaddress
+import re
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
 import yaml
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 
 from placerec.errors import ConfigError, short_repr
 from placerec.eval.exclusion import ExclusionWindow
@@ -186,6 +188,33 @@ class OutputConfig(Params):
     progress: bool = True
 
 
+#: Most worker processes any setting may ask for (a typo of a few zeros would start that many processes).
+MAX_WORKERS = 1024
+#: A Dask scheduler address: ``[protocol://]host:port``, an IPv6 host in brackets.
+_SCHEDULER = re.compile(
+    r"(?:(?P<protocol>tcp|tls|ws|wss|ucx)://)?"
+    r"(?:\[(?P<ipv6>[^]/\s]{1,64})\]|(?P<host>[A-Za-z0-9](?:[A-Za-z0-9.-]{0,251}[A-Za-z0-9])?))"
+    r":(?P<port>[0-9]{1,5})"
+)
+
+
+def scheduler_problem(address: str) -> str | None:
+    """Why ``address`` is no Dask scheduler address (`_SCHEDULER`, a port in 1-65535, a valid IPv6 address in
+    brackets); None when it is one."""
+    m = _SCHEDULER.fullmatch(address)
+    expected = "expected [tcp|tls|ws|wss|ucx://]host:port, e.g. tcp://10.0.0.5:8786 or tcp://[::1]:8786"
+    if m is None:
+        return f"{short_repr(address)} is not a Dask scheduler address; {expected}"
+    if not 1 <= int(m["port"]) <= 65535:
+        return f"{short_repr(address)}: port {m['port']} is not in 1-65535"
+    if m["ipv6"] is not None:
+        try:
+            ipaddress.IPv6Address(m["ipv6"])
+        except ValueError:
+            return f"{short_repr(address)}: [{m['ipv6']}] is not an IPv6 address; {expected}"
+    return None
+
+
 class ExecutionConfig(Params):
     """Where scans are described: in the main process (``workers: 1``, local executor), in ``workers`` local
     processes, or on a Dask distributed cluster (``executor: dask``: a LocalCluster of ``workers`` processes, or
@@ -195,13 +224,21 @@ class ExecutionConfig(Params):
     those of a serial run."""
 
     workers: int = Field(
-        1, ge=1, le=1024, description="processes describing scans (1 = the main process; at most 1024)"
+        1, ge=1, le=MAX_WORKERS, description="processes describing scans (1 = the main process; at most 1024)"
     )
     executor: Literal["local", "dask"] = "local"
     scheduler: str | None = Field(
         None, description="Dask scheduler address (tcp://host:port); None = LocalCluster"
     )
     chunk: int = Field(16, ge=1, description="scans per task")
+
+    @field_validator("scheduler")
+    @classmethod
+    def _scheduler_address(cls, v: str | None) -> str | None:
+        problem = None if v is None else scheduler_problem(v)
+        if problem is not None:
+            raise ValueError(problem)
+        return v
 
     @model_validator(mode="after")
     def _scheduler_needs_dask(self) -> ExecutionConfig:

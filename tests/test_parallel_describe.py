@@ -85,3 +85,57 @@ def test_localize_map_described_in_worker_processes(real_data, tmp_path):
     assert _candidates(parallel) == _candidates(serial)
     assert [c[0][0] for c in _candidates(serial)[0]] == [0, 1, 2, 3]  # every real frame finds itself
     assert len(list((tmp_path / "cache").rglob("*.npz"))) == len(frames)
+
+
+@pytest.mark.parametrize(
+    ("address", "why"),
+    [
+        ("'tcp://::::'", "is not a Dask scheduler address"),
+        ("tcp://host", "is not a Dask scheduler address"),
+        ("tcp://10.0.0.5:99999", "port 99999 is not in 1-65535"),
+        ("tcp://[::zz]:8786", r"\[::zz\] is not an IPv6 address"),
+        ("http://10.0.0.5:8786", "is not a Dask scheduler address"),
+    ],
+)
+def test_a_malformed_scheduler_address_is_a_config_error(address, why):
+    """A malformed address reached `distributed`, which raised a bare ValueError."""
+    with pytest.raises(ConfigError, match=rf"execution\.scheduler: .*{why}"):
+        load_config(None, ["execution.executor=dask", f"execution.scheduler={address}"])
+    for ok in (
+        "tcp://10.0.0.5:8786",
+        "tcp://[::1]:8786",
+        "scheduler.local:8786",
+        "tls://node-1.example:8786",
+    ):
+        assert load_config(None, ["execution.executor=dask", f"execution.scheduler={ok}"]).execution.scheduler
+
+
+def test_a_scheduler_that_cannot_be_reached_is_a_config_error(monkeypatch):
+    """Whatever `distributed` raises for an address it cannot use is a ConfigError naming the address."""
+    pytest.importorskip("distributed")
+    import distributed
+
+    from placerec.experiment.parallel import task_pool
+
+    def refuse(address, **kwargs):
+        raise ValueError(f"invalid address {address!r}")
+
+    monkeypatch.setattr(distributed, "Client", refuse)
+    cfg = load_config(None, ["execution.executor=dask", "execution.scheduler=tcp://10.0.0.5:8786"])
+    with pytest.raises(
+        ConfigError, match=r"execution\.scheduler: cannot reach the Dask scheduler 'tcp://10\.0\.0\.5:8786'"
+    ):
+        with task_pool(cfg.execution):
+            pass
+
+
+def test_workers_are_capped_on_the_command_line_too():
+    from typer.testing import CliRunner
+
+    from placerec.artifacts.vocabulary import load_training_config
+    from placerec.cli import app
+
+    result = CliRunner().invoke(app, ["run", "configs/demo.yaml", "--workers", "1000000000000"])
+    assert result.exit_code == 2 and "execution.workers" in result.output and result.exception is not None
+    with pytest.raises(ConfigError, match="workers"):
+        load_training_config(None, workers=10**12)

@@ -81,7 +81,7 @@ class VocabTrainingConfig(VisualFrontendParams, VocabularyParams):
     datasets: list[DatasetConfig] = Field(default_factory=list, description="extra sequences (e.g. recorded)")
     centre_dtype: Literal["auto", "float32", "float16", "int8"] = "auto"
     compress: bool = Field(False, description="zlib-compress the vocabulary file's arrays")
-    workers: int = Field(1, ge=1, description="processes extracting features")
+    workers: int = Field(1, ge=1, le=1024, description="processes extracting features (at most 1024)")
     descriptor_cache: str | None = Field(
         None, description="folder caching the extracted descriptors (reused when the image settings match)"
     )

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from placerec.config import DatasetConfig, ExecutionConfig, ExperimentConfig, parse_config
-from placerec.errors import ConfigError, DependencyError, ScanDataError
+from placerec.errors import ConfigError, DependencyError, ScanDataError, short_repr
 from placerec.experiment.cache import DescriptionCache
 from placerec.experiment.datasets import open_dataset
 from placerec.experiment.preprocessing import preprocessed_scan
@@ -137,9 +137,12 @@ def _dask_pool(workers: int, scheduler: str | None) -> Iterator[Callable[..., li
     try:
         try:
             client = Client(cluster if cluster is not None else scheduler, timeout="20s")
-        except OSError as exc:
+        except (OSError, ValueError, TypeError) as exc:  # distributed's own errors for a bad or dead address
+            where = (
+                "a local Dask cluster" if scheduler is None else f"the Dask scheduler {short_repr(scheduler)}"
+            )
             raise ConfigError(
-                f"execution.scheduler {scheduler!r}: cannot reach the Dask scheduler ({exc})"
+                f"execution.scheduler: cannot reach {where} ({type(exc).__name__}: {exc})"
             ) from exc
         with client:
 
