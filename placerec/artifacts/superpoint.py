@@ -13,8 +13,8 @@ The pairs, the ground-truth correspondences and the detector labels are made by
   correspondences), with a random jitter; both wrap around the panorama.
 * Adam with a cosine-decayed learning rate, fixed seeds, a validation set of pairs from a held-out world seed.
 
-`train_superpoint` writes the weights (float16 ``.npz`` + ``.onnx``), the provenance ``.json`` beside them and the
-loss curves (``curves``/loss_curves.json and .png), and returns the provenance; `build_superpoint_weights` is the
+`train_superpoint` writes the weights (float16 ``.npz`` + ``.onnx``), the provenance ``.json`` beside them (with
+both files' sha256, which the extractor checks before it runs them: docs/superpoint.md) and the loss curves (``curves``/loss_curves.json and .png), and returns the provenance; `build_superpoint_weights` is the
 same as a builder, returning the weights' path.
 """
 
@@ -40,7 +40,7 @@ from placerec.experiment.superpoint_pairs import (
 )
 from placerec.features.superpoint.arch import CELL, SuperPointArch
 from placerec.features.superpoint.torch_model import build_torch_model, import_torch, model_weights
-from placerec.features.superpoint.weights import save_weights
+from placerec.features.superpoint.weights import provenance_path, save_weights
 from placerec.io.atomic import atomic_write
 from placerec.params import Params
 
@@ -197,7 +197,7 @@ def _losses(torch: Any, model: Any, batch: dict, s: TrainingSchedule) -> tuple[A
 
 def train_superpoint(cfg: SuperPointTrainingConfig, progress: bool = False) -> dict[str, Any]:
     """Train, then write the weights, provenance and loss curves (see the module docstring); returns the
-    provenance."""
+    provenance as written (with the files' ``sha256``)."""
 
     torch = import_torch()
     s = cfg.train
@@ -287,11 +287,11 @@ def train_superpoint(cfg: SuperPointTrainingConfig, progress: bool = False) -> d
         "final": {k: curves[k][-1] for k in curves if curves[k] and k not in ("step", "val_step")},
     }
     provenance["placerec_version"] = __version__
-    save_weights(cfg.output, cfg.arch, model_weights(model), {"provenance": provenance})
-    with atomic_write(Path(cfg.output).with_suffix(".json"), "w") as fh:
-        json.dump(provenance, fh, indent=2)
+    # the .json beside the weights: this provenance with the sha256 of the .npz and .onnx (record_hashes)
+    save_weights(cfg.output, cfg.arch, model_weights(model), {"provenance": provenance}, provenance)
+    written = json.loads(provenance_path(cfg.output).read_text())
     _write_curves(Path(cfg.curves), curves)
-    return provenance
+    return written
 
 
 def build_superpoint_weights(config: SuperPointTrainingConfig, progress: bool = False) -> Path:
