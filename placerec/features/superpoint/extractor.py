@@ -4,11 +4,17 @@ the ONNX model (default; no torch needed) or by torch.
 Keypoints where the probability reaches ``min_probability`` (0.005 for our model; VPR paper Table I: 0.05 for
 Magic Leap's, see `SuperPointParams`), non-maximum suppression, at most ``nfeatures`` 300 (Table I). The image is padded around (azimuth wrap-around, as for every extractor:
 `placerec.features.base`), then on the right and bottom to a multiple of 8 pixels.
+
+A model runs only once its files are vouched for (`placerec.features.superpoint.weights.open_model`: the hashes
+in its provenance, or ``trust_model``) and its outputs on a probe image are sane
+(`placerec.features.superpoint.probe`); docs/superpoint.md, "Provenance and trust".
 """
 
 from __future__ import annotations
 
+import logging
 import threading
+import time
 from pathlib import Path
 from typing import Any, Literal
 
@@ -20,7 +26,10 @@ from placerec.errors import ArtifactError
 from placerec.features.base import ExtractorParams, FeatureExtractor, _Keypoints
 from placerec.features.superpoint.arch import CELL, SuperPointArch
 from placerec.features.superpoint.post import keypoint_probability, sample_descriptors, select_keypoints
-from placerec.features.superpoint.weights import load_weights, onnx_path, resolve_weights
+from placerec.features.superpoint.probe import check_outputs, probe_image
+from placerec.features.superpoint.weights import CheckedModel, onnx_path, open_model, resolve_weights
+
+log = logging.getLogger(__name__)
 
 __all__ = ["SuperPointParams", "SuperPointExtractor", "SuperPointNet"]
 
@@ -48,23 +57,39 @@ class SuperPointParams(ExtractorParams):
     backend: Literal["cv2", "torch"] = Field(
         "cv2", description="cv2: the ONNX model through cv2.dnn (no torch); torch: needs placerec[superpoint]"
     )
+    trust_model: bool = Field(
+        False,
+        description="run user-supplied weights whose provenance .json does not record their files' sha256 "
+        "(or records others) as they are; the shipped weights are always checked, and every model must "
+        "pass the probe-image sanity check (docs/superpoint.md, Provenance and trust)",
+    )
 
 
 class SuperPointNet:
     """The network with one backend: ``forward(image_u8)`` -> (65, H/8, W/8) logits, (D, H/8, W/8) descriptors
-    for an image whose sides are multiples of 8."""
+    for an image whose sides are multiples of 8.
 
-    def __init__(self, weights: str | Path | None = None, backend: str = "cv2") -> None:
+    Loading checks the files' hashes against their provenance (`open_model`; ``trust_model`` accepts a user's
+    files without) before the ONNX bytes reach ``cv2.dnn``, then the network's outputs on the probe image
+    (`check_outputs`, once per backend and file hashes in a process); `ArtifactError` naming the file if not."""
+
+    def __init__(
+        self, weights: str | Path | None = None, backend: str = "cv2", trust_model: bool = False
+    ) -> None:
+        t0 = time.perf_counter()
         path = resolve_weights(None if weights is None else str(weights))
-        self.arch: SuperPointArch
-        self.arch, self.weights = load_weights(path)
+        files = open_model(path, onnx=backend == "cv2", trust_model=trust_model)
+        self.files: CheckedModel = files
+        self.arch: SuperPointArch = files.arch
+        self.weights = files.weights
         self.backend = backend
         self._lock = threading.Lock()  # a cv2.dnn.Net is not safe to share between threads
         self._net: Any  # a cv2.dnn.Net or a torch module
         if backend == "cv2":
             model = onnx_path(path)
-            try:
-                self._net = cv2.dnn.readNetFromONNX(str(model))
+            assert files.onnx is not None
+            try:  # from the bytes that were hashed, not the file again
+                self._net = cv2.dnn.readNetFromONNX(np.frombuffer(files.onnx, np.uint8))
             except cv2.error as exc:
                 raise ArtifactError(
                     f"{model}: not a readable SuperPoint ONNX model (write it again from {path.name} with "
@@ -76,6 +101,26 @@ class SuperPointNet:
 
             self._torch = import_torch()
             self._net = build_torch_model(self.arch, self.weights).eval()
+        t1 = time.perf_counter()
+        self._probe()
+        log.debug(
+            "SuperPoint %s (%s, %s): loaded and checked in %.1f ms, probe %.1f ms",
+            path,
+            backend,
+            files.accepted,
+            (t1 - t0) * 1e3,
+            (time.perf_counter() - t1) * 1e3,
+        )
+
+    def _probe(self) -> None:
+        """`check_outputs` on the probe image, unless this backend already passed it with these files."""
+        key = (self.backend, self.files.sha256["weights"], self.files.sha256.get("onnx", ""))
+        if key in _PROBED:
+            return
+        name = str(onnx_path(self.files.path) if self.backend == "cv2" else self.files.path)
+        semi, desc = self.forward(probe_image())
+        check_outputs(semi, desc, self.arch, name)
+        _PROBED.add(key)
 
     def forward(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x = (np.asarray(image, np.float32) / 255.0)[None, None]
@@ -89,16 +134,38 @@ class SuperPointNet:
         return semi[0], desc[0]
 
 
-_NETS: dict[tuple[str, str], SuperPointNet] = {}
+#: (backend, weights sha256, ONNX sha256) of the networks that passed the probe in this process
+_PROBED: set[tuple[str, str, str]] = set()
+_NETS: dict[tuple[Any, ...], SuperPointNet] = {}
 _NETS_LOCK = threading.Lock()
 
 
-def _net(weights: str | None, backend: str) -> SuperPointNet:
-    """One `SuperPointNet` per (weights file, backend) and process."""
-    key = (str(resolve_weights(weights).resolve()), backend)
+def _stamp(path: Path) -> tuple[int, int] | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_size, st.st_mtime_ns
+
+
+def _net(weights: str | None, backend: str, trust_model: bool = False) -> SuperPointNet:
+    """One checked `SuperPointNet` per (weights file, backend, trust_model) and process; loaded and checked again
+    when the files' sizes or times change."""
+    path = resolve_weights(weights).resolve()
+    key = (
+        str(path),
+        backend,
+        trust_model,
+        _stamp(path),
+        _stamp(onnx_path(path)),
+        _stamp(path.with_suffix(".json")),
+    )
     with _NETS_LOCK:
         if key not in _NETS:
-            _NETS[key] = SuperPointNet(key[0], backend)
+            net = SuperPointNet(path, backend, trust_model)
+            for old in [k for k in _NETS if k[:3] == key[:3]]:  # the same files before they changed
+                del _NETS[old]
+            _NETS[key] = net
         return _NETS[key]
 
 
@@ -110,7 +177,7 @@ class SuperPointExtractor(FeatureExtractor[SuperPointParams]):
     Params = SuperPointParams
 
     def _setup(self) -> None:
-        self._model = _net(self.params.weights, self.params.backend)
+        self._model = _net(self.params.weights, self.params.backend, self.params.trust_model)
 
     @property
     def descriptor_size(self) -> int:
