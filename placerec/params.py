@@ -7,6 +7,9 @@
   defaults): ``{"iss": {"salient_radius": 2.0}}`` keeps a pipeline's ``iss.max_keypoints`` of 300.
 * Building a `Params` (directly, with ``model_validate`` or with `resolve`) raises `ConfigError`; each message
   line names the dotted path of the bad key and, for an unknown key, the keys allowed there.
+* Every integer parameter (``int`` or ``int | None``) has an upper bound: its own ``Field(le=...)`` where a count
+  sets how much work or memory a run takes, else `MAX_INT` (10^9: a count beyond it is no count this machine can
+  work through, and C libraries such as OpenCV take 32-bit ints). No float parameter takes NaN or infinity.
 * `param_rows` lists every parameter (dotted path, value, type, description), for ``placerec pipelines NAME``.
 """
 
@@ -16,11 +19,15 @@ import contextvars
 from collections.abc import Mapping
 from typing import Any, TypeVar, get_args
 
+import annotated_types
 from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
 
 from placerec.errors import ConfigError, short_repr
 
-__all__ = ["Params", "SectionError", "deep_merge", "resolve", "format_errors", "param_rows"]
+__all__ = ["Params", "SectionError", "deep_merge", "resolve", "format_errors", "param_rows", "MAX_INT"]
+
+#: the upper bound of every integer parameter that does not declare a tighter one
+MAX_INT = 10**9
 
 _MAX_REPR = 60
 #: How many `Params` constructions are in progress: pydantic builds nested sections through their ``__init__``,
@@ -32,6 +39,20 @@ class Params(BaseModel):
     """Base of every parameter section (see the module docstring)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+    @classmethod
+    def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
+        """Give every integer field without an upper bound the bound `MAX_INT`."""
+        super().__pydantic_init_subclass__(**kwargs)
+        changed = False
+        for field in cls.model_fields.values():
+            ann = field.annotation
+            if ann is int or set(get_args(ann)) == {int, type(None)}:
+                if not any(isinstance(m, annotated_types.Le | annotated_types.Lt) for m in field.metadata):
+                    field.metadata.append(annotated_types.Le(MAX_INT))
+                    changed = True
+        if changed:
+            cls.model_rebuild(force=True)
 
     def __init__(self, **data: Any) -> None:
         token = _DEPTH.set(_DEPTH.get() + 1)

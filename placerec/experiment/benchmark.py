@@ -81,7 +81,7 @@ class BenchmarkConfig(Params):
     sensors: list[str] | None = None
     seeds: list[int] | None = None
     route: str = "default"
-    n_scans: int | None = Field(None, ge=1, description="scans per cell (None: the whole route)")
+    n_scans: int | None = Field(None, ge=1, le=100_000, description="scans per cell (None: the whole route)")
     spacing: float = Field(1.0, gt=0, allow_inf_nan=False, description="metres between scans")
     preprocess: PreprocessParams = Field(default_factory=experiment_preprocess)
     pipelines: list[PipelineSpec] = Field(min_length=1)

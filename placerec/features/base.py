@@ -131,7 +131,12 @@ class _Keypoints:
 class ExtractorParams(Params):
     """Settings of every extractor (VPR paper Table I: at most 300 features per image)."""
 
-    nfeatures: int = Field(300, gt=0, description="features kept, strongest first (VPR paper Table I)")
+    nfeatures: int = Field(
+        300,
+        gt=0,
+        le=100_000,
+        description="features kept, strongest first (VPR paper Table I; at most 100,000)",
+    )
     wrap_pad: bool = Field(True, description="pad the 360 degree panorama with the opposite side's columns")
     pad: int = Field(64, ge=0, description="px of wrap-around padding (a multiple of 8 keeps SURF aligned)")
     row_upsample: int | None = Field(

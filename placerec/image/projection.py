@@ -69,8 +69,12 @@ class ImageParams(Params):
     mode: Literal["auto", "uniform", "per-beam", "organized"] = Field(
         "auto", description="VPR paper Sec. IV-A eq. 2 (uniform), per-beam rows or the organised scan"
     )
-    width: int | None = Field(None, gt=0, description="px; None = the sensor's columns, else 1024")
-    height: int | None = Field(None, gt=0, description="px; None = the sensor's beams, else 64")
+    width: int | None = Field(
+        None, gt=0, le=16384, description="px (at most 16384); None = the sensor's columns, else 1024"
+    )
+    height: int | None = Field(
+        None, gt=0, le=4096, description="px (at most 4096); None = the sensor's beams, else 64"
+    )
     fov_up_deg: float | None = Field(
         None, description="deg above the horizon; None = from the sensor or scan"
     )

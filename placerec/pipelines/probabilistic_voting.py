@@ -112,7 +112,9 @@ class ProbabilisticParams(VotingParams):
 
     vote_model: str | None = Field(None, description="a vote-model file (placerec fit-votes); None = 'model'")
     model: InlineVoteModel = Field(default_factory=InlineVoteModel)
-    batch_size: int = Field(16, ge=1, description="keypoints matched per iteration (ISHOT paper Sec. V-C)")
+    batch_size: int = Field(
+        16, ge=1, le=100_000, description="keypoints matched per iteration (ISHOT paper Sec. V-C)"
+    )
     xi_v: float = Field(0.15, gt=0, le=1, description="posterior that stops voting (ISHOT paper Sec. V-C)")
     early_stop: bool = Field(True, description="stop at xi_v (False: match every keypoint first)")
     density_correction: bool = Field(True, description="scale votes by the voted place's keypoint density")

@@ -63,11 +63,13 @@ class VerifiedParams(VerifyParams):
     top_k: int = Field(
         3,
         ge=1,
+        le=1000,
         description="retrieved candidates verified per query (best retrieval first); the rest dropped",
     )
     icp_top_k: int | None = Field(
         None,
         ge=1,
+        le=1000,
         description="of the candidates that pass RANSAC, ICP refines (and may accept) only this many, those with the"
         " most inliers; the rest are rejected at 'rank' (None: all)",
     )

@@ -28,7 +28,10 @@ class RansacParams(Params):
         0.999, gt=0, lt=1, description="probability of drawing one all-inlier sample before stopping"
     )
     max_iterations: int = Field(
-        1000, ge=1, description="most hypotheses drawn (enough for 99.9 % confidence down to 19 % inliers)"
+        1000,
+        ge=1,
+        le=1_000_000,
+        description="most hypotheses drawn (enough for 99.9 % confidence down to 19 % inliers)",
     )
     min_inliers: int = Field(
         8,
@@ -79,10 +82,10 @@ class IcpParams(Params):
         gt=0,
         description="m; points farther from the sensor are dropped before voxelising (None keeps all)",
     )
-    normal_neighbors: int = Field(10, ge=3, description="neighbours for normals / covariances")
+    normal_neighbors: int = Field(10, ge=3, le=1000, description="neighbours for normals / covariances")
     max_correspondence_distance: float = Field(1.0, gt=0, description="m; ICP correspondence gate")
-    max_iterations: int = Field(30, ge=1, description="ICP iterations at most")
-    num_threads: int = Field(1, ge=1, description="threads of the ICP backend")
+    max_iterations: int = Field(30, ge=1, le=10_000, description="ICP iterations at most")
+    num_threads: int = Field(1, ge=1, le=1024, description="threads of the ICP backend")
     stats_points: int = Field(
         1000,
         ge=1,

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal, NamedTuple, get_args, overload
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from placerec.errors import ArtifactError, ScanDataError
 from placerec.params import Params, resolve
@@ -310,14 +310,22 @@ def _depths(parents: np.ndarray) -> np.ndarray:
 class VocabularyParams(Params):
     """How `train_vocabulary` builds the tree (DBoW2's defaults: k = 10, L = 5, TF-IDF)."""
 
-    k: int = Field(10, ge=2, description="children per node (DBoW2 default)")
-    L: int = Field(5, ge=1, description="levels below the root (DBoW2 default)")
+    k: int = Field(10, ge=2, le=1000, description="children per node (DBoW2 default)")
+    L: int = Field(
+        5, ge=1, le=12, description="levels below the root (DBoW2 default); k^L at most 10^8 words"
+    )
     weighting: Weighting = Field("tf-idf", description="word weights")
     seed: int = Field(0, description="k-means++ seed")
-    max_iterations: int = Field(10, ge=1, description="k-means iterations per node")
+    max_iterations: int = Field(10, ge=1, le=10_000, description="k-means iterations per node")
     max_fit: int | None = Field(
         None, ge=100, description="fit nodes larger than this on a random subset (None = all descriptors)"
     )
+
+    @model_validator(mode="after")
+    def _words_bounded(self) -> VocabularyParams:
+        if self.k**self.L > 10**8:
+            raise ValueError(f"k^L = {self.k}^{self.L} words is more than 10^8 (k and L)")
+        return self
 
 
 def train_vocabulary(
