@@ -200,3 +200,56 @@ def test_missing_gtsam_says_what_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "gtsam", None)  # what an environment without GTSAM gives
     with pytest.raises(DependencyError, match=r"placerec\[slam\]"):
         PoseGraph()
+
+
+def test_degenerate_graphs_are_placerec_errors():
+    """GTSAM's "Indeterminate linear system" (a RuntimeError) never reaches the user: sigma settings are bounded,
+    a step's rotation sigma is capped at 180 deg, poses must be rigid, and what GTSAM still cannot solve is a
+    ScanDataError naming the pose."""
+    from placerec.errors import ConfigError
+    from placerec.slam_app.config import load_slam_config
+
+    for key, value in (
+        ("odometry_sigma_translation", 1e300),
+        ("odometry_min_sigma_translation", 1e6),
+        ("loop_sigma_translation", 1e300),
+        ("odometry_min_sigma_rotation_deg", 1e5),
+        ("loop_sigma_translation", 0.0),
+    ):
+        with pytest.raises(ConfigError, match=rf"graph\.{key}: "):
+            load_slam_config("configs/slam_demo.yaml", [f"graph.{key}={value}"])
+
+    def run(xs: tuple[float, ...], **params: float) -> np.ndarray:
+        g = PoseGraph(GraphParams(batch="lm", **params))
+        for x in xs:
+            g.add_pose(_at(x))
+            g.update()
+        g.add_loop(LoopFactor(0, len(xs) - 1, _at(xs[-1])))
+        return g.optimize()[0]
+
+    # 50 000 km steps: a rotation sigma of 5e6 deg, uncapped, made the system indeterminate
+    np.testing.assert_allclose(run((0.0, 5e7, 1e8))[:, 0, 3], [0.0, 5e7, 1e8])
+    with pytest.raises(
+        ScanDataError, match=r"iSAM2 update failed near pose 1 \(an indeterminate linear system\)"
+    ):
+        run((0.0, 1e8, 1e8 - 1, 1e8, 0.0), odometry_sigma_translation=10.0)  # sigmas of 1e9 m
+    g = PoseGraph()
+    for x in (0.0, 1.0, 2.0):
+        g.add_pose(_at(x))
+    with pytest.raises(
+        ScanDataError, match="odometry pose 3 is no rigid motion: rotation block is a reflection"
+    ):
+        g.add_pose(np.diag([1.0, 1.0, -1.0, 1.0]))
+    with pytest.raises(
+        ScanDataError, match="odometry pose 3 is no rigid motion: rotation block is not a rotation"
+    ):
+        g.add_pose(np.diag([0.0, 0.0, 0.0, 1.0]))
+    with pytest.raises(ScanDataError, match="loop 0 -> 1 is no rigid motion"):
+        g.add_loop(LoopFactor(0, 1, np.diag([2.0, 2.0, 2.0, 1.0])))
+    assert g.n_poses == 3 and not g.loops
+
+
+def _at(x: float) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3] = x
+    return T

@@ -14,11 +14,19 @@
 
 GTSAM orders a Pose3 tangent as (rotation, translation); the g2o export (`write_g2o`) writes the information
 matrix in g2o's (translation, rotation) order.
+
+The sigma settings are bounded (`GraphParams`: translation at most `MAX_SIGMA_M`, rotation at most 180 deg),
+poses, steps and loop transforms must be rigid motions (`placerec.types.rigid_problem`), and a system GTSAM still
+cannot solve ("Indeterminate linear system", e.g. 100 000 km steps) is a `ScanDataError` naming the pose near which
+it failed and the graph settings, never GTSAM's RuntimeError.
 """
 
 from __future__ import annotations
 
+import re
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -29,7 +37,7 @@ from pydantic import Field
 from placerec.errors import DependencyError, ScanDataError
 from placerec.io.atomic import atomic_write
 from placerec.params import Params
-from placerec.types import as_pose
+from placerec.types import as_pose, rigid_problem
 
 __all__ = ["GraphParams", "PoseGraph", "LoopFactor", "import_gtsam"]
 
@@ -45,23 +53,34 @@ def import_gtsam() -> Any:
     return gtsam
 
 
+#: Largest translation sigma (m) of any factor: against pose 0's 1e-6 prior, GTSAM's Cholesky solve stays
+#: determinate up to ~1e6 m (measured); 1e4 m leaves a margin and is beyond any LiDAR odometry's error.
+MAX_SIGMA_M = 1e4
+#: GTSAM's message for a system it cannot solve names the variable: "... near variable 12 (Symbol: 12)".
+_NEAR_VARIABLE = re.compile(r"near variable (\d+)")
+
+
 class GraphParams(Params):
     """Noise models, robust kernel and optimisers of the pose graph (`placerec.slam.graph`)."""
 
     odometry_sigma_translation: float = Field(
-        0.02, gt=0, description="odometry translation sigma per metre travelled (m/m)"
+        0.02, gt=0, le=10, description="odometry translation sigma per metre travelled (m/m; at most 10)"
     )
     odometry_sigma_rotation_deg: float = Field(
-        0.1, gt=0, description="odometry rotation sigma per metre travelled (deg/m)"
+        0.1, gt=0, le=180, description="odometry rotation sigma per metre travelled (deg/m; at most 180)"
     )
     odometry_min_sigma_translation: float = Field(
-        0.005, gt=0, description="floor of the translation sigma (m)"
+        0.005, gt=0, le=MAX_SIGMA_M, description="floor of the translation sigma (m; at most 1e4)"
     )
     odometry_min_sigma_rotation_deg: float = Field(
-        0.02, gt=0, description="floor of the rotation sigma (deg)"
+        0.02, gt=0, le=180, description="floor of the rotation sigma (deg; at most 180)"
     )
-    loop_sigma_translation: float = Field(0.1, gt=0, description="loop-closure translation sigma (m)")
-    loop_sigma_rotation_deg: float = Field(1.0, gt=0, description="loop-closure rotation sigma (deg)")
+    loop_sigma_translation: float = Field(
+        0.1, gt=0, le=MAX_SIGMA_M, description="loop-closure translation sigma (m; at most 1e4)"
+    )
+    loop_sigma_rotation_deg: float = Field(
+        1.0, gt=0, le=180, description="loop-closure rotation sigma (deg; at most 180)"
+    )
     robust: Literal["cauchy", "huber", "geman-mcclure", "dcs", "none"] = Field(
         "cauchy", description="robust kernel of the loop factors"
     )
@@ -133,9 +152,36 @@ class PoseGraph:
 
     def _sigmas(self, step: float) -> np.ndarray:
         p = self.params
-        rot = np.radians(max(p.odometry_min_sigma_rotation_deg, p.odometry_sigma_rotation_deg * step))
+        # at most 180 deg: a wider rotation sigma means nothing on SO(3), and GTSAM cannot solve 1e5 rad (measured)
+        rot = np.radians(
+            min(max(p.odometry_min_sigma_rotation_deg, p.odometry_sigma_rotation_deg * step), 180.0)
+        )
         trans = max(p.odometry_min_sigma_translation, p.odometry_sigma_translation * step)
         return np.array([rot] * 3 + [trans] * 3)
+
+    @contextmanager
+    def _solving(self, what: str) -> Iterator[None]:
+        """Run a GTSAM solve (``what``); its RuntimeError (an indeterminate linear system, a missing key) becomes
+        a `ScanDataError` naming the pose it was near and the settings that shape the system."""
+        try:
+            yield
+        except RuntimeError as exc:
+            text = " ".join(str(exc).split())
+            m = _NEAR_VARIABLE.search(text)
+            near = f" near pose {m.group(1)}" if m else ""
+            why = "an indeterminate linear system" if "ndeterminat" in text else f"GTSAM: {text[:200]}"
+            raise ScanDataError(
+                f"pose graph: {what} failed{near} ({why}); the graph's noise settings (graph.odometry_sigma_*, "
+                f"graph.loop_sigma_*) or the odometry or loop poses{near} are degenerate"
+            ) from exc
+
+    def _checked(self, T: np.ndarray, what: str) -> np.ndarray:
+        """``T`` as a rigid 4x4 (`_rigid`) if it is one (`rigid_problem`); `ScanDataError` naming ``what``."""
+        P = as_pose(T)
+        problem = rigid_problem(P[None])
+        if problem is not None:
+            raise ScanDataError(f"pose graph: {what} is no rigid motion: {problem[1]}")
+        return _rigid(P)
 
     def _loop_noise(self, robust: bool = True) -> Any:
         gtsam, p = self._gtsam, self.params
@@ -150,8 +196,8 @@ class PoseGraph:
         """Add the next pose from its odometry pose ``T_world_sensor``; returns its id. The odometry factor is
         the motion since the previous odometry pose (``step_pose`` gives it directly instead)."""
         gtsam = self._gtsam
-        T = _rigid(odometry_pose)
         i = self.n_poses
+        T = self._checked(odometry_pose, f"odometry pose {i}")
         if i == 0:
             self.prior = T
             noise = gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 1e-6))
@@ -159,7 +205,8 @@ class PoseGraph:
             self._new_values.insert(0, gtsam.Pose3(T))
         else:
             assert self._last_pose is not None  # every earlier add_pose set it
-            rel = _rigid(np.linalg.solve(self._last_pose, T) if step_pose is None else step_pose)
+            step = np.linalg.solve(self._last_pose, T) if step_pose is None else step_pose
+            rel = self._checked(step, f"odometry step {i - 1} -> {i}")
             sig = self._sigmas(float(np.linalg.norm(rel[:3, 3])))
             self.odometry.append((i - 1, i, rel, sig))
             self._new.add(
@@ -176,7 +223,8 @@ class PoseGraph:
             raise ScanDataError(
                 f"loop {loop.match_id} -> {loop.query_id}: both poses must exist and differ ({n} poses)"
             )
-        loop = replace(loop, T_match_query=_rigid(loop.T_match_query))
+        T = self._checked(loop.T_match_query, f"loop {loop.match_id} -> {loop.query_id}")
+        loop = replace(loop, T_match_query=T)
         self.loops.append(loop)
         self._new.add(
             self._gtsam.BetweenFactorPose3(
@@ -199,11 +247,12 @@ class PoseGraph:
         if self._new.size() == 0 and self._new_values.size() == 0:
             return 0.0
         t0 = time.perf_counter()
-        self._isam.update(self._new, self._new_values)
-        if self._new_has_loop:
-            for _ in range(self.params.loop_iterations):
-                self._isam.update()
-        self._estimate = self._isam.calculateEstimate()
+        with self._solving("iSAM2 update"):
+            self._isam.update(self._new, self._new_values)
+            if self._new_has_loop:
+                for _ in range(self.params.loop_iterations):
+                    self._isam.update()
+            self._estimate = self._isam.calculateEstimate()
         ms = (time.perf_counter() - t0) * 1e3
         (self.loop_update_ms if self._new_has_loop else self.update_ms).append(ms)
         self._new = self._gtsam.NonlinearFactorGraph()
@@ -248,7 +297,8 @@ class PoseGraph:
             lm = gtsam.LevenbergMarquardtParams()
             lm.setMaxIterations(p.max_iterations)
             opt = gtsam.LevenbergMarquardtOptimizer(self._graph(robust=True), initial, lm)
-            result = opt.optimize()
+            with self._solving("Levenberg-Marquardt batch"):
+                result = opt.optimize()
             info["iterations"] = int(opt.iterations())
         else:
             graph = self._graph(robust=False)
@@ -259,7 +309,8 @@ class PoseGraph:
             gnc.setKnownInliers(list(range(1 + len(self.odometry))))  # the prior and every odometry factor
             opt = gtsam.GncLMOptimizer(graph, initial, gnc)
             opt.setInlierCostThresholdsAtProbability(p.gnc_inlier_probability)
-            result = opt.optimize()
+            with self._solving("GNC batch"):
+                result = opt.optimize()
             gnc_weights = np.asarray(opt.getWeights())[1 + len(self.odometry) :]
         info["time_ms"] = (time.perf_counter() - t0) * 1e3
         residuals = self._loop_residuals(result)
