@@ -203,3 +203,36 @@ def test_the_back_end_names_where_the_application_went():
     with pytest.raises(AttributeError, match="import it from placerec.slam_app"):
         placerec.slam.run_slam  # noqa: B018
     assert callable(placerec.slam_app.run_slam) and placerec.slam.OnlineSlam.__name__ == "OnlineSlam"
+
+
+def test_drift_and_scan_times_errors_name_the_key_or_the_scan(tmp_path):
+    """Drift settings too large for the route made NaN odometry, reported as a pose of the graph; NaN scan times
+    reached the loop detector."""
+    from placerec.errors import ScanDataError
+
+    with pytest.raises(ConfigError, match=r"odometry\.drift\.scale_bias: "):
+        load_slam_config(None, ["odometry.drift.scale_bias=-1.0"])
+    cfg = load_slam_config(None, ["dataset.simulator.n_scans=5", "odometry.drift.translation=1.0e+300"])
+    with pytest.raises(
+        ConfigError, match=r"odometry\.drift: the drifting odometry of .* not finite .*at scan 1"
+    ):
+        run_slam(cfg, tmp_path / "res")
+
+    class NanTimes:
+        def __init__(self, base):
+            self._base = base
+            self.name, self.poses = base.name, base.poses
+            self.timestamps = base.timestamps.copy()
+            self.timestamps[3] = np.nan
+
+        def __len__(self):
+            return len(self._base)
+
+        def __getitem__(self, i):
+            return self._base[i]
+
+    seq = NanTimes(SimulatedSequence("town", "vlp16", n_scans=5, seed=0))
+    cfg = load_slam_config(None, ["output.progress=false"])
+    with pytest.raises(ScanDataError, match=r"timestamp of scan 3 is nan; SLAM needs finite scan times"):
+        run_slam(cfg, tmp_path / "res", seq)
+    assert not (tmp_path / "res").exists()

@@ -45,6 +45,11 @@ class DriftConfig(OdometryDrift):
     metre, a heading bias, a scale error) and its seed."""
 
     seed: int | None = Field(None, description="noise seed (None: the simulator's seed, else 0)")
+    scale_bias: float = Field(
+        0.005,
+        gt=-1,
+        description="relative scale error (> -1: a scale of 0 or less stops or reverses the motion)",
+    )
 
 
 class OdometryConfig(Params):

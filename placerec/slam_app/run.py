@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from placerec.errors import ConfigError
+from placerec.errors import ConfigError, ScanDataError
 from placerec.experiment.datasets import SlicedSequence, open_dataset
 from placerec.experiment.run_folder import make_run_dir
 from placerec.experiment.runner import progress_bars
@@ -27,7 +27,7 @@ from placerec.slam.online import OnlineSlam
 from placerec.slam.result import ONLINE_STAGES, SlamResult
 from placerec.slam_app.config import SlamConfig
 from placerec.slam_app.report import report_slam
-from placerec.types import PlaceRecognizer, Scan, Sequence
+from placerec.types import MAX_TRANSLATION_M, PlaceRecognizer, Scan, Sequence
 
 __all__ = ["slam_sequence", "run_slam", "odometry_source", "false_loops"]
 
@@ -45,7 +45,20 @@ def _drift_odometry(cfg: SlamConfig, seq: Sequence) -> np.ndarray:
     seed = drift.seed
     if seed is None:
         seed = cfg.dataset.simulator.seed if cfg.dataset.source == "simulator" else 0
-    return drift_poses(seq.poses, drift, seed)
+    with np.errstate(over="ignore", invalid="ignore"):
+        poses = drift_poses(seq.poses, drift, seed)
+    # finite and within MAX_TRANSLATION_M (rigid_problem's orthonormality test is left out: composing the rounded
+    # rotations of a long pose file drifts past its tolerance without anything being wrong)
+    far = ~(np.abs(poses) <= MAX_TRANSLATION_M).all(axis=(1, 2))  # NaN compares False
+    if far.any():
+        k = int(np.argmax(far))
+        raise ConfigError(
+            f"odometry.drift: the drifting odometry of {seq.name} is not finite or beyond {MAX_TRANSLATION_M:g} m "
+            f"at scan {k}: odometry.drift.translation={drift.translation:g}, rotation_deg={drift.rotation_deg:g}, "
+            f"yaw_bias_deg_per_100m={drift.yaw_bias_deg_per_100m:g}, scale_bias={drift.scale_bias:g} are too "
+            "large for its poses"
+        )
+    return poses
 
 
 def _file_odometry(cfg: SlamConfig, seq: Sequence) -> np.ndarray:
@@ -117,6 +130,22 @@ def _injected(cfg: SlamConfig, seq: Sequence) -> dict[int, list[LoopFactor]]:
     return false_loops(cfg, seq.poses, len(seq))
 
 
+def _timestamps(seq: Sequence) -> np.ndarray | None:
+    """The sequence's scan times, which must be finite when it has them (`ScanDataError` naming the scan)."""
+    stamps = seq.timestamps
+    if stamps is None:
+        return None
+    stamps = np.asarray(stamps, np.float64)
+    bad = ~np.isfinite(stamps)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ScanDataError(
+            f"{seq.name}: timestamp of scan {i} is {stamps[i]}; SLAM needs finite scan times (the sequence's "
+            "times.txt or its dataset's time stamps; loops.exclusion.seconds compares them)"
+        )
+    return stamps
+
+
 def slam_sequence(
     cfg: SlamConfig,
     seq: Sequence,
@@ -131,7 +160,7 @@ def slam_sequence(
     ex = cfg.loops.exclusion
     slam = OnlineSlam(rec, cfg.loops.threshold, cfg.graph, ex.frames, ex.seconds, ex.metres, k=cfg.loops.k)
     n = len(seq)
-    stamps = seq.timestamps
+    stamps = _timestamps(seq)
     injected = _injected(cfg, seq)
     pre = cfg.preprocess
     timing: dict[str, list[float]] = {s: [] for s in (*ONLINE_STAGES, "odometry", "cpu")}
@@ -192,6 +221,7 @@ def run_slam(
     rec = make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
     odometry = odometry_source(cfg, seq)
     _injected(cfg, seq)
+    _timestamps(seq)
     run = make_run_dir(cfg, out_dir)
     result = slam_sequence(cfg, seq, rec, odometry)
     return run, report_slam(cfg, run, seq, result)
