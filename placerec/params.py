@@ -19,8 +19,7 @@ import contextvars
 from collections.abc import Mapping
 from typing import Any, TypeVar, get_args
 
-import annotated_types
-from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from placerec.errors import ConfigError, short_repr
 
@@ -28,6 +27,8 @@ __all__ = ["Params", "SectionError", "deep_merge", "resolve", "format_errors", "
 
 #: the upper bound of every integer parameter that does not declare a tighter one
 MAX_INT = 10**9
+#: the constraint `Params` adds to such a field (pydantic's own ``le`` metadata)
+_AT_MOST_MAX_INT = Field(le=MAX_INT).metadata
 
 _MAX_REPR = 60
 #: How many `Params` constructions are in progress: pydantic builds nested sections through their ``__init__``,
@@ -48,8 +49,8 @@ class Params(BaseModel):
         for field in cls.model_fields.values():
             ann = field.annotation
             if ann is int or set(get_args(ann)) == {int, type(None)}:
-                if not any(isinstance(m, annotated_types.Le | annotated_types.Lt) for m in field.metadata):
-                    field.metadata.append(annotated_types.Le(MAX_INT))
+                if not any(hasattr(m, "le") or hasattr(m, "lt") for m in field.metadata):
+                    field.metadata.extend(_AT_MOST_MAX_INT)
                     changed = True
         if changed:
             cls.model_rebuild(force=True)
