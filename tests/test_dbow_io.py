@@ -146,3 +146,25 @@ def test_shipped_vocabularies_load_and_transform(name, kind, size, levels):
         d /= np.linalg.norm(d, axis=1, keepdims=True)
     bow = voc.transform(d)
     assert len(bow) > 0 and bow.values.sum() == pytest.approx(1.0)
+
+
+def test_an_unreadable_vocabulary_is_an_artifact_error(tmp_path, monkeypatch):
+    import builtins
+
+    from placerec.errors import ArtifactError
+    from placerec.retrieval.dbow.io import load_vocabulary
+
+    path = tmp_path / "voc.bin"
+    path.write_bytes(b"x" * 100)
+    real_open = builtins.open
+
+    def denied(file, *args, **kwargs):
+        if str(file) == str(path):
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "open", denied)
+    with pytest.raises(
+        ArtifactError, match=r"voc.bin: cannot read the vocabulary file \(Permission denied\)"
+    ):
+        load_vocabulary(path)

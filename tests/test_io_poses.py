@@ -154,14 +154,15 @@ def test_a_calibration_with_two_different_tr_lines_is_refused(tmp_path):
     ("text", "match"),
     [
         ("0.0\nnan\n0.2\n", r"times.txt:2: timestamp nan is not a finite"),
-        ("0.0\n0.2\n0.1\n", r"times.txt:3: .*before"),
+        ("0.0\n0.2\n0.1\n", r"times.txt:3: timestamp 0.1 s does not come after the previous one \(0.2 s\)"),
+        ("0.0\n0.1\n0.1\n", r"times.txt:3: .*must increase strictly"),  # two scans at one time
     ],
 )
-def test_times_must_be_finite_and_not_decrease(tmp_path, text, match):
+def test_times_must_be_finite_and_increase(tmp_path, text, match):
     from placerec.io.file_sequence import read_times
 
     (tmp_path / "times.txt").write_text(text)
     with pytest.raises(ScanFormatError, match=match):
         read_times(tmp_path / "times.txt", 3)
-    (tmp_path / "ok.txt").write_text("0.0\n0.1\n0.1\n")  # equal stamps happen (rounded to the ms)
-    assert read_times(tmp_path / "ok.txt", 3).tolist() == [0.0, 0.1, 0.1]
+    (tmp_path / "ok.txt").write_text("0.0\n0.1\n0.1000001\n")
+    assert read_times(tmp_path / "ok.txt", 3).tolist() == [0.0, 0.1, 0.1000001]

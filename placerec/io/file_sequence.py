@@ -43,7 +43,7 @@ def load_sensor_yaml(path: str | Path) -> SensorInfo:
 
 def read_times(path: Path, n: int) -> np.ndarray:
     """``n`` timestamps (seconds, one a line) from a ``times.txt``; ScanFormatError for another count, a value
-    that is not finite, or one earlier than the line before."""
+    that is not finite, or one not later than the line before (two scans are never taken at the same time)."""
     p, buf = read_bytes(path, "times.txt")
     try:
         t = np.array(buf.decode("utf-8").split(), dtype=np.float64)
@@ -54,11 +54,12 @@ def read_times(path: Path, n: int) -> np.ndarray:
     bad = ~np.isfinite(t)
     if bad.any():
         raise ScanFormatError(f"{p}:{int(np.argmax(bad)) + 1}: timestamp {t[bad][0]} is not a finite number")
-    back = np.flatnonzero(np.diff(t) < 0)
+    back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
         i = int(back[0]) + 1
         raise ScanFormatError(
-            f"{p}:{i + 1}: timestamp {t[i]:g} s comes before the previous one ({t[i - 1]:g} s)"
+            f"{p}:{i + 1}: timestamp {float(t[i])!r} s does not come after the previous one ({float(t[i - 1])!r} s); "
+            "timestamps must increase strictly"
         )
     return t
 

@@ -138,11 +138,13 @@ def load_vocabulary(path: str | Path, limit: int | None = None) -> Vocabulary:
     if not path.is_file():
         raise ArtifactError(f"{path}: no such vocabulary file")
     check_size(path.stat().st_size, path, "vocabulary file size", ArtifactError, "artifact", limit)
-    with open(path, "rb") as fh:
-        start = fh.read(len(MAGIC))
-    if start != MAGIC:
-        return read_text_vocabulary(path)
-    data = path.read_bytes()
+    try:
+        with open(path, "rb") as fh:
+            if fh.read(len(MAGIC)) != MAGIC:
+                return read_text_vocabulary(path)
+            data = MAGIC + fh.read()
+    except OSError as exc:
+        raise ArtifactError(f"{path}: cannot read the vocabulary file ({exc.strerror or exc})") from None
     header, base = _read_binary_header(data, path)
     arrays = {name: _read_array(data, base, header, name, path, limit) for name in _ARRAY_DTYPES}
     end = base + max(
