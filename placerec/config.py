@@ -51,7 +51,7 @@ class SimulatorConfig(Params):
 
     world: str = "town"
     sensor: str = "os1-64"
-    n_scans: int | None = Field(None, ge=1, description="None = the whole route")
+    n_scans: int | None = Field(None, ge=1, le=100_000, description="None = the whole route; at most 100,000")
     seed: int = 0
     route: str = "default"
     spacing: float = Field(1.0, gt=0, description="metres between scans")
@@ -160,7 +160,7 @@ class EvaluationConfig(Params):
         5.0, gt=0, description="a revisit has an eligible scan within this distance (m)"
     )
     gt_yaw_deg: float | None = Field(None, gt=0, description="optional heading limit for a true match")
-    top_n: int = Field(5, ge=1, description="candidates requested per query (recall@N)")
+    top_n: int = Field(5, ge=1, le=1000, description="candidates requested per query (recall@N)")
     retrieval_distance: float = Field(
         25.0,
         gt=0,
@@ -230,7 +230,7 @@ class ExecutionConfig(Params):
     scheduler: str | None = Field(
         None, description="Dask scheduler address (tcp://host:port); None = LocalCluster"
     )
-    chunk: int = Field(16, ge=1, description="scans per task")
+    chunk: int = Field(16, ge=1, le=100_000, description="scans per task")
 
     @field_validator("scheduler")
     @classmethod
