@@ -52,14 +52,14 @@ from functools import cached_property
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, model_validator
 
 from placerec.params import Params
 from placerec.pipelines.keypoint_voting import ARTIFACT_KIND, KeypointVoting, VotingParams
 from placerec.pipelines.voting_engine import Query, Shortlist, VoteStrategy
 from placerec.retrieval.nearest import nn_ratio
 from placerec.three_d.posterior import Posterior, PosteriorTable, density_weights
-from placerec.three_d.vote_model import VoteModel, tau_edges_problem
+from placerec.three_d.vote_model import TauEdges, VoteModel
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +70,7 @@ class InlineVoteModel(Params):
     """Vote model values used when no ``vote_model`` file is given: fitted by ``tools/eval_localization.py`` on the
     simulator's town map (VLP-16, ISHOT, 121 places 2.5 m apart, 9132 training votes; docs/localization.md)."""
 
-    tau_edges: list[float] = Field([0.0, 0.7, 0.8, 0.85, 0.9, 0.95, 1.0], description="tau range edges")
+    tau_edges: TauEdges = Field([0.0, 0.7, 0.8, 0.85, 0.9, 0.95, 1.0], description="tau range edges")
     sigma: list[float] = Field(
         [3.193, 5.182, 6.582, 9.886, 36.947, 43.746], description="m; half-normal scale per range"
     )
@@ -78,14 +78,6 @@ class InlineVoteModel(Params):
         [0.8886, 0.7239, 0.6197, 0.4683, 0.8014, 0.8367], description="half-normal weight per range"
     )
     d_max: float = Field(95.979, gt=0, description="m; extent of the uniform tail")
-
-    @field_validator("tau_edges")
-    @classmethod
-    def _ascending(cls, v: list[float]) -> list[float]:
-        problem = tau_edges_problem(v)
-        if problem is not None:
-            raise ValueError(problem)
-        return v
 
     @model_validator(mode="after")
     def _one_value_per_range(self) -> InlineVoteModel:

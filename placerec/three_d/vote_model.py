@@ -28,10 +28,10 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import AfterValidator, Field
 
 from placerec._version import __version__
 from placerec.errors import ArtifactError, ConfigError, ScanDataError, short_repr
@@ -68,19 +68,11 @@ LAMBDA_MAX = 0.999
 class VoteModelParams(Params):
     """How votes are binned by ``tau`` and fitted (the paper does not give its ranges)."""
 
-    tau_edges: list[float] = Field(
+    tau_edges: TauEdges = Field(
         [0.0, 0.7, 0.8, 0.85, 0.9, 0.95, 1.0],
         description="ascending edges of the tau ranges; the last range includes its upper edge",
     )
     min_votes: int = Field(30, ge=2, description="votes a range needs to be fitted (else lambda = 0)")
-
-    @field_validator("tau_edges")
-    @classmethod
-    def _ascending(cls, v: list[float]) -> list[float]:
-        problem = tau_edges_problem(v)
-        if problem is not None:
-            raise ValueError(problem)
-        return v
 
 
 def tau_edges_problem(edges: Any) -> str | None:
@@ -99,6 +91,17 @@ def tau_edges_problem(edges: Any) -> str | None:
             f"(got {short_repr(v.tolist())})"
         )
     return None
+
+
+def _tau_edges(v: list[float]) -> list[float]:
+    problem = tau_edges_problem(v)
+    if problem is not None:
+        raise ValueError(problem)
+    return v
+
+
+#: tau range edges as a parameter: `tau_edges_problem` refuses them naming the first edge out of order
+TauEdges = Annotated[list[float], AfterValidator(_tau_edges)]
 
 
 def mixture_pdf(d: np.ndarray, sigma: float, lam: float, d_max: float) -> np.ndarray:
