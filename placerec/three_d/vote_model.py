@@ -65,6 +65,17 @@ _SCHEMA = {
 LAMBDA_MAX = 0.999
 
 
+def _tau_edges(v: list[float]) -> list[float]:
+    problem = tau_edges_problem(v)
+    if problem is not None:
+        raise ValueError(problem)
+    return v
+
+
+#: tau range edges as a parameter: `tau_edges_problem` refuses them naming the first edge out of order
+TauEdges = Annotated[list[float], AfterValidator(_tau_edges)]
+
+
 class VoteModelParams(Params):
     """How votes are binned by ``tau`` and fitted (the paper does not give its ranges)."""
 
@@ -91,17 +102,6 @@ def tau_edges_problem(edges: Any) -> str | None:
             f"(got {short_repr(v.tolist())})"
         )
     return None
-
-
-def _tau_edges(v: list[float]) -> list[float]:
-    problem = tau_edges_problem(v)
-    if problem is not None:
-        raise ValueError(problem)
-    return v
-
-
-#: tau range edges as a parameter: `tau_edges_problem` refuses them naming the first edge out of order
-TauEdges = Annotated[list[float], AfterValidator(_tau_edges)]
 
 
 def mixture_pdf(d: np.ndarray, sigma: float, lam: float, d_max: float) -> np.ndarray:
