@@ -41,7 +41,8 @@ def test_fuzz_case_full(case: Case, tmp_path) -> None:
 
 # ------------------------------------------------------------------------------------------- through the CLI
 def _cli_sample(cases: list[Case], every: int) -> list[Case]:
-    """Cases whose input a CLI command reads: the first error case of each subject and one in ``every``."""
+    """Cases whose input a CLI command reads (``placerec info`` summarises a sequence from its first scans, so a
+    case damaging a later scan has no ``cli``): the first error case of each subject and one in ``every``."""
     with_cli = [c for c in cases if c.cli is not None and not c.slow]
     picked, seen = [], set()
     for c in with_cli:

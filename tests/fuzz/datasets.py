@@ -291,7 +291,7 @@ def cases() -> list[Case]:
     kcase("times-count", lambda t: _append(kitti(t / "k"), "sequences/00/times.txt", lambda s: "0.0\n"), names="times.txt")  # fmt: skip
     kcase("times-text", lambda t: _append(kitti(t / "k"), "sequences/00/times.txt", lambda s: "0.0\nsoon\n"), names="times.txt")  # fmt: skip
     kcase("velodyne-empty", lambda t: _clear(kitti(t / "k"), "sequences/00/velodyne"), names="00")
-    kcase("scan-truncated", lambda t: _append_bytes(kitti(t / "k"), "sequences/00/velodyne/000001.bin", lambda b: b[:-3]), names="000001.bin")  # fmt: skip
+    kcase("scan-truncated", lambda t: _append_bytes(kitti(t / "k"), "sequences/00/velodyne/000001.bin", lambda b: b[:-3]), cli=None, names="000001.bin")  # fmt: skip
     kcase("superscript-names", lambda t: _rename(kitti(t / "k"), "sequences/00/velodyne", ["¹.bin", "²³.bin"]), "either", check=_sequence(2), names="velodyne")  # fmt: skip
     kcase("sequence-missing", kitti_root_only := (lambda t: kitti(t / "k")), run=_open("kitti", sequence="07"), names="07", cli=None)  # fmt: skip
     del kitti_root_only
@@ -325,7 +325,7 @@ def cases() -> list[Case]:
     case(nc, "name-not-cloud", lambda t: newer_college(t / "n", names=[f"cloud_{NCD_SEC}_0.pcd", "scan.pcd"]), names="scan.pcd")  # fmt: skip
     case(nc, "times-nan", lambda t: _append(newer_college(t / "n"), f"ground_truth/{gt}", lambda s: s.replace(f"{NCD_SEC},100000000", "nan,100000000")), names=gt)  # fmt: skip
     case(nc, "gt-text", lambda t: _append(newer_college(t / "n"), f"ground_truth/{gt}", lambda s: s.replace(f"{NCD_SEC},100000000,2", f"{NCD_SEC},100000000,two")), names=gt)  # fmt: skip
-    case(nc, "scan-truncated", lambda t: _append_bytes(newer_college(t / "n"), f"raw_format/ouster_scan/cloud_{NCD_SEC}_100000000.pcd", lambda b: b[:-5]), names=f"cloud_{NCD_SEC}_100000000.pcd")  # fmt: skip
+    case(nc, "scan-truncated", lambda t: _append_bytes(newer_college(t / "n"), f"raw_format/ouster_scan/cloud_{NCD_SEC}_100000000.pcd", lambda b: b[:-5]), cli=None, names=f"cloud_{NCD_SEC}_100000000.pcd")  # fmt: skip
 
     # -------------------------------------------------------------------------------------------- helipr
     hgt = "Ouster_gt.txt"
@@ -335,7 +335,7 @@ def cases() -> list[Case]:
     case("helipr", "poses-missing", lambda t: _rm(helipr(t / "h"), f"LiDAR_GT/{hgt}"), names=hgt)
     case("helipr", "times-nan", lambda t: _append(helipr(t / "h"), f"LiDAR_GT/{hgt}", lambda s: "nan" + s[s.index(" "):]), names=hgt)  # fmt: skip
     case("helipr", "superscript-names", lambda t: helipr(t / "h", stems=["¹²³", "¹²³⁴"]), names="¹²³")
-    case("helipr", "record-size", lambda t: _append_bytes(helipr(t / "h"), "LiDAR/Ouster/1700000000100000000.bin", lambda b: b + b"x"), names="1700000000100000000.bin")  # fmt: skip
+    case("helipr", "record-size", lambda t: _append_bytes(helipr(t / "h"), "LiDAR/Ouster/1700000000100000000.bin", lambda b: b + b"x"), cli=None, names="1700000000100000000.bin")  # fmt: skip
     case("helipr", "max-gap-text", lambda t: helipr(t / "h"), run=_open("helipr", max_gap="0.05"), names="max_gap", error=ConfigError, cli=None)  # fmt: skip
     case("helipr", "max-gap-nan", lambda t: helipr(t / "h"), run=_open("helipr", max_gap=float("nan")), names="max_gap", error=ConfigError, cli=None)  # fmt: skip
     case("helipr", "max-gap-negative", lambda t: helipr(t / "h"), run=_open("helipr", max_gap=-1.0), names="max_gap", error=ConfigError, cli=None)  # fmt: skip
