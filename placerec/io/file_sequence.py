@@ -89,7 +89,10 @@ class FileSequence(StoredSequenceInfo):
             raise ScanFormatError(
                 f"{source}: {poses.shape[0]} poses for {len(self._files)} scans in {self._root}"
             )
-        self._poses = None if poses is None else check_poses(poses, len(self._files), str(source))
+        try:
+            self._poses = None if poses is None else check_poses(poses, len(self._files), str(source))
+        except ScanDataError as exc:  # the poses came from a file: a file error, naming it (check_poses does)
+            raise ScanFormatError(str(exc)) from None
 
     def __len__(self) -> int:
         return len(self._files)

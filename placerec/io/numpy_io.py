@@ -82,7 +82,7 @@ def read_npz(path: str | Path, *, organized: bool = False) -> Scan:
     shape = None
     if "shape" in arrays and organized:
         s = arrays["shape"].reshape(-1)
-        if s.size != 2 or s.dtype.kind not in "iu" or int(s[0]) * int(s[1]) != n:
+        if s.size != 2 or s.dtype.kind not in "iu" or (s < 1).any() or int(s[0]) * int(s[1]) != n:
             raise ScanFormatError(f"{p}: .npz 'shape' {s.tolist()} is not (rows, cols) of the {n} points")
         shape = (int(s[0]), int(s[1]))
     sensor = None

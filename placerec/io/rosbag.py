@@ -209,6 +209,9 @@ class RosbagSequence(PointCloud2Topic):
         except (AnyReaderError, *_BAG_ERRORS) as exc:
             self.close()
             raise ScanFormatError(f"{self._path}: cannot index topic {topic} ({exc})") from exc
+        if not log_times:
+            self.close()
+            raise ScanFormatError(f"{self._path}: topic {topic!r} has no messages: no scans")
         self._log_times = np.asarray(log_times, dtype=np.int64)
         self._stamps = np.asarray(stamps, dtype=np.float64)
         self._rank = same_time_ranks(self._log_times)

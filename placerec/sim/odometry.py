@@ -12,6 +12,7 @@ from pydantic import Field
 
 from placerec.params import Params
 from placerec.sim.geometry import euler_rotation
+from placerec.types import check_poses
 
 __all__ = ["OdometryDrift", "drift_poses"]
 
@@ -44,8 +45,9 @@ class OdometryDrift(Params):
 
 
 def drift_poses(poses: np.ndarray, drift: OdometryDrift, seed: int) -> np.ndarray:
-    """Odometry poses (N, 4, 4) that drift away from the true ``poses`` as described in the module docstring."""
-    poses = np.asarray(poses, dtype=np.float64)
+    """Odometry poses (N, 4, 4) that drift away from the true ``poses`` as described in the module docstring;
+    `ScanDataError` when ``poses`` are no rigid motions (`placerec.types.check_poses`)."""
+    poses = check_poses(poses, None, "drift_poses")
     n = len(poses)
     out = np.empty_like(poses)
     if n == 0:

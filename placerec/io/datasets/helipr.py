@@ -193,7 +193,7 @@ class HeliprSequence(TimedSequence):
         idx, ok = match_nearest(gt[:, 0] * 1e-9, stamps, max_gap, pose_file)
         if not ok.any():
             raise ScanFormatError(f"{pose_file}: no ground-truth row within {max_gap} s of a scan of {root}")
-        P = pose_from_xyz_quat(gt[idx, 1:4], gt[idx, 4:8])
+        P = pose_from_xyz_quat(gt[idx, 1:4], gt[idx, 4:8], pose_file)
         P[:, :3, 3] -= P[0, :3, 3]
         keep = np.flatnonzero(ok)
         super().__init__(

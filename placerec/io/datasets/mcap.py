@@ -73,6 +73,8 @@ class McapSequence(PointCloud2Topic):
             raise ScanFormatError(
                 f"{self._path}: cannot read as .mcap ({type(exc).__name__}: {exc})"
             ) from exc
+        if not times:
+            raise ScanFormatError(f"{self._path}: topic {topic!r} has no messages: no scans")
         self._topic = topic
         self._times = np.asarray(times, dtype=np.int64)
         self._stamps = np.asarray(stamps, dtype=np.float64)

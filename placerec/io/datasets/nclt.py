@@ -5,7 +5,8 @@ Scans are read by `placerec.io.nclt.read_nclt_bin`. NCLT's frames are z-down (x 
 Segway's body frame, whose axes ``velodyne_sync`` points already share); placerec's are z-up, so points and poses
 are turned by ``F = diag(1, -1, -1)`` (x, -y, -z), the beam elevations negated with them. The ground truth's rows
 are ``utime, x, y, z, roll, pitch, yaw`` (microseconds, metres, radians; ``R = Rz(yaw) Ry(pitch) Rx(roll)``), poses
-of the body; rows with NaN (the files start with some) are skipped. Each scan's pose is interpolated at its time
+of the body; the rows with NaN the files start with are skipped (a NaN row after them is an error), and
+the times must increase strictly. Each scan's pose is interpolated at its time
 (the file name), scans outside the ground truth's span are left out, and the LiDAR pose is
 ``F @ T_world_body @ T_body_velodyne @ F`` with the body -> Velodyne lever arm of the NCLT paper (0.002, -0.004,
 -0.957 m; roll 0.807, pitch 0.166 deg; its -90.703 deg yaw is already applied to ``velodyne_sync`` points).
@@ -68,8 +69,16 @@ class NcltSequence(TimedSequence):
         root = Path(path)
         files, stamps = stamped_files(root / "velodyne_sync", ".bin", 1e-6, "NCLT velodyne_sync scans")
         pose_file = Path(poses) if poses is not None else _ground_truth(root)
-        gt = read_table(pose_file, 7, "NCLT ground truth (utime, x, y, z, roll, pitch, yaw)", drop_nan=True)
-        gt = gt[np.argsort(gt[:, 0], kind="stable")]
+        gt = read_table(
+            pose_file, 7, "NCLT ground truth (utime, x, y, z, roll, pitch, yaw)", drop_leading_nan=True
+        )
+        back = np.flatnonzero(np.diff(gt[:, 0]) <= 0)
+        if back.size:
+            i = int(back[0]) + 1
+            raise ScanFormatError(
+                f"{pose_file}: ground-truth time {gt[i, 0]:.0f} us does not come after {gt[i - 1, 0]:.0f} us "
+                f"(finite row {i + 1}); times must increase strictly"
+            )
         body = pose_from_xyz_rpy(gt[:, 1:4], gt[:, 4:7])
         lidar, inside = interpolate_poses(gt[:, 0] * 1e-6, body @ NCLT_T_BODY_VELODYNE, stamps, pose_file)
         if not inside.any():

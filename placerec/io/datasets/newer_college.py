@@ -75,7 +75,7 @@ class NewerCollegeSequence(TimedSequence):
             )
         gt = gt[np.argsort(gt[:, 0] + gt[:, 1] * 1e-9, kind="stable")]
         t_gt = gt[:, 0] + gt[:, 1] * 1e-9
-        P = pose_from_xyz_quat(gt[:, 2:5], gt[:, 5:9]) @ NCD_T_BASE_LIDAR
+        P = pose_from_xyz_quat(gt[:, 2:5], gt[:, 5:9], pose_file) @ NCD_T_BASE_LIDAR
         t = np.asarray(stamps)
         idx, ok = match_nearest(t_gt, t, max_gap, pose_file)
         if not ok.any():

@@ -33,14 +33,14 @@ log = logging.getLogger(__name__)
 
 
 def read_table(
-    path: str | Path, ncols: int, what: str, *, delimiter: str | None = ",", drop_nan: bool = False
+    path: str | Path, ncols: int, what: str, *, delimiter: str | None = ",", drop_leading_nan: bool = False
 ) -> np.ndarray:
     """The rows of a numeric text table (CSV with ``delimiter=","``, whitespace with None) as (N, ncols) float64.
 
     Blank lines and lines starting with ``#`` are skipped, and so is a first line of column names (a
     header). Any other row with another column count or a non-number is a `ScanFormatError` naming the file and
-    line; so is a row with NaN/inf, unless ``drop_nan`` (then the row is skipped: NCLT's ground truth starts with
-    NaN rows). ``what`` names the table in messages."""
+    line; so is a row with NaN/inf, unless ``drop_leading_nan`` and no finite row came before it (then it is
+    skipped: NCLT's ground truth starts with NaN rows). ``what`` names the table in messages."""
     p = check_file(path, what)
     try:
         text = p.read_text(encoding="utf-8")
@@ -65,7 +65,7 @@ def read_table(
         if len(vals) != ncols:
             raise ScanFormatError(f"{p}:{no}: {len(vals)} columns, expected {ncols} ({what})")
         if not np.isfinite(vals).all():
-            if drop_nan:
+            if drop_leading_nan and not rows:
                 continue
             raise ScanFormatError(f"{p}:{no}: NaN or inf in the {what}")
         rows.append(vals)
@@ -82,11 +82,28 @@ def _is_float(token: str) -> bool:
     return True
 
 
-def pose_from_xyz_quat(xyz: npt.ArrayLike, quat_xyzw: npt.ArrayLike) -> np.ndarray:
-    """(N, 4, 4) poses from (N, 3) positions and (N, 4) quaternions (qx, qy, qz, qw)."""
+#: how far from 1 a ground-truth quaternion's norm may be (files round them to a few digits; zero or scaled ones
+#: are no rotations)
+QUATERNION_TOLERANCE = 1e-2
+
+
+def pose_from_xyz_quat(
+    xyz: npt.ArrayLike, quat_xyzw: npt.ArrayLike, where: str | Path = "poses"
+) -> np.ndarray:
+    """(N, 4, 4) poses from (N, 3) positions and (N, 4) quaternions (qx, qy, qz, qw), normalised; a quaternion
+    whose norm is not within `QUATERNION_TOLERANCE` of 1 (zero, scaled, not finite) is a `ScanFormatError` naming
+    ``where`` and its row (0-based, in the order given)."""
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    q = np.asarray(quat_xyzw, dtype=np.float64).reshape(-1, 4)
+    norm = np.linalg.norm(q, axis=1)
+    bad = ~(np.abs(norm - 1.0) <= QUATERNION_TOLERANCE)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ScanFormatError(
+            f"{where}: quaternion of row {i} has norm {norm[i]:.6g}, expected 1 (a rotation)"
+        )
     P = np.tile(np.eye(4), (xyz.shape[0], 1, 1))
-    P[:, :3, :3] = quat_to_matrix(np.asarray(quat_xyzw, dtype=np.float64).reshape(-1, 4))
+    P[:, :3, :3] = quat_to_matrix(q)
     P[:, :3, 3] = xyz
     return P
 
