@@ -88,7 +88,7 @@ def artifact_summary(path: Any, arrays: dict[str, np.ndarray], header: dict[str,
     from pathlib import Path
 
     from placerec.quantise import PackedCloud
-    from placerec.verify.candidates import VerifiedParams
+    from placerec.verify.candidates import CLOUDS_SHARE, VerifiedParams
 
     size = Path(path).stat().st_size
     out: dict[str, Any] = {
@@ -129,7 +129,7 @@ def artifact_summary(path: Any, arrays: dict[str, np.ndarray], header: dict[str,
         "cloud_store": form,
         "ram_kib_per_entry_built": round(ram / 1024, 2),
         "default_cloud_budget_mb": budget,
-        "entries_in_ram_within_budget": int(budget * 1e6 / 2 // ram) if budget and ram else None,
+        "entries_in_ram_within_budget": int(budget * 1e6 * CLOUDS_SHARE // ram) if budget and ram else None,
         "when_loaded": "memory-mapped: the clouds stay file pages, read when a candidate reaches ICP",
     }
     return out

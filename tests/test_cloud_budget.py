@@ -28,7 +28,7 @@ def test_clouds_over_the_budget_move_to_the_spill_file_and_read_back_bit_for_bit
     for i, c in enumerate(clouds):
         small.add(i, c)
         unlimited.add(i, c)
-        assert small.nbytes <= budget_mb * 1e6 / 2  # never over its half of the budget after an add
+        assert small.nbytes <= budget_mb * 1e6 / 2  # never over its share of the budget after an add
     n_spilled, spilled_bytes = small.spilled
     assert 20 < n_spilled < 40 and spilled_bytes > 0
     assert unlimited.spilled == (0, 0) and unlimited.nbytes > budget_mb * 1e6
@@ -49,9 +49,9 @@ def test_re_adding_an_entry_frees_its_old_bytes():
     np.testing.assert_array_equal(store.cloud(0), fresh.cloud(0))
 
 
-def test_prepared_targets_stay_within_half_the_budget():
+def test_prepared_targets_stay_within_a_quarter_of_the_budget():
     clouds = _clouds(12, seed=3)
-    store = CloudStore(dtype="int16-zlib", budget_mb=0.4)
+    store = CloudStore(dtype="int16-zlib", budget_mb=0.8)
     for i, c in enumerate(clouds):
         store.add(i, c)
     for i in range(len(clouds)):
@@ -114,6 +114,8 @@ def test_pipelines_give_the_same_answers_and_save_the_same_database_with_any_bud
         ]
         if budget is not None:
             assert rec._clouds.spilled[0] >= 2  # most clouds are in the spill file
+            if name == "orb-hbst":  # and the keypoints, their points and descriptors of most entries
+                assert rec._descriptors.nbytes <= 0.05e6 / 12 and len(rec._descriptors) == 4
         rec.save(tmp_path / f"{budget}.npz")
         runs[budget] = answers
     for a, b in zip(runs[None], runs[0.05], strict=True):
@@ -153,8 +155,29 @@ def test_placerec_info_reports_what_a_saved_database_entry_costs(scans, tmp_path
     assert clouds["cloud_store"] == "int16-zlib"
     # the packed size measured on the saved clouds: what the store holds in RAM for them
     assert clouds["ram_kib_per_entry_built"] == pytest.approx(rec._clouds.nbytes / 3 / 1024, rel=0.02)
-    assert abs(clouds["entries_in_ram_within_budget"] - 128e6 / (rec._clouds.nbytes / 3)) <= 1
+    assert abs(clouds["entries_in_ram_within_budget"] - 64e6 / (rec._clouds.nbytes / 3)) <= 1
     # a scan .npz is still summarised as a scan
     np.savez(tmp_path / "scan.npz", xyz=np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32))
     result = CliRunner().invoke(app, ["info", str(tmp_path / "scan.npz"), "--json"])
     assert result.exit_code == 0 and "points" in json.loads(result.output)
+
+
+def test_spilled_arrays_keep_their_budget_and_read_back_bit_for_bit():
+    from placerec.verify.spill import SpilledArrays
+
+    rng = np.random.default_rng(4)
+    arrays = [rng.integers(0, 255, (int(rng.integers(1, 300)), 32), dtype=np.uint8) for _ in range(50)]
+    m = SpilledArrays(20_000, SpillFile())
+    for i, a in enumerate(arrays):
+        m[i] = a
+        assert m.nbytes <= 20_000
+    assert len(m) == 50 and 0 in m and list(m) == list(range(50))
+    for i, a in enumerate(arrays):
+        np.testing.assert_array_equal(m[i], a)
+        assert m[i].dtype == a.dtype
+    m[0] = arrays[1]  # replacing an entry
+    np.testing.assert_array_equal(m[0], arrays[1])
+    unlimited = SpilledArrays(None, SpillFile())
+    for i, a in enumerate(arrays):
+        unlimited[i] = a
+    assert unlimited.nbytes == sum(a.nbytes for a in arrays)

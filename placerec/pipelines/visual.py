@@ -52,7 +52,14 @@ from placerec.recognizer import (
 from placerec.retrieval.hbst import HBST, HBSTParams, default_threshold
 from placerec.types import Candidate, Description, Scan
 from placerec.verify import VerifyParams
-from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
+from placerec.verify.candidates import (
+    CloudStore,
+    Retrieved,
+    VerifiedParams,
+    feature_arrays,
+    scan_cloud,
+    verify_candidates,
+)
 from placerec.verify.matching import mutual_nearest
 
 __all__ = [
@@ -235,12 +242,12 @@ class VisualFrontend(Generic[VP]):
         return describe_visual(scan, p.image, self.extractor, p.verify if p.verify.enabled else None)
 
     def _reset_features(self) -> None:
-        """Empty the per-image features (keypoints, descriptors, image width), their 3D points and ICP clouds."""
-        self._keypoints: dict[int, np.ndarray] = {}
-        self._descriptors: dict[int, np.ndarray] = {}
-        self._width: dict[int, int] = {}
-        self._kp_xyz: dict[int, np.ndarray] = {}
+        """Empty the per-image features (keypoints, descriptors, image width), their 3D points and ICP clouds. The
+        keypoints, points and descriptors are kept within their share of ``verify.cloud_budget_mb``, the oldest
+        beyond it in the clouds' spill file (`placerec.verify.candidates.feature_arrays`)."""
         self._clouds = CloudStore.for_pipeline(self.params.verify)
+        self._keypoints, self._descriptors, self._kp_xyz = feature_arrays(self._clouds, 3)
+        self._width: dict[int, int] = {}
 
     def _add_features(self, scan_id: int, description: Description, descriptors: np.ndarray) -> None:
         """Keep a description being added: its keypoints, ``descriptors`` (as the retrieval stores them), image

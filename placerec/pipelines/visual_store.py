@@ -25,7 +25,7 @@ MAX_IMAGE_WIDTH = 1 << 15
 
 
 def pack_features(
-    rec: VisualFrontend, order: list[int], descriptors: dict[int, np.ndarray], dim: int, dtype: type
+    rec: VisualFrontend, order: list[int], descriptors: Mapping[int, np.ndarray], dim: int, dtype: type
 ) -> dict[str, np.ndarray]:
     """The arrays of a visual database ``rec``: per-image counts and widths, stacked keypoints, their 3D points
     and descriptors; with verification the ICP clouds (`placerec.verify.candidates.CloudStore.arrays`)."""

@@ -47,10 +47,18 @@ from placerec.quantise import FixedPointCloud, PackedCloud
 from placerec.types import Candidate
 from placerec.verify.icp import IcpCloud, as_points
 from placerec.verify.params import VerifyParams
-from placerec.verify.spill import SpillFile, SpillRef
+from placerec.verify.spill import SpilledArrays, SpillFile, SpillRef, memory_mapped
 from placerec.verify.verify import Hypothesis, Verification, as_source, as_target, complete, hypothesise
 
-__all__ = ["VerifiedParams", "Retrieved", "CloudStore", "scan_cloud", "voxel_points", "verify_candidates"]
+__all__ = [
+    "VerifiedParams",
+    "Retrieved",
+    "CloudStore",
+    "scan_cloud",
+    "voxel_points",
+    "verify_candidates",
+    "feature_arrays",
+]
 
 
 class VerifiedParams(VerifyParams):
@@ -82,18 +90,19 @@ class VerifiedParams(VerifyParams):
         "or float32 (12 bytes)",
     )
     cloud_budget_mb: float | None = Field(
-        256.0,
+        128.0,
         gt=0,
         le=1e6,
-        description="RAM (MB) for the ICP clouds the database keeps: beyond it, the oldest stored clouds move to a "
-        "temporary file (cloud_spill_dir) and are read back when a candidate reaches ICP, and the ICP targets "
-        "prepared for reuse are kept within half of it; None: everything in RAM. Results do not depend on it. "
-        "A run-time setting: not recorded in a saved database",
+        description="RAM (MB) for what each database entry keeps for verification: half for the stored ICP clouds "
+        "(beyond it the oldest move to a temporary file, cloud_spill_dir, read back when a candidate reaches ICP), a "
+        "quarter for the ICP targets prepared for reuse, a quarter for the 2D pipelines' keypoints, their 3D points "
+        "and descriptors (spilled likewise); None: everything in RAM. Results do not depend on it. A run-time "
+        "setting: not recorded in a saved database",
         json_schema_extra={"runtime": True},
     )
     cloud_spill_dir: str | None = Field(
         None,
-        description="folder of the file the clouds over cloud_budget_mb move to (None: the system's temporary "
+        description="folder of the file what is over cloud_budget_mb moves to (None: the system's temporary "
         "folder); the file has no name there and is gone when the process ends",
         json_schema_extra={"runtime": True},
     )
@@ -149,11 +158,13 @@ class CloudStore:
       mapped file's pages take no RAM until used). `add_deferred` stores a function making the cloud instead,
       called when the cloud is first needed (e.g. from a memory-mapped places database).
     * ``budget_mb`` (``VerifiedParams.cloud_budget_mb``; None: no limit) bounds the RAM of both: once the stored
-      clouds pass half of it, the oldest move, in the same form, to an unnamed temporary file in ``spill_dir``
-      (`placerec.verify.spill.SpillFile`) and are read back when prepared (`nbytes`, `spilled`); the prepared
-      targets, counted at their arrays' bytes (`prepared_bytes`), are kept within the other half and within
-      ``max_prepared`` of them, least recently used dropped (one takes ~1-3 MB for an OS1-64 scan at 0.4 m and
-      30-90 ms to prepare). Either way a cloud reads back bit for bit: results do not depend on the budget.
+      clouds pass `CLOUDS_SHARE` of it, the oldest move, in the same form, to an unnamed temporary file in
+      ``spill_dir`` (`placerec.verify.spill.SpillFile`, `spill_file`) and are read back when prepared (`nbytes`,
+      `spilled`); the prepared targets, counted at their arrays' bytes (`prepared_bytes`), are kept within
+      `PREPARED_SHARE` of it and within ``max_prepared`` of them, least recently used dropped (one takes ~1-3 MB
+      for an OS1-64 scan at 0.4 m and 30-90 ms to prepare). The rest, `FEATURES_SHARE`, is for a pipeline's own
+      per-entry arrays (`feature_arrays`). Either way a cloud reads back bit for bit: results do not depend on the
+      budget.
     * ``arrays`` / `from_arrays` give the clouds for a pipeline's saved database (float32 points either way).
     """
 
@@ -183,6 +194,11 @@ class CloudStore:
         self._in_ram: OrderedDict[int, None] = (
             OrderedDict()
         )  # ids whose cloud may move to the file, oldest first
+
+    @property
+    def spill_file(self) -> SpillFile:
+        """The file this store's clouds over the budget go to (shared with `feature_arrays`)."""
+        return self._spill
 
     @classmethod
     def for_pipeline(cls, verify: VerifiedParams) -> CloudStore:
@@ -221,14 +237,14 @@ class CloudStore:
     def _spill_over_budget(self) -> None:
         if self.budget_bytes is None:
             return
-        while self._ram > self.budget_bytes // 2 and self._in_ram:
+        while self._ram > self.budget_bytes * CLOUDS_SHARE and self._in_ram:
             sid, _ = self._in_ram.popitem(last=False)
             value = self._clouds[sid]
             self._ram -= _ram_bytes(value)
             self._clouds[sid] = _spilled(value, self._spill)
 
     def add(self, scan_id: int, cloud: np.ndarray) -> None:
-        mapped = _memory_mapped(cloud)  # a memory-mapped file's pages cost no RAM: kept as they are
+        mapped = memory_mapped(cloud)  # a memory-mapped file's pages cost no RAM: kept as they are
         c = np.asarray(cloud, dtype=np.float32)
         if c.ndim != 2 or c.shape[1] != 3:
             raise ScanDataError(f"cloud of entry {scan_id} must have shape (M, 3), got {c.shape}")
@@ -277,7 +293,7 @@ class CloudStore:
         tgt = as_target(self.cloud(sid), self.params)
         self._prepared[sid] = tgt
         self._prepared_ram += _target_bytes(tgt)
-        cap = None if self.budget_bytes is None else self.budget_bytes - self.budget_bytes // 2
+        cap = None if self.budget_bytes is None else self.budget_bytes * PREPARED_SHARE
         while len(self._prepared) > 1 and (
             len(self._prepared) > self.max_prepared or (cap is not None and self._prepared_ram > cap)
         ):
@@ -320,6 +336,19 @@ class CloudStore:
         # kept as read, int16 or not: views of the file's pages when the database was loaded memory-mapped
         for i, c in zip(ids, np.split(xyz, np.cumsum(counts)[:-1]) if len(ids) else [], strict=True):
             self._clouds[int(i)] = c  # views of one array: neither counted in the budget nor spilled
+
+
+#: the shares of ``verify.cloud_budget_mb``: the stored clouds, the prepared ICP targets, and the per-entry arrays a
+#: pipeline keeps for its matching (the 2D pipelines' keypoints, their 3D points and descriptors: `feature_arrays`)
+CLOUDS_SHARE, PREPARED_SHARE, FEATURES_SHARE = 0.5, 0.25, 0.25
+
+
+def feature_arrays(store: CloudStore, n: int) -> list[SpilledArrays]:
+    """``n`` mappings id -> array for a pipeline's per-entry arrays, sharing `FEATURES_SHARE` of ``store``'s budget
+    equally and its spill file (`placerec.verify.spill.SpilledArrays`)."""
+    b = store.budget_bytes
+    share = None if b is None else int(b * FEATURES_SHARE / n)
+    return [SpilledArrays(share, store.spill_file) for _ in range(n)]
 
 
 #: how `CloudStore.add` keeps a cloud per ``dtype`` (``VerifiedParams.cloud_store``)
@@ -371,7 +400,7 @@ def _spilled(value: _Stored, spill: SpillFile) -> _Spill:
 
 def _ram_bytes(value: _Stored) -> int:
     """RAM a stored value holds that the budget counts: 0 for spilled, deferred and memory-mapped clouds."""
-    if isinstance(value, _Spill) or callable(value) or _memory_mapped(value):
+    if isinstance(value, _Spill) or callable(value) or memory_mapped(value):
         return 0
     return int(value.nbytes)
 
@@ -384,15 +413,6 @@ def _target_bytes(t: IcpCloud) -> int:
 
 #: small_gicp's target per point: points and normals (2 x 32 bytes), covariances (128), KD-tree (~16)
 _NATIVE_BYTES_PER_POINT = 208
-
-
-def _memory_mapped(a: Any) -> bool:
-    """Whether ``a`` views the pages of a memory-mapped file (an `np.memmap` somewhere in its ``base`` chain)."""
-    while a is not None:
-        if isinstance(a, np.memmap):
-            return True
-        a = getattr(a, "base", None)
-    return False
 
 
 def _score(v: Verification, params: VerifyParams) -> float:

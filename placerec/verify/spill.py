@@ -1,5 +1,6 @@
 """An append-only file of byte records, read back by offset: where `placerec.verify.candidates.CloudStore` moves
-the clouds beyond its RAM budget.
+the clouds beyond its RAM budget, and `SpilledArrays` (a mapping id -> array with a RAM budget) the arrays beyond
+its own (the 2D pipelines' per-entry keypoints, their 3D points and descriptors).
 
 ::
 
@@ -18,11 +19,15 @@ from __future__ import annotations
 import os
 import tempfile
 import threading
+from collections import OrderedDict
+from collections.abc import Iterator, Mapping
 from typing import IO, NamedTuple
+
+import numpy as np
 
 from placerec.errors import ConfigError, ScanDataError
 
-__all__ = ["SpillRef", "SpillFile"]
+__all__ = ["SpillRef", "SpillFile", "SpilledArrays", "memory_mapped"]
 
 
 class SpillRef(NamedTuple):
@@ -98,3 +103,69 @@ class SpillFile:
         f = getattr(self, "_file", None)
         if f is not None:
             f.close()
+
+
+def memory_mapped(a: object) -> bool:
+    """Whether ``a`` views the pages of a memory-mapped file (an `np.memmap` somewhere in its ``base`` chain)."""
+    while a is not None:
+        if isinstance(a, np.memmap):
+            return True
+        a = getattr(a, "base", None)
+    return False
+
+
+class _ArrayRef(NamedTuple):
+    """An array moved to a `SpillFile`: where its bytes are, and its dtype and shape."""
+
+    ref: SpillRef
+    dtype: np.dtype
+    shape: tuple[int, ...]
+
+
+class SpilledArrays(Mapping[int, np.ndarray]):
+    """A mapping id -> array that keeps at most ``budget_bytes`` of arrays in RAM (None: no limit): beyond it the
+    oldest added move to ``spill`` and are read back (read-only) when looked up. Arrays viewing a memory-mapped
+    file are kept as they are and not counted (their pages take no RAM until used)."""
+
+    def __init__(self, budget_bytes: int | None, spill: SpillFile) -> None:
+        self.budget_bytes = budget_bytes
+        self._spill = spill
+        self._items: dict[int, np.ndarray | _ArrayRef] = {}
+        self._in_ram: OrderedDict[int, int] = OrderedDict()  # counted ids, oldest first -> their bytes
+        self._ram = 0
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the counted arrays in RAM."""
+        return self._ram
+
+    def __setitem__(self, key: int, value: np.ndarray) -> None:
+        key = int(key)
+        self._ram -= self._in_ram.pop(key, 0)
+        arr = np.asarray(value)
+        self._items[key] = arr
+        if memory_mapped(arr):
+            return
+        self._in_ram[key] = int(arr.nbytes)
+        self._ram += int(arr.nbytes)
+        if self.budget_bytes is not None:
+            while self._ram > self.budget_bytes and self._in_ram:
+                old, size = self._in_ram.popitem(last=False)
+                a = np.ascontiguousarray(self._items[old])
+                self._items[old] = _ArrayRef(self._spill.write(a.tobytes()), a.dtype, a.shape)
+                self._ram -= size
+
+    def __getitem__(self, key: int) -> np.ndarray:
+        v = self._items[int(key)]
+        if isinstance(v, _ArrayRef):
+            return np.frombuffer(self._spill.read(v.ref), v.dtype).reshape(v.shape)
+        return v
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._items
