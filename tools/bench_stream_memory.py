@@ -143,6 +143,7 @@ def run_stream(args: tuple) -> dict:
         "closures": closures,
         "revisits_closed": found,
         "peak_rss_mb": status_kb("VmHWM") / 1024,
+        "final_rss_mb": status_kb("VmRSS") / 1024,
         "start_rss_mb": start_kb / 1024,
         "rss_samples_mb": [(n, kb / 1024) for n, kb in samples],
         "clouds_in_ram_mb": store.nbytes / 1e6,
@@ -183,12 +184,15 @@ def main() -> None:
                     r = pool.apply(run_stream, (job,))
                 results.append(r)
                 print(
-                    f"{name:13s} budget {budget!s:>6} MB: peak RSS {r['peak_rss_mb']:.0f} MB (start "
+                    f"{name:13s} budget {budget!s:>6} MB: peak RSS {r['peak_rss_mb']:.0f} MB (final {r['final_rss_mb']:.0f}, start "
                     f"{r['start_rss_mb']:.0f}), clouds in RAM {r['clouds_in_ram_mb']:.0f} MB, spilled "
                     f"{r['clouds_spilled']} ({r['spill_file_mb']:.0f} MB), prepared targets {r['prepared_mb']:.0f} MB, "
                     f"{len(r['closures'])} closures ({r['revisits_closed']} of {r['revisits']} revisits), "
                     f"{r['seconds']:.0f} s",
                     flush=True,
+                )
+                print(
+                    "  resident MB after n scans:", " ".join(f"{n}:{mb:.0f}" for n, mb in r["rss_samples_mb"])
                 )
     summary: dict[str, object] = {"bench": "stream_memory", "scans": args.scans}
     for name in args.pipelines:
