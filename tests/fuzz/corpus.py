@@ -38,6 +38,7 @@ SURFACES: dict[str, str] = {
     "slam": "fuzz.slam",
     "executors": "fuzz.executors",
     "metrics": "fuzz.metrics",
+    "weights": "fuzz.weights",
 }
 
 
