@@ -364,13 +364,21 @@ def test_corrupted_pipeline_databases_raise_artifact_error(tmp_path, name):
     _fuzz(tmp_path, good, load, lambda obj, p: obj.save(p), _pipeline_edits, name)
 
 
-def test_visual_image_widths_are_bounded_on_describe_and_on_load(tmp_path):
-    from placerec.errors import ScanDataError
+def test_visual_image_widths_are_bounded_on_describe_and_on_load(tmp_path, monkeypatch):
+    from placerec.errors import ConfigError, ScanDataError
+    from placerec.pipelines import visual
     from placerec.pipelines.visual import MAX_IMAGE_WIDTH
 
     scans, _ = _sim_scans()
-    with pytest.raises(ScanDataError, match=f"over {MAX_IMAGE_WIDTH} px"):
-        make_pipeline("orb-hbst", {"image": {"width": MAX_IMAGE_WIDTH + 8}}).describe(scans[0])
+    with pytest.raises(
+        ConfigError, match=f"image.width: Input should be less than or equal to {MAX_IMAGE_WIDTH}"
+    ):
+        make_pipeline("orb-hbst", {"image": {"width": MAX_IMAGE_WIDTH + 8}})
+    # a sensor with more columns than the bound is refused when described (the bound lowered to show it)
+    monkeypatch.setattr(visual, "MAX_IMAGE_WIDTH", 256)
+    with pytest.raises(ScanDataError, match="over 256 px"):
+        make_pipeline("orb-hbst", {"image": {"width": 512}}).describe(scans[0])
+    monkeypatch.undo()
     rec = make_pipeline("orb-hbst", {"image": {"width": 512}})
     rec.add(0, scans[0])
     rec.save(tmp_path / "db.npz")

@@ -66,7 +66,7 @@ def test_a_new_params_class_gets_the_default_bound():
 @pytest.mark.parametrize(
     ("pipeline", "key", "value", "cap"),
     [
-        ("orb-hbst", "image.width", 10**6, 16384),
+        ("orb-hbst", "image.width", 10**6, 32768),
         ("orb-hbst", "feature_params.nfeatures", 10**7, 100_000),
         ("orb-hbst", "verify.top_k", 10**6, 1000),
         ("orb-hbst", "verify.icp.max_iterations", 10**8, 10_000),

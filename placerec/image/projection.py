@@ -70,7 +70,7 @@ class ImageParams(Params):
         "auto", description="VPR paper Sec. IV-A eq. 2 (uniform), per-beam rows or the organised scan"
     )
     width: int | None = Field(
-        None, gt=0, le=16384, description="px (at most 16384); None = the sensor's columns, else 1024"
+        None, gt=0, le=1 << 15, description="px (at most 32768); None = the sensor's columns, else 1024"
     )
     height: int | None = Field(
         None, gt=0, le=4096, description="px (at most 4096); None = the sensor's beams, else 64"
