@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fuzz.artifacts import _calibration  # the same small table the fuzz corpus damages
 
 from placerec.calibration.table import CalibrationTable
 from placerec.errors import ArtifactError
@@ -56,14 +57,6 @@ def _places(path: Path) -> None:
         ids=ids, poses=scan_poses[ids].copy(), sources=sources, kp_offsets=np.r_[0, np.cumsum(counts)],
         keypoints=rng.normal(size=(12, 3)).astype(np.float32), descriptors=rng.uniform(size=(12, 8)).astype(np.float32),
         params=PlacesParams(), scan_poses=scan_poses, clouds=clouds, intensity="sensor-default", sequence="s",
-    ).save(path)  # fmt: skip
-
-
-def _calibration(path: Path) -> None:
-    rng = np.random.default_rng(2)
-    CalibrationTable(
-        values=np.sort(rng.uniform(0, 1, (4, 16)), axis=1), raw_step=1.0, sensor="vlp16", max_range=30.0,
-        counts=rng.integers(0, 9, (4, 16)),
     ).save(path)  # fmt: skip
 
 

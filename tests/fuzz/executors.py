@@ -68,7 +68,10 @@ def cases() -> list[Case]:
     out.append(Case("executors", "chunk-0", lambda t: ["execution.chunk=0"], _loads, names="execution.chunk", error=ConfigError))  # fmt: skip
     out.append(Case("executors", "scheduler-without-dask", lambda t: ["execution.scheduler='tcp://127.0.0.1:8786'"],
                     _loads, names="execution.scheduler", error=ConfigError))  # fmt: skip
-    for name, value in MALFORMED.items():
+    # malformed addresses are refused at once; unreachable ones after distributed's timeout (slow)
+    for name, value, slow in [(n, v, False) for n, v in MALFORMED.items()] + [
+        (n, v, True) for n, v in UNREACHABLE.items()
+    ]:
         out.append(
             Case(
                 "executors",
@@ -77,18 +80,7 @@ def cases() -> list[Case]:
                 _pool,
                 names="execution.scheduler",
                 error=ConfigError,
-            )
-        )
-    for name, value in UNREACHABLE.items():
-        out.append(
-            Case(
-                "executors",
-                f"scheduler-{name}",
-                lambda t, v=value: ["execution.executor=dask", f"execution.scheduler={v}"],  # fmt: skip
-                _pool,
-                names="execution.scheduler",
-                error=ConfigError,
-                slow=True,
+                slow=slow,
             )
         )
     return out
