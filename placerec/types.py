@@ -275,7 +275,8 @@ class ListSequence(StoredSequenceInfo):
 
 
 def as_pose(pose: np.ndarray) -> np.ndarray:
-    """Validate and return a 4x4 float64 pose (accepts 3x4)."""
+    """Validate and return a 4x4 float64 pose (accepts 3x4): a rigid motion (`rigid_problem`), else
+    `ScanDataError`."""
     T = np.asarray(pose, dtype=np.float64)
     if T.shape == (3, 4):
         T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
@@ -283,6 +284,9 @@ def as_pose(pose: np.ndarray) -> np.ndarray:
         raise ScanDataError(f"a pose must be 4x4 (or 3x4), got shape {T.shape}")
     if not np.all(np.isfinite(T)):
         raise ScanDataError("a pose contains NaN or inf")
+    problem = rigid_problem(T[None])
+    if problem is not None:
+        raise ScanDataError(f"a pose is no rigid motion: {problem[1]}")
     return T
 
 

@@ -399,7 +399,7 @@ class KeypointVoting(Recognizer[VotingParams]):
         store = DescriptorStore.from_arrays(
             arrays, header["meta"].get("descriptor_store", "float32"), self._dim, path
         )
-        self._reset(EntryTable.from_arrays(arrays, store))
+        self._reset(EntryTable.from_arrays(arrays, store, path))
         if self.params.verify.enabled:
             if "cloud_xyz" not in arrays:
                 raise ArtifactError(f"{path}: database saved without the clouds verification needs")

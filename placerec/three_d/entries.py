@@ -19,8 +19,9 @@ from typing import Any
 
 import numpy as np
 
+from placerec.errors import ArtifactError
 from placerec.retrieval.descriptor_store import DescriptorStore, StoreView
-from placerec.types import as_pose
+from placerec.types import as_pose, rigid_problem
 
 __all__ = ["EntryTable", "far_from_all"]
 
@@ -161,8 +162,14 @@ class EntryTable:
         }
 
     @classmethod
-    def from_arrays(cls, arrays: Mapping[str, np.ndarray], store: DescriptorStore) -> EntryTable:
-        """The table `arrays` wrote (checked by the caller's schema)."""
+    def from_arrays(
+        cls, arrays: Mapping[str, np.ndarray], store: DescriptorStore, path: Any = ""
+    ) -> EntryTable:
+        """The table `arrays` wrote (checked by the caller's schema; the poses here: `ArtifactError` for one that
+        is no rigid motion)."""
+        problem = rigid_problem(arrays["poses"])
+        if problem is not None:
+            raise ArtifactError(f"{path}: 'poses' row {problem[0]} is no rigid motion: {problem[1]}")
         n = len(arrays["ids"])
         kp = np.split(arrays["keypoints"], np.cumsum(arrays["counts"])[:-1]) if n else []
         return cls.of(store, arrays["ids"], list(arrays["poses"]), arrays["counts"], list(kp))

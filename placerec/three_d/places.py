@@ -48,7 +48,7 @@ from placerec.quantise import FixedPointCloud, decode_unit, encode_unit
 from placerec.retrieval.descriptor_store import DescriptorStore, StoreDtype
 from placerec.three_d.entries import EntryTable, far_from_all
 from placerec.three_d.features import FeatureParams
-from placerec.types import MAX_TRANSLATION_M, Scan, path_length
+from placerec.types import MAX_TRANSLATION_M, Scan, path_length, rigid_problem
 
 __all__ = [
     "PlacesParams",
@@ -357,6 +357,9 @@ def _check_layout(arrays: dict[str, np.ndarray], meta: dict[str, Any], path: str
             raise ArtifactError(
                 f"{path}: {name!r} refers to scan {arrays[name].max()}, the map has {n_scans}"
             )
+    problem = rigid_problem(arrays["scan_poses"])
+    if problem is not None:
+        raise ArtifactError(f"{path}: 'scan_poses' row {problem[0]} is no rigid motion: {problem[1]}")
     if not np.array_equal(arrays["poses"], arrays["scan_poses"][arrays["ids"]]):
         raise ArtifactError(
             f"{path}: place 'poses' differ from the 'scan_poses' of their centre scans ('ids')"
