@@ -116,7 +116,16 @@ def _has_map_closures() -> bool:
 
 
 def test_every_surface_has_cases_and_the_fast_subset_samples_each() -> None:
-    assert set(SURFACES) == {"readers", "datasets", "artifacts", "configs", "slam", "executors", "metrics", "weights"}
+    assert set(SURFACES) == {
+        "readers",
+        "datasets",
+        "artifacts",
+        "configs",
+        "slam",
+        "executors",
+        "metrics",
+        "weights",
+    }
     for surface in SURFACES:
         assert any(c.surface == surface for c in FAST), surface
     subjects = {(c.surface, c.subject) for c in ALL if not c.slow}
