@@ -117,7 +117,12 @@ def info(
 ResultsRoot = Annotated[Path | None, typer.Option("--out", "-o", help="Results root (default: output.dir).")]
 Overrides = Annotated[
     list[str] | None,
-    typer.Option("--set", "-s", help="Override a config value: key.path=value (repeatable)."),
+    typer.Option(
+        "--set",
+        "-s",
+        help="Override a config value: key.path=value (repeatable); a pipeline by index or label:"
+        " pipelines.0.params.feature_params.nfeatures=500.",
+    ),
 ]
 
 

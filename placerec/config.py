@@ -283,8 +283,44 @@ def parse_config(data: dict[str, Any] | None, origin: str = "<config>") -> Exper
     return resolve(ExperimentConfig, data, where=f"{origin}: invalid configuration")
 
 
+def _item_name(item: Any) -> str:
+    """How a list item is named in an error: a pipeline-like mapping by its label (else its name)."""
+    if isinstance(item, dict):
+        return str(item.get("label") or item.get("name") or "?")
+    return short_repr(item, 40)
+
+
+def _list_index(items: list[Any], part: str, key: str, item: str) -> int:
+    """The index in ``items`` that the override key part ``part`` selects: a number, an item's label (or name, when
+    no label is given), or a name only one item has; `ConfigError` naming ``key`` and listing the items otherwise."""
+    if re.fullmatch(r"-?[0-9]+", part):
+        index = int(part)
+        if 0 <= index < len(items):
+            return index
+        why = f"no item {index}"
+    else:
+        dicts = [(i, x) for i, x in enumerate(items) if isinstance(x, dict)]
+        for matches in (
+            [i for i, x in dicts if (x.get("label") or x.get("name")) == part],
+            [i for i, x in dicts if x.get("name") == part],
+        ):
+            if len(matches) == 1:
+                return matches[0]
+            if len(matches) > 1:
+                why = f"{len(matches)} items are named {part!r}; use the index or a label"
+                break
+        else:
+            why = f"no item labelled or named {part!r}"
+    listing = ", ".join(f"{i}: {_item_name(x)}" for i, x in enumerate(items)) or "none"
+    raise ConfigError(f"override {short_repr(item)}: '{key}': {why}; the list holds {listing}")
+
+
 def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
-    """Apply ``a.b.c=value`` overrides (value parsed as YAML) to a nested dict, in place; returns it."""
+    """Apply ``a.b.c=value`` overrides (value parsed as YAML) to a nested dict, in place; returns it.
+
+    A part of the key inside a list picks an item: its index (``pipelines.0.params.nfeatures=500``), or its label,
+    or its name when one item only has it (``pipelines.orb-hbst.threshold=0.3``). The values are validated where
+    the data is (the config model; a pipeline's ``params`` by the pipeline, naming ``pipelines[N].params.key``)."""
     for item in overrides:
         if "=" not in item:
             raise ConfigError(f"override {item!r} must look like key.path=value")
@@ -293,15 +329,25 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
         if not parts:
             raise ConfigError(f"override {item!r} has an empty key")
         value = load_yaml(raw, f"override {short_repr(item)}")
-        node = data
-        for i, part in enumerate(parts[:-1]):
-            child = node.get(part)
-            if child is None:
-                child = node[part] = {}
-            if not isinstance(child, dict):
-                raise ConfigError(f"override {item!r}: '{'.'.join(parts[: i + 1])}' is not a section")
+        node: dict[str, Any] | list[Any] = data
+        for i, part in enumerate(parts):
+            where = ".".join(parts[: i + 1])
+            if isinstance(node, list):
+                index = _list_index(node, part, where, item)
+                if i == len(parts) - 1:
+                    node[index] = value
+                    break
+                child = node[index]
+            else:
+                if i == len(parts) - 1:
+                    node[part] = value
+                    break
+                child = node.get(part)
+                if child is None:
+                    child = node[part] = {}
+            if not isinstance(child, dict | list):
+                raise ConfigError(f"override {item!r}: '{where}' is not a section")
             node = child
-        node[parts[-1]] = value
     return data
 
 
@@ -330,6 +376,8 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
     data = {} if path is None else read_config_file(path)
     origin = "<defaults>" if path is None else str(path)
     if overrides:
+        if "pipelines" not in data and any(o.strip().startswith("pipelines.") for o in overrides):
+            data["pipelines"] = ExperimentConfig().model_dump(mode="json")["pipelines"]  # the default ones
         apply_overrides(data, overrides)
     return parse_config(data, origin)
 
