@@ -436,6 +436,7 @@ def main() -> None:
     try:
         app()
     except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
         sys.exit(130)
     except PlacerecError as exc:
         print(support.error_line(exc), file=sys.stderr)

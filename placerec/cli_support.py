@@ -69,7 +69,8 @@ def fail(exc: Exception) -> None:
 
 
 def reports_errors(command: Callable[..., None]) -> Callable[..., None]:
-    """``command`` (same signature, help and options) with its placerec errors ending as `fail` ends them."""
+    """``command`` (same signature, help and options) with its placerec errors ending as `fail` ends them, and
+    Ctrl-C as one line ``interrupted`` on stderr, status 130."""
 
     @functools.wraps(command)
     def run(*args: Any, **kwargs: Any) -> None:
@@ -79,6 +80,9 @@ def reports_errors(command: Callable[..., None]) -> Callable[..., None]:
             command(*args, **kwargs)
         except PlacerecError as exc:
             fail(exc)
+        except KeyboardInterrupt:
+            typer.echo("interrupted", err=True)
+            raise typer.Exit(130) from None
 
     return run
 

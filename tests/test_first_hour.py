@@ -112,3 +112,83 @@ def test_slam_pipeline_overrides_still_work():
     )
     assert cfg.loops.pipeline.params == {"feature_params": {"nfeatures": 500}}
     assert cfg.loops.pipeline.threshold == 0.2
+
+
+# --- 2. Ctrl-C during `placerec run` ------------------------------------------------------------------------------
+
+
+def _small_run(tmp_path):
+    config = {
+        "name": "ctrl-c",
+        "dataset": {"simulator": {"world": "town", "sensor": "vlp16", "n_scans": 6}},
+        "pipelines": [
+            {"name": "scan-context", "label": "a"},
+            {"name": "scan-context", "label": "b", "params": {"num_rings": 10}},
+        ],
+        "evaluation": {"exclusion": {"frames": 2}, "pose_truth": {"enabled": False}},
+        "output": {"dir": str(tmp_path / "results"), "figures": False, "cache_dir": None, "progress": False},
+    }
+    path = tmp_path / "ctrl_c.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path, tmp_path / "results"
+
+
+def test_ctrl_c_during_the_pipelines_leaves_no_folder(tmp_path, monkeypatch, warm_kernels):
+    from placerec.baselines.scan_context import ScanContext
+
+    calls = []
+    describe = ScanContext.describe
+
+    def interrupted(self, scan):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return describe(self, scan)
+
+    monkeypatch.setattr(ScanContext, "describe", interrupted)
+    config, results = _small_run(tmp_path)
+    result = runner.invoke(app, ["run", str(config)])
+    assert result.exit_code == 130, result.output
+    assert result.output.strip().splitlines()[-1] == "interrupted"
+    assert list(results.iterdir()) == []  # the folder holding only config.yaml is gone; no latest
+
+
+def test_ctrl_c_after_some_results_marks_the_folder_incomplete(tmp_path, monkeypatch, warm_kernels):
+    import placerec.experiment.report as report
+
+    calls = []
+    summary = report.loop_summary
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:  # pipeline a reported, b's candidates written: interrupted while judging b
+            raise KeyboardInterrupt
+        return summary(*args, **kwargs)
+
+    monkeypatch.setattr(report, "loop_summary", interrupted)
+    config, results = _small_run(tmp_path)
+    result = runner.invoke(app, ["run", str(config)])
+    assert result.exit_code == 130, result.output
+    assert result.output.strip().splitlines()[-1] == "interrupted"
+    (run,) = results.iterdir()  # no latest link
+    assert run.name.startswith("ctrl-c_")
+    assert (run / "INCOMPLETE").read_text() == (
+        "interrupted before the report was complete; pipelines with results: a, b; without: none\n"
+    )
+    assert not (run / "metrics.json").exists()
+
+
+def test_an_interrupted_run_keeps_latest_where_it_was(tmp_path):
+    from placerec.experiment.run_folder import INCOMPLETE, abandon_run, point_latest
+
+    done, stopped, empty = (tmp_path / n for n in ("done", "stopped", "empty"))
+    for run in (done, stopped, empty):
+        run.mkdir()
+        (run / "config.yaml").write_text("name: x\n")
+    point_latest(done)
+    (stopped / "candidates_a.csv").write_text("")
+    assert abandon_run(stopped, ["a", "b c"]) == stopped / INCOMPLETE
+    assert "with results: a; without: b c" in (stopped / INCOMPLETE).read_text()
+    assert abandon_run(empty, ["a"]) is None and not empty.exists()
+    assert abandon_run(done, ["a"]) is None and done.exists() and not (done / INCOMPLETE).exists()
+    assert (tmp_path / "latest").resolve() == done.resolve()

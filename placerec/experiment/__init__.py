@@ -26,9 +26,10 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> 
     The pipelines are built and the datasets opened and checked (poses for the evaluation, what the exclusion
     window needs) before the results folder is made, so a config that cannot run leaves no folder behind. The run
     opens them again (the simulator and file sequences open in milliseconds once built), so that its description
-    cache is keyed by the config's dataset."""
+    cache is keyed by the config's dataset. A run interrupted (Ctrl-C) leaves no folder, or one marked INCOMPLETE
+    when some pipelines' results were written (`placerec.experiment.run_folder.abandon_run`)."""
     from placerec.experiment.report import report_localize, report_loop, require_poses
-    from placerec.experiment.run_folder import make_run_dir
+    from placerec.experiment.run_folder import interruptible, make_run_dir
     from placerec.experiment.runner import (
         build_pipelines,
         localize_sequences,
@@ -38,16 +39,19 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> 
     )
 
     pipelines = build_pipelines(cfg)
+    labels = [record.label for record, _ in pipelines]
     if cfg.evaluation.mode == "loop":
         from placerec.experiment.truth import TruthClouds
 
         truth = TruthClouds(cfg.evaluation, require_poses(loop_sequence(cfg)))
         run = make_run_dir(cfg, out_dir)
-        seq, records = run_loop(cfg, None, pipelines, on_scan=truth)
-        payload = report_loop(cfg, run, seq, records, truth)
+        with interruptible(run, labels):
+            seq, records = run_loop(cfg, None, pipelines, on_scan=truth)
+            payload = report_loop(cfg, run, seq, records, truth)
     else:
         localize_sequences(cfg)
         run = make_run_dir(cfg, out_dir)
-        map_seq, query_seq, records = run_localize(cfg, None, pipelines)
-        payload = report_localize(cfg, run, map_seq, query_seq, records)
+        with interruptible(run, labels):
+            map_seq, query_seq, records = run_localize(cfg, None, pipelines)
+            payload = report_localize(cfg, run, map_seq, query_seq, records)
     return run, payload

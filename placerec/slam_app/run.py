@@ -17,7 +17,7 @@ import numpy as np
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.experiment.datasets import SlicedSequence, open_dataset
-from placerec.experiment.run_folder import make_run_dir
+from placerec.experiment.run_folder import interruptible, make_run_dir
 from placerec.experiment.runner import progress_bars
 from placerec.io import read_poses
 from placerec.preprocess import preprocess_scan
@@ -223,5 +223,6 @@ def run_slam(
     _injected(cfg, seq)
     _timestamps(seq)
     run = make_run_dir(cfg, out_dir)
-    result = slam_sequence(cfg, seq, rec, odometry)
-    return run, report_slam(cfg, run, seq, result)
+    with interruptible(run):
+        result = slam_sequence(cfg, seq, rec, odometry)
+        return run, report_slam(cfg, run, seq, result)
