@@ -192,3 +192,23 @@ def test_an_interrupted_run_keeps_latest_where_it_was(tmp_path):
     assert abandon_run(empty, ["a"]) is None and not empty.exists()
     assert abandon_run(done, ["a"]) is None and done.exists() and not (done / INCOMPLETE).exists()
     assert (tmp_path / "latest").resolve() == done.resolve()
+
+
+# --- 3. the README says where `placerec` comes from ---------------------------------------------------------------
+
+
+def test_readme_says_how_to_get_placerec_on_the_path():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    first_command = re.search(r"```bash\n(?:[^`]*\n)?placerec ", readme).start()  # the first block running it
+    before = readme[:first_command]
+    assert "source .venv/bin/activate" in before and ".venv/bin/placerec" in before
+    pyproject = (root / "pyproject.toml").read_text()
+    section = pyproject.split("[project.optional-dependencies]")[1].split("\n[")[0]
+    extras = re.findall(r"^([a-z0-9-]+) = \[", section, flags=re.M)
+    assert "slam" in extras and "dev" in extras
+    install = before[before.index("pip install -e") :]
+    for extra in extras:
+        assert f"`{extra}`" in install or extra in install.split("]")[0], extra
