@@ -212,3 +212,27 @@ def test_readme_says_how_to_get_placerec_on_the_path():
     install = before[before.index("pip install -e") :]
     for extra in extras:
         assert f"`{extra}`" in install or extra in install.split("]")[0], extra
+
+
+# --- 4a. an unknown scan suffix names the command line's option too -----------------------------------------------
+
+
+def test_unknown_suffix_names_the_option_and_the_keyword(tmp_path):
+    path = tmp_path / "scan.xyz"
+    path.write_text("1 2 3\n")
+    result = runner.invoke(app, ["info", str(path)])
+    assert result.exit_code == 2, result.output
+    line = result.output.strip()
+    assert "--format on the command line, format= in Python" in line
+    assert ".pcap" in line and "'pcd'" in line
+
+
+def test_bin_that_is_neither_format_names_the_option(tmp_path):
+    import numpy as np
+
+    path = tmp_path / "garbage.bin"
+    rec = np.full((500, 4), 0.5, "<f4")
+    rec[:, :3] = 3e6  # no LiDAR point, and no NCLT laser ids
+    rec.tofile(path)
+    result = runner.invoke(app, ["info", str(path)])
+    assert result.exit_code == 2 and "--format kitti or --format nclt" in result.output

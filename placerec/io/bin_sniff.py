@@ -83,5 +83,6 @@ def sniff_bin_format(path: Path) -> str:
         return "kitti"  # the KITTI reader reports the size mismatch
     raise ScanFormatError(
         f"{path}: not a KITTI .bin ({why}) and not an NCLT velodyne_sync .bin (8-byte records, laser ids 0..31); "
-        "pass format='kitti' or format='nclt' to force a reader"
+        "force a reader with --format kitti or --format nclt on the command line (format='kitti' or format='nclt'"
+        " in Python)"
     )

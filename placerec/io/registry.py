@@ -62,7 +62,9 @@ def scan_format_of(path: str | Path, format: str | None, table: dict[str, Any] |
     if fmt is None or fmt not in table:
         known = sorted(k for k, v in EXTENSIONS.items() if v in table)
         raise ScanFormatError(
-            f"{path}: cannot tell the scan format from the suffix (known: {known}); pass format="
+            f"{path}: cannot tell the scan format from the suffix (known: {known}; a .pcap, .bag, .db3 or .mcap"
+            f" is a sequence, read with open_sequence); name one of {sorted(table)}: --format on the command"
+            " line, format= in Python"
         )
     return fmt
 
