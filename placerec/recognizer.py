@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import numbers
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -142,10 +143,38 @@ class Recognizer(ABC, Generic[P]):
     def load(self, path: str | Path) -> None: ...
 
     def add(self, scan_id: int, scan: Scan, pose: np.ndarray | None = None) -> None:
+        _check_scan(
+            f"{self.name}.add", scan, "add(scan_id, scan, pose=None)", swapped=isinstance(scan_id, Scan)
+        )
+        _check_integer(f"{self.name}.add", "scan_id", scan_id, ScanDataError)
         self.add_description(scan_id, self.describe(scan), pose)
 
     def query(self, scan: Scan, k: int = 1, max_id: int | None = None, query_id: int = -1) -> list[Candidate]:
+        where = f"{self.name}.query"
+        _check_scan(where, scan, "query(scan, k=1, max_id=None, query_id=-1)")
+        _check_integer(where, "k", k, ConfigError)
+        if max_id is not None:
+            _check_integer(where, "max_id", max_id, ConfigError)
+        _check_integer(where, "query_id", query_id, ConfigError)
         return self.query_description(self.describe(scan), k=k, max_id=max_id, query_id=query_id)
+
+
+def _check_scan(where: str, scan: object, signature: str, swapped: bool = False) -> None:
+    """`ScanDataError` naming the ``scan`` argument of ``where`` unless it is a `Scan`."""
+    if not isinstance(scan, Scan):
+        hint = "; the arguments look swapped" if swapped else ""
+        raise ScanDataError(
+            f"{where}: argument 'scan' must be a placerec.types.Scan (e.g. from placerec.io.read_scan), got "
+            f"{type(scan).__name__} {short_repr(scan, 40)}{hint}; the call is {signature}"
+        )
+
+
+def _check_integer(where: str, name: str, value: object, error: type[Exception]) -> None:
+    """``error`` naming argument ``name`` of ``where`` unless ``value`` is an integer (a numpy one too, not bool)."""
+    if not isinstance(value, numbers.Integral) or isinstance(value, bool):
+        raise error(
+            f"{where}: argument {name!r} must be an integer, got {type(value).__name__} {short_repr(value, 40)}"
+        )
 
 
 #: The verification the global-localisation presets share (ISHOT paper Sec. V-C: one verification module for

@@ -236,3 +236,67 @@ def test_bin_that_is_neither_format_names_the_option(tmp_path):
     rec.tofile(path)
     result = runner.invoke(app, ["info", str(path)])
     assert result.exit_code == 2 and "--format kitti or --format nclt" in result.output
+
+
+# --- 4b. swapped or wrong arguments to Recognizer.add / query -----------------------------------------------------
+
+
+def _scan():
+    import numpy as np
+
+    from placerec.types import Scan
+
+    rng = np.random.default_rng(0)
+    return Scan((rng.normal(size=(2000, 3)) * 10).astype("f4"), rng.random(2000).astype("f4"))
+
+
+@pytest.mark.parametrize(
+    ("call", "error", "message"),
+    [
+        (
+            lambda rec, s: rec.add(s, 0),
+            "ScanDataError",
+            r"scan-context\.add: argument 'scan' must be a placerec\.types\.Scan.*got int 0; the arguments look swapped",
+        ),
+        (
+            lambda rec, s: rec.add(0, "scan.bin"),
+            "ScanDataError",
+            r"argument 'scan' must be a placerec\.types\.Scan.*got str",
+        ),
+        (
+            lambda rec, s: rec.add(1.5, s),
+            "ScanDataError",
+            r"argument 'scan_id' must be an integer, got float 1\.5",
+        ),
+        (
+            lambda rec, s: rec.query(0),
+            "ScanDataError",
+            r"scan-context\.query: argument 'scan' must be a placerec\.types\.Scan",
+        ),
+        (lambda rec, s: rec.query(s, k="3"), "ConfigError", r"argument 'k' must be an integer, got str"),
+        (lambda rec, s: rec.query(s, max_id=2.0), "ConfigError", r"argument 'max_id' must be an integer"),
+        (
+            lambda rec, s: rec.query(s, query_id=None),
+            "ConfigError",
+            r"argument 'query_id' must be an integer",
+        ),
+    ],
+)
+def test_recognizer_entry_points_check_their_arguments(call, error, message):
+    import placerec.errors
+    from placerec.recognizer import make_pipeline
+
+    rec = make_pipeline("scan-context")
+    with pytest.raises(getattr(placerec.errors, error), match=message):
+        call(rec, _scan())
+
+
+def test_recognizer_entry_points_take_numpy_integers():
+    import numpy as np
+
+    from placerec.recognizer import make_pipeline
+
+    rec, scan = make_pipeline("scan-context"), _scan()
+    rec.add(np.int64(3), scan)
+    (best,) = rec.query(scan, k=np.int64(1), max_id=np.int32(10))
+    assert best.match_id == 3
