@@ -300,3 +300,30 @@ def test_recognizer_entry_points_take_numpy_integers():
     rec.add(np.int64(3), scan)
     (best,) = rec.query(scan, k=np.int64(1), max_id=np.int32(10))
     assert best.match_id == 3
+
+
+# --- 4c. `placerec slam` with no loop closed ----------------------------------------------------------------------
+
+
+def test_slam_table_prints_a_dash_for_no_loop_update(capsys):
+    from placerec.eval.metrics import timing_summary
+    from placerec.slam_app.report import _loop_rows, print_slam_table
+
+    payload = {
+        "pipeline": "orb-hbst",
+        "odometry_source": "simulated drift",
+        "trajectory": {},
+        "loops": {"accepted": 0, "injected": 0, "median_translation_error": float("nan")},
+        "time_ms": {
+            "online_without_odometry": timing_summary([2.0, 4.0]),
+            "online_with_odometry": timing_summary([3.0, 5.0]),
+            "isam2_update": timing_summary([1.0, 1.0]),
+            "isam2_loop_update": timing_summary([]),  # no loop closed: NaN statistics
+        },
+    }
+    header, (row,) = _loop_rows(payload)
+    cells = dict(zip(header, row, strict=True))
+    assert cells["iSAM2 loop ms"] == "-" and cells["median t err [m]"] == "-"
+    assert cells["iSAM2 ms"] == "1.000"
+    print_slam_table(payload, "slam")
+    assert "nan" not in capsys.readouterr().out.lower()

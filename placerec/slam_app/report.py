@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -179,8 +180,10 @@ def _rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
 def _loop_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     lp, tm = payload["loops"], payload["time_ms"]
 
-    def fmt(v: Any) -> str:
-        return "-" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v))
+    def fmt(v: Any) -> str:  # "-": none (e.g. no loop closed, so no iSAM2 loop update to time)
+        if v is None or (isinstance(v, float) and not math.isfinite(v)):
+            return "-"
+        return f"{v:.3f}" if isinstance(v, float) else str(v)
 
     header = ["loops", "accepted", "false", "opposite dir.", "injected", "rejected by graph (real / injected)",
               "median t err [m]", "ms/scan (no odom) median", "with odom", "iSAM2 ms", "iSAM2 loop ms"]  # fmt: skip
