@@ -194,22 +194,26 @@ def print_pipelines() -> None:
 
 
 def print_pipeline_params(name: str) -> None:
-    """Every parameter of pipeline ``name`` (dotted path, default, type, description), then its threshold."""
-    from rich.console import Console
-    from rich.table import Table
+    """Every parameter of pipeline ``name``, one per entry: ``dotted.path = default  (type)``, then its description
+    wrapped on indented lines to the terminal's width (readable at 80 columns), then its operating threshold."""
+    import shutil
+    import textwrap
 
     from placerec.params import param_rows
     from placerec.recognizer import PIPELINES, pipeline_params
 
     params = pipeline_params(name)
-    table = Table(title=f"{name} parameters")
-    table.add_column("parameter", no_wrap=True)  # a dotted name is never cut; the other columns wrap
-    table.add_column("default", overflow="fold", max_width=16)
-    table.add_column("type", overflow="fold", max_width=16)
-    table.add_column("what / where from", overflow="fold")
+    width = max(40, min(shutil.get_terminal_size().columns, 100))
+    title = f"{name} parameters: path = default  (type), then what it is / where it comes from"
+    lines = [*textwrap.wrap(title, width), ""]
     for key, value, kind, description in param_rows(params):
-        table.add_row(key, repr(value), kind, description)
-    Console().print(table)
+        head = f"{key} = {value!r}  ({kind})"
+        lines += textwrap.wrap(head, width, subsequent_indent="    ", break_on_hyphens=False) or [head]
+        lines += textwrap.wrap(description, width, initial_indent="    ", subsequent_indent="    ")
     entry = PIPELINES.get(name)
     if entry is not None and entry.threshold is not None:
-        typer.echo(f"operating threshold: {entry.threshold:g} (chosen on the tuning split, docs/protocol.md)")
+        lines += [
+            "",
+            f"operating threshold: {entry.threshold:g} (chosen on the tuning split, docs/protocol.md)",
+        ]
+    typer.echo("\n".join(lines))
