@@ -202,6 +202,74 @@ def bench(
 
 
 @_command()
+def detect(
+    source: Annotated[
+        Path,
+        typer.Argument(help="A sequence: a scan folder, a dataset layout, a bag/mcap, an Ouster .pcap."),
+    ],
+    pipeline: Annotated[
+        str | None,
+        typer.Option(help="Registered pipeline (default: the held-out benchmark's best with a threshold)."),
+    ] = None,
+    threshold: Annotated[
+        float | None, typer.Option(help="Accept closures scoring at least this (default: the preset's).")
+    ] = None,
+    format: Annotated[str | None, typer.Option(help="Force a scan reader, e.g. 'kitti', 'nclt'.")] = None,
+    dataset: Annotated[
+        str | None, typer.Option(help="Dataset layout (kitti, mulran, ...); default: detected.")
+    ] = None,
+    poses: Annotated[
+        Path | None, typer.Option(help="Poses file: drawn, and the closures scored against it.")
+    ] = None,
+    odometry: Annotated[
+        str | None, typer.Option(help="'kiss-icp': poses from the scans, to draw the closures on.")
+    ] = None,
+    exclusion_frames: Annotated[
+        int | None, typer.Option(help="Match scans at least this many frames older (default 120).")
+    ] = None,
+    exclusion_seconds: Annotated[
+        float | None, typer.Option(help="... and this many seconds older (needs scan times).")
+    ] = None,
+    exclusion_metres: Annotated[
+        float | None, typer.Option(help="... and this many metres travelled before (needs poses).")
+    ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", "-o", help="Results folder (default: results/detect_<name>_<timestamp>)."),
+    ] = None,
+) -> None:
+    """Loop closures in your own sequence, no config or ground truth needed: closures.csv/.json, a figure.
+
+    Examples:
+
+      placerec detect ../shared/data/real/ouster_os1_64_revisit_pair --exclusion-frames 1
+
+      placerec detect sim/town_hdl64 --pipeline orb-hbst --exclusion-frames 50
+    """
+    from placerec.detect import DEFAULT_PIPELINE, options_config, summary_lines
+    from placerec.detect import detect as run_detect
+
+    values = {
+        "source": str(source),
+        "format": format,
+        "dataset": dataset,
+        "poses": None if poses is None else str(poses),
+        "pipeline": pipeline or DEFAULT_PIPELINE,
+        "threshold": threshold,
+        "exclusion_seconds": exclusion_seconds,
+        "exclusion_metres": exclusion_metres,
+        "odometry": odometry or "none",
+    }
+    if exclusion_frames is not None:
+        values["exclusion_frames"] = exclusion_frames
+    cfg = options_config(values)
+    with support.progress_bar(f"detecting ({cfg.pipeline})") as progress:
+        run_dir, summary = run_detect(cfg, out, progress)
+    for line in summary_lines(run_dir, summary):
+        typer.echo(line)
+
+
+@_command()
 def slam(
     config: Annotated[
         Path | None, typer.Argument(help="SLAM YAML (see configs/slam_*.yaml); none: the defaults.")

@@ -26,6 +26,7 @@ from placerec.io.atomic import atomic_write
 
 if TYPE_CHECKING:
     from placerec.config import ExperimentConfig
+    from placerec.detect import DetectConfig
     from placerec.slam_app.config import SlamConfig
 
 __all__ = [
@@ -47,7 +48,9 @@ def slug(label: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", label).strip("_") or "pipeline"
 
 
-def make_run_dir(cfg: ExperimentConfig | SlamConfig, out_dir: str | Path | None = None) -> Path:
+def make_run_dir(
+    cfg: ExperimentConfig | SlamConfig | DetectConfig, out_dir: str | Path | None = None
+) -> Path:
     """A new timestamped folder for a config with ``name`` and ``output.dir`` (an `ExperimentConfig`, a SLAM
     config) with the config written into it (``latest`` is moved to it only
     when its report is complete, by `point_latest`); `ConfigError` when the results root cannot hold it."""
