@@ -113,6 +113,69 @@ def info(
         support.print_summary(summary)
 
 
+cache_app = typer.Typer(
+    help="The description cache (output.cache_dir): its size and entries, and clearing it. Its size limit:"
+    " PLACEREC_CACHE_MAX_MB (default 2000; 0 or off: none), kept by evicting least recently used entries.",
+    no_args_is_help=True,
+)
+app.add_typer(cache_app, name="cache")
+CacheDir = Annotated[
+    Path | None, typer.Option("--dir", help="The cache folder (default: the config's output.cache_dir).")
+]
+CacheConfig = Annotated[
+    Path | None, typer.Option("--config", "-c", help="Experiment YAML whose output.cache_dir to use.")
+]
+
+
+def _cache_folder(folder: Path | None, config: Path | None) -> Path:
+    from placerec.config import load_config
+    from placerec.errors import ConfigError
+
+    if folder is not None:
+        return folder
+    cache_dir = load_config(config).output.cache_dir
+    if cache_dir is None:
+        raise ConfigError(f"{config or 'the default config'}: output.cache_dir is null (the cache is off)")
+    return Path(cache_dir)
+
+
+@cache_app.command("info")
+@support.reports_errors
+def cache_info(
+    folder: CacheDir = None,
+    config: CacheConfig = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
+) -> None:
+    """The cache folder, its size and limit, entries per front end, oldest and newest use."""
+    from placerec.experiment.cache import cache_info as info_of
+
+    summary = info_of(_cache_folder(folder, config))
+    if as_json:
+        typer.echo(json.dumps(summary, indent=2))
+    else:
+        support.print_summary(summary)
+
+
+@cache_app.command("clear")
+@support.reports_errors
+def cache_clear(
+    folder: CacheDir = None,
+    config: CacheConfig = None,
+    older_than: Annotated[
+        float | None, typer.Option("--older-than", help="Only entries not used for this many days.")
+    ] = None,
+    frontend: Annotated[
+        str | None, typer.Option("--frontend", help="Only this front end: a key or a name (scan-context).")
+    ] = None,
+) -> None:
+    """Remove the cache's entries: all, or those --older-than DAYS, or of one --frontend (both: both apply)."""
+    from placerec.experiment.cache import clear_cache
+
+    root = _cache_folder(folder, config)
+    count, size = clear_cache(root, older_than, frontend)
+    typer.echo(f"removed {count} entries ({size / 1e6:.1f} MB) from {root}")
+
+
 #: The options `run` and `slam` share.
 ResultsRoot = Annotated[Path | None, typer.Option("--out", "-o", help="Results root (default: output.dir).")]
 Overrides = Annotated[

@@ -123,3 +123,114 @@ def test_a_sensor_no_model_fits_is_unknown() -> None:
     assert (
         guess.model is None and guess.line().startswith("unknown (") and "no known model fits" in guess.line()
     )
+
+
+# --- the description cache: size limit, info, clear ---------------------------------------------------------------
+
+import logging  # noqa: E402
+import os  # noqa: E402
+import time  # noqa: E402
+
+from placerec.errors import ConfigError  # noqa: E402
+from placerec.experiment.cache import (  # noqa: E402
+    LIMIT_ENV,
+    DescriptionCache,
+    cache_info,
+    cache_limit_mb,
+    clear_cache,
+    scan_cache,
+)
+
+
+def _fill(root: Path, data_key: str, frontend: str, n: int, floats: int = 2500) -> DescriptionCache:
+    cache = DescriptionCache(root, data_key)
+    for i in range(n):
+        cache.put(frontend, i, {"d": np.full(floats, i, np.float32)}, 1.0)
+    return cache
+
+
+def test_cache_limit_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(LIMIT_ENV, raising=False)
+    assert cache_limit_mb() == 2000.0
+    for off in ("0", "off", "None"):
+        monkeypatch.setenv(LIMIT_ENV, off)
+        assert cache_limit_mb() is None
+    monkeypatch.setenv(LIMIT_ENV, "250.5")
+    assert cache_limit_mb() == 250.5
+    for bad in ("-1", "big", "inf", "nan"):
+        monkeypatch.setenv(LIMIT_ENV, bad)
+        with pytest.raises(ConfigError, match=LIMIT_ENV):
+            cache_limit_mb()
+
+
+def test_runs_keep_the_size_limit_evicting_least_recently_used(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    root = tmp_path / "cache"
+    monkeypatch.setenv(LIMIT_ENV, "off")
+    first = _fill(root, "aaaaaaaaaaaa", "sc-0123456789ab", 10)  # ~10 kB each, 100 kB
+    old = time.time() - 3600
+    for e in scan_cache(root):
+        os.utime(e.path, (old, old + int(e.path.stem)))  # entry 0 used longest ago
+    assert first.get("sc-0123456789ab", 3) is not None  # a use: entry 3 becomes the most recent
+    monkeypatch.setenv(LIMIT_ENV, "0.15")  # 150 kB
+    with caplog.at_level(logging.WARNING, logger="placerec.experiment.cache"):
+        _fill(root, "bbbbbbbbbbbb", "sc-0123456789ab", 8)
+    total = sum(e.size for e in scan_cache(root))
+    assert total <= 0.15e6 * 1.1
+    left = {(e.data_key, int(e.path.stem)) for e in scan_cache(root)}
+    assert ("aaaaaaaaaaaa", 3) in left and ("aaaaaaaaaaaa", 0) not in left
+    assert all(("bbbbbbbbbbbb", i) in left for i in range(8))
+    assert "evicted" in caplog.text and LIMIT_ENV in caplog.text
+    assert (root / "CACHEDIR.TAG").read_text().startswith("Signature: 8a477f597d28d172789f06886806bc55")
+
+
+def test_a_folder_with_foreign_files_is_never_cleared_or_trimmed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    root = tmp_path / "cache"
+    monkeypatch.setenv(LIMIT_ENV, "off")
+    _fill(root, "aaaaaaaaaaaa", "sc-0123456789ab", 4)
+    (root / "aaaaaaaaaaaa" / "notes.txt").write_text("mine")
+    (root / "aaaaaaaaaaaa" / "sc-0123456789ab" / "photo.jpg").write_bytes(b"x")
+    before = sorted(p for p in root.rglob("*"))
+    with pytest.raises(ConfigError, match="does not look like a description cache.*notes.txt"):
+        clear_cache(root)
+    monkeypatch.setenv(LIMIT_ENV, "0.001")
+    with caplog.at_level(logging.WARNING, logger="placerec.experiment.cache"):
+        _fill(root, "aaaaaaaaaaaa", "sc-0123456789ab", 6)
+    assert "not trimmed" in caplog.text
+    assert set(before) <= set(root.rglob("*"))
+    result = runner.invoke(app, ["cache", "clear", "--dir", str(root)])
+    assert result.exit_code == 2 and result.output.startswith("error:") and "nothing removed" in result.output
+    assert (root / "aaaaaaaaaaaa" / "notes.txt").read_text() == "mine"
+
+
+def test_cache_info_and_clear_commands(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    root = tmp_path / "cache"
+    monkeypatch.setenv(LIMIT_ENV, "off")
+    _fill(root, "aaaaaaaaaaaa", "scan-context-0123456789ab", 3, floats=10)
+    _fill(root, "bbbbbbbbbbbb", "scan-context-0123456789ab", 2, floats=10)
+    _fill(root, "aaaaaaaaaaaa", "visual-0123456789ab", 4, floats=10)
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(yaml.safe_dump({"output": {"cache_dir": str(root)}}))
+    result = runner.invoke(app, ["cache", "info", "--config", str(cfg), "--json"])
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.output)
+    assert info["entries"] == 9 and info["datasets"] == 2 and info["limit_mb"] == "none"
+    assert info["frontends"]["scan-context-0123456789ab"]["entries"] == 5
+    assert info["frontends"]["visual-0123456789ab"]["datasets"] == 1
+    assert info["oldest_use"] is not None and info["newest_use"] is not None
+    for e in scan_cache(root):
+        if e.data_key == "bbbbbbbbbbbb":
+            os.utime(e.path, (time.time() - 10 * 86400,) * 2)
+    result = runner.invoke(app, ["cache", "clear", "--dir", str(root), "--older-than", "5"])
+    assert result.exit_code == 0 and result.output.startswith("removed 2 entries"), result.output
+    assert not (root / "bbbbbbbbbbbb").exists()  # emptied folders go too
+    result = runner.invoke(app, ["cache", "clear", "--dir", str(root), "--frontend", "scan-context"])
+    assert result.output.startswith("removed 3 entries")
+    assert cache_info(root)["frontends"].keys() == {"visual-0123456789ab"}
+    result = runner.invoke(app, ["cache", "clear", "--dir", str(root)])
+    assert result.output.startswith("removed 4 entries") and root.is_dir() and scan_cache(root) == []
+    result = runner.invoke(app, ["cache", "info", "--dir", str(tmp_path / "none"), "--json"])
+    assert result.exit_code == 0 and json.loads(result.output)["exists"] is False
