@@ -188,6 +188,15 @@ Overrides = Annotated[
     ),
 ]
 
+#: ``--wide`` of the commands that print a results table
+Wide = Annotated[
+    bool,
+    typer.Option(
+        "--wide",
+        help="Print every column (default: the headline ones, to fit the terminal; all are in the files).",
+    ),
+]
+
 
 @_command()
 def run(
@@ -202,6 +211,7 @@ def run(
             help="Describe scans in N processes (execution.workers; executor: dask uses a cluster)."
         ),
     ] = None,
+    wide: Wide = False,
 ) -> None:
     """Run an experiment: every pipeline of CONFIG on its dataset; metrics, figures and a report.
 
@@ -214,7 +224,7 @@ def run(
     overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
     cfg = load_config(config, overrides)
     run_dir, payload = run_experiment(cfg, out)
-    print_table(payload, f"{cfg.name} ({payload['mode']} mode)")
+    print_table(payload, f"{cfg.name} ({payload['mode']} mode)", wide=wide)
     typer.echo(f"results: {run_dir}  (report: {run_dir / 'index.html'})")
 
 
@@ -236,6 +246,7 @@ def bench(
         bool,
         typer.Option(help="Also print the operating thresholds the tuning rule picks (tuning split only)."),
     ] = False,
+    wide: Wide = False,
 ) -> None:
     """Every pipeline of CONFIG over a matrix of simulated worlds x sensors x seeds, at fixed thresholds.
 
@@ -253,7 +264,8 @@ def bench(
         raise ConfigError("--suggest picks thresholds on the tuning split only (split: tuning)")
     folder, payload = run_benchmark(cfg, out, fresh=fresh)
     print_rows(
-        *rows(payload), f"{cfg.name} ({cfg.split} split, {len(payload['cells'])} cells): matrix mean / worst"
+        *rows(payload, wide),
+        f"{cfg.name} ({cfg.split} split, {len(payload['cells'])} cells): matrix mean / worst",
     )
     if suggest:
         import json

@@ -378,7 +378,7 @@ def test_loop_report_holds_pose_errors_extended_precision_and_recomputes_them(tm
     )
     page = (run / "index.html").read_text()
     assert "TP t err [m] median" in page and "100.500" in page
-    print_table(payload, "hand [loop]")
+    print_table(payload, "hand [loop]", wide=True)
     printed = capsys.readouterr().out
     assert "hand [loop]" in printed and "[m]" in printed and "100.500" in printed  # units are no rich markup
     assert "retrieval within 25 m, same- / reverse-direction revisits" in printed and "R@1% 25 m" in page

@@ -170,8 +170,13 @@ def _finite(value: Any) -> Any:
     return value
 
 
-def rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
-    """The console / HTML table: one row per pipeline, the matrix mean and worst of the headline figures."""
+#: the columns of the console's default benchmark table (`rows` with ``wide`` False)
+_COMPACT = ("pipeline", "thr", "maxF1", "P mean", "R mean", "ms/scan")
+
+
+def rows(payload: dict[str, Any], wide: bool = True) -> tuple[list[str], list[list[str]]]:
+    """The console / HTML table: one row per pipeline, the matrix mean and worst of the headline figures (with
+    ``wide`` False only the `_COMPACT` columns, the console's default)."""
     header = [
         "pipeline",
         "thr",
@@ -200,6 +205,9 @@ def rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
             _fmt(p["accepted_translation_m"]["p95"]),
             _fmt(f["ms_per_scan"]["mean"], 0),
         ])  # fmt: skip
+    if not wide:
+        keep = [header.index(h) for h in _COMPACT]
+        return [header[i] for i in keep], [[r[i] for i in keep] for r in out]
     return header, out
 
 

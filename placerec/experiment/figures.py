@@ -110,8 +110,12 @@ def plot_trajectory_closures(
     return _finish_map(fig, ax, path, title, (positions,), loc="best")
 
 
-def plot_timing(timing: dict[str, dict[str, float]], path: Path) -> Path:
-    """Stacked bars of mean ms per stage; ``timing``: label -> {stage: mean_ms}."""
+def plot_timing(
+    timing: dict[str, dict[str, float]], path: Path, preprocess_ms: float | None = None, includes: str = ""
+) -> Path:
+    """Stacked bars of mean ms per stage; ``timing``: label -> {stage: mean_ms}, the stages of the time per scan
+    (`placerec.experiment.runner.PipelineRecord.stage_means_ms`), so a bar's total is the table's ms/scan mean;
+    ``includes`` says what that time includes, ``preprocess_ms`` the shared preprocessing it leaves out."""
     plt = _pyplot()
     labels = list(timing)
     stages = [
@@ -129,11 +133,13 @@ def plot_timing(timing: dict[str, dict[str, float]], path: Path) -> Path:
     for col, total in zip(x, bottom, strict=True):
         ax.text(col, total, f"{total:.1f}", ha="center", va="bottom", fontsize=8)
     ax.set_xticks(x, labels, rotation=20, ha="right")
-    ax.set(
-        ylabel="mean time per scan [ms]",
-        title="Time per stage",
-        ylim=(0, max(1.0, 1.1 * bottom.max(initial=0))),
-    )
+    title = "Time per scan (the table's ms/scan mean)"
+    if includes:
+        title += f"\n{includes}"
+    if preprocess_ms is not None and np.isfinite(preprocess_ms):
+        title += f": {preprocess_ms:.1f} ms"
+    ax.set(ylabel="mean time per scan [ms]", ylim=(0, max(1.0, 1.1 * bottom.max(initial=0))))
+    ax.set_title(title, fontsize=9)
     _legend(ax, fontsize=8)
     return _save(fig, path)
 

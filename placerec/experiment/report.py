@@ -12,7 +12,8 @@ Output folder ``<output.dir>/<name>_<timestamp>/`` (and a ``latest`` link beside
   (localize mode), ``time_ms`` {mean, median, p95} per scan and per stage, ``n_queries``, ``n_revisits``; in loop
   mode also ``operating`` (the figures at the pipeline's fixed threshold, `operating_point`), ``max_false_score``,
   ``max_score``, ``min_score``, and ``pose_truth`` / ``icp_truth`` (the same under the pose ground truth and the
-  ICP-confirmed one, docs/protocol.md); plus peak memory. Strict JSON: a value that is undefined for the run is ``null`` (``threshold_at_max_f1`` with no
+  ICP-confirmed one, docs/protocol.md); plus peak memory and, when a row needs one, ``notes`` (label -> texts,
+  `pipeline_notes`: a local-map peer that closed no local map, a non-deterministic peer). Strict JSON: a value that is undefined for the run is ``null`` (``threshold_at_max_f1`` with no
   candidate, ``mean_error`` with no estimate, times with no scan, pose errors with no 6-DoF pose). A sequence
   without revisits (too short, shorter than the exclusion window) has ``no_revisits: true`` and recalls, F1 and
   AUC of 0; no scans at all give ``n_queries: 0``;
@@ -58,7 +59,7 @@ from placerec.eval.pose_truth import PoseGroundTruth, correct_candidates, overla
 from placerec.experiment import figures
 from placerec.experiment.candidates import CandidateTable, read_candidates, write_candidates
 from placerec.experiment.run_folder import finite_or_null, json_default, point_latest, slug
-from placerec.experiment.runner import STAGES, PipelineRecord
+from placerec.experiment.runner import PER_SCAN_TIME, STAGES, PipelineRecord
 from placerec.experiment.tables import lookup, write_index_html
 from placerec.experiment.truth import TruthClouds
 from placerec.io import read_poses, write_kitti_poses
@@ -66,8 +67,10 @@ from placerec.io.atomic import atomic_write
 from placerec.types import Sequence
 
 __all__ = [
+    "NONDETERMINISTIC",
     "loop_summary",
     "operating_point",
+    "pipeline_notes",
     "pose_truths",
     "require_poses",
     "report_loop",
@@ -80,6 +83,33 @@ def _timing(record: PipelineRecord) -> dict[str, Any]:
     out: dict[str, Any] = timing_summary(record.per_scan_ms())
     out["stages"] = {s: timing_summary(record.timing_ms[s]) for s in STAGES if any(record.timing_ms[s])}
     return out
+
+
+#: peers whose results differ between identical runs (registry name -> the note beside their rows)
+NONDETERMINISTIC = {
+    "map-closures": "non-deterministic peer: its poses vary between identical runs (docs/benchmarks.md,"
+    " Structure refactor)",
+}
+
+
+def pipeline_notes(records: list[PipelineRecord]) -> dict[str, list[str]]:
+    """The notes a reader needs beside a pipeline's row (label -> texts; ``metrics.json``'s ``notes``): a
+    local-map peer that closed no local map (so every figure is 0), a non-deterministic peer."""
+    notes: dict[str, list[str]] = {}
+    for r in records:
+        out = []
+        if r.params.get("local_map") and not any(r.candidates):
+            distance = r.params.get("local_map_distance")
+            far = f"{distance:g} m" if isinstance(distance, int | float) else "local_map_distance"
+            out.append(
+                f"closed no local map, so no candidate and all 0: a map closes once the route is {far} from"
+                " its first scan (docs/evaluation.md)"
+            )
+        if r.pipeline in NONDETERMINISTIC:
+            out.append(NONDETERMINISTIC[r.pipeline])
+        if out:
+            notes[r.label] = out
+    return notes
 
 
 def _peak_memory_mb() -> float:
@@ -330,6 +360,9 @@ def report_loop(
         "pipelines": results,
         "peak_memory_mb": _peak_memory_mb(),
     }
+    notes = pipeline_notes(records)
+    if notes:
+        payload["notes"] = notes
     _finish(cfg, run, payload, curves, records, link_latest)
     return payload
 
@@ -377,6 +410,9 @@ def report_localize(
         "pipelines": results,
         "peak_memory_mb": _peak_memory_mb(),
     }
+    notes = pipeline_notes(records)
+    if notes:
+        payload["notes"] = notes
     _finish(cfg, run, payload, {}, records)
     return payload
 
@@ -429,10 +465,12 @@ def _finish(
         if curves:
             figures.plot_pr_curves(curves, run / "pr_curves.png", f"{cfg.name}: precision-recall")
         means = {
-            r.label: {s: float(np.mean(r.timing_ms[s])) if r.timing_ms[s] else 0.0 for s in STAGES}
-            for r in records
-        }
-        figures.plot_timing(means, run / "timing.png")
+            r.label: r.stage_means_ms() for r in records
+        }  # they sum to time_ms.mean, the table's ms/scan
+        shared = [float(np.mean(r.timing_ms["preprocess"])) for r in records if r.timing_ms["preprocess"]]
+        figures.plot_timing(
+            means, run / "timing.png", shared[0] if shared else None, PER_SCAN_TIME.replace("; ", "\n")
+        )
         write_index_html(run, cfg, payload)
     if link_latest:
         point_latest(run)  # last: a run that failed before this point leaves latest where it was

@@ -45,6 +45,11 @@ __all__ = [
 ]
 
 STAGES = ("preprocess", "describe", "query", "insert", "verify")
+#: the stages a pipeline's time per scan sums (`PipelineRecord.per_scan_ms`): preprocessing is shared by every
+#: pipeline of a run (one scan preprocessed once), so it is not a pipeline's own time
+SCAN_STAGES = ("describe", "query", "insert", "verify")
+#: what that time includes, in words (the legends of the console table, the HTML report and timing.png)
+PER_SCAN_TIME = "describe + query + insert + verify; preprocessing (shared by all pipelines) excluded"
 
 
 @dataclass
@@ -69,9 +74,15 @@ class PipelineRecord:
         return CandidateTable.from_candidates(self.query_ids, self.candidates)
 
     def per_scan_ms(self) -> np.ndarray:
-        """Total pipeline time per processed scan (describe + query + insert + verify; preprocessing excluded)."""
-        stages = [self.timing_ms[s] for s in ("describe", "query", "insert", "verify")]
+        """Total pipeline time per processed scan: the sum of the `SCAN_STAGES` (describe + query + insert +
+        verify; preprocessing, shared by every pipeline of a run, excluded). The one definition of "ms/scan":
+        ``metrics.json``'s ``time_ms``, the console table and ``timing.png`` all use it."""
+        stages = [self.timing_ms[s] for s in SCAN_STAGES]
         return np.sum(np.asarray(stages, dtype=np.float64).reshape(len(stages), -1), axis=0)
+
+    def stage_means_ms(self) -> dict[str, float]:
+        """Mean ms per scan of each of the `SCAN_STAGES` (0 when no scan): they sum to ``per_scan_ms().mean()``."""
+        return {s: float(np.mean(self.timing_ms[s])) if self.timing_ms[s] else 0.0 for s in SCAN_STAGES}
 
 
 @contextmanager

@@ -14,9 +14,12 @@ from typing import Any
 import numpy as np
 
 from placerec.config import ExperimentConfig
+from placerec.experiment.runner import PER_SCAN_TIME
 from placerec.io.atomic import atomic_write
 
 __all__ = [
+    "LEGEND",
+    "legend",
     "lookup",
     "operating_rows",
     "print_rows",
@@ -78,6 +81,69 @@ _TIME_COLUMNS = (
 )
 
 
+#: the console's default table (`table_rows` with ``wide`` False): the headline figures; ``--wide`` prints them all
+_COMPACT_LOOP_COLUMNS = (
+    ("max F1", ("max_f1",)),
+    ("P@thr", ("operating", "precision")),
+    ("R@thr", ("operating", "recall")),
+    ("R@1", ("recall_at_1",)),
+    ("ms/scan", ("time_ms", "mean")),
+)
+_COMPACT_LOCALIZE_COLUMNS = (
+    ("localised", ("success_rate",)),
+    ("no answer", ("no_answer_rate",)),
+    ("wrong", ("wrong_rate",)),
+    ("median err [m]", ("median_error",)),
+    ("ms/query", ("time_ms", "mean")),
+)
+
+#: what each abbreviation of a table's header means (`legend`): a header is explained by the longest key it equals
+#: or starts with (followed by a space)
+LEGEND = {
+    "max F1": "best F1 over all score thresholds",
+    "maxF1": "best F1 over all score thresholds",
+    "P@thr": "precision at the pipeline's fixed operating threshold (docs/protocol.md)",
+    "R@thr": "recall at that threshold",
+    "P@maxF1": "precision at the max-F1 threshold",
+    "R@maxF1": "recall at the max-F1 threshold",
+    "AUC": "average precision (area under the PR curve)",
+    "R@P100": "recall at 100 % precision (before the first false closure)",
+    "EP": "extended precision, (precision at the top score + R@P100) / 2",
+    "R@1": "top candidate correct (any threshold)",
+    "R@1 25 m": "retrieval recall@1 within 25 m",
+    "R@1% 25 m": "retrieval recall@1 % of the database within 25 m",
+    "TP t err [m]": "translation error of the true closures accepted at max F1",
+    "TP rot err [deg]": "their rotation error",
+    "p95": "95th percentile",
+    "max accepted t err [m]": "worst translation error of a closure accepted at max F1",
+    "ms/scan": f"mean ms per scan, {PER_SCAN_TIME} (timing.png shows the same)",
+    "ms/query": f"mean ms per query, {PER_SCAN_TIME}",
+    "verify mean": "mean ms per scan of the verification stage",
+    "thr": "operating threshold",
+    "P": "precision at the operating threshold",
+    "R": "recall there",
+    "FP": "false closures accepted, all cells",
+    "t p95 m": "95th percentile translation error [m] of the accepted closures",
+    "ATE": "absolute trajectory error",
+    "RPE": "relative pose error",
+    "iSAM2": "incremental smoothing and mapping (GTSAM) update",
+    "odom": "odometry",
+}
+
+
+def legend(header: list[str]) -> list[str]:
+    """``"ABBR: meaning"`` for each abbreviation of ``header`` that `LEGEND` explains, in header order, once each."""
+    out: list[str] = []
+    for h in header[1:]:
+        keys = [k for k in LEGEND if h == k or h.startswith(k + " ") or f" {k} " in f" {h} "]
+        if keys:
+            key = max(keys, key=len)
+            line = f"{key}: {LEGEND[key]}"
+            if line not in out:
+                out.append(line)
+    return out
+
+
 def lookup(entry: dict[str, Any], path: tuple[str, ...]) -> Any:
     for key in path:
         if not isinstance(entry, dict) or key not in entry:
@@ -86,11 +152,15 @@ def lookup(entry: dict[str, Any], path: tuple[str, ...]) -> Any:
     return entry
 
 
-def table_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
-    """Header and rows of the results table (shared by the console and the HTML report). Pose errors are those
-    of the closures accepted at the max-F1 threshold; ``-`` marks a value that is undefined (no 6-DoF pose, no
+def table_rows(payload: dict[str, Any], wide: bool = True) -> tuple[list[str], list[list[str]]]:
+    """Header and rows of the results table (shared by the console and the HTML report): every column, or with
+    ``wide`` False the headline ones the console prints by default (max F1, P / R at the fixed threshold, R@1,
+    ms/scan; localize mode: localised, no answer, wrong, median error, ms/query). Pose errors are those of the
+    closures accepted at the max-F1 threshold; ``-`` marks a value that is undefined (no 6-DoF pose, no
     verification stage)."""
     loop = payload["mode"] == "loop"
+    if not wide:
+        return _column_rows(payload, _COMPACT_LOOP_COLUMNS if loop else _COMPACT_LOCALIZE_COLUMNS)
     columns = (_LOOP_COLUMNS if loop else _LOCALIZE_COLUMNS) + tuple(
         (f"ms/{'scan' if loop else 'query'} {h}" if h == "mean" else h, k) for h, k in _TIME_COLUMNS
     )
@@ -138,10 +208,15 @@ def operating_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]
     return _column_rows(payload, _OPERATING_COLUMNS)
 
 
-def print_table(payload: dict[str, Any], title: str) -> None:
-    """The results as rich console tables: the main one, and in loop mode the retrieval / direction one and the
-    one at the fixed operating thresholds."""
-    print_rows(*table_rows(payload), title)
+def print_table(payload: dict[str, Any], title: str, wide: bool = False) -> None:
+    """The results as rich console tables, each with the legend of its abbreviations under it: the headline
+    columns (`table_rows` with ``wide`` False), or with ``wide`` every column, and in loop mode the retrieval /
+    direction table and the one at the fixed operating thresholds. The main table carries the run's notes
+    (``payload["notes"]``)."""
+    notes = payload.get("notes") or {}
+    print_rows(*table_rows(payload, wide), title, notes=notes)
+    if not wide:
+        return
     protocols = protocol_rows(payload)
     if protocols is not None:
         print_rows(*protocols, f"{title}: retrieval within 25 m, same- / reverse-direction revisits")
@@ -150,13 +225,41 @@ def print_table(payload: dict[str, Any], title: str) -> None:
         print_rows(*operating, f"{title}: at the fixed operating thresholds (docs/protocol.md)")
 
 
-def print_rows(header: list[str], rows: list[list[str]], title: str) -> None:
-    """A rich console table: the first column left-aligned, bold and never cut, the others right-aligned."""
+def _numbered(notes: dict[str, list[str]]) -> tuple[dict[str, list[int]], list[str]]:
+    """Each label's note numbers and the distinct notes, numbered from 1 in order of appearance."""
+    texts: list[str] = []
+    marks: dict[str, list[int]] = {}
+    for label, items in notes.items():
+        for text in items:
+            if text not in texts:
+                texts.append(text)
+            marks.setdefault(label, []).append(texts.index(text) + 1)
+    marks = {label: sorted(numbers) for label, numbers in marks.items()}
+    return marks, texts
+
+
+def print_rows(
+    header: list[str],
+    rows: list[list[str]],
+    title: str,
+    notes: dict[str, list[str]] | None = None,
+    show_legend: bool = True,
+) -> None:
+    """A rich console table: the first column left-aligned, bold and never cut, the others right-aligned; under it
+    the legend of its abbreviations (`legend`) and ``notes`` (row label -> texts, marked ``(1)`` beside the row).
+
+    The table takes the terminal's width (``COLUMNS`` when not a terminal), headers wrapping; one that cannot fit
+    without cutting a cell is printed at its full width instead (long lines rather than ``…``)."""
+    import shutil
+    import textwrap
+
     from rich.console import Console
     from rich.measure import Measurement
     from rich.table import Table
     from rich.text import Text
 
+    marks, texts = _numbered(notes or {})
+    rows = [[r[0] + (f" ({','.join(map(str, marks[r[0]]))})" if r[0] in marks else ""), *r[1:]] for r in rows]
     table = Table(title=Text(title))
     names = max((len(r[0]) for r in rows), default=0)
     for i, h in enumerate(header):  # Text: "[m]" is a unit, not rich markup
@@ -171,10 +274,17 @@ def print_rows(header: list[str], rows: list[list[str]], title: str) -> None:
     for row in rows:
         table.add_row(*(Text(c) for c in row))
     console = Console()
-    if not console.is_terminal:  # logs and pipes: as wide as the table, so that no column is cut
-        wide = Console(width=10_000)
-        console = Console(width=Measurement.get(wide, wide.options, table).maximum)
+    wide = Console(width=10_000)  # a measurement is clamped to the console's width
+    natural = Measurement.get(wide, wide.options, table).maximum
+    if natural > console.width:  # headers wrap to fit; if a cell would be cut instead: as wide as the table
+        if any("…" in seg.text for line in console.render_lines(table) for seg in line):
+            console = Console(width=natural)
     console.print(table)
+    width = max(40, min(shutil.get_terminal_size().columns, 100))
+    lines = legend(header) if show_legend else []
+    lines += [f"({i}) {text}" for i, text in enumerate(texts, 1)]
+    for line in lines:
+        print(textwrap.fill(line, width, subsequent_indent="    ", break_on_hyphens=False))
 
 
 def write_index_html(run: Path, cfg: ExperimentConfig, payload: dict[str, Any]) -> Path:
@@ -182,7 +292,8 @@ def write_index_html(run: Path, cfg: ExperimentConfig, payload: dict[str, Any]) 
     tables = [table_rows(payload)] + [
         t for t in [protocol_rows(payload), operating_rows(payload)] if t is not None
     ]
-    return write_html_page(run, cfg.name, f"mode: {html.escape(payload['mode'])}", tables)
+    notes = payload.get("notes") or {}
+    return write_html_page(run, cfg.name, f"mode: {html.escape(payload['mode'])}", tables, notes=notes)
 
 
 def write_html_page(
@@ -192,14 +303,29 @@ def write_html_page(
     tables: list[tuple[list[str], list[list[str]]]],
     first: tuple[str, ...] = ("pr_curves.png",),
     last: tuple[str, ...] = ("timing.png",),
+    notes: dict[str, list[str]] | None = None,
 ) -> Path:
-    """``run/index.html``: ``title``, ``subtitle`` (HTML) with links to metrics.json and config.yaml, the
-    ``tables`` (header, rows) and every PNG of the folder (``first`` ones first, ``last`` ones last)."""
+    """``run/index.html``: ``title``, ``subtitle`` (HTML) with links to the folder's data files (metrics.json,
+    config.yaml, pipelines.yaml, the CSVs, ...), the ``tables`` (header, rows) each with the legend of its
+    abbreviations, the first one with ``notes`` (row label -> texts, numbered beside the rows), and every PNG of
+    the folder (``first`` ones first, ``last`` ones last)."""
+    marks, texts = _numbered(notes or {})
     body = ""
-    for header, rows in tables:
+    for n, (header, rows) in enumerate(tables):
         head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
-        cells = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+        cells = ""
+        for r in rows:
+            mark = f" ({','.join(map(str, marks[r[0]]))})" if n == 0 and r[0] in marks else ""
+            cells += "<tr>" + "".join(
+                f"<td>{html.escape(c + (mark if i == 0 else ''))}</td>" for i, c in enumerate(r)
+            )
+            cells += "</tr>"
         body += f"<table><tr>{head}</tr>{cells}</table>"
+        lines = [html.escape(line) for line in legend(header)]
+        if n == 0:
+            lines += [f"({i}) {html.escape(text)}" for i, text in enumerate(texts, 1)]
+        if lines:
+            body += '<p class="legend">' + "<br>".join(lines) + "</p>"
     images = sorted(p.name for p in run.glob("*.png"))
     order = {**{n: 0 for n in first}, **{n: 2 for n in last}}
     images.sort(key=lambda n: (order.get(n, 1), n))
@@ -207,12 +333,21 @@ def write_html_page(
         f'<figure><img src="{html.escape(n)}"><figcaption>{html.escape(n)}</figcaption></figure>'
         for n in images
     )
+    data = sorted(
+        (p.name for p in run.iterdir() if p.is_file() and p.suffix in _DATA_SUFFIXES),
+        key=lambda n: (_LINK_ORDER.index(n) if n in _LINK_ORDER else len(_LINK_ORDER), n),
+    )
+    links = ",\n".join(f'<a href="{html.escape(n)}">{html.escape(n)}</a>' for n in data)
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(title)}</title>
-<style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse;margin-bottom:1em}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}
-td:first-child{{text-align:left;font-weight:bold}}figure{{display:inline-block;margin:1em}}img{{max-width:560px}}</style></head><body>
-<h1>{html.escape(title)}</h1><p>{subtitle} &middot; files: <a href="metrics.json">metrics.json</a>,
-<a href="config.yaml">config.yaml</a></p>{body}{figs}</body></html>"""
+<style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse;margin-bottom:0.3em}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}
+td:first-child{{text-align:left;font-weight:bold}}.legend{{font-size:smaller;color:#444;margin-top:0}}figure{{display:inline-block;margin:1em}}img{{max-width:560px}}</style></head><body>
+<h1>{html.escape(title)}</h1><p>{subtitle} &middot; files: {links}</p>{body}{figs}</body></html>"""
     path = run / "index.html"
     with atomic_write(path, "w") as fh:
         fh.write(page)
     return path
+
+
+#: the files `write_html_page` links (by suffix), and the order of those it puts first
+_DATA_SUFFIXES = (".json", ".yaml", ".csv", ".txt", ".g2o", ".ply")
+_LINK_ORDER = ("metrics.json", "benchmark.json", "config.yaml", "pipelines.yaml")

@@ -157,6 +157,13 @@ def slam_metrics(cfg: SlamConfig, result: SlamResult, cols: dict[str, np.ndarray
     return payload
 
 
+def _fmt(v: Any) -> str:
+    """A figure as printed: ``-`` for none or not finite (e.g. no loop closed, so no iSAM2 loop update to time)."""
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
 def _rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     header = ["trajectory", "ATE RMSE [m]", "ATE max [m]", "RPE t RMSE [m]", "RPE rot RMSE [deg]"]
     rows = []
@@ -167,26 +174,17 @@ def _rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     ):
         e = payload["trajectory"].get(key)
         if e:
-            rows.append(
-                [label]
-                + [
-                    f"{e[k]:.3f}"
-                    for k in ("ate_rmse", "ate_max", "rpe_translation_rmse", "rpe_rotation_rmse_deg")
-                ]
-            )
+            keys = ("ate_rmse", "ate_max", "rpe_translation_rmse", "rpe_rotation_rmse_deg")
+            rows.append([label] + [_fmt(e.get(k)) for k in keys])
     return header, rows
 
 
 def _loop_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """The loop closures and times (one row, the pipeline's): the HTML report's table; the console prints it as
+    two (`print_slam_table`)."""
     lp, tm = payload["loops"], payload["time_ms"]
-
-    def fmt(v: Any) -> str:  # "-": none (e.g. no loop closed, so no iSAM2 loop update to time)
-        if v is None or (isinstance(v, float) and not math.isfinite(v)):
-            return "-"
-        return f"{v:.3f}" if isinstance(v, float) else str(v)
-
     header = ["loops", "accepted", "false", "opposite dir.", "injected", "rejected by graph (real / injected)",
-              "median t err [m]", "ms/scan (no odom) median", "with odom", "iSAM2 ms", "iSAM2 loop ms"]  # fmt: skip
+              "median t err [m]", "per-scan ms (no odom) median", "with odom", "iSAM2 ms", "iSAM2 loop ms"]  # fmt: skip
     rejected = (
         f"{lp['rejected_by_back_end']} / {lp['injected_rejected_by_back_end']}"
         if "rejected_by_back_end" in lp
@@ -194,26 +192,34 @@ def _loop_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     )
     row = [
         payload["pipeline"],
-        fmt(lp["accepted"]),
-        fmt(lp.get("false_accepted")),
-        fmt(lp.get("opposite_direction")),
-        fmt(lp["injected"]),
+        _fmt(lp["accepted"]),
+        _fmt(lp.get("false_accepted")),
+        _fmt(lp.get("opposite_direction")),
+        _fmt(lp["injected"]),
         rejected,
-        fmt(lp.get("median_translation_error")),
-        fmt(tm["online_without_odometry"]["median"]),
-        fmt(tm["online_with_odometry"]["median"]),
-        fmt(tm["isam2_update"]["median"]),
-        fmt(tm["isam2_loop_update"]["median"]),
+        _fmt(lp.get("median_translation_error")),
+        _fmt(tm["online_without_odometry"]["median"]),
+        _fmt(tm["online_with_odometry"]["median"]),
+        _fmt(tm["isam2_update"]["median"]),
+        _fmt(tm["isam2_loop_update"]["median"]),
     ]
     return header, [row]
 
 
+#: where `_loop_rows`' time columns start (the console prints them as a table of their own)
+_TIME_FROM = 7
+
+
 def print_slam_table(payload: dict[str, Any], title: str) -> None:
-    """The trajectory errors and the loop / time summary as console tables."""
+    """The trajectory errors, the loop closures and the times as console tables (each fits 100 columns), each
+    with the legend of its abbreviations."""
     title = f"{title}, odometry: {payload['odometry_source']}"
     if payload["trajectory"]:
         print_rows(*_rows(payload), title)
-    print_rows(*_loop_rows(payload), f"{title}: loop closures and time")
+    header, rows = _loop_rows(payload)
+    print_rows(header[:_TIME_FROM], [r[:_TIME_FROM] for r in rows], f"{title}: loop closures")
+    times = ["median ms", "per scan, no odom", "with odom", "iSAM2 update", "iSAM2 loop update"]
+    print_rows(times, [[r[0], *r[_TIME_FROM:]] for r in rows], f"{title}: time")
 
 
 def write_map_ply(cfg: SlamConfig, seq: Sequence, poses: np.ndarray, path: Path) -> Path:
