@@ -175,3 +175,19 @@ def test_the_real_ouster_revisit_pair_in_one_command(real_data, tmp_path):
     T = np.array(c["T_match_query"])
     assert rigid_problem(T[None]) is None and np.linalg.norm(T[:3, 3]) < 0.1
     assert "1 closure" in output and "not scored" in output
+
+
+def test_the_readme_api_snippet_runs_on_a_sequence_without_poses(folders: tuple[Path, Path]) -> None:
+    """The README's Python API example, run as written on a folder without poses (#32: it crashed on
+    ``seq.poses[i]``)."""
+    import re
+
+    readme = (Path(__file__).parent.parent / "README.md").read_text()
+    api = readme[readme.index("## Python API") :]
+    code = re.search(r"```python\n(.*?)```", api, re.S)
+    assert code is not None
+    snippet = code.group(1).replace('"path/to/sequence"', repr(str(folders[1])))
+    assert "path/to/sequence" not in snippet and "seq.poses[i]" in snippet
+    namespace: dict = {}
+    exec(compile(snippet, "README.md", "exec"), namespace)  # noqa: S102 - our own README
+    assert namespace["seq"].poses is None and namespace["detector"].n_processed == len(namespace["seq"])
