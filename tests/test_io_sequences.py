@@ -174,3 +174,26 @@ def test_folder_of_kitti_bins_with_sensor_yaml_gets_raw_intensity(tmp_path: Path
     s = FolderSequence(tmp_path)[0]
     assert s.sensor.name == "vlp16"
     np.testing.assert_allclose(s.intensity, np.linspace(0, 255, 50), rtol=1e-6)
+
+
+def test_frames_named_by_number_pick_their_rows_from_a_whole_sequences_poses(tmp_path: Path) -> None:
+    """#32: KITTI frames 000094/000095/000198 with the sequence's poses_00.txt (one row per frame of the drive)."""
+    from placerec.errors import ScanFormatError
+    from placerec.io import open_sequence
+
+    pts = np.random.default_rng(0).normal(size=(50, 4)).astype(np.float32)
+    for frame in (94, 95, 198):
+        pts.tofile(tmp_path / f"{frame:06d}.bin")
+    rows = np.tile(np.eye(4)[:3].reshape(1, 12), (300, 1))
+    rows[:, 3] = np.arange(300)  # x = the row number
+    np.savetxt(tmp_path / "whole.txt", rows)
+    seq = open_sequence(tmp_path, poses=tmp_path / "whole.txt")
+    assert seq.poses[:, 0, 3].tolist() == [94.0, 95.0, 198.0]
+    np.savetxt(tmp_path / "short.txt", rows[:150])  # frame 198 is past its end: no way to pick the rows
+    with pytest.raises(
+        ScanFormatError, match=r"short.txt: 150 poses for 3 scans .* named by its frame number"
+    ):
+        open_sequence(tmp_path, poses=tmp_path / "short.txt")
+    (tmp_path / "scan_a.bin").write_bytes(pts.tobytes())  # a name that is no frame number
+    with pytest.raises(ScanFormatError, match=r"300 poses for 4 scans"):
+        open_sequence(tmp_path, poses=tmp_path / "whole.txt")

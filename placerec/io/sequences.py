@@ -9,8 +9,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from placerec.errors import ConfigError, ScanFormatError
-from placerec.io._common import natural_key
+from placerec.io._common import ascii_digits, natural_key
 from placerec.io.datasets import DATASET_LOADERS, dataset_loader, detect_dataset
 from placerec.io.datasets.kitti import KittiSequence, read_kitti_calib
 from placerec.io.file_sequence import FileSequence, load_sensor_yaml
@@ -28,7 +30,10 @@ class FolderSequence(FileSequence):
 
     ``pattern`` is a glob (default: every file with a known scan suffix; they must share one suffix).
     ``poses``: a KITTI or TUM trajectory file (a TUM file also gives the timestamps); without it
-    ``root/poses.txt`` is used when present. ``format`` forces the reader (e.g. ``"nclt"`` for ``.bin``); other
+    ``root/poses.txt`` is used when present. It holds one pose per scan in order, or — when it has more rows than
+    there are scans and every scan file is named by its frame number (``000094.bin``: row 94, counted from 0) —
+    the poses of the whole sequence the frames were picked from (`rows_by_frame_number`); any other count is a
+    `ScanFormatError`. ``format`` forces the reader (e.g. ``"nclt"`` for ``.bin``); other
     keyword options (``organized``, ``layout``) go to `read_scan`. Also reads ``sensor.yaml`` and ``ring/`` files.
     """
 
@@ -67,8 +72,29 @@ class FolderSequence(FileSequence):
             poses = root / "poses.txt"
         if poses is not None:
             P, t = read_poses(poses)
+            rows = rows_by_frame_number(files, len(P))
+            if rows is not None:  # frames picked out of a whole sequence, named by their frame number
+                log.info("%s: %d poses of %s picked by the scans' frame numbers", root, len(rows), poses)
+                P, t = P[rows], None if t is None else t[rows]
+            elif len(P) != len(files):
+                raise ScanFormatError(
+                    f"{poses}: {len(P)} poses for {len(files)} scans in {root}: a pose file holds one pose per scan "
+                    "in order, or the whole sequence's poses when every scan file is named by its frame number "
+                    "(000094.bin: row 94, from 0) below its row count"
+                )
             self._set_poses(P, poses)
             self._timestamps = t
+
+
+def rows_by_frame_number(files: list[Path], n_rows: int) -> np.ndarray | None:
+    """The pose-file rows of ``files`` when a pose file of ``n_rows`` rows covers more than these scans and every
+    file's stem is a distinct frame number (ASCII digits) below ``n_rows``; None otherwise (one row per scan)."""
+    if n_rows <= len(files) or not files or not all(ascii_digits(f.stem) for f in files):
+        return None
+    rows = np.array([int(f.stem) for f in files], dtype=np.int64)
+    if rows.max() >= n_rows or np.unique(rows).size != rows.size:
+        return None
+    return rows
 
 
 def _bag_root(path: Path) -> Path | None:
