@@ -274,19 +274,19 @@ class ListSequence(StoredSequenceInfo):
         return self._scans[index]
 
 
-def as_pose(pose: np.ndarray) -> np.ndarray:
+def as_pose(pose: np.ndarray, what: str = "a pose") -> np.ndarray:
     """Validate and return a 4x4 float64 pose (accepts 3x4): a rigid motion (`rigid_problem`), else
-    `ScanDataError`."""
+    `ScanDataError` naming ``what``."""
     T = np.asarray(pose, dtype=np.float64)
     if T.shape == (3, 4):
         T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
     if T.shape != (4, 4):
-        raise ScanDataError(f"a pose must be 4x4 (or 3x4), got shape {T.shape}")
+        raise ScanDataError(f"{what} must be 4x4 (or 3x4), got shape {T.shape}")
     if not np.all(np.isfinite(T)):
-        raise ScanDataError("a pose contains NaN or inf")
+        raise ScanDataError(f"{what} contains NaN or inf")
     problem = rigid_problem(T[None])
     if problem is not None:
-        raise ScanDataError(f"a pose is no rigid motion: {problem[1]}")
+        raise ScanDataError(f"{what} is no rigid motion: {problem[1]}")
     return T
 
 

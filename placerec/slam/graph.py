@@ -37,7 +37,7 @@ from pydantic import Field
 from placerec.errors import DependencyError, ScanDataError
 from placerec.io.atomic import atomic_write
 from placerec.params import Params
-from placerec.types import as_pose, rigid_problem
+from placerec.types import as_pose
 
 __all__ = ["GraphParams", "PoseGraph", "LoopFactor", "import_gtsam"]
 
@@ -176,12 +176,8 @@ class PoseGraph:
             ) from exc
 
     def _checked(self, T: np.ndarray, what: str) -> np.ndarray:
-        """``T`` as a rigid 4x4 (`_rigid`) if it is one (`rigid_problem`); `ScanDataError` naming ``what``."""
-        P = as_pose(T)
-        problem = rigid_problem(P[None])
-        if problem is not None:
-            raise ScanDataError(f"pose graph: {what} is no rigid motion: {problem[1]}")
-        return _rigid(P)
+        """``T`` as a rigid 4x4 (`_rigid`) if it is one (`as_pose`); `ScanDataError` naming ``what``."""
+        return _rigid(as_pose(T, f"pose graph: {what}"))
 
     def _loop_noise(self, robust: bool = True) -> Any:
         gtsam, p = self._gtsam, self.params
