@@ -300,7 +300,10 @@ def detect(
         str | None, typer.Option(help="'kiss-icp': poses from the scans, to draw the closures on.")
     ] = None,
     exclusion_frames: Annotated[
-        int | None, typer.Option(help="Match scans at least this many frames older (default 120).")
+        int | None,
+        typer.Option(
+            help="Match scans at least this many frames older (default 120, or half the scans if fewer)."
+        ),
     ] = None,
     exclusion_seconds: Annotated[
         float | None, typer.Option(help="... and this many seconds older (needs scan times).")
@@ -317,7 +320,7 @@ def detect(
 
     Examples:
 
-      placerec detect ../shared/data/real/ouster_os1_64_revisit_pair --exclusion-frames 1
+      placerec detect ../shared/data/real/ouster_os1_64_revisit_pair
 
       placerec detect sim/town_hdl64 --pipeline orb-hbst --exclusion-frames 50
     """

@@ -4,8 +4,9 @@
 capture), feeds its scans in acquisition order to a `placerec.loop_closure.LoopClosureDetector` over a registered
 pipeline at its preset's operating threshold (or ``threshold``), and writes the accepted closures to a results
 folder: ``closures.csv`` and ``closures.json`` (ids, times, files, score, inliers, ``T_match_query`` as
-x y z roll pitch yaw and as the 4x4), ``closures.png`` (the closures over the path) when there are poses (the
-sequence's own, ``--poses``, or KISS-ICP odometry) and ``config.yaml``. When the sequence has ground-truth poses
+x y z roll pitch yaw and as the 4x4), ``closures.png`` (the closures over the path when there are poses — the
+sequence's own, ``--poses``, or KISS-ICP odometry —, else as scan indices) and ``config.yaml``. The exclusion
+window is the detector's 120 frames, or half the scans of a shorter sequence (`exclusion_frames`). When the sequence has ground-truth poses
 each closure is also judged (true when the matched scan lies within ``gt_distance`` of the query, the evaluation's
 rule: `placerec.eval.ground_truth`) and the precision and the revisits found are reported.
 """
@@ -63,7 +64,12 @@ class DetectConfig(Params):
     threshold: float | None = Field(
         None, description="accept score >= this; None: the preset's (--threshold)"
     )
-    exclusion_frames: int | None = Field(DEFAULT_EXCLUSION_FRAMES, ge=0, description="--exclusion-frames")
+    exclusion_frames: int | None = Field(
+        None,
+        ge=0,
+        le=1_000_000,
+        description="--exclusion-frames; None: 120 (the detector's), or half the scans of a shorter sequence",
+    )
     exclusion_seconds: float | None = Field(None, ge=0, description="--exclusion-seconds (needs times)")
     exclusion_metres: float | None = Field(None, ge=0, description="--exclusion-metres (needs poses)")
     odometry: Literal["none", "kiss-icp"] = Field("none", description="poses from the scans (--odometry)")
@@ -254,7 +260,7 @@ def detect(
     detector = LoopClosureDetector.for_pipeline(
         cfg.pipeline,
         threshold=threshold,
-        exclusion_frames=cfg.exclusion_frames,
+        exclusion_frames=exclusion_frames(cfg.exclusion_frames, n),
         exclusion_seconds=cfg.exclusion_seconds,
         exclusion_metres=cfg.exclusion_metres,
     )
@@ -329,10 +335,43 @@ def detect(
         _write_csv(run / "closures.csv", rows)
         with atomic_write(run / "closures.json", "w") as fh:
             json.dump(finite_or_null(summary), fh, indent=1, default=json_default, allow_nan=False)
+        title = f"{seq.name}: {cfg.pipeline}"
         if poses is not None:
-            title = f"{seq.name}: {cfg.pipeline}" + (" (path: KISS-ICP)" if kiss is not None else "")
+            title += " (path: KISS-ICP)" if kiss is not None else ""
             summary["figure"] = str(_plot(run / "closures.png", poses[:, :3, 3], rows, title))
+        else:
+            summary["figure"] = str(_plot_ids(run / "closures.png", n, rows, title))
         return run, summary
+
+
+def exclusion_frames(given: int | None, n_scans: int) -> int:
+    """The exclusion window in frames: ``given``, else the detector's default (`DEFAULT_EXCLUSION_FRAMES`) or,
+    for a sequence of fewer than twice that, half its scans (at least 1): a handful of scans is still queried."""
+    if given is not None:
+        return given
+    return min(DEFAULT_EXCLUSION_FRAMES, max(1, n_scans // 2))
+
+
+def _plot_ids(path: Path, n_scans: int, rows: list[dict[str, Any]], title: str) -> Path:
+    """The closures as (query, match) scan indices, for a sequence without poses."""
+    from placerec.experiment.figures import _pyplot
+
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5, 5), dpi=120)
+    ax.plot([0, n_scans - 1], [0, n_scans - 1], color="0.8", lw=1, zorder=1, label="query = match")
+    if rows:
+        q = [r["query_id"] for r in rows]
+        m = [r["match_id"] for r in rows]
+        ax.scatter(
+            q, m, s=14, c=[r["score"] for r in rows], cmap="viridis", zorder=3, label=f"closure ({len(rows)})"
+        )
+    ax.set(xlim=(-0.5, n_scans - 0.5), ylim=(-0.5, n_scans - 0.5), xlabel="query scan", ylabel="matched scan")
+    ax.set_title(f"{title} (no poses: scan indices)", fontsize=9)
+    ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
 
 
 def _count(n: int, noun: str) -> str:
@@ -360,7 +399,7 @@ def summary_lines(run: Path, summary: dict[str, Any], rows: int = SUMMARY_ROWS) 
         lines.append(f"{len(s['skipped'])} scans skipped (no place in them): see the log (-v)")
     if s["n_queried"] == 0:
         lines.append(f"nothing queried: {s['n_scans']} scans, none outside the exclusion window")
-        lines.append("(for a handful of scans try --exclusion-frames 1)")
+        lines.append("(a smaller --exclusion-frames queries more scans)")
     if s["closures"]:
         header = f"{'query':>6} {'match':>6} {'score':>6} {'inl':>4} {'x':>7} {'y':>7} {'z':>6} {'yaw':>7}"
         scored = s["scored"] is not None

@@ -84,13 +84,13 @@ def test_with_poses_the_revisits_are_found_drawn_and_scored(folders, tmp_path):
     assert all(len(line) <= 100 for line in output.splitlines() if not line.startswith("  /"))
 
 
-def test_without_poses_closures_are_written_not_scored_nor_drawn(folders, tmp_path):
+def test_without_poses_closures_are_written_not_scored_and_drawn_by_scan_index(folders, tmp_path):
     code, output = _detect(str(folders[1]), "--exclusion-frames", str(PASS), "--out", str(tmp_path / "o"))
     assert code == 0, output
     rows, summary = _read(tmp_path / "o")
     _check_closures(rows, summary["closures"])
     assert all(row["true"] == "" for row in rows) and summary["scored"] is None
-    assert not (tmp_path / "o" / "closures.png").exists()
+    assert (tmp_path / "o" / "closures.png").stat().st_size > 0  # (query, match) scan indices
     assert "closures not scored" in output
 
 
@@ -114,14 +114,25 @@ def test_kiss_icp_odometry_draws_the_closures_without_scoring_them(folders, tmp_
 
 
 def test_the_default_folder_and_window(folders, tmp_path, monkeypatch):
-    """Default --out: results/detect_<sequence>_<timestamp>; the default window (120 frames) queries nothing here
-    and says so."""
+    """Default --out: results/detect_<sequence>_<timestamp>; the default window is 120 frames, or half the scans of
+    a shorter sequence (here 10 scans: 5, so the second pass is queried against the first); a window longer than
+    the sequence queries nothing and says so."""
+    from placerec.detect import exclusion_frames
+
+    assert (exclusion_frames(None, 2), exclusion_frames(None, 10), exclusion_frames(None, 10_000)) == (
+        1,
+        5,
+        120,
+    )
+    assert exclusion_frames(0, 10) == 0
     monkeypatch.chdir(tmp_path)
     code, output = _detect(str(folders[1]), "--pipeline", "orb-hbst")
     assert code == 0, output
     (run,) = (tmp_path / "results").glob("detect_without_poses_*")
-    assert json.loads((run / "closures.json").read_text())["n_closures"] == 0
-    assert "nothing queried" in output and "--exclusion-frames 1" in output
+    summary = json.loads((run / "closures.json").read_text())
+    assert summary["exclusion"]["frames"] == PASS and summary["n_closures"] >= PASS - 1
+    code, output = _detect(str(folders[1]), "--exclusion-frames", "1000", "--out", str(tmp_path / "o"))
+    assert code == 0 and "nothing queried" in output
 
 
 @pytest.mark.parametrize(
@@ -166,7 +177,7 @@ def test_the_real_ouster_revisit_pair_in_one_command(real_data, tmp_path):
     Scan Context close the pair (scores ~0.52), MapClosures does not (below its 15 inliers); the registration says
     the two were taken at (nearly) the same pose (~1.5 cm, < 0.1 deg)."""
     pair = real_data / "ouster_os1_64_revisit_pair"
-    code, output = _detect(str(pair), "--exclusion-frames", "1", "--out", str(tmp_path / "o"))
+    code, output = _detect(str(pair), "--out", str(tmp_path / "o"))  # no option: a 2-scan window of 1
     assert code == 0, output
     rows, summary = _read(tmp_path / "o")
     (c,) = summary["closures"]
