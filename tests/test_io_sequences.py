@@ -197,3 +197,28 @@ def test_frames_named_by_number_pick_their_rows_from_a_whole_sequences_poses(tmp
     (tmp_path / "scan_a.bin").write_bytes(pts.tobytes())  # a name that is no frame number
     with pytest.raises(ScanFormatError, match=r"300 poses for 4 scans"):
         open_sequence(tmp_path, poses=tmp_path / "whole.txt")
+
+
+def test_scans_named_by_their_time_pick_the_nearest_pose_of_a_tum_file(tmp_path: Path) -> None:
+    """#32: a TUM trajectory of the whole drive, scan files named by their time (nanoseconds or seconds)."""
+    from placerec.errors import ScanFormatError
+    from placerec.io import open_sequence
+    from placerec.io.sequences import file_times
+
+    pts = np.random.default_rng(0).normal(size=(50, 4)).astype(np.float32)
+    t0 = 1_566_279_710
+    for row, jitter_ns in ((2, 10_000_000), (5, -20_000_000), (7, 0)):
+        pts.tofile(tmp_path / f"{t0 + row // 10}{(row % 10) * 100_000_000 + jitter_ns:09d}.bin")
+    times = t0 + np.arange(10) * 0.1
+    lines = [f"{t:.3f} {k} 0 0 0 0 0 1" for k, t in enumerate(times)]  # x = the row number
+    (tmp_path / "traj.tum").write_text("\n".join(lines) + "\n")
+    seq = open_sequence(tmp_path, poses=tmp_path / "traj.tum")
+    assert seq.poses[:, 0, 3].tolist() == [2.0, 5.0, 7.0]
+    np.testing.assert_allclose(seq.timestamps - t0, [0.21, 0.48, 0.7], atol=1e-6)
+    pts.tofile(tmp_path / f"{t0 + 5}000000000.bin")  # 5 s after the trajectory ends
+    with pytest.raises(
+        ScanFormatError, match=rf"traj.tum: no pose within 0.05 s of scan {t0 + 5}000000000.bin"
+    ):
+        open_sequence(tmp_path, poses=tmp_path / "traj.tum")
+    assert file_times([Path("1318.104571.pcd"), Path("000094.bin")]) is None  # a frame number is no time
+    assert file_times([Path("1318.104571.pcd")]).tolist() == [1318.104571]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import inspect
 import logging
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,7 @@ from placerec.errors import ConfigError, ScanFormatError
 from placerec.io._common import ascii_digits, natural_key
 from placerec.io.datasets import DATASET_LOADERS, dataset_loader, detect_dataset
 from placerec.io.datasets.kitti import KittiSequence, read_kitti_calib
+from placerec.io.datasets.trajectory import match_nearest
 from placerec.io.file_sequence import FileSequence, load_sensor_yaml
 from placerec.io.poses import read_poses
 from placerec.io.registry import EXTENSIONS, read_format_of
@@ -73,9 +75,19 @@ class FolderSequence(FileSequence):
         if poses is not None:
             P, t = read_poses(poses)
             rows = rows_by_frame_number(files, len(P))
+            stamps = file_times(files) if rows is None and t is not None and len(P) != len(files) else None
             if rows is not None:  # frames picked out of a whole sequence, named by their frame number
                 log.info("%s: %d poses of %s picked by the scans' frame numbers", root, len(rows), poses)
                 P, t = P[rows], None if t is None else t[rows]
+            elif stamps is not None and t is not None:  # scans named by their time, a TUM file's times
+                idx, ok = match_nearest(t, stamps, POSE_TIME_GAP, poses)
+                if not ok.all():
+                    bad = files[int(np.argmin(ok))].name
+                    raise ScanFormatError(
+                        f"{poses}: no pose within {POSE_TIME_GAP} s of scan {bad} (its name read as its time)"
+                    )
+                log.info("%s: %d poses of %s picked by the scans' times (file names)", root, len(idx), poses)
+                P, t = P[idx], stamps
             elif len(P) != len(files):
                 raise ScanFormatError(
                     f"{poses}: {len(P)} poses for {len(files)} scans in {root}: a pose file holds one pose per scan "
@@ -95,6 +107,32 @@ def rows_by_frame_number(files: list[Path], n_rows: int) -> np.ndarray | None:
     if rows.max() >= n_rows or np.unique(rows).size != rows.size:
         return None
     return rows
+
+
+#: how far (s) the nearest pose of a TUM file may be from a scan whose file name is its time
+POSE_TIME_GAP = 0.05
+
+_TIME_NAME = re.compile(r"[0-9]+(\.[0-9]+)?")
+
+
+def file_times(files: list[Path]) -> np.ndarray | None:
+    """The times (s) the scan files' names give when every stem is one: seconds with a fraction
+    (``1318.104571.pcd``), or an integer of 16 or more digits (nanoseconds, ``1566279710893402354.bin``) or of 13 to
+    15 (microseconds) — None otherwise, and for integers of fewer digits (frame numbers)."""
+    out = []
+    for f in files:
+        stem = f.stem
+        if not _TIME_NAME.fullmatch(stem):
+            return None
+        if "." in stem:
+            out.append(float(stem))
+        elif len(stem) >= 16:
+            out.append(int(stem[:-9]) + int(stem[-9:]) * 1e-9)
+        elif len(stem) >= 13:
+            out.append(int(stem[:-6]) + int(stem[-6:]) * 1e-6)
+        else:
+            return None
+    return np.asarray(out, np.float64)
 
 
 def _bag_root(path: Path) -> Path | None:
