@@ -82,9 +82,9 @@ class FolderSequence(FileSequence):
             elif stamps is not None and t is not None:  # scans named by their time, a TUM file's times
                 idx, ok = match_nearest(t, stamps, POSE_TIME_GAP, poses)
                 if not ok.all():
-                    bad = files[int(np.argmin(ok))].name
+                    unmatched = files[int(np.argmin(ok))].name
                     raise ScanFormatError(
-                        f"{poses}: no pose within {POSE_TIME_GAP} s of scan {bad} (its name read as its time)"
+                        f"{poses}: no pose within {POSE_TIME_GAP} s of scan {unmatched} (its name read as its time)"
                     )
                 log.info("%s: %d poses of %s picked by the scans' times (file names)", root, len(idx), poses)
                 P, t = P[idx], stamps
