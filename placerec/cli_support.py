@@ -157,8 +157,8 @@ def print_summary(summary: dict) -> None:
     from rich.table import Table
 
     table = Table(show_header=False, box=None)
-    table.add_column(style="bold cyan")
-    table.add_column()
+    table.add_column(style="bold cyan", no_wrap=True)
+    table.add_column(overflow="fold")  # a long path wraps onto the next line, never cut with '...'
 
     def add(prefix: str, value: object) -> None:
         if isinstance(value, dict):
@@ -168,10 +168,16 @@ def print_summary(summary: dict) -> None:
                 for k, v in value.items():
                     add(f"{prefix}.{k}" if prefix else k, v)
         else:
-            table.add_row(prefix, str(value))
+            table.add_row(prefix, printable(str(value)))
 
     add("", summary)
     Console().print(table)
+
+
+def printable(text: str) -> str:
+    """``text`` with the undecodable bytes of a file name (Python's surrogate escapes) shown as ``\\xNN``: a
+    terminal cannot encode them."""
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 def print_pipelines() -> None:

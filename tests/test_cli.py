@@ -120,3 +120,21 @@ def test_pipeline_parameter_names_are_never_cut_on_an_80_column_terminal(name):
     assert "…" not in result.output
     names = {line.split(" = ")[0] for line in result.output.splitlines() if " = " in line and line[0] != " "}
     assert {row[0] for row in param_rows(pipeline_params(name))} <= names
+
+
+def test_info_table_never_cuts_a_long_value(tmp_path, monkeypatch):
+    """A long path wraps in ``placerec info``'s table rather than ending in '…' (#32: output that fits)."""
+    import numpy as np
+
+    from placerec.io import write_scan
+    from placerec.types import Scan
+
+    deep = tmp_path / ("a_rather_long_folder_name_" * 4)
+    deep.mkdir()
+    path = deep / "scan.pcd"
+    write_scan(path, Scan(np.random.default_rng(0).normal(size=(50, 3)), np.ones(50)))
+    monkeypatch.setenv("COLUMNS", "80")
+    result = runner.invoke(app, ["info", str(path)])
+    assert result.exit_code == 0, result.output
+    assert "…" not in result.output and "scan.pcd" in result.output.replace("\n", "").replace(" ", "")
+    assert max(len(line) for line in result.output.splitlines()) <= 80
