@@ -16,7 +16,7 @@ from placerec.errors import ConfigError, ScanFormatError
 from placerec.io._common import ascii_digits, natural_key
 from placerec.io.datasets import DATASET_LOADERS, dataset_loader, detect_dataset
 from placerec.io.datasets.kitti import KittiSequence, read_kitti_calib
-from placerec.io.datasets.trajectory import match_nearest
+from placerec.io.datasets.trajectory import integer_seconds, match_nearest
 from placerec.io.file_sequence import FileSequence, load_sensor_yaml
 from placerec.io.poses import read_poses
 from placerec.io.registry import EXTENSIONS, read_format_of
@@ -122,16 +122,10 @@ def file_times(files: list[Path]) -> np.ndarray | None:
     out = []
     for f in files:
         stem = f.stem
-        if not _TIME_NAME.fullmatch(stem):
+        if not _TIME_NAME.fullmatch(stem) or ("." not in stem and len(stem) < 13):
             return None
-        if "." in stem:
-            out.append(float(stem))
-        elif len(stem) >= 16:
-            out.append(int(stem[:-9]) + int(stem[-9:]) * 1e-9)
-        elif len(stem) >= 13:
-            out.append(int(stem[:-6]) + int(stem[-6:]) * 1e-6)
-        else:
-            return None
+        scale = 1.0 if "." in stem else 1e-9 if len(stem) >= 16 else 1e-6
+        out.append(float(stem) if scale == 1.0 else float(integer_seconds([int(stem)], scale)[0]))
     return np.asarray(out, np.float64)
 
 

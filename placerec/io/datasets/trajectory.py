@@ -219,6 +219,11 @@ def stamped_files(folder: Path, suffix: str, scale: float, what: str) -> tuple[l
     bad = [f.name for f in files if not ascii_digits(f.stem)]
     if bad:
         raise ScanFormatError(f"{folder / bad[0]}: expected a file named by its integer timestamp ({what})")
+    return files, integer_seconds([int(f.stem) for f in files], scale)
+
+
+def integer_seconds(stamps: list[int], scale: float) -> np.ndarray:
+    """Integer timestamps in units of ``scale`` seconds (1e-9: nanoseconds) as seconds, float64: split into whole
+    seconds and the rest before scaling, so nanosecond stamps keep their precision."""
     per_second = round(1 / scale)
-    stems = [int(f.stem) for f in files]
-    return files, np.array([s // per_second + (s % per_second) * scale for s in stems], dtype=np.float64)
+    return np.array([s // per_second + (s % per_second) * scale for s in stamps], dtype=np.float64)
