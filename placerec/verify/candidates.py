@@ -316,10 +316,6 @@ class CloudStore:
         c = self._clouds.get(scan_id)
         return len(self.cloud(scan_id)) if c is None or callable(c) else len(c)
 
-    def close(self) -> None:
-        """Give back the spill file now (it also goes when the store is garbage collected)."""
-        self._spill.close()
-
     def from_arrays(self, ids: Sequence[int], arrays: Mapping[str, np.ndarray], path: Any = "") -> None:
         """Replace the clouds by those of `arrays` (saved for ``ids``); `ArtifactError` when they disagree."""
         missing = [k for k in ("cloud_counts", "cloud_xyz") if k not in arrays]
