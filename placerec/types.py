@@ -24,6 +24,7 @@ from placerec.errors import ScanDataError
 
 __all__ = [
     "SensorInfo",
+    "SENSOR_PATTERNS",
     "Scan",
     "Sequence",
     "ListSequence",
@@ -39,6 +40,16 @@ __all__ = [
 ]
 
 
+#: scan patterns a `SensorInfo` may name
+SENSOR_PATTERNS: tuple[str, ...] = ("spinning", "non-repetitive", "solid-state")
+
+
+def _pair(v: Any) -> tuple[float, float]:
+    if not isinstance(v, (list, tuple)) or len(v) != 2:
+        raise ScanDataError(f"sensor description: elevation_fov_deg must be [up, down], got {v!r}")
+    return float(v[0]), float(v[1])
+
+
 @dataclass(frozen=True)
 class SensorInfo:
     """What is known about the sensor that produced a scan.
@@ -46,6 +57,13 @@ class SensorInfo:
     ``beam_elevations_deg`` lists one elevation per beam (ring), indexed by ring id; ``columns`` is the number of
     azimuth steps per revolution; ``intensity_max`` is the saturation value of the raw intensity channel (e.g. 255
     for 8-bit Velodyne, 65535 for 16-bit Ouster reflectivity, 1.0 for KITTI's float reflectance).
+
+    Sensors that are not one 360 deg spinning sweep say so: ``pattern`` is ``"spinning"`` (None means the same),
+    ``"non-repetitive"`` (Livox-style rosettes: the covered part of the field of view grows with integration time)
+    or ``"solid-state"`` (a fixed raster over a limited field of view). ``horizontal_fov_deg`` is the width of the
+    horizontal field of view centred on +x (None = 360); ``elevation_fov_deg`` = (up, down), both positive for a
+    sensor that sees above and below the horizon, gives the vertical field of view of a sensor without a beam
+    layout (a sensor with ``beam_elevations_deg`` takes it from them). ``rate_hz`` is the scan (frame) rate.
     """
 
     name: str = "unknown"
@@ -54,6 +72,26 @@ class SensorInfo:
     intensity_max: float | None = None
     min_range: float | None = None
     max_range: float | None = None
+    pattern: str | None = None
+    horizontal_fov_deg: float | None = None
+    elevation_fov_deg: tuple[float, float] | None = None
+    rate_hz: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.pattern is not None and self.pattern not in SENSOR_PATTERNS:
+            raise ScanDataError(f"sensor {self.name!r}: pattern {self.pattern!r} is not one of {SENSOR_PATTERNS}")
+        h = self.horizontal_fov_deg
+        if h is not None and not (np.isfinite(h) and 0 < h <= 360):
+            raise ScanDataError(f"sensor {self.name!r}: horizontal_fov_deg must be in (0, 360], got {h!r}")
+        e = self.elevation_fov_deg
+        if e is not None:
+            if len(e) != 2 or not np.all(np.isfinite(e)) or not (-90 <= e[0] <= 90 and -90 <= e[1] <= 90):
+                raise ScanDataError(f"sensor {self.name!r}: elevation_fov_deg must be (up, down) in degrees, got {e!r}")
+            if e[0] + e[1] <= 0:
+                raise ScanDataError(f"sensor {self.name!r}: elevation_fov_deg {e!r} spans no angle")
+            object.__setattr__(self, "elevation_fov_deg", (float(e[0]), float(e[1])))
+        if self.rate_hz is not None and not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
+            raise ScanDataError(f"sensor {self.name!r}: rate_hz must be positive, got {self.rate_hz!r}")
 
     @property
     def n_beams(self) -> int | None:
@@ -63,9 +101,14 @@ class SensorInfo:
     def vertical_fov_deg(self) -> tuple[float, float] | None:
         """(up, down) field of view in degrees, both positive for a sensor that sees above and below."""
         if not self.beam_elevations_deg:
-            return None
+            return self.elevation_fov_deg
         e = np.asarray(self.beam_elevations_deg)
         return float(e.max()), float(-e.min())
+
+    @property
+    def is_spinning(self) -> bool:
+        """Whether one scan is a 360 deg spinning sweep (the cylindrical image's assumption)."""
+        return (self.pattern in (None, "spinning")) and (self.horizontal_fov_deg in (None, 360.0))
 
     def to_dict(self) -> dict[str, Any]:
         d = {
@@ -78,11 +121,22 @@ class SensorInfo:
             "min_range": self.min_range,
             "max_range": self.max_range,
         }
+        # the fields of sensors that are not spinning are written only when set, so the description of a
+        # spinning sensor (and every hash of it) stays what it was before they existed
+        if self.pattern is not None:
+            d["pattern"] = self.pattern
+        if self.horizontal_fov_deg is not None:
+            d["horizontal_fov_deg"] = float(self.horizontal_fov_deg)
+        if self.elevation_fov_deg is not None:
+            d["elevation_fov_deg"] = [float(v) for v in self.elevation_fov_deg]
+        if self.rate_hz is not None:
+            d["rate_hz"] = float(self.rate_hz)
         return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SensorInfo:
-        allowed = {"name", "beam_elevations_deg", "columns", "intensity_max", "min_range", "max_range"}
+        allowed = {"name", "beam_elevations_deg", "columns", "intensity_max", "min_range", "max_range", "pattern",
+                   "horizontal_fov_deg", "elevation_fov_deg", "rate_hz"}  # fmt: skip
         unknown = set(d) - allowed
         if unknown:
             raise ScanDataError(
@@ -96,6 +150,10 @@ class SensorInfo:
             intensity_max=None if d.get("intensity_max") is None else float(d["intensity_max"]),
             min_range=None if d.get("min_range") is None else float(d["min_range"]),
             max_range=None if d.get("max_range") is None else float(d["max_range"]),
+            pattern=None if d.get("pattern") is None else str(d["pattern"]),
+            horizontal_fov_deg=None if d.get("horizontal_fov_deg") is None else float(d["horizontal_fov_deg"]),
+            elevation_fov_deg=None if d.get("elevation_fov_deg") is None else _pair(d["elevation_fov_deg"]),
+            rate_hz=None if d.get("rate_hz") is None else float(d["rate_hz"]),
         )
 
 
