@@ -230,7 +230,7 @@ def test_default_hole_filling_is_only_for_uniform_images():
         ),
         (
             {"mode": "spherical"},
-            "ImageParams: mode: Input should be 'auto', 'uniform', 'per-beam' or 'organized'",
+            "ImageParams: mode: Input should be 'auto', 'uniform', 'per-beam', 'organized' or 'spherical'",
         ),
     ],
 )

@@ -12,7 +12,18 @@ Three ways to form the image, chosen by `ImageParams.mode`:
   the column as above: no empty rows by construction.
 * ``organized`` — an organised scan (Ouster) is used as it is: row = beam, column = azimuth step.
 
-``auto`` picks ``organized`` for organised scans, ``per-beam`` when rings are known, else ``uniform``. When
+* ``spherical`` — for clouds that are not one 360 deg spinning sweep (Livox-style rosettes, solid-state scanners
+  with a limited field of view, keyframes accumulated from several scans): azimuth and elevation on a regular grid
+  of ``resolution_deg`` pixels over the sensor's field of view (``SensorInfo.horizontal_fov_deg`` centred on +x,
+  else 360; the vertical one from the sensor or the cloud). Column ``u = (h/2 - theta) / h * W`` for a horizontal
+  field of view ``h`` (for ``h`` = 360 this is eq. 2's column), row as in eq. 2. Without a given resolution the
+  pixel is sized to the cloud's density: ``sqrt(field of view / (valid points / density_points_per_pixel))``,
+  rounded to 0.05 deg so that keyframes of one sequence share an image size. Such clouds leave empty pixels
+  between the points (a rosette covers the field of view unevenly); `fill_sparse_pixels` fills each empty pixel
+  that has valid neighbours within ``fill_radius_px`` with their mean (measured in docs/sensors.md).
+
+``auto`` picks ``organized`` for organised scans, ``spherical`` for sensors that are not spinning (see
+`placerec.types.SensorInfo.is_spinning`), ``per-beam`` when rings are known, else ``uniform``. When
 several points fall in one pixel the one with the smallest range is kept; the image stores its intensity (and,
 in separate channels, its range and its point index).
 
@@ -43,6 +54,9 @@ __all__ = [
     "detect_empty_rows",
     "fill_empty_rows",
     "fill_vertical_holes",
+    "fill_sparse_pixels",
+    "project_spherical",
+    "spherical_grid",
     "to_uint8",
     "UNIFORM_HOLES_MAX_GAP",
 ]
@@ -66,8 +80,25 @@ class ImageParams(Params):
     equalisation after that.
     """
 
-    mode: Literal["auto", "uniform", "per-beam", "organized"] = Field(
-        "auto", description="VPR paper Sec. IV-A eq. 2 (uniform), per-beam rows or the organised scan"
+    mode: Literal["auto", "uniform", "per-beam", "organized", "spherical"] = Field(
+        "auto",
+        description="VPR paper Sec. IV-A eq. 2 (uniform), per-beam rows, the organised scan, or a spherical grid "
+        "over a limited field of view (non-spinning sensors, keyframes)",
+    )
+    resolution_deg: float | None = Field(
+        None, gt=0, le=10, description="spherical: pixel size in deg; None = from the cloud's point density"
+    )
+    density_points_per_pixel: float = Field(
+        1.0,
+        gt=0,
+        le=100,
+        description="spherical, no resolution given: mean valid points per pixel to size for",
+    )
+    fill_radius_px: int = Field(
+        1,
+        ge=0,
+        le=8,
+        description="spherical: fill empty pixels from valid ones within this many px (0 = off)",
     )
     width: int | None = Field(
         None, gt=0, le=1 << 15, description="px (at most 32768); None = the sensor's columns, else 1024"
@@ -171,9 +202,12 @@ def _fov(scan: Scan, params: ImageParams, xyz: np.ndarray, r: np.ndarray) -> tup
     up, down = params.fov_up_deg, params.fov_down_deg
     sensor_fov = scan.sensor.vertical_fov_deg
     if (up is None or down is None) and sensor_fov is not None:
-        # half a beam spacing of margin so the extreme beams fall inside the image
-        elev = np.sort(np.asarray(scan.sensor.beam_elevations_deg))
-        margin = 0.5 * float(np.median(np.diff(elev))) if elev.size > 1 else 0.5
+        # half a beam spacing of margin so the extreme beams fall inside the image (none for a field of view
+        # given without a beam layout: it bounds the points already)
+        margin = 0.0
+        if scan.sensor.beam_elevations_deg:
+            elev = np.sort(np.asarray(scan.sensor.beam_elevations_deg))
+            margin = 0.5 * float(np.median(np.diff(elev))) if elev.size > 1 else 0.5
         up = sensor_fov[0] + margin if up is None else up
         down = sensor_fov[1] + margin if down is None else down
     if up is None or down is None:
@@ -230,6 +264,83 @@ def project_per_beam(
     idx, r, ring = idx[ok], r[ok], ring[ok]
     cols = _columns(scan.xyz[idx], w)
     return _scatter_nearest(rank[ring], cols, r, scan, idx, (n_rows, w))
+
+
+#: the automatic spherical pixel size is rounded to this step (deg) and kept within these bounds
+_RESOLUTION_STEP_DEG = 0.05
+_RESOLUTION_BOUNDS_DEG = (0.05, 2.0)
+
+
+@dataclass(frozen=True)
+class SphericalGrid:
+    """The angular grid of a spherical image: horizontal field of view ``h_fov`` (deg, centred on +x), vertical
+    field of view ``up`` / ``down`` (deg above / below the horizon) and the image size."""
+
+    h_fov: float
+    up: float
+    down: float
+    height: int
+    width: int
+
+    def pixels(self, xyz: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rows, columns, inside) of points ``xyz`` at ranges ``r``."""
+        theta = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
+        phi = np.degrees(np.arcsin(np.clip(xyz[:, 2] / r, -1.0, 1.0)))
+        u = np.floor((0.5 * self.h_fov - theta) / self.h_fov * self.width).astype(np.int64)
+        v = np.floor((1.0 - (phi + self.down) / (self.up + self.down)) * self.height).astype(np.int64)
+        if self.h_fov >= 360.0:
+            u = np.mod(u, self.width)
+        inside = (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+        return v, u, inside
+
+
+def spherical_grid(scan: Scan, params: ImageParams = _DEFAULT_PARAMS) -> SphericalGrid:
+    """The spherical grid ``scan`` is projected onto (see the module docstring for the automatic resolution)."""
+    idx, r = _valid_points(scan)
+    xyz = scan.xyz[idx]
+    h_fov = float(scan.sensor.horizontal_fov_deg or 360.0)
+    if idx.size == 0:
+        up, down = scan.sensor.vertical_fov_deg or (1.0, 1.0)
+    else:
+        up, down = _fov(scan, params, xyz, r)
+    res = params.resolution_deg
+    if res is None:
+        n = max(int(idx.size), 1)
+        res = float(np.sqrt(h_fov * (up + down) * params.density_points_per_pixel / n))
+        res = round(res / _RESOLUTION_STEP_DEG) * _RESOLUTION_STEP_DEG
+        res = float(np.clip(res, *_RESOLUTION_BOUNDS_DEG))
+    width = params.width or max(int(np.ceil(h_fov / res)), 1)
+    height = params.height or max(int(np.ceil((up + down) / res)), 1)
+    return SphericalGrid(h_fov, float(up), float(down), int(height), int(width))
+
+
+def project_spherical(
+    scan: Scan, params: ImageParams = _DEFAULT_PARAMS
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A spherical grid over the sensor's field of view: (intensity, range, point index) images."""
+    grid = spherical_grid(scan, params)
+    idx, r = _valid_points(scan)
+    rows, cols, inside = grid.pixels(scan.xyz[idx], r)
+    return _scatter_nearest(
+        rows[inside], cols[inside], r[inside], scan, idx[inside], (grid.height, grid.width)
+    )
+
+
+def fill_sparse_pixels(image: np.ndarray, valid: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fill each empty pixel that has valid pixels within ``radius`` (a square window) with their mean (a
+    normalised box filter). Returns (image, valid); pixels with no valid neighbour stay empty."""
+    if radius <= 0 or valid.all() or not valid.any():
+        return image, valid
+    import cv2
+
+    k = (2 * radius + 1, 2 * radius + 1)
+    w = valid.astype(np.float32)
+    total = cv2.boxFilter(np.where(valid, image, 0).astype(np.float32), -1, k, normalize=False)
+    count = cv2.boxFilter(w, -1, k, normalize=False)
+    hole = ~valid & (count > 0.5)
+    out = image.astype(np.float32, copy=True)
+    out[hole] = total[hole] / count[hole]
+    return out, valid | hole
 
 
 def from_organized(scan: Scan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -310,6 +421,8 @@ def _resolve_mode(scan: Scan, mode: str) -> str:
     if mode == "auto":
         if scan.shape is not None:
             return "organized"
+        if not scan.sensor.is_spinning:
+            return "spherical"
         return "per-beam" if scan.ring is not None else "uniform"
     return mode
 
@@ -321,10 +434,16 @@ def make_image(scan: Scan, params: ImageParams = _DEFAULT_PARAMS) -> IntensityIm
         inten, rng, pidx = from_organized(scan)
     elif mode == "per-beam":
         inten, rng, pidx = project_per_beam(scan, params)
+    elif mode == "spherical":
+        inten, rng, pidx = project_spherical(scan, params)
     else:
         inten, rng, pidx = project_uniform(scan, params)
     valid = pidx >= 0
     filled = np.zeros(inten.shape[0], bool)
+    if mode == "spherical":  # no row structure: fill the gaps between the points instead of rows
+        rng, _ = fill_sparse_pixels(rng, valid, params.fill_radius_px)
+        inten, valid = fill_sparse_pixels(inten, valid, params.fill_radius_px)
+        return IntensityImage(inten, rng, valid, pidx, to_uint8(inten, valid, params), filled, mode)
     if params.fill_empty_rows:
         filled = detect_empty_rows(valid, params.empty_row_threshold)
         if filled.any() and (~filled).any():
