@@ -229,7 +229,7 @@ def test_default_hole_filling_is_only_for_uniform_images():
             "fov_up_deg + fov_down_deg must be positive, got 2.0 + -3.0",
         ),
         (
-            {"mode": "spherical"},
+            {"mode": "equirectangular"},
             "ImageParams: mode: Input should be 'auto', 'uniform', 'per-beam', 'organized' or 'spherical'",
         ),
     ],
