@@ -1,0 +1,516 @@
+"""Keyframes: consecutive scans accumulated over a time or distance window into one de-skewed cloud.
+
+LiDARs that are not one 360 deg spinning sweep (Livox rosettes, 120 deg solid-state units) and sparse ones
+(VLP-16) see too little of a place in one scan; a keyframe gathers the scans of a window and describes them as
+one. docs/keyframes.md gives the config syntax and the measured cost.
+
+Windows
+-------
+Scans are taken in order; a keyframe starts with the scan after the previous keyframe and *completes on* the first
+scan ``j`` for which ``(x_j - x_first) + (x_j - x_{j-1}) >= window`` (``x``: timestamps for ``seconds``, the
+distance travelled along the odometry for ``metres``; the second term, the latest step, counts the extent of
+scan ``j`` itself, so that 10 Hz scans and ``seconds: 0.5`` give 5 scans per keyframe, the first keyframe
+included). A window also completes after `KeyframeParams.max_scans` scans (a vehicle standing still travels no
+metres). The online `KeyframeBuilder` and the offline `KeyframeSequence` apply this one rule (`_completes`), so
+they cut a stream into the same keyframes; the scans after the last complete window form a last, shorter
+keyframe (``flush`` online).
+
+Frame and de-skew
+-----------------
+A keyframe is expressed in the frame of its **last scan at that scan's timestamp** (the scan it completes on:
+natural online), ``pose`` = that scan's odometry pose ``T_world_keyframe``, ``timestamp`` = its timestamp. A point
+of scan ``i`` with per-point time ``t`` (`placerec.types.Scan.time`, seconds since the scan's timestamp) was
+measured from the sensor pose at ``stamp_i + t``, `interpolate_trajectory` over the odometry poses of the window
+(and of the scan before it): between scan ``i``'s pose and the next scan's (translation linear, rotation along the
+rotation vector of the relative motion, i.e. slerp), extrapolated from the previous pair past the window's last
+scan (the next scan is not known when the keyframe completes). It is mapped ``T_keyframe_world @ T_world_sensor(t)``.
+The pose is evaluated once per `DESKEW_BIN_S` time bin, not per point (tools/bench_keyframes.py measures the
+error that costs against exact per-point interpolation). Without ``deskew`` every point of scan ``i`` takes scan
+``i``'s pose.
+
+The keyframe's `Scan` has the valid points (`placerec.types.valid_points`) of its scans: ``xyz`` in the keyframe
+frame, ``intensity``, ``ring`` when every scan has rings, ``time`` = seconds since the *keyframe's* timestamp (so
+mostly negative) when every scan has per-point times, else None; ``sensor`` the scans' `SensorInfo` (the last
+scan's); ``source`` names the scan range, e.g. ``"seq[10:15]"``. ``voxel_m`` keeps one point per voxel: the
+centroid of its points with their mean intensity (`placerec.preprocess.voxel_downsample`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from placerec.errors import ScanDataError
+from placerec.params import Params
+from placerec.preprocess import voxel_downsample
+from placerec.types import Scan, Sequence, as_pose, check_poses, path_length, valid_points
+
+if TYPE_CHECKING:
+    from placerec.slam.odometry import KissIcpOdometry
+
+__all__ = [
+    "KeyframeParams",
+    "Keyframe",
+    "KeyframeBuilder",
+    "KeyframeSequence",
+    "DESKEW_BIN_S",
+    "MAX_POINT_TIME_S",
+    "interpolate_trajectory",
+    "deskewed_points",
+]
+
+#: width (s) of the time bins of the de-skew: points of one bin take the pose at the bin's centre
+DESKEW_BIN_S = 5e-4
+#: largest |per-point time| (s) taken as seconds since the scan's timestamp; beyond it the times are taken to be
+#: in another unit (ns, us) or absolute, and the scan is refused rather than extrapolated hours away
+MAX_POINT_TIME_S = 10.0
+#: relative slack of the window test, so that timestamps 0.1 s apart in binary floating point fill 0.5 s windows
+_WINDOW_SLACK = 1e-9
+
+
+class KeyframeParams(Params):
+    """How scans are accumulated into keyframes (module docstring): a window of ``seconds`` or of ``metres``
+    travelled (exactly one), de-skewed or not, over which odometry, optionally voxel-downsampled."""
+
+    seconds: float | None = Field(None, gt=0, le=3600, description="window length in seconds (s)")
+    metres: float | None = Field(None, gt=0, le=10_000, description="window length in metres travelled (m)")
+    deskew: bool = Field(True, description="de-skew every point with the pose at its time (needs Scan.time)")
+    odometry: Literal["poses", "kiss-icp"] = Field(
+        "poses", description="poses: the odometry poses the caller gives; kiss-icp: KISS-ICP over the scans"
+    )
+    voxel_m: float | None = Field(
+        None,
+        gt=0,
+        le=100,
+        description="voxel (m) of the accumulated cloud: one centroid per voxel (None: off)",
+    )
+    max_scans: int = Field(
+        200, ge=1, le=100_000, description="a window also completes after this many scans (a vehicle at rest)"
+    )
+
+    @model_validator(mode="after")
+    def _one_window(self) -> KeyframeParams:
+        if (self.seconds is None) == (self.metres is None):
+            raise ValueError("give exactly one of keyframes.seconds and keyframes.metres")
+        return self
+
+    @property
+    def window(self) -> float:
+        """The window length, in seconds or metres."""
+        value = self.seconds if self.seconds is not None else self.metres
+        assert value is not None  # _one_window
+        return float(value)
+
+
+@dataclass(frozen=True, eq=False)
+class Keyframe:
+    """One keyframe: the accumulated ``scan`` (in the keyframe frame), ``pose`` = odometry ``T_world_keyframe``
+    (the last scan's), ``timestamp`` (the last scan's; None when the scans have none) and ``scan_indices`` (the
+    indices of its scans, in order)."""
+
+    scan: Scan
+    pose: np.ndarray
+    timestamp: float | None
+    scan_indices: tuple[int, ...]
+
+
+def _completes(params: KeyframeParams, first: float, previous: float, current: float, n_scans: int) -> bool:
+    """Whether the window that started at progress ``first`` completes on the scan at ``current`` (the scan before
+    it at ``previous``; ``previous == current`` for the stream's first scan), holding ``n_scans`` scans."""
+    span = (current - first) + (current - previous)
+    return n_scans >= params.max_scans or span >= params.window * (1.0 - _WINDOW_SLACK)
+
+
+def interpolate_trajectory(stamps: np.ndarray, poses: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """(Q, 4, 4) poses at times ``at`` on the trajectory through ``poses`` (K, 4, 4) at strictly increasing
+    ``stamps`` (K,): between two knots the translation is linear and the rotation turns along the rotation vector
+    of the relative rotation (slerp); before the first / after the last knot the end segment is extrapolated; a
+    single knot is a constant pose. (`placerec.io.datasets.trajectory.interpolate_poses` interpolates ground truth
+    and refuses times outside it; the de-skew must extrapolate.)"""
+    from scipy.spatial.transform import Rotation
+
+    at = np.asarray(at, dtype=np.float64)
+    out = np.empty((at.size, 4, 4))
+    if len(stamps) == 1:
+        out[:] = poses[0]
+        return out
+    seg = np.clip(np.searchsorted(stamps, at, side="right") - 1, 0, len(stamps) - 2)
+    s = (at - stamps[seg]) / (stamps[seg + 1] - stamps[seg])
+    R = poses[:, :3, :3]
+    # rotation vector of each segment's relative rotation R_a^T R_b, expressed in frame a
+    rotvec = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()
+    step = Rotation.from_rotvec(s[:, None] * rotvec[seg]).as_matrix()
+    out[:, :3, :3] = R[seg] @ step
+    p = poses[:, :3, 3]
+    out[:, :3, 3] = p[seg] + s[:, None] * (p[seg + 1] - p[seg])
+    out[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+def deskewed_points(
+    xyz: np.ndarray,
+    time: np.ndarray,
+    stamp: float,
+    knot_stamps: np.ndarray,
+    knot_poses: np.ndarray,
+    T_frame_world: np.ndarray,
+    bin_s: float | None = DESKEW_BIN_S,
+) -> np.ndarray:
+    """(N, 3) float32: the points ``xyz`` of a scan taken at ``stamp`` with per-point ``time`` (seconds since
+    ``stamp``), each mapped ``T_frame_world @ T_world_sensor(stamp + time)`` with the sensor pose interpolated on the
+    knots (`interpolate_trajectory`). With ``bin_s`` the pose is evaluated once per time bin of that width (at its
+    centre) and gathered per point; None evaluates it at every point's own time (exact, the reference)."""
+    t = np.asarray(time, dtype=np.float64)
+    if t.size == 0:
+        return np.empty((0, 3), dtype=np.float32)
+    at: np.ndarray
+    if bin_s is None:
+        index = np.arange(t.size)
+        at = stamp + t
+    else:
+        bins = np.floor(t / bin_s).astype(np.int64)
+        lo = int(bins.min())
+        index = bins - lo
+        # times are bounded by MAX_POINT_TIME_S, so this is at most 2 * MAX_POINT_TIME_S / bin_s bins
+        at = stamp + (lo + np.arange(int(index.max()) + 1, dtype=np.float64) + 0.5) * bin_s
+    M = T_frame_world @ interpolate_trajectory(knot_stamps, knot_poses, at)
+    M32 = M[:, :3, :].astype(np.float32)
+    A = M32[index]
+    return np.einsum("nij,nj->ni", A[:, :, :3], xyz) + A[:, :, 3]
+
+
+def _where(scan: Scan, index: int | None) -> str:
+    return scan.source or (f"scan {index}" if index is not None else "scan")
+
+
+def _check_point_times(scan: Scan, index: int | None) -> np.ndarray:
+    """The scan's per-point times, checked: present, finite and within `MAX_POINT_TIME_S`."""
+    if scan.time is None:
+        raise ScanDataError(
+            f"{_where(scan, index)}: time: de-skew (keyframes.deskew) needs per-point times (Scan.time)"
+        )
+    t = scan.time
+    if t.size and not (np.isfinite(t).all() and float(np.abs(t).max()) <= MAX_POINT_TIME_S):
+        raise ScanDataError(
+            f"{_where(scan, index)}: time: per-point times must be finite seconds since the scan's timestamp,"
+            f" within +-{MAX_POINT_TIME_S:g} s"
+        )
+    return t
+
+
+def _assemble(
+    params: KeyframeParams,
+    scans: list[Scan],
+    indices: list[int],
+    stamps: np.ndarray | None,
+    poses: np.ndarray,
+    before: tuple[float, np.ndarray] | None,
+    label: str,
+) -> Keyframe:
+    """The keyframe of ``scans`` (already checked; their valid points only) at ``stamps`` with odometry ``poses``;
+    ``before`` = (stamp, pose) of the scan before the window (a de-skew knot), when there is one."""
+    T_world_kf = poses[-1]
+    T_kf_world = np.linalg.inv(T_world_kf)
+    if params.deskew:
+        assert stamps is not None  # checked by the callers: de-skew needs timestamps
+        knot_stamps, knot_poses = stamps, poses
+        if before is not None:
+            knot_stamps = np.r_[before[0], stamps]
+            knot_poses = np.concatenate([before[1][None], poses])
+    xyz_parts = []
+    for k, scan in enumerate(scans):
+        if params.deskew:
+            assert stamps is not None and scan.time is not None
+            xyz_parts.append(
+                deskewed_points(scan.xyz, scan.time, float(stamps[k]), knot_stamps, knot_poses, T_kf_world)
+            )
+        else:
+            M = (T_kf_world @ poses[k]).astype(np.float32)
+            xyz_parts.append(scan.xyz @ M[:3, :3].T + M[:3, 3])
+    has_ring = all(s.ring is not None for s in scans)
+    has_time = stamps is not None and all(s.time is not None for s in scans)
+    time = None
+    if has_time:
+        assert stamps is not None
+        time = np.concatenate(
+            [
+                s.time + np.float32(stamps[k] - stamps[-1])
+                for k, s in enumerate(scans)
+                if s.time is not None  # every one (has_time)
+            ]
+        )
+    cloud = Scan(
+        xyz=np.concatenate(xyz_parts) if xyz_parts else np.empty((0, 3), np.float32),
+        intensity=np.concatenate([s.intensity for s in scans]),
+        ring=np.concatenate([s.ring for s in scans if s.ring is not None]) if has_ring else None,
+        time=time,
+        sensor=scans[-1].sensor,
+        timestamp=None if stamps is None else float(stamps[-1]),
+        source=f"{label}[{indices[0]}:{indices[-1] + 1}]",
+    )
+    if params.voxel_m is not None and len(cloud):
+        cloud = voxel_downsample(cloud, params.voxel_m)
+    return Keyframe(cloud, T_world_kf.copy(), None if stamps is None else float(stamps[-1]), tuple(indices))
+
+
+def _needs_timestamps(params: KeyframeParams) -> str | None:
+    """Why keyframes of ``params`` need timestamps (None: they do not)."""
+    if params.seconds is not None:
+        return "windows of keyframes.seconds"
+    if params.deskew:
+        return "keyframes.deskew"
+    return None
+
+
+def _kiss_icp(origin: np.ndarray | None) -> KissIcpOdometry:
+    """KISS-ICP odometry (its defaults) starting at ``origin``; imported here, the SLAM extra being optional."""
+    from placerec.slam.odometry import KissIcpOdometry
+
+    return KissIcpOdometry(origin=origin)
+
+
+class KeyframeBuilder:
+    """Accumulates a stream of scans into keyframes online (module docstring).
+
+    ``add(scan, odometry_pose, index)`` returns the `Keyframe` that ``scan`` completes, else None; ``flush()``
+    returns the keyframe of the scans added since (None when there are none). With ``odometry: poses`` every scan
+    needs its ``odometry_pose`` (``T_world_sensor``, e.g. from the SLAM front end); with ``kiss-icp`` the builder
+    registers the scans with `placerec.slam.odometry.KissIcpOdometry` (starting at the first given pose, else the
+    identity) and ignores later given poses. ``index`` (default: a running count) names the scan in
+    ``Keyframe.scan_indices``. ``timestamp`` overrides ``scan.timestamp``. A scan refused (`ScanDataError` naming the
+    field and the scan) changes nothing.
+    """
+
+    def __init__(self, params: KeyframeParams, label: str = "keyframe") -> None:
+        self.params = params
+        self.label = label
+        self._scans: list[Scan] = []
+        self._indices: list[int] = []
+        self._stamps: list[float] = []
+        self._poses: list[np.ndarray] = []
+        self._first_x = 0.0
+        self._last_x: float | None = None
+        self._last_stamp: float | None = None
+        self._last_pose: np.ndarray | None = None
+        self._before: tuple[float, np.ndarray] | None = None
+        self._count = 0
+        self._icp: KissIcpOdometry | None = None
+
+    @property
+    def pending(self) -> tuple[int, ...]:
+        """Indices of the scans added since the last keyframe."""
+        return tuple(self._indices)
+
+    def add(
+        self,
+        scan: Scan,
+        odometry_pose: np.ndarray | None = None,
+        index: int | None = None,
+        timestamp: float | None = None,
+    ) -> Keyframe | None:
+        """Add the next scan; the keyframe it completes, else None."""
+        p = self.params
+        index = self._count if index is None else int(index)
+        stamp = scan.timestamp if timestamp is None else timestamp
+        where = _where(scan, index)
+        if stamp is not None and not np.isfinite(stamp):
+            raise ScanDataError(f"{where}: timestamp must be finite, got {stamp}")
+        needs = _needs_timestamps(p)
+        if needs is not None and stamp is None:
+            raise ScanDataError(f"{where}: timestamp: {needs} need the scan's timestamp")
+        if self._count and (stamp is None) != (self._last_stamp is None):
+            raise ScanDataError(f"{where}: timestamp: every scan of a stream has one, or none does")
+        if stamp is not None and self._last_stamp is not None and not stamp > self._last_stamp:
+            raise ScanDataError(
+                f"{where}: timestamp {stamp} does not increase (the scan before was at {self._last_stamp})"
+            )
+        if p.deskew:
+            _check_point_times(scan, index)
+        keep = valid_points(scan)
+        points = scan.select(keep)
+        if p.odometry == "poses":
+            if odometry_pose is None:
+                raise ScanDataError(
+                    f"{where}: odometry_pose: keyframes (odometry: poses) need every scan's pose"
+                )
+            pose = as_pose(odometry_pose, what=f"{where}: odometry_pose")
+        else:
+            if self._icp is None:
+                origin = (
+                    None if odometry_pose is None else as_pose(odometry_pose, what=f"{where}: odometry_pose")
+                )
+                self._icp = _kiss_icp(origin)
+            pose = self._icp.register(scan)
+        # checked: from here on nothing raises
+        if p.seconds is not None:
+            assert stamp is not None  # _needs_timestamps
+            x = float(stamp)
+        else:  # distance travelled, as `placerec.types.path_length` sums it
+            step = (
+                0.0
+                if self._last_pose is None
+                else float(np.linalg.norm(pose[:3, 3] - self._last_pose[:3, 3]))
+            )
+            x = (self._last_x or 0.0) + step
+        if not self._scans:
+            self._first_x = x
+        previous = x if self._last_x is None else self._last_x
+        self._scans.append(points)
+        self._indices.append(index)
+        self._stamps.append(float(stamp) if stamp is not None else float("nan"))
+        self._poses.append(pose)
+        self._last_x, self._last_stamp, self._last_pose = x, stamp, pose
+        self._count += 1
+        if _completes(p, self._first_x, previous, x, len(self._scans)):
+            return self.flush()
+        return None
+
+    def flush(self) -> Keyframe | None:
+        """The keyframe of the scans added since the last one (None when there are none); starts a new window."""
+        if not self._scans:
+            return None
+        stamps = None if self._last_stamp is None else np.asarray(self._stamps)
+        keyframe = _assemble(
+            self.params, self._scans, self._indices, stamps, np.stack(self._poses), self._before, self.label
+        )
+        if stamps is not None:
+            self._before = (float(stamps[-1]), self._poses[-1])
+        self._scans, self._indices, self._stamps, self._poses = [], [], [], []
+        return keyframe
+
+
+class KeyframeSequence:
+    """The keyframes of a `placerec.types.Sequence`, as a `Sequence` (module docstring).
+
+    ``odometry_poses`` (N, 4, 4) are the odometry of ``sequence``'s scans (``odometry: poses``; e.g. a simulator's
+    drifting ``odometry_poses``, or the sequence's own poses); with ``odometry: kiss-icp`` KISS-ICP runs once over
+    every scan here (tens of ms per scan: the cost of a SLAM front end) from the sequence's first pose. The windows
+    are computed once, here; ``seq[k]`` builds keyframe ``k``'s scan from its scans (``prepare``, e.g. the
+    experiment's preprocessing, is applied to every scan first). ``poses`` / ``timestamps`` are the *source
+    sequence's* (ground truth) of each keyframe's last scan, so an evaluation of keyframes is that of those scans;
+    `keyframe_poses` the odometry ones. Bad input is a `ScanDataError` naming the field and the sequence.
+    """
+
+    def __init__(
+        self,
+        sequence: Sequence,
+        params: KeyframeParams,
+        odometry_poses: np.ndarray | None = None,
+        prepare: Callable[[Scan], Scan] | None = None,
+    ) -> None:
+        self.base = sequence
+        self.params = params
+        self.prepare = prepare
+        name = sequence.name
+        n = len(sequence)
+        stamps = sequence.timestamps
+        if stamps is not None:
+            stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
+            if stamps.shape[0] != n:
+                raise ScanDataError(f"{name}: timestamps: {stamps.shape[0]} for {n} scans")
+            if not np.isfinite(stamps).all():
+                raise ScanDataError(f"{name}: timestamps must be finite")
+            bad = np.flatnonzero(np.diff(stamps) <= 0)
+            if bad.size:
+                i = int(bad[0]) + 1
+                raise ScanDataError(
+                    f"{name}: timestamps must increase: scan {i} at {stamps[i]} after {stamps[i - 1]}"
+                )
+        needs = _needs_timestamps(params)
+        if needs is not None and stamps is None:
+            raise ScanDataError(f"{name}: timestamps: {needs} need the sequence's timestamps")
+        self._stamps = stamps
+        if params.odometry == "kiss-icp":
+            odometry_poses = self._kiss_icp(sequence)
+        elif odometry_poses is None:
+            raise ScanDataError(
+                f"{name}: odometry_poses: keyframes (odometry: poses) need the scans' odometry"
+            )
+        self._odometry = check_poses(odometry_poses, n, f"{name}: odometry_poses")
+        self._windows = self._cut(n)
+        self._ref = np.array([w[-1] for w in self._windows], dtype=np.int64)
+
+    def _kiss_icp(self, sequence: Sequence) -> np.ndarray:
+        poses = sequence.poses
+        icp = _kiss_icp(None if poses is None or not len(poses) else poses[0])
+        return np.stack([icp.register(self._source(i)) for i in range(len(sequence))])
+
+    def _cut(self, n: int) -> list[list[int]]:
+        """The windows (lists of scan indices) of the whole sequence, by `_completes`."""
+        p = self.params
+        if p.seconds is not None:
+            assert self._stamps is not None
+            x = self._stamps
+        else:
+            x = path_length(self._odometry[:, :3, 3])
+        windows: list[list[int]] = []
+        current: list[int] = []
+        for j in range(n):
+            current.append(j)
+            if _completes(p, float(x[current[0]]), float(x[max(j - 1, 0)]), float(x[j]), len(current)):
+                windows.append(current)
+                current = []
+        if current:
+            windows.append(current)
+        return windows
+
+    def _source(self, i: int) -> Scan:
+        scan = self.base[i]
+        return scan if self.prepare is None else self.prepare(scan)
+
+    def __len__(self) -> int:
+        return len(self._windows)
+
+    def __getitem__(self, index: int) -> Scan:
+        return self.keyframe(index).scan
+
+    def keyframe(self, index: int) -> Keyframe:
+        """Keyframe ``index`` (its scan built from the source scans)."""
+        k = int(index)
+        if k < 0:
+            k += len(self)
+        if not 0 <= k < len(self):
+            raise IndexError(f"{self.name}: keyframe index {index} out of range for {len(self)} keyframes")
+        window = self._windows[k]
+        scans = []
+        for i in window:
+            scan = self._source(i)
+            if self.params.deskew:
+                _check_point_times(scan, i)
+            scans.append(scan.select(valid_points(scan)))
+        stamps = None if self._stamps is None else self._stamps[window]
+        before = None
+        if window[0] > 0 and self._stamps is not None:
+            before = (float(self._stamps[window[0] - 1]), self._odometry[window[0] - 1])
+        return _assemble(self.params, scans, window, stamps, self._odometry[window], before, self.base.name)
+
+    def scan_indices(self, index: int) -> tuple[int, ...]:
+        """Indices (in the source sequence) of keyframe ``index``'s scans."""
+        return tuple(self._windows[index])
+
+    @property
+    def reference_indices(self) -> np.ndarray:
+        """(K,) index of each keyframe's last scan (its frame, pose and timestamp)."""
+        return self._ref
+
+    @property
+    def keyframe_poses(self) -> np.ndarray:
+        """(K, 4, 4) odometry ``T_world_keyframe`` of every keyframe."""
+        return self._odometry[self._ref]
+
+    @property
+    def poses(self) -> np.ndarray | None:
+        poses = self.base.poses
+        return None if poses is None else np.asarray(poses)[self._ref]
+
+    @property
+    def timestamps(self) -> np.ndarray | None:
+        return None if self._stamps is None else self._stamps[self._ref]
+
+    @property
+    def name(self) -> str:
+        return f"{self.base.name}-keyframes"

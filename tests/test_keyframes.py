@@ -1,0 +1,228 @@
+"""Keyframes (placerec.keyframes): de-skew against a known moving sensor, windows by seconds and metres, the
+keyframe frame, KeyframeSequence, bad input, and the wiring into configs, the runner and the loop-closure detector."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from placerec.errors import ConfigError, ScanDataError
+from placerec.keyframes import (
+    DESKEW_BIN_S,
+    Keyframe,
+    KeyframeBuilder,
+    KeyframeParams,
+    KeyframeSequence,
+    deskewed_points,
+)
+from placerec.types import ListSequence, Scan
+
+RATE_HZ = 10.0
+SPEED = np.array([8.0, 3.0, 0.2])  # m/s, world frame
+YAW_RATE = 0.6  # rad/s
+
+
+def _true_pose(tau: np.ndarray | float) -> np.ndarray:
+    """T_world_sensor at time ``tau``: constant world velocity and yaw rate (what linear + slerp reproduce)."""
+    tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
+    T = np.tile(np.eye(4), (tau.size, 1, 1))
+    c, s = np.cos(YAW_RATE * tau), np.sin(YAW_RATE * tau)
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+    T[:, :3, 3] = tau[:, None] * SPEED + [5.0, -2.0, 1.5]
+    return T
+
+
+def _scene(n: int, seed: int = 0) -> np.ndarray:
+    """Static world points 3-40 m around the route."""
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(3.0, 40.0, n)
+    a = rng.uniform(-np.pi, np.pi, n)
+    return np.c_[r * np.cos(a) + 5.0, r * np.sin(a) - 2.0, rng.uniform(-1.0, 5.0, n)]
+
+
+def _moving_scans(n_scans: int = 5, n_points: int = 4000) -> tuple[list[Scan], np.ndarray, list[np.ndarray]]:
+    """Scans of static scenes measured by the moving sensor: each point at its own time in [0, 1/RATE_HZ);
+    returns (scans, odometry poses at the scan timestamps, each scan's world points)."""
+    scans, worlds = [], []
+    for i in range(n_scans):
+        stamp = i / RATE_HZ
+        t = np.sort(np.random.default_rng(10 + i).uniform(0.0, 1.0 / RATE_HZ, n_points))
+        world = _scene(n_points, seed=i)
+        T = _true_pose(stamp + t)
+        local = np.einsum("nji,nj->ni", T[:, :3, :3], world - T[:, :3, 3])  # R^T (p_w - p)
+        scans.append(Scan(local, np.ones(n_points), time=t, timestamp=stamp, source=f"moving[{i}]"))
+        worlds.append(world)
+    return scans, _true_pose(np.arange(n_scans) / RATE_HZ), worlds
+
+
+def _error_in_keyframe_frame(keyframe: Keyframe, worlds: list[np.ndarray]) -> float:
+    T = _true_pose(keyframe.timestamp)[0]
+    expected = (np.concatenate(worlds) - T[:3, 3]) @ T[:3, :3]
+    return float(np.linalg.norm(keyframe.scan.xyz - expected, axis=1).max())
+
+
+def _one_keyframe(scans: list[Scan], poses: np.ndarray, **params: object) -> Keyframe:
+    builder = KeyframeBuilder(KeyframeParams(seconds=len(scans) / RATE_HZ, **params))  # type: ignore[arg-type]
+    out = [builder.add(s, poses[i]) for i, s in enumerate(scans)]
+    assert all(k is None for k in out[:-1]) and out[-1] is not None
+    return out[-1]
+
+
+# -- de-skew ---------------------------------------------------------------------------------------------------
+
+
+def test_deskewed_keyframe_matches_the_static_scene_in_the_last_scans_frame():
+    scans, poses, worlds = _moving_scans()
+    keyframe = _one_keyframe(scans, poses)
+    assert keyframe.scan_indices == (0, 1, 2, 3, 4)
+    assert keyframe.timestamp == pytest.approx(0.4)
+    np.testing.assert_allclose(keyframe.pose, poses[-1])  # the frame of the last scan at its timestamp
+    assert _error_in_keyframe_frame(keyframe, worlds) < 0.01
+
+
+def test_the_deskew_test_fails_for_a_wrong_sign_or_no_deskew():
+    """The scene check above is sensitive: time running backwards, or no de-skew, is off by decimetres."""
+    scans, poses, worlds = _moving_scans()
+    flipped = [Scan(s.xyz, s.intensity, time=-s.time, timestamp=s.timestamp) for s in scans]
+    assert _error_in_keyframe_frame(_one_keyframe(flipped, poses), worlds) > 0.1
+    assert _error_in_keyframe_frame(_one_keyframe(scans, poses, deskew=False), worlds) > 0.1
+    # interpolating towards the previous scan instead of the next one
+    shifted = np.concatenate([poses[:1], poses[:-1]])
+    assert _error_in_keyframe_frame(_one_keyframe(scans, shifted), worlds) > 0.1
+
+
+def test_time_bins_agree_with_exact_per_point_interpolation():
+    scans, poses, _ = _moving_scans(n_scans=2)
+    s = scans[0]
+    stamps = np.array([0.0, 0.1])
+    binned = deskewed_points(s.xyz, s.time, 0.0, stamps, poses, np.eye(4))
+    exact = deskewed_points(s.xyz, s.time, 0.0, stamps, poses, np.eye(4), bin_s=None)
+    # a point takes the pose of its bin's centre: off by at most half a bin of motion (speed + yaw rate x range)
+    bound = DESKEW_BIN_S / 2 * (np.linalg.norm(SPEED) + YAW_RATE * np.linalg.norm(s.xyz, axis=1).max())
+    assert 0 < np.linalg.norm(binned - exact, axis=1).max() <= bound
+
+
+def test_keyframe_scan_fields():
+    scans, poses, _ = _moving_scans(n_scans=3, n_points=100)
+    keyframe = _one_keyframe(scans, poses)
+    cloud = keyframe.scan
+    assert len(cloud) == 300 and cloud.ring is None  # the sources have no rings
+    assert cloud.source == "keyframe[0:3]"
+    # per-point time relative to the keyframe timestamp (0.2 s): the first scan's points are ~0.2 s earlier
+    np.testing.assert_allclose(cloud.time[:100], scans[0].time - 0.2, atol=1e-6)
+    voxelised = _one_keyframe(scans, poses, voxel_m=5.0).scan
+    assert 0 < len(voxelised) < len(cloud)
+
+
+# -- windows ---------------------------------------------------------------------------------------------------
+
+
+def _straight(n: int, step_m: float = 1.0) -> tuple[list[Scan], np.ndarray]:
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 0, 3] = np.arange(n) * step_m
+    pts = np.random.default_rng(0).uniform(-10, 10, (50, 3))
+    scans = [Scan(pts, np.ones(50), time=np.zeros(50), timestamp=i / RATE_HZ) for i in range(n)]
+    return scans, poses
+
+
+def _windows(params: KeyframeParams, scans: list[Scan], poses: np.ndarray) -> list[tuple[int, ...]]:
+    builder = KeyframeBuilder(params)
+    out = [k.scan_indices for i, s in enumerate(scans) if (k := builder.add(s, poses[i])) is not None]
+    last = builder.flush()
+    return out + ([last.scan_indices] if last is not None else [])
+
+
+@pytest.mark.parametrize(
+    ("params", "expected"),
+    [
+        (KeyframeParams(seconds=0.5), [tuple(range(0, 5)), tuple(range(5, 10)), (10, 11)]),
+        (KeyframeParams(seconds=0.25), [(0, 1, 2), (3, 4, 5), (6, 7, 8), (9, 10, 11)]),  # at least 0.25 s
+        (KeyframeParams(metres=3.0), [(0, 1, 2), (3, 4, 5), (6, 7, 8), (9, 10, 11)]),
+        (KeyframeParams(seconds=5.0, max_scans=4), [(0, 1, 2, 3), (4, 5, 6, 7), (8, 9, 10, 11)]),
+    ],
+)
+def test_window_boundaries_online_and_offline(params, expected):
+    scans, poses = _straight(12)
+    assert _windows(params, scans, poses) == expected
+    seq = KeyframeSequence(ListSequence(scans, poses, np.arange(12) / RATE_HZ), params, poses)
+    assert [seq.scan_indices(k) for k in range(len(seq))] == expected
+
+
+def test_keyframe_sequence_poses_timestamps_and_scans():
+    scans, odometry, _ = _moving_scans(n_scans=10, n_points=200)
+    truth = odometry.copy()
+    truth[:, 1, 3] += 0.5  # ground truth differs from the odometry
+    stamps = np.arange(10) / RATE_HZ
+    params = KeyframeParams(seconds=0.5)
+    seq = KeyframeSequence(ListSequence(scans, truth, stamps, name="moving"), params, odometry)
+    assert len(seq) == 2 and seq.name == "moving-keyframes"
+    np.testing.assert_array_equal(seq.reference_indices, [4, 9])
+    np.testing.assert_allclose(seq.poses, truth[[4, 9]])
+    np.testing.assert_allclose(seq.keyframe_poses, odometry[[4, 9]])
+    np.testing.assert_allclose(seq.timestamps, stamps[[4, 9]])
+    builder = KeyframeBuilder(params, label="moving")
+    online = [k for i, s in enumerate(scans) if (k := builder.add(s, odometry[i])) is not None]
+    for k in range(2):  # offline and online give the same keyframes
+        np.testing.assert_array_equal(seq[k].xyz, online[k].scan.xyz)
+        assert seq[k].source == online[k].scan.source == f"moving[{5 * k}:{5 * k + 5}]"
+
+
+# -- bad input ---------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("data", "key"),
+    [
+        ({}, "exactly one"),
+        ({"seconds": 1.0, "metres": 2.0}, "exactly one"),
+        ({"seconds": float("inf")}, "seconds"),
+        ({"metres": -1.0}, "metres"),
+        ({"seconds": 1.0, "voxel_m": 0.0}, "voxel_m"),
+        ({"seconds": 1.0, "odometry": "gps"}, "odometry"),
+        ({"seconds": 1.0, "windows": 3}, "windows"),
+    ],
+)
+def test_bad_params_are_config_errors(data, key):
+    with pytest.raises(ConfigError, match=key):
+        KeyframeParams.model_validate(data)
+
+
+def test_bad_scans_and_poses_are_refused_naming_the_field_and_leave_nothing():
+    scans, poses, _ = _moving_scans(n_scans=3, n_points=20)
+    builder = KeyframeBuilder(KeyframeParams(seconds=10.0))
+    builder.add(scans[0], poses[0], index=0)
+    untimed = Scan(scans[1].xyz, scans[1].intensity, timestamp=0.1, source="untimed")
+    bad = [
+        ((untimed, poses[1]), "untimed: time"),
+        ((scans[1], None), r"moving\[1\]: odometry_pose"),
+        ((scans[1], np.full((4, 4), np.nan)), r"moving\[1\]: odometry_pose contains NaN"),
+        ((scans[1], np.diag([2.0, 1.0, 1.0, 1.0])), r"odometry_pose is no rigid motion"),
+        ((Scan(scans[1].xyz, scans[1].intensity, time=scans[1].time, timestamp=0.0), poses[1]), "timestamp"),
+        ((Scan(scans[1].xyz, scans[1].intensity, time=scans[1].time * 1e9, timestamp=0.1), poses[1]), "time"),
+    ]
+    for args, message in bad:
+        with pytest.raises(ScanDataError, match=message):
+            builder.add(*args)
+        assert builder.pending == (0,)
+    builder.add(scans[1], poses[1], index=1)
+    assert builder.pending == (0, 1)
+
+
+def test_bad_sequences_are_refused_naming_the_field():
+    scans, poses, _ = _moving_scans(n_scans=3, n_points=20)
+    params = KeyframeParams(seconds=0.2)
+    seq = ListSequence(scans, poses, np.arange(3) / RATE_HZ, name="seq")
+    with pytest.raises(ScanDataError, match="seq: odometry_poses"):
+        KeyframeSequence(seq, params)
+    with pytest.raises(ScanDataError, match="seq: odometry_poses: 2 poses for 3 scans"):
+        KeyframeSequence(seq, params, poses[:2])
+    with pytest.raises(ScanDataError, match="seq: odometry_poses: pose 1 is no rigid motion"):
+        KeyframeSequence(seq, params, np.concatenate([poses[:1], np.zeros((2, 4, 4))]))
+    with pytest.raises(ScanDataError, match="seq: timestamps must increase"):
+        KeyframeSequence(ListSequence(scans, poses, [0.0, 0.1, 0.1], name="seq"), params, poses)
+    with pytest.raises(ScanDataError, match="seq: timestamps: windows of keyframes.seconds"):
+        KeyframeSequence(ListSequence(scans, poses, name="seq"), params, poses)
+    untimed = [Scan(s.xyz, s.intensity, timestamp=s.timestamp, source=f"u{i}") for i, s in enumerate(scans)]
+    kf = KeyframeSequence(ListSequence(untimed, poses, np.arange(3) / RATE_HZ), params, poses)
+    with pytest.raises(ScanDataError, match="u0: time"):
+        kf[0]
