@@ -1,8 +1,11 @@
-"""ROS1 (``.bag``) and ROS2 (rosbag2 folder) recordings of ``sensor_msgs/PointCloud2`` through rosbags.
+"""ROS1 (``.bag``) and ROS2 (rosbag2 folder) recordings of ``sensor_msgs/PointCloud2`` and Livox
+``CustomMsg`` (`placerec.io.livox`) through rosbags.
 
 `pointcloud2_to_scan` decodes a message with one strided structured view of its data (fields by
 offset/datatype/count, ``point_step``, ``row_step``, ``is_bigendian``): intensity from intensity, reflectivity
-or i; ``ring``; ``t``/``time`` (integer times are nanoseconds, as the Ouster driver's ``t``).
+or i; ``ring``; ``t``/``time`` (integer times are nanoseconds, as the Ouster driver's ``t``). The Livox drivers'
+layout (fields ``tag`` and ``line``, float64 ``timestamp``) gets ring = line and times from ``timestamp``
+(`placerec.io.livox.livox_pointcloud2_scan`).
 """
 
 from __future__ import annotations
@@ -17,6 +20,14 @@ import numpy as np
 
 from placerec.errors import DependencyError, ScanFormatError
 from placerec.io._common import columns_to_scan, structured_columns
+from placerec.io.livox import (
+    LIVOX_CUSTOM_MSGS,
+    check_custom_layout,
+    custom_msg_to_scan,
+    is_livox_pointcloud2,
+    livox_pointcloud2_scan,
+    register_livox_types,
+)
 from placerec.safe_yaml import load_yaml_file
 from placerec.types import Scan
 
@@ -27,6 +38,7 @@ __all__ = [
     "same_time_ranks",
     "message_index",
     "POINTCLOUD2",
+    "CLOUD_MSGTYPES",
 ]
 
 log = logging.getLogger(__name__)
@@ -36,13 +48,16 @@ log = logging.getLogger(__name__)
 _BAG_ERRORS = (OSError, ValueError, KeyError, TypeError, IndexError, struct.error, sqlite3.Error)
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+#: message types a bag topic of point clouds may carry
+CLOUD_MSGTYPES: tuple[str, ...] = (POINTCLOUD2, *LIVOX_CUSTOM_MSGS)
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
 
 def pointcloud2_to_scan(
     msg: Any, where: str, *, organized: bool = False, timestamp: float | None = None
 ) -> Scan:
-    """Decode a PointCloud2 message (any object with its fields) into a `Scan`, vectorised."""
+    """Decode a PointCloud2 message (any object with its fields) into a `Scan`, vectorised (the Livox driver
+    layout: `placerec.io.livox`)."""
     order = ">" if msg.is_bigendian else "<"
     step, row_step = int(msg.point_step), int(msg.row_step)
     h, w = int(msg.height), int(msg.width)
@@ -60,6 +75,7 @@ def pointcloud2_to_scan(
         names.append(f.name)
         formats.append(dt if count == 1 else (dt, (count,)))
         offsets.append(int(f.offset))
+    livox = is_livox_pointcloud2(list(msg.fields), where)
     if h * w and row_step < w * step:
         raise ScanFormatError(f"{where}: PointCloud2 row_step {row_step} < width {w} x point_step {step}")
     data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
@@ -78,6 +94,8 @@ def pointcloud2_to_scan(
     else:
         arr = np.empty((h, w), dtype=dtype)
     shape = (h, w) if organized and h > 1 else None
+    if livox:
+        return livox_pointcloud2_scan(structured_columns(arr), where, shape=shape, timestamp=timestamp)
     return columns_to_scan(structured_columns(arr), where, shape=shape, timestamp=timestamp)
 
 
@@ -107,7 +125,8 @@ def _rosbags() -> tuple[Any, Any, Any]:
         raise DependencyError(
             f"reading rosbags needs the rosbags package ({exc}); install it with: pip install placerec[ros]"
         ) from exc
-    return AnyReader, AnyReaderError, get_typestore(Stores.LATEST)
+    # the default typestore (for rosbag2 bags without message definitions) knows the Livox CustomMsg types too
+    return AnyReader, AnyReaderError, register_livox_types(get_typestore(Stores.LATEST))
 
 
 def header_stamp(raw: bytes | memoryview, ros2: bool) -> float:
@@ -134,15 +153,15 @@ def message_index(index: int, n: int, topic: str) -> int:
     return index
 
 
-def choose_topic(path: Path, topics: list[str], topic: str | None) -> str:
-    """``topic`` if it is one of the file's PointCloud2 ``topics``, or the only one when ``topic`` is None;
-    `ScanFormatError` naming ``path`` otherwise."""
+def choose_topic(path: Path, topics: list[str], topic: str | None, kind: str = "PointCloud2") -> str:
+    """``topic`` if it is one of the file's point-cloud ``topics`` (of ``kind``, for the message), or the only
+    one when ``topic`` is None; `ScanFormatError` naming ``path`` otherwise."""
     if topic is None:
         if len(topics) != 1:
-            raise ScanFormatError(f"{path}: {len(topics)} PointCloud2 topics {topics}; pass topic=")
+            raise ScanFormatError(f"{path}: {len(topics)} {kind} topics {topics}; pass topic=")
         return topics[0]
     if topic not in topics:
-        raise ScanFormatError(f"{path}: no PointCloud2 topic {topic!r} (PointCloud2 topics: {topics})")
+        raise ScanFormatError(f"{path}: no {kind} topic {topic!r} ({kind} topics: {topics})")
     return topic
 
 
@@ -172,11 +191,14 @@ class PointCloud2Topic:
 
 
 class RosbagSequence(PointCloud2Topic):
-    """PointCloud2 messages of one topic of a ROS1 ``.bag`` or rosbag2 folder, as a lazy `Sequence`.
+    """PointCloud2 or Livox CustomMsg messages of one topic of a ROS1 ``.bag`` or rosbag2 folder (sqlite3 or
+    mcap storage), as a lazy `Sequence`.
 
-    ``topic`` may be omitted when the bag has exactly one PointCloud2 topic. Timestamps are the messages'
-    header stamps; poses are None. Messages are indexed once on opening (their stamps are read from the raw
-    bytes) and decoded on access. Use as a context manager or call `close`.
+    ``topic`` may be omitted when the bag has exactly one point-cloud topic (PointCloud2 or CustomMsg).
+    Timestamps are the messages' header stamps; poses are None. Messages are indexed once on opening (their
+    stamps are read from the raw bytes) and decoded on access. A CustomMsg topic is checked against the Livox
+    layout on opening (the bag's own definition when it carries one, else placerec's: `placerec.io.livox`) and
+    its points are decoded from the raw bytes. Use as a context manager or call `close`.
     """
 
     def __init__(self, path: str | Path, topic: str | None = None, *, organized: bool = False) -> None:
@@ -193,14 +215,17 @@ class RosbagSequence(PointCloud2Topic):
             raise ScanFormatError(
                 f"{self._path}: cannot open as a rosbag ({type(exc).__name__}: {exc})"
             ) from exc
-        clouds = [c for c in self._reader.connections if c.msgtype == POINTCLOUD2]
+        clouds = [c for c in self._reader.connections if c.msgtype in CLOUD_MSGTYPES]
+        livox = any(c.msgtype != POINTCLOUD2 for c in clouds)
+        kind = "point-cloud (PointCloud2 or Livox CustomMsg)" if livox else "PointCloud2"
         try:
-            topic = choose_topic(self._path, sorted({c.topic for c in clouds}), topic)
+            topic = choose_topic(self._path, sorted({c.topic for c in clouds}), topic, kind)
+            self._conns = [c for c in clouds if c.topic == topic]
+            self._topic = topic
+            self._msgtype = self._topic_msgtype()
         except ScanFormatError:
             self.close()
             raise
-        self._conns = [c for c in clouds if c.topic == topic]
-        self._topic = topic
         log_times, stamps = [], []
         try:
             for _, t, raw in self._reader.messages(connections=self._conns):
@@ -216,6 +241,18 @@ class RosbagSequence(PointCloud2Topic):
         self._stamps = np.asarray(stamps, dtype=np.float64)
         self._rank = same_time_ranks(self._log_times)
 
+    def _topic_msgtype(self) -> str:
+        """The one message type of the chosen topic's connections; a CustomMsg one checked against the Livox
+        layout."""
+        types = sorted({c.msgtype for c in self._conns})
+        if len(types) != 1:
+            raise ScanFormatError(
+                f"{self._path}: topic {self._topic!r} carries several message types {types}"
+            )
+        if types[0] != POINTCLOUD2:
+            check_custom_layout(self._reader.typestore.FIELDDEFS, types[0], f"{self._path}:{self._topic}")
+        return types[0]
+
     def __len__(self) -> int:
         return int(self._log_times.size)
 
@@ -226,16 +263,22 @@ class RosbagSequence(PointCloud2Topic):
         try:
             if not self._reader.isopen:
                 self._reader.open()
-            found = [
+            # from t - 1: rosbags' mcap storage skips a chunk whose last message is at exactly ``start``
+            same_time = (
                 (conn, raw)
-                for k, (conn, _, raw) in enumerate(
-                    self._reader.messages(connections=self._conns, start=t, stop=t + 1)
+                for conn, lt, raw in self._reader.messages(
+                    connections=self._conns, start=max(t - 1, 0), stop=t + 1
                 )
-                if k == self._rank[index]
-            ]
-            msg = self._reader.deserialize(found[0][1], found[0][0].msgtype) if found else None
+                if lt == t
+            )
+            found = [m for k, m in enumerate(same_time) if k == self._rank[index]]
+            custom = bool(found) and self._msgtype != POINTCLOUD2
+            msg = self._reader.deserialize(found[0][1], found[0][0].msgtype) if found and not custom else None
         except self._read_errors as exc:
-            raise ScanFormatError(f"{where}: cannot read PointCloud2 ({type(exc).__name__}: {exc})") from exc
+            what = "PointCloud2" if self._msgtype == POINTCLOUD2 else "CustomMsg"
+            raise ScanFormatError(f"{where}: cannot read {what} ({type(exc).__name__}: {exc})") from exc
+        if custom:
+            return custom_msg_to_scan(found[0][1], self._reader.is2, where)
         if msg is not None:
             return pointcloud2_to_scan(
                 msg, where, organized=self._organized, timestamp=float(self._stamps[index])
