@@ -211,6 +211,62 @@ def _mcap_bytes(n_messages: int = 2) -> bytes:
         return mcap(Path(d) / "x.mcap", n_messages).read_bytes()
 
 
+@functools.cache
+def _livox_mcap_bytes(line_type: int = 2, stamp_type: int = 8) -> bytes:
+    """Two PointCloud2 messages in the Livox driver layout (x y z intensity f32, tag line u8, timestamp f64 ns;
+    26-byte points) in a standalone .mcap; ``line_type`` / ``stamp_type`` the PointField datatypes written."""
+    import tempfile
+
+    from mcap.writer import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.LATEST)
+    T = ts.types
+    p = _points(1)
+    arr = np.zeros(N, dtype={"names": ["x", "y", "z", "intensity", "tag", "line", "timestamp"],
+                             "formats": ["<f4"] * 4 + ["u1", "u1", "<f8"],
+                             "offsets": [0, 4, 8, 12, 16, 17, 18], "itemsize": 26})  # fmt: skip
+    for j, c in enumerate("xyz"):
+        arr[c] = p[:, j]
+    arr["intensity"], arr["line"], arr["timestamp"] = (
+        p[:, 3] * 255,
+        np.arange(N) % 4,
+        1e18 + np.arange(N) * 1e3,
+    )
+    layout = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 12, 7), ("tag", 16, 2), ("line", 17, line_type),
+              ("timestamp", 18, stamp_type)]  # fmt: skip
+    fields = [T["sensor_msgs/msg/PointField"](name=a, offset=o, datatype=d, count=1) for a, o, d in layout]
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "livox.mcap"
+        with open(path, "wb") as fh:
+            w = Writer(fh)
+            w.start()
+            chan = w.register_channel("/livox/points", "cdr", w.register_schema(PC2_TYPE, "ros2msg", b""))
+            for k in range(2):
+                header = T["std_msgs/msg/Header"](
+                    stamp=T["builtin_interfaces/msg/Time"](sec=100 + k, nanosec=0), frame_id="livox_frame"
+                )
+                msg = T[PC2_TYPE](
+                    header=header, height=1, width=N, fields=fields, is_bigendian=False, point_step=26,
+                    row_step=26 * N, data=np.frombuffer(arr.tobytes(), np.uint8).copy(), is_dense=True,
+                )  # fmt: skip
+                t = (100 + k) * 10**9
+                w.add_message(chan, log_time=t, data=bytes(ts.serialize_cdr(msg, PC2_TYPE)), publish_time=t)
+            w.finish()
+        return path.read_bytes()
+
+
+PC2_TYPE = "sensor_msgs/msg/PointCloud2"
+
+
+def _livox_scans(args: Any, result: Any) -> None:
+    """A valid Livox PointCloud2 recording: two scans with rings from ``line`` and the non-repetitive pattern."""
+    _sequence(2, poses=False)(args, result)
+    for scan in result[1]:
+        assert scan.sensor.pattern == "non-repetitive" and scan.ring is not None and scan.ring.max() == 3
+        assert scan.time is not None and scan.time[0] == 0
+
+
 # ------------------------------------------------------------------------------------------------ running
 def _open(dataset: str, **options: Any) -> Callable[[Path], Any]:
     """Open ``path`` as ``dataset`` and read every scan (a loader may defer its checks to the first read)."""
@@ -388,6 +444,10 @@ def cases() -> list[Case]:
     case("mcap", "no-messages", mfile("none.mcap", lambda: _mcap_bytes(0)))
     case("mcap", "topic-absent", mfile("drive.mcap", _mcap_bytes), run=_open("mcap", topic="/lidar"), names="/lidar", cli=None)  # fmt: skip
     case("mcap", "directory", lambda t: _mkdir(t / "folder.mcap"), names="folder.mcap")
+    # Livox driver layout (issue #28): ring from `line`, times from `timestamp`; other datatypes name the field
+    case("mcap", "livox-valid", mfile("livox.mcap", _livox_mcap_bytes), "ok", check=_livox_scans)
+    case("mcap", "livox-line-float32", mfile("livox.mcap", lambda: _livox_mcap_bytes(line_type=7)), names="'line'", error=ScanFormatError, cli=None)  # fmt: skip
+    case("mcap", "livox-timestamp-uint32", mfile("livox.mcap", lambda: _livox_mcap_bytes(stamp_type=6)), names="'timestamp'", error=ScanFormatError, cli=None)  # fmt: skip
     return out
 
 
