@@ -18,6 +18,7 @@ from pydantic import BaseModel, Field, field_validator, model_validator
 
 from placerec.errors import ConfigError, short_repr
 from placerec.eval.exclusion import ExclusionWindow
+from placerec.keyframes import KeyframeParams
 from placerec.loop_filter import LoopFilterParams
 from placerec.params import Params, resolve
 from placerec.preprocess import PreprocessParams
@@ -54,10 +55,20 @@ class SimulatorConfig(Params):
     n_scans: int | None = Field(None, ge=1, le=100_000, description="None = the whole route; at most 100,000")
     seed: int = 0
     route: str = "default"
-    spacing: float = Field(1.0, gt=0, description="metres between scans")
+    spacing: float = Field(1.0, gt=0, description="metres between scans (unless rate_hz is set)")
+    rate_hz: float | None = Field(
+        None, gt=0, le=1000, description="scans per second along the route's speed profile instead of spacing"
+    )
     clutter: bool = True
     occluders: bool = False
     sensor_height: float | None = Field(None, gt=0)
+    odometry_drift: float | None = Field(
+        None,
+        ge=0,
+        le=1,
+        description="drifting odometry_poses with this relative translation error (the simulator's OdometryDrift,"
+        " its other errors scaled alike; keyframes use them as odometry); None: none",
+    )
 
 
 class DatasetConfig(Params):
@@ -262,6 +273,17 @@ class ExperimentConfig(Params):
     evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
     execution: ExecutionConfig = Field(default_factory=ExecutionConfig)
+    keyframes: KeyframeParams | None = Field(
+        None,
+        description="loop mode: pipelines see keyframes of the scans of each window (placerec.keyframes,"
+        " docs/keyframes.md), e.g. {seconds: 0.5} or {metres: 5}; None: single scans",
+    )
+
+    @model_validator(mode="after")
+    def _keyframes_in_loop_mode(self) -> ExperimentConfig:
+        if self.keyframes is not None and self.evaluation.mode != "loop":
+            raise ValueError("keyframes: loop mode only (evaluation.mode: loop)")
+        return self
 
     @model_validator(mode="after")
     def _unique_labels(self) -> ExperimentConfig:

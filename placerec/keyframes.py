@@ -7,13 +7,15 @@ one. docs/keyframes.md gives the config syntax and the measured cost.
 Windows
 -------
 Scans are taken in order; a keyframe starts with the scan after the previous keyframe and *completes on* the first
-scan ``j`` for which ``(x_j - x_first) + (x_j - x_{j-1}) >= window`` (``x``: timestamps for ``seconds``, the
-distance travelled along the odometry for ``metres``; the second term, the latest step, counts the extent of
-scan ``j`` itself, so that 10 Hz scans and ``seconds: 0.5`` give 5 scans per keyframe, the first keyframe
-included). A window also completes after `KeyframeParams.max_scans` scans (a vehicle standing still travels no
-metres). The online `KeyframeBuilder` and the offline `KeyframeSequence` apply this one rule (`_completes`), so
-they cut a stream into the same keyframes; the scans after the last complete window form a last, shorter
-keyframe (``flush`` online).
+scan at which its ``n`` scans span ``(x_last - x_first) * n / (n - 1) >= window`` (``x``: timestamps for
+``seconds``, the distance travelled along the odometry for ``metres``): the span of their timestamps (or positions)
+extended by one mean step, since ``n`` scans at a regular rate cover ``n`` steps. So 10 Hz scans and
+``seconds: 0.5`` give 5 scans per keyframe, ``seconds: 0.25`` 3 (at least the window), and a keyframe holds at
+least two scans; a gap in the stream (a pause in the data) ends the window it falls in rather than making a
+keyframe of one scan. A window also completes after `KeyframeParams.max_scans` scans (a vehicle standing still
+travels no metres). The online `KeyframeBuilder` and the offline `KeyframeSequence` apply this one rule
+(`_completes`), so they cut a stream into the same keyframes; the scans after the last complete window form a
+last, shorter keyframe (``flush`` online).
 
 Frame and de-skew
 -----------------
@@ -118,11 +120,15 @@ class Keyframe:
     scan_indices: tuple[int, ...]
 
 
-def _completes(params: KeyframeParams, first: float, previous: float, current: float, n_scans: int) -> bool:
-    """Whether the window that started at progress ``first`` completes on the scan at ``current`` (the scan before
-    it at ``previous``; ``previous == current`` for the stream's first scan), holding ``n_scans`` scans."""
-    span = (current - first) + (current - previous)
-    return n_scans >= params.max_scans or span >= params.window * (1.0 - _WINDOW_SLACK)
+def _completes(params: KeyframeParams, first: float, current: float, n_scans: int) -> bool:
+    """Whether the window of ``n_scans`` scans from progress ``first`` to ``current`` is complete (module
+    docstring: the span extended by one mean step reaches the window, or ``max_scans`` is reached)."""
+    if n_scans >= params.max_scans:
+        return True
+    if n_scans < 2:
+        return False
+    span = (current - first) * n_scans / (n_scans - 1)
+    return span >= params.window * (1.0 - _WINDOW_SLACK)
 
 
 def interpolate_trajectory(stamps: np.ndarray, poses: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -358,14 +364,13 @@ class KeyframeBuilder:
             x = (self._last_x or 0.0) + step
         if not self._scans:
             self._first_x = x
-        previous = x if self._last_x is None else self._last_x
         self._scans.append(points)
         self._indices.append(index)
         self._stamps.append(float(stamp) if stamp is not None else float("nan"))
         self._poses.append(pose)
         self._last_x, self._last_stamp, self._last_pose = x, stamp, pose
         self._count += 1
-        if _completes(p, self._first_x, previous, x, len(self._scans)):
+        if _completes(p, self._first_x, x, len(self._scans)):
             return self.flush()
         return None
 
@@ -451,7 +456,7 @@ class KeyframeSequence:
         current: list[int] = []
         for j in range(n):
             current.append(j)
-            if _completes(p, float(x[current[0]]), float(x[max(j - 1, 0)]), float(x[j]), len(current)):
+            if _completes(p, float(x[current[0]]), float(x[j]), len(current)):
                 windows.append(current)
                 current = []
         if current:

@@ -15,6 +15,16 @@ Candidates with ``score >= threshold`` are accepted and returned; the threshold 
 library. ``relative_pose`` (when the pipeline estimates one) is ``T_match_query``: it maps points of the new scan
 into the frame of the matched older scan. A stream shorter than the exclusion window queries nothing: every scan
 gets no candidates (``last_max_id`` -1).
+
+With ``keyframes`` (`placerec.keyframes.KeyframeParams`) the detector accumulates the scans fed to `process` into
+keyframes (`placerec.keyframes.KeyframeBuilder`: a time or distance window, de-skewed, in the frame of the window's
+last scan): a scan that does not complete a keyframe returns no closures (an empty list, ``last_candidates`` empty,
+``last_max_id`` -1, the build time in ``last_timing_ms["keyframe"]``); the scan that completes one runs the query
+and insertion above on the keyframe and returns its closures. Ids are then keyframe ids (0, 1, ... in completion
+order), ``relative_pose`` maps the query keyframe's frame into the matched keyframe's, and `keyframe_scans` says
+which scans (numbered 0, 1, ... in the order fed) a keyframe holds. ``pose`` is the scan's odometry (needed unless
+``keyframes.odometry`` is ``kiss-icp``), ``timestamp`` overrides the scan's own. `flush` makes a keyframe of the
+scans fed since the last one (the end of a stream).
 """
 
 from __future__ import annotations
@@ -27,6 +37,7 @@ import numpy as np
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES, ExclusionWindow, path_length
+from placerec.keyframes import Keyframe, KeyframeBuilder, KeyframeParams
 from placerec.loop_filter import LoopFilter, LoopFilterParams
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, as_pose
 
@@ -76,8 +87,12 @@ class LoopClosureDetector:
         exclusion_metres: float | None = None,
         k: int = 1,
         loop_filter: LoopFilterParams | None = None,
+        keyframes: KeyframeParams | None = None,
     ) -> None:
         self.exclusion = ExclusionWindow(exclusion_frames, exclusion_seconds, exclusion_metres)
+        self.keyframes = None if keyframes is None else KeyframeBuilder(keyframes, label="stream")
+        self._keyframe_scans: list[tuple[int, ...]] = []
+        self._scans_fed = 0
         if k < 1:
             raise ConfigError(f"k must be >= 1, got {k}")
         self.recognizer = recognizer
@@ -95,7 +110,15 @@ class LoopClosureDetector:
 
     @property
     def n_processed(self) -> int:
+        """Places processed (or skipped): scans, or keyframes with ``keyframes``."""
         return len(self._path)
+
+    def keyframe_scans(self, keyframe_id: int) -> tuple[int, ...]:
+        """The scans (numbered in the order fed to `process`, from 0) that keyframe ``keyframe_id`` holds;
+        `ConfigError` without ``keyframes``, `IndexError` for an id not given yet."""
+        if self.keyframes is None:
+            raise ConfigError("keyframe_scans: this detector has no keyframes")
+        return self._keyframe_scans[keyframe_id]
 
     def _max_eligible_id(self, scan_id: int) -> int:
         return int(self.exclusion.max_eligible(scan_id, self._times, self._path))
@@ -134,7 +157,54 @@ class LoopClosureDetector:
         ``description`` (the recognizer's ``describe`` of the scan, e.g. cached) may be given instead of ``scan``.
         The scan is described first: a `ScanDataError` there leaves no trace (no id used, nothing recorded).
         All candidates, accepted or not, are kept in ``last_candidates``; stage times (ms) in ``last_timing_ms``.
+        With ``keyframes`` the scan is accumulated and a keyframe processed when it completes (module docstring;
+        a scan the keyframe builder refuses leaves no trace; a keyframe the recognizer cannot describe takes its id
+        as `skip` does, with the reason in ``last_status``).
         """
+        if self.keyframes is None:
+            return self._process_place(scan, pose, timestamp, description)
+        if description is not None or scan is None:
+            raise ScanDataError(
+                "process() with keyframes needs the scan itself (a description cannot accumulate)"
+            )
+        t0 = time.perf_counter()
+        keyframe = self.keyframes.add(scan, pose, index=self._scans_fed, timestamp=timestamp)
+        self._scans_fed += 1
+        return self._process_keyframe(keyframe, (time.perf_counter() - t0) * 1e3)
+
+    def flush(self) -> list[Candidate]:
+        """With ``keyframes``: process the keyframe of the scans fed since the last one (none: nothing to do) and
+        return its closures; without, nothing to do."""
+        if self.keyframes is None:
+            return []
+        t0 = time.perf_counter()
+        keyframe = self.keyframes.flush()
+        return self._process_keyframe(keyframe, (time.perf_counter() - t0) * 1e3)
+
+    def _process_keyframe(self, keyframe: Keyframe | None, build_ms: float) -> list[Candidate]:
+        """Query with and add a completed keyframe (None: no keyframe completed, no closures)."""
+        if keyframe is None:
+            self.last_max_id, self.last_candidates, self.last_status = -1, [], "ok"
+            self.last_timing_ms = {"keyframe": build_ms}
+            return []
+        try:
+            accepted = self._process_place(keyframe.scan, keyframe.pose, keyframe.timestamp, None)
+        except ScanDataError as exc:
+            self._skip_place(keyframe.pose, keyframe.timestamp)
+            self.last_status = f"keyframe {self.n_processed - 1} not described: {exc}"
+            accepted = []
+        self._keyframe_scans.append(keyframe.scan_indices)
+        self.last_timing_ms["keyframe"] = build_ms
+        return accepted
+
+    def _process_place(
+        self,
+        scan: Scan | None,
+        pose: np.ndarray | None,
+        timestamp: float | None,
+        description: Description | None,
+    ) -> list[Candidate]:
+        """`process` of one place (a scan, or a keyframe)."""
         rec = self.recognizer
         timing: dict[str, float] = {}
         if description is None:
@@ -169,7 +239,15 @@ class LoopClosureDetector:
 
     def skip(self, pose: np.ndarray | None = None, timestamp: float | None = None) -> int:
         """Record a frame that is not a place (e.g. one `process` refused): it takes the next id and counts in
-        the exclusion window, so later ids stay frame numbers, but it is never queried or added. Returns its id."""
+        the exclusion window, so later ids stay frame numbers, but it is never queried or added. Returns its id.
+        With ``keyframes`` it is a keyframe of no scans."""
+        scan_id = self._skip_place(pose, timestamp)
+        if self.keyframes is not None:
+            self._keyframe_scans.append(())
+        return scan_id
+
+    def _skip_place(self, pose: np.ndarray | None, timestamp: float | None) -> int:
+        """`skip` of one place (a scan or a keyframe)."""
         scan_id = self.n_processed
         self._record_motion(pose, timestamp)
         self.last_max_id = -1

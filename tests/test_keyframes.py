@@ -226,3 +226,116 @@ def test_bad_sequences_are_refused_naming_the_field():
     kf = KeyframeSequence(ListSequence(untimed, poses, np.arange(3) / RATE_HZ), params, poses)
     with pytest.raises(ScanDataError, match="u0: time"):
         kf[0]
+
+
+# -- wiring: config, runner, cache key, detector -----------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def sim16():
+    from placerec.sim import SimulatedSequence
+
+    return SimulatedSequence(world="town", sensor="vlp16", n_scans=16, rate_hz=10, clutter=False, seed=3)
+
+
+def _config(tmp_path, **extra):
+    from placerec.config import parse_config
+
+    data = {
+        "name": "kf",
+        "dataset": {
+            "simulator": {
+                "world": "town",
+                "sensor": "vlp16",
+                "n_scans": 16,
+                "rate_hz": 10,
+                "clutter": False,
+                "seed": 3,
+                "odometry_drift": 0.02,
+            }
+        },
+        "keyframes": {"seconds": 0.4},
+        "pipelines": [{"name": "scan-context"}],
+        "evaluation": {"exclusion": {"frames": 1}},
+        "output": {"cache_dir": None, "progress": False, "figures": False, "dir": str(tmp_path)},
+    }
+    return parse_config({**data, **extra})
+
+
+def test_config_with_keyframes_runs_a_pipeline_on_keyframes(tmp_path, sim16):
+    from placerec.experiment import run_experiment
+    from placerec.io import read_poses
+
+    run, payload = run_experiment(_config(tmp_path), tmp_path / "out")
+    metrics = payload["pipelines"]["scan-context"]
+    assert metrics["n_queries"] == 4  # 16 scans at 10 Hz in windows of 0.4 s
+    # the evaluation runs on the keyframes: the true poses of each window's last scan
+    np.testing.assert_allclose(read_poses(run / "poses.txt")[0], sim16.poses[[3, 7, 11, 15]], atol=1e-6)
+
+
+def test_keyframe_runs_have_their_own_description_cache_key(tmp_path):
+    from placerec.experiment.runner import _data_key
+
+    keyed = _config(tmp_path)
+    plain = keyed.model_copy(update={"keyframes": None})
+    other = _config(tmp_path, keyframes={"seconds": 0.5})
+    keys = {_data_key(c, c.dataset) for c in (keyed, plain, other)}
+    assert len(keys) == 3
+
+
+def test_the_runner_uses_the_simulators_drifting_odometry(tmp_path):
+    from placerec.experiment.runner import loop_sequence
+
+    seq = loop_sequence(_config(tmp_path))
+    assert isinstance(seq, KeyframeSequence) and seq.prepare is not None
+    base = seq.base
+    np.testing.assert_allclose(seq.keyframe_poses, base.odometry_poses[[3, 7, 11, 15]])
+    assert not np.allclose(seq.keyframe_poses, seq.poses)  # drifting odometry, true poses
+
+
+def test_loop_closure_detector_on_keyframes_finds_a_revisit(sim16):
+    from placerec.loop_closure import LoopClosureDetector
+    from placerec.recognizer import make_pipeline
+
+    scans = [sim16[i] for i in range(8)]
+    detector = LoopClosureDetector(
+        make_pipeline("scan-context"),
+        threshold=0.0,
+        exclusion_frames=2,
+        keyframes=KeyframeParams(seconds=0.4),
+    )
+    found = []
+    for lap in range(2):  # the same stretch twice, 10 s apart
+        for i, scan in enumerate(scans):
+            closures = detector.process(scan, sim16.poses[i], timestamp=10.0 * lap + i / RATE_HZ)
+            if i % 4 != 3:
+                assert (
+                    closures == []
+                    and detector.last_candidates == []
+                    and "keyframe" in detector.last_timing_ms
+                )
+            found += closures
+    assert detector.n_processed == 4  # keyframe ids
+    assert [detector.keyframe_scans(k) for k in range(4)] == [
+        (0, 1, 2, 3),
+        (4, 5, 6, 7),
+        (8, 9, 10, 11),
+        (12, 13, 14, 15),
+    ]
+    assert {(c.query_id, c.match_id) for c in found} >= {(2, 0), (3, 1)}
+    best = next(c for c in found if (c.query_id, c.match_id) == (2, 0))
+    # the same scans, so the keyframes coincide: the relative pose (query keyframe -> matched keyframe) is ~identity
+    assert best.relative_pose is not None
+    np.testing.assert_allclose(best.relative_pose, np.eye(4), atol=0.05)
+    assert detector.flush() == [] and detector.n_processed == 4  # nothing left over
+
+
+def test_loop_closure_detector_with_keyframes_needs_scans():
+    from placerec.loop_closure import LoopClosureDetector
+    from placerec.recognizer import make_pipeline
+
+    detector = LoopClosureDetector(make_pipeline("scan-context"), 0.0, keyframes=KeyframeParams(seconds=0.4))
+    with pytest.raises(ScanDataError, match="scan itself"):
+        detector.process(None, description={})
+    with pytest.raises(ConfigError, match="no keyframes"):
+        LoopClosureDetector(make_pipeline("scan-context"), 0.0).keyframe_scans(0)

@@ -3,15 +3,25 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from placerec.config import DatasetConfig
+from placerec.config import DatasetConfig, ExperimentConfig
 from placerec.errors import ConfigError
+from placerec.keyframes import KeyframeSequence
+from placerec.preprocess import preprocess_scan
 from placerec.types import Scan, Sequence
 
-__all__ = ["DATASET_SOURCES", "open_dataset", "dataset_fingerprint", "files_fingerprint", "SlicedSequence"]
+__all__ = [
+    "DATASET_SOURCES",
+    "open_dataset",
+    "keyframed",
+    "dataset_fingerprint",
+    "files_fingerprint",
+    "SlicedSequence",
+]
 
 
 class SlicedSequence:
@@ -48,6 +58,12 @@ class SlicedSequence:
     @property
     def name(self) -> str:
         return self._base.name
+
+    @property
+    def odometry_poses(self) -> np.ndarray | None:
+        """The base sequence's drifting odometry poses of the selected scans (a simulator's), else None."""
+        odometry = getattr(self._base, "odometry_poses", None)
+        return None if odometry is None else np.asarray(odometry)[self._index]
 
     @property
     def base_indices(self) -> np.ndarray:
@@ -114,6 +130,26 @@ def dataset_fingerprint(cfg: DatasetConfig) -> list:
     if cfg.source == "simulator":
         return _simulator_fingerprint()
     return files_fingerprint(cfg.path, cfg.poses)
+
+
+def keyframed(cfg: ExperimentConfig, seq: Sequence) -> Sequence:
+    """``seq`` as the pipelines of ``cfg`` see it: with ``cfg.keyframes`` set, a `KeyframeSequence` over it (left
+    as it is when it already is one), else ``seq``. The keyframes' odometry (``keyframes.odometry: poses``) is the
+    sequence's drifting ``odometry_poses`` when it has them (the simulator with ``odometry_drift``), else its own
+    (ground-truth) poses used as odometry; ``kiss-icp`` registers the scans instead. Every source scan is
+    preprocessed (``cfg.preprocess``) before it is accumulated, so `preprocessed_scan` does not preprocess the
+    keyframe again. `ConfigError` when ``poses`` odometry has nothing to use."""
+    params = cfg.keyframes
+    if params is None or isinstance(seq, KeyframeSequence):
+        return seq
+    odometry = getattr(seq, "odometry_poses", None)
+    if odometry is None:
+        odometry = seq.poses
+    if odometry is None and params.odometry == "poses":
+        raise ConfigError(
+            f"keyframes.odometry 'poses': {seq.name} has neither odometry nor poses (use keyframes.odometry: kiss-icp)"
+        )
+    return KeyframeSequence(seq, params, odometry, prepare=partial(preprocess_scan, params=cfg.preprocess))
 
 
 def open_dataset(cfg: DatasetConfig) -> Sequence:

@@ -22,7 +22,7 @@ from typing import Any
 from placerec.config import DatasetConfig, ExecutionConfig, ExperimentConfig, parse_config
 from placerec.errors import ConfigError, DependencyError, ScanDataError, short_repr
 from placerec.experiment.cache import DescriptionCache
-from placerec.experiment.datasets import open_dataset
+from placerec.experiment.datasets import keyframed, open_dataset
 from placerec.experiment.preprocessing import preprocessed_scan
 from placerec.hashing import stable_hash
 from placerec.recognizer import make_pipeline
@@ -63,7 +63,8 @@ def _opened(cfg_json: dict[str, Any], dataset_json: dict[str, Any]) -> tuple[Seq
     key = stable_hash([cfg_json, dataset_json])
     if key not in _OPENED:
         cfg = parse_config(cfg_json)
-        _OPENED[key] = (open_dataset(DatasetConfig.model_validate(dataset_json)), _frontends(cfg))
+        seq = keyframed(cfg, open_dataset(DatasetConfig.model_validate(dataset_json)))
+        _OPENED[key] = (seq, _frontends(cfg))
     return _OPENED[key]
 
 

@@ -23,7 +23,7 @@ from placerec.config import ExperimentConfig
 from placerec.errors import ConfigError, ScanDataError
 from placerec.experiment.cache import DescriptionCache, config_hash
 from placerec.experiment.candidates import CandidateTable
-from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint, open_dataset
+from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint, keyframed, open_dataset
 from placerec.experiment.preprocessing import preprocessed_scan
 from placerec.loop_closure import LoopClosureDetector, split_verify_time
 from placerec.loop_filter import LoopFilterParams
@@ -178,13 +178,17 @@ def build_pipelines(cfg: ExperimentConfig) -> Pipelines:
 
 def _data_key(cfg: ExperimentConfig, dataset_cfg: Any) -> str:
     """Cache key of a dataset's preprocessed scans: the configs, the data itself (simulator code or file stats) and
-    the calibration table's file."""
-    return config_hash(
+    the calibration table's file; with ``keyframes`` set also its parameters (the cache then holds descriptions of
+    keyframes, indexed by keyframe, which a run on single scans must never read, nor a run with other windows)."""
+    parts: list[Any] = [
         dataset_cfg.model_dump(mode="json"),
         cfg.preprocess.model_dump(mode="json"),
         dataset_fingerprint(dataset_cfg),
         files_fingerprint(cfg.preprocess.intensity.calibration),
-    )
+    ]
+    if cfg.keyframes is not None:  # only then, so that the keys of single-scan runs stay what they were
+        parts.append({"keyframes": cfg.keyframes.model_dump(mode="json")})
+    return config_hash(*parts)
 
 
 @contextmanager
@@ -207,9 +211,11 @@ def description_cache(
 
 
 def loop_sequence(cfg: ExperimentConfig, seq: Sequence | None = None) -> Sequence:
-    """The loop-mode sequence (``cfg.dataset`` unless ``seq`` is given), checked against the exclusion window:
-    `ConfigError` when a limit in metres has no poses or one in seconds no timestamps to apply to."""
-    seq = open_dataset(cfg.dataset) if seq is None else seq
+    """The loop-mode sequence (``cfg.dataset`` unless ``seq`` is given), as keyframes when ``cfg.keyframes`` is set
+    (`placerec.experiment.datasets.keyframed`: then every pipeline, the ground truth and the exclusion window work
+    on keyframes, ``exclusion.frames`` counting keyframes), checked against the exclusion window: `ConfigError`
+    when a limit in metres has no poses or one in seconds no timestamps to apply to."""
+    seq = keyframed(cfg, open_dataset(cfg.dataset) if seq is None else seq)
     ex = cfg.evaluation.exclusion
     if ex.metres is not None and seq.poses is None:
         raise ConfigError("evaluation.exclusion.metres needs a dataset with poses")
