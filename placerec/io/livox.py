@@ -84,7 +84,7 @@ uint8 line
 """
 
 _BASE, _NAME, _ARRAY, _SEQUENCE = 1, 2, 3, 4  # rosbags' Nodetype values
-#: CustomMsg fields before ``points``: name -> (nodetype, what), as rosbags' FIELDDEFS give them
+#: CustomMsg fields: (name, type in .msg spelling as `_describe` writes rosbags' FIELDDEFS)
 _MSG_FIELDS: tuple[tuple[str, str], ...] = (
     ("header", "std_msgs/msg/Header"),
     ("timebase", "uint64"),
@@ -308,9 +308,10 @@ def livox_pointcloud2_scan(
 ) -> Scan:
     """A `Scan` from the decoded columns of a Livox-layout PointCloud2 (ring = line, time from ``timestamp``
     relative to the first point; module docstring)."""
-    cols = {k: v for k, v in columns.items() if k not in ("tag", "line", "timestamp", "ring", "t", "time")}
-    cols["ring"] = np.asarray(columns["line"]).astype(np.int16)
     stamps = columns.get("timestamp")
+    dropped = ("tag", "line", "timestamp", "ring") + (("t", "time") if stamps is not None else ())
+    cols = {k: v for k, v in columns.items() if k not in dropped}
+    cols["ring"] = np.asarray(columns["line"]).astype(np.int16)
     if stamps is not None:
         s = np.asarray(stamps, dtype=np.float64)
         cols["time"] = ((s - s[0]) * 1e-9).astype(np.float32) if s.size else s.astype(np.float32)
