@@ -66,7 +66,7 @@ __all__ = [
 ]
 
 #: width (s) of the time bins of the de-skew: points of one bin take the pose at the bin's centre
-DESKEW_BIN_S = 5e-4
+DESKEW_BIN_S = 2.5e-4
 #: largest |per-point time| (s) taken as seconds since the scan's timestamp; beyond it the times are taken to be
 #: in another unit (ns, us) or absolute, and the scan is refused rather than extrapolated hours away
 MAX_POINT_TIME_S = 10.0
