@@ -341,3 +341,33 @@ def test_livox_pointcloud2_bad_datatype(tmp_path: Path, field: str, datatype: in
     with open_sequence(path) as seq, pytest.raises(ScanFormatError, match=f"field '{field}'") as err:
         seq[0]
     assert str(path) in str(err.value) and "/p" in str(err.value)
+
+
+@pytest.mark.parametrize("msgdefs", [True, False], ids=["schema", "empty-schema"])
+def test_standalone_mcap_with_custom_msg(tmp_path: Path, msgdefs: bool) -> None:
+    """A CustomMsg topic in a ``.mcap`` file with no rosbag2 metadata beside it (as recorded by ``ros2 bag`` and
+    copied out, or written by Foxglove tools) reads like the bag's."""
+    from placerec.io.datasets.mcap import McapSequence
+
+    ts = _typestore(True)
+    rng = np.random.default_rng(4)
+    clouds = [_points(rng, n) for n in (40, 9)]
+    msgs = [_custom(ts, V2, p, T0 + k, 7, frame="lidar") for k, p in enumerate(clouds)]
+    bag = _write_mcap_bag(tmp_path / "bag", {"/livox/lidar": (V2, msgs)}, ts, msgdefs=msgdefs)
+    lone = tmp_path / "lone.mcap"
+    lone.write_bytes((bag / "bag_0.mcap").read_bytes())
+    seq = open_sequence(lone)
+    assert isinstance(seq, McapSequence) and len(seq) == 2
+    for k, p in enumerate(clouds):
+        _check_scan(seq[k], p, T0 + k, 7)
+
+
+def test_standalone_mcap_with_a_foreign_custom_msg_layout_names_the_field(tmp_path: Path) -> None:
+    ts = _typestore(True)
+    msgs = [_custom(ts, V2, _points(np.random.default_rng(5), 3), T0, 0)]
+    bag = _write_mcap_bag(tmp_path / "bag", {"/livox/lidar": (V2, msgs)}, ts, msgdefs=True)
+    data = (bag / "bag_0.mcap").read_bytes().replace(b"uint32 offset_time", b"uint16 offset_time")
+    lone = tmp_path / "foreign.mcap"
+    lone.write_bytes(data)
+    with pytest.raises(ScanFormatError, match="offset_time"):
+        open_sequence(lone)
