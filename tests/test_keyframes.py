@@ -339,3 +339,17 @@ def test_loop_closure_detector_with_keyframes_needs_scans():
         detector.process(None, description={})
     with pytest.raises(ConfigError, match="no keyframes"):
         LoopClosureDetector(make_pipeline("scan-context"), 0.0).keyframe_scans(0)
+
+
+def test_kiss_icp_odometry_offline_and_online(sim16):
+    pytest.importorskip("kiss_icp")
+    params = KeyframeParams(metres=3.0, odometry="kiss-icp")
+    seq = KeyframeSequence(sim16, params)  # KISS-ICP from the sequence's first pose
+    assert len(seq) >= 2
+    np.testing.assert_allclose(seq.keyframe_poses[:, :3, 3], seq.poses[:, :3, 3], atol=0.5)
+    builder = KeyframeBuilder(params, label=sim16.name)
+    online = [
+        k for i in range(len(sim16)) if (k := builder.add(sim16[i], sim16.poses[0] if i == 0 else None))
+    ]
+    assert [k.scan_indices for k in online] == [seq.scan_indices(k) for k in range(len(online))]
+    np.testing.assert_allclose(online[0].pose, seq.keyframe_poses[0], atol=1e-6)
