@@ -21,8 +21,12 @@ From surface to raw value, for one return at range R and incidence angle alpha:
    ``S(g_b f_b(x)) + o_b`` with ``f_b(x) = x^gamma_b`` up to 1 and its tangent line ``1 + gamma_b (x - 1)`` above
    (retro-reflective range), where ``S`` is the sensor's output scale: Velodyne ``scale * x`` up to 1 (VLP-16:
    100, diffuse surfaces 0..100) and a compressive curve up to 255 for retro-reflectors, Ouster ``scale * x``
-   (linear, 16 bit). The HDL-64 preset has a strongly compressive response (nominal gamma 0.5, scale 255), as the
-   HDL-64E S2 of KITTI, whose asphalt reads ~0.3 of full scale.
+   (linear, 16 bit). Livox's 8-bit reflectivity has the same two-part form with scale 150 (0..150 diffuse for
+   0..100 % reflectance, 151..255 retro-reflective, as the Livox SDK documents it), and the RoboSense preset uses
+   Velodyne's 0..100 / 101..255 split (an assumption: the E1R's intensity mapping is not published). These
+   8-bit families are called piecewise below; the response curves have one entry per beam, laser line (Livox) or
+   raster row (solid state). The HDL-64 preset has a strongly compressive response (nominal gamma 0.5, scale
+   255), as the HDL-64E S2 of KITTI, whose asphalt reads ~0.3 of full scale.
 6. **Quantisation** to integers and saturation at ``intensity_max`` (retro-reflectors saturate).
 
 `BeamResponse.expected_raw` and `BeamResponse.to_apparent` give the noise-free curve and its inverse per beam, so
@@ -45,6 +49,8 @@ __all__ = ["BeamResponse", "IntensityModel", "surface_response"]
 
 # Velodyne retro compression: scale + span (1 - exp(-(x - 1) / knee)), span = max + 5 - scale
 _RETRO_KNEE = 4.0
+# 8-bit families with a diffuse range up to ``scale`` and a compressive retro-reflective range above it
+PIECEWISE_FAMILIES = ("velodyne", "livox", "robosense")
 _SPEC_WIDTH = 0.12  # rad
 _F4 = np.float32
 _F8 = np.float64
@@ -249,7 +255,7 @@ class BeamResponse:
         n = sensor.n_beams
         gain = np.exp(rng.normal(0.0, 0.12, n))
         gamma = np.clip(rng.normal(1.0, 0.12, n), 0.75, 1.3) * sensor.response_gamma
-        if sensor.family == "velodyne":
+        if sensor.family in PIECEWISE_FAMILIES:
             offset = rng.normal(0.0, 1.5, n)
         else:  # a dark level: a 16-bit channel does not report detected returns at zero
             offset = (
@@ -270,7 +276,7 @@ class BeamResponse:
 
     def packed(self) -> tuple[float, ...]:
         """(velodyne?, scale, intensity_max, additive noise sd) for the compiled kernels."""
-        velodyne = self.family == "velodyne"
+        velodyne = self.family in PIECEWISE_FAMILIES
         return (
             float(velodyne),
             float(self.scale),
@@ -279,7 +285,7 @@ class BeamResponse:
         )
 
     def _scale_in(self, raw: np.ndarray) -> np.ndarray:
-        if self.family == "velodyne":
+        if self.family in PIECEWISE_FAMILIES:
             span = self.intensity_max + 5.0 - self.scale
             frac = np.clip((raw - self.scale) / span, 0.0, 1.0 - 1e-9)
             retro = 1.0 - _RETRO_KNEE * np.log1p(-frac)

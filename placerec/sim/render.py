@@ -6,6 +6,12 @@ hits: the ground raster), evaluate the material's texture in object coordinates,
 (`placerec.sim.intensity`): detection / dropout, range noise, per-beam response, speckle and quantisation, and
 assemble a `placerec.types.Scan` in the sensor frame. Everything after the cast runs in one compiled pass over the
 hits (`_shade_rays`), on two threads (see ``docs/simulator.md#speed``).
+
+The rays of a frame come from `placerec.sim.sensors.frame_rays`: the fixed grid of a spinning or solid-state
+sensor, or the part of a non-repetitive pattern that the frame at the scan's timestamp draws. A scan taken while
+moving (``pose_end``) casts each ray from the sensor pose at that ray's own time, interpolated between the frame's
+start and end poses (`_sweep_rays_moving`), and reports the points in the sensor frame at their own time, as a
+sensor driver delivers them (not de-skewed).
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ from placerec.sim.geometry import MeshArrays
 from placerec.sim.intensity import BeamResponse, IntensityModel, detect_and_measure_1, surface_response_1
 from placerec.sim.jit import needs_compile, njit
 from placerec.sim.materials import M
-from placerec.sim.sensors import RayGrid, SensorModel, ray_grid
+from placerec.sim.sensors import RayGrid, SensorModel, frame_index, frame_rays, ray_grid
 from placerec.sim.site import ground_cell_1
 from placerec.sim.textures import MATERIAL_TABLE, param_row, shade_hit
 from placerec.sim.world import World, make_scene
@@ -84,21 +90,48 @@ class Renderer:
             float(sensor.max_range),
         )
 
+    def rays_at(self, timestamp: float) -> RayGrid:
+        """The rays of the frame at ``timestamp`` (the fixed grid unless the pattern is non-repetitive)."""
+        if self.sensor.pattern == "non-repetitive":
+            return frame_rays(self.sensor, frame_index(self.sensor, timestamp))
+        return self.grid
+
     def cast(
-        self, pose: np.ndarray, timestamp: float, seed: int, index: int, occluders: bool = False
+        self,
+        pose: np.ndarray,
+        timestamp: float,
+        seed: int,
+        index: int,
+        occluders: bool = False,
+        grid: RayGrid | None = None,
+        pose_end: np.ndarray | None = None,
     ) -> RawHits:
-        """Ray-cast one sweep from ``pose`` (T_world_sensor) against the world and this scan's clutter."""
+        """Ray-cast one sweep from ``pose`` (T_world_sensor) against the world and this scan's clutter.
+
+        ``grid``: the frame's rays (default `rays_at`). ``pose_end``: the sensor pose at the end of the frame
+        (``timestamp + 1 / rotation_hz``) when the sensor moves during the sweep: ray ``i`` then starts from the
+        pose at its time ``time_i``, ``T(f) = (R_0 Exp(f omega), p_0 + f (p_1 - p_0))`` with ``f = time_i *
+        rotation_hz`` and ``omega`` the rotation vector of ``R_0^T R_1``.
+        """
         w = self.world
-        n = self.grid.directions.shape[0]
+        grid = self.rays_at(timestamp) if grid is None else grid
+        n = grid.directions.shape[0]
         rays = np.empty((n, 6), dtype=np.float32)  # per call: renders may run concurrently
-        _sweep_rays(np.asarray(pose, dtype=np.float64), self.grid.directions, rays)
+        pose = np.asarray(pose, dtype=np.float64)
+        if pose_end is None:
+            _sweep_rays(pose, grid.directions, rays)
+        else:
+            omega, dp = _relative_motion(pose, np.asarray(pose_end, dtype=np.float64))
+            frac = grid.time.astype(np.float64) * self.sensor.rotation_hz
+            _sweep_rays_moving(pose, omega, dp, grid.directions, frac, rays)
         t, prim, nrm = _cast(w.scene, rays)
         mat = np.empty(n, np.uint8)
         obj = np.empty(n, np.int32)
         _hit_labels(t, prim, w.tri_material, w.tri_object, mat, obj)
         mesh = build_clutter(w, pose, timestamp, self.clutter, seed, index, occluders)
         if mesh is not None:
-            cand = self._clutter_candidates(mesh, pose, everything=occluders)
+            # a moving sensor's rays do not start from ``pose``: the culling's sensor-frame angles would not hold
+            cand = self._clutter_candidates(mesh, pose, grid, everything=occluders or pose_end is not None)
             t2, prim2, nrm2 = _cast(make_scene(mesh.vertices, mesh.triangles), rays[cand])
             closer = t2 < t[cand]
             if closer.any():
@@ -110,16 +143,22 @@ class Renderer:
                 nrm[idx] = nrm2[closer]
         return RawHits(t=t, material=mat, obj=obj, normal=nrm, rays=rays, clutter=mesh)
 
-    def _clutter_candidates(self, mesh: MeshArrays, pose: np.ndarray, everything: bool) -> np.ndarray:
-        """Indices of the rays that can hit the clutter: columns spanned by some clutter object, rows within the
-        clutter's elevation range (all rays when near-sensor occluders may surround the sensor)."""
-        n = self.grid.directions.shape[0]
+    def _clutter_candidates(
+        self, mesh: MeshArrays, pose: np.ndarray, grid: RayGrid, everything: bool
+    ) -> np.ndarray:
+        """Indices of the rays that can hit the clutter: azimuth columns spanned by some clutter object, rays
+        within the clutter's elevation range (all rays when near-sensor occluders may surround the sensor).
+
+        Spinning sensors use their own columns and beam elevations; other patterns put every ray in one of 1440
+        azimuth bins (0.25 deg) by its direction and compare its own elevation."""
+        n = grid.directions.shape[0]
         if everything:
             return np.arange(n)
         v = (np.asarray(mesh.vertices, dtype=np.float64) - pose[:3, 3]) @ pose[:3, :3]  # sensor frame
         az = np.arctan2(v[:, 1], v[:, 0])
         el = np.arctan2(v[:, 2], np.hypot(v[:, 0], v[:, 1]))
-        cols = self.sensor.columns
+        spinning = self.sensor.pattern == "spinning"
+        cols = self.sensor.columns if spinning else 1440
         col = np.floor((np.pi - az) / (2 * np.pi) * cols).astype(np.int64) % cols
         tri_obj = mesh.tri_object
         vobj = np.empty(len(v), np.int64)
@@ -134,9 +173,19 @@ class Renderer:
         np.add.at(cover, np.where(wrap, cols, cmax + 1), -1)
         col_mask = np.cumsum(cover[:-1]) > 0
         margin = np.radians(1.0)
-        elev = np.radians(np.asarray(self.sensor.beam_elevations_deg))
-        ring_mask = (elev >= el.min() - margin) & (elev <= el.max() + margin)
-        return np.flatnonzero(col_mask[self.grid.column] & ring_mask[self.grid.ring])
+        if spinning:
+            elev = np.radians(np.asarray(self.sensor.beam_elevations_deg))
+            ring_mask = (elev >= el.min() - margin) & (elev <= el.max() + margin)
+            return np.flatnonzero(col_mask[grid.column] & ring_mask[grid.ring])
+        col_mask = (
+            col_mask | np.roll(col_mask, 1) | np.roll(col_mask, -1)
+        )  # one bin of slack for float32 rays
+        d = grid.directions.astype(np.float64)
+        ray_az = np.arctan2(d[:, 1], d[:, 0])
+        ray_el = np.arcsin(np.clip(d[:, 2], -1.0, 1.0))
+        ray_col = np.floor((np.pi - ray_az) / (2 * np.pi) * cols).astype(np.int64) % cols
+        el_mask = (ray_el >= el.min() - margin) & (ray_el <= el.max() + margin)
+        return np.flatnonzero(col_mask[ray_col] & el_mask)
 
     def _object_table(self, m: MeshArrays | None) -> tuple[np.ndarray, np.ndarray]:
         """(M, 16) float32 rows [cos, sin, origin xyz, params...] and (M,) seeds of the world's and clutter's objects."""
@@ -159,7 +208,13 @@ class Renderer:
         return np.concatenate([tab, extra]), np.concatenate([w.obj_seed, m.obj_seed])
 
     def _shade_half(
-        self, hits: RawHits, sel: np.ndarray, table: np.ndarray, oseed: np.ndarray, rng: np.random.Generator
+        self,
+        hits: RawHits,
+        sel: np.ndarray,
+        table: np.ndarray,
+        oseed: np.ndarray,
+        rng: np.random.Generator,
+        ring: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Shade and measure the rays ``sel`` of one sweep: (kept ray indices, measured ranges, raw intensities)."""
         n = len(sel)
@@ -170,7 +225,7 @@ class Renderer:
         raw = np.empty(n, np.float32)
         ground = self.world.ground
         _shade_rays(sel, hits.t, hits.rays, hits.normal, hits.material, hits.obj, ground.labels, ground.geometry(), table, oseed,
-                    self.grid.ring, u, z, self._sensor_params, self._model_params, self.response.gain, self.response.gamma,
+                    ring, u, z, self._sensor_params, self._model_params, self.response.gain, self.response.gamma,
                     self.response.offset, self._response_params, MATERIAL_TABLE, keep, r_meas, raw)  # fmt: skip
         return sel[keep], r_meas[keep], raw[keep]
 
@@ -182,11 +237,15 @@ class Renderer:
         index: int,
         occluders: bool = False,
         source: str | None = None,
+        pose_end: np.ndarray | None = None,
     ) -> Scan:
-        """One simulated scan (deterministic in pose, timestamp, seed and index, whatever the thread count)."""
+        """One simulated scan (deterministic in pose, timestamp, seed and index, whatever the thread count).
+
+        ``pose_end``: the sensor pose at the end of the frame, for a scan taken while moving (see `cast`); the
+        points are then in the sensor frame at their own time. ``pose`` is always the pose at ``timestamp``."""
         sensor = self.sensor
-        grid = self.grid
-        hits = self.cast(pose, timestamp, seed, index, occluders)
+        grid = self.rays_at(timestamp)
+        hits = self.cast(pose, timestamp, seed, index, occluders, grid=grid, pose_end=pose_end)
         sel = np.flatnonzero((hits.t >= sensor.min_range) & (hits.t <= sensor.max_range))
         table, oseed = self._object_table(hits.clutter)
         # two fixed halves of the sweep (even and odd ray indices, so both see the same mix of near ground and far
@@ -199,12 +258,15 @@ class Renderer:
         pool = _pool() if self.threads > 1 else None
         if pool is not None:
             futures = [
-                pool.submit(self._shade_half, hits, h, table, oseed, r)
+                pool.submit(self._shade_half, hits, h, table, oseed, r, grid.ring)
                 for h, r in zip(halves, rngs, strict=True)
             ]
             parts = [f.result() for f in futures]
         else:
-            parts = [self._shade_half(hits, h, table, oseed, r) for h, r in zip(halves, rngs, strict=True)]
+            parts = [
+                self._shade_half(hits, h, table, oseed, r, grid.ring)
+                for h, r in zip(halves, rngs, strict=True)
+            ]
         k_sel = np.concatenate([p[0] for p in parts])
         r_out = np.zeros(N, np.float32)
         r_out[k_sel] = np.concatenate([p[1] for p in parts])
@@ -232,6 +294,34 @@ def _sweep_rays(pose, directions, rays):
         for k in range(3):
             rays[i, k] = pose[k, 3]
             rays[i, 3 + k] = pose[k, 0] * dx + pose[k, 1] * dy + pose[k, 2] * dz
+
+
+def _relative_motion(pose: np.ndarray, pose_end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rotation vector of ``R_0^T R_1`` (in the start frame), world translation ``p_1 - p_0``) over one frame."""
+    from scipy.spatial.transform import Rotation
+
+    omega = Rotation.from_matrix(pose[:3, :3].T @ pose_end[:3, :3]).as_rotvec()
+    return np.ascontiguousarray(omega, dtype=np.float64), np.ascontiguousarray(pose_end[:3, 3] - pose[:3, 3])
+
+
+@njit
+def _sweep_rays_moving(pose, omega, dp, directions, frac, rays):
+    """Rays [origin, direction] in the world frame, each from the pose at its own time: origin ``p_0 + f dp``,
+    direction ``R_0 Exp(f omega) d`` (Rodrigues' formula), ``f = frac[i]`` of the frame elapsed."""
+    wn = np.sqrt(omega[0] * omega[0] + omega[1] * omega[1] + omega[2] * omega[2])
+    kx, ky, kz = (omega[0] / wn, omega[1] / wn, omega[2] / wn) if wn > 0 else (0.0, 0.0, 1.0)
+    for i in range(directions.shape[0]):
+        f = frac[i]
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+        th = f * wn
+        c, s = np.cos(th), np.sin(th)
+        kd = (kx * dx + ky * dy + kz * dz) * (1.0 - c)
+        bx = dx * c + (ky * dz - kz * dy) * s + kx * kd
+        by = dy * c + (kz * dx - kx * dz) * s + ky * kd
+        bz = dz * c + (kx * dy - ky * dx) * s + kz * kd
+        for k in range(3):
+            rays[i, k] = pose[k, 3] + f * dp[k]
+            rays[i, 3 + k] = pose[k, 0] * bx + pose[k, 1] * by + pose[k, 2] * bz
 
 
 @njit

@@ -4,6 +4,12 @@ Poses and timestamps are computed when the sequence is made (cheap); a scan is r
 always the same one for the same (world, sensor, route, seed, index): scan ``i`` draws its noise from an RNG
 seeded by ``(seed, i)`` and its clutter from its timestamp, so scans can be generated in any order or in parallel
 processes. The world is built once per (preset, world seed) per process and shared by all sequences over it.
+
+With ``sweep_motion=True`` every ray is cast from the sensor pose at that ray's own time (the sensor moves during
+the sweep): the pose is interpolated along the route from this scan's pose to the next one's (translation
+linearly, rotation along the rotation vector of the relative rotation; extrapolated from the previous step for
+the last scan), and the points stay in the sensor frame at their own time, as a driver delivers them. The scan's
+pose is the pose at its timestamp, the start of the frame.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ from placerec.sim.sensors import SensorModel, get_sensor
 from placerec.sim.world import World, build_world
 from placerec.types import Scan, SensorInfo
 
-__all__ = ["SimulatedSequence", "SequenceSpec"]
+__all__ = ["SimulatedSequence", "SequenceSpec", "frame_end_poses"]
 
 log = logging.getLogger(__name__)
 
@@ -41,9 +47,14 @@ class SequenceSpec:
     clutter: bool
     occluders: bool
     unit_seed: int
+    sweep_motion: bool = False
 
     def as_dict(self) -> dict:
-        return dict(self.__dict__)
+        """The fields (``sweep_motion`` only when set, so the records of static sequences stay what they were)."""
+        d = dict(self.__dict__)
+        if not d["sweep_motion"]:
+            del d["sweep_motion"]
+        return d
 
 
 class SimulatedSequence:
@@ -52,8 +63,9 @@ class SimulatedSequence:
     Parameters
     ----------
     world: a preset name (``town``, ``campus``/``park``, ``industrial``) or a built `World`.
-    sensor: a sensor preset (``vlp16``, ``hdl64``, ``os1-64`` (gen1), ``os1-64-gen2``, ``os1-128``) or a
-        `SensorModel` (e.g. ``dataclasses.replace(get_sensor("os1-64"), range_compensated=False)``).
+    sensor: a sensor preset (``vlp16``, ``hdl32``, ``hdl64``, ``os1-64`` (gen1), ``os1-64-gen2``, ``os1-128``,
+        the Livox-like ``avia`` and ``mid360``, the solid-state ``e1r``) or a `SensorModel` (e.g.
+        ``dataclasses.replace(get_sensor("os1-64"), range_compensated=False)``).
     n_scans: number of scans; None = the route's natural length (``default`` town route: ~380 at 1 m).
     seed: seeds everything: the world (unless ``world_seed`` is given), the route's small motions, the per-beam
         response curves (unless ``unit_seed``), and the noise of every scan.
@@ -65,6 +77,8 @@ class SimulatedSequence:
         ``odometry_poses``.
     sensor_height: sensor above ground (m); default the sensor preset's mount height.
     spacing / rate_hz: one scan every ``spacing`` metres, or ``rate_hz`` scans per second along the speed profile.
+    sweep_motion: render each ray from the sensor pose at its own time (motion distortion, see the module
+        docstring); default False: the whole sweep from the scan's pose.
     """
 
     def __init__(
@@ -83,12 +97,14 @@ class SimulatedSequence:
         unit_seed: int | None = None,
         world_seed: int | None = None,
         name: str | None = None,
+        sweep_motion: bool = False,
     ) -> None:
         if n_scans is not None and n_scans < 1:
             raise ConfigError(f"sim.n_scans must be >= 1, got {n_scans}")
         self._init_args = dict(world=world, sensor=sensor, n_scans=n_scans, seed=seed, route=route, clutter=clutter,
                                occluders=occluders, odometry_drift=odometry_drift, sensor_height=sensor_height,
-                               spacing=spacing, rate_hz=rate_hz, unit_seed=unit_seed, world_seed=world_seed, name=name)  # fmt: skip
+                               spacing=spacing, rate_hz=rate_hz, unit_seed=unit_seed, world_seed=world_seed, name=name,
+                               sweep_motion=sweep_motion)  # fmt: skip
         self._seed = int(seed)
         self._world = build_world(world, self._seed if world_seed is None else int(world_seed))
         self._sensor = get_sensor(sensor)
@@ -131,12 +147,18 @@ class SimulatedSequence:
         )
         self._poses = np.ascontiguousarray(self._route.poses, dtype=np.float64)
         self._times = np.ascontiguousarray(self._route.timestamps, dtype=np.float64)
+        self._sweep_motion = bool(sweep_motion)
+        self._end_poses = (
+            frame_end_poses(self._poses, self._times, 1.0 / self._sensor.rotation_hz)
+            if self._sweep_motion
+            else None
+        )
         for arr in (self._poses, self._times):
             arr.setflags(write=False)
         rname = route.name if isinstance(route, Route) else route
         self._name = name or f"sim-{self._world.preset}-{self._sensor.name}-{rname}-s{self._seed}"
         self.spec = SequenceSpec(self._world.preset, self._world.seed, self._sensor.name, self._seed, rname, len(self._route),
-                                 cfg is not None, self._occluders, self._unit_seed)  # fmt: skip
+                                 cfg is not None, self._occluders, self._unit_seed, self._sweep_motion)  # fmt: skip
 
     # -- Sequence protocol -------------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -151,9 +173,11 @@ class SimulatedSequence:
             i += n
         if not 0 <= i < n:
             raise IndexError(f"{self._name}: scan index {index} out of range for {n} scans")
+        end = None if self._end_poses is None else self._end_poses[i]
         return self._renderer.render(
-            self._poses[i], float(self._times[i]), self._seed, i, self._occluders, source=f"{self._name}[{i}]"
-        )
+            self._poses[i], float(self._times[i]), self._seed, i, self._occluders, source=f"{self._name}[{i}]",
+            pose_end=end,
+        )  # fmt: skip
 
     def __iter__(self):
         for i in range(len(self)):
@@ -173,6 +197,16 @@ class SimulatedSequence:
         return self._name
 
     # -- simulator extras ----------------------------------------------------------------------------------------
+    @property
+    def sweep_motion(self) -> bool:
+        """Whether scans are rendered while moving (each ray from the pose at its own time)."""
+        return self._sweep_motion
+
+    @property
+    def frame_end_poses(self) -> np.ndarray | None:
+        """With ``sweep_motion``: the sensor pose at the end of each scan's frame (N, 4, 4), else None."""
+        return self._end_poses
+
     @property
     def odometry_poses(self) -> np.ndarray | None:
         """Drifting odometry poses (N, 4, 4) when ``odometry_drift`` was given, else None."""
@@ -213,9 +247,15 @@ class SimulatedSequence:
         return self._seed
 
     def scan_at(
-        self, pose: np.ndarray, timestamp: float = 0.0, index: int = 0, occluders: bool | None = None
+        self,
+        pose: np.ndarray,
+        timestamp: float = 0.0,
+        index: int = 0,
+        occluders: bool | None = None,
+        pose_end: np.ndarray | None = None,
     ) -> Scan:
-        """Render a scan at an arbitrary pose with this sequence's world, sensor and unit."""
+        """Render a scan at an arbitrary pose with this sequence's world, sensor and unit (``pose_end``: the pose
+        at the end of the frame, for a scan taken while moving)."""
         occ = self._occluders if occluders is None else occluders
         return self._renderer.render(
             np.asarray(pose, dtype=np.float64),
@@ -224,6 +264,7 @@ class SimulatedSequence:
             int(index),
             occ,
             source=f"{self._name}@pose",
+            pose_end=None if pose_end is None else np.asarray(pose_end, dtype=np.float64),
         )
 
     def __getstate__(self) -> dict:
@@ -235,3 +276,27 @@ class SimulatedSequence:
 
     def __repr__(self) -> str:
         return f"SimulatedSequence({self._name!r}, {len(self)} scans)"
+
+
+def frame_end_poses(poses: np.ndarray, times: np.ndarray, period: float) -> np.ndarray:
+    """The pose ``period`` seconds after each pose, along the piecewise motion between consecutive poses.
+
+    Scan ``i`` moves towards scan ``i + 1``: ``f = period / (t_{i+1} - t_i)``, ``R = R_i Exp(f omega)`` with
+    ``omega`` the rotation vector of ``R_i^T R_{i+1}``, ``p = p_i + f (p_{i+1} - p_i)`` (``f > 1`` extrapolates).
+    The last scan continues the previous step's motion; a lone scan, or one with no time to the next, is static.
+    """
+    from scipy.spatial.transform import Rotation
+
+    n = len(poses)
+    out = np.array(poses, dtype=np.float64, copy=True)
+    if n < 2:
+        return out
+    a = np.r_[np.arange(n - 1), n - 2]  # the step each scan follows: (a, a + 1)
+    dt = times[a + 1] - times[a]
+    f = np.where(dt > 0, period / np.where(dt > 0, dt, 1.0), 0.0)
+    Ra, Rb = poses[a, :3, :3], poses[a + 1, :3, :3]
+    omega = Rotation.from_matrix(np.einsum("kji,kjl->kil", Ra, Rb)).as_rotvec()
+    out[:, :3, :3] = poses[:, :3, :3] @ Rotation.from_rotvec(f[:, None] * omega).as_matrix()
+    out[:, :3, 3] = poses[:, :3, 3] + f[:, None] * (poses[a + 1, :3, 3] - poses[a, :3, 3])
+    out.setflags(write=False)
+    return out
