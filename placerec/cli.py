@@ -311,6 +311,13 @@ def detect(
     exclusion_metres: Annotated[
         float | None, typer.Option(help="... and this many metres travelled before (needs poses).")
     ] = None,
+    keyframes_seconds: Annotated[
+        float | None, typer.Option(help="Match keyframes of the scans of each S seconds (docs/keyframes.md).")
+    ] = None,
+    keyframes_metres: Annotated[
+        float | None,
+        typer.Option(help="Match keyframes of the scans of each M metres travelled (needs poses)."),
+    ] = None,
     out: Annotated[
         Path | None,
         typer.Option("--out", "-o", help="Results folder (default: results/detect_<name>_<timestamp>)."),
@@ -340,7 +347,11 @@ def detect(
     }
     if exclusion_frames is not None:
         values["exclusion_frames"] = exclusion_frames
-    cfg = options_config(values)
+    cfg = options_config(
+        values
+        if keyframes_seconds is None and keyframes_metres is None
+        else {**values, "keyframes": {"seconds": keyframes_seconds, "metres": keyframes_metres}}
+    )
     with support.progress_bar(f"detecting ({cfg.pipeline})") as progress:
         run_dir, summary = run_detect(cfg, out, progress)
     for line in summary_lines(run_dir, summary):

@@ -9,6 +9,10 @@ sequence's own, ``--poses``, or KISS-ICP odometry —, else as scan indices) and
 window is the detector's 120 frames, or half the scans of a shorter sequence (`exclusion_frames`). When the sequence has ground-truth poses
 each closure is also judged (true when the matched scan lies within ``gt_distance`` of the query, the evaluation's
 rule: `placerec.eval.ground_truth`) and the precision and the revisits found are reported.
+
+With ``keyframes`` (``--keyframes-seconds`` / ``--keyframes-metres``) the places are keyframes of the sequence
+(`placerec.keyframes.KeyframeSequence`, docs/keyframes.md): ids, times, poses and the exclusion window's frames are
+those of keyframes, each closure's files name the scan range of its keyframes (``name[10:15]``).
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from pydantic import Field
 
 from placerec.errors import ConfigError, PlacerecError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES
+from placerec.keyframes import KeyframeParams, KeyframeSequence
 from placerec.params import Params
 
 log = logging.getLogger(__name__)
@@ -73,6 +78,10 @@ class DetectConfig(Params):
     exclusion_seconds: float | None = Field(None, ge=0, description="--exclusion-seconds (needs times)")
     exclusion_metres: float | None = Field(None, ge=0, description="--exclusion-metres (needs poses)")
     odometry: Literal["none", "kiss-icp"] = Field("none", description="poses from the scans (--odometry)")
+    keyframes: KeyframeParams | None = Field(
+        None,
+        description="--keyframes-seconds / --keyframes-metres: closures between keyframes (docs/keyframes.md)",
+    )
     gt_distance: float = Field(5.0, gt=0, description="a closure is true within this distance (m)")
     output: DetectOutput = Field(default_factory=DetectOutput)
 
@@ -127,7 +136,30 @@ def _open(cfg: DetectConfig) -> Any:
         raise ConfigError(
             f"--exclusion-metres: {seq.name} has no poses; give --poses FILE or --odometry kiss-icp"
         )
-    return seq
+    return seq if cfg.keyframes is None else _keyframes(cfg, cfg.keyframes, seq)
+
+
+def _keyframes(cfg: DetectConfig, params: KeyframeParams, seq: Any) -> KeyframeSequence:
+    """The keyframes of SOURCE (docs/keyframes.md): accumulated along its poses, or KISS-ICP's with --odometry
+    kiss-icp; de-skewed when its scans have per-point times (else not, with a warning); each scan preprocessed as
+    a single scan is before it is accumulated. `ConfigError` when there are no poses to accumulate along."""
+    from functools import partial
+
+    from placerec.config import experiment_preprocess
+    from placerec.preprocess import preprocess_scan
+
+    if cfg.odometry == "kiss-icp":
+        params = params.model_copy(update={"odometry": "kiss-icp"})
+    elif seq.poses is None:
+        raise ConfigError(
+            f"--keyframes-seconds/--keyframes-metres: {seq.name} has no poses to accumulate scans along;"
+            " give --poses FILE or --odometry kiss-icp"
+        )
+    if params.deskew and seq[0].time is None:
+        log.warning("%s: scans without per-point times: keyframes accumulated without de-skew", seq.name)
+        params = params.model_copy(update={"deskew": False})
+    prepare = partial(preprocess_scan, params=experiment_preprocess())
+    return KeyframeSequence(seq, params, seq.poses, prepare=prepare)
 
 
 def _file_name(source: str | None) -> str | None:
@@ -266,7 +298,9 @@ def detect(
     )
     truth = seq.poses
     kiss = None
-    if cfg.odometry == "kiss-icp":
+    keyframed = isinstance(seq, KeyframeSequence)  # then the odometry is known: the keyframes' poses
+    keyframe_poses = seq.keyframe_poses if keyframed else None
+    if cfg.odometry == "kiss-icp" and not keyframed:
         from placerec.slam.odometry import KissIcpOdometry
 
         kiss = KissIcpOdometry(origin=None if truth is None else truth[0])
@@ -274,7 +308,7 @@ def detect(
     run, made = _run_dir(cfg, None if out is None else Path(out))
     with interruptible(run) if made else nullcontext(run):
         pre = experiment_preprocess()
-        poses = np.empty((n, 4, 4)) if kiss is not None or truth is not None else None
+        poses = np.empty((n, 4, 4)) if kiss is not None or truth is not None or keyframed else None
         times: list[float | None] = []
         files: list[str | None] = []
         skipped: list[int] = []
@@ -286,11 +320,15 @@ def detect(
             files.append(_file_name(raw.source))
             pose = None
             if poses is not None:
-                poses[i] = truth[i] if kiss is None else _register(kiss, raw, poses[i - 1] if i else None)
+                if keyframe_poses is not None:
+                    poses[i] = keyframe_poses[i]
+                else:
+                    poses[i] = truth[i] if kiss is None else _register(kiss, raw, poses[i - 1] if i else None)
                 pose = poses[i]
             ts = None if stamps is None else float(stamps[i])
             try:
-                detector.process(preprocess_scan(raw, pre, keep_organized=True), pose=pose, timestamp=ts)
+                scan = raw if keyframed else preprocess_scan(raw, pre, keep_organized=True)  # keyframes: done
+                detector.process(scan, pose=pose, timestamp=ts)
                 queried += detector.last_max_id >= 0
             except ScanDataError as exc:  # a blank or tiny scan: no place, but it keeps its frame number
                 log.warning("scan %d (%s) skipped: %s", i, raw.source or seq.name, exc)
@@ -327,7 +365,12 @@ def detect(
             "n_scans": n,
             "n_queried": int(queried),
             "skipped": skipped,
-            "poses": "kiss-icp" if kiss is not None else "ground truth" if truth is not None else None,
+            "poses": "kiss-icp"
+            if cfg.odometry == "kiss-icp"
+            else "ground truth"
+            if truth is not None
+            else None,
+            "keyframes": seq.params.model_dump(mode="json") if keyframed else None,
             "n_closures": len(rows),
             "scored": scored,
             "closures": rows,
@@ -337,7 +380,7 @@ def detect(
             json.dump(finite_or_null(summary), fh, indent=1, default=json_default, allow_nan=False)
         title = f"{seq.name}: {cfg.pipeline}"
         if poses is not None:
-            title += " (path: KISS-ICP)" if kiss is not None else ""
+            title += " (path: KISS-ICP)" if cfg.odometry == "kiss-icp" else ""
             summary["figure"] = str(_plot(run / "closures.png", poses[:, :3, 3], rows, title))
         else:
             summary["figure"] = str(_plot_ids(run / "closures.png", n, rows, title))

@@ -3,6 +3,8 @@ keyframe frame, KeyframeSequence, bad input, and the wiring into configs, the ru
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -353,3 +355,35 @@ def test_kiss_icp_odometry_offline_and_online(sim16):
     ]
     assert [k.scan_indices for k in online] == [seq.scan_indices(k) for k in range(len(online))]
     np.testing.assert_allclose(online[0].pose, seq.keyframe_poses[0], atol=1e-6)
+
+
+def test_placerec_detect_with_keyframes(sim16, tmp_path):
+    from typer.testing import CliRunner
+
+    from placerec.cli import app
+    from placerec.sim import write_kitti_sequence
+
+    scans = [sim16[i] for i in range(4)] * 2  # the same stretch twice
+    poses = np.concatenate([sim16.poses[:4]] * 2)
+    seq = ListSequence(scans, poses, np.arange(8) / RATE_HZ, name="twice")
+    folder = write_kitti_sequence(seq, tmp_path / "twice", progress=False)  # KITTI scans have no point times
+    out = tmp_path / "out"
+    args = [
+        "detect",
+        str(folder),
+        "--pipeline",
+        "scan-context",
+        "--threshold",
+        "0.0",
+        "--exclusion-frames",
+        "2",
+    ]
+    result = CliRunner().invoke(app, [*args, "--keyframes-seconds", "0.2", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "closures.json").read_text())
+    assert summary["n_scans"] == 4 and summary["keyframes"]["seconds"] == 0.2
+    assert summary["keyframes"]["deskew"] is False  # no per-point times: accumulated without de-skew
+    closures = {(c["query_id"], c["match_id"]): c for c in summary["closures"]}
+    assert (2, 0) in closures and closures[(2, 0)]["query_file"].endswith("[4:6]")
+    both = CliRunner().invoke(app, [*args, "--keyframes-seconds", "1", "--keyframes-metres", "2"])
+    assert both.exit_code != 0 and "exactly one" in both.output
