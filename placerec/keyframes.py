@@ -181,8 +181,10 @@ def deskewed_points(
         bins = np.floor(t / bin_s).astype(np.int64)
         lo = int(bins.min())
         index = bins - lo
-        # times are bounded by MAX_POINT_TIME_S, so this is at most 2 * MAX_POINT_TIME_S / bin_s bins
-        at = stamp + (lo + np.arange(int(index.max()) + 1, dtype=np.float64) + 0.5) * bin_s
+        n_bins = int(index.max()) + 1
+        if n_bins > 2 * MAX_POINT_TIME_S / bin_s + 1:  # one pose per bin: bounded with the times
+            raise ScanDataError(f"time: per-point times span more than {2 * MAX_POINT_TIME_S:g} s")
+        at = stamp + (lo + np.arange(n_bins, dtype=np.float64) + 0.5) * bin_s
     M = T_frame_world @ interpolate_trajectory(knot_stamps, knot_poses, at)
     M32 = M[:, :3, :].astype(np.float32)
     A = M32[index]
@@ -193,8 +195,8 @@ def _where(scan: Scan, index: int | None) -> str:
     return scan.source or (f"scan {index}" if index is not None else "scan")
 
 
-def _check_point_times(scan: Scan, index: int | None) -> np.ndarray:
-    """The scan's per-point times, checked: present, finite and within `MAX_POINT_TIME_S`."""
+def _check_point_times(scan: Scan, index: int | None) -> None:
+    """`ScanDataError` unless the scan's per-point times are present, finite and within `MAX_POINT_TIME_S`."""
     if scan.time is None:
         raise ScanDataError(
             f"{_where(scan, index)}: time: de-skew (keyframes.deskew) needs per-point times (Scan.time)"
@@ -205,7 +207,6 @@ def _check_point_times(scan: Scan, index: int | None) -> np.ndarray:
             f"{_where(scan, index)}: time: per-point times must be finite seconds since the scan's timestamp,"
             f" within +-{MAX_POINT_TIME_S:g} s"
         )
-    return t
 
 
 def _assemble(
