@@ -61,6 +61,10 @@ class SimulatorConfig(Params):
     )
     clutter: bool = True
     occluders: bool = False
+    sweep_motion: bool = Field(
+        False,
+        description="render each ray from the sensor pose at its own time (motion distortion to de-skew)",
+    )
     sensor_height: float | None = Field(None, gt=0)
     odometry_drift: float | None = Field(
         None,

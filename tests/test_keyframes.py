@@ -3,7 +3,9 @@ keyframe frame, KeyframeSequence, bad input, and the wiring into configs, the ru
 
 from __future__ import annotations
 
+import importlib.util
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +21,7 @@ from placerec.keyframes import (
 )
 from placerec.types import ListSequence, Scan
 
+ROOT = Path(__file__).resolve().parents[1]
 RATE_HZ = 10.0
 SPEED = np.array([8.0, 3.0, 0.2])  # m/s, world frame
 YAW_RATE = 0.6  # rad/s
@@ -114,6 +117,19 @@ def test_keyframe_scan_fields():
     np.testing.assert_allclose(cloud.time[:100], scans[0].time - 0.2, atol=1e-6)
     voxelised = _one_keyframe(scans, poses, voxel_m=5.0).scan
     assert 0 < len(voxelised) < len(cloud)
+
+
+def test_deskew_undoes_the_simulators_sweep_motion():
+    """Scans the simulator renders while moving (each ray from the pose at its own time), de-skewed, lie on the
+    surfaces of the same scans rendered at rest; not de-skewed, or with time running backwards, they do not
+    (tools/bench_keyframes.py's measure)."""
+    spec = importlib.util.spec_from_file_location("bench_keyframes", ROOT / "tools" / "bench_keyframes.py")
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    p90 = bench.sweep_motion_p90(n_scans=10, seconds=0.5, seed=2, keyframes=[1])
+    assert p90["deskewed"] < 0.08
+    assert p90["not_deskewed"] > 3 * p90["deskewed"] and p90["time_reversed"] > 3 * p90["deskewed"]
 
 
 # -- windows ---------------------------------------------------------------------------------------------------
