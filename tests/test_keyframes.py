@@ -270,6 +270,7 @@ def _config(tmp_path, **extra):
                 "clutter": False,
                 "seed": 3,
                 "odometry_drift": 0.02,
+                "sweep_motion": True,
             }
         },
         "keyframes": {"seconds": 0.4},
