@@ -6,6 +6,7 @@ It is the default dataset of every placerec config and the test bed of every pip
     seq = SimulatedSequence(world="town", sensor="os1-64", seed=0)   # ~380 scans, loop with revisits
     scan = seq[0]                                                   # rendered on demand, deterministic
     seq.poses, seq.timestamps, seq.revisits, seq.beam_response      # ground truth
+    SimulatedSequence(sensor="avia", sweep_motion=True)             # Livox rosette, rendered while moving
     simulate("town", "hdl64", 200, 0, "out/town_hdl64")             # KITTI-style folder (the CLI's command)
 
 See ``docs/simulator.md`` for the models, presets, file layout and what still differs from real scans.
@@ -23,7 +24,7 @@ from placerec.sim.materials import MATERIALS, M, Material
 from placerec.sim.odometry import OdometryDrift
 from placerec.sim.presets import PRESETS, preset_names
 from placerec.sim.routes import ROUTES, Revisit, Route, find_revisits, make_route
-from placerec.sim.sensors import SENSORS, SensorModel, get_sensor, sensor_names
+from placerec.sim.sensors import SENSORS, SensorModel, frame_rays, get_sensor, sensor_names
 from placerec.sim.sequence import SimulatedSequence
 from placerec.sim.world import World, build_world
 
@@ -40,6 +41,7 @@ __all__ = [
     "SENSORS",
     "get_sensor",
     "sensor_names",
+    "frame_rays",
     "World",
     "build_world",
     "PRESETS",
