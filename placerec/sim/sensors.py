@@ -386,6 +386,7 @@ def frame_rays(sensor: SensorModel, frame: int = 0) -> RayGrid:
 
 @functools.lru_cache(maxsize=8)
 def _pattern_frame(sensor: SensorModel, frame: int) -> RayGrid:
+    """The rays a non-repetitive sensor fires during frame ``frame`` (``column`` = pulse index in the frame)."""
     period = 1.0 / sensor.rotation_hz
     t0 = frame * period
     fov = sensor.elevation_fov_deg
@@ -395,7 +396,7 @@ def _pattern_frame(sensor: SensorModel, frame: int) -> RayGrid:
                                             sensor.scan_hz[0], sensor.scan_hz[1])  # fmt: skip
     else:  # Risley rosette in front (Avia); the lines sit in a vertical column at the centre
         half_v = 0.5 * (fov[0] + fov[1])
-        span = np.radians(4.5) / np.radians(half_v)  # the lines span 4.5 deg (Avia's repetitive-mode height)
+        span = 4.5 / half_v  # the lines span 4.5 deg (the Avia's repetitive-mode field is 70.4 x 4.5 deg)
         offs = np.stack(
             [np.zeros(sensor.n_beams), np.linspace(0.5 * span, -0.5 * span, sensor.n_beams)], axis=1
         )
