@@ -394,7 +394,7 @@ class KeyframeSequence:
 
     ``odometry_poses`` (N, 4, 4) are the odometry of ``sequence``'s scans (``odometry: poses``; e.g. a simulator's
     drifting ``odometry_poses``, or the sequence's own poses); with ``odometry: kiss-icp`` KISS-ICP runs once over
-    every scan here (tens of ms per scan: the cost of a SLAM front end) from the sequence's first pose. The windows
+    every scan here (about 17 ms per VLP-16 scan: docs/keyframes.md) from the sequence's first pose. The windows
     are computed once, here; ``seq[k]`` builds keyframe ``k``'s scan from its scans (``prepare``, e.g. the
     experiment's preprocessing, is applied to every scan first). ``poses`` / ``timestamps`` are the *source
     sequence's* (ground truth) of each keyframe's last scan, so an evaluation of keyframes is that of those scans;
