@@ -134,7 +134,9 @@ class ExclusionConfig(ExclusionWindow):
     at least ``frames`` frames, ``seconds`` seconds (needs timestamps) and ``metres`` travelled (needs poses)
     before it; ``null`` = no limit of that kind. ``frames`` stays 120 (VPR paper) when the others are set: write
     ``frames: null`` to use only seconds or metres. The detector and the ground truth apply this one rule
-    (`placerec.eval.exclusion.ExclusionWindow`, whose fields and checks these are)."""
+    (`placerec.eval.exclusion.ExclusionWindow`, whose fields and checks these are). With ``keyframes`` set the
+    places are keyframes: ``frames`` counts keyframes, ``seconds`` and ``metres`` apply to their timestamps and path
+    (docs/keyframes.md)."""
 
 
 class LocalizeConfig(Params):
