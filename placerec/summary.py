@@ -204,6 +204,7 @@ _NAME_PATTERNS = (
     ("velodyne", re.compile(r"(vlp|hdl|vls|vlp)[-_ ]?(\d+)")),
     ("hesai", re.compile(r"(pandar\w*|xt[-_ ]?\d+|qt[-_ ]?\d+|at[-_ ]?128)")),
     ("livox", re.compile(r"(livox|avia|mid[-_ ]?\d+|horizon|tele[-_ ]?15|hap)")),
+    ("robosense", re.compile(r"(?:robosense|\brs)[-_ ]*(e1r|m1|m2|m3|helios|bpearl|ruby)|\b(e1r)\b")),
 )
 _FIELD_FAMILIES = (
     ("ouster", {"reflectivity", "ambient", "near_ir", "signal"}, "Ouster ROS driver"),
@@ -283,6 +284,8 @@ def model_of_name(name: str, elev: tuple[float, ...] | None = None) -> str | Non
             prefix = f"velodyne {m.group(1)}-{m.group(2)}"
             names = [x.name for x in MODELS if x.name.startswith(prefix)]
             return names[0] if names else prefix
+        if family == "robosense":
+            return f"robosense {m.group(1) or m.group(2)}"
         return f"{family} {m.group(1)}" if family == "hesai" else "livox"
     return None
 

@@ -69,6 +69,10 @@ _EXPECTED_SIM = {
     "os1-64": "ouster os1-64 (gen1",
     "os1-64-gen2": "ouster os1-64 (gen2+",
     "os1-128": "ouster os1-128 (gen2+",
+    "hdl32": "velodyne hdl-32e",
+    "avia": "livox",
+    "mid360": "livox",
+    "e1r": "robosense e1r",
 }
 
 
@@ -78,6 +82,11 @@ def test_simulated_presets_from_record_and_from_structure(name: str) -> None:
     known = identify_sensor(scan)
     assert known.how == "metadata" and known.model is not None and known.model.startswith(_EXPECTED_SIM[name])
     bare = identify_sensor(replace(scan, sensor=SensorInfo(), ring=None))
+    if not scan.sensor.is_spinning:
+        # a bare cloud of a scanner that does not spin tells little: a limited horizontal field reads as a
+        # non-repetitive (Livox-style) pattern, a 360 deg rosette matches no beam layout
+        assert bare.model in ("livox", None)
+        return
     assert bare.how == "guess" and bare.model is not None and bare.model.startswith(_EXPECTED_SIM[name])
     assert bare.line().startswith("likely ") and bare.line().endswith("; guess)")
 

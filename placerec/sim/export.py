@@ -5,7 +5,8 @@ Layout of ``out_dir``::
     velodyne/000000.bin   float32 records (x, y, z, intensity), sensor frame; invalid returns dropped (as KITTI);
                           intensity = raw / intensity_max in [0, 1] (KITTI's convention for reflectance)
     ring/000000.npy       int16 ring (beam) index of every point of the .bin, 0 = top beam
-    column/000000.npy     uint16 azimuth column of every point (with ring, rebuilds the organised image)
+    column/000000.npy     uint16 azimuth column of every point (with ring, rebuilds the organised image; spinning
+                          sensors only)
     poses.txt             one ground-truth T_world_sensor per line, first 3 rows, 12 numbers (KITTI format)
     times.txt             one timestamp (s) per line
     calib.txt             identity ``Tr`` (poses are already in the LiDAR frame) and dummy P0..P3, for KITTI tools
@@ -88,7 +89,7 @@ def write_kitti_sequence(seq: Sequence, out_dir: str | Path, progress: bool = Tr
             _write_bytes(out / "ring" / f"{i:06d}.npy", _npy_bytes(scan.ring[valid].astype(np.int16)))
         if scan.shape is not None:
             col = np.tile(np.arange(scan.shape[1], dtype=np.uint16), scan.shape[0])[valid]
-        elif scan.sensor.columns:  # the simulator's rays lie exactly on their column's azimuth
+        elif scan.sensor.columns and scan.sensor.is_spinning:  # rays lie exactly on their column's azimuth
             az = np.arctan2(scan.xyz[valid, 1], scan.xyz[valid, 0]).astype(np.float64)
             col = (np.floor((np.pi - az) / (2 * np.pi) * scan.sensor.columns) % scan.sensor.columns).astype(
                 np.uint16
