@@ -24,9 +24,10 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> 
     """Run ``cfg`` (loop or localize mode) and write its results folder; returns (folder, metrics dict).
 
     The pipelines are built and the datasets opened and checked (poses for the evaluation, what the exclusion
-    window needs) before the results folder is made, so a config that cannot run leaves no folder behind. The run
-    opens them again (the simulator and file sequences open in milliseconds once built), so that its description
-    cache is keyed by the config's dataset. A run interrupted (Ctrl-C) leaves no folder, or one marked INCOMPLETE
+    window needs) before the results folder is made, so a config that cannot run leaves no folder behind. In loop
+    mode the run uses the sequence opened for that check (`run_loop`'s ``opened``), in localize mode it opens the
+    sequences again (the simulator and file sequences open in milliseconds once built); the description cache is
+    keyed by the config's dataset either way. A run interrupted (Ctrl-C) leaves no folder, or one marked INCOMPLETE
     when some pipelines' results were written (`placerec.experiment.run_folder.abandon_run`)."""
     from placerec.experiment.report import report_localize, report_loop, require_poses
     from placerec.experiment.run_folder import interruptible, make_run_dir
@@ -43,10 +44,11 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> 
     if cfg.evaluation.mode == "loop":
         from placerec.experiment.truth import TruthClouds
 
-        truth = TruthClouds(cfg.evaluation, require_poses(loop_sequence(cfg)))
+        opened = loop_sequence(cfg)
+        truth = TruthClouds(cfg.evaluation, require_poses(opened))
         run = make_run_dir(cfg, out_dir)
         with interruptible(run, labels):
-            seq, records = run_loop(cfg, None, pipelines, on_scan=truth)
+            seq, records = run_loop(cfg, None, pipelines, on_scan=truth, opened=opened)
             payload = report_loop(cfg, run, seq, records, truth)
     else:
         localize_sequences(cfg)

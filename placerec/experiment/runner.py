@@ -229,17 +229,20 @@ def run_loop(
     seq: Sequence | None = None,
     pipelines: Pipelines | None = None,
     on_scan: Callable[[int, Scan], None] | None = None,
+    opened: Sequence | None = None,
 ) -> tuple[Sequence, list[PipelineRecord]]:
     """Loop mode: every scan queries (exclusion window applied) and is then added, for every pipeline.
 
     ``seq`` defaults to the config's dataset, ``pipelines`` to `build_pipelines`. The on-disk description cache
     (``output.cache_dir``) is keyed by the config's dataset, so it is used only when ``seq`` is not given. A
     sequence with no scans, or one shorter than the exclusion window, gives every query no candidates.
-    ``on_scan(index, scan)`` sees every preprocessed scan once, in order (e.g. `placerec.experiment.truth`)."""
+    ``on_scan(index, scan)`` sees every preprocessed scan once, in order (e.g. `placerec.experiment.truth`).
+    ``opened`` (when ``seq`` is not given): the config's dataset as `loop_sequence` already opened it, used instead
+    of opening it again (keyframes with ``odometry: kiss-icp`` then register the scans once); the cache stays on."""
     pipelines = build_pipelines(cfg) if pipelines is None else pipelines
     own_data = seq is None
     cache_dir = cfg.output.cache_dir if own_data else None
-    seq = loop_sequence(cfg, seq)
+    seq = opened if own_data and opened is not None else loop_sequence(cfg, seq)
     ex = cfg.evaluation.exclusion
     detectors = [
         LoopClosureDetector(
