@@ -50,6 +50,30 @@ def test_the_matrix_is_the_splits_unless_narrowed():
     assert cfg.dataset.simulator.seed == protocol.TUNING_SEEDS[0] and cfg.evaluation.mode == "loop"
 
 
+def test_sensors_that_do_not_spin_are_driven_as_their_capture_says():
+    """A Livox-style cell: 10 Hz frames taken while moving, keyframes de-skewed with a drifting odometry, an
+    exclusion window in metres; a spinning sensor's cell is left as it was (one scan a metre, no keyframes)."""
+    bench = resolve(BenchmarkConfig, {**BASE, "split": "tuning", "sensors": ["avia", "hdl32"]})
+    avia, hdl32 = (bench.cell_config(c) for c in bench.cells())
+    assert set(protocol.CAPTURE) <= set(protocol.SENSOR_MATRIX)
+    sim = avia.dataset.simulator
+    assert (sim.sensor, sim.rate_hz, sim.sweep_motion, sim.odometry_drift) == ("avia", 10.0, True, 0.01)
+    assert avia.keyframes is not None and avia.keyframes.seconds == 0.5
+    assert avia.evaluation.exclusion.frames is None and avia.evaluation.exclusion.metres == 120.0
+    plain = hdl32.dataset.simulator
+    assert (
+        hdl32.keyframes is None and plain.rate_hz is None and not plain.sweep_motion and plain.spacing == 1.0
+    )
+    assert hdl32.evaluation.exclusion.frames == 120
+    own = resolve(
+        BenchmarkConfig, {**BASE, "sensors": ["avia"], "capture": {"avia": {"keyframes": {"metres": 5}}}}
+    )
+    cfg = own.cell_config(own.cells()[0])
+    assert cfg.keyframes is not None and cfg.keyframes.metres == 5 and cfg.dataset.simulator.rate_hz is None
+    with pytest.raises(ConfigError, match="capture"):
+        resolve(BenchmarkConfig, {**BASE, "capture": {"hdl128": {}}})
+
+
 def test_an_unknown_pipeline_fails_before_any_cell_runs(tmp_path):
     cfg = resolve(
         BenchmarkConfig, {"pipelines": [{"name": "no-such"}], "worlds": ["town"], "sensors": ["vlp16"]}

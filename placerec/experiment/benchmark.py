@@ -32,6 +32,7 @@ from pydantic import Field, field_validator, model_validator
 
 from placerec.config import (
     EvaluationConfig,
+    ExclusionConfig,
     ExecutionConfig,
     ExperimentConfig,
     PipelineSpec,
@@ -45,11 +46,13 @@ from placerec.experiment.benchmark_summary import BENCH_VERSION, summarise, writ
 from placerec.experiment.run_folder import json_default
 from placerec.hashing import stable_hash
 from placerec.io.atomic import atomic_write
+from placerec.keyframes import KeyframeParams
 from placerec.params import Params, resolve
 from placerec.preprocess import PreprocessParams
 
 __all__ = [
     "BenchmarkConfig",
+    "CaptureParams",
     "Cell",
     "load_benchmark_config",
     "run_cell",
@@ -71,6 +74,27 @@ class BenchOutputConfig(Params):
     progress: bool = True
 
 
+class CaptureParams(Params):
+    """How a benchmark drives one sensor, when not as a spinning sensor's one scan per ``spacing`` metres.
+
+    ``rate_hz``: scans per second along the route's speed profile; ``sweep_motion``: each ray measured from the
+    pose at its own time (scans taken while moving, left un-deskewed as a driver delivers them);
+    ``odometry_drift``: the relative translation error of the odometry that de-skews and places keyframes (None:
+    the true poses); ``keyframes``: the pipelines see keyframes of these windows; ``exclusion``: the loop
+    exclusion window of this sensor's cells (keyframes are metres apart, so a window counted in frames would
+    mean something else)."""
+
+    rate_hz: float | None = Field(None, gt=0, le=1000, allow_inf_nan=False, description="scans per second")
+    sweep_motion: bool = Field(False, description="rays measured from the pose at their own time")
+    odometry_drift: float | None = Field(None, ge=0, le=1, allow_inf_nan=False, description="relative error")
+    keyframes: KeyframeParams | None = None
+    exclusion: ExclusionConfig | None = None
+
+
+def _default_capture() -> dict[str, CaptureParams]:
+    return {name: CaptureParams(**values) for name, values in protocol.CAPTURE.items()}
+
+
 class BenchmarkConfig(Params):
     """The root of a benchmark config (module docstring). ``worlds`` / ``sensors`` / ``seeds`` default to the
     split's (`placerec.experiment.protocol`); a tuning benchmark may not name a test-split seed."""
@@ -88,6 +112,10 @@ class BenchmarkConfig(Params):
     evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
     output: BenchOutputConfig = Field(default_factory=BenchOutputConfig)
     execution: ExecutionConfig = Field(default_factory=ExecutionConfig)
+    capture: dict[str, CaptureParams] = Field(
+        default_factory=_default_capture,
+        description="per sensor: how it is driven (default placerec.experiment.protocol.CAPTURE)",
+    )
 
     @field_validator("worlds")
     @classmethod
@@ -102,6 +130,14 @@ class BenchmarkConfig(Params):
         from placerec.sim.sensors import sensor_names
 
         return _known("sensor", v, sensor_names())
+
+    @field_validator("capture")
+    @classmethod
+    def _known_capture_sensors(cls, v: dict[str, CaptureParams]) -> dict[str, CaptureParams]:
+        from placerec.sim.sensors import sensor_names
+
+        _known("sensor", list(v), sensor_names())
+        return v
 
     @model_validator(mode="after")
     def _split_rules(self) -> BenchmarkConfig:
@@ -128,23 +164,33 @@ class BenchmarkConfig(Params):
         return [Cell(w, s, int(seed)) for w in worlds for s in sensors for seed in seeds]
 
     def cell_config(self, cell: Cell) -> ExperimentConfig:
-        """The loop-mode experiment config of one cell."""
+        """The loop-mode experiment config of one cell (with its sensor's `CaptureParams`, if any)."""
+        simulator: dict[str, Any] = {
+            "world": cell.world,
+            "sensor": cell.sensor,
+            "seed": cell.seed,
+            "route": self.route,
+            "n_scans": self.n_scans,
+            "spacing": self.spacing,
+        }
+        evaluation = self.evaluation.model_dump(mode="json")
+        extra: dict[str, Any] = {}
+        capture = self.capture.get(cell.sensor)
+        if capture is not None:
+            for key in ("rate_hz", "sweep_motion", "odometry_drift"):
+                if getattr(capture, key) not in (None, False):
+                    simulator[key] = getattr(capture, key)
+            if capture.keyframes is not None:
+                extra["keyframes"] = capture.keyframes.model_dump(mode="json")
+            if capture.exclusion is not None:
+                evaluation["exclusion"] = capture.exclusion.model_dump(mode="json")
         data = {
             "name": f"{self.name}-{cell.name}",
-            "dataset": {
-                "source": "simulator",
-                "simulator": {
-                    "world": cell.world,
-                    "sensor": cell.sensor,
-                    "seed": cell.seed,
-                    "route": self.route,
-                    "n_scans": self.n_scans,
-                    "spacing": self.spacing,
-                },
-            },
+            "dataset": {"source": "simulator", "simulator": simulator},
+            **extra,
             "preprocess": self.preprocess.model_dump(mode="json"),
             "pipelines": [p.model_dump(mode="json") for p in self.pipelines],
-            "evaluation": self.evaluation.model_dump(mode="json"),
+            "evaluation": evaluation,
             "output": {
                 "dir": self.output.dir,
                 "cache_dir": self.output.cache_dir,
@@ -211,7 +257,7 @@ def run_cell(cell_cfg_json: dict[str, Any], folder: str) -> dict[str, Any]:
     t0 = time.perf_counter()
     seq = loop_sequence(cfg)
     truth = TruthClouds(cfg.evaluation, require_poses(seq))
-    seq, records = run_loop(cfg, None, build_pipelines(cfg), on_scan=truth)
+    seq, records = run_loop(cfg, None, build_pipelines(cfg), on_scan=truth, opened=seq)
     payload = report_loop(cfg, out, seq, records, truth, link_latest=False)
     offsets = np.cumsum([0] + [v.size for v in truth.voxels])
     with atomic_write(out / "truth.npz", "wb") as fh:

@@ -28,6 +28,8 @@ __all__ = [
     "TUNING_WORLDS",
     "TUNING_SENSORS",
     "TUNING_SEEDS",
+    "SENSOR_MATRIX",
+    "CAPTURE",
     "LOCALIZE_TUNING_DRAW",
     "LOCALIZE_TEST_DRAW",
     "is_test_seed",
@@ -46,6 +48,25 @@ TEST_SEEDS: tuple[int, ...] = (4601, 4602)
 TUNING_WORLDS: tuple[str, ...] = ("town",)
 TUNING_SENSORS: tuple[str, ...] = ("vlp16", "hdl64", "os1-64", "os1-128")
 TUNING_SEEDS: tuple[int, ...] = (0,)
+
+#: Sensors that are not one 360 deg spinning sweep (and the 32-beam spinning HDL-32E), benchmarked in their own
+#: matrices (configs/benchmark_sensors*.yaml) over the same worlds and seeds as the split they belong to.
+SENSOR_MATRIX: tuple[str, ...] = ("hdl32", "avia", "mid360", "e1r")
+
+#: How the benchmark drives each sensor that is not a spinning sensor's one scan a metre
+#: (`placerec.experiment.benchmark.CaptureParams`): frames at the sensor's rate taken while moving, accumulated
+#: into keyframes de-skewed with a 1 %-drift odometry, and a loop exclusion window of 120 m (the 120 frames of
+#: the spinning cells at their 1 m spacing). The keyframe length was chosen on the tuning split (docs/sensors.md).
+CAPTURE: dict[str, dict] = {
+    name: {
+        "rate_hz": 10.0,
+        "sweep_motion": True,
+        "odometry_drift": 0.01,
+        "keyframes": {"seconds": 0.5},
+        "exclusion": {"frames": None, "metres": 120.0},
+    }
+    for name in ("avia", "mid360", "e1r")
+}
 
 #: Localisation query draws (`placerec.sim.make_localization_split`'s ``draw``): the training queries, on which
 #: the vote model, ``reject_weight`` and DELIGHT were chosen, and the held-out queries reported as results.
