@@ -81,3 +81,17 @@ def test_direction_summary_counts_recall_per_direction():
     assert out["same"]["recall_at_1"] == pytest.approx(1.0)
     assert out["reverse"]["recall_at_1"] == 0.0 and out["reverse"]["n_revisits"] >= 70
     assert out["same"]["n_revisits"] + out["reverse"]["n_revisits"] == metrics.n_revisits
+
+
+def test_direction_summary_at_a_fixed_threshold_counts_only_accepted_closures():
+    poses = _out_and_back_then_again()
+    gt = loop_ground_truth(poses, gt_distance=5.0, exclusion=ExclusionWindow(frames=30))
+    q = np.arange(300)
+    right = np.where(q < 100, -1, np.where(q < 200, 199 - q, q - 200))
+    # every revisit found, but the same-direction ones score 1.0 and the reverse ones 0.2
+    scores = np.where(q >= 200, 1.0, np.where(right >= 0, 0.2, np.nan))
+    metrics = loop_metrics(q, right, scores, gt)
+    out = direction_summary(metrics, gt, threshold=0.5)
+    assert out["same"]["recall_at_threshold"] == pytest.approx(1.0)
+    assert out["reverse"]["recall_at_threshold"] == 0.0 and out["reverse"]["recall_at_1"] > 0.9
+    assert "recall_at_threshold" not in direction_summary(metrics, gt)["same"]

@@ -105,15 +105,15 @@ def _dist(gt: LoopGroundTruth, i: int) -> np.ndarray:
 
 
 def direction_summary(
-    metrics: LoopMetrics, gt: LoopGroundTruth, reverse_yaw_deg: float = 90.0
+    metrics: LoopMetrics, gt: LoopGroundTruth, reverse_yaw_deg: float = 90.0, threshold: float | None = None
 ) -> dict[str, Any]:
-    """``{"same": {...}, "reverse": {...}}``: revisits, recall@1 and recall at the max-F1 threshold per direction."""
+    """``{"same": {...}, "reverse": {...}}``: revisits, recall@1 and recall at the max-F1 threshold per direction,
+    and with ``threshold`` (a fixed operating threshold) the recall at it (``recall_at_threshold``): a sensor with
+    a limited horizontal field of view is judged on the revisits it can see, those driven the same way."""
     direction = revisit_directions(gt, reverse_yaw_deg)[metrics.query_ids]
-    tp = (
-        metrics.outcomes_at(metrics.threshold_at_max_f1)["tp"]
-        if metrics.n_candidates
-        else np.zeros(metrics.query_ids.size, bool)
-    )
+    none = np.zeros(metrics.query_ids.size, bool)
+    tp = metrics.outcomes_at(metrics.threshold_at_max_f1)["tp"] if metrics.n_candidates else none
+    tp_fixed = metrics.outcomes_at(threshold)["tp"] if metrics.n_candidates and threshold is not None else none
     out: dict[str, Any] = {}
     for name, code in (("same", 1), ("reverse", 2)):
         sel = direction == code
@@ -123,4 +123,6 @@ def direction_summary(
             "recall_at_1": float((metrics.correct & sel).sum() / n) if n else None,
             "recall_at_max_f1": float((tp & sel).sum() / n) if n else None,
         }
+        if threshold is not None:
+            out[name]["recall_at_threshold"] = float((tp_fixed & sel).sum() / n) if n else None
     return out

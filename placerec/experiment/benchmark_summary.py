@@ -48,6 +48,8 @@ CELL_FIGURES: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ("false_closures", ("pose_truth", "operating", "fp"), "low"),
     ("distance_precision", ("operating", "precision"), "high"),
     ("distance_recall", ("operating", "recall"), "high"),
+    ("same_direction_recall", ("directions", "same", "recall_at_threshold"), "high"),
+    ("reverse_recall", ("directions", "reverse", "recall_at_threshold"), "high"),
     ("recall_at_100_precision", ("recall_at_100_precision",), "high"),
     ("pose_recall_at_100_precision", ("pose_truth", "recall_at_100_precision"), "high"),
     ("describe_ms", ("time_ms", "stages", "describe", "mean"), "low"),

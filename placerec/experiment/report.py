@@ -259,7 +259,7 @@ def loop_summary(
             loop_metrics(q, m, s, igt, topn), rel, poses, threshold, nearest
         )
     summary["auc"] = summary.pop("average_precision")
-    summary["directions"] = direction_summary(metrics, gt, ev.reverse_yaw_deg)
+    summary["directions"] = direction_summary(metrics, gt, ev.reverse_yaw_deg, threshold)
     retrieval_gt = loop_ground_truth(
         poses, **{**options, "gt_distance": ev.retrieval_distance, "gt_yaw_deg": None}
     )
