@@ -56,16 +56,19 @@ SENSOR_MATRIX: tuple[str, ...] = ("hdl32", "avia", "mid360", "e1r")
 #: How the benchmark drives each sensor that is not a spinning sensor's one scan a metre
 #: (`placerec.experiment.benchmark.CaptureParams`): frames at the sensor's rate taken while moving, accumulated
 #: into keyframes de-skewed with a 1 %-drift odometry, and a loop exclusion window of 120 m (the 120 frames of
-#: the spinning cells at their 1 m spacing). The keyframe length was chosen on the tuning split (docs/sensors.md).
+#: the spinning cells at their 1 m spacing). The keyframe lengths were chosen on the tuning split
+#: (tools/sweep_keyframes.py, docs/sensors.md): 0.5 s for the Avia- and E1R-like sensors, 1 s for the sparser
+#: MID-360-like one (20k points a frame over 360 x 59 deg).
+_KEYFRAME_SECONDS = {"avia": 0.5, "mid360": 1.0, "e1r": 0.5}
 CAPTURE: dict[str, dict] = {
     name: {
         "rate_hz": 10.0,
         "sweep_motion": True,
         "odometry_drift": 0.01,
-        "keyframes": {"seconds": 0.5},
+        "keyframes": {"seconds": seconds},
         "exclusion": {"frames": None, "metres": 120.0},
     }
-    for name in ("avia", "mid360", "e1r")
+    for name, seconds in _KEYFRAME_SECONDS.items()
 }
 
 #: Localisation query draws (`placerec.sim.make_localization_split`'s ``draw``): the training queries, on which
