@@ -17,6 +17,21 @@ travels no metres). The online `KeyframeBuilder` and the offline `KeyframeSequen
 (`_completes`), so they cut a stream into the same keyframes; the scans after the last complete window form a
 last, shorter keyframe (``flush`` online).
 
+**Overlapping windows** (`KeyframeParams.every_metres`): instead of starting after the previous keyframe, a
+keyframe ends on scan ``j`` when (a) the *trailing* window ending at ``j`` is complete by the rule above (the
+shortest run of scans ending at ``j`` that completes; none: no keyframe yet) and (b) the odometry has travelled at
+least ``every_metres`` from the previous keyframe's last scan to ``j`` (`placerec.types.path_length`; the first
+keyframe: as soon as (a) holds). Its scans are that run, its frame, pose and timestamp scan ``j``'s as always. So
+10 Hz scans at 9 m/s with ``seconds: 0.5, every_metres: 1.0`` give keyframes of 5 scans on every second scan
+(the first on scan 4), 1.8 m apart (the first scan at least 1 m on) where windows one after another are 4.5 m
+apart; each scan is then described in several keyframes (window length / keyframe spacing times the work: 2.5
+here). A trailing window never starts before the previous complete one did (so the builder keeps only the scans
+from there on; this differs from the shortest run overall only where the progress stalls or jumps: a ``metres``
+window at rest, a gap in the data). At rest (no metres travelled) no keyframe follows the first. After the last
+keyframe, ``flush`` (and `KeyframeSequence`'s last keyframe) gives one of the trailing scans (those from the start of
+the last complete trailing window, or all of them before any) when at least one scan came after that keyframe.
+`_overlapping` is the one rule of both.
+
 Frame and de-skew
 -----------------
 A keyframe is expressed in the frame of its **last scan at that scan's timestamp** (the scan it completes on:
@@ -41,10 +56,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, SerializerFunctionWrapHandler, model_serializer, model_validator
 
 from placerec.errors import ScanDataError
 from placerec.params import Params
@@ -93,12 +108,28 @@ class KeyframeParams(Params):
     max_scans: int = Field(
         200, ge=1, le=100_000, description="a window also completes after this many scans (a vehicle at rest)"
     )
+    every_metres: float | None = Field(
+        None,
+        gt=0,
+        le=10_000,
+        description="one keyframe every this many metres travelled along the odometry, each holding the window"
+        " of scans that ends there (overlapping windows); None: windows one after another",
+    )
 
     @model_validator(mode="after")
     def _one_window(self) -> KeyframeParams:
         if (self.seconds is None) == (self.metres is None):
             raise ValueError("give exactly one of keyframes.seconds and keyframes.metres")
         return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        """The fields, without ``every_metres`` when it is None: the dump of windows one after another (the
+        description cache key, closures.json) stays what it was before overlapping windows."""
+        data: dict[str, Any] = handler(self)
+        if self.every_metres is None:
+            data.pop("every_metres", None)
+        return data
 
     @property
     def window(self) -> float:
@@ -129,6 +160,24 @@ def _completes(params: KeyframeParams, first: float, current: float, n_scans: in
         return False
     span = (current - first) * n_scans / (n_scans - 1)
     return span >= params.window * (1.0 - _WINDOW_SLACK)
+
+
+def _overlapping(
+    params: KeyframeParams, x: Any, lo: int, j: int, travelled: float, last_travelled: float | None
+) -> tuple[int | None, bool]:
+    """Overlapping windows (module docstring): the start of the shortest run ``lo..j`` of progress ``x`` (indexable)
+    that `_completes` (None: none), and whether it makes a keyframe ending on ``j``: complete and ``travelled``
+    (distance at ``j``) at least ``every_metres`` past ``last_travelled`` (that at the previous keyframe's last
+    scan; None: no keyframe yet)."""
+    assert params.every_metres is not None
+    current = float(x[j])
+    for start in range(j, max(lo, j - params.max_scans + 1) - 1, -1):
+        if _completes(params, float(x[start]), current, j - start + 1):
+            moved = last_travelled is None or travelled - last_travelled >= params.every_metres * (
+                1.0 - _WINDOW_SLACK
+            )
+            return start, moved
+    return None, False
 
 
 def interpolate_trajectory(stamps: np.ndarray, poses: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -284,7 +333,10 @@ class KeyframeBuilder:
     """Accumulates a stream of scans into keyframes online (module docstring).
 
     ``add(scan, odometry_pose, index)`` returns the `Keyframe` that ``scan`` completes, else None; ``flush()``
-    returns the keyframe of the scans added since (None when there are none). With ``odometry: poses`` every scan
+    returns the keyframe of the scans added since (None when there are none). With ``every_metres`` (overlapping
+    windows) the builder holds the scans from the start of the last complete trailing window on, and ``flush()``
+    returns the keyframe of those held scans when at least one scan was added since the last keyframe, else None
+    (it keeps them: the stream may go on). With ``odometry: poses`` every scan
     needs its ``odometry_pose`` (``T_world_sensor``, e.g. from the SLAM front end); with ``kiss-icp`` the builder
     registers the scans with `placerec.slam.odometry.KissIcpOdometry` (starting at the first given pose, else the
     identity) and ignores later given poses. ``index`` (default: a running count) names the scan in
@@ -306,10 +358,18 @@ class KeyframeBuilder:
         self._before: tuple[float, np.ndarray] | None = None
         self._count = 0
         self._icp: KissIcpOdometry | None = None
+        # overlapping windows (every_metres): progress of the held scans, distance travelled (at the last scan, at
+        # the last keyframe's last scan) and the count of scans added since the last keyframe
+        self._xs: list[float] = []
+        self._travelled = 0.0
+        self._keyframe_travelled: float | None = None
+        self._since = 0
 
     @property
     def pending(self) -> tuple[int, ...]:
-        """Indices of the scans added since the last keyframe."""
+        """Indices of the scans added since the last keyframe (overlapping windows: those of them still held)."""
+        if self.params.every_metres is not None:
+            return tuple(self._indices[len(self._indices) - min(self._since, len(self._indices)) :])
         return tuple(self._indices)
 
     def add(
@@ -353,6 +413,8 @@ class KeyframeBuilder:
                 self._icp = _kiss_icp(origin)
             pose = self._icp.register(scan)
         # checked: from here on nothing raises
+        if p.every_metres is not None:
+            return self._add_overlapping(points, index, stamp, pose)
         if p.seconds is not None:
             assert stamp is not None  # _needs_timestamps
             x = float(stamp)
@@ -375,8 +437,51 @@ class KeyframeBuilder:
             return self.flush()
         return None
 
+    def _add_overlapping(
+        self, points: Scan, index: int, stamp: float | None, pose: np.ndarray
+    ) -> Keyframe | None:
+        """`add` of a checked scan with overlapping windows (``every_metres``; module docstring)."""
+        p = self.params
+        step = 0.0 if self._last_pose is None else float(np.linalg.norm(pose[:3, 3] - self._last_pose[:3, 3]))
+        travelled = self._travelled + step  # as `placerec.types.path_length` sums it
+        if p.seconds is not None:
+            assert stamp is not None  # _needs_timestamps
+            x = float(stamp)
+        else:
+            x = travelled
+        self._scans.append(points)
+        self._indices.append(index)
+        self._stamps.append(float(stamp) if stamp is not None else float("nan"))
+        self._poses.append(pose)
+        self._xs.append(x)
+        self._last_x, self._last_stamp, self._last_pose = x, stamp, pose
+        self._travelled = travelled
+        self._count += 1
+        self._since += 1
+        start, make = _overlapping(p, self._xs, 0, len(self._xs) - 1, travelled, self._keyframe_travelled)
+        if start:  # no later window starts before this complete one: drop the scans before it
+            if stamp is not None:
+                self._before = (self._stamps[start - 1], self._poses[start - 1])
+            for held in (self._scans, self._indices, self._stamps, self._poses, self._xs):
+                del held[:start]
+        return self._emit() if make else None
+
+    def _emit(self) -> Keyframe:
+        """Overlapping windows: the keyframe of the held scans, ending on the last one."""
+        stamps = None if self._last_stamp is None else np.asarray(self._stamps)
+        keyframe = _assemble(
+            self.params, self._scans, self._indices, stamps, np.stack(self._poses), self._before, self.label
+        )
+        self._keyframe_travelled = self._travelled
+        self._since = 0
+        return keyframe
+
     def flush(self) -> Keyframe | None:
-        """The keyframe of the scans added since the last one (None when there are none); starts a new window."""
+        """The keyframe of the scans added since the last one (None when there are none); starts a new window.
+        With ``every_metres``: the keyframe of the held trailing scans when a scan was added since the last
+        keyframe, else None (class docstring)."""
+        if self.params.every_metres is not None:
+            return self._emit() if self._since else None
         if not self._scans:
             return None
         stamps = None if self._last_stamp is None else np.asarray(self._stamps)
@@ -446,14 +551,28 @@ class KeyframeSequence:
         return np.stack([icp.register(self._source(i)) for i in range(len(sequence))])
 
     def _cut(self, n: int) -> list[list[int]]:
-        """The windows (lists of scan indices) of the whole sequence, by `_completes`."""
+        """The windows (lists of scan indices) of the whole sequence, by `_completes` (`_overlapping` with
+        ``every_metres``)."""
         p = self.params
+        travelled = path_length(self._odometry[:, :3, 3])
         if p.seconds is not None:
             assert self._stamps is not None
             x = self._stamps
         else:
-            x = path_length(self._odometry[:, :3, 3])
+            x = travelled
         windows: list[list[int]] = []
+        if p.every_metres is not None:
+            lo, last_end, last_travelled = 0, -1, None
+            for j in range(n):
+                start, make = _overlapping(p, x, lo, j, float(travelled[j]), last_travelled)
+                if start is not None:
+                    lo = start
+                if make:
+                    windows.append(list(range(lo, j + 1)))
+                    last_end, last_travelled = j, float(travelled[j])
+            if last_end < n - 1:  # scans after the last keyframe: one of the trailing scans (``flush``)
+                windows.append(list(range(lo, n)))
+            return windows
         current: list[int] = []
         for j in range(n):
             current.append(j)

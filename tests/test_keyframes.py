@@ -157,6 +157,20 @@ def _windows(params: KeyframeParams, scans: list[Scan], poses: np.ndarray) -> li
         (KeyframeParams(seconds=0.25), [(0, 1, 2), (3, 4, 5), (6, 7, 8), (9, 10, 11)]),  # at least 0.25 s
         (KeyframeParams(metres=3.0), [(0, 1, 2), (3, 4, 5), (6, 7, 8), (9, 10, 11)]),
         (KeyframeParams(seconds=5.0, max_scans=4), [(0, 1, 2, 3), (4, 5, 6, 7), (8, 9, 10, 11)]),
+        # overlapping windows: the trailing window, every so many metres; then flush's trailing scans
+        (KeyframeParams(seconds=0.5, every_metres=1.0), [tuple(range(j - 4, j + 1)) for j in range(4, 12)]),
+        (
+            KeyframeParams(seconds=0.5, every_metres=2.0),
+            [tuple(range(j - 4, j + 1)) for j in (4, 6, 8, 10, 11)],
+        ),
+        (
+            KeyframeParams(metres=3.0, every_metres=2.0),
+            [(0, 1, 2), (2, 3, 4), (4, 5, 6), (6, 7, 8), (8, 9, 10), (9, 10, 11)],
+        ),
+        (
+            KeyframeParams(seconds=5.0, max_scans=4, every_metres=3.0),
+            [(0, 1, 2, 3), (3, 4, 5, 6), (6, 7, 8, 9), (8, 9, 10, 11)],
+        ),
     ],
 )
 def test_window_boundaries_online_and_offline(params, expected):
@@ -164,6 +178,55 @@ def test_window_boundaries_online_and_offline(params, expected):
     assert _windows(params, scans, poses) == expected
     seq = KeyframeSequence(ListSequence(scans, poses, np.arange(12) / RATE_HZ), params, poses)
     assert [seq.scan_indices(k) for k in range(len(seq))] == expected
+
+
+def test_overlapping_windows_at_9_metres_per_second():
+    """10 Hz at 9 m/s, 0.5 s windows: one after another they end 4.5 m apart; every_metres 1.0 ends one on every
+    second scan (the first scan at least 1 m on: 1.8 m), each of the 5 scans of the trailing 0.5 s."""
+    scans, poses = _straight(30, step_m=0.9)
+    plain = _windows(KeyframeParams(seconds=0.5), scans, poses)
+    windows = _windows(KeyframeParams(seconds=0.5, every_metres=1.0), scans, poses)
+    assert len(plain) == 6 and len(windows) == 14  # 13 complete + the trailing scans at the end (flush)
+    ends = [w[-1] for w in windows]
+    assert ends[0] == 4 and ends[:-1] == list(range(4, 29, 2)) and ends[-1] == 29
+    assert all(w == tuple(range(w[-1] - 4, w[-1] + 1)) for w in windows)  # each the 5 scans ending there
+    spacing = np.diff(poses[ends[:-1], 0, 3])
+    np.testing.assert_allclose(spacing, 1.8)
+    # every scan is described in about window / every = 4.5 / 1.8 keyframes
+    assert sum(len(w) for w in windows) / 30 == pytest.approx(2.5, abs=0.2)
+
+
+@pytest.mark.parametrize(
+    ("params", "expected"),
+    [
+        # no metres travelled: after the first keyframe (its window complete) no other one; flush: the last window
+        (KeyframeParams(seconds=0.5, every_metres=1.0), [(0, 1, 2, 3, 4), (15, 16, 17, 18, 19)]),
+        # a metres window at rest completes by max_scans only
+        (KeyframeParams(metres=3.0, max_scans=5, every_metres=1.0), [(0, 1, 2, 3, 4), (15, 16, 17, 18, 19)]),
+        # not even one complete window: flush gives every scan
+        (KeyframeParams(metres=3.0, every_metres=1.0), [tuple(range(20))]),
+    ],
+)
+def test_overlapping_windows_at_rest(params, expected):
+    scans, poses = _straight(20, step_m=0.0)
+    assert _windows(params, scans, poses) == expected
+    seq = KeyframeSequence(ListSequence(scans, poses, np.arange(20) / RATE_HZ), params, poses)
+    assert [seq.scan_indices(k) for k in range(len(seq))] == expected
+
+
+def test_overlapping_flush_and_pending():
+    scans, poses = _straight(10)
+    builder = KeyframeBuilder(KeyframeParams(seconds=0.3, every_metres=2.0))
+    made = [builder.add(scans[i], poses[i]) for i in range(8)]
+    assert [k.scan_indices for k in made if k is not None] == [(0, 1, 2), (2, 3, 4), (4, 5, 6)]
+    assert builder.pending == (7,)  # added since the last keyframe
+    last = builder.flush()
+    assert last is not None and last.scan_indices == (5, 6, 7)  # the trailing scans the builder holds
+    assert builder.pending == () and builder.flush() is None  # nothing added since
+    # the stream may go on: the flushed keyframe counts as the last one (scan 7, 7 m)
+    assert builder.add(scans[8], poses[8]) is None
+    k = builder.add(scans[9], poses[9])
+    assert k is not None and k.scan_indices == (7, 8, 9)
 
 
 def test_keyframe_sequence_poses_timestamps_and_scans():
@@ -185,6 +248,47 @@ def test_keyframe_sequence_poses_timestamps_and_scans():
         assert seq[k].source == online[k].scan.source == f"moving[{5 * k}:{5 * k + 5}]"
 
 
+@pytest.mark.parametrize(
+    "params",
+    [
+        KeyframeParams(seconds=0.5),
+        KeyframeParams(seconds=0.3),
+        KeyframeParams(seconds=0.5, every_metres=1.5),
+        KeyframeParams(seconds=0.3, every_metres=0.5, voxel_m=1.0),
+        KeyframeParams(metres=2.0, every_metres=1.0),
+        KeyframeParams(metres=2.0, every_metres=1.0, deskew=False),
+    ],
+)
+def test_builder_and_sequence_give_identical_keyframes(params):
+    """Every keyframe, the flushed last one included: the same scans, points, pose and timestamp online and
+    offline (windows one after another and overlapping ones, whose de-skew takes the scan before the window)."""
+    scans, odometry, worlds = _moving_scans(n_scans=13, n_points=200)
+    seq = KeyframeSequence(
+        ListSequence(scans, odometry, np.arange(13) / RATE_HZ, name="moving"), params, odometry
+    )
+    builder = KeyframeBuilder(params, label="moving")
+    online = [k for i, s in enumerate(scans) if (k := builder.add(s, odometry[i])) is not None]
+    last = builder.flush()
+    online += [last] if last is not None else []
+    assert len(online) == len(seq) >= 3
+    for k, keyframe in enumerate(online):
+        offline = seq.keyframe(k)
+        assert keyframe.scan_indices == offline.scan_indices == seq.scan_indices(k)
+        assert keyframe.scan.source == offline.scan.source
+        np.testing.assert_array_equal(keyframe.scan.xyz, offline.scan.xyz)
+        np.testing.assert_array_equal(keyframe.pose, offline.pose)
+        assert keyframe.timestamp == offline.timestamp
+        if (
+            params.deskew and params.voxel_m is None
+        ):  # de-skewed onto the static scene, windows mid-stream too
+            window = list(keyframe.scan_indices)
+            assert _error_in_keyframe_frame(keyframe, [worlds[i] for i in window]) < 0.01
+    if params.every_metres is not None:
+        assert any(
+            a.scan_indices[-1] >= b.scan_indices[0] for a, b in zip(online, online[1:], strict=False)
+        )  # overlap
+
+
 # -- bad input ---------------------------------------------------------------------------------------------------
 
 
@@ -198,6 +302,11 @@ def test_keyframe_sequence_poses_timestamps_and_scans():
         ({"seconds": 1.0, "voxel_m": 0.0}, "voxel_m"),
         ({"seconds": 1.0, "odometry": "gps"}, "odometry"),
         ({"seconds": 1.0, "windows": 3}, "windows"),
+        ({"seconds": 1.0, "every_metres": 0.0}, "every_metres"),
+        ({"seconds": 1.0, "every_metres": -1.0}, "every_metres"),
+        ({"seconds": 1.0, "every_metres": float("nan")}, "every_metres"),
+        ({"seconds": 1.0, "every_metres": float("inf")}, "every_metres"),
+        ({"seconds": 1.0, "every_metres": 20_000.0}, "every_metres"),
     ],
 )
 def test_bad_params_are_config_errors(data, key):
@@ -298,8 +407,12 @@ def test_keyframe_runs_have_their_own_description_cache_key(tmp_path):
     keyed = _config(tmp_path)
     plain = keyed.model_copy(update={"keyframes": None})
     other = _config(tmp_path, keyframes={"seconds": 0.5})
-    keys = {_data_key(c, c.dataset) for c in (keyed, plain, other)}
-    assert len(keys) == 3
+    overlapping = _config(tmp_path, keyframes={"seconds": 0.4, "every_metres": 1.0})
+    keys = {_data_key(c, c.dataset) for c in (keyed, plain, other, overlapping)}
+    assert len(keys) == 4
+    # windows one after another dump (and key) as they did before every_metres existed
+    assert "every_metres" not in KeyframeParams(seconds=0.4).model_dump(mode="json")
+    assert KeyframeParams(seconds=0.4, every_metres=1.0).model_dump()["every_metres"] == 1.0
 
 
 def test_the_runner_uses_the_simulators_drifting_odometry(tmp_path):
