@@ -173,6 +173,18 @@ def _hostile_values(leaf: Leaf) -> Iterator[tuple[str, Any, str]]:
         yield "text", "yes", "error"
 
 
+#: optional sections that cannot be made from their defaults: (section path) -> (the override that completes
+#: them, the leaves that complete them on their own); a leaf of such a section is set on top of the completion
+_COMPLETIONS: dict[tuple[str, ...], tuple[str, frozenset[str]]] = {
+    ("keyframes",): ("keyframes.seconds=0.5", frozenset({"seconds", "metres"})),
+}
+
+
+def _completion(leaf: Leaf) -> list[str]:
+    found = _COMPLETIONS.get(leaf.path[:-1])
+    return [] if found is None or leaf.path[-1] in found[1] else [found[0]]
+
+
 def cases() -> list[Case]:
     out: list[Case] = []
     for root, (model, load) in ROOTS.items():
@@ -183,7 +195,7 @@ def cases() -> list[Case]:
                     Case(
                         "configs",
                         f"{root}/{leaf.key}/{name}",
-                        lambda tmp, o=override: [o],
+                        lambda tmp, o=[*_completion(leaf), override]: o,
                         lambda overrides, load=load: load(None, overrides),
                         expect,
                         names=f"{leaf.key}:",
