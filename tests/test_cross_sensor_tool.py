@@ -1,0 +1,107 @@
+"""tools/eval_cross_sensor.py: the quick path on a tiny configuration (JSON structure), success counted from
+accepted answers only, the concatenated sequence and the common-scale fit."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from placerec.experiment.runner import PipelineRecord
+from placerec.types import Candidate
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _tool():
+    spec = importlib.util.spec_from_file_location(
+        "eval_cross_sensor", ROOT / "tools" / "eval_cross_sensor.py"
+    )
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["eval_cross_sensor"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _pose(x: float) -> np.ndarray:
+    p = np.eye(4)
+    p[0, 3] = x
+    return p
+
+
+def test_success_counts_accepted_answers_only() -> None:
+    tool = _tool()
+    map_poses = np.stack([_pose(0.0), _pose(10.0)])
+    query_poses = np.stack([_pose(0.2), _pose(10.1), _pose(0.1)])
+    rec = PipelineRecord("p", "P", "p")
+    rec.query_ids = [0, 1, 2]
+    rel = np.eye(4)
+    rec.candidates = [
+        [Candidate(0, 0, 0.9, relative_pose=rel, accepted=True)],  # right place, accepted: success
+        [Candidate(1, 1, 0.9, relative_pose=rel, accepted=False)],  # right place, rejected: no answer
+        [Candidate(2, 1, 0.9, relative_pose=rel, accepted=True)],  # wrong place, accepted: wrong
+    ]
+    f = tool.localize_figures(rec, map_poses, query_poses)
+    assert f["answer_rule"] == "accepted"
+    assert (f["n_success"], f["n_no_answer"], f["n_wrong"]) == (1, 1, 1)
+    assert f["success"] == pytest.approx(1 / 3)
+
+
+def test_concat_sequence_and_monotone_fit() -> None:
+    tool = _tool()
+
+    class Seq:
+        def __init__(self, n: int, t0: float, tag: str) -> None:
+            self.poses = np.stack([_pose(float(i)) for i in range(n)])
+            self.timestamps = t0 + np.arange(n, dtype=float)
+            self.name = tag
+
+        def __len__(self) -> int:
+            return len(self.poses)
+
+        def __getitem__(self, i: int) -> str:
+            return f"{self.name}{i}"
+
+    both = tool.ConcatSequence(Seq(3, 5.0, "a"), Seq(2, 0.0, "b"))
+    assert len(both) == 5 and both[3] == "b0" and both[-1] == "b1"
+    assert both.timestamps[3] - both.timestamps[2] == tool.GAP_S
+    assert both.poses.shape == (5, 4, 4)
+    x = np.linspace(0.05, 0.95, 500)
+    xs, ys = tool.fit_monotone(x, np.sqrt(x))
+    assert np.all(np.diff(ys) >= 0) and xs[0] == 0 and xs[-1] == 1
+    assert np.interp(0.25, xs, ys) == pytest.approx(0.5, abs=0.03)
+
+
+def test_quick_path_tiny(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    tool = _tool()
+    out = tool.main([
+        "--quick", "--pairs", "vlp16:avia", "--pipelines", "scan-context", "--intensity", "raw", "calibrated",
+        "--map-spacing", "40", "--query-spacing", "80", "--cal-scans", "6", "--cache-dir", str(tmp_path),
+    ])  # fmt: skip
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert json.loads(line)["tool"] == "eval_cross_sensor"
+    assert set(out["splits"]) == {"test"} and out["splits"]["test"]["label"] == "test"
+    assert out["calibration_drives"]["label"] == "tuning"
+    res = out["results"]["test"]
+    assert set(res) == {"raw", "calibrated"}
+    assert set(res["raw"]) == {"vlp16>avia", "avia>avia", "vlp16>vlp16"}
+    for per_pair in res.values():
+        for r in per_pair.values():
+            loc, loop = r["localise"]["scan-context"], r["loop"]["scan-context"]
+            assert (
+                loc["n_success"] + loc["n_no_answer"] + loc["n_wrong"] == loc["n_queries"] == r["n_queries"]
+            )
+            assert 0.0 <= loop["r_at_p1"] <= loop["recall"] <= 1.0
+            assert loop["threshold"] == out["pipelines"]["scan-context"]
+    ratio = out["summary"]["test"]["ratios"]["vlp16>avia"]["calibrated"]["loop"]
+    assert ratio["best"] == "scan-context" and set(ratio["pipelines"]["scan-context"]) == {
+        "cross",
+        "same",
+        "ratio",
+    }
+    assert {"avia map", "avia query", "vlp16 map", "vlp16 query"} <= set(out["calibration_check"])

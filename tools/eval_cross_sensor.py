@@ -1,0 +1,709 @@
+"""Cross-sensor maps (issue #28): a map built with one LiDAR, queried with another, against each sensor's
+same-sensor baseline, with raw, normalised and calibrated intensity.
+
+Data (`placerec.sim.SimulatedSequence`): map and queries drive the **same world** (``world_seed``) with different
+drives (``seed``: the route's small motions and the noise) and different sensor units (``unit_seed``: the per-beam
+response curves; the map role's unit is 700, the query role's 701, for every sensor). Splits
+(`placerec.experiment.protocol`):
+
+* ``test`` (default; the figures reported): town, world seed 4601, map drive seed 4601, query drive seed 4602
+  (TEST_SEEDS); nothing is chosen on it.
+* ``tuning``: town, world seed 0, map drive seed 0 (the tuning cell), query drive seed 1.
+
+Every fitted quantity comes from the tuning world only: each unit's per-beam Levinson table
+(`placerec.calibration.calibrate_sequence`) is fitted on its own drive through the tuning world (world seed 0, drive
+seed 0 for the map unit, 1 for the query unit, one scan every 3 m), and so is the common-scale mapping below.
+Operating thresholds are the presets' (`PIPELINES[name].threshold`, chosen on the tuning split by others).
+
+Capture: spinning sensors one scan every ``--map-spacing`` m (map) / ``--query-spacing`` m (queries) at rest; the
+Livox-style ``avia`` as the benchmark captures it (`protocol.CAPTURE`: 10 Hz frames taken while moving, 1 %-drift
+odometry, `placerec.keyframes.KeyframeSequence` of 0.5 s), every k-th keyframe kept to about the same spacing.
+
+Intensity (the scans' intensity is replaced before preprocessing, whose own normalisation is then ``raw``, the
+identity; geometry is the same in every mode):
+
+* ``raw``: the values the sensor reports (VLP-16 / HDL-64 / Avia 8 bit, Ouster 16 bit);
+* ``normalised``: the sensor's default normaliser (`placerec.intensity.default_intensity_spec`: VLP-16 raw/100,
+  HDL-64 and OS1 the 99th percentile of each scan, others the 99th percentile);
+* ``calibrated``: the unit's per-beam table (all ranges: no 30 m cut-off, so that geometry is unchanged), then a
+  per-unit monotone map to a **common reflectance scale**. A table alone is not such a scale: its gauge is "the
+  unit's average beam" divided by the unit's saturation (docs/calibration.md), so an HDL-64 (response gamma 0.5)
+  stays compressive (asphalt ~0.3 of full scale) and an OS1-64 is scaled by its 99th percentile. The common scale
+  is the calibrated VLP-16 map unit's (its mean response is ~100 x, so its calibrated value is ~ the apparent
+  reflectance): on the tuning world every unit's calibrated readings are averaged per 0.5 m world cell (within
+  30 m), and the map is the binned-median, non-decreasing relation between the unit's cell values and the
+  reference's on the cells both saw. The tool checks both against the simulator's ground truth (apparent
+  reflectance from `BeamResponse.to_apparent`) on the tuning drives and prints it.
+
+Modes, per pipeline (orb-dbow, superpoint-dbow, scan-context; presets' thresholds):
+
+* ``localise``: the map scans in a database, every query localised (`placerec.experiment.runner.run_localize`);
+  success as `placerec.experiment.report` counts it: only an *accepted* top candidate is an answer (a rejected
+  one is no answer), and it succeeds within 3 m (scan-context, which does not verify, answers with its top one);
+* ``loop``: the map sequence followed by the query sequence as one sequence (`ConcatSequence`; the queries' clock
+  starts 1e6 s after the map's and the exclusion window is 5e5 s, so a query can close a loop onto the map part
+  only), run in loop mode (`run_loop`), judged with the benchmark's pose ground truth (`loop_summary`,
+  `pose_truths`) at the preset's fixed threshold: recall and precision there, and ``R@P1`` = that recall when
+  the precision is 1.00, else 0.
+
+Ratios: cross / same, where "same" is the query sensor's same-sensor baseline (its own map unit and query unit).
+Descriptions are shared in memory within one run between the localise and loop runs of the same scans (by the
+scans' content); raw scans are kept in a temporary folder for the run; the calibration tables and the common-scale
+maps are kept in ``--cache-dir`` (default ``.cache/cross_sensor``).
+
+    .venv/bin/python tools/eval_cross_sensor.py            # test split, every pair: ~15 min on 2 shared cores
+    .venv/bin/python tools/eval_cross_sensor.py --quick    # ~2 min: HDL-64 -> VLP-16 and VLP-16's baseline
+    .venv/bin/python tools/eval_cross_sensor.py --splits tuning test
+
+Prints a table per split and ends with one JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import pickle
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from placerec.calibration import CalibrationParams, CalibrationTable, calibrate_points, gather_points
+from placerec.calibration.table import load_calibration
+from placerec.config import ExperimentConfig, parse_config
+from placerec.eval import localization_metrics
+from placerec.experiment import protocol
+from placerec.experiment.datasets import SlicedSequence
+from placerec.experiment.report import _localize_estimates, loop_summary, pose_truths
+from placerec.experiment.runner import PipelineRecord, build_pipelines, run_localize, run_loop
+from placerec.experiment.truth import TruthClouds
+from placerec.hashing import stable_hash
+from placerec.intensity import normalize_intensity
+from placerec.keyframes import KeyframeParams, KeyframeSequence
+from placerec.preprocess import preprocess_scan
+from placerec.recognizer import PIPELINES
+from placerec.sim import SimulatedSequence
+from placerec.sim.sensors import get_sensor, sensor_names
+from placerec.types import Scan
+
+log = logging.getLogger("eval_cross_sensor")
+
+LIVOX = "avia"
+#: map sensor -> query sensor
+CROSS_PAIRS = (("hdl64", "vlp16"), ("hdl64", "os1-64"), ("hdl64", LIVOX), ("os1-64", "vlp16"))
+QUICK_PAIRS = (("hdl64", "vlp16"),)
+PIPELINE_NAMES = ("orb-dbow", "superpoint-dbow", "scan-context")
+QUICK_PIPELINES = ("orb-dbow", "scan-context")
+INTENSITIES = ("raw", "normalised", "calibrated")
+SPLITS: dict[str, dict[str, Any]] = {
+    "tuning": {"world": "town", "world_seed": 0, "map_seed": 0, "query_seed": 1},
+    "test": {"world": "town", "world_seed": protocol.TEST_SEEDS[0], "map_seed": protocol.TEST_SEEDS[0],
+             "query_seed": protocol.TEST_SEEDS[1]},
+}  # fmt: skip
+#: sensor units (per-beam response draws) of the two roles, the same in every split
+UNITS = {"map": 700, "query": 701}
+#: the tuning drive each unit is calibrated on (world seed 0), and the reference of the common scale
+CAL_SEEDS = {"map": 0, "query": 1}
+CAL_SPACING = 3.0
+REFERENCE = ("vlp16", "map")
+COMMON_VOXEL = 0.5
+COMMON_BINS = 48
+#: the queries' clock starts this long after the map's; the loop exclusion window is half of it
+GAP_S = 1.0e6
+SUCCESS_M = 3.0
+
+
+# -- sequences ------------------------------------------------------------------------------------------------------
+class ScanStore:
+    """A sequence whose rendered scans are pickled into a folder the first time they are read (raw scans: every
+    intensity mode and both evaluation modes read the same ones)."""
+
+    def __init__(self, seq: Any, folder: Path) -> None:
+        self.seq = seq
+        self.folder = folder
+        folder.mkdir(parents=True, exist_ok=True)
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.seq, name)
+
+    def __getitem__(self, i: int) -> Scan:
+        path = self.folder / f"{int(i)}.pkl"
+        if path.is_file():
+            with open(path, "rb") as fh:
+                scan: Scan = pickle.load(fh)
+            return scan
+        scan = self.seq[int(i)]
+        with open(path, "wb") as fh:
+            pickle.dump(scan, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        return scan
+
+
+class IntensityView:
+    """A sequence whose scans' intensity is replaced by ``fn(scan)``."""
+
+    def __init__(self, seq: Any, fn: Callable[[Scan], Scan], tag: str) -> None:
+        self.seq = seq
+        self.fn = fn
+        self.tag = tag
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.seq, name)
+
+    def __getitem__(self, i: int) -> Scan:
+        return self.fn(self.seq[int(i)])
+
+    @property
+    def name(self) -> str:
+        return f"{self.seq.name}-{self.tag}"
+
+
+class ConcatSequence:
+    """``first`` followed by ``second`` as one sequence: poses concatenated, ``second``'s timestamps shifted to start
+    ``gap_s`` after ``first``'s last one."""
+
+    def __init__(self, first: Any, second: Any, gap_s: float = GAP_S) -> None:
+        self.first, self.second = first, second
+        self.n_first = len(first)
+        t1 = np.asarray(first.timestamps, dtype=np.float64)
+        t2 = np.asarray(second.timestamps, dtype=np.float64)
+        for part, t in (("first", t1), ("second", t2)):
+            if t.size and t[-1] - t[0] >= gap_s / 2:
+                raise ValueError(f"ConcatSequence: the {part} part spans more than gap_s / 2 = {gap_s / 2} s")
+        self._stamps = np.concatenate(
+            [t1, t2 - (t2[0] if t2.size else 0.0) + (t1[-1] if t1.size else 0.0) + gap_s]
+        )
+        self._poses = np.concatenate([np.asarray(first.poses), np.asarray(second.poses)])
+
+    def __len__(self) -> int:
+        return self.n_first + len(self.second)
+
+    def __getitem__(self, i: int) -> Scan:
+        i = int(i)
+        if i < 0:
+            i += len(self)
+        if not 0 <= i < len(self):
+            raise IndexError(f"scan index {i} out of range for {len(self)} scans")
+        return self.first[i] if i < self.n_first else self.second[i - self.n_first]
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self._poses
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._stamps
+
+    @property
+    def name(self) -> str:
+        return f"{self.first.name}+{self.second.name}"
+
+
+def is_spinning(sensor: str) -> bool:
+    return get_sensor(sensor).pattern == "spinning"
+
+
+def base_sequence(world: str, world_seed: int, sensor: str, seed: int, unit: int, spacing: float) -> Any:
+    """The raw drive: spinning sensors one scan every ``spacing`` m at rest; others 10 Hz frames while moving
+    (`protocol.CAPTURE`)."""
+    name = f"xs-{world}{world_seed}-{sensor}-s{seed}-u{unit}"
+    if is_spinning(sensor):
+        return SimulatedSequence(world=world, world_seed=world_seed, sensor=sensor, seed=seed, unit_seed=unit,
+                                 spacing=spacing, name=f"{name}-{spacing:g}m")  # fmt: skip
+    cap = protocol.CAPTURE[sensor]
+    return SimulatedSequence(world=world, world_seed=world_seed, sensor=sensor, seed=seed, unit_seed=unit,
+                             rate_hz=cap["rate_hz"], sweep_motion=cap["sweep_motion"],
+                             odometry_drift=cap["odometry_drift"], name=name)  # fmt: skip
+
+
+def places(base: Any, sensor: str, view: Callable[[Any], Any], spacing: float, cfg: ExperimentConfig) -> Any:
+    """What the pipelines see of a drive: its scans (spinning) or every k-th keyframe, k chosen so that the
+    keyframes are about ``spacing`` m apart (other sensors), with the intensity ``view`` applied to the raw
+    scans."""
+    seq = view(base)
+    if is_spinning(sensor):
+        return seq
+    seconds = protocol.CAPTURE[sensor]["keyframes"]["seconds"]
+    kf = KeyframeSequence(seq, KeyframeParams(seconds=seconds), base.odometry_poses,
+                          prepare=lambda s: preprocess_scan(s, cfg.preprocess))  # fmt: skip
+    p = np.asarray(kf.poses)[:, :3, 3]
+    step_m = float(np.median(np.linalg.norm(np.diff(p, axis=0), axis=1))) if len(p) > 1 else spacing
+    step = max(1, int(round(spacing / max(step_m, 1e-6))))
+    return SlicedSequence(kf, 0, None, step)
+
+
+# -- calibration and the common scale -------------------------------------------------------------------------------
+def _cell_keys(xyz: np.ndarray, voxel: float) -> np.ndarray:
+    c = np.floor(xyz / voxel).astype(np.int64) + (1 << 20)
+    return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+
+
+def cell_means(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(unique cell keys, mean value per cell)."""
+    u, inv = np.unique(keys, return_inverse=True)
+    return u, np.bincount(inv, values) / np.bincount(inv)
+
+
+def fit_monotone(x: np.ndarray, y: np.ndarray, bins: int = COMMON_BINS) -> tuple[np.ndarray, np.ndarray]:
+    """Knots (xs, ys) of a non-decreasing map y ~ f(x) on [0, 1]: the medians of x and y in ``bins`` quantile bins
+    of x, made non-decreasing, with (0, 0) and (1, 1) as end points."""
+    order = np.argsort(x)
+    xs, ys = [0.0], [0.0]
+    for part in np.array_split(order, bins):
+        if part.size:
+            xs.append(float(np.median(x[part])))
+            ys.append(float(np.median(y[part])))
+    xs.append(1.0)
+    ys.append(1.0)
+    kx, ky = np.asarray(xs), np.maximum.accumulate(np.clip(ys, 0.0, 1.0))
+    keep = np.r_[True, np.diff(kx) > 1e-9]
+    return kx[keep], ky[keep]
+
+
+class Calibration:
+    """A unit's per-beam table and its map to the common scale (knots; identity for the reference unit)."""
+
+    def __init__(self, table: CalibrationTable, knots: tuple[np.ndarray, np.ndarray], check: dict[str, Any]):
+        self.table = table
+        self.knots = knots
+        self.check = check
+
+    def calibrated(self, scan: Scan) -> np.ndarray:
+        return self.table.lookup(scan.intensity, scan.ring)
+
+    def common(self, values: np.ndarray) -> np.ndarray:
+        return np.interp(values, *self.knots).astype(np.float32)
+
+    def apply(self, scan: Scan) -> Scan:
+        out = self.common(self.calibrated(scan))
+        if scan.shape is not None:  # organised scans: no-return points keep intensity 0
+            out = np.where(np.any(scan.xyz != 0.0, axis=1), out, np.float32(0.0))
+        return scan.with_intensity(out)
+
+
+def _truth_check(seq: SimulatedSequence, pts: Any, values: dict[str, np.ndarray], n: int = 200_000) -> dict:
+    """Correlation and MAE of each intensity with the true apparent reflectance of the drive's points (simulator
+    ground truth), on at most ``n`` points."""
+    rng = np.random.default_rng(0)
+    idx = rng.choice(len(pts), size=min(n, len(pts)), replace=False)
+    truth = np.asarray(seq.beam_response.to_apparent(pts.raw[idx], pts.beam[idx]), dtype=np.float64)
+    ok = np.isfinite(truth) & (truth <= 1.0)
+    out = {}
+    for label, v in values.items():
+        a = np.asarray(v[idx], dtype=np.float64)[ok]
+        t = truth[ok]
+        out[label] = {
+            "corr": round(float(np.corrcoef(a, t)[0, 1]), 4),
+            "mae": round(float(np.mean(np.abs(a - t))), 4),
+        }
+    return out
+
+
+def calibrations(
+    sensors_roles: list[tuple[str, str]], n_scans: int, cache_dir: Path, say: Callable[[str], None]
+) -> dict[tuple[str, str], Calibration]:
+    """The `Calibration` of every (sensor, role), fitted on the tuning world (module docstring); cached."""
+    params = CalibrationParams(max_scans=n_scans)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    out: dict[tuple[str, str], Calibration] = {}
+    ref_cells: tuple[np.ndarray, np.ndarray] | None = None
+    from placerec import __version__
+
+    for sensor, role in [REFERENCE] + [sr for sr in sensors_roles if sr != REFERENCE]:
+        key = stable_hash({"sensor": sensor, "role": role, "unit": UNITS[role], "seed": CAL_SEEDS[role],
+                           "spacing": CAL_SPACING, "params": params.model_dump(mode="json"), "ref": REFERENCE,
+                           "voxel": COMMON_VOXEL, "bins": COMMON_BINS, "v": __version__})  # fmt: skip
+        stem = cache_dir / f"{sensor}-{role}-{key}"
+        tpath, kpath, cpath = (Path(f"{stem}{x}") for x in (".npz", ".json", ".cells.npz"))
+        if tpath.is_file() and kpath.is_file() and ((sensor, role) != REFERENCE or cpath.is_file()):
+            meta = json.loads(kpath.read_text())
+            out[(sensor, role)] = Calibration(
+                load_calibration(tpath), (np.asarray(meta["xs"]), np.asarray(meta["ys"])), meta["check"]
+            )
+            if (sensor, role) == REFERENCE:
+                with np.load(cpath) as z:
+                    ref_cells = (z["keys"], z["means"])
+            say(f"  calibration {sensor} {role} unit {UNITS[role]}: cached ({tpath.name})")
+            continue
+        t0 = time.perf_counter()
+        seq = SimulatedSequence(world="town", world_seed=0, sensor=sensor, seed=CAL_SEEDS[role], unit_seed=UNITS[role],
+                                spacing=CAL_SPACING)  # fmt: skip
+        pts = gather_points(seq, params)
+        table = calibrate_points(pts, params)
+        cal = table.lookup(pts.raw, pts.beam)
+        keys, means = cell_means(_cell_keys(pts.xyz, COMMON_VOXEL), cal.astype(np.float64))
+        if (sensor, role) == REFERENCE:
+            ref_cells = (keys, means)
+            np.savez(cpath, keys=keys, means=means)
+            knots = (np.array([0.0, 1.0]), np.array([0.0, 1.0]))
+            shared = len(keys)
+        else:
+            assert ref_cells is not None
+            _, ia, ib = np.intersect1d(keys, ref_cells[0], assume_unique=True, return_indices=True)
+            knots = fit_monotone(means[ia], ref_cells[1][ib])
+            shared = int(ia.size)
+        c = Calibration(table, knots, {})
+        sat = float(table.meta.get("saturation", 1.0))
+        c.check = {
+            "cells_shared_with_reference": shared,
+            "saturation": sat,
+            "truth": _truth_check(
+                seq,
+                pts,
+                {
+                    "raw/saturation": np.clip(pts.raw / sat, 0, None),
+                    "calibrated": cal,
+                    "common": c.common(cal),
+                },
+            ),  # fmt: skip
+        }
+        table.save(tpath)
+        kpath.write_text(json.dumps({"xs": knots[0].tolist(), "ys": knots[1].tolist(), "check": c.check}))
+        out[(sensor, role)] = c
+        say(
+            f"  calibration {sensor} {role} unit {UNITS[role]}: {min(len(seq), n_scans)} scans, "
+            f"{time.perf_counter() - t0:.0f} s"
+        )
+    return out
+
+
+def intensity_fn(mode: str, sensor: str, cal: Calibration | None) -> Callable[[Scan], Scan]:
+    if mode == "raw":
+        return lambda s: s
+    if mode == "normalised":
+        return lambda s: normalize_intensity(s)  # the sensor's default spec
+    assert cal is not None
+    return cal.apply
+
+
+# -- running --------------------------------------------------------------------------------------------------------
+class MemoRecognizer:
+    """A recognizer whose ``describe`` is remembered by the scan's content (shared by the runs of one intensity
+    mode); everything else is the wrapped recognizer's."""
+
+    def __init__(self, rec: Any, store: dict) -> None:
+        self._rec = rec
+        self._store = store
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._rec, name)
+
+    def describe(self, scan: Scan) -> Any:
+        h = hashlib.blake2b(digest_size=16)
+        for a in (scan.xyz, scan.intensity):
+            h.update(np.ascontiguousarray(a).tobytes())
+        key = (self._rec.frontend_key, h.hexdigest())
+        if key not in self._store:
+            self._store[key] = self._rec.describe(scan)
+        return self._store[key]
+
+
+def make_config(mode: str, pipelines: tuple[str, ...], out_dir: str) -> ExperimentConfig:
+    evaluation: dict[str, Any] = {"mode": mode, "gt_distance": 5.0, "top_n": 5}
+    if mode == "loop":
+        evaluation["exclusion"] = {"frames": None, "seconds": GAP_S / 2, "metres": None}
+    else:
+        evaluation["localize"] = {"success_distance": SUCCESS_M}
+    return parse_config({
+        "name": f"cross-sensor-{mode}",
+        "dataset": {"source": "simulator", "simulator": {"world": "town", "sensor": "vlp16", "seed": 0}},
+        "preprocess": {"min_range": 0.5, "intensity": {"mode": "raw"}},
+        "pipelines": [{"name": n} for n in pipelines],
+        "evaluation": evaluation,
+        "output": {"dir": out_dir, "cache_dir": None, "figures": False, "progress": False},
+    })  # fmt: skip
+
+
+def memo_pipelines(cfg: ExperimentConfig, store: dict) -> list[tuple[PipelineRecord, Any]]:
+    return [(record, MemoRecognizer(rec, store)) for record, rec in build_pipelines(cfg)]
+
+
+def localize_figures(
+    record: PipelineRecord, map_poses: np.ndarray, query_poses: np.ndarray
+) -> dict[str, Any]:
+    """Success as `placerec.experiment.report` counts it (only an accepted answer of a verifying pipeline; the
+    top one of a pipeline that does not verify), within `SUCCESS_M`."""
+    estimates, basis, rule = _localize_estimates(record.table(), map_poses)
+    m = localization_metrics(estimates, query_poses[np.asarray(record.query_ids, dtype=np.int64)], SUCCESS_M,
+                             basis=basis, answer_rule=rule)  # fmt: skip
+    return {
+        "success": m.success_rate,
+        "n_success": m.n_success,
+        "n_no_answer": m.n_no_estimate,
+        "n_wrong": m.n_wrong,
+        "n_queries": m.n_queries,
+        "answer_rule": rule,
+    }
+
+
+def loop_figures(
+    cfg: ExperimentConfig, seq: ConcatSequence, records: list[PipelineRecord], truth: TruthClouds
+):
+    """Per pipeline: the pose-truth figures at the preset's fixed threshold (queries of the second part only can
+    close: the exclusion window keeps the first part from closing)."""
+    poses, stamps = seq.poses, seq.timestamps
+    tables = [r.table() for r in records]
+    gts = pose_truths(cfg, tables, poses, stamps, truth)
+    out = {}
+    for record, table, gt in zip(records, tables, gts, strict=True):
+        _, summary = loop_summary(cfg, table, poses, stamps, record.threshold, truth, gt)
+        op = summary["pose_truth"]["operating"]
+        p, r = float(op["precision"]), float(op["recall"])
+        out[record.pipeline] = {
+            "threshold": record.threshold,
+            "recall": r,
+            "precision": p,
+            "r_at_p1": r if p >= 1.0 else 0.0,
+            "tp": op["tp"],
+            "fp": op["fp"],
+            "n_revisits": op["n_revisits"],
+            "recall_at_100_precision": summary["pose_truth"]["recall_at_100_precision"],
+        }
+    return out
+
+
+def run_pair(
+    split: dict[str, Any],
+    map_sensor: str,
+    query_sensor: str,
+    mode: str,
+    cals: dict[tuple[str, str], Calibration],
+    args: argparse.Namespace,
+    stores: dict[str, ScanStore],
+    memo: dict,
+    tmp: Path,
+) -> dict[str, Any]:
+    """Localise and loop figures of one pair under one intensity mode."""
+    w, ws = split["world"], split["world_seed"]
+    seqs = []
+    for sensor, role, seed, spacing in (
+        (map_sensor, "map", split["map_seed"], args.map_spacing),
+        (query_sensor, "query", split["query_seed"], args.query_spacing),
+    ):
+        base = base_sequence(w, ws, sensor, seed, UNITS[role], spacing)
+        if base.name not in stores:
+            stores[base.name] = ScanStore(base, tmp / "scans" / base.name)
+        fn = intensity_fn(mode, sensor, cals.get((sensor, role)))
+        loc_cfg = make_config("localize", args.pipelines, str(tmp / "runs"))
+        seqs.append(
+            places(stores[base.name], sensor, lambda s, fn=fn: IntensityView(s, fn, mode), spacing, loc_cfg)
+        )
+    map_seq, query_seq = seqs
+    out: dict[str, Any] = {"n_map": len(map_seq), "n_queries": len(query_seq)}
+    t0 = time.perf_counter()
+    cfg = make_config("localize", args.pipelines, str(tmp / "runs"))
+    _, _, records = run_localize(cfg, (map_seq, query_seq), memo_pipelines(cfg, memo))
+    mp, qp = np.asarray(map_seq.poses), np.asarray(query_seq.poses)
+    out["localise"] = {r.pipeline: localize_figures(r, mp, qp) for r in records}
+    cfg = make_config("loop", args.pipelines, str(tmp / "runs"))
+    both = ConcatSequence(map_seq, query_seq)
+    truth = TruthClouds(cfg.evaluation, both.poses)
+    _, records = run_loop(cfg, both, memo_pipelines(cfg, memo), on_scan=truth)
+    out["loop"] = loop_figures(cfg, both, records, truth)
+    out["seconds"] = round(time.perf_counter() - t0, 1)
+    return out
+
+
+# -- report ---------------------------------------------------------------------------------------------------------
+def summarise(
+    results: dict[str, Any], pairs: list[tuple[str, str]], args: argparse.Namespace
+) -> dict[str, Any]:
+    """Ratios cross / same (the query sensor's baseline) and the targets, per split."""
+    out: dict[str, Any] = {}
+    for split, per_mode in results.items():
+        ratios: dict[str, Any] = {}
+        for mode, per_pair in per_mode.items():
+            for m, q in pairs:
+                if m == q:
+                    continue
+                cross, same = per_pair.get(f"{m}>{q}"), per_pair.get(f"{q}>{q}")
+                if cross is None or same is None or "error" in cross or "error" in same:
+                    continue
+                entry = {}
+                for kind, fig in (("loop", "r_at_p1"), ("localise", "success")):
+                    per = {}
+                    for p in args.pipelines:
+                        c, s = cross[kind][p][fig], same[kind][p][fig]
+                        per[p] = {"cross": c, "same": s, "ratio": (c / s) if s > 0 else None}
+                    best = max(args.pipelines, key=lambda p, per=per: per[p]["cross"])
+                    entry[kind] = {"pipelines": per, "best": best}
+                ratios.setdefault(f"{m}>{q}", {})[mode] = entry
+        targets = {}
+        for pair, per_mode_r in ratios.items():
+            cal = per_mode_r.get("calibrated")
+            raw = per_mode_r.get("raw")
+            t: dict[str, Any] = {}
+            if cal is not None:
+                b = cal["loop"]["best"]
+                ratio = cal["loop"]["pipelines"][b]["ratio"]
+                t["best_pipeline_calibrated"] = b
+                t["loop_ratio_calibrated"] = ratio
+                t["ratio_ge_0.8"] = ratio is not None and ratio >= 0.8
+            if cal is not None and raw is not None:
+                bc = max(v["cross"] for v in cal["loop"]["pipelines"].values())
+                br = max(v["cross"] for v in raw["loop"]["pipelines"].values())
+                t["best_loop_cross_calibrated_minus_raw"] = bc - br
+                lc = max(v["cross"] for v in cal["localise"]["pipelines"].values())
+                lr = max(v["cross"] for v in raw["localise"]["pipelines"].values())
+                t["best_localise_cross_calibrated_minus_raw"] = lc - lr
+            targets[pair] = t
+        out[split] = {"ratios": ratios, "targets": targets}
+    return out
+
+
+def _pct(x: Any) -> str:
+    return "-" if x is None else f"{100 * x:.0f}"
+
+
+def print_tables(results: dict[str, Any], summary: dict[str, Any], args: argparse.Namespace) -> None:
+    for split, per_mode in results.items():
+        print(f"\n{split.upper()} split ({'figures to report' if split == 'test' else 'tuning figures'}): "
+              f"{SPLITS[split]}; loop: recall / precision % at the preset's threshold (pose truth), R@P1 = recall "
+              "if precision is 100 else 0; localise: success % (accepted answers within 3 m); ratio = cross / the "
+              "query sensor's same-sensor figure")  # fmt: skip
+        print(f"{'pair':18} {'intensity':11} {'pipeline':16} {'maps':>4} {'qs':>3} {'loop R':>6} {'P':>4} "
+              f"{'R@P1':>5} {'ratio':>5} {'loc':>4} {'ratio':>5} {'no ans':>6} {'wrong':>5}")  # fmt: skip
+        for mode, per_pair in per_mode.items():
+            for pair, res in per_pair.items():
+                if "error" in res:
+                    print(f"{pair.replace('>', ' -> '):18} {mode:11} failed: {res['error']}")
+                    continue
+                for p in args.pipelines:
+                    lo, lc = res["loop"][p], res["localise"][p]
+                    rat = summary[split]["ratios"].get(pair, {}).get(mode)
+                    r1 = rat["loop"]["pipelines"][p]["ratio"] if rat else None
+                    r2 = rat["localise"]["pipelines"][p]["ratio"] if rat else None
+                    print(f"{pair.replace('>', ' -> '):18} {mode:11} {p:16} {res['n_map']:>4} {res['n_queries']:>3} "
+                          f"{_pct(lo['recall']):>6} {_pct(lo['precision']):>4} {_pct(lo['r_at_p1']):>5} "
+                          f"{_pct(r1) if rat else 'same':>5} {_pct(lc['success']):>4} "
+                          f"{_pct(r2) if rat else 'same':>5} {lc['n_no_answer']:>6} {lc['n_wrong']:>5}")  # fmt: skip
+        for pair, t in summary[split]["targets"].items():
+            print(f"  target {pair}: {t}")
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="HDL-64 -> VLP-16 and VLP-16's baseline, sparser")
+    ap.add_argument("--splits", nargs="+", choices=sorted(SPLITS), default=None, help="default: test")
+    ap.add_argument("--pairs", nargs="+", default=None, help="MAP:QUERY pairs (default: the issue's four)")
+    ap.add_argument("--pipelines", nargs="+", default=None, choices=sorted(PIPELINES))
+    ap.add_argument("--intensity", nargs="+", default=None, choices=INTENSITIES)
+    ap.add_argument(
+        "--map-spacing", type=float, default=None, help="m between map scans (default 4; quick 8)"
+    )
+    ap.add_argument(
+        "--query-spacing", type=float, default=None, help="m between queries (default 8; quick 16)"
+    )
+    ap.add_argument(
+        "--cal-scans", type=int, default=None, help="scans per calibration drive (default 60; quick 30)"
+    )
+    ap.add_argument(
+        "--cache-dir", default=".cache/cross_sensor", help="calibration tables and common-scale maps"
+    )
+    args = ap.parse_args(argv)
+    q = args.quick
+    args.splits = args.splits or ["test"]
+    args.pipelines = tuple(args.pipelines or (QUICK_PIPELINES if q else PIPELINE_NAMES))
+    args.intensity = tuple(args.intensity or INTENSITIES)
+    args.map_spacing = args.map_spacing or (8.0 if q else 4.0)
+    args.query_spacing = args.query_spacing or (16.0 if q else 8.0)
+    args.cal_scans = args.cal_scans or (30 if q else 60)
+    cross = (
+        [tuple(p.split(":")) for p in args.pairs] if args.pairs else list(QUICK_PAIRS if q else CROSS_PAIRS)
+    )
+    known = sensor_names()
+    skipped = []
+    for m, qs in list(cross):
+        for s in (m, qs):
+            if s not in known or (not is_spinning(s) and s not in protocol.CAPTURE):
+                skipped.append(f"{m}:{qs} ({s} unavailable)")
+                cross.remove((m, qs))
+                break
+    for split in args.splits:
+        for seed in (SPLITS[split]["map_seed"], SPLITS[split]["query_seed"]):
+            if split == "tuning" and protocol.is_test_seed(seed):
+                raise SystemExit(f"tuning split uses test seed {seed}")
+    baselines = sorted({qs for _, qs in cross} | {m for m, _ in cross})
+    pairs = [(m, qs) for m, qs in cross] + [(s, s) for s in baselines]
+    t_start = time.perf_counter()
+
+    def say(s: str) -> None:
+        print(s, flush=True)
+
+    logging.basicConfig(level=logging.WARNING)
+    say(f"pairs: {', '.join(f'{m}->{qs}' for m, qs in pairs)}; pipelines {', '.join(args.pipelines)}; "
+        f"intensity {', '.join(args.intensity)}; splits {', '.join(args.splits)}")  # fmt: skip
+    cals: dict[tuple[str, str], Calibration] = {}
+    if "calibrated" in args.intensity:
+        roles = sorted({(m, "map") for m, _ in pairs} | {(qs, "query") for _, qs in pairs})
+        cals = calibrations(roles, args.cal_scans, Path(args.cache_dir), say)
+    t_cal = time.perf_counter() - t_start
+    results: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory(prefix="placerec-cross-sensor-") as tmpdir:
+        tmp = Path(tmpdir)
+        for split in args.splits:
+            stores: dict[str, ScanStore] = {}
+            for mode in args.intensity:
+                memo: dict = {}  # descriptions of this mode's scans, shared by its localise and loop runs
+                for m, qs in pairs:
+                    try:
+                        res = run_pair(SPLITS[split], m, qs, mode, cals, args, stores, memo, tmp)
+                    except Exception as exc:  # one failed pair is reported, not the end of the run
+                        log.exception("%s %s %s -> %s failed", split, mode, m, qs)
+                        res = {"error": repr(exc)}
+                    results.setdefault(split, {}).setdefault(mode, {})[f"{m}>{qs}"] = res
+                    if "error" in res:
+                        continue
+                    best = max(v["r_at_p1"] for v in res["loop"].values())
+                    say(
+                        f"  {split} {mode} {m} -> {qs}: {res['n_map']} map, {res['n_queries']} queries, best loop "
+                        f"R@P1 {best:.2f}, {res['seconds']:.0f} s"
+                    )
+    summary = summarise(results, pairs, args)
+    print_tables(results, summary, args)
+    checks = {f"{s} {r}": c.check for (s, r), c in cals.items()}
+    if checks:
+        print("\ncalibration on the tuning drives (town, world seed 0) against the simulator's apparent reflectance "
+              "(corr / MAE): raw/saturation, per-beam table, table + common scale")  # fmt: skip
+        for k, c in checks.items():
+            t = c["truth"]
+            print(f"  {k:14} sat {c['saturation']:7.1f}  " + "  ".join(f"{n} {v['corr']:.3f}/{v['mae']:.3f}"
+                                                                        for n, v in t.items()))  # fmt: skip
+    out = {
+        "tool": "eval_cross_sensor",
+        "quick": q,
+        "splits": {s: {**SPLITS[s], "label": "test" if s == "test" else "tuning"} for s in args.splits},
+        "units": UNITS,
+        "calibration_drives": {
+            "world": "town",
+            "world_seed": 0,
+            "seeds": CAL_SEEDS,
+            "spacing_m": CAL_SPACING,
+            "scans": args.cal_scans,
+            "label": "tuning",
+        },  # fmt: skip
+        "pipelines": {p: PIPELINES[p].threshold for p in args.pipelines},
+        "intensity": list(args.intensity),
+        "skipped": skipped,
+        "seconds": round(time.perf_counter() - t_start),
+        "calibration_seconds": round(t_cal),
+        "results": results,
+        "summary": summary,
+        "calibration_check": checks,
+    }
+    print(json.dumps(out, default=float))
+    return out
+
+
+if __name__ == "__main__":
+    main()
