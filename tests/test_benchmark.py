@@ -55,7 +55,7 @@ def test_sensors_that_do_not_spin_are_driven_as_their_capture_says():
     exclusion window in metres; a spinning sensor's cell is left as it was (one scan a metre, no keyframes)."""
     bench = resolve(BenchmarkConfig, {**BASE, "split": "tuning", "sensors": ["avia", "hdl32"]})
     avia, hdl32 = (bench.cell_config(c) for c in bench.cells())
-    assert set(protocol.CAPTURE) <= set(protocol.SENSOR_MATRIX)
+    assert set(protocol.CAPTURE) <= {*protocol.SENSOR_MATRIX, *protocol.TEST_SENSORS}
     sim = avia.dataset.simulator
     assert (sim.sensor, sim.rate_hz, sim.sweep_motion, sim.odometry_drift) == ("avia", 10.0, True, 0.01)
     assert avia.keyframes is not None and avia.keyframes.seconds == 0.5
@@ -65,6 +65,18 @@ def test_sensors_that_do_not_spin_are_driven_as_their_capture_says():
         hdl32.keyframes is None and plain.rate_hz is None and not plain.sweep_motion and plain.spacing == 1.0
     )
     assert hdl32.evaluation.exclusion.frames == 120
+    # a 32-row image: the visual pipelines keep more features; Scan Context (no image) is left as it is
+    specs = {p.name: p.params for p in hdl32.pipelines}
+    assert specs["scan-context"] == {} or "feature_params" not in specs["scan-context"]
+    visual = resolve(
+        BenchmarkConfig,
+        {
+            "pipelines": [{"name": "orb-dbow", "params": {"feature_params": {"fast_threshold": 9}}}],
+            "sensors": ["vlp16"],
+        },
+    )
+    orb = visual.cell_config(visual.cells()[0]).pipelines[0].params["feature_params"]
+    assert orb == {"nfeatures": 1000, "fast_threshold": 9}
     own = resolve(
         BenchmarkConfig, {**BASE, "sensors": ["avia"], "capture": {"avia": {"keyframes": {"metres": 5}}}}
     )

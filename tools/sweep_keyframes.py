@@ -6,9 +6,10 @@ sensor's capture and the keyframe length replaced, run into ``--out``; reported 
 preset's fixed threshold under the pose ground truth (precision beside it), and the same-direction revisits'
 recall@1 (a sensor with a limited horizontal field of view cannot see a revisit driven the other way).
 
-    .venv/bin/python tools/sweep_keyframes.py [--sensors avia e1r mid360] [--seconds 0.5 1.0]
+    .venv/bin/python tools/sweep_keyframes.py [--sensors avia e1r mid360] [--seconds 0.5 1.0] [--every 0 0.9]
 
-Ends with one JSON line: {"recall": {"<sensor> <pipeline>": {"<seconds>": recall}}, ...}.
+``--every`` sweeps ``keyframes.every_metres`` too (0: windows one after another). Ends with one JSON line:
+{"recall": {"<sensor> <pipeline>[ every <m>]": {"<seconds>": recall}}, ...}.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sensors", nargs="+", default=list(CAPTURE))
     ap.add_argument("--seconds", nargs="+", type=float, default=[0.5, 1.0])
+    ap.add_argument("--every", nargs="+", type=float, default=[0.0], help="every_metres values (0: none)")
     ap.add_argument("--out", default=str(ROOT / "results" / "sweep_keyframes"))
     args = ap.parse_args()
     bench = load_benchmark_config(ROOT / "configs" / "benchmark_sensors_tuning.yaml")
@@ -35,25 +37,30 @@ def main() -> None:
     rows = []
     for sensor in args.sensors:
         for seconds in args.seconds:
-            capture = bench.capture[sensor].model_copy(
-                update={"keyframes": bench.capture[sensor].keyframes.model_copy(update={"seconds": seconds})}
-            )
-            cfg = bench.model_copy(update={"capture": {**bench.capture, sensor: capture}})
-            cell_cfg = cfg.cell_config(Cell("town", sensor, TUNING_SEEDS[0]))
-            t0 = time.perf_counter()
-            result = run_cell(cell_cfg.model_dump(mode="json"), f"{args.out}/{sensor}_{seconds:g}s")
-            took = time.perf_counter() - t0
-            for label, m in result["metrics"].items():
-                op = m["pose_truth"]["operating"]
-                same = m.get("directions", {}).get("same", {})
-                recall.setdefault(f"{sensor} {label}", {})[f"{seconds:g}"] = round(op["recall"], 3)
-                rows.append((sensor, seconds, label, result["n_scans"], op["precision"], op["recall"],
-                             op["n_revisits"], same.get("recall_at_1"), took))  # fmt: skip
-    print(f"{'sensor':8} {'kf s':>5} {'pipeline':16} {'keyframes':>9} {'P':>5} {'R':>6} {'revisits':>8} "
-          f"{'same R@1':>8} {'cell s':>6}")  # fmt: skip
-    for s, sec, label, n, p, r, nr, same, took in rows:
+            for every in args.every:
+                window = {"seconds": seconds, "every_metres": every or None}
+                base = bench.capture[sensor]
+                capture = base.model_copy(update={"keyframes": base.keyframes.model_copy(update=window)})
+                cfg = bench.model_copy(update={"capture": {**bench.capture, sensor: capture}})
+                cell_cfg = cfg.cell_config(Cell("town", sensor, TUNING_SEEDS[0]))
+                t0 = time.perf_counter()
+                folder = f"{args.out}/{sensor}_{seconds:g}s" + (f"_every{every:g}m" if every else "")
+                result = run_cell(cell_cfg.model_dump(mode="json"), folder)
+                took = time.perf_counter() - t0
+                for label, m in result["metrics"].items():
+                    op = m["pose_truth"]["operating"]
+                    same = m.get("directions", {}).get("same", {})
+                    key = f"{sensor} {label}" + (f" every {every:g} m" if every else "")
+                    recall.setdefault(key, {})[f"{seconds:g}"] = round(op["recall"], 3)
+                    rows.append((sensor, seconds, every, label, result["n_scans"], op["precision"], op["recall"],
+                                 op["n_revisits"], same.get("recall_at_threshold"), took))  # fmt: skip
+    print(f"{'sensor':8} {'kf s':>5} {'every':>5} {'pipeline':16} {'keyframes':>9} {'P':>5} {'R':>6} "
+          f"{'revisits':>8} {'same R':>6} {'cell s':>6}")  # fmt: skip
+    for s, sec, every, label, n, p, r, nr, same, took in rows:
         same_txt = "-" if same is None else f"{same:.3f}"
-        print(f"{s:8} {sec:5g} {label:16} {n:9d} {p:5.2f} {r:6.3f} {nr:8d} {same_txt:>8} {took:6.0f}")
+        print(
+            f"{s:8} {sec:5g} {every:5g} {label:16} {n:9d} {p:5.2f} {r:6.3f} {nr:8d} {same_txt:>6} {took:6.0f}"
+        )
     print(json.dumps({"tool": "sweep_keyframes", "split": "tuning", "recall": recall}))
 
 

@@ -82,13 +82,19 @@ class CaptureParams(Params):
     ``odometry_drift``: the relative translation error of the odometry that de-skews and places keyframes (None:
     the true poses); ``keyframes``: the pipelines see keyframes of these windows; ``exclusion``: the loop
     exclusion window of this sensor's cells (keyframes are metres apart, so a window counted in frames would
-    mean something else)."""
+    mean something else); ``feature_params``: extractor settings of this sensor's visual pipelines."""
 
     rate_hz: float | None = Field(None, gt=0, le=1000, allow_inf_nan=False, description="scans per second")
     sweep_motion: bool = Field(False, description="rays measured from the pose at their own time")
     odometry_drift: float | None = Field(None, ge=0, le=1, allow_inf_nan=False, description="relative error")
     keyframes: KeyframeParams | None = None
     exclusion: ExclusionConfig | None = None
+    feature_params: dict[str, Any] = Field(
+        default_factory=dict,
+        description="overrides of the feature extractor's parameters in every pipeline of this sensor's cells that "
+        "has an intensity-image front end (e.g. {nfeatures: 1000} for 16- and 32-row images: "
+        "docs/intensity_images.md, 'Sparse spinning sensors')",
+    )
 
 
 def _default_capture() -> dict[str, CaptureParams]:
@@ -184,12 +190,15 @@ class BenchmarkConfig(Params):
                 extra["keyframes"] = capture.keyframes.model_dump(mode="json")
             if capture.exclusion is not None:
                 evaluation["exclusion"] = capture.exclusion.model_dump(mode="json")
+        pipelines = [p.model_dump(mode="json") for p in self.pipelines]
+        if capture is not None and capture.feature_params:
+            pipelines = [_with_feature_params(p, capture.feature_params) for p in pipelines]
         data = {
             "name": f"{self.name}-{cell.name}",
             "dataset": {"source": "simulator", "simulator": simulator},
             **extra,
             "preprocess": self.preprocess.model_dump(mode="json"),
-            "pipelines": [p.model_dump(mode="json") for p in self.pipelines],
+            "pipelines": pipelines,
             "evaluation": evaluation,
             "output": {
                 "dir": self.output.dir,
@@ -199,6 +208,22 @@ class BenchmarkConfig(Params):
             },  # fmt: skip
         }
         return resolve(ExperimentConfig, data, where=f"benchmark cell {cell.name}")
+
+
+def _with_feature_params(spec: dict[str, Any], feature_params: dict[str, Any]) -> dict[str, Any]:
+    """A pipeline spec (JSON) with ``feature_params`` under its own, when the pipeline has an intensity-image front
+    end (its parameters have ``feature_params``); other pipelines unchanged."""
+    from placerec.params import deep_merge
+    from placerec.recognizer import Recognizer, pipeline_class
+
+    cls = pipeline_class(spec["name"])
+    if not (
+        isinstance(cls, type) and issubclass(cls, Recognizer) and "feature_params" in cls.Params.model_fields
+    ):
+        return spec
+    params = dict(spec.get("params") or {})
+    params["feature_params"] = deep_merge(feature_params, params.get("feature_params"))
+    return {**spec, "params": params}
 
 
 @dataclass(frozen=True)

@@ -56,20 +56,26 @@ SENSOR_MATRIX: tuple[str, ...] = ("hdl32", "avia", "mid360", "e1r")
 #: How the benchmark drives each sensor that is not a spinning sensor's one scan a metre
 #: (`placerec.experiment.benchmark.CaptureParams`): frames at the sensor's rate taken while moving, accumulated
 #: into keyframes de-skewed with a 1 %-drift odometry, and a loop exclusion window of 120 m (the 120 frames of
-#: the spinning cells at their 1 m spacing). The keyframe lengths were chosen on the tuning split
-#: (tools/sweep_keyframes.py, docs/sensors.md): 0.5 s for the Avia- and E1R-like sensors, 1 s for the sparser
-#: MID-360-like one (20k points a frame over 360 x 59 deg).
+#: the spinning cells at their 1 m spacing). The keyframe lengths and spacing were chosen on the tuning split
+#: (tools/sweep_keyframes.py, docs/sensors.md): windows of 0.5 s for the Avia- and E1R-like sensors and of 1 s for
+#: the sparser MID-360-like one (20k points a frame over 360 x 59 deg), one keyframe every 1.8 m (overlapping
+#: windows: every other frame at 9 m/s).
 _KEYFRAME_SECONDS = {"avia": 0.5, "mid360": 1.0, "e1r": 0.5}
 CAPTURE: dict[str, dict] = {
     name: {
         "rate_hz": 10.0,
         "sweep_motion": True,
         "odometry_drift": 0.01,
-        "keyframes": {"seconds": seconds},
+        "keyframes": {"seconds": seconds, "every_metres": 1.8},
         "exclusion": {"frames": None, "metres": 120.0},
     }
     for name, seconds in _KEYFRAME_SECONDS.items()
 }
+#: The 16- and 32-beam spinning sensors keep one scan a metre and per-beam images, but their visual pipelines keep
+#: 1000 features an image instead of 300: the 16- and 32-row images repeat their features (58-70 %) yet match few
+#: of them, and more features give 2-3x the correct matches (tools/eval_sparse_sensors.py, tuning data; chosen on
+#: the town seed-0 cells: docs/intensity_images.md, "Sparse spinning sensors").
+CAPTURE.update({name: {"feature_params": {"nfeatures": 1000}} for name in ("vlp16", "hdl32")})
 
 #: Localisation query draws (`placerec.sim.make_localization_split`'s ``draw``): the training queries, on which
 #: the vote model, ``reject_weight`` and DELIGHT were chosen, and the held-out queries reported as results.
