@@ -12,10 +12,11 @@ response curves; the map role's unit is 700, the query role's 701, for every sen
 
 Every fitted quantity comes from the tuning world only: each unit's per-beam Levinson table
 (`placerec.calibration.calibrate_sequence`) is fitted on its own drive through the tuning world (world seed 0, drive
-seed 0 for the map unit, 1 for the query unit, one scan every 3 m), and so is the common-scale mapping below.
+seed 0 for the map unit, 1 for the query unit, 60 scans 3 m apart), and so is the common-scale mapping below.
 Operating thresholds are the presets' (`PIPELINES[name].threshold`, chosen on the tuning split by others).
 
-Capture: spinning sensors one scan every ``--map-spacing`` m (map) / ``--query-spacing`` m (queries) at rest; the
+Capture: spinning sensors one scan every ``--map-spacing`` m (map, default 4: ~96 scans of the ~380 m town route)
+/ ``--query-spacing`` m (queries, default 8: ~48) at rest; the
 Livox-style ``avia`` as the benchmark captures it (`protocol.CAPTURE`: 10 Hz frames taken while moving, 1 %-drift
 odometry, `placerec.keyframes.KeyframeSequence` of 0.5 s), every k-th keyframe kept to about the same spacing.
 
@@ -51,8 +52,13 @@ Descriptions are shared in memory within one run between the localise and loop r
 scans' content); raw scans are kept in a temporary folder for the run; the calibration tables and the common-scale
 maps are kept in ``--cache-dir`` (default ``.cache/cross_sensor``).
 
-    .venv/bin/python tools/eval_cross_sensor.py            # test split, every pair: ~15 min on 2 shared cores
-    .venv/bin/python tools/eval_cross_sensor.py --quick    # ~2 min: HDL-64 -> VLP-16 and VLP-16's baseline
+    .venv/bin/python tools/eval_cross_sensor.py            # test split, every pair: ~15 min on 2 idle cores
+    .venv/bin/python tools/eval_cross_sensor.py --quick    # ~2-3 min: HDL-64 -> VLP-16, baselines, 2 pipelines
+    .venv/bin/python tools/eval_cross_sensor.py --splits tuning --pairs hdl64:vlp16 --image common
+
+``--image common`` (an exploration, run on the tuning split): the 2D pipelines' images on one spherical grid for
+every sensor of the run (0.4 deg a pixel over the vertical field of view they all see) instead of each sensor's own
+per-beam image. The first run of a cache folder fits the calibrations (~6 min for the eight units, HDL-64 most).
     .venv/bin/python tools/eval_cross_sensor.py --splits tuning test
 
 Prints a table per split and ends with one JSON line.
@@ -86,7 +92,7 @@ from placerec.hashing import stable_hash
 from placerec.intensity import normalize_intensity
 from placerec.keyframes import KeyframeParams, KeyframeSequence
 from placerec.preprocess import preprocess_scan
-from placerec.recognizer import PIPELINES
+from placerec.recognizer import PIPELINES, make_pipeline
 from placerec.sim import SimulatedSequence
 from placerec.sim.sensors import get_sensor, sensor_names
 from placerec.types import Scan
@@ -408,7 +414,9 @@ class MemoRecognizer:
         return self._store[key]
 
 
-def make_config(mode: str, pipelines: tuple[str, ...], out_dir: str) -> ExperimentConfig:
+def make_config(
+    mode: str, pipelines: tuple[str, ...], out_dir: str, params: dict[str, dict] | None = None
+) -> ExperimentConfig:
     evaluation: dict[str, Any] = {"mode": mode, "gt_distance": 5.0, "top_n": 5}
     if mode == "loop":
         evaluation["exclusion"] = {"frames": None, "seconds": GAP_S / 2, "metres": None}
@@ -418,10 +426,40 @@ def make_config(mode: str, pipelines: tuple[str, ...], out_dir: str) -> Experime
         "name": f"cross-sensor-{mode}",
         "dataset": {"source": "simulator", "simulator": {"world": "town", "sensor": "vlp16", "seed": 0}},
         "preprocess": {"min_range": 0.5, "intensity": {"mode": "raw"}},
-        "pipelines": [{"name": n} for n in pipelines],
+        "pipelines": [{"name": n, "params": (params or {}).get(n, {})} for n in pipelines],
         "evaluation": evaluation,
         "output": {"dir": out_dir, "cache_dir": None, "figures": False, "progress": False},
     })  # fmt: skip
+
+
+def vertical_fov(sensor: str) -> tuple[float, float]:
+    """(up, down) degrees above / below the horizon that ``sensor`` sees."""
+    s = get_sensor(sensor)
+    if s.beam_elevations_deg:
+        return float(max(s.beam_elevations_deg)), float(-min(s.beam_elevations_deg))
+    assert s.elevation_fov_deg is not None
+    return float(s.elevation_fov_deg[0]), float(s.elevation_fov_deg[1])
+
+
+def common_image_params(sensors: list[str], pipelines: tuple[str, ...], resolution: float) -> dict[str, dict]:
+    """``--image common``: the 2D pipelines' images on one spherical grid for every sensor of the run (``resolution``
+    degrees a pixel, the vertical field of view all the sensors see, gaps between beams filled vertically up to
+    the sparsest sensor's beam spacing), features without row upsampling."""
+    up = min(vertical_fov(s)[0] for s in sensors)
+    down = min(vertical_fov(s)[1] for s in sensors)
+    spacing = max(
+        float(np.max(np.abs(np.diff(get_sensor(s).beam_elevations_deg))))
+        if get_sensor(s).beam_elevations_deg
+        else 0.0
+        for s in sensors
+    )
+    image = {"mode": "spherical", "resolution_deg": resolution, "fov_up_deg": up, "fov_down_deg": down,
+             "fill_radius_px": 1, "fill_holes_max_gap": int(np.ceil(spacing / resolution))}  # fmt: skip
+    out = {}
+    for name in pipelines:
+        if "image" in type(make_pipeline(name).params).model_fields:
+            out[name] = {"image": image, "feature_params": {"row_upsample": 1}}
+    return out
 
 
 def memo_pipelines(cfg: ExperimentConfig, store: dict) -> list[tuple[PipelineRecord, Any]]:
@@ -494,18 +532,18 @@ def run_pair(
         if base.name not in stores:
             stores[base.name] = ScanStore(base, tmp / "scans" / base.name)
         fn = intensity_fn(mode, sensor, cals.get((sensor, role)))
-        loc_cfg = make_config("localize", args.pipelines, str(tmp / "runs"))
+        loc_cfg = make_config("localize", args.pipelines, str(tmp / "runs"), args.pipeline_params)
         seqs.append(
             places(stores[base.name], sensor, lambda s, fn=fn: IntensityView(s, fn, mode), spacing, loc_cfg)
         )
     map_seq, query_seq = seqs
     out: dict[str, Any] = {"n_map": len(map_seq), "n_queries": len(query_seq)}
     t0 = time.perf_counter()
-    cfg = make_config("localize", args.pipelines, str(tmp / "runs"))
+    cfg = make_config("localize", args.pipelines, str(tmp / "runs"), args.pipeline_params)
     _, _, records = run_localize(cfg, (map_seq, query_seq), memo_pipelines(cfg, memo))
     mp, qp = np.asarray(map_seq.poses), np.asarray(query_seq.poses)
     out["localise"] = {r.pipeline: localize_figures(r, mp, qp) for r in records}
-    cfg = make_config("loop", args.pipelines, str(tmp / "runs"))
+    cfg = make_config("loop", args.pipelines, str(tmp / "runs"), args.pipeline_params)
     both = ConcatSequence(map_seq, query_seq)
     truth = TruthClouds(cfg.evaluation, both.poses)
     _, records = run_loop(cfg, both, memo_pipelines(cfg, memo), on_scan=truth)
@@ -608,6 +646,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--cal-scans", type=int, default=None, help="scans per calibration drive (default 60; quick 30)"
     )
     ap.add_argument(
+        "--image",
+        choices=("pipeline", "common"),
+        default="pipeline",
+        help="2D pipelines' images: their own (default) or one spherical grid over the common field of view",
+    )
+    ap.add_argument("--image-resolution", type=float, default=0.4, help="deg a pixel with --image common")
+    ap.add_argument(
         "--cache-dir", default=".cache/cross_sensor", help="calibration tables and common-scale maps"
     )
     args = ap.parse_args(argv)
@@ -635,6 +680,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 raise SystemExit(f"tuning split uses test seed {seed}")
     baselines = sorted({qs for _, qs in cross} | {m for m, _ in cross})
     pairs = [(m, qs) for m, qs in cross] + [(s, s) for s in baselines]
+    args.pipeline_params = (
+        common_image_params(baselines, args.pipelines, args.image_resolution)
+        if args.image == "common"
+        else {}
+    )
     t_start = time.perf_counter()
 
     def say(s: str) -> None:
@@ -693,6 +743,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "label": "tuning",
         },  # fmt: skip
         "pipelines": {p: PIPELINES[p].threshold for p in args.pipelines},
+        "image": args.image,
+        "pipeline_params": args.pipeline_params,
         "intensity": list(args.intensity),
         "skipped": skipped,
         "seconds": round(time.perf_counter() - t_start),
