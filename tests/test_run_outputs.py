@@ -444,7 +444,7 @@ def test_localisation_counts_only_accepted_answers():
     """A rejected top candidate is no answer, never a success, even when it lies next to the truth; an accepted
     one beyond the success distance is a wrong answer."""
     from placerec.eval import localization_metrics
-    from placerec.experiment.report import _localize_estimates
+    from placerec.experiment.report import localize_estimates
 
     map_poses = np.stack([np.eye(4)] * 3)
     map_poses[:, 0, 3] = [0.0, 10.0, 20.0]
@@ -464,7 +464,7 @@ def test_localisation_counts_only_accepted_answers():
         [cand(4, 0, None, 0.5)],  # a pipeline that verifies, this candidate unverified: no answer
     ]
     table = CandidateTable.from_candidates([0, 1, 2, 3, 4], rows)
-    estimates, basis, rule = _localize_estimates(table, map_poses)
+    estimates, basis, rule = localize_estimates(table, map_poses)
     assert (basis, rule) == ("pose", "accepted")
     m = localization_metrics(estimates, truth, 3.0, basis=basis, answer_rule=rule)
     s = m.summary()
@@ -476,14 +476,14 @@ def test_localisation_without_verification_answers_with_the_top_candidate():
     """No candidate carries an acceptance (retrieval only): the top candidate is the answer, scored on the
     matched map scan's position."""
     from placerec.eval import localization_metrics
-    from placerec.experiment.report import _localize_estimates
+    from placerec.experiment.report import localize_estimates
 
     map_poses = np.stack([np.eye(4)] * 2)
     map_poses[:, 0, 3] = [0.0, 10.0]
     truth = np.stack([np.eye(4)] * 3)
     truth[:, 0, 3] = [1.0, 1.0, 1.0]
     rows = [[Candidate(0, 0, 0.9)], [Candidate(1, 1, 0.9)], []]
-    estimates, basis, rule = _localize_estimates(CandidateTable.from_candidates([0, 1, 2], rows), map_poses)
+    estimates, basis, rule = localize_estimates(CandidateTable.from_candidates([0, 1, 2], rows), map_poses)
     assert (basis, rule) == ("retrieval", "top")
     m = localization_metrics(estimates, truth, 3.0, basis=basis, answer_rule=rule)
     assert (m.n_success, m.n_wrong, m.n_no_estimate) == (1, 1, 1)

@@ -87,7 +87,7 @@ from placerec.config import ExperimentConfig, parse_config
 from placerec.eval import localization_metrics
 from placerec.experiment import protocol
 from placerec.experiment.datasets import SlicedSequence
-from placerec.experiment.report import _localize_estimates, loop_summary, pose_truths
+from placerec.experiment.report import localize_estimates, loop_summary, pose_truths
 from placerec.experiment.runner import PipelineRecord, build_pipelines, run_localize, run_loop
 from placerec.experiment.truth import TruthClouds
 from placerec.hashing import stable_hash
@@ -473,7 +473,7 @@ def localize_figures(
 ) -> dict[str, Any]:
     """Success as `placerec.experiment.report` counts it (only an accepted answer of a verifying pipeline; the
     top one of a pipeline that does not verify), within `SUCCESS_M`."""
-    estimates, basis, rule = _localize_estimates(record.table(), map_poses)
+    estimates, basis, rule = localize_estimates(record.table(), map_poses)
     m = localization_metrics(estimates, query_poses[np.asarray(record.query_ids, dtype=np.int64)], SUCCESS_M,
                              basis=basis, answer_rule=rule)  # fmt: skip
     return {

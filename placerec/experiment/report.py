@@ -76,6 +76,7 @@ __all__ = [
     "report_loop",
     "report_localize",
     "recompute_loop_metrics",
+    "localize_estimates",
 ]
 
 
@@ -379,7 +380,7 @@ def report_localize(
     results: dict[str, Any] = {}
     for record in records:
         write_candidates(run / f"candidates_{slug(record.label)}.csv", record.query_ids, record.candidates)
-        estimates, basis, rule = _localize_estimates(record.table(), map_poses)
+        estimates, basis, rule = localize_estimates(record.table(), map_poses)
         metrics = localization_metrics(
             estimates,
             query_poses[np.asarray(record.query_ids, dtype=np.int64)],
@@ -417,7 +418,7 @@ def report_localize(
     return payload
 
 
-def _localize_estimates(table: CandidateTable, map_poses: np.ndarray) -> tuple[np.ndarray, str, str]:
+def localize_estimates(table: CandidateTable, map_poses: np.ndarray) -> tuple[np.ndarray, str, str]:
     """(Q, 4, 4) estimated query poses from the top candidates (NaN: no answer), their basis and the answer rule.
 
     Basis: ``"pose"`` (``T_world_match @ T_match_query``) when any top candidate carries a 6-DoF relative pose, a
