@@ -79,14 +79,18 @@ class SensorInfo:
 
     def __post_init__(self) -> None:
         if self.pattern is not None and self.pattern not in SENSOR_PATTERNS:
-            raise ScanDataError(f"sensor {self.name!r}: pattern {self.pattern!r} is not one of {SENSOR_PATTERNS}")
+            raise ScanDataError(
+                f"sensor {self.name!r}: pattern {self.pattern!r} is not one of {SENSOR_PATTERNS}"
+            )
         h = self.horizontal_fov_deg
         if h is not None and not (np.isfinite(h) and 0 < h <= 360):
             raise ScanDataError(f"sensor {self.name!r}: horizontal_fov_deg must be in (0, 360], got {h!r}")
         e = self.elevation_fov_deg
         if e is not None:
             if len(e) != 2 or not np.all(np.isfinite(e)) or not (-90 <= e[0] <= 90 and -90 <= e[1] <= 90):
-                raise ScanDataError(f"sensor {self.name!r}: elevation_fov_deg must be (up, down) in degrees, got {e!r}")
+                raise ScanDataError(
+                    f"sensor {self.name!r}: elevation_fov_deg must be (up, down) in degrees, got {e!r}"
+                )
             if e[0] + e[1] <= 0:
                 raise ScanDataError(f"sensor {self.name!r}: elevation_fov_deg {e!r} spans no angle")
             object.__setattr__(self, "elevation_fov_deg", (float(e[0]), float(e[1])))
@@ -151,7 +155,9 @@ class SensorInfo:
             min_range=None if d.get("min_range") is None else float(d["min_range"]),
             max_range=None if d.get("max_range") is None else float(d["max_range"]),
             pattern=None if d.get("pattern") is None else str(d["pattern"]),
-            horizontal_fov_deg=None if d.get("horizontal_fov_deg") is None else float(d["horizontal_fov_deg"]),
+            horizontal_fov_deg=None
+            if d.get("horizontal_fov_deg") is None
+            else float(d["horizontal_fov_deg"]),
             elevation_fov_deg=None if d.get("elevation_fov_deg") is None else _pair(d["elevation_fov_deg"]),
             rate_hz=None if d.get("rate_hz") is None else float(d["rate_hz"]),
         )

@@ -26,7 +26,8 @@ def test_nested_typo_and_bad_value():
     with pytest.raises(ConfigError, match="voxel_size"):
         load_config(None, ["preprocess.voxel_size=-1"])
     with pytest.raises(
-        ConfigError, match="bogus: unknown key; allowed keys there: dataset, evaluation, execution, keyframes, name"
+        ConfigError,
+        match="bogus: unknown key; allowed keys there: dataset, evaluation, execution, keyframes, name",
     ):
         load_config(None, ["bogus=1"])
     with pytest.raises(ConfigError, match=r"preprocess\.intensity: mode 'linear' needs a 'saturation'"):

@@ -98,3 +98,28 @@ def test_empty_and_degenerate_clouds_give_a_blank_image():
     scan = Scan(xyz=np.zeros((0, 3)), intensity=np.zeros(0), sensor=LIMITED)
     img = make_image(scan)
     assert img.mode == "spherical" and not img.valid.any()
+
+
+def test_sensor_info_checks_and_round_trips_the_fields_of_sensors_that_do_not_spin():
+    from placerec.errors import ScanDataError
+
+    info = SensorInfo(name="avia", pattern="non-repetitive", horizontal_fov_deg=70.4, elevation_fov_deg=(38.6, 38.6),
+                      rate_hz=10.0)  # fmt: skip
+    assert SensorInfo.from_dict(info.to_dict()) == info and not info.is_spinning
+    assert info.vertical_fov_deg == (38.6, 38.6)
+    # a spinning sensor's description is what it was before these fields existed
+    assert set(SensorInfo(name="vlp16").to_dict()) == {
+        "name", "beam_elevations_deg", "columns", "intensity_max", "min_range", "max_range"
+    }  # fmt: skip
+    for bad, field in (
+        ({"pattern": "rotating"}, "pattern"),
+        ({"horizontal_fov_deg": 400.0}, "horizontal_fov_deg"),
+        ({"horizontal_fov_deg": float("nan")}, "horizontal_fov_deg"),
+        ({"elevation_fov_deg": (10.0, -20.0)}, "elevation_fov_deg"),
+        ({"elevation_fov_deg": (95.0, 0.0)}, "elevation_fov_deg"),
+        ({"rate_hz": 0.0}, "rate_hz"),
+    ):
+        with pytest.raises(ScanDataError, match=field):
+            SensorInfo(name="x", **bad)
+    with pytest.raises(ScanDataError, match="elevation_fov_deg"):
+        SensorInfo.from_dict({"name": "x", "elevation_fov_deg": [1.0]})

@@ -113,7 +113,9 @@ def direction_summary(
     direction = revisit_directions(gt, reverse_yaw_deg)[metrics.query_ids]
     none = np.zeros(metrics.query_ids.size, bool)
     tp = metrics.outcomes_at(metrics.threshold_at_max_f1)["tp"] if metrics.n_candidates else none
-    tp_fixed = metrics.outcomes_at(threshold)["tp"] if metrics.n_candidates and threshold is not None else none
+    tp_fixed = (
+        metrics.outcomes_at(threshold)["tp"] if metrics.n_candidates and threshold is not None else none
+    )
     out: dict[str, Any] = {}
     for name, code in (("same", 1), ("reverse", 2)):
         sel = direction == code

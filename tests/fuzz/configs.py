@@ -190,12 +190,12 @@ def cases() -> list[Case]:
     for root, (model, load) in ROOTS.items():
         for leaf in leaves(root, model):
             for name, value, expect in _hostile_values(leaf):
-                override = f"{leaf.key}={_yaml(value)}"
+                overrides = [*_completion(leaf), f"{leaf.key}={_yaml(value)}"]
                 out.append(
                     Case(
                         "configs",
                         f"{root}/{leaf.key}/{name}",
-                        lambda tmp, o=[*_completion(leaf), override]: o,
+                        lambda tmp, o=overrides: o,
                         lambda overrides, load=load: load(None, overrides),
                         expect,
                         names=f"{leaf.key}:",
