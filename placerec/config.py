@@ -128,6 +128,14 @@ class PipelineSpec(Params):
     def display_name(self) -> str:
         return self.label or self.name
 
+    @property
+    def operating_threshold(self) -> float | None:
+        """The threshold the pipeline is judged at: ``threshold`` when given, else its preset's (None: none)."""
+        from placerec.recognizer import PIPELINES
+
+        entry = PIPELINES.get(self.name)
+        return self.threshold if self.threshold is not None else (entry.threshold if entry else None)
+
 
 class ExclusionConfig(ExclusionWindow):
     """Loop mode: a database scan is eligible for a query only when it is older than EVERY limit set here —

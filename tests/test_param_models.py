@@ -151,7 +151,7 @@ def test_model_validate_reports_like_building_the_model():
     assert str(validated.value).splitlines() == [
         "ExperimentConfig:",
         "  preprocess.intensity: mode 'linear' needs a 'saturation' value",
-        "  bogus: unknown key; allowed keys there: dataset, evaluation, execution, name, output, pipelines, preprocess",
+        "  bogus: unknown key; allowed keys there: dataset, evaluation, execution, keyframes, name, output, pipelines, preprocess",
     ]
 
 

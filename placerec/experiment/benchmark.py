@@ -386,13 +386,6 @@ def run_benchmark(
     return root, payload
 
 
-def _threshold(spec: PipelineSpec) -> float | None:
-    from placerec.recognizer import PIPELINES
-
-    entry = PIPELINES.get(spec.name)
-    return spec.threshold if spec.threshold is not None else (entry.threshold if entry else None)
-
-
 def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[str, Any]) -> dict[str, Any]:
     """A finished cell's metrics per pipeline label with the figures at the operating thresholds recomputed from
     its files (poses, candidates, the scans' voxels in ``truth.npz``) at the thresholds in force now; the stored
@@ -423,7 +416,7 @@ def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[
     out = {}
     for spec, table, pose_gt in zip(specs, tables, pose_gts, strict=True):
         label = spec.display_name
-        _, summary = loop_summary(cfg, table, poses, stamps, _threshold(spec), truth, pose_gt)
+        _, summary = loop_summary(cfg, table, poses, stamps, spec.operating_threshold, truth, pose_gt)
         kept = stored.get(label, {})
         out[label] = {**kept, **finite_or_null(summary)}
     return out

@@ -129,8 +129,9 @@ def _gt_options(cfg: ExperimentConfig, timestamps: np.ndarray | None) -> dict[st
 
 
 def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
-    """Recompute a pipeline's loop metrics (recall@N and the closures' pose errors included) from the run folder
-    alone (config, poses, candidates CSV): ``metrics.json``'s entry for ``label`` without the times."""
+    """Recompute a pipeline's loop metrics (recall@N, the closures' pose errors and the figures at its operating
+    threshold included) from the run folder alone (config, poses, candidates CSV): ``metrics.json``'s entry for
+    ``label`` without the times and the other ground truths."""
     from placerec.config import load_config
 
     run_dir = Path(run_dir)
@@ -139,7 +140,9 @@ def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
     times = run_dir / "times.txt"
     stamps = _read_or_empty(times, lambda p: np.loadtxt(p, ndmin=1), (0,)) if times.is_file() else None
     table = read_candidates(run_dir / f"candidates_{slug(label)}.csv")
-    return loop_summary(cfg, table, poses, stamps)[1]
+    spec = next((p for p in cfg.pipelines if p.display_name == label), None)
+    threshold = None if spec is None else spec.operating_threshold
+    return loop_summary(cfg, table, poses, stamps, threshold)[1]
 
 
 def operating_point(

@@ -28,7 +28,7 @@ from placerec.experiment.preprocessing import preprocessed_scan
 from placerec.loop_closure import LoopClosureDetector, split_verify_time
 from placerec.loop_filter import LoopFilterParams
 from placerec.params import Params
-from placerec.recognizer import PIPELINES, make_pipeline
+from placerec.recognizer import make_pipeline
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, Sequence
 
 log = logging.getLogger(__name__)
@@ -158,8 +158,7 @@ def build_pipelines(cfg: ExperimentConfig) -> Pipelines:
         rec = make_pipeline(spec.name, spec.params, path=f"pipelines[{i}].params")
         params = getattr(rec, "params", None)
         resolved = params.model_dump(mode="json") if isinstance(params, Params) else dict(spec.params)
-        entry = PIPELINES.get(spec.name)
-        threshold = spec.threshold if spec.threshold is not None else (entry.threshold if entry else None)
+        threshold = spec.operating_threshold
         out.append(
             (
                 PipelineRecord(
