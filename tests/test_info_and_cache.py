@@ -138,6 +138,7 @@ def test_a_sensor_no_model_fits_is_unknown() -> None:
 
 import logging  # noqa: E402
 import os  # noqa: E402
+import shutil  # noqa: E402
 import time  # noqa: E402
 
 from placerec.errors import ConfigError  # noqa: E402
@@ -148,6 +149,7 @@ from placerec.experiment.cache import (  # noqa: E402
     cache_limit_mb,
     clear_cache,
     scan_cache,
+    trim_cache,
 )
 
 
@@ -192,6 +194,52 @@ def test_runs_keep_the_size_limit_evicting_least_recently_used(
     assert all(("bbbbbbbbbbbb", i) in left for i in range(8))
     assert "evicted" in caplog.text and LIMIT_ENV in caplog.text
     assert (root / "CACHEDIR.TAG").read_text().startswith("Signature: 8a477f597d28d172789f06886806bc55")
+
+
+def test_entries_removed_by_another_process_while_listed_are_not_listed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two benchmark workers trim one cache: what the other removes between the listing and the stat (or a
+    folder it empties and removes) is simply not there, never an error that ends the run."""
+    import placerec.experiment.cache as cache_module
+
+    root = tmp_path / "cache"
+    monkeypatch.setenv(LIMIT_ENV, "off")
+    _fill(root, "aaaaaaaaaaaa", "sc-0123456789ab", 4)
+    _fill(root, "bbbbbbbbbbbb", "sc-0123456789ab", 2)
+    real = os.scandir
+    gone = root / "aaaaaaaaaaaa" / "sc-0123456789ab" / "000001.npz"
+    emptied = root / "bbbbbbbbbbbb" / "sc-0123456789ab"
+
+    class Racing:
+        """A listing during which the other process removes ``gone`` (and the folder ``emptied``) after they were
+        listed and before this process looks at them."""
+
+        def __init__(self, path):
+            self.listing = real(path)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.listing.close()
+
+        def __iter__(self):
+            for entry in self.listing:
+                if Path(entry.path) == gone:
+                    gone.unlink()
+                if Path(entry.path) == emptied:
+                    shutil.rmtree(emptied)
+                yield entry
+
+    def racing(path):
+        return real(path) if isinstance(path, int) else Racing(path)  # int: shutil.rmtree's own listing
+
+    monkeypatch.setattr(cache_module.os, "scandir", racing)
+    left = {(e.data_key, int(e.path.stem)) for e in scan_cache(root)}
+    assert left == {("aaaaaaaaaaaa", i) for i in (0, 2, 3)}
+    monkeypatch.setenv(LIMIT_ENV, "0.001")
+    assert trim_cache(root, 0.001)[0] >= 1
 
 
 def test_a_folder_with_foreign_files_is_never_cleared_or_trimmed(

@@ -230,22 +230,25 @@ def scan_cache(root: str | Path) -> list[CacheEntry]:
             if not data.is_dir(follow_symlinks=False):
                 foreign.append(data.path)
                 continue
-            with os.scandir(data.path) as fronts:
+            # another process (a second worker trimming the same cache) may remove an entry, and the folders
+            # it leaves empty, while they are listed here: what is gone is simply not listed
+            with contextlib.suppress(FileNotFoundError), os.scandir(data.path) as fronts:
                 for front in fronts:
                     if not front.is_dir(follow_symlinks=False):
                         foreign.append(front.path)
                         continue
-                    with os.scandir(front.path) as files:
+                    with contextlib.suppress(FileNotFoundError), os.scandir(front.path) as files:
                         for f in files:
-                            if not f.is_file(follow_symlinks=False) or not (
-                                _ENTRY.match(f.name) or _TMP.match(f.name)
-                            ):
-                                foreign.append(f.path)
-                            elif _ENTRY.match(f.name):
-                                st = f.stat(follow_symlinks=False)
+                            if _ENTRY.match(f.name) and f.is_file(follow_symlinks=False):
+                                try:
+                                    st = f.stat(follow_symlinks=False)
+                                except FileNotFoundError:
+                                    continue
                                 entries.append(
                                     CacheEntry(Path(f.path), data.name, front.name, st.st_size, st.st_mtime)
                                 )
+                            elif not (_TMP.match(f.name) and f.is_file(follow_symlinks=False)):
+                                foreign.append(f.path)
     if foreign:
         shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
         raise ConfigError(
