@@ -37,7 +37,7 @@ Frame and de-skew
 A keyframe is expressed in the frame of its **last scan at that scan's timestamp** (the scan it completes on:
 natural online), ``pose`` = that scan's odometry pose ``T_world_keyframe``, ``timestamp`` = its timestamp. A point
 of scan ``i`` with per-point time ``t`` (`placerec.types.Scan.time`, seconds since the scan's timestamp) was
-measured from the sensor pose at ``stamp_i + t``, `interpolate_trajectory` over the odometry poses of the window
+measured from the sensor pose at ``stamp_i + t``, `placerec.types.interpolate_trajectory` over the odometry poses of the window
 (and of the scan before it): between scan ``i``'s pose and the next scan's (translation linear, rotation along the
 rotation vector of the relative motion, i.e. slerp), extrapolated from the previous pair past the window's last
 scan (the next scan is not known when the keyframe completes). It is mapped ``T_keyframe_world @ T_world_sensor(t)``.
@@ -64,7 +64,15 @@ from pydantic import Field, SerializerFunctionWrapHandler, model_serializer, mod
 from placerec.errors import ScanDataError
 from placerec.params import Params
 from placerec.preprocess import voxel_downsample
-from placerec.types import Scan, Sequence, as_pose, check_poses, path_length, valid_points
+from placerec.types import (
+    Scan,
+    Sequence,
+    as_pose,
+    check_poses,
+    interpolate_trajectory,
+    path_length,
+    valid_points,
+)
 
 if TYPE_CHECKING:
     from placerec.slam.odometry import KissIcpOdometry
@@ -76,7 +84,6 @@ __all__ = [
     "KeyframeSequence",
     "DESKEW_BIN_S",
     "MAX_POINT_TIME_S",
-    "interpolate_trajectory",
     "deskewed_points",
 ]
 
@@ -178,32 +185,6 @@ def _overlapping(
             )
             return start, moved
     return None, False
-
-
-def interpolate_trajectory(stamps: np.ndarray, poses: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """(Q, 4, 4) poses at times ``at`` on the trajectory through ``poses`` (K, 4, 4) at strictly increasing
-    ``stamps`` (K,): between two knots the translation is linear and the rotation turns along the rotation vector
-    of the relative rotation (slerp); before the first / after the last knot the end segment is extrapolated; a
-    single knot is a constant pose. (`placerec.io.datasets.trajectory.interpolate_poses` interpolates ground truth
-    and refuses times outside it; the de-skew must extrapolate.)"""
-    from scipy.spatial.transform import Rotation
-
-    at = np.asarray(at, dtype=np.float64)
-    out = np.empty((at.size, 4, 4))
-    if len(stamps) == 1:
-        out[:] = poses[0]
-        return out
-    seg = np.clip(np.searchsorted(stamps, at, side="right") - 1, 0, len(stamps) - 2)
-    s = (at - stamps[seg]) / (stamps[seg + 1] - stamps[seg])
-    R = poses[:, :3, :3]
-    # rotation vector of each segment's relative rotation R_a^T R_b, expressed in frame a
-    rotvec = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()
-    step = Rotation.from_rotvec(s[:, None] * rotvec[seg]).as_matrix()
-    out[:, :3, :3] = R[seg] @ step
-    p = poses[:, :3, 3]
-    out[:, :3, 3] = p[seg] + s[:, None] * (p[seg + 1] - p[seg])
-    out[:, 3] = (0.0, 0.0, 0.0, 1.0)
-    return out
 
 
 def deskewed_points(

@@ -37,6 +37,7 @@ __all__ = [
     "PlaceRecognizer",
     "as_pose",
     "relative_pose",
+    "interpolate_trajectory",
 ]
 
 
@@ -431,6 +432,33 @@ def path_length(positions: np.ndarray) -> np.ndarray:
         return np.zeros(p.shape[0] if p.ndim else 0)
     steps = np.linalg.norm(np.diff(p, axis=0), axis=1)
     return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def interpolate_trajectory(stamps: np.ndarray, poses: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """(Q, 4, 4) poses at times ``at`` on the trajectory through ``poses`` (K, 4, 4) at strictly increasing
+    ``stamps`` (K,): between two knots the translation is linear and the rotation turns along the rotation vector
+    of the relative rotation (slerp); before the first / after the last knot the end segment is extrapolated; a
+    single knot is a constant pose. The keyframes' de-skew and the simulator's scans taken while moving both ride
+    on it. (`placerec.io.datasets.trajectory.interpolate_poses` interpolates ground truth and refuses times outside
+    it; these must extrapolate.)"""
+    from scipy.spatial.transform import Rotation
+
+    at = np.asarray(at, dtype=np.float64)
+    out = np.empty((at.size, 4, 4))
+    if len(stamps) == 1:
+        out[:] = poses[0]
+        return out
+    seg = np.clip(np.searchsorted(stamps, at, side="right") - 1, 0, len(stamps) - 2)
+    s = (at - stamps[seg]) / (stamps[seg + 1] - stamps[seg])
+    R = poses[:, :3, :3]
+    # rotation vector of each segment's relative rotation R_a^T R_b, expressed in frame a
+    rotvec = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()
+    step = Rotation.from_rotvec(s[:, None] * rotvec[seg]).as_matrix()
+    out[:, :3, :3] = R[seg] @ step
+    p = poses[:, :3, 3]
+    out[:, :3, 3] = p[seg] + s[:, None] * (p[seg + 1] - p[seg])
+    out[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    return out
 
 
 def relative_pose(T_world_match: np.ndarray, T_world_query: np.ndarray) -> np.ndarray:

@@ -27,7 +27,7 @@ from placerec.sim.render import Renderer
 from placerec.sim.routes import Revisit, Route, make_route
 from placerec.sim.sensors import SensorModel, get_sensor
 from placerec.sim.world import World, build_world
-from placerec.types import Scan, SensorInfo
+from placerec.types import Scan, SensorInfo, interpolate_trajectory
 
 __all__ = ["SimulatedSequence", "SequenceSpec", "frame_end_poses"]
 
@@ -279,24 +279,10 @@ class SimulatedSequence:
 
 
 def frame_end_poses(poses: np.ndarray, times: np.ndarray, period: float) -> np.ndarray:
-    """The pose ``period`` seconds after each pose, along the piecewise motion between consecutive poses.
-
-    Scan ``i`` moves towards scan ``i + 1``: ``f = period / (t_{i+1} - t_i)``, ``R = R_i Exp(f omega)`` with
-    ``omega`` the rotation vector of ``R_i^T R_{i+1}``, ``p = p_i + f (p_{i+1} - p_i)`` (``f > 1`` extrapolates).
-    The last scan continues the previous step's motion; a lone scan, or one with no time to the next, is static.
-    """
-    from scipy.spatial.transform import Rotation
-
-    n = len(poses)
-    out = np.array(poses, dtype=np.float64, copy=True)
-    if n < 2:
-        return out
-    a = np.r_[np.arange(n - 1), n - 2]  # the step each scan follows: (a, a + 1)
-    dt = times[a + 1] - times[a]
-    f = np.where(dt > 0, period / np.where(dt > 0, dt, 1.0), 0.0)
-    Ra, Rb = poses[a, :3, :3], poses[a + 1, :3, :3]
-    omega = Rotation.from_matrix(np.einsum("kji,kjl->kil", Ra, Rb)).as_rotvec()
-    out[:, :3, :3] = poses[:, :3, :3] @ Rotation.from_rotvec(f[:, None] * omega).as_matrix()
-    out[:, :3, 3] = poses[:, :3, 3] + f[:, None] * (poses[a + 1, :3, 3] - poses[a, :3, 3])
+    """The pose ``period`` seconds after each pose along the route through ``poses`` at ``times``
+    (`placerec.types.interpolate_trajectory`: translation linear, rotation along the relative rotation vector
+    between consecutive poses; past the last pose the last step's motion continues); a lone pose is static."""
+    times = np.asarray(times, dtype=np.float64)
+    out = interpolate_trajectory(times, np.asarray(poses, dtype=np.float64), times + float(period))
     out.setflags(write=False)
     return out
