@@ -296,7 +296,11 @@ class SphericalGrid:
 
 def spherical_grid(scan: Scan, params: ImageParams = _DEFAULT_PARAMS) -> SphericalGrid:
     """The spherical grid ``scan`` is projected onto (see the module docstring for the automatic resolution)."""
-    idx, r = _valid_points(scan)
+    return _spherical_grid(scan, params, *_valid_points(scan))
+
+
+def _spherical_grid(scan: Scan, params: ImageParams, idx: np.ndarray, r: np.ndarray) -> SphericalGrid:
+    """`spherical_grid` of the valid points ``idx`` at ranges ``r``."""
     xyz = scan.xyz[idx]
     h_fov = float(scan.sensor.horizontal_fov_deg or 360.0)
     if idx.size == 0:
@@ -318,8 +322,8 @@ def project_spherical(
     scan: Scan, params: ImageParams = _DEFAULT_PARAMS
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A spherical grid over the sensor's field of view: (intensity, range, point index) images."""
-    grid = spherical_grid(scan, params)
     idx, r = _valid_points(scan)
+    grid = _spherical_grid(scan, params, idx, r)
     rows, cols, inside = grid.pixels(scan.xyz[idx], r)
     return _scatter_nearest(
         rows[inside], cols[inside], r[inside], scan, idx[inside], (grid.height, grid.width)
