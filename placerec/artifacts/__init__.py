@@ -8,6 +8,7 @@ call these builders.
 * `placerec.artifacts.votes` — the vote model of probabilistic voting (``placerec fit-votes``).
 * `placerec.artifacts.vocabulary` — a DBoW vocabulary (``placerec train-vocab``).
 * `placerec.artifacts.superpoint` — SuperPoint's weights (``tools/train_superpoint.py``; needs torch).
+* `placerec.artifacts.map` — a map folder for relocalisation and multi-session SLAM (``placerec map build``).
 
 ::
 
@@ -39,6 +40,7 @@ BUILDERS: dict[str, str] = {
     "vote-model": "placerec.artifacts.votes:build_vote_model",
     "vocabulary": "placerec.artifacts.vocabulary:build_vocabulary",
     "superpoint-weights": "placerec.artifacts.superpoint:build_superpoint_weights",
+    "map": "placerec.artifacts.map:build_map",
 }
 
 
