@@ -92,7 +92,10 @@ def pipelines(
 @_command()
 def info(
     path: Annotated[
-        Path, typer.Argument(help="A scan file (.bin .pcd .ply .npy .npz) or a sequence folder/bag.")
+        Path,
+        typer.Argument(
+            help="A scan file (.bin .pcd .ply .npy .npz), a sequence folder/bag, or a map folder."
+        ),
     ],
     format: Annotated[
         str | None, typer.Option(help="Force a reader (.bin files are recognised as 'kitti' or 'nclt').")
@@ -104,9 +107,13 @@ def info(
         ),
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
+    check: Annotated[
+        bool, typer.Option("--check", help="A map folder: hash every file against its manifest.")
+    ] = False,
 ) -> None:
-    """Summarise a scan or a sequence: points, fields, intensity and range percentiles, beams, poses."""
-    summary = support.summarise(path, format, dataset)
+    """Summarise a scan, a sequence (points, fields, intensity and range percentiles, beams, poses), an artifact
+    or a map folder (keyframes, extent, pipelines, size, the trajectory figure)."""
+    summary = support.summarise(path, format, dataset, check)
     if as_json:
         typer.echo(json.dumps(summary, indent=2, default=str))
     else:
@@ -584,6 +591,87 @@ def fit_votes_cmd(
             f"tau {row['tau']}: sigma {row['sigma_m']} m, lambda {row['lambda']}, {row['n_votes']} votes"
         )
     typer.echo(f"wrote {out}" + (f" and {figure}" if figure else ""))
+
+
+map_app = typer.Typer(
+    help="Maps that outlive a session: build one from a sequence with poses (or save one from `placerec slam"
+    " --save-map`), then localise against it (`placerec localize`) or extend it (`placerec slam --prior-map`)."
+    " `placerec info MAP` summarises one.",
+    no_args_is_help=True,
+)
+app.add_typer(map_app, name="map")
+
+
+@map_app.command("build")
+@support.reports_errors
+def map_build(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Map folder to write.")],
+    sequence: Annotated[
+        Path | None, typer.Argument(help="A sequence with poses (anything `placerec info` reads).")
+    ] = None,
+    format: Annotated[str | None, typer.Option(help="Force a reader, e.g. 'kitti'.")] = None,
+    poses: Annotated[Path | None, typer.Option(help="Poses file (default: the sequence's own).")] = None,
+    sim_world: Annotated[
+        str | None, typer.Option("--sim-world", help="Map a simulated world's route: town, campus, ...")
+    ] = None,
+    sim_sensor: Annotated[str, typer.Option("--sim-sensor", help="Simulated sensor.")] = "vlp16",
+    sim_scans: Annotated[int | None, typer.Option("--sim-scans", help="Simulated route scans.")] = None,
+    seed: Annotated[int, typer.Option(help="Simulator seed.")] = 0,
+    pipeline: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--pipeline", "-p", help="A pipeline whose database the map holds (repeatable; default orb-hbst)."
+        ),
+    ] = None,
+    config: Annotated[
+        Path | None,
+        typer.Option("--config", "-c", help="A map build YAML (MapBuild: pipelines with params)."),
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", "-s", help="A MapBuild field: key=value, e.g. keyframe_metres=2 (repeatable)."),
+    ] = None,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing map at --out.")] = False,
+) -> None:
+    """Build a map folder: keyframes along the poses, each pipeline's database, clouds for tracking.
+
+    Examples:
+
+      placerec map build --sim-world town --pipeline orb-hbst --pipeline scan-context --out maps/town
+
+      placerec map build ../shared/data/real/kitti_raw_0027 --out maps/kitti27
+    """
+    from placerec.artifacts.map import MapBuild, build_map
+    from placerec.maps import MapArtifact
+    from placerec.safe_yaml import load_yaml_file
+
+    values = {} if config is None else load_yaml_file(config)
+    if not isinstance(values, dict):
+        from placerec.errors import ConfigError
+
+        raise ConfigError(f"{config}: a map build YAML must be a mapping")
+    values = dict(values, out=str(out), overwrite=overwrite or bool(values.get("overwrite", False)))
+    if pipeline:
+        values["pipelines"] = [{"name": name} for name in pipeline]
+    source = (
+        support.sequence_source(
+            sequence, format, poses, support.sim_world(sim_world, sim_sensor, sim_scans, seed)
+        )
+        if sequence is not None or sim_world is not None
+        else None
+    )
+    if source is not None:
+        values["source"] = source.model_dump(exclude_none=True, mode="json")
+    cfg = support.with_overrides(MapBuild, values, set_, "map build")
+    with support.progress_bar("describing keyframes") as progress:
+        path = build_map(cfg, progress)
+    summary = MapArtifact.open(path).summary()
+    names = ", ".join(summary["pipelines"])
+    typer.echo(
+        f"{summary['name']}: {summary['keyframes']} keyframes, {summary['path_length_m']} m, {names}; "
+        f"{summary['bytes'] / 1e6:.1f} MB"
+    )
+    typer.echo(f"wrote {path}")
 
 
 def main() -> None:

@@ -135,12 +135,16 @@ def sequence_source(
     return SequenceSource(path=sequence, format=format, poses=poses, sim=sim).check()
 
 
-def summarise(path: Path, format: str | None, dataset: str | None = None) -> dict:
-    """``placerec info``'s summary of a scan file, or of a sequence (a folder, a bag, or ``dataset`` given)."""
+def summarise(path: Path, format: str | None, dataset: str | None = None, check: bool = False) -> dict:
+    """``placerec info``'s summary of a scan file, a map folder (``check``: hash every file of it), or a sequence
+    (a folder, a bag, or ``dataset`` given)."""
     from placerec.io import open_sequence, read_scan
     from placerec.io.atomic import peek_artifact
+    from placerec.maps import MapArtifact, is_map_folder
     from placerec.summary import artifact_summary, scan_summary, sequence_summary
 
+    if is_map_folder(path) and not format and not dataset:
+        return MapArtifact.open(path, check_hashes=check).summary()
     if path.suffix.lower() == ".npz" and path.is_file() and not format and not dataset:
         artifact = peek_artifact(path)
         if artifact is not None:

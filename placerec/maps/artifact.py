@@ -383,6 +383,7 @@ class MapArtifact:
         pos = self.positions()
         length = float(np.linalg.norm(np.diff(pos, axis=0), axis=1).sum()) if len(pos) > 1 else 0.0
         sizes = {name: e.bytes for name, e in m.files.items()}
+        lo, hi = np.round(m.extent, 1)
         return {
             "path": str(self.path),
             "kind": "map",
@@ -391,15 +392,19 @@ class MapArtifact:
             "created": m.created,
             "placerec_version": m.placerec_version,
             "keyframes": m.n_keyframes,
-            "sessions": [s.model_dump() for s in m.sessions],
+            "sessions": {s.name: f"keyframes {s.first}..{s.first + s.count - 1}" for s in m.sessions},
             "poses_source": m.poses_source,
             "path_length_m": round(length, 1),
-            "extent_m": m.extent,
+            "extent_m": {
+                f"{a}_{end}": float(v[k])
+                for end, v in (("min", lo), ("max", hi))
+                for k, a in enumerate("xyz")
+            },
             "sensor": (m.sensor or {}).get("name"),
             "intensity": m.intensity,
-            "pipelines": [
-                {"name": p.name, "threshold": p.threshold, "bytes": sizes.get(p.file)} for p in m.pipelines
-            ],
+            "pipelines": {
+                p.name: f"threshold {p.threshold}, {sizes.get(p.file, 0) / 1e6:.1f} MB" for p in m.pipelines
+            },
             "cloud_points": int(self._clouds["codes"].shape[0]),
             "cloud_voxel_m": m.cloud_voxel_m,
             "graph": "graph.npz" in m.files,

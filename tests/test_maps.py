@@ -1,0 +1,265 @@
+"""The map artifact (placerec.maps.artifact, placerec.artifacts.map, ``placerec map build``, ``placerec info MAP``):
+what it stores comes back, a query against it gives poses in the map frame, and every kind of damage to the folder
+is an ArtifactError naming the file."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from placerec.artifacts import build
+from placerec.artifacts.map import MapBuild, select_keyframes, write_map
+from placerec.cli import app
+from placerec.errors import ArtifactError, ConfigError
+from placerec.maps import MapArtifact, MapGraph, MapMismatchError, MapWriter, is_map_folder
+from placerec.preprocess import preprocess_scan
+from placerec.recognizer import make_pipeline
+from placerec.sim import SimulatedSequence
+from placerec.slam.graph import LoopFactor
+from placerec.types import SensorInfo
+
+N_SCANS = 30
+
+
+@pytest.fixture(scope="module")
+def seq() -> SimulatedSequence:
+    return SimulatedSequence(world="town", sensor="vlp16", n_scans=N_SCANS, seed=3)
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory: pytest.TempPathFactory, seq: SimulatedSequence) -> Path:
+    out = tmp_path_factory.mktemp("maps") / "town"
+    cfg = MapBuild.model_validate(
+        {
+            "source": {"sim": {"world": "town", "scans": N_SCANS, "seed": 3}},
+            "out": str(out),
+            "pipelines": [{"name": "orb-hbst"}, {"name": "scan-context"}],
+            "keyframe_metres": 0,
+        }
+    )
+    return write_map(seq, cfg)
+
+
+@pytest.fixture
+def copy(built: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "copy"
+    shutil.copytree(built, dst)
+    return dst
+
+
+def test_stored_keyframes_come_back(built: Path, seq: SimulatedSequence) -> None:
+    m = MapArtifact.open(built)
+    assert len(m) == N_SCANS and is_map_folder(built)
+    np.testing.assert_array_equal(m.scan_index, np.arange(N_SCANS))
+    np.testing.assert_allclose(m.poses, seq.poses)
+    assert [p.name for p in m.manifest.pipelines] == ["orb-hbst", "scan-context"]
+    assert m.manifest.pipelines[0].threshold == 0.25
+    assert m.manifest.sensor is not None and m.manifest.sensor["name"] == "vlp16"
+    # the stored cloud is the scan voxelised at 0.4 m, in the keyframe's frame, to within the int16 step
+    cloud = m.cloud(7)
+    scan = preprocess_scan(seq[7], None, keep_organized=True)
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(scan.xyz).query(cloud)
+    assert 1000 < len(cloud) < len(scan.xyz) and np.percentile(d, 99) < 0.4
+    ids, dist = m.nearest(seq.poses[12, :3, 3] + [0.2, 0.0, 0.0], k=3)
+    assert ids[0] == 12 and dist[0] == pytest.approx(0.2) and (np.diff(dist) >= 0).all()
+    ids, _ = m.nearest(seq.poses[12, :3, 3], k=5, radius=1.5)
+    assert set(ids) == {11, 12, 13}
+    with pytest.raises(IndexError):
+        m.cloud(N_SCANS)
+
+
+def test_a_query_against_the_map_gives_its_pose_in_the_map_frame(built: Path) -> None:
+    m = MapArtifact.open(built)
+    other = SimulatedSequence(world="town", sensor="vlp16", n_scans=N_SCANS, seed=9, world_seed=3, unit_seed=3)
+    rec = m.recognizer("orb-hbst")
+    assert m.recognizer("orb-hbst") is rec  # loaded once
+    found = 0
+    for i in (4, 15, 25):
+        cands = rec.query(preprocess_scan(other[i], None, keep_organized=True), k=3)
+        good = [c for c in cands if c.accepted and c.score >= 0.25]
+        if good:
+            T = m.poses[good[0].match_id] @ good[0].relative_pose
+            assert np.linalg.norm(T[:3, 3] - other.poses[i][:3, 3]) < 1.0
+            found += 1
+    assert found >= 2
+
+
+def test_summary_and_cli_info(built: Path) -> None:
+    s = MapArtifact.open(built).summary()
+    assert s["keyframes"] == N_SCANS and set(s["pipelines"]) == {"orb-hbst", "scan-context"}
+    assert s["figure"] and Path(s["figure"]).is_file()
+    assert s["bytes"] == sum(f.stat().st_size for f in built.rglob("*") if f.is_file())
+    res = CliRunner().invoke(app, ["info", str(built), "--check", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.output)["keyframes"] == N_SCANS
+
+
+def test_cli_build_refuses_to_overwrite_unless_asked(tmp_path: Path) -> None:
+    out = tmp_path / "m"
+    args = ["map", "build", "--sim-world", "town", "--sim-scans", "8", "-p", "scan-context", "--out", str(out)]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert MapArtifact.open(out).manifest.poses_source == "ground-truth"
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2 and "already exists" in res.output
+    res = CliRunner().invoke(app, [*args, "--overwrite", "--set", "keyframe_metres=3"])
+    assert res.exit_code == 0, res.output
+    assert len(MapArtifact.open(out)) == 3  # 8 scans 1 m apart: 0, 3, 6
+    assert [p.name for p in tmp_path.iterdir()] == ["m"]  # no temporary or old folder left
+
+
+def test_a_failed_build_leaves_nothing(tmp_path: Path) -> None:
+    out = tmp_path / "m"
+    rec = make_pipeline("scan-context")
+    with pytest.raises(RuntimeError), MapWriter(out, {"scan-context": (rec, 0.3)}, name="x") as w:
+        w.add_keyframe(np.eye(4), np.random.default_rng(0).normal(size=(500, 3)))
+        raise RuntimeError("interrupted")
+    assert list(tmp_path.iterdir()) == []
+    # a database that cannot be saved (its recognizer holds fewer entries than keyframes is the caller's
+    # business; an error while saving is not): nothing at out either
+    with pytest.raises(ConfigError):
+        build("map", {"source": {"sim": {"world": "town", "scans": 3}}, "out": str(out), "pipelines": []})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_graph_round_trip_and_g2o(tmp_path: Path) -> None:
+    gtsam = pytest.importorskip("gtsam")
+    rec = make_pipeline("scan-context")
+    poses = np.stack([np.eye(4)] * 3)
+    poses[:, 0, 3] = [0.0, 1.0, 2.0]
+    step = np.eye(4)
+    step[0, 3] = 1.0
+    sig = np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05])
+    graph = MapGraph([(0, 1, step, sig), (1, 2, step, sig)], [LoopFactor(0, 2, 2 * step - np.eye(4), 0.7)])
+    graph.loops[0].T_match_query[3, 3] = 1.0
+    with MapWriter(tmp_path / "g", {"scan-context": (rec, 0.3)}, name="g", poses_source="slam") as w:
+        pts = np.random.default_rng(1).normal(size=(800, 3)) * 5
+        for T in poses:
+            rec.add(len(w), _scan(pts), T)
+            w.add_keyframe(T, pts)
+        w.finish(graph=graph)
+    m = MapArtifact.open(tmp_path / "g")
+    back = m.graph()
+    assert back is not None and len(back.odometry) == 2 and len(back.loops) == 1
+    np.testing.assert_allclose(back.odometry[1][2], step)
+    np.testing.assert_allclose(back.odometry[0][3], sig)
+    assert back.loops[0].score == pytest.approx(0.7)
+    g, values = gtsam.readG2o(str(tmp_path / "g" / "graph.g2o"), True)
+    assert g.size() == 3 and values.size() == 3
+
+
+def _scan(pts: np.ndarray):
+    from placerec.types import Scan
+
+    return Scan(pts.astype(np.float32), np.linspace(0, 1, len(pts)).astype(np.float32))
+
+
+def test_pipeline_and_query_checks(built: Path) -> None:
+    m = MapArtifact.open(built)
+    assert m.pipeline().name == "orb-hbst"
+    m.check_pipeline("orb-hbst")
+    with pytest.raises(MapMismatchError, match="nfeatures"):
+        m.check_pipeline("orb-hbst", {"feature_params": {"nfeatures": 123}})
+    with pytest.raises(MapMismatchError, match="no database for pipeline 'orb-dbow'.*orb-hbst"):
+        m.pipeline("orb-dbow")
+    m.check_query(SensorInfo(name="vlp16"), "normalised:auto")
+    with pytest.raises(MapMismatchError, match="sensor 'vlp16'.*'os1-64'"):
+        m.check_query(SensorInfo(name="os1-64"))
+    m.check_query(SensorInfo(name="os1-64"), allow_other_sensor=True)
+    with pytest.raises(MapMismatchError, match="intensity"):
+        m.check_query(intensity="calibrated:table.npz")
+
+
+def _manifest(path: Path) -> dict:
+    return json.loads((path / "manifest.json").read_text())
+
+
+def _write_manifest(path: Path, data: dict) -> None:
+    (path / "manifest.json").write_text(json.dumps(data))
+
+
+def test_truncated_file_names_it(copy: Path) -> None:
+    f = copy / "keyframes.npz"
+    f.write_bytes(f.read_bytes()[:-10])
+    with pytest.raises(ArtifactError, match=r"keyframes\.npz: .* bytes, the manifest says"):
+        MapArtifact.open(copy)
+
+
+def test_edited_small_file_fails_its_hash(copy: Path) -> None:
+    f = copy / "keyframes.npz"
+    data = bytearray(f.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    f.write_bytes(bytes(data))
+    with pytest.raises(ArtifactError, match=r"keyframes\.npz: its SHA-256 differs"):
+        MapArtifact.open(copy)
+
+
+def test_edited_big_file_is_found_by_check_hashes(copy: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import placerec.maps.artifact as artifact
+
+    monkeypatch.setattr(artifact, "HASH_ON_OPEN_BYTES", 1000)  # every database counts as big here
+    f = copy / "pipelines" / "scan-context.npz"
+    data = bytearray(f.read_bytes())
+    data[-100] ^= 0x01
+    f.write_bytes(bytes(data))
+    MapArtifact.open(copy)  # sizes agree: opens
+    with pytest.raises(ArtifactError, match=r"scan-context\.npz: its SHA-256 differs"):
+        MapArtifact.open(copy, check_hashes=True)
+    res = CliRunner().invoke(app, ["info", str(copy), "--check"])
+    assert res.exit_code == 2 and "SHA-256" in res.output and "Traceback" not in res.output
+
+
+def test_missing_and_unlisted_files(copy: Path) -> None:
+    (copy / "notes.txt").write_text("mine")
+    with pytest.raises(ArtifactError, match="does not list.*notes.txt"):
+        MapArtifact.open(copy)
+    (copy / "notes.txt").unlink()
+    (copy / "clouds.npz").unlink()
+    with pytest.raises(ArtifactError, match=r"clouds\.npz: missing"):
+        MapArtifact.open(copy)
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda d: d.update(format_version=2), "format version 2 is not supported"),
+        (lambda d: d.update(kind="places-db"), "expected 'placerec-map'"),
+        (lambda d: d.update(colour="red"), "colour"),
+        (lambda d: d.update(n_keyframes=N_SCANS + 1), "keyframes, the manifest says"),
+        (lambda d: d["files"].update({"../evil.npz": d["files"]["graph.npz"]}) if "graph.npz" in d["files"]
+         else d["files"].update({"../evil.npz": d["files"]["clouds.npz"]}), "not a path inside the map"),
+        (lambda d: d["pipelines"][0].update(file="pipelines/other.npz"), "is not in 'files'"),
+        (lambda d: d["sessions"][0].update(count=3), "'sessions' do not cover"),
+        (lambda d: d["pipelines"][0].update(threshold="high"), "threshold"),
+    ],
+)  # fmt: skip
+def test_bad_manifest_names_what_is_wrong(copy: Path, edit, message: str) -> None:
+    data = _manifest(copy)
+    edit(data)
+    _write_manifest(copy, data)
+    with pytest.raises(ArtifactError, match=message) as info:
+        MapArtifact.open(copy)
+    assert "manifest.json" in str(info.value) or ".npz" in str(info.value)
+
+
+def test_manifest_not_json(copy: Path) -> None:
+    (copy / "manifest.json").write_bytes(b"\xff{")
+    with pytest.raises(ArtifactError, match="manifest.json: not valid JSON"):
+        MapArtifact.open(copy)
+    with pytest.raises(ArtifactError, match="no such map folder"):
+        MapArtifact.open(copy / "nothing")
+
+
+def test_select_keyframes() -> None:
+    poses = np.stack([np.eye(4)] * 6)
+    poses[:, 0, 3] = [0.0, 0.4, 0.8, 1.2, 3.0, 3.1]
+    np.testing.assert_array_equal(select_keyframes(poses, 0), np.arange(6))
+    np.testing.assert_array_equal(select_keyframes(poses, 1.0), [0, 3, 4])
+    np.testing.assert_array_equal(select_keyframes(poses[:0], 1.0), [])
