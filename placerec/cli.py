@@ -373,6 +373,12 @@ def slam(
     out: ResultsRoot = None,
     set_: Overrides = None,
     dump: Annotated[bool, typer.Option("--dump-config", help="Print the resolved config and exit.")] = False,
+    save_map: Annotated[
+        Path | None,
+        typer.Option(
+            "--save-map", help="Also save a map folder here (output.save_map) for `placerec localize`."
+        ),
+    ] = None,
 ) -> None:
     """SLAM back end: odometry + verified loop closures + a GTSAM pose graph; poses, g2o, ATE/RPE, a report.
 
@@ -383,10 +389,15 @@ def slam(
       placerec slam configs/slam_kitti.yaml --set dataset.path=/data/kitti/sequences/00
 
       placerec slam configs/slam_demo.yaml --set robustness.false_loops=10
+
+      placerec slam configs/slam_demo.yaml --save-map maps/town
     """
     from placerec.slam_app.config import load_slam_config
 
-    cfg = load_slam_config(config, set_ or [])
+    overrides = list(set_ or [])
+    if save_map is not None:
+        overrides.append(f"output.save_map={save_map}")
+    cfg = load_slam_config(config, overrides)
     if dump:
         from placerec.config import config_to_yaml
 
@@ -398,6 +409,8 @@ def slam(
     run_dir, payload = run_slam(cfg, out)
     print_slam_table(payload, f"{cfg.name} (slam, {payload['n_scans']} scans)")
     typer.echo(f"results: {run_dir}  (report: {run_dir / 'index.html'})")
+    if cfg.output.save_map is not None:
+        typer.echo(f"map: {cfg.output.save_map}  (placerec info {cfg.output.save_map})")
 
 
 @_command()

@@ -77,7 +77,9 @@ def test_stored_keyframes_come_back(built: Path, seq: SimulatedSequence) -> None
 
 def test_a_query_against_the_map_gives_its_pose_in_the_map_frame(built: Path) -> None:
     m = MapArtifact.open(built)
-    other = SimulatedSequence(world="town", sensor="vlp16", n_scans=N_SCANS, seed=9, world_seed=3, unit_seed=3)
+    other = SimulatedSequence(
+        world="town", sensor="vlp16", n_scans=N_SCANS, seed=9, world_seed=3, unit_seed=3
+    )
     rec = m.recognizer("orb-hbst")
     assert m.recognizer("orb-hbst") is rec  # loaded once
     found = 0
@@ -103,7 +105,18 @@ def test_summary_and_cli_info(built: Path) -> None:
 
 def test_cli_build_refuses_to_overwrite_unless_asked(tmp_path: Path) -> None:
     out = tmp_path / "m"
-    args = ["map", "build", "--sim-world", "town", "--sim-scans", "8", "-p", "scan-context", "--out", str(out)]
+    args = [
+        "map",
+        "build",
+        "--sim-world",
+        "town",
+        "--sim-scans",
+        "8",
+        "-p",
+        "scan-context",
+        "--out",
+        str(out),
+    ]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     assert MapArtifact.open(out).manifest.poses_source == "ground-truth"
@@ -263,3 +276,28 @@ def test_select_keyframes() -> None:
     np.testing.assert_array_equal(select_keyframes(poses, 0), np.arange(6))
     np.testing.assert_array_equal(select_keyframes(poses, 1.0), [0, 3, 4])
     np.testing.assert_array_equal(select_keyframes(poses[:0], 1.0), [])
+
+
+def test_slam_saves_its_map(tmp_path: Path) -> None:
+    pytest.importorskip("gtsam")
+    from placerec.slam_app.config import load_slam_config
+    from placerec.slam_app.run import run_slam
+
+    sets = ["dataset.simulator.n_scans=20", "dataset.simulator.sensor=vlp16", "output.progress=false",
+            "output.figures=false", f"output.save_map={tmp_path / 'map'}"]  # fmt: skip
+    cfg = load_slam_config("configs/slam_demo.yaml", sets)
+    run, _ = run_slam(cfg, tmp_path / "res")
+    m = MapArtifact.open(tmp_path / "map", check_hashes=True)
+    assert len(m) == 20 and m.manifest.poses_source == "slam" and m.manifest.config["name"] == "slam_demo"
+    from placerec.io import read_poses
+
+    optimised, _ = read_poses(run / "poses_kitti.txt", "kitti")
+    np.testing.assert_allclose(m.poses, optimised, atol=1e-6)
+    graph = m.graph()
+    assert graph is not None and len(graph.odometry) == 19
+    assert m.manifest.pipelines[0].name == "orb-hbst" and m.manifest.pipelines[0].threshold == 0.25
+    # a second run must not replace it unless asked, and fails before it starts
+    (tmp_path / "res2").mkdir()
+    with pytest.raises(ConfigError, match="already exists"):
+        run_slam(cfg, tmp_path / "res2")
+    assert list((tmp_path / "res2").iterdir()) == []

@@ -115,6 +115,12 @@ class SlamOutputConfig(Params):
     progress: bool = True
     map_ply: bool = Field(False, description="write the corrected map (map.ply; scans read a second time)")
     map_voxel: float = Field(0.5, gt=0, description="voxel of the corrected map (m)")
+    save_map: str | None = Field(
+        None,
+        description="save a map folder here (placerec.maps: every scan a keyframe at its optimised pose, the"
+        " pipeline's database, the graph) for placerec localize and --prior-map",
+    )
+    overwrite_map: bool = Field(False, description="replace an existing map at save_map")
 
 
 class SlamConfig(Params):

@@ -8,6 +8,7 @@ results folder is made), runs `slam_sequence` and writes the results (`placerec.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -20,6 +21,7 @@ from placerec.experiment.datasets import SlicedSequence, open_dataset
 from placerec.experiment.run_folder import interruptible, make_run_dir
 from placerec.experiment.runner import progress_bars
 from placerec.io import read_poses
+from placerec.maps.artifact import MapWriter
 from placerec.preprocess import preprocess_scan
 from placerec.recognizer import make_pipeline
 from placerec.slam.graph import LoopFactor
@@ -27,9 +29,9 @@ from placerec.slam.online import OnlineSlam
 from placerec.slam.result import ONLINE_STAGES, SlamResult
 from placerec.slam_app.config import SlamConfig
 from placerec.slam_app.report import report_slam
-from placerec.types import MAX_TRANSLATION_M, PlaceRecognizer, Scan, Sequence
+from placerec.types import MAX_TRANSLATION_M, PlaceRecognizer, Scan, Sequence, valid_points
 
-__all__ = ["slam_sequence", "run_slam", "odometry_source", "false_loops"]
+__all__ = ["slam_sequence", "run_slam", "odometry_source", "false_loops", "map_writer_for"]
 
 Odometry = Callable[[int, Scan], np.ndarray]
 
@@ -151,8 +153,10 @@ def slam_sequence(
     seq: Sequence,
     recognizer: PlaceRecognizer | None = None,
     odometry: Odometry | None = None,
+    map_writer: MapWriter | None = None,
 ) -> SlamResult:
-    """Run the online loop over ``seq`` and the final batch optimisation (see the module docstring)."""
+    """Run the online loop over ``seq`` and the final batch optimisation (see the module docstring).
+    ``map_writer`` (from `map_writer_for`) gets every scan as a keyframe and is finished at the optimised poses."""
     rec = recognizer or make_pipeline(
         cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params"
     )
@@ -179,6 +183,9 @@ def slam_sequence(
                 scan, odo[i], None if stamps is None else float(stamps[i]), extra_loops=injected.get(i)
             )
             cpu = (time.process_time() - c1) * 1e3
+            if map_writer is not None:
+                stamp = None if stamps is None else float(stamps[i])
+                map_writer.add_keyframe(odo[i], scan.xyz[valid_points(scan)], stamp, scan_index=i)
             queried.append(slam.detector.last_max_id >= 0)
             stages = dict(slam.last_timing_ms, odometry=(t1 - t0) * 1e3, preprocess=(t2 - t1) * 1e3, cpu=cpu)
             for s in timing:
@@ -186,6 +193,8 @@ def slam_sequence(
             progress.advance(task)
     online = slam.poses()
     optimized = slam.finish()
+    if map_writer is not None:
+        map_writer.finish(poses=optimized, graph=slam.graph)
     return SlamResult(
         name=seq.name,
         odometry=odo,
@@ -204,11 +213,32 @@ def slam_sequence(
     )
 
 
+def map_writer_for(cfg: SlamConfig, seq: Sequence, recognizer: PlaceRecognizer) -> MapWriter:
+    """The writer of ``output.save_map`` (`ConfigError` at once when a map is there and ``overwrite_map`` is off):
+    the run's recognizer is the map's database, its preprocessing and intensity the map's."""
+    from placerec.artifacts.map import intensity_label
+
+    assert cfg.output.save_map is not None
+    spec = cfg.loops.pipeline
+    return MapWriter(
+        cfg.output.save_map,
+        {spec.display_name: (recognizer, cfg.loops.threshold)},
+        name=seq.name,
+        sensor=seq[0].sensor if len(seq) else None,
+        intensity=intensity_label(cfg.preprocess),
+        preprocess=cfg.preprocess.saved_dump(),
+        config=cfg.model_dump(mode="json"),
+        poses_source="slam",
+        overwrite=cfg.output.overwrite_map,
+    )
+
+
 def run_slam(
     cfg: SlamConfig, out_dir: str | Path | None = None, seq: Sequence | None = None
 ) -> tuple[Path, dict[str, Any]]:
     """Run ``cfg`` and write its results folder; returns (folder, metrics dict). The pipeline, dataset and
-    odometry are set up before the folder is made, so a config that cannot run leaves none behind."""
+    odometry are set up before the folder is made, so a config that cannot run leaves none behind; nor does it
+    leave a half-written map (``output.save_map``)."""
     if seq is None:
         if cfg.dataset.source == "path":
             assert cfg.dataset.path is not None  # DatasetConfig requires it for source 'path'
@@ -222,7 +252,8 @@ def run_slam(
     odometry = odometry_source(cfg, seq)
     _injected(cfg, seq)
     _timestamps(seq)
+    writer = None if cfg.output.save_map is None else map_writer_for(cfg, seq, rec)
     run = make_run_dir(cfg, out_dir)
-    with interruptible(run):
-        result = slam_sequence(cfg, seq, rec, odometry)
+    with interruptible(run), writer or contextlib.nullcontext():
+        result = slam_sequence(cfg, seq, rec, odometry, writer)
         return run, report_slam(cfg, run, seq, result)
