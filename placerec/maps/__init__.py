@@ -3,5 +3,16 @@
 them; docs/maps.md shows the whole workflow."""
 
 from placerec.maps.artifact import MapArtifact, MapGraph, MapMismatchError, MapWriter, is_map_folder
+from placerec.maps.localizer import Fix, Localizer, LocalizerParams, TrackingParams
 
-__all__ = ["MapArtifact", "MapWriter", "MapGraph", "MapMismatchError", "is_map_folder"]
+__all__ = [
+    "MapArtifact",
+    "MapWriter",
+    "MapGraph",
+    "MapMismatchError",
+    "is_map_folder",
+    "Localizer",
+    "LocalizerParams",
+    "TrackingParams",
+    "Fix",
+]

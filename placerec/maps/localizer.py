@@ -1,0 +1,319 @@
+"""Relocalisation against a map artifact (`placerec.maps.artifact`): where is this scan in the map?
+
+`Localizer` answers a scan with a `Fix`: the scan's pose ``T_world_query`` in the map frame, accepted or not and
+why, the keyframe it was verified against, how many candidates were tried and the time of each stage. It only
+*queries* the map: the pipelines' databases are never added to (a query that does not insert), the keyframe
+clouds are read from their memory map.
+
+Two ways to find a fix, tried in this order:
+
+* **tracking** (when a prior pose is known): ICP of the scan onto the stored clouds of the ``max_keyframes``
+  keyframes nearest to the prior (within ``radius_m``), each started from the prior
+  (``T_keyframe_query = inv(T_world_keyframe) @ prior``), accepted by the tracking verification's rule
+  (`placerec.verify.score`) and refused when it moves the prior by more than ``max_correction_m`` /
+  ``max_correction_deg`` (reason ``jump``): a prior is trusted only to that much. Milliseconds.
+* **global search**: the map pipeline's ``query_description`` over every keyframe (``k`` candidates, verified by
+  the pipeline itself); the best *accepted* candidate scoring at least the threshold gives
+  ``T_world_query = T_world_keyframe @ T_keyframe_query``. A rejected candidate is no answer, never a fix.
+
+`Localizer.localize` is stateless (a prior in, a fix out); `Localizer.track` keeps the last fix and predicts the
+next prior from the caller's odometry (or a constant velocity), falling back to global search after
+``fail_after`` tracking failures in a row (a kidnapped robot), `Localizer.reset` forgets it all.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from placerec.errors import ScanDataError
+from placerec.maps.artifact import MapArtifact
+from placerec.params import Params
+from placerec.preprocess import PreprocessParams, preprocess_scan
+from placerec.types import Scan, as_pose, interpolate_trajectory, valid_points
+from placerec.verify import IcpCloud, as_source, as_target, verify_icp
+from placerec.verify.params import IcpParams, ScoreParams, VerifyParams
+
+__all__ = ["TrackingParams", "LocalizerParams", "Fix", "Localizer", "correction"]
+
+
+def _tracking_verify() -> VerifyParams:
+    """ICP from a prior that is right to a metre or two: one coarse stage at 2 m, then the 1 m gate, 20 iterations
+    each; accepted when the verified score reaches 0.2 and at least 40 % of the scan's voxels overlap the keyframe.
+    On the simulator's tuning seed (docs/maps.md, 'Relocalisation') correct fixes scored >= 0.27 with fitness
+    >= 0.62 from priors up to 2 m / 10 deg off, ICP onto the wrong place <= 0.08 with fitness <= 0.19."""
+    return VerifyParams(
+        icp=IcpParams(max_iterations=20),
+        score=ScoreParams(min_score=0.2, min_fitness=0.4),
+        icp_only_coarse_distances=[2.0],
+    )
+
+
+class TrackingParams(Params):
+    """Tracking: verify the scan against the map's keyframes near a prior pose."""
+
+    radius_m: float = Field(15.0, gt=0, description="m; keyframes searched around the prior's position")
+    max_keyframes: int = Field(2, ge=1, le=100, description="nearest keyframes tried, nearest first")
+    verify: VerifyParams = Field(
+        default_factory=_tracking_verify,
+        description="ICP-only verification from the prior and its acceptance (score, min_fitness)",
+    )
+    max_correction_m: float = Field(
+        2.0, gt=0, description="m; a fix moving the prior farther than this is refused (reason 'jump')"
+    )
+    max_correction_deg: float = Field(
+        10.0, gt=0, le=180, description="deg; a fix turning the prior more than this is refused ('jump')"
+    )
+    fail_after: int = Field(
+        1, ge=1, le=1000, description="tracking failures in a row before track() falls back to global search"
+    )
+    cached_keyframes: int = Field(
+        32, ge=1, le=100_000, description="prepared keyframe clouds kept (least recently used dropped)"
+    )
+
+
+class LocalizerParams(Params):
+    """Everything `Localizer` uses (``placerec localize --set key=value`` sets them)."""
+
+    pipeline: str | None = Field(
+        None, description="the map pipeline for global search (None: the map's first)"
+    )
+    k: int = Field(5, ge=1, le=1000, description="candidates per global query")
+    threshold: float | None = Field(
+        None, description="global fixes score at least this (None: the map pipeline's operating threshold)"
+    )
+    tracking: TrackingParams = Field(default_factory=TrackingParams)
+    allow_other_sensor: bool = Field(
+        False, description="localise scans of another sensor than the map's (refused by default)"
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class Fix:
+    """The answer to one scan.
+
+    ``T_world_query``: the scan's pose in the map (4x4), None unless ``accepted``. ``mode``: the stage that gave
+    the answer (``tracking`` or ``global``; a global fallback after a failed tracking attempt is ``global``).
+    ``reason``: ``ok``, or why there is no fix (e.g. ``no keyframe within 15 m``, ``rejected: low fitness 0.31``,
+    ``jump 3.2 m``, ``no candidate``, ``below threshold``). ``keyframe_id``: the keyframe the answer was verified
+    against (-1: none); ``score`` / ``fitness``: its verified score and ICP overlap (NaN: none).
+    ``candidates_tried``: keyframes verified by tracking plus candidates examined by global search. ``time_ms``:
+    the whole call; ``timing_ms``: per stage (``preprocess``, ``prepare``, ``tracking``, ``describe``,
+    ``query``)."""
+
+    T_world_query: np.ndarray | None
+    accepted: bool
+    mode: Literal["tracking", "global"]
+    reason: str
+    keyframe_id: int = -1
+    score: float = float("nan")
+    fitness: float = float("nan")
+    candidates_tried: int = 0
+    time_ms: float = 0.0
+    timing_ms: dict[str, float] = field(default_factory=dict)
+
+
+def correction(T_prior: np.ndarray, T_fix: np.ndarray) -> tuple[float, float]:
+    """(metres, degrees) that ``T_fix`` moves and turns ``T_prior`` by."""
+    D = np.linalg.inv(T_prior) @ T_fix
+    cos = (np.trace(D[:3, :3]) - 1.0) / 2.0
+    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+class Localizer:
+    """Localise scans in ``map`` (a `MapArtifact` or its folder) with ``params`` (module docstring).
+
+    Raw scans are preprocessed as the map's were (its manifest's ``preprocess``); a scan from another sensor
+    than the map's is a `placerec.maps.artifact.MapMismatchError` unless ``params.allow_other_sensor``."""
+
+    def __init__(self, map: MapArtifact | str | Path, params: LocalizerParams | None = None) -> None:
+        self.map = map if isinstance(map, MapArtifact) else MapArtifact.open(map)
+        self.params = params or LocalizerParams()
+        self.pipeline = self.map.pipeline(self.params.pipeline)
+        t = self.params.threshold
+        self.threshold = t if t is not None else self.pipeline.threshold
+        self.preprocess = PreprocessParams.model_validate(self.map.manifest.preprocess)
+        self._targets: OrderedDict[int, IcpCloud | None] = OrderedDict()
+        self._sensors_checked: set[str] = set()
+        self.reset()
+
+    # -- state of track() -------------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the tracked state (a new start, a kidnap): the next `track` searches globally."""
+        self._scan = 0  # scans seen by track()
+        self._fixes: list[
+            tuple[int, np.ndarray, np.ndarray | None]
+        ] = []  # (scan, T_world, odometry) of the last 2
+        self._failures = 0
+
+    def prior(self, odometry_pose: np.ndarray | None = None) -> np.ndarray | None:
+        """The pose `track` predicts for its next scan: the last fix moved by the odometry since then (with
+        ``odometry_pose``, the caller's ``T_odom_scan``), else by the velocity between the last two fixes; None
+        before the first fix."""
+        if not self._fixes:
+            return None
+        k, T, odo = self._fixes[-1]
+        if odometry_pose is not None and odo is not None:
+            return T @ np.linalg.inv(odo) @ as_pose(odometry_pose, "odometry_pose")
+        if len(self._fixes) < 2:
+            return T
+        (k0, T0, _), at = self._fixes[0], np.array([float(self._scan)])
+        return interpolate_trajectory(np.array([float(k0), float(k)]), np.stack([T0, T]), at)[0]
+
+    def track(self, scan: Scan, odometry_pose: np.ndarray | None = None) -> Fix:
+        """Localise the next scan of a drive: tracking from the predicted pose (`prior`), global search when
+        there is no prior yet or tracking failed ``fail_after`` times in a row."""
+        odo = None if odometry_pose is None else as_pose(odometry_pose, "odometry_pose")
+        prior = self.prior(odo)
+        fallback = prior is None or self._failures + 1 >= self.params.tracking.fail_after
+        fix = self._localize(scan, prior, allow_global=fallback)
+        if fix.accepted:
+            assert fix.T_world_query is not None
+            # a velocity spans two fixes of one track: a global fix (a new start, maybe after a kidnap) starts one
+            kept = self._fixes[-1:] if fix.mode == "tracking" else []
+            self._fixes = [*kept, (self._scan, fix.T_world_query, odo)]
+            self._failures = 0
+        else:
+            self._failures += 1
+        self._scan += 1
+        return fix
+
+    # -- one scan ---------------------------------------------------------------------------------------------
+    def localize(self, scan: Scan, prior: np.ndarray | None = None) -> Fix:
+        """The fix of one raw ``scan``: tracking from ``prior`` (a guess of ``T_world_query``) when given, then
+        global search if that fails or there is no prior (module docstring)."""
+        return self._localize(scan, None if prior is None else as_pose(prior, "prior"), allow_global=True)
+
+    def _localize(self, raw: Scan, prior: np.ndarray | None, allow_global: bool) -> Fix:
+        t_start = time.perf_counter()
+        self._check_sensor(raw)
+        timing: dict[str, float] = {}
+        t = time.perf_counter()
+        scan = preprocess_scan(raw, self.preprocess, keep_organized=True)
+        timing["preprocess"] = (time.perf_counter() - t) * 1e3
+        tracked: Fix | None = None
+        if prior is not None:
+            tracked = self._track(scan, prior, timing)
+            if tracked.accepted or not allow_global:
+                return _finish(tracked, timing, t_start)
+        found = self._global(scan, timing)
+        if tracked is not None and not found.accepted:
+            found = replace(found, reason=f"tracking: {tracked.reason}; global: {found.reason}")
+        tried = found.candidates_tried + (tracked.candidates_tried if tracked else 0)
+        return _finish(replace(found, candidates_tried=tried), timing, t_start)
+
+    def _check_sensor(self, scan: Scan) -> None:
+        name = scan.sensor.name
+        if name not in self._sensors_checked:
+            self.map.check_query(scan.sensor, allow_other_sensor=self.params.allow_other_sensor)
+            self._sensors_checked.add(name)
+
+    # -- tracking ---------------------------------------------------------------------------------------------
+    def _track(self, scan: Scan, prior: np.ndarray, timing: dict[str, float]) -> Fix:
+        tp = self.params.tracking
+        ids, _ = self.map.nearest(prior[:3, 3], k=tp.max_keyframes, radius=tp.radius_m)
+        if not len(ids):
+            return Fix(None, False, "tracking", f"no keyframe within {tp.radius_m:g} m")
+        t = time.perf_counter()
+        try:
+            source = as_source(scan.xyz[valid_points(scan)], tp.verify)
+        except ScanDataError as exc:
+            timing["prepare"] = (time.perf_counter() - t) * 1e3
+            return Fix(None, False, "tracking", f"scan cannot be verified: {exc}")
+        timing["prepare"] = (time.perf_counter() - t) * 1e3
+        icp_ms = 0.0
+        reason, tried, best = "no keyframe cloud", 0, None
+        for kf in (int(i) for i in ids):
+            t = time.perf_counter()
+            target = self._target(kf)
+            t_icp = time.perf_counter()
+            timing["prepare"] += (t_icp - t) * 1e3
+            if target is None:
+                continue
+            T_kf = self.map.poses[kf]
+            v = verify_icp(source, target, np.linalg.inv(T_kf) @ prior, tp.verify)
+            icp_ms += (time.perf_counter() - t_icp) * 1e3
+            tried += 1
+            if best is None or v.score > best[1].score:
+                best = (kf, v)
+            if not v.accepted:
+                reason = _rejection(v.score, v.fitness, tp.verify.score)
+                continue
+            T = T_kf @ v.T_match_query
+            metres, degrees = correction(prior, T)
+            if metres > tp.max_correction_m or degrees > tp.max_correction_deg:
+                reason = f"jump {metres:.1f} m" if metres > tp.max_correction_m else f"jump {degrees:.1f} deg"
+                continue
+            timing["tracking"] = icp_ms
+            return Fix(T, True, "tracking", "ok", kf, v.score, v.fitness, tried)
+        timing["tracking"] = icp_ms
+        if best is None:
+            return Fix(None, False, "tracking", reason, candidates_tried=tried)
+        kf, v = best
+        return Fix(None, False, "tracking", reason, kf, v.score, v.fitness, tried)
+
+    def _target(self, kf: int) -> IcpCloud | None:
+        """Keyframe ``kf``'s cloud prepared for ICP (None: too few points), from the LRU when it is there."""
+        if kf in self._targets:
+            self._targets.move_to_end(kf)
+            return self._targets[kf]
+        try:
+            target: IcpCloud | None = as_target(self.map.cloud(kf), self.params.tracking.verify)
+        except ScanDataError:
+            target = None
+        self._targets[kf] = target
+        while len(self._targets) > self.params.tracking.cached_keyframes:
+            self._targets.popitem(last=False)
+        return target
+
+    # -- global search ----------------------------------------------------------------------------------------
+    def _global(self, scan: Scan, timing: dict[str, float]) -> Fix:
+        rec = self.map.recognizer(self.pipeline.name)
+        t = time.perf_counter()
+        try:
+            desc = rec.describe(scan)
+        except ScanDataError as exc:
+            timing["describe"] = (time.perf_counter() - t) * 1e3
+            return Fix(None, False, "global", f"scan cannot be described: {exc}")
+        timing["describe"] = (time.perf_counter() - t) * 1e3
+        t = time.perf_counter()
+        candidates = rec.query_description(desc, k=self.params.k, max_id=None)
+        timing["query"] = (time.perf_counter() - t) * 1e3
+        if not candidates:
+            return Fix(None, False, "global", "no candidate")
+        threshold = -math.inf if self.threshold is None else self.threshold
+        first_rejection = None
+        for c in candidates:
+            fitness = float("nan") if c.verification is None else c.verification.fitness
+            if c.accepted is False or c.relative_pose is None:
+                first_rejection = first_rejection or (c, "rejected by verification")
+                continue
+            if c.accepted is None:
+                first_rejection = first_rejection or (c, "not verified by the pipeline")
+                continue
+            if c.score < threshold:
+                first_rejection = first_rejection or (c, f"below threshold ({c.score:.3f} < {threshold:g})")
+                continue
+            T = self.map.poses[c.match_id] @ np.asarray(c.relative_pose, np.float64)
+            return Fix(T, True, "global", "ok", int(c.match_id), float(c.score), fitness, len(candidates))
+        c, why = first_rejection if first_rejection else (candidates[0], "no accepted candidate")
+        fitness = float("nan") if c.verification is None else c.verification.fitness
+        return Fix(None, False, "global", why, int(c.match_id), float(c.score), fitness, len(candidates))
+
+
+def _rejection(score: float, fitness: float, rule: ScoreParams) -> str:
+    """Why the tracking verification refused a keyframe, in the rule's words."""
+    if rule.min_fitness is not None and not fitness >= rule.min_fitness:
+        return f"rejected: low fitness {fitness:.2f}"
+    return f"rejected: low score {score:.2f}"
+
+
+def _finish(fix: Fix, timing: dict[str, float], t_start: float) -> Fix:
+    return replace(fix, time_ms=(time.perf_counter() - t_start) * 1e3, timing_ms=dict(timing))

@@ -1,0 +1,284 @@
+"""``placerec localize``: every scan of a sequence localised against a map artifact, and the results folder.
+
+`localize_sequence` runs a `placerec.maps.localizer.Localizer` over a sequence, in order: ``mode="tracking"``
+(`Localizer.track`: tracking from the last fix moved by the odometry, ``odometry="kiss-icp"``, or by a constant
+velocity, ``"none"``; global search when tracking fails) or ``mode="global"`` (`Localizer.localize` on each scan
+alone, no prior). `report_localize` writes what it found into a folder:
+
+* ``poses_tum.txt`` — the accepted fixes with their scans' times (the scan index when the sequence has none);
+* ``poses_kitti.txt`` — the accepted fixes only (KITTI has no time column and no "missing" row), and
+  ``fixed_scans.txt`` — the scan index of each of its lines, one a line;
+* ``fixes.csv`` — every scan: ``index, time, accepted, mode, reason, x, y, z, roll, pitch, yaw`` (the fix;
+  empty when not accepted), ``keyframe, score, fitness, candidates, time_ms``, and with ground truth
+  ``translation_error, rotation_error_deg, correct`` (an accepted fix within 1 m and 5 deg);
+* ``metrics.json`` — scans, accepted, correct, false fixes (accepted but beyond 1 m / 5 deg), the success rate
+  (correct / scans: accepted answers only), the time per scan of each mode (median, p95, ...);
+* ``fixes.png`` — the map's keyframes (grey), correct fixes (green), false fixes (red), and the true positions of
+  the scans without a fix (black x; with no ground truth, accepted fixes are blue).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from placerec.errors import ConfigError
+from placerec.eval.metrics import timing_summary
+from placerec.eval.pose_error import error_stats, pose_errors
+from placerec.experiment.candidates import pose_to_xyzrpy
+from placerec.experiment.run_folder import finite_or_null, json_default, slug
+from placerec.io import write_kitti_poses, write_tum_poses
+from placerec.io.atomic import atomic_write
+from placerec.maps.artifact import MapArtifact
+from placerec.maps.localizer import Fix, Localizer, LocalizerParams
+from placerec.types import Sequence
+
+__all__ = [
+    "CORRECT_M",
+    "CORRECT_DEG",
+    "LocalizeRun",
+    "localize_sequence",
+    "report_localize",
+    "default_out",
+    "FIX_COLUMNS",
+]
+
+#: an accepted fix is correct within this distance and angle of the ground truth (issue #29's targets)
+CORRECT_M, CORRECT_DEG = 1.0, 5.0
+FIX_COLUMNS = ("index", "time", "accepted", "mode", "reason", "x", "y", "z", "roll", "pitch", "yaw", "keyframe",
+               "score", "fitness", "candidates", "time_ms")  # fmt: skip
+TRUTH_COLUMNS = ("translation_error", "rotation_error_deg", "correct")
+
+
+@dataclass(frozen=True, eq=False)
+class LocalizeRun:
+    """A localised sequence: every scan's `Fix`, the scans' times (None: unknown), the ground truth (None: the
+    sequence has no poses), the map and how the run was made (``mode``, ``odometry``, parameters)."""
+
+    name: str
+    map: MapArtifact
+    fixes: list[Fix]
+    timestamps: np.ndarray | None
+    ground_truth: np.ndarray | None
+    mode: str
+    odometry: str
+    params: LocalizerParams
+
+    def errors(self) -> tuple[np.ndarray, np.ndarray]:
+        """(translation m, rotation deg) of every scan's accepted fix against the ground truth (NaN: no fix or no
+        ground truth)."""
+        n = len(self.fixes)
+        te, re = np.full(n, np.nan), np.full(n, np.nan)
+        if self.ground_truth is None:
+            return te, re
+        for i, f in enumerate(self.fixes):
+            if f.accepted and f.T_world_query is not None:
+                t, r = pose_errors(f.T_world_query, self.ground_truth[i])
+                te[i], re[i] = t[0], r[0]
+        return te, re
+
+    def correct(self) -> np.ndarray | None:
+        """(N,) True where the accepted fix is within `CORRECT_M` / `CORRECT_DEG` (None: no ground truth)."""
+        if self.ground_truth is None:
+            return None
+        te, re = self.errors()
+        with np.errstate(invalid="ignore"):
+            return (te <= CORRECT_M) & (re <= CORRECT_DEG)
+
+
+def localize_sequence(
+    map: MapArtifact | str | Path,
+    seq: Sequence,
+    params: LocalizerParams | None = None,
+    mode: Literal["tracking", "global"] = "tracking",
+    odometry: Literal["none", "kiss-icp"] = "none",
+    progress: Callable[[int, int], None] | None = None,
+) -> LocalizeRun:
+    """Localise every scan of ``seq`` in ``map`` (module docstring). The map's `check_query` (the sensor of the
+    first scan, unless ``params.allow_other_sensor``) runs before any scan is localised."""
+    if mode not in ("tracking", "global"):
+        raise ConfigError(f"mode must be 'tracking' or 'global', got {mode!r}")
+    if odometry not in ("none", "kiss-icp"):
+        raise ConfigError(f"odometry must be 'none' or 'kiss-icp', got {odometry!r}")
+    if odometry != "none" and mode == "global":
+        raise ConfigError("odometry is for mode 'tracking' (global search uses no prior)")
+    params = params or LocalizerParams()
+    loc = Localizer(map, params)
+    n = len(seq)
+    if n == 0:
+        raise ConfigError(f"{seq.name}: the sequence has no scans")
+    first = seq[0]
+    loc.map.check_query(first.sensor, allow_other_sensor=params.allow_other_sensor)
+    odo = None
+    if odometry == "kiss-icp":
+        from placerec.slam.odometry import KissIcpOdometry
+
+        odo = KissIcpOdometry()
+    fixes = []
+    for i in range(n):
+        scan = first if i == 0 else seq[i]
+        if odo is None:
+            fix = loc.track(scan) if mode == "tracking" else loc.localize(scan)
+        else:
+            t0 = time.perf_counter()
+            pose = odo.register(scan)
+            odo_ms = (time.perf_counter() - t0) * 1e3
+            fix = loc.track(scan, pose)
+            fix = _with_odometry_time(fix, odo_ms)
+        fixes.append(fix)
+        if progress is not None:
+            progress(i + 1, n)
+    stamps = None if seq.timestamps is None else np.asarray(seq.timestamps, np.float64)
+    gt = None if seq.poses is None else np.asarray(seq.poses, np.float64)
+    return LocalizeRun(seq.name, loc.map, fixes, stamps, gt, mode, odometry, params)
+
+
+def _with_odometry_time(fix: Fix, ms: float) -> Fix:
+    """``fix`` with the odometry's time as a stage of its own (``time_ms`` stays the localiser's)."""
+    return replace(fix, timing_ms={**fix.timing_ms, "odometry": ms})
+
+
+def default_out(name: str, root: str | Path = "results") -> Path:
+    """``<root>/localize_<name>_<timestamp>``: where ``placerec localize`` writes without ``--out``."""
+    return Path(root) / f"localize_{slug(name)}_{datetime.now().strftime('%Y%m%d-%H%M%S')}"
+
+
+def localize_metrics(run: LocalizeRun) -> dict[str, Any]:
+    """The ``metrics.json`` payload (module docstring)."""
+    fixes = run.fixes
+    n = len(fixes)
+    accepted = np.array([f.accepted for f in fixes], bool)
+    modes = np.array([f.mode for f in fixes])
+    times = np.array([f.time_ms for f in fixes], np.float64)
+    payload: dict[str, Any] = {
+        "mode": "localize",
+        "sequence": run.name,
+        "map": str(run.map.path),
+        "pipeline": run.map.pipeline(run.params.pipeline).name,
+        "localize_mode": run.mode,
+        "odometry": run.odometry,
+        "scans": n,
+        "accepted": int(accepted.sum()),
+        "accepted_by_mode": {m: int((accepted & (modes == m)).sum()) for m in ("tracking", "global")},
+        "time_ms": {
+            "all": timing_summary(times),
+            **{m: timing_summary(times[modes == m]) for m in ("tracking", "global")},
+        },
+        "params": run.params.model_dump(mode="json"),
+    }
+    correct = run.correct()
+    if correct is not None:
+        te, re = run.errors()
+        wrong = accepted & ~correct
+        payload.update(
+            correct=int(correct.sum()),
+            false_fixes=int(wrong.sum()),
+            success_rate=float(correct.sum()) / n,
+            correct_within={"metres": CORRECT_M, "degrees": CORRECT_DEG},
+            translation_error_m=error_stats(te[accepted]),
+            rotation_error_deg=error_stats(re[accepted]),
+        )
+    return payload
+
+
+def _rows(run: LocalizeRun) -> tuple[list[str], list[list[Any]]]:
+    """``fixes.csv``'s header and rows (module docstring)."""
+    te, re = run.errors()
+    correct = run.correct()
+    header = list(FIX_COLUMNS) + (list(TRUTH_COLUMNS) if correct is not None else [])
+    rows = []
+    for i, f in enumerate(run.fixes):
+        t = float(run.timestamps[i]) if run.timestamps is not None else float(i)
+        pose = pose_to_xyzrpy(f.T_world_query) if f.T_world_query is not None else [None] * 6
+        row: list[Any] = [i, f"{t:.9f}", int(f.accepted), f.mode, f.reason]
+        row += ["" if v is None else f"{v:.6f}" for v in pose]
+        row += [f.keyframe_id, _g(f.score), _g(f.fitness), f.candidates_tried, f"{f.time_ms:.3f}"]
+        if correct is not None:
+            row += [_g(te[i]), _g(re[i]), int(correct[i])]
+        rows.append(row)
+    return header, rows
+
+
+def _g(v: float) -> str:
+    return f"{v:.6g}" if np.isfinite(v) else ""
+
+
+def report_localize(run: LocalizeRun, out_dir: str | Path, figure: bool = True) -> dict[str, Any]:
+    """Write the results folder of ``run`` into ``out_dir`` (module docstring); returns the metrics dict."""
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out {out}: cannot make the results folder: {exc.strerror or exc}") from None
+    fixed = [i for i, f in enumerate(run.fixes) if f.accepted]
+    poses = np.array([run.fixes[i].T_world_query for i in fixed], np.float64).reshape(-1, 4, 4)
+    stamps = run.timestamps if run.timestamps is not None else np.arange(len(run.fixes), dtype=np.float64)
+    write_tum_poses(out / "poses_tum.txt", poses, stamps[fixed])
+    write_kitti_poses(out / "poses_kitti.txt", poses)
+    with atomic_write(out / "fixed_scans.txt", "w") as fh:
+        fh.write("".join(f"{i}\n" for i in fixed))
+    header, rows = _rows(run)
+    with atomic_write(out / "fixes.csv", "w") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(header)
+        w.writerows(rows)
+    payload = localize_metrics(run)
+    with atomic_write(out / "metrics.json", "w") as fh:
+        json.dump(finite_or_null(payload), fh, indent=2, default=json_default, allow_nan=False)
+    if figure:
+        plot_fixes(run, out / "fixes.png")
+    return payload
+
+
+def plot_fixes(run: LocalizeRun, path: Path) -> Path:
+    """``fixes.png``: the fixes on the map (module docstring)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 6.5), dpi=110)
+    kf = run.map.positions()
+    ax.plot(kf[:, 0], kf[:, 1], ".", color="0.7", ms=3, label=f"map keyframes ({len(kf)})", zorder=1)
+    accepted = np.array([f.accepted for f in run.fixes], bool)
+    xy = np.array(
+        [f.T_world_query[:2, 3] if f.T_world_query is not None else (np.nan, np.nan) for f in run.fixes]
+    )
+    correct = run.correct()
+    if correct is None:
+        groups = [(accepted, "tab:blue", "o", "fixes")]
+    else:
+        groups = [
+            (correct, "tab:green", "o", "correct fixes"),
+            (accepted & ~correct, "tab:red", "o", "false fixes"),
+        ]
+    for mask, color, marker, label in groups:
+        if mask.any():
+            ax.plot(xy[mask, 0], xy[mask, 1], marker, color=color, ms=3.5, label=f"{label} ({int(mask.sum())})",
+                    zorder=3)  # fmt: skip
+    missing = ~accepted
+    if missing.any() and run.ground_truth is not None:
+        g = run.ground_truth[missing, :2, 3]
+        ax.plot(g[:, 0], g[:, 1], "x", color="k", ms=4, label=f"no fix ({int(missing.sum())})", zorder=4)
+    elif missing.any():
+        ax.plot([], [], " ", label=f"no fix: {int(missing.sum())} scans")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    n = len(run.fixes)
+    ax.set_title(f"{run.name} in map {run.map.manifest.name}: {int(accepted.sum())} of {n} scans fixed "
+                 f"({run.mode})", fontsize=9)  # fmt: skip
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    with atomic_write(path) as fh:
+        fig.savefig(fh, format="png")
+    plt.close(fig)
+    return path

@@ -1,0 +1,187 @@
+"""Relocalisation against a map (placerec.maps.localizer, placerec.slam_app.localize, ``placerec localize``): a
+second session over the mapped world is localised within 1 m / 5 deg by global search and by tracking, a scan of
+another world gets no fix, a kidnapped robot is found again within 3 scans, queries never change the map, and the
+command writes its outputs or ends with one error line."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from placerec.artifacts import build
+from placerec.cli import app
+from placerec.errors import ScanDataError
+from placerec.eval.pose_error import pose_errors
+from placerec.maps import MapArtifact
+from placerec.maps.localizer import Fix, Localizer, LocalizerParams, correction
+from placerec.sim import SimulatedSequence
+from placerec.sim.export import write_kitti_sequence
+from placerec.slam_app.localize import localize_sequence, report_localize
+
+N_MAP = 50
+
+
+@pytest.fixture(scope="module")
+def map_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("loc") / "town"
+    return build(
+        "map",
+        {
+            "source": {"sim": {"world": "town", "scans": N_MAP, "seed": 0}},
+            "out": str(out),
+            "pipelines": [{"name": "orb-hbst"}, {"name": "scan-context"}],
+        },
+    )
+
+
+@pytest.fixture(scope="module")
+def day2() -> SimulatedSequence:
+    """Session 2: the same world and sensor unit, other clutter, noise and parked cars."""
+    return SimulatedSequence(world="town", sensor="vlp16", n_scans=N_MAP, seed=11, world_seed=0, unit_seed=0)
+
+
+@pytest.fixture(scope="module")
+def loc(map_dir: Path) -> Localizer:
+    return Localizer(map_dir)
+
+
+def _correct(fix: Fix, truth: np.ndarray) -> bool:
+    assert fix.accepted and fix.T_world_query is not None
+    te, re = pose_errors(fix.T_world_query, truth)
+    return bool(te[0] <= 1.0 and re[0] <= 5.0)
+
+
+def test_global_fixes_are_within_1m_5deg(loc: Localizer, day2: SimulatedSequence) -> None:
+    fixes = [loc.localize(day2[i]) for i in (3, 17, 31, 44)]
+    assert all(f.mode == "global" for f in fixes)
+    accepted = [(i, f) for i, f in zip((3, 17, 31, 44), fixes, strict=True) if f.accepted]
+    assert len(accepted) >= 3, [f.reason for f in fixes]
+    assert all(_correct(f, day2.poses[i]) for i, f in accepted)  # no accepted wrong fix
+    f = accepted[0][1]
+    assert f.reason == "ok" and f.keyframe_id >= 0 and f.candidates_tried >= 1 and f.score > 0
+    assert {"preprocess", "describe", "query"} <= set(f.timing_ms) and f.time_ms > 0
+
+
+def test_tracking_is_correct_and_faster_than_global(map_dir: Path, day2: SimulatedSequence) -> None:
+    loc = Localizer(map_dir)
+    idx = range(5, 25)
+    fixes = [loc.track(day2[i]) for i in idx]
+    assert fixes[0].mode == "global"  # no prior yet
+    tracked = [f for f in fixes if f.mode == "tracking" and f.accepted]
+    assert len(tracked) >= 17, [f.reason for f in fixes]
+    assert all(_correct(f, day2.poses[i]) for i, f in zip(idx, fixes, strict=True) if f.accepted)
+    global_ms = np.median([loc.localize(day2[i]).time_ms for i in (8, 12, 16)])
+    assert np.median([f.time_ms for f in tracked]) < global_ms
+    assert all(f.candidates_tried <= loc.params.tracking.max_keyframes for f in tracked)
+
+
+def test_tracking_with_odometry_follows_the_caller_motion(map_dir: Path, day2: SimulatedSequence) -> None:
+    loc = Localizer(map_dir)
+    odom_origin = np.eye(4)
+    odom_origin[:3, 3] = (100.0, -50.0, 3.0)  # odometry in its own frame
+    for i in range(30, 36):
+        T_odom = odom_origin @ day2.poses[i]
+        f = loc.track(day2[i], T_odom)
+        assert _correct(f, day2.poses[i])
+        if i > 30:
+            assert f.mode == "tracking"
+            assert correction(loc.prior(T_odom), f.T_world_query)[0] < 0.3  # type: ignore[arg-type]
+
+
+def test_another_world_gets_no_fix(loc: Localizer, day2: SimulatedSequence) -> None:
+    campus = SimulatedSequence(world="campus", sensor="vlp16", n_scans=12, seed=5)
+    for i in (2, 8):
+        f = loc.localize(campus[i])
+        assert not f.accepted and f.T_world_query is None, f
+        # a prior at a mapped place: tracking refuses it, then global search finds nothing
+        f = loc.localize(campus[i], prior=day2.poses[10])
+        assert not f.accepted and f.reason.startswith("tracking: rejected"), f.reason
+
+
+def test_kidnapped_robot_is_found_within_3_scans(map_dir: Path, day2: SimulatedSequence) -> None:
+    loc = Localizer(map_dir)
+    for i in (2, 3, 4):
+        assert loc.track(day2[i]).accepted
+    # teleported 35 m on without reset: tracking fails at the old place, global search finds the new one
+    after = [loc.track(day2[i]) for i in (40, 41, 42)]
+    first = next(k for k, f in enumerate(after) if f.accepted)
+    assert first < 3 and _correct(after[first], day2.poses[40 + first])
+    assert after[first].mode == "global" and after[-1].accepted
+    loc.reset()
+    f = loc.track(day2[20])
+    assert f.mode == "global" and _correct(f, day2.poses[20])
+
+
+def test_refused_jump_and_no_keyframe_near_the_prior(map_dir: Path, day2: SimulatedSequence) -> None:
+    params = LocalizerParams.model_validate({"tracking": {"max_correction_m": 0.01, "fail_after": 3}})
+    loc = Localizer(map_dir, params)
+    assert loc.track(day2[10]).mode == "global"
+    f = loc.track(day2[11])  # the prior (scan 10's fix) is 1 m behind: a 1 m correction is refused
+    assert not f.accepted and f.mode == "tracking" and f.reason.startswith("jump"), f.reason
+    far = day2.poses[12].copy()
+    far[:3, 3] += (500.0, 0.0, 0.0)
+    f = Localizer(map_dir).localize(day2[12], prior=far)
+    assert f.mode == "global" and _correct(f, day2.poses[12])  # fell back to global search
+    with pytest.raises(ScanDataError, match="prior"):
+        loc.localize(day2[12], prior=np.eye(3))
+
+
+def test_queries_never_change_the_map(map_dir: Path, day2: SimulatedSequence, tmp_path: Path) -> None:
+    m = MapArtifact.open(map_dir)
+    loc = Localizer(m)
+    rec = m.recognizer()
+    rec.save(tmp_path / "before.npz")
+    loc.localize(day2[7])
+    for i in (20, 21, 22):
+        loc.track(day2[i])
+    rec.save(tmp_path / "after.npz")
+    assert (tmp_path / "before.npz").read_bytes() == (tmp_path / "after.npz").read_bytes()
+    assert (map_dir / "pipelines" / "orb-hbst.npz").read_bytes() == (tmp_path / "after.npz").read_bytes()
+
+
+def test_localize_sequence_writes_its_report(map_dir: Path, tmp_path: Path) -> None:
+    seq = SimulatedSequence(world="town", sensor="vlp16", n_scans=8, seed=12, world_seed=0, unit_seed=0)
+    run = localize_sequence(map_dir, seq, mode="tracking")
+    m = report_localize(run, tmp_path / "r")
+    assert m["scans"] == 8 and m["false_fixes"] == 0 and m["correct"] == m["accepted"] >= 7
+    assert m["success_rate"] == m["correct"] / 8
+    fixed = [int(v) for v in (tmp_path / "r" / "fixed_scans.txt").read_text().split()]
+    assert len(fixed) == m["accepted"] == len((tmp_path / "r" / "poses_kitti.txt").read_text().splitlines())
+    tum = np.loadtxt(tmp_path / "r" / "poses_tum.txt", ndmin=2)
+    np.testing.assert_allclose(tum[:, 0], np.asarray(seq.timestamps)[fixed])
+    rows = (tmp_path / "r" / "fixes.csv").read_text().splitlines()
+    assert len(rows) == 9 and rows[0].endswith("translation_error,rotation_error_deg,correct")
+    assert (tmp_path / "r" / "fixes.png").stat().st_size > 1000
+
+
+def _cli_error(res: object) -> list[str]:
+    return [line for line in res.output.splitlines() if line.startswith("error:")]  # type: ignore[attr-defined]
+
+
+def test_cli_localize(map_dir: Path, tmp_path: Path) -> None:
+    seq = SimulatedSequence(world="town", sensor="vlp16", n_scans=5, seed=13, world_seed=0, unit_seed=0)
+    folder = write_kitti_sequence(seq, tmp_path / "day2", progress=False)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(app, ["localize", str(map_dir), str(folder), "--out", str(out), "--set", "k=3"])
+    assert res.exit_code == 0, res.output
+    names = {"poses_tum.txt", "poses_kitti.txt", "fixed_scans.txt", "fixes.csv", "metrics.json", "fixes.png"}
+    assert names <= {p.name for p in out.iterdir()}
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["scans"] == 5 and metrics["false_fixes"] == 0 and metrics["params"]["k"] == 3
+    assert "within 1 m / 5 deg" in res.output
+
+    res = CliRunner().invoke(app, ["localize", str(tmp_path / "nope"), str(folder)])
+    assert res.exit_code == 2 and len(_cli_error(res)) == 1 and "no such map" in res.output
+
+    other = write_kitti_sequence(
+        SimulatedSequence(world="town", sensor="hdl64", n_scans=2, seed=13), tmp_path / "hdl", progress=False
+    )
+    res = CliRunner().invoke(app, ["localize", str(map_dir), str(other), "--out", str(tmp_path / "o2")])
+    assert res.exit_code == 2 and len(_cli_error(res)) == 1 and "--allow-other-sensor" in res.output
+    assert not (tmp_path / "o2").exists()  # refused before any work
+    res = CliRunner().invoke(app, ["localize", str(map_dir), str(folder), "--mode", "sideways"])
+    assert res.exit_code == 2 and "mode" in _cli_error(res)[0]
