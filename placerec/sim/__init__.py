@@ -8,6 +8,7 @@ It is the default dataset of every placerec config and the test bed of every pip
     seq.poses, seq.timestamps, seq.revisits, seq.beam_response      # ground truth
     SimulatedSequence(sensor="avia", sweep_motion=True)             # Livox rosette, rendered while moving
     simulate("town", "hdl64", 200, 0, "out/town_hdl64")             # KITTI-style folder (the CLI's command)
+    make_session_pair("town", "vlp16", 0, kind="partial")           # a map drive and a second session
 
 See ``docs/simulator.md`` for the models, presets, file layout and what still differs from real scans.
 """
@@ -26,6 +27,7 @@ from placerec.sim.presets import PRESETS, preset_names
 from placerec.sim.routes import ROUTES, Revisit, Route, find_revisits, make_route
 from placerec.sim.sensors import SENSORS, SensorModel, frame_rays, get_sensor, sensor_names
 from placerec.sim.sequence import SimulatedSequence
+from placerec.sim.sessions import KidnapTrial, SessionPair, kidnap_trials, make_session_pair
 from placerec.sim.world import World, build_world
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
@@ -37,6 +39,10 @@ __all__ = [
     "make_localization_split",
     "LocalizationSplit",
     "CONDITIONS",
+    "make_session_pair",
+    "SessionPair",
+    "kidnap_trials",
+    "KidnapTrial",
     "SensorModel",
     "SENSORS",
     "get_sensor",

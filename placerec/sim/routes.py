@@ -35,7 +35,16 @@ from placerec.sim.geometry import euler_rotation
 from placerec.sim.site import RoadGraph
 from placerec.sim.world import World
 
-__all__ = ["Revisit", "Route", "ROUTES", "make_route", "find_revisits", "poses_from_xy_yaw"]
+__all__ = [
+    "Revisit",
+    "Route",
+    "ROUTES",
+    "make_route",
+    "route_from_plan",
+    "connect_waypoints",
+    "find_revisits",
+    "poses_from_xy_yaw",
+]
 
 Node = tuple[int, int]
 
@@ -127,6 +136,61 @@ def _bfs(roads: RoadGraph, start: Node, goal_fn) -> list[Node]:
                 prev[m] = n
                 q.append(m)
     return [start]
+
+
+def connect_waypoints(
+    roads: RoadGraph,
+    waypoints: list[Node],
+    lanes: list[int],
+    avoid: set[Node] | frozenset[Node] = frozenset(),
+    max_detour: int | None = None,
+    drop_unreachable: bool = False,
+) -> tuple[list[Node], list[int]]:
+    """A plan through ``waypoints`` (absolute nodes) with a lane per leg: a leg whose street exists is driven
+    directly, a missing one (the campus drops some paths) by the shortest detour through nodes not in ``avoid``
+    (at most ``max_detour`` streets; the detour keeps the leg's lane). A waypoint that cannot be reached so is
+    skipped with ``drop_unreachable`` (the plan goes on to the next one; an unreachable first leg drops the first
+    waypoint), else a `ConfigError`; so is a waypoint off the graph."""
+    i_max, j_max = roads.nodes.shape[:2]
+    for w in waypoints:
+        if not (0 <= w[0] < i_max and 0 <= w[1] < j_max):
+            raise ConfigError(f"sim.route: waypoint {w} is outside the road graph ({i_max} x {j_max} nodes)")
+    nodes, out_lanes = [waypoints[0]], []
+    for b, lane in zip(waypoints[1:], lanes, strict=True):
+        a = nodes[-1]
+        leg = _detour(roads, a, b, set(avoid) - {a, b}, max_detour)
+        if leg is None:
+            if not drop_unreachable:
+                raise ConfigError(
+                    f"sim.route: no street from {a} to {b} avoiding {sorted(set(avoid) - {a, b})}"
+                )
+            if len(nodes) == 1:
+                nodes = [b]
+            continue
+        nodes.extend(leg[1:])
+        out_lanes.extend([lane] * (len(leg) - 1))
+    return nodes, out_lanes
+
+
+def _detour(roads: RoadGraph, a: Node, b: Node, blocked: set[Node], max_len: int | None) -> list[Node] | None:
+    """``[a, b]`` when the street exists, else the shortest path from a to b around ``blocked`` (None if there is
+    none of at most ``max_len`` streets)."""
+    if roads.has_edge(a, b):
+        return [a, b]
+    prev: dict[Node, Node | None] = {a: None}
+    q = deque([a])
+    while q and b not in prev:
+        n = q.popleft()
+        for m in roads.neighbours(n):
+            if m not in prev and m not in blocked:
+                prev[m] = n
+                q.append(m)
+    if b not in prev:
+        return None
+    leg = [b]
+    while (back := prev[leg[-1]]) is not None:
+        leg.append(back)
+    return leg[::-1] if max_len is None or len(leg) - 1 <= max_len else None
 
 
 def _extend(
@@ -272,13 +336,87 @@ def make_route(
         for n in [(ai, aj + 1), (ai + 1, aj + 1), (ai + 1, aj), (ai, aj)]:
             nodes.append(n)
             lanes.append(0)
+    return _sample_route(
+        world, nodes, lanes, kind, n_scans, spacing, rate_hz, sensor_height, speed, seed, t0, rng
+    )
+
+
+def route_from_plan(
+    world: World,
+    nodes: list[Node],
+    lanes: list[int],
+    name: str = "plan",
+    n_scans: int | None = None,
+    spacing: float = 1.0,
+    rate_hz: float | None = None,
+    sensor_height: float = 1.8,
+    speed: float = 9.0,
+    seed: int = 0,
+    t0: float = 0.0,
+    phase: float = 0.0,
+) -> Route:
+    """A route along an explicit plan: absolute road-graph ``nodes`` (each consecutive pair an edge) and a lane per
+    leg, smoothed and sampled like `make_route`'s (``n_scans`` beyond the plan continues over unvisited streets).
+
+    ``phase`` in [0, 1) shifts the samples by that fraction of a step (``phase * spacing`` metres, or
+    ``phase / rate_hz`` seconds), so a second drive along the same plan does not take its scans at the very spots
+    of the first."""
+    if len(nodes) < 2 or len(lanes) != len(nodes) - 1:
+        raise ConfigError(
+            f"sim.route: a plan needs >= 2 nodes and one lane per leg, got {len(nodes)} nodes and {len(lanes)} lanes"
+        )
+    for a, b in zip(nodes[:-1], nodes[1:], strict=True):
+        if not world.roads.has_edge(a, b):
+            raise ConfigError(
+                f"sim.route: the plan's leg {a} -> {b} is not a street of world {world.preset!r}"
+            )
+    if spacing <= 0 or (rate_hz is not None and rate_hz <= 0):
+        raise ConfigError("sim.route: spacing and rate_hz must be positive")
+    if not 0.0 <= phase < 1.0:
+        raise ConfigError(f"sim.route: phase must be in [0, 1), got {phase}")
+    rng = np.random.default_rng([int(seed), 0x2077])
+    return _sample_route(
+        world,
+        list(nodes),
+        list(lanes),
+        name,
+        n_scans,
+        spacing,
+        rate_hz,
+        sensor_height,
+        speed,
+        seed,
+        t0,
+        rng,
+        phase,
+    )
+
+
+def _sample_route(
+    world: World,
+    nodes: list[Node],
+    lanes: list[int],
+    name: str,
+    n_scans: int | None,
+    spacing: float,
+    rate_hz: float | None,
+    sensor_height: float,
+    speed: float,
+    seed: int,
+    t0: float,
+    rng: np.random.Generator,
+    phase: float = 0.0,
+) -> Route:
+    """Smooth the plan, sample it (extending it over unvisited streets while ``n_scans`` asks for more) and give
+    each sample its pose on the terrain with a little suspension motion."""
+    roads = world.roads
     for _ in range(50):
         xy, s, heading, v = _sample_path(roads, nodes, lanes, speed)
         t_of_s = np.concatenate([[0.0], np.cumsum(np.diff(s) / (0.5 * (v[1:] + v[:-1])))])
         if rate_hz is None:
-            samples = np.arange(0.0, s[-1], spacing)
+            samples = np.arange(phase * spacing, s[-1], spacing)
         else:
-            samples = np.interp(np.arange(0.0, t_of_s[-1], 1.0 / rate_hz), t_of_s, s)
+            samples = np.interp(np.arange(phase / rate_hz, t_of_s[-1], 1.0 / rate_hz), t_of_s, s)
         if n_scans is None or len(samples) >= n_scans:
             break
         _extend(
@@ -306,18 +444,18 @@ def make_route(
         - world.ground_height(px + e * np.sin(yaw), py - e * np.cos(yaw))
     ) / (2 * e)
     wob = np.random.default_rng([int(seed), 0x3B0B])
-    phase = wob.uniform(0, 2 * np.pi, 4)
-    pitch = -np.arctan(fx) + np.radians(0.3) * np.sin(samples / 7.0 + phase[0]) * np.sin(
-        samples / 23.0 + phase[1]
+    wobble = wob.uniform(0, 2 * np.pi, 4)
+    pitch = -np.arctan(fx) + np.radians(0.3) * np.sin(samples / 7.0 + wobble[0]) * np.sin(
+        samples / 23.0 + wobble[1]
     )
-    roll = np.arctan(fy) + np.radians(0.3) * np.sin(samples / 5.0 + phase[2]) * np.sin(
-        samples / 17.0 + phase[3]
+    roll = np.arctan(fy) + np.radians(0.3) * np.sin(samples / 5.0 + wobble[2]) * np.sin(
+        samples / 17.0 + wobble[3]
     )
     poses = poses_from_xy_yaw(pxy, z + sensor_height, yaw, pitch, roll)
     return Route(
         poses=poses,
         timestamps=times,
-        name=kind,
+        name=name,
         revisits=find_revisits(poses, samples),
         arc_length=samples,
         plan=nodes,
