@@ -8,13 +8,19 @@
 ...     for closure in detector.process(scan, pose=pose):
 ...         graph.add_edge(closure.match_id, closure.query_id, closure.relative_pose)
 
-Scans get consecutive ids from 0 in the order they are fed. Each scan first queries the database restricted to
-scans older than the exclusion window, then is added. A scan the recognizer cannot describe (blank, a few points)
-raises `ScanDataError` and takes no id; `skip` records a frame that is no place, so ids can follow frame numbers.
-Candidates with ``score >= threshold`` are accepted and returned; the threshold is applied here, inside the
-library. ``relative_pose`` (when the pipeline estimates one) is ``T_match_query``: it maps points of the new scan
-into the frame of the matched older scan. A stream shorter than the exclusion window queries nothing: every scan
-gets no candidates (``last_max_id`` -1).
+Scans get consecutive ids from 0 (from ``prior_entries``, below) in the order they are fed. Each scan first
+queries the database restricted to scans older than the exclusion window, then is added. A scan the recognizer
+cannot describe (blank, a few points) raises `ScanDataError` and takes no id; `skip` records a frame that is no
+place, so ids can follow frame numbers. Candidates with ``score >= threshold`` are accepted and returned; the
+threshold is applied here, inside the library. ``relative_pose`` (when the pipeline estimates one) is
+``T_match_query``: it maps points of the new scan into the frame of the matched older scan. A stream shorter than
+the exclusion window queries nothing: every scan gets no candidates (``last_max_id`` -1).
+
+**Against a prior map** (``prior_entries`` M > 0: the recognizer already holds a saved map's M places under ids
+0..M-1, e.g. a loaded map artifact's database) the stream's places get ids M, M+1, ...; the exclusion window
+counts only the stream's own places (frames, seconds and metres of this session), and the map's places are always
+eligible: a query's bound is ``M - 1 + (the own places' bound)``, so the first scan already queries the map.
+A candidate with ``match_id < prior_entries`` is an inter-session closure (`placerec.slam.multisession`).
 
 With ``keyframes`` (`placerec.keyframes.KeyframeParams`) the detector accumulates the scans fed to `process` into
 keyframes (`placerec.keyframes.KeyframeBuilder`: a time or distance window, de-skewed, in the frame of the window's
@@ -54,7 +60,8 @@ class LoopClosureDetector:
     ``last_max_id`` is the bound the last query used (``-1``: nothing was eligible, the query was skipped).
     ``k``: candidates requested per query (accepted ones are returned best first). ``loop_filter``: DLoopDetector's
     islands and temporal consistency over each query's candidates (`placerec.loop_filter`; None: off); the reason a
-    filtered query has no candidate is in ``last_status``.
+    filtered query has no candidate is in ``last_status``. ``prior_entries``: places of a prior map the recognizer
+    already holds under ids 0..prior_entries-1, always eligible (module docstring); 0: none.
     """
 
     @classmethod
@@ -88,7 +95,11 @@ class LoopClosureDetector:
         k: int = 1,
         loop_filter: LoopFilterParams | None = None,
         keyframes: KeyframeParams | None = None,
+        prior_entries: int = 0,
     ) -> None:
+        if prior_entries < 0:
+            raise ConfigError(f"prior_entries must be >= 0 (places of a prior map), got {prior_entries}")
+        self.prior_entries = int(prior_entries)
         self.exclusion = ExclusionWindow(exclusion_frames, exclusion_seconds, exclusion_metres)
         self.keyframes = None if keyframes is None else KeyframeBuilder(keyframes, label="stream")
         self._keyframe_scans: list[tuple[int, ...]] = []
@@ -110,18 +121,28 @@ class LoopClosureDetector:
 
     @property
     def n_processed(self) -> int:
-        """Places processed (or skipped): scans, or keyframes with ``keyframes``."""
+        """Places processed (or skipped): scans, or keyframes with ``keyframes`` (the stream's own; a prior map's
+        entries are not counted)."""
         return len(self._path)
+
+    @property
+    def next_id(self) -> int:
+        """The id the next place gets: ``prior_entries + n_processed``."""
+        return self.prior_entries + len(self._path)
 
     def keyframe_scans(self, keyframe_id: int) -> tuple[int, ...]:
         """The scans (numbered in the order fed to `process`, from 0) that keyframe ``keyframe_id`` holds;
-        `ConfigError` without ``keyframes``, `IndexError` for an id not given yet."""
+        `ConfigError` without ``keyframes``, `IndexError` for an id not given yet or one of a prior map's."""
         if self.keyframes is None:
             raise ConfigError("keyframe_scans: this detector has no keyframes")
-        return self._keyframe_scans[keyframe_id]
+        if keyframe_id < self.prior_entries:
+            raise IndexError(f"keyframe {keyframe_id} is a prior map's entry (ids < {self.prior_entries})")
+        return self._keyframe_scans[keyframe_id - self.prior_entries]
 
-    def _max_eligible_id(self, scan_id: int) -> int:
-        return int(self.exclusion.max_eligible(scan_id, self._times, self._path))
+    def _max_eligible_id(self, own_index: int) -> int:
+        """The query bound of the stream's place ``own_index`` (0, 1, ... within the stream): the exclusion
+        window over the stream's own places, shifted past the prior map's entries, which are all eligible."""
+        return self.prior_entries + int(self.exclusion.max_eligible(own_index, self._times, self._path))
 
     def _record_motion(self, pose: np.ndarray | None, timestamp: float | None) -> None:
         """Append the scan's timestamp and distance travelled (checked first, so a refused scan leaves no trace)."""
@@ -191,7 +212,7 @@ class LoopClosureDetector:
             accepted = self._process_place(keyframe.scan, keyframe.pose, keyframe.timestamp, None)
         except ScanDataError as exc:
             self._skip_place(keyframe.pose, keyframe.timestamp)
-            self.last_status = f"keyframe {self.n_processed - 1} not described: {exc}"
+            self.last_status = f"keyframe {self.next_id - 1} not described: {exc}"
             accepted = []
         self._keyframe_scans.append(keyframe.scan_indices)
         self.last_timing_ms["keyframe"] = build_ms
@@ -213,9 +234,9 @@ class LoopClosureDetector:
             t0 = time.perf_counter()
             description = rec.describe(scan)
             timing["describe"] = (time.perf_counter() - t0) * 1e3
-        scan_id = self.n_processed
+        own, scan_id = self.n_processed, self.next_id
         self._record_motion(pose, timestamp)
-        max_id = self.last_max_id = self._max_eligible_id(scan_id)
+        max_id = self.last_max_id = self._max_eligible_id(own)
         t0 = time.perf_counter()
         answered: list[Candidate] = []
         lf = self.loop_filter
@@ -248,7 +269,7 @@ class LoopClosureDetector:
 
     def _skip_place(self, pose: np.ndarray | None, timestamp: float | None) -> int:
         """`skip` of one place (a scan or a keyframe)."""
-        scan_id = self.n_processed
+        scan_id = self.next_id
         self._record_motion(pose, timestamp)
         self.last_max_id = -1
         self.last_candidates = []

@@ -2,6 +2,8 @@
 
 * `placerec.slam.online.OnlineSlam` — the online module: feed scans with odometry poses, get loop edges; the
   graph (`placerec.slam.graph.PoseGraph`: odometry and robust loop factors, iSAM2, final batch) stays current.
+* `placerec.slam.multisession.MultiSessionSlam` — a new session against a prior map: inter-session closures kept
+  pending until enough agree, then one graph in the map's frame (`MultiSessionResult`: joined, or kept separate).
 * `placerec.slam.odometry.KissIcpOdometry` — KISS-ICP odometry on the scans (extra ``slam``).
 * `placerec.slam.result.SlamResult` — what a run of the online loop produced.
 * `placerec.eval.trajectory` — ATE (after rigid alignment) and RPE.
@@ -14,6 +16,8 @@ from placerec._lazy import lazy_exports
 
 _EXPORTS = {
     "OnlineSlam": "online",
+    "MultiSessionSlam": "multisession",
+    "MultiSessionResult": "multisession",
     "PoseGraph": "graph",
     "GraphParams": "graph",
     "LoopFactor": "graph",

@@ -1,6 +1,10 @@
 """The pose graph of the SLAM back end, in GTSAM: odometry and loop-closure factors, iSAM2 online, a final batch.
 
 * Pose ``i`` is the key ``i`` (a ``gtsam.Pose3`` = ``T_world_sensor`` of scan ``i``); pose 0 has a tight prior.
+* **Several sessions** (`placerec.slam.multisession`): `add_free_pose` adds a pose with an initial value only
+  (optionally a tight prior), `add_odometry` a known-inlier odometry factor between any two poses, and
+  `add_graph` appends another graph's poses under the next keys (its factors shifted, its estimate moved into
+  this graph's frame, its odometry chain continued by `add_pose`). Keys stay 0, 1, ..., ``n_poses - 1``.
 * **Odometry**: ``BetweenFactorPose3(i - 1, i, T_{i-1,i})`` with a diagonal covariance that grows with the step:
   sigma = max(floor, per-metre sigma x step length), translation and rotation separately.
 * **Loops**: ``BetweenFactorPose3(match, query, T_match_query)`` (the verified relative pose of
@@ -141,14 +145,20 @@ class PoseGraph:
         self._estimate = gtsam.Values()
         self.odometry: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (i, j, T_ij, sigmas rot+trans)
         self.loops: list[LoopFactor] = []
-        self.prior: np.ndarray | None = None
+        self.priors: list[tuple[int, np.ndarray]] = []  # (i, T_world_i): tight priors (sigma 1e-6)
+        self._n = 0
         self.update_ms: list[float] = []
         self.loop_update_ms: list[float] = []
         self._last_pose: np.ndarray | None = None
 
     @property
     def n_poses(self) -> int:
-        return len(self.odometry) + (self.prior is not None)
+        return self._n
+
+    @property
+    def prior(self) -> np.ndarray | None:
+        """The prior on pose 0 (a single-session graph's anchor), None when pose 0 has none."""
+        return next((T for i, T in self.priors if i == 0), None)
 
     def _sigmas(self, step: float) -> np.ndarray:
         p = self.params
@@ -190,27 +200,80 @@ class PoseGraph:
 
     def add_pose(self, odometry_pose: np.ndarray, step_pose: np.ndarray | None = None) -> int:
         """Add the next pose from its odometry pose ``T_world_sensor``; returns its id. The odometry factor is
-        the motion since the previous odometry pose (``step_pose`` gives it directly instead)."""
-        gtsam = self._gtsam
+        the motion since the previous odometry pose (``step_pose`` gives it directly instead); the first pose gets
+        a tight prior at its odometry pose."""
         i = self.n_poses
         T = self._checked(odometry_pose, f"odometry pose {i}")
         if i == 0:
-            self.prior = T
-            noise = gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 1e-6))
-            self._new.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(T), noise))
-            self._new_values.insert(0, gtsam.Pose3(T))
+            self._insert(T, prior=True)
         else:
-            assert self._last_pose is not None  # every earlier add_pose set it
+            assert self._last_pose is not None  # every earlier add_pose (or add_graph) set it
             step = np.linalg.solve(self._last_pose, T) if step_pose is None else step_pose
             rel = self._checked(step, f"odometry step {i - 1} -> {i}")
-            sig = self._sigmas(float(np.linalg.norm(rel[:3, 3])))
-            self.odometry.append((i - 1, i, rel, sig))
-            self._new.add(
-                gtsam.BetweenFactorPose3(i - 1, i, gtsam.Pose3(rel), gtsam.noiseModel.Diagonal.Sigmas(sig))
-            )
-            self._new_values.insert(i, gtsam.Pose3(self.pose(i - 1) @ rel))
+            self._odometry_factor(i - 1, i, rel, self._sigmas(float(np.linalg.norm(rel[:3, 3]))))
+            self._insert(self.pose(i - 1) @ rel)
         self._last_pose = T
         return i
+
+    def add_free_pose(self, initial: np.ndarray, prior: bool = False) -> int:
+        """Add the next pose with ``initial`` (``T_world_sensor``) as its initial value and no factor (the caller
+        adds them: `add_odometry`, `add_loop`), or with a tight prior there (``prior``); returns its id. The
+        odometry chain of `add_pose` does not pass through it."""
+        return self._insert(self._checked(initial, f"pose {self.n_poses}"), prior)
+
+    def _insert(self, T: np.ndarray, prior: bool = False) -> int:
+        """Pose ``n_poses`` with initial value ``T`` (already `_checked`), and a tight prior there (``prior``)."""
+        gtsam = self._gtsam
+        i = self.n_poses
+        if prior:
+            self.priors.append((i, T))
+            noise = gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 1e-6))
+            self._new.add(gtsam.PriorFactorPose3(i, gtsam.Pose3(T), noise))
+        self._new_values.insert(i, gtsam.Pose3(T))
+        self._n += 1
+        return i
+
+    def add_odometry(self, i: int, j: int, T_ij: np.ndarray, sigmas: np.ndarray | None = None) -> None:
+        """Add an odometry factor ``T_ij`` (pose ``j`` in the frame of pose ``i``) between two poses in the graph,
+        with ``sigmas`` (6, rotation (rad) then translation (m)) or, by default, the step noise of `GraphParams`.
+        Odometry factors are known inliers of the GNC batch."""
+        n = self.n_poses
+        if not (0 <= i < n and 0 <= j < n) or i == j:
+            raise ScanDataError(f"odometry factor {i} -> {j}: both poses must exist and differ ({n} poses)")
+        rel = self._checked(T_ij, f"odometry factor {i} -> {j}")
+        if sigmas is None:
+            sig = self._sigmas(float(np.linalg.norm(rel[:3, 3])))
+        else:
+            sig = np.asarray(sigmas, dtype=np.float64).reshape(-1)
+            if sig.shape != (6,) or not np.all(np.isfinite(sig)) or np.any(sig <= 0):
+                raise ScanDataError(
+                    f"odometry factor {i} -> {j}: sigmas must be 6 finite values > 0 (rotation rad, then "
+                    f"translation m), got {np.asarray(sigmas).tolist()}"
+                )
+        self._odometry_factor(i, j, rel, sig)
+
+    def _odometry_factor(self, i: int, j: int, rel: np.ndarray, sig: np.ndarray) -> None:
+        gtsam = self._gtsam
+        self.odometry.append((i, j, rel, sig))
+        self._new.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(rel), gtsam.noiseModel.Diagonal.Sigmas(sig)))
+
+    def add_graph(self, other: PoseGraph, transform: np.ndarray | None = None, priors: bool = True) -> int:
+        """Append ``other``'s poses under the next keys (``offset`` = this graph's `n_poses` before the call;
+        returns it): initial values at ``transform @`` other's current estimate (``transform`` maps other's frame
+        into this graph's: ``T_this_other``; identity by default), its odometry and loop factors with ids shifted by
+        ``offset``, its priors (moved by ``transform``) only with ``priors``. `add_pose` then continues other's
+        odometry chain: the next pose's odometry factor steps from other's last pose."""
+        offset = self.n_poses
+        A = np.eye(4) if transform is None else self._checked(transform, "transform of the appended graph")
+        anchored = {i for i, _ in other.priors}
+        for i, T in enumerate(other.poses()):
+            self.add_free_pose(A @ T, prior=priors and i in anchored)
+        for i, j, rel, sig in other.odometry:
+            self.add_odometry(offset + i, offset + j, rel, sig)
+        for lp in other.loops:
+            self.add_loop(replace(lp, match_id=offset + lp.match_id, query_id=offset + lp.query_id))
+        self._last_pose = other._last_pose
+        return offset
 
     def add_loop(self, loop: LoopFactor) -> None:
         """Add a robust loop factor between two poses already in the graph."""
@@ -263,11 +326,9 @@ class PoseGraph:
     def _graph(self, robust: bool) -> Any:
         gtsam = self._gtsam
         g = gtsam.NonlinearFactorGraph()
-        if self.prior is not None:
+        for i, T in self.priors:
             g.add(
-                gtsam.PriorFactorPose3(
-                    0, gtsam.Pose3(self.prior), gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 1e-6))
-                )
+                gtsam.PriorFactorPose3(i, gtsam.Pose3(T), gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 1e-6)))
             )
         for i, j, rel, sig in self.odometry:
             g.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(rel), gtsam.noiseModel.Diagonal.Sigmas(sig)))
@@ -302,12 +363,13 @@ class PoseGraph:
             lm.setMaxIterations(p.max_iterations)
             gnc = gtsam.GncLMParams(lm)
             gnc.setLossType(gtsam.GncLossType.TLS)
-            gnc.setKnownInliers(list(range(1 + len(self.odometry))))  # the prior and every odometry factor
+            known = len(self.priors) + len(self.odometry)
+            gnc.setKnownInliers(list(range(known)))  # the priors and every odometry factor
             opt = gtsam.GncLMOptimizer(graph, initial, gnc)
             opt.setInlierCostThresholdsAtProbability(p.gnc_inlier_probability)
             with self._solving("GNC batch"):
                 result = opt.optimize()
-            gnc_weights = np.asarray(opt.getWeights())[1 + len(self.odometry) :]
+            gnc_weights = np.asarray(opt.getWeights())[known:]
         info["time_ms"] = (time.perf_counter() - t0) * 1e3
         residuals = self._loop_residuals(result)
         info["loop_residuals"] = residuals.tolist()

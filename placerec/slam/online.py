@@ -28,7 +28,7 @@ from placerec.loop_closure import LoopClosureDetector
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan
 
-__all__ = ["OnlineSlam"]
+__all__ = ["OnlineSlam", "detect_closures"]
 
 
 def _usable(c: Candidate) -> bool:
@@ -37,6 +37,28 @@ def _usable(c: Candidate) -> bool:
     if c.relative_pose is None or not full_pose_mask(c.relative_pose)[0]:
         return False
     return c.accepted is not False
+
+
+def detect_closures(
+    detector: LoopClosureDetector,
+    scan: Scan | None,
+    odometry_pose: np.ndarray,
+    timestamp: float | None = None,
+    description: Description | None = None,
+) -> list[LoopFactor]:
+    """Query with and add one scan (`LoopClosureDetector.process`); the accepted closures a pose graph can use
+    (`_usable`) as loop factors, with the detector's ids. A scan the recognizer cannot describe (`ScanDataError`)
+    is `LoopClosureDetector.skip`-ped: it takes its id, so ids stay the graph's keys, and gives no closure."""
+    try:
+        accepted = detector.process(scan, odometry_pose, timestamp, description)
+    except ScanDataError:
+        detector.skip(odometry_pose, timestamp)
+        accepted = []
+    return [
+        LoopFactor(c.match_id, c.query_id, np.asarray(c.relative_pose, dtype=np.float64), float(c.score))
+        for c in accepted
+        if _usable(c)
+    ]
 
 
 class OnlineSlam:
@@ -77,21 +99,11 @@ class OnlineSlam:
 
         A scan the recognizer cannot describe (`ScanDataError`) still gets its pose and odometry factor, but is
         never queried or matched."""
-        timing: dict[str, float] = {}
-        try:
-            accepted = self.detector.process(scan, odometry_pose, timestamp, description)
-            timing.update(self.detector.last_timing_ms)
-        except ScanDataError:
-            self.detector.skip(odometry_pose, timestamp)
-            accepted = []
+        added = detect_closures(self.detector, scan, odometry_pose, timestamp, description)
+        timing = dict(self.detector.last_timing_ms)  # empty for a skipped scan
         self.candidates.append(self.detector.last_candidates)
         t0 = time.perf_counter()
         self.graph.add_pose(odometry_pose)
-        added = [
-            LoopFactor(c.match_id, c.query_id, np.asarray(c.relative_pose, dtype=np.float64), float(c.score))
-            for c in accepted
-            if _usable(c)
-        ]
         added += list(extra_loops or [])
         for loop in added:
             self.graph.add_loop(loop)
