@@ -97,9 +97,11 @@ def write_map(
         raise ConfigError(f"{seq.name}: {len(poses)} poses for {len(seq)} scans")
     recs: dict[str, tuple[PlaceRecognizer, float | None]] = {}
     for k, spec in enumerate(config.pipelines):
-        key = spec.display_name
+        key = spec.name
         if key in recs:
-            raise ConfigError(f"pipelines[{k}]: {key!r} is listed twice (give a label)")
+            raise ConfigError(
+                f"pipelines[{k}]: {key!r} is listed twice (a map holds one database per pipeline)"
+            )
         recs[key] = (
             make_pipeline(spec.name, spec.params, path=f"pipelines[{k}].params"),
             spec.operating_threshold,

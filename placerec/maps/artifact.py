@@ -266,6 +266,7 @@ class MapArtifact:
             raise ArtifactError(f"{path / MANIFEST}: 'sessions' do not cover the {n} keyframes in order")
         if len(sessions) and int(kf["session"].max(initial=0)) >= len(sessions):
             raise ArtifactError(f"{kf_path}: 'session' names a session the manifest does not list")
+        _check_pipelines(path / MANIFEST, manifest.pipelines)
         return cls(path, manifest, kf, cl)
 
     def __len__(self) -> int:
@@ -329,7 +330,9 @@ class MapArtifact:
         if pipe.name not in self._recognizers:
             from placerec.recognizer import make_pipeline
 
-            rec = make_pipeline(pipe.name, pipe.params, path=f"{self.path / MANIFEST}: pipelines")
+            rec = make_pipeline(
+                pipe.name, pipe.params, path=f"pipelines[{pipe.name}].params"
+            )  # checked on open
             rec.load(self.path / _safe_relative(pipe.file, self.path))
             self._recognizers[pipe.name] = rec
         return self._recognizers[pipe.name]
@@ -461,6 +464,25 @@ def _read_manifest(path: Path) -> MapManifest:
     return manifest
 
 
+def _check_pipelines(where: Path, pipelines: list[MapPipeline]) -> None:
+    """Every pipeline of the manifest is a registered one (a map never imports a module it names) whose recorded
+    parameters are valid for it; `ArtifactError` naming the manifest otherwise."""
+    from placerec.recognizer import PIPELINES, pipeline_params
+
+    names = [p.name for p in pipelines]
+    if len(set(names)) != len(names):
+        raise ArtifactError(f"{where}: a pipeline is listed twice: {names}")
+    for p in pipelines:
+        if p.name not in PIPELINES:
+            raise ArtifactError(
+                f"{where}: pipeline {short_repr(p.name)} is not a registered pipeline ({', '.join(PIPELINES)})"
+            )
+        try:
+            pipeline_params(p.name, p.params, path=f"pipelines[{p.name}].params")
+        except ConfigError as exc:
+            raise ArtifactError(f"{where}: {exc}") from None
+
+
 def _check_files(path: Path, manifest: MapManifest, check_hashes: bool) -> None:
     """Exactly the manifest's files (and ``manifest.json``) are in the folder, with their sizes and hashes."""
     mp = path / MANIFEST
@@ -489,8 +511,8 @@ def _check_files(path: Path, manifest: MapManifest, check_hashes: bool) -> None:
 class MapWriter:
     """Writes a map folder (module docstring): `add_keyframe` for keyframes 0, 1, ... in order, then `finish`.
 
-    ``pipelines``: name -> (recognizer, operating threshold); each recognizer must hold keyframe ``i`` under id
-    ``i`` when `finish` saves it. ``overwrite``: replace an existing map at ``out`` (else `ConfigError` at once).
+    ``pipelines``: registered pipeline name -> (recognizer, operating threshold); each recognizer must hold
+    keyframe ``i`` under id ``i`` when `finish` saves it. ``overwrite``: replace an existing map at ``out`` (else `ConfigError` at once).
     Use as a context manager, or call `abort` on failure: either removes the temporary folder."""
 
     def __init__(
@@ -513,9 +535,14 @@ class MapWriter:
             raise ConfigError(f"{self.out}: already exists ({why})")
         if not cloud_voxel_m > 0:
             raise ConfigError(f"cloud_voxel_m must be > 0, got {cloud_voxel_m}")
+        from placerec.recognizer import PIPELINES
+
         for key in pipelines:
-            if "/" in key or "\\" in key or key.startswith("."):
-                raise ConfigError(f"pipeline name {key!r} cannot name a database file")
+            if key not in PIPELINES:
+                raise ConfigError(
+                    f"map pipelines: {key!r} is not a registered pipeline ({', '.join(PIPELINES)}); a map names its "
+                    "pipelines by registry name, so that opening it never imports code"
+                )
         self.out.parent.mkdir(parents=True, exist_ok=True)
         self.pipelines = dict(pipelines)
         self._meta = dict(
@@ -643,7 +670,7 @@ class MapWriter:
             rec.save(self.tmp / rel)
             pipes.append(
                 MapPipeline(
-                    name=rec.name if key == rec.name else key,
+                    name=key,
                     params=_saved_params(rec),
                     threshold=None if threshold is None else float(threshold),
                     file=rel,

@@ -222,7 +222,7 @@ def map_writer_for(cfg: SlamConfig, seq: Sequence, recognizer: PlaceRecognizer) 
     spec = cfg.loops.pipeline
     return MapWriter(
         cfg.output.save_map,
-        {spec.display_name: (recognizer, cfg.loops.threshold)},
+        {spec.name: (recognizer, cfg.loops.threshold)},
         name=seq.name,
         sensor=seq[0].sensor if len(seq) else None,
         intensity=intensity_label(cfg.preprocess),

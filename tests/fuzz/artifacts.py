@@ -390,8 +390,144 @@ def _every(subject: str, load: Callable[[Path], Any], stem: str, what: str) -> C
     )
 
 
+# ------------------------------------------------------------------------------------------------ map folders
+@functools.cache
+def _good_map() -> Path:
+    """A valid map folder (3 simulated scans, a Scan Context database), built once per process."""
+    from placerec.maps import MapWriter
+    from placerec.recognizer import make_pipeline
+
+    scans, poses = _sim_scans()
+    rec = make_pipeline("scan-context")
+    root = Path(tempfile.mkdtemp(prefix="placerec-fuzz-map-"))
+    with MapWriter(root / "map", {"scan-context": (rec, 0.3)}, name="fuzz") as w:
+        for i, scan in enumerate(scans):
+            rec.add(i, scan, poses[i])
+            w.add_keyframe(poses[i], scan.xyz)
+        w.finish()
+    return root / "map"
+
+
+def _open_map(check: bool) -> Callable[[Path], Any]:
+    def load(path: Path) -> Any:
+        from placerec.maps import MapArtifact
+
+        m = MapArtifact.open(path, check_hashes=check)
+        m.recognizer()
+        return m
+
+    return load
+
+
+def _map_edit(edit: Callable[[Path], None]) -> Callable[[Path], Path]:
+    def build(tmp: Path) -> Path:
+        path = tmp / "map_case"
+        shutil.copytree(_good_map(), path)
+        edit(path)
+        return path
+
+    return build
+
+
+def _manifest_edit(change: Callable[[dict], None]) -> Callable[[Path], None]:
+    def edit(path: Path) -> None:
+        data = json.loads((path / "manifest.json").read_text())
+        change(data)
+        (path / "manifest.json").write_text(json.dumps(data))
+
+    return edit
+
+
+def _flip(name: str, where: float) -> Callable[[Path], None]:
+    def edit(path: Path) -> None:
+        f = path / name
+        data = bytearray(f.read_bytes())
+        data[int(where * (len(data) - 1))] ^= 0x5A
+        f.write_bytes(bytes(data))
+
+    return edit
+
+
+def _truncate(name: str) -> Callable[[Path], None]:
+    return lambda path: (path / name).write_bytes((path / name).read_bytes()[:-7])
+
+
+def _map_cases() -> list[Case]:
+    """A map folder (`placerec.maps`): its manifest, files and databases damaged; `placerec info MAP --check`."""
+    subject = "map"
+    files = ("keyframes.npz", "clouds.npz", "pipelines/scan-context.npz", "manifest.json")
+    edits: dict[str, Callable[[Path], None]] = {
+        "manifest-missing": lambda p: (p / "manifest.json").unlink(),
+        "manifest-not-json": lambda p: (p / "manifest.json").write_bytes(b"\xff{not json"),
+        "manifest-list": lambda p: (p / "manifest.json").write_text("[1, 2]"),
+        "manifest-unknown-key": _manifest_edit(lambda d: d.update(colour="red")),
+        "manifest-version-99": _manifest_edit(lambda d: d.update(format_version=99)),
+        "manifest-kind-other": _manifest_edit(lambda d: d.update(kind="places-db")),
+        "manifest-n-keyframes": _manifest_edit(lambda d: d.update(n_keyframes=7)),
+        "manifest-n-keyframes-negative": _manifest_edit(lambda d: d.update(n_keyframes=-1)),
+        "manifest-sessions": _manifest_edit(lambda d: d["sessions"][0].update(count=2)),
+        "manifest-path-escapes": _manifest_edit(
+            lambda d: d["files"].update({"../outside.npz": d["files"]["clouds.npz"]})
+        ),
+        "manifest-absolute-path": _manifest_edit(lambda d: d["pipelines"][0].update(file="/etc/passwd")),
+        "manifest-hash-not-hex": _manifest_edit(lambda d: d["files"]["clouds.npz"].update(sha256="zz")),
+        "manifest-size-huge": _manifest_edit(lambda d: d["files"]["clouds.npz"].update(bytes=10**18)),
+        "manifest-pipeline-unknown": _manifest_edit(lambda d: d["pipelines"][0].update(name="no-such")),
+        "manifest-pipeline-params": _manifest_edit(lambda d: d["pipelines"][0]["params"].update(bogus=1)),
+        "file-extra": lambda p: (p / "notes.txt").write_text("x"),
+        "file-missing-clouds": lambda p: (p / "clouds.npz").unlink(),
+        "file-missing-database": lambda p: (p / "pipelines" / "scan-context.npz").unlink(),
+        "file-is-a-folder": lambda p: ((p / "clouds.npz").unlink(), (p / "clouds.npz").mkdir()),
+    }
+    for name in files[:3]:
+        edits[f"truncated-{name.replace('/', '-')}"] = _truncate(name)
+        for where in (0.5, 1.0):
+            edits[f"flipped-{name.replace('/', '-')}-{where:g}"] = _flip(name, where)
+    cases = [
+        Case(
+            "artifacts",
+            f"{subject}/valid",
+            _map_edit(lambda p: None),
+            _open_map(True),
+            "ok",
+            subject=subject,
+            check=lambda p, m: None,
+            cli=lambda p: ["info", str(p), "--check"],
+        )  # fmt: skip
+    ]
+    for name, edit in edits.items():
+        cases.append(
+            Case(
+                "artifacts",
+                f"{subject}/{name}",
+                _map_edit(edit),
+                _open_map(True),
+                subject=subject,
+                names="map_case",
+                cli=lambda p: ["info", str(p), "--check"],
+            )  # fmt: skip
+        )
+    cases.append(
+        Case(
+            "artifacts",
+            f"{subject}/not-a-folder",
+            lambda t: _write(t / "map_case", b"x"),
+            _open_map(False),
+            subject=subject,
+            error=ArtifactError,
+            names="map_case",
+        )  # fmt: skip
+    )
+    return cases
+
+
+def _write(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
 def cases() -> list[Case]:
-    out: list[Case] = []
+    out: list[Case] = _map_cases()
     for kind in BUILDERS:
         if kind in KINDS:
             suffix, _, load, npz = KINDS[kind]
