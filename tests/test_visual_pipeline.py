@@ -68,6 +68,39 @@ def test_save_load_gives_identical_answers(tmp_path, scans):
         make_pipeline("brisk-hbst").load(path)
 
 
+def test_the_saved_tree_is_restored_as_re_insertion_builds_it(tmp_path, scans):
+    """Format 2 stores the HBST's arrays and restores them; format 1 (features only) is re-inserted. Both give the
+    same tree, the same answers, and grow the same way afterwards."""
+    from placerec.io.atomic import load_artifact, save_artifact
+
+    rec = make_pipeline("orb-hbst")
+    for i in range(6):  # one scan's features under several ids: leaves fill and split
+        rec.add(i, scans[i % 2])
+    path = tmp_path / "db.npz"
+    rec.save(path)
+    arrays, header = load_artifact(path, "visual-hbst-db", (2,))
+    assert header["format_version"] == 2 and any(k.startswith("tree_") for k in arrays)
+    old = {k: v for k, v in arrays.items() if not k.startswith("tree_")}
+    save_artifact(tmp_path / "v1.npz", "visual-hbst-db", 1, old, {"params": header["meta"]["params"]})
+    restored, rebuilt = make_pipeline("orb-hbst"), make_pipeline("orb-hbst")
+    restored.load(path)
+    rebuilt.load(tmp_path / "v1.npz")
+    for other in (restored, rebuilt):
+        other.add(9, scans[1])
+    rec.add(9, scans[1])
+    trees = [r.tree._tree.to_arrays() for r in (rec, restored, rebuilt)]
+    for name in trees[0]:
+        np.testing.assert_array_equal(trees[1][name], trees[0][name], err_msg=name)
+        np.testing.assert_array_equal(trees[2][name], trees[0][name], err_msg=name)
+    answers = [[(c.match_id, c.score) for c in r.query(scans[0], k=3)] for r in (rec, restored, rebuilt)]
+    assert answers[0] == answers[1] == answers[2] and answers[0]
+    # a tree that does not hold the saved images is refused
+    arrays["tree_images"] = arrays["tree_images"] + 100
+    save_artifact(tmp_path / "bad.npz", "visual-hbst-db", 2, arrays, header["meta"])
+    with pytest.raises(ArtifactError, match="bad.npz: the saved tree does not hold the saved images"):
+        make_pipeline("orb-hbst").load(tmp_path / "bad.npz")
+
+
 def test_presets_and_thresholds():
     orb, brisk = make_pipeline("orb-hbst"), make_pipeline("brisk-hbst")
     # the registered pipelines match at 50 bits per 256 (docs/vpr_results.md); the class keeps srrg's 25

@@ -33,7 +33,7 @@ from placerec.params import Params, resolve
 from placerec.retrieval.bits import to_words, unpack_bits
 from placerec.retrieval.hbst_tree import FlatTree
 
-__all__ = ["HBST", "HBSTParams", "HBSTResult", "ImageScores", "default_threshold"]
+__all__ = ["HBST", "HBSTParams", "HBSTResult", "ImageScores", "default_threshold", "TREE_SCHEMA"]
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +41,7 @@ ARTIFACT_KIND = "hbst"
 FORMAT_VERSION = 1
 _TREE_MEMBERS = ("split", "child", "leaf_start", "leaf_count", "descriptors", "image_id", "keypoint_id")
 # a saved tree (`FlatTree.to_arrays`, all or none of the tree members) and the image ids by insertion index
-_SCHEMA = {
+TREE_SCHEMA = _SCHEMA = {
     "images": Member("iu", ("n_images",)),
     "split": Member("iu", ("n_nodes",), optional=True),
     "child": Member("iu", ("n_nodes", 2), optional=True),
@@ -241,10 +241,8 @@ class HBST:
         return result.scores_per_image()
 
     # ----------------------------------------------------------------------------------------------- persistence
-    def save(self, path: str | Path) -> None:
-        """Write the tree atomically as a versioned ``.npz`` artifact (kind ``hbst``)."""
-        from placerec.io.atomic import save_artifact
-
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """(arrays, meta) describing the whole tree: what `save` writes and `from_arrays` reads back."""
         arrays = {} if self._tree is None else self._tree.to_arrays()
         arrays["images"] = self._ids[: self.n_images].copy()  # by insertion index, as stored in the tree
         meta = {
@@ -254,6 +252,13 @@ class HBST:
             "threshold": self.threshold,
             "n_bytes": self.n_bytes,
         }
+        return arrays, meta
+
+    def save(self, path: str | Path) -> None:
+        """Write the tree atomically as a versioned ``.npz`` artifact (kind ``hbst``)."""
+        from placerec.io.atomic import save_artifact
+
+        arrays, meta = self.to_arrays()
         save_artifact(path, ARTIFACT_KIND, FORMAT_VERSION, arrays, meta)
         log.debug("saved %r to %s", self, path)
 
@@ -263,7 +268,15 @@ class HBST:
         from placerec.io.atomic import load_artifact
 
         arrays, header = load_artifact(path, ARTIFACT_KIND, (FORMAT_VERSION,), _SCHEMA, mmap=True)
-        meta = header["meta"]
+        hbst = cls.from_arrays(arrays, header["meta"], path)
+        log.debug("loaded %r from %s", hbst, path)
+        return hbst
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], meta: dict[str, Any], path: str | Path) -> HBST:
+        """The tree `to_arrays` described (checked against `_SCHEMA` by the caller); `ArtifactError` naming
+        ``path`` when the arrays or ``meta`` are inconsistent. The restored tree answers and grows exactly as the
+        saved one (the split retry state it lacks only prunes attempts that cannot succeed)."""
         present = [k for k in _TREE_MEMBERS if k in arrays]
         if (present and len(present) != len(_TREE_MEMBERS)) or bool(present) != (
             meta.get("n_bytes") is not None
@@ -288,7 +301,6 @@ class HBST:
                     raise ValueError("descriptors refer to unknown images")
         except (KeyError, TypeError, ValueError, ConfigError) as exc:
             raise ArtifactError(f"{path}: corrupt hbst artifact ({exc})") from exc
-        log.debug("loaded %r from %s", hbst, path)
         return hbst
 
     # ---------------------------------------------------------------------------------------------- internals
