@@ -274,8 +274,8 @@ def plot_fixes(run: LocalizeRun, path: Path) -> Path:
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     n = len(run.fixes)
-    ax.set_title(f"{run.name} in map {run.map.manifest.name}: {int(accepted.sum())} of {n} scans fixed "
-                 f"({run.mode})", fontsize=9)  # fmt: skip
+    ax.set_title(f"{run.name} in map {run.map.manifest.name}\n{int(accepted.sum())} of {n} scans fixed "
+                 f"({run.mode}, odometry {run.odometry})", fontsize=9)  # fmt: skip
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
     with atomic_write(path) as fh:
