@@ -691,7 +691,10 @@ def map_build(
 def localize(
     map_dir: Annotated[Path, typer.Argument(metavar="MAP", help="A map folder (`placerec map build`).")],
     sequence: Annotated[
-        Path, typer.Argument(help="The scans to localise (anything `placerec info` reads, a bag too).")
+        Path,
+        typer.Argument(
+            metavar="SEQUENCE", help="The scans to localise (anything `placerec info` reads, a bag too)."
+        ),
     ],
     out: Annotated[
         Path | None,

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from placerec.artifacts import build
 from placerec.cli import app
-from placerec.errors import ScanDataError
+from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.pose_error import pose_errors
 from placerec.maps import MapArtifact
 from placerec.maps.localizer import Fix, Localizer, LocalizerParams, correction
@@ -156,6 +156,13 @@ def test_localize_sequence_writes_its_report(map_dir: Path, tmp_path: Path) -> N
     rows = (tmp_path / "r" / "fixes.csv").read_text().splitlines()
     assert len(rows) == 9 and rows[0].endswith("translation_error,rotation_error_deg,correct")
     assert (tmp_path / "r" / "fixes.png").stat().st_size > 1000
+
+    run = localize_sequence(map_dir, seq, mode="tracking", odometry="kiss-icp")
+    assert all(_correct(f, seq.poses[i]) for i, f in enumerate(run.fixes) if f.accepted)
+    assert sum(f.mode == "tracking" and f.accepted for f in run.fixes) >= 6
+    assert all("odometry" in f.timing_ms for f in run.fixes)
+    with pytest.raises(ConfigError, match="odometry"):
+        localize_sequence(map_dir, seq, mode="global", odometry="kiss-icp")
 
 
 def _cli_error(res: object) -> list[str]:
