@@ -131,12 +131,14 @@ class Localizer:
     """Localise scans in ``map`` (a `MapArtifact` or its folder) with ``params`` (module docstring).
 
     Raw scans are preprocessed as the map's were (its manifest's ``preprocess``); a scan from another sensor
-    than the map's is a `placerec.maps.artifact.MapMismatchError` unless ``params.allow_other_sensor``."""
+    than the map's is a `placerec.maps.artifact.MapMismatchError` unless ``params.allow_other_sensor``. The global
+    search pipeline's database is loaded here (a damaged one fails before any scan); keyframe clouds as needed."""
 
     def __init__(self, map: MapArtifact | str | Path, params: LocalizerParams | None = None) -> None:
         self.map = map if isinstance(map, MapArtifact) else MapArtifact.open(map)
         self.params = params or LocalizerParams()
         self.pipeline = self.map.pipeline(self.params.pipeline)
+        self.recognizer = self.map.recognizer(self.pipeline.name)  # loaded now: a bad database fails here
         t = self.params.threshold
         self.threshold = t if t is not None else self.pipeline.threshold
         self.preprocess = PreprocessParams.model_validate(self.map.manifest.preprocess)
@@ -275,7 +277,7 @@ class Localizer:
 
     # -- global search ----------------------------------------------------------------------------------------
     def _global(self, scan: Scan, timing: dict[str, float]) -> Fix:
-        rec = self.map.recognizer(self.pipeline.name)
+        rec = self.recognizer
         t = time.perf_counter()
         try:
             desc = rec.describe(scan)
