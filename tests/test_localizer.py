@@ -21,6 +21,7 @@ from placerec.maps.localizer import Fix, Localizer, LocalizerParams, correction
 from placerec.sim import SimulatedSequence
 from placerec.sim.export import write_kitti_sequence
 from placerec.slam_app.localize import localize_sequence, report_localize
+from placerec.types import ListSequence
 
 N_MAP = 50
 
@@ -165,6 +166,16 @@ def test_localize_sequence_writes_its_report(map_dir: Path, tmp_path: Path) -> N
         localize_sequence(map_dir, seq, mode="global", odometry="kiss-icp")
 
 
+def test_a_sequence_without_poses_is_reported_without_scores(
+    map_dir: Path, day2: SimulatedSequence, tmp_path: Path
+) -> None:
+    seq = ListSequence([day2[i] for i in (4, 5, 6)], name="no-poses")
+    m = report_localize(localize_sequence(map_dir, seq, mode="global"), tmp_path)
+    assert m["accepted"] == 3 and "correct" not in m and "false_fixes" not in m
+    assert (tmp_path / "fixes.csv").read_text().splitlines()[0].endswith("candidates,time_ms")
+    np.testing.assert_array_equal(np.loadtxt(tmp_path / "poses_tum.txt")[:, 0], [0, 1, 2])  # scan indices
+
+
 def _cli_error(res: object) -> list[str]:
     return [line for line in res.output.splitlines() if line.startswith("error:")]  # type: ignore[attr-defined]
 
@@ -190,5 +201,9 @@ def test_cli_localize(map_dir: Path, tmp_path: Path) -> None:
     res = CliRunner().invoke(app, ["localize", str(map_dir), str(other), "--out", str(tmp_path / "o2")])
     assert res.exit_code == 2 and len(_cli_error(res)) == 1 and "--allow-other-sensor" in res.output
     assert not (tmp_path / "o2").exists()  # refused before any work
+    res = CliRunner().invoke(app, ["localize", str(map_dir), str(folder), "--pipeline", "nope"])
+    assert (
+        res.exit_code == 2 and len(_cli_error(res)) == 1 and "no database for pipeline 'nope'" in res.output
+    )
     res = CliRunner().invoke(app, ["localize", str(map_dir), str(folder), "--mode", "sideways"])
     assert res.exit_code == 2 and "mode" in _cli_error(res)[0]
