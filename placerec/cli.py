@@ -379,6 +379,10 @@ def slam(
             "--save-map", help="Also save a map folder here (output.save_map) for `placerec localize`."
         ),
     ] = None,
+    prior_map: Annotated[
+        Path | None,
+        typer.Option("--prior-map", help="Run as a second session against this map (prior_map.path)."),
+    ] = None,
 ) -> None:
     """SLAM back end: odometry + verified loop closures + a GTSAM pose graph; poses, g2o, ATE/RPE, a report.
 
@@ -391,12 +395,16 @@ def slam(
       placerec slam configs/slam_demo.yaml --set robustness.false_loops=10
 
       placerec slam configs/slam_demo.yaml --save-map maps/town
+
+      placerec slam configs/slam_demo.yaml --prior-map maps/town --save-map maps/both
     """
     from placerec.slam_app.config import load_slam_config
 
     overrides = list(set_ or [])
     if save_map is not None:
         overrides.append(f"output.save_map={save_map}")
+    if prior_map is not None:
+        overrides.append(f"prior_map.path={prior_map}")
     cfg = load_slam_config(config, overrides)
     if dump:
         from placerec.config import config_to_yaml
@@ -409,7 +417,9 @@ def slam(
     run_dir, payload = run_slam(cfg, out)
     print_slam_table(payload, f"{cfg.name} (slam, {payload['n_scans']} scans)")
     typer.echo(f"results: {run_dir}  (report: {run_dir / 'index.html'})")
-    if cfg.output.save_map is not None:
+    if "prior_map" in payload:
+        typer.echo(f"prior map {cfg.prior_map.path}: {payload['prior_map']['summary']}")
+    if cfg.output.save_map is not None and Path(cfg.output.save_map).is_dir():
         typer.echo(f"map: {cfg.output.save_map}  (placerec info {cfg.output.save_map})")
 
 

@@ -54,6 +54,10 @@ class SimulatorConfig(Params):
     sensor: str = "os1-64"
     n_scans: int | None = Field(None, ge=1, le=100_000, description="None = the whole route; at most 100,000")
     seed: int = 0
+    world_seed: int | None = Field(
+        None, description="the world's own seed (None: seed); keep it and change seed for a second session"
+    )
+    unit_seed: int | None = Field(None, description="the sensor unit's seed (None: seed)")
     route: str = "default"
     spacing: float = Field(1.0, gt=0, description="metres between scans (unless rate_hz is set)")
     rate_hz: float | None = Field(

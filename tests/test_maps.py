@@ -301,3 +301,75 @@ def test_slam_saves_its_map(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="already exists"):
         run_slam(cfg, tmp_path / "res2")
     assert list((tmp_path / "res2").iterdir()) == []
+
+
+def _slam_cfg(tmp_path: Path, *sets: str):
+    from placerec.slam_app.config import load_slam_config
+
+    base = ["dataset.simulator.sensor=vlp16", "output.progress=false", "output.figures=false"]
+    return load_slam_config("configs/slam_demo.yaml", [*base, *sets])
+
+
+def test_a_second_session_joins_the_map_and_the_merged_map_is_saved(tmp_path: Path) -> None:
+    pytest.importorskip("gtsam")
+    from placerec.slam_app.run import run_slam
+
+    first = _slam_cfg(tmp_path, "dataset.simulator.n_scans=30", f"output.save_map={tmp_path / 'm1'}")
+    run_slam(first, tmp_path / "res")
+    second = _slam_cfg(
+        tmp_path, "dataset.simulator.n_scans=20", "dataset.simulator.seed=5", "dataset.simulator.world_seed=0",
+        "dataset.simulator.unit_seed=0", f"prior_map.path={tmp_path / 'm1'}", f"output.save_map={tmp_path / 'm2'}",
+        "output.figures=true",
+    )  # fmt: skip
+    run, payload = run_slam(second, tmp_path / "res")
+    pm = payload["prior_map"]
+    assert pm["joined"] and pm["inter_session_closures"] >= 10 and pm["rejected_by_graph"] == 0
+    # the session's odometry started at the identity; the join put it where it truly is in the map's frame
+    T = np.array(pm["T_map_session"])
+    truth = SimulatedSequence(world="town", sensor="vlp16", n_scans=1, seed=5, world_seed=0).poses[0]
+    assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.3
+    assert (run / "sessions.png").is_file()
+    merged = MapArtifact.open(tmp_path / "m2", check_hashes=True)
+    assert len(merged) == 50 and [s.count for s in merged.manifest.sessions] == [30, 20]
+    assert merged.manifest.poses_source == "merged"
+    np.testing.assert_array_equal(merged.session, np.r_[np.zeros(30), np.ones(20)])
+    graph = merged.graph()
+    assert graph is not None and len(graph.odometry) == 29 + 19
+    assert any(lp.match_id < 30 <= lp.query_id for lp in graph.loops)  # inter-session edges kept
+    assert len(merged.recognizer("orb-hbst").tree.image_ids) == 50
+
+
+def test_a_session_elsewhere_is_kept_separate_and_no_merged_map_is_written(tmp_path: Path) -> None:
+    pytest.importorskip("gtsam")
+    from placerec.slam_app.run import run_slam
+
+    run_slam(
+        _slam_cfg(tmp_path, "dataset.simulator.n_scans=15", f"output.save_map={tmp_path / 'm1'}"), tmp_path
+    )
+    other = _slam_cfg(
+        tmp_path, "dataset.simulator.n_scans=15", "dataset.simulator.world=industrial",
+        f"prior_map.path={tmp_path / 'm1'}", f"output.save_map={tmp_path / 'm2'}",
+    )  # fmt: skip
+    _, payload = run_slam(other, tmp_path / "res")
+    assert not payload["prior_map"]["joined"] and "kept separate" in payload["prior_map"]["summary"]
+    assert not (tmp_path / "m2").exists() and not list(tmp_path.glob(".m2*"))
+
+
+def test_a_prior_map_that_cannot_serve_the_run_is_refused_before_it(tmp_path: Path) -> None:
+    pytest.importorskip("gtsam")
+    from placerec.slam_app.run import run_slam
+
+    build("map", {"source": {"sim": {"world": "town", "scans": 5, "sensor": "os1-64"}}, "out": str(tmp_path / "m"),
+                  "pipelines": [{"name": "scan-context"}]})  # fmt: skip
+    for sets, message in (
+        ([], "no database for pipeline 'orb-hbst'"),
+        (["loops.pipeline.name=scan-context", "dataset.simulator.sensor=vlp16"], "from sensor 'os1-64'"),
+        (["loops.pipeline.name=scan-context", "preprocess.intensity.mode=raw"], "intensity"),
+        (["loops.pipeline.name=scan-context", "loops.pipeline.params.num_sectors=30"], "front end"),
+        (["loops.pipeline.name=scan-context", "prior_map.anchor=anchored"], "has none"),
+    ):
+        cfg = _slam_cfg(tmp_path, "dataset.simulator.n_scans=5", f"prior_map.path={tmp_path / 'm'}",
+                        "dataset.simulator.sensor=os1-64", *sets)  # fmt: skip
+        with pytest.raises(ConfigError, match=message):
+            run_slam(cfg, tmp_path / "res")
+    assert not (tmp_path / "res").exists()

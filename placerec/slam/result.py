@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from placerec.slam.graph import LoopFactor, PoseGraph
+from placerec.slam.multisession import MultiSessionResult
 
 __all__ = ["SlamResult", "ONLINE_STAGES"]
 
@@ -35,3 +36,7 @@ class SlamResult:
     isam2_loop_ms: list[float] = field(default_factory=list)
     candidates: list[list[Any]] = field(default_factory=list)
     queried: list[bool] = field(default_factory=list)  # whether the scan had older scans to query
+    #: a run against a prior map (``--prior-map``): the join's outcome; ``loops`` then holds the session's own
+    #: loops in session scan ids, and ``graph_poses`` every pose of ``graph`` (the map's, then the session's)
+    multisession: MultiSessionResult | None = None
+    graph_poses: np.ndarray | None = None

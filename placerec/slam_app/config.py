@@ -123,6 +123,22 @@ class SlamOutputConfig(Params):
     overwrite_map: bool = Field(False, description="replace an existing map at save_map")
 
 
+class PriorMapConfig(Params):
+    """A map of an earlier session (`placerec.maps`) the run joins (`placerec.slam.multisession`): its pipeline
+    database answers the inter-session queries, the sessions are joined once ``min_join_loops`` closures agree."""
+
+    path: str | None = Field(None, description="the prior map folder (None: a single-session run)")
+    anchor: Literal["fixed", "anchored"] = Field(
+        "fixed",
+        description="fixed: the map's poses do not move; anchored: its own graph holds them and closures may move"
+        " them within its covariance (needs a map saved by placerec slam)",
+    )
+    min_join_loops: int = Field(2, ge=2, le=1000, description="agreeing inter-session closures that join")
+    join_translation_m: float = Field(1.0, gt=0, description="m; two closures agree within this")
+    join_rotation_deg: float = Field(5.0, gt=0, description="deg; ... and this")
+    allow_other_sensor: bool = Field(False, description="join a session from another sensor than the map's")
+
+
 class SlamConfig(Params):
     """The root of a ``placerec slam`` config."""
 
@@ -135,6 +151,7 @@ class SlamConfig(Params):
     evaluation: SlamEvaluationConfig = Field(default_factory=SlamEvaluationConfig)
     robustness: RobustnessConfig = Field(default_factory=RobustnessConfig)
     output: SlamOutputConfig = Field(default_factory=SlamOutputConfig)
+    prior_map: PriorMapConfig = Field(default_factory=PriorMapConfig)
 
 
 def load_slam_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SlamConfig:

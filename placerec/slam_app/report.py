@@ -34,12 +34,20 @@ from placerec.experiment.run_folder import finite_or_null, json_default, point_l
 from placerec.experiment.tables import print_rows, write_html_page
 from placerec.io import write_kitti_poses, write_tum_poses
 from placerec.io.atomic import atomic_write
+from placerec.maps.artifact import MapArtifact
 from placerec.preprocess import preprocess_scan
 from placerec.slam.result import ONLINE_STAGES, SlamResult
 from placerec.slam_app.config import SlamConfig
 from placerec.types import Scan, Sequence, relative_pose
 
-__all__ = ["report_slam", "loop_table", "slam_metrics", "print_slam_table", "write_map_ply"]
+__all__ = [
+    "report_slam",
+    "loop_table",
+    "slam_metrics",
+    "print_slam_table",
+    "write_map_ply",
+    "prior_map_metrics",
+]
 
 LOOP_COLUMNS = ("match_id", "query_id", "score", "injected", "x", "y", "z", "roll", "pitch", "yaw")
 #: After the batch step (not with ``graph.batch: none``): each loop's error at the solution, in sigmas of the loop
@@ -249,8 +257,84 @@ def write_map_ply(cfg: SlamConfig, seq: Sequence, poses: np.ndarray, path: Path)
     return path
 
 
-def report_slam(cfg: SlamConfig, run: Path, seq: Sequence, result: SlamResult) -> dict[str, Any]:
-    """Write every output of a SLAM run into ``run``; returns the metrics dict."""
+def prior_map_metrics(cfg: SlamConfig, result: SlamResult, prior: MapArtifact) -> dict[str, Any]:
+    """``metrics.json``'s ``prior_map`` section of a second session: whether and how it was joined, its closures
+    against the map, and with ground truth in the map's frame (a map built from true poses or a poses file) the
+    session's error there without any alignment and the inter-session closures' pose errors."""
+    ms = result.multisession
+    assert ms is not None
+    M = len(prior)
+    inter = ms.inter_loops if ms.joined else ms.pending
+    out: dict[str, Any] = {
+        "path": str(prior.path),
+        "keyframes": M,
+        "anchor": ms.anchor,
+        "joined": ms.joined,
+        "summary": ms.summary(),
+        "joined_at_scan": ms.joined_at,
+        "T_map_session": None if ms.T_map_session is None else ms.T_map_session.tolist(),
+        "inter_session_closures": len(inter),
+        "rejected_at_join": len(ms.rejected_at_join),
+        "rejected_by_graph": ms.rejected_by_graph,
+        "map_poses_source": prior.manifest.poses_source,
+    }
+    gt = result.ground_truth
+    if gt is None or prior.manifest.poses_source not in ("ground-truth", "file"):
+        return out
+    ev = cfg.evaluation
+    if inter:
+        est = np.stack([lp.T_match_query for lp in inter])
+        truth = np.stack([relative_pose(prior.poses[lp.match_id], gt[lp.query_id - M]) for lp in inter])
+        te, re = pose_errors(est, truth)
+        false = (te > ev.false_loop_translation) | (re > ev.false_loop_rotation_deg)
+        out["inter_session_false"] = int(false.sum())
+        out["inter_session_median_translation_error"] = float(np.median(te))
+    if ms.joined:
+        te, re = pose_errors(result.optimized, gt)
+        out["session_error_in_map_frame"] = {
+            "translation_rmse": float(np.sqrt(np.mean(te**2))),
+            "translation_max": float(te.max()),
+            "rotation_max_deg": float(re.max()),
+        }
+    return out
+
+
+def _sessions_figure(path: Path, prior: MapArtifact, result: SlamResult, title: str) -> None:
+    """The prior map's keyframes and the session (in the map's frame when joined) with its inter-session closures."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ms = result.multisession
+    assert ms is not None
+    fig, ax = plt.subplots(figsize=(7, 7), dpi=100)
+    mp = (ms.map_poses if ms.joined else prior.poses)[:, :3, 3]
+    sp = result.optimized[:, :3, 3]
+    ax.plot(mp[:, 0], mp[:, 1], ".", ms=2, color="0.6", label=f"prior map ({len(mp)} keyframes)")
+    frame = "map frame" if ms.joined else "own frame: not joined"
+    ax.plot(sp[:, 0], sp[:, 1], "-", lw=1.2, color="tab:blue", label=f"session ({frame})")
+    if ms.joined:
+        M = len(prior)
+        for lp in ms.inter_loops:
+            a, b = mp[lp.match_id], sp[lp.query_id - M]
+            ax.plot([a[0], b[0]], [a[1], b[1]], "-", lw=0.5, color="tab:green", alpha=0.6)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    with atomic_write(path) as fh:
+        fig.savefig(fh, format="png")
+    plt.close(fig)
+
+
+def report_slam(
+    cfg: SlamConfig, run: Path, seq: Sequence, result: SlamResult, prior: MapArtifact | None = None
+) -> dict[str, Any]:
+    """Write every output of a SLAM run into ``run``; returns the metrics dict (with ``prior``: a second
+    session's, with its ``prior_map`` section and ``sessions.png``)."""
     stamps = (
         result.timestamps if result.timestamps is not None else np.arange(len(result.optimized), dtype=float)
     )
@@ -260,10 +344,14 @@ def report_slam(cfg: SlamConfig, run: Path, seq: Sequence, result: SlamResult) -
     write_kitti_poses(run / "online_kitti.txt", result.online)
     if result.ground_truth is not None:
         write_kitti_poses(run / "ground_truth_kitti.txt", result.ground_truth)
-    result.graph.write_g2o(run / "graph.g2o", result.optimized)
+    result.graph.write_g2o(
+        run / "graph.g2o", result.optimized if result.graph_poses is None else result.graph_poses
+    )
     cols = loop_table(cfg, result)
     _write_loops(run / "loops.csv", cols)
     payload = slam_metrics(cfg, result, cols)
+    if prior is not None:
+        payload["prior_map"] = prior_map_metrics(cfg, result, prior)
     with atomic_write(run / "metrics.json", "w") as fh:
         json.dump(finite_or_null(payload), fh, indent=2, default=json_default, allow_nan=False)
     if cfg.output.figures:
@@ -282,7 +370,13 @@ def report_slam(cfg: SlamConfig, run: Path, seq: Sequence, result: SlamResult) -
         loops = np.stack([cols["match_id"], cols["query_id"]], axis=1)
         figures.plot_slam_trajectories(traj, loops, ok, run / "trajectory.png", title, loops_on="optimised")
         tables = [_rows(payload), _loop_rows(payload)] if e else [_loop_rows(payload)]
-        write_html_page(run, cfg.name, "mode: slam", tables, first=("trajectory.png",), last=())
+        first: tuple[str, ...] = ("trajectory.png",)
+        if prior is not None:
+            _sessions_figure(
+                run / "sessions.png", prior, result, f"{cfg.name}: {payload['prior_map']['summary']}"
+            )
+            first = ("sessions.png", "trajectory.png")
+        write_html_page(run, cfg.name, "mode: slam", tables, first=first, last=())
     if cfg.output.map_ply:
         write_map_ply(cfg, seq, result.optimized, run / "map.ply")
     point_latest(run)

@@ -9,8 +9,10 @@ results folder is made), runs `slam_sequence` and writes the results (`placerec.
 from __future__ import annotations
 
 import contextlib
+import logging
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -21,17 +23,20 @@ from placerec.experiment.datasets import SlicedSequence, open_dataset
 from placerec.experiment.run_folder import interruptible, make_run_dir
 from placerec.experiment.runner import progress_bars
 from placerec.io import read_poses
-from placerec.maps.artifact import MapWriter
+from placerec.maps.artifact import MapArtifact, MapGraph, MapWriter
 from placerec.preprocess import preprocess_scan
 from placerec.recognizer import make_pipeline
-from placerec.slam.graph import LoopFactor
+from placerec.slam.graph import LoopFactor, PoseGraph
+from placerec.slam.multisession import MultiSessionSlam
 from placerec.slam.online import OnlineSlam
 from placerec.slam.result import ONLINE_STAGES, SlamResult
 from placerec.slam_app.config import SlamConfig
 from placerec.slam_app.report import report_slam
 from placerec.types import MAX_TRANSLATION_M, PlaceRecognizer, Scan, Sequence, valid_points
 
-__all__ = ["slam_sequence", "run_slam", "odometry_source", "false_loops", "map_writer_for"]
+__all__ = ["slam_sequence", "run_slam", "odometry_source", "false_loops", "map_writer_for", "open_prior_map"]
+
+log = logging.getLogger(__name__)
 
 Odometry = Callable[[int, Scan], np.ndarray]
 
@@ -148,21 +153,81 @@ def _timestamps(seq: Sequence) -> np.ndarray | None:
     return stamps
 
 
+def _backend(
+    cfg: SlamConfig, rec: PlaceRecognizer, prior: MapArtifact | None
+) -> OnlineSlam | MultiSessionSlam:
+    """The online back end: `OnlineSlam`, or against ``prior`` a `MultiSessionSlam` (its graph's factors held
+    when ``prior_map.anchor`` is ``anchored``)."""
+    ex = cfg.loops.exclusion
+    if prior is None:
+        return OnlineSlam(
+            rec, cfg.loops.threshold, cfg.graph, ex.frames, ex.seconds, ex.metres, k=cfg.loops.k
+        )
+    pm = cfg.prior_map
+    graph = prior.graph()
+    return MultiSessionSlam(
+        rec, cfg.loops.threshold, prior.poses, cfg.graph, ex.frames, ex.seconds, ex.metres, k=cfg.loops.k,
+        prior_odometry=None if graph is None else graph.odometry,
+        prior_loops=None if graph is None else graph.loops,
+        anchor=pm.anchor, min_join_loops=pm.min_join_loops, join_translation_m=pm.join_translation_m,
+        join_rotation_deg=pm.join_rotation_deg,
+    )  # fmt: skip
+
+
+def open_prior_map(cfg: SlamConfig, seq: Sequence) -> tuple[MapArtifact, PlaceRecognizer]:
+    """The map of ``prior_map.path`` and its database of the run's pipeline, once checked to serve this run (the
+    same pipeline and front end, intensity and, unless allowed, sensor: `MapMismatchError` naming what differs;
+    a pose graph when ``prior_map.anchor`` is ``anchored``)."""
+    from placerec.artifacts.map import intensity_label
+
+    assert cfg.prior_map.path is not None
+    prior = MapArtifact.open(cfg.prior_map.path)
+    spec = cfg.loops.pipeline
+    prior.check_pipeline(spec.name, spec.params)
+    sensor = seq[0].sensor if len(seq) else None
+    prior.check_query(sensor, intensity_label(cfg.preprocess), cfg.prior_map.allow_other_sensor)
+    if cfg.prior_map.anchor == "anchored" and "graph.npz" not in prior.manifest.files:
+        raise ConfigError(
+            f"prior_map.anchor 'anchored' holds the map by its own pose graph; {prior.path} has none (it was not "
+            "saved by placerec slam): use prior_map.anchor=fixed"
+        )
+    return prior, prior.recognizer(spec.name)
+
+
+def _own_frame(odometry: Odometry) -> Odometry:
+    """``odometry`` re-expressed from its first pose (the identity): a new session knows nothing of the map's frame
+    (the simulator's drift and KISS-ICP start at the sequence's true first pose otherwise)."""
+    first: list[np.ndarray] = []
+
+    def own(i: int, scan: Scan) -> np.ndarray:
+        T = odometry(i, scan)
+        if not first:
+            first.append(np.linalg.inv(T))
+        return first[0] @ T
+
+    return own
+
+
 def slam_sequence(
     cfg: SlamConfig,
     seq: Sequence,
     recognizer: PlaceRecognizer | None = None,
     odometry: Odometry | None = None,
     map_writer: MapWriter | None = None,
+    prior: MapArtifact | None = None,
 ) -> SlamResult:
     """Run the online loop over ``seq`` and the final batch optimisation (see the module docstring).
-    ``map_writer`` (from `map_writer_for`) gets every scan as a keyframe and is finished at the optimised poses."""
+    ``map_writer`` (from `map_writer_for`) gets every scan as a keyframe and is finished at the optimised poses.
+    With ``prior`` (`open_prior_map`; ``recognizer`` is then its database) the run is a second session: its
+    odometry starts at the identity, its closures against the map join it to the map when enough agree, and
+    ``map_writer`` (holding the map's keyframes) writes the merged map only if they were joined."""
     rec = recognizer or make_pipeline(
         cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params"
     )
     odometry = odometry or odometry_source(cfg, seq)
-    ex = cfg.loops.exclusion
-    slam = OnlineSlam(rec, cfg.loops.threshold, cfg.graph, ex.frames, ex.seconds, ex.metres, k=cfg.loops.k)
+    if prior is not None:
+        odometry = _own_frame(odometry)
+    slam = _backend(cfg, rec, prior)
     n = len(seq)
     stamps = _timestamps(seq)
     injected = _injected(cfg, seq)
@@ -192,45 +257,73 @@ def slam_sequence(
                 timing[s].append(stages.get(s, 0.0))
             progress.advance(task)
     online = slam.poses()
-    optimized = slam.finish()
+    common: dict[str, Any] = dict(name=seq.name, odometry=odo, timing_ms=timing, ground_truth=seq.poses, timestamps=stamps,
+                  candidates=slam.candidates, queried=queried)  # fmt: skip
+    if isinstance(slam, OnlineSlam):
+        optimized = slam.finish()
+        if map_writer is not None:
+            map_writer.finish(poses=optimized, graph=slam.graph)
+        return SlamResult(
+            online=online, optimized=optimized, loops=slam.loops, batch=slam.batch_info, graph=slam.graph,
+            isam2_ms=list(slam.graph.update_ms), isam2_loop_ms=list(slam.graph.loop_update_ms), **common,
+        )  # fmt: skip
+    assert prior is not None
+    ms = slam.finish()
+    M = len(prior)
+    graph_poses = np.concatenate([ms.map_poses, ms.session_poses]) if ms.joined else ms.session_poses
     if map_writer is not None:
-        map_writer.finish(poses=optimized, graph=slam.graph)
+        if ms.joined:
+            map_writer.finish(poses=graph_poses, graph=_merged_graph(prior, ms.graph, M))
+        else:
+            map_writer.abort()
+            log.warning("%s: %s; no merged map written", seq.name, ms.summary())
+    own = [replace(lp, match_id=lp.match_id - M, query_id=lp.query_id - M) for lp in ms.intra_loops]
     return SlamResult(
-        name=seq.name,
-        odometry=odo,
-        online=online,
-        optimized=optimized,
-        loops=slam.loops,
-        timing_ms=timing,
-        batch=slam.batch_info,
-        graph=slam.graph,
-        ground_truth=seq.poses,
-        timestamps=stamps,
-        isam2_ms=list(slam.graph.update_ms),
-        isam2_loop_ms=list(slam.graph.loop_update_ms),
-        candidates=slam.candidates,
-        queried=queried,
-    )
+        online=online, optimized=ms.session_poses, loops=own, batch=ms.batch, graph=ms.graph,
+        isam2_ms=list(ms.graph.update_ms), isam2_loop_ms=list(ms.graph.loop_update_ms), multisession=ms,
+        graph_poses=graph_poses, **common,
+    )  # fmt: skip
 
 
-def map_writer_for(cfg: SlamConfig, seq: Sequence, recognizer: PlaceRecognizer) -> MapWriter:
+def _merged_graph(prior: MapArtifact, joined: PoseGraph, M: int) -> MapGraph:
+    """The merged map's graph: the prior map's own factors, then the joined graph's odometry of the session
+    (keys M..) and every loop factor of the joined graph (intra- and inter-session)."""
+    own = prior.graph() or MapGraph()
+    session_odometry = [f for f in joined.odometry if f[0] >= M and f[1] >= M]
+    merged = MapGraph.from_pose_graph(joined)
+    return MapGraph(own.odometry + session_odometry, own.loops + merged.loops, merged.loop_sigmas)
+
+
+def map_writer_for(
+    cfg: SlamConfig, seq: Sequence, recognizer: PlaceRecognizer, prior: MapArtifact | None = None
+) -> MapWriter:
     """The writer of ``output.save_map`` (`ConfigError` at once when a map is there and ``overwrite_map`` is off):
-    the run's recognizer is the map's database, its preprocessing and intensity the map's."""
+    the run's recognizer is the map's database, its preprocessing and intensity the map's. With ``prior`` it
+    starts with the prior map's keyframes, sessions and clouds (the merged map's first keyframes)."""
     from placerec.artifacts.map import intensity_label
 
     assert cfg.output.save_map is not None
     spec = cfg.loops.pipeline
-    return MapWriter(
+    writer = MapWriter(
         cfg.output.save_map,
         {spec.name: (recognizer, cfg.loops.threshold)},
-        name=seq.name,
+        name=seq.name if prior is None else f"{prior.manifest.name} + {seq.name}",
         sensor=seq[0].sensor if len(seq) else None,
         intensity=intensity_label(cfg.preprocess),
         preprocess=cfg.preprocess.saved_dump(),
         config=cfg.model_dump(mode="json"),
-        poses_source="slam",
+        poses_source="slam" if prior is None else "merged",
         overwrite=cfg.output.overwrite_map,
     )
+    if prior is not None:
+        for s in prior.manifest.sessions:
+            writer.add_session(s.name)
+            for i in range(s.first, s.first + s.count):
+                stamp = float(prior.timestamps[i])
+                writer.add_keyframe(prior.poses[i], prior.cloud(i), None if np.isnan(stamp) else stamp,
+                                    scan_index=int(prior.scan_index[i]))  # fmt: skip
+    writer.add_session(seq.name)
+    return writer
 
 
 def run_slam(
@@ -248,12 +341,16 @@ def run_slam(
                     "--set dataset.path=/path/to/sequence)"
                 )
         seq = open_dataset(cfg.dataset)
-    rec = make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
+    prior = None
+    if cfg.prior_map.path is None:
+        rec = make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
+    else:
+        prior, rec = open_prior_map(cfg, seq)
     odometry = odometry_source(cfg, seq)
     _injected(cfg, seq)
     _timestamps(seq)
-    writer = None if cfg.output.save_map is None else map_writer_for(cfg, seq, rec)
+    writer = None if cfg.output.save_map is None else map_writer_for(cfg, seq, rec, prior)
     run = make_run_dir(cfg, out_dir)
     with interruptible(run), writer or contextlib.nullcontext():
-        result = slam_sequence(cfg, seq, rec, odometry, writer)
-        return run, report_slam(cfg, run, seq, result)
+        result = slam_sequence(cfg, seq, rec, odometry, writer, prior)
+        return run, report_slam(cfg, run, seq, result, prior)
