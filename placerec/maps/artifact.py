@@ -45,7 +45,7 @@ from placerec.io.artifact_schema import Member, check_offsets
 from placerec.io.atomic import atomic_write, load_artifact, save_artifact
 from placerec.params import Params
 from placerec.quantise import FixedPointCloud
-from placerec.slam.graph import LoopFactor, PoseGraph
+from placerec.slam.graph import LoopFactor, PoseGraph, write_g2o
 from placerec.types import PlaceRecognizer, SensorInfo, as_pose, rigid_problem
 
 __all__ = [
@@ -680,7 +680,7 @@ class MapWriter:
         if graph is not None:
             mg = MapGraph.from_pose_graph(graph) if isinstance(graph, PoseGraph) else graph
             save_artifact(self.tmp / "graph.npz", _GRAPH_KIND, MAP_FORMAT_VERSION, mg.arrays())
-            _write_g2o(self.tmp / "graph.g2o", P, mg)
+            write_g2o(self.tmp / "graph.g2o", P, mg.odometry, mg.loops, mg.loop_sigmas)
         if n:
             _trajectory_figure(self.tmp / "trajectory.png", P, np.array(self._session), self._meta["name"])
         files = {}
@@ -723,27 +723,6 @@ def _replace_folder(src: Path, dst: Path) -> None:
         raise
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
-
-
-def _write_g2o(path: Path, poses: np.ndarray, graph: MapGraph) -> None:
-    """The map's graph in g2o text: every keyframe's vertex at ``poses``, its odometry and loop edges."""
-    from scipy.spatial.transform import Rotation
-
-    def se3(T: np.ndarray) -> str:
-        q = Rotation.from_matrix(T[:3, :3]).as_quat()
-        return " ".join(f"{v:.9g}" for v in (*T[:3, 3], *q))
-
-    lines = [f"VERTEX_SE3:QUAT {i} {se3(T)}" for i, T in enumerate(poses)]
-    iu = np.triu_indices(6)
-    edges = [(i, j, T, s) for i, j, T, s in graph.odometry]
-    edges += [(lp.match_id, lp.query_id, lp.T_match_query, graph.loop_sigmas) for lp in graph.loops]
-    for i, j, T, s in edges:
-        info = np.diag(1.0 / np.square(np.r_[s[3:], s[:3]]))[iu]  # g2o: translation first
-        lines.append(f"EDGE_SE3:QUAT {i} {j} {se3(T)} " + " ".join(f"{v:.9g}" for v in info))
-    if len(poses):
-        lines.append("FIX 0")
-    with atomic_write(path, "w") as fh:
-        fh.write("\n".join(lines) + "\n")
 
 
 def _trajectory_figure(path: Path, poses: np.ndarray, session: np.ndarray, title: str) -> None:

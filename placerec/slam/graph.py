@@ -43,7 +43,7 @@ from placerec.io.atomic import atomic_write
 from placerec.params import Params
 from placerec.types import as_pose
 
-__all__ = ["GraphParams", "PoseGraph", "LoopFactor", "import_gtsam"]
+__all__ = ["GraphParams", "PoseGraph", "LoopFactor", "import_gtsam", "write_g2o"]
 
 
 def import_gtsam() -> Any:
@@ -399,27 +399,37 @@ class PoseGraph:
     def write_g2o(self, path: str | Path, poses: np.ndarray | None = None) -> Path:
         """The graph as g2o text (``VERTEX_SE3:QUAT`` at ``poses`` (default: the current estimate), then every
         ``EDGE_SE3:QUAT`` with its information matrix; a robust kernel is not part of g2o's format), atomically."""
-        from scipy.spatial.transform import Rotation
-
-        P = self.poses() if poses is None else np.asarray(poses, dtype=np.float64)
-        lines = []
-
-        def se3(T: np.ndarray) -> str:
-            q = Rotation.from_matrix(T[:3, :3]).as_quat()
-            return " ".join(f"{v:.9g}" for v in (*T[:3, 3], *q))
-
-        for i, T in enumerate(P):
-            lines.append(f"VERTEX_SE3:QUAT {i} {se3(T)}")
         p = self.params
-        loop_sig = np.array([p.loop_sigma_translation] * 3 + [np.radians(p.loop_sigma_rotation_deg)] * 3)
-        edges = [(i, j, rel, np.r_[sig[3:], sig[:3]]) for i, j, rel, sig in self.odometry]
-        edges += [(lp.match_id, lp.query_id, lp.T_match_query, loop_sig) for lp in self.loops]
-        iu = np.triu_indices(6)
-        for i, j, rel, sig in edges:
-            info = np.diag(1.0 / np.square(sig))[iu]
-            lines.append(f"EDGE_SE3:QUAT {i} {j} {se3(rel)} " + " ".join(f"{v:.9g}" for v in info))
-        if self.n_poses:
-            lines.append("FIX 0")
-        with atomic_write(path, "w") as fh:
-            fh.write("\n".join(lines) + "\n")
-        return Path(path)
+        loop_sig = np.array([np.radians(p.loop_sigma_rotation_deg)] * 3 + [p.loop_sigma_translation] * 3)
+        P = self.poses() if poses is None else np.asarray(poses, dtype=np.float64)
+        return write_g2o(path, P, self.odometry, self.loops, loop_sig)
+
+
+def write_g2o(
+    path: str | Path,
+    poses: np.ndarray,
+    odometry: list[tuple[int, int, np.ndarray, np.ndarray]],
+    loops: list[LoopFactor],
+    loop_sigmas: np.ndarray,
+) -> Path:
+    """A pose graph as g2o text, atomically: a ``VERTEX_SE3:QUAT`` per pose, an ``EDGE_SE3:QUAT`` per odometry
+    factor ``(i, j, T_ij, sigmas)`` and per loop (``loop_sigmas``), sigmas in GTSAM's order (rotation rad x3, then
+    translation m x3) turned into g2o's information matrix (translation first, upper triangle), and ``FIX 0``."""
+    from scipy.spatial.transform import Rotation
+
+    def se3(T: np.ndarray) -> str:
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()
+        return " ".join(f"{v:.9g}" for v in (*T[:3, 3], *q))
+
+    lines = [f"VERTEX_SE3:QUAT {i} {se3(T)}" for i, T in enumerate(poses)]
+    edges = [(i, j, rel, sig) for i, j, rel, sig in odometry]
+    edges += [(lp.match_id, lp.query_id, lp.T_match_query, loop_sigmas) for lp in loops]
+    iu = np.triu_indices(6)
+    for i, j, rel, sig in edges:
+        info = np.diag(1.0 / np.square(np.r_[sig[3:], sig[:3]]))[iu]
+        lines.append(f"EDGE_SE3:QUAT {i} {j} {se3(rel)} " + " ".join(f"{v:.9g}" for v in info))
+    if len(poses):
+        lines.append("FIX 0")
+    with atomic_write(path, "w") as fh:
+        fh.write("\n".join(lines) + "\n")
+    return Path(path)
