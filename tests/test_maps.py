@@ -373,3 +373,28 @@ def test_a_prior_map_that_cannot_serve_the_run_is_refused_before_it(tmp_path: Pa
         with pytest.raises(ConfigError, match=message):
             run_slam(cfg, tmp_path / "res")
     assert not (tmp_path / "res").exists()
+
+
+def test_a_calibrated_map_carries_its_table(tmp_path: Path) -> None:
+    from placerec.artifacts import build as build_artifact
+
+    table = build_artifact(
+        "calibration", {"source": {"sim": {"world": "town", "scans": 20}}, "out": str(tmp_path / "t.npz")}
+    )
+    out = build("map", {"source": {"sim": {"world": "town", "scans": 4}}, "out": str(tmp_path / "m"),
+                        "pipelines": [{"name": "scan-context"}],
+                        "preprocess": {"intensity": {"calibration": str(table)}}})  # fmt: skip
+    table.unlink()  # the map needs its own copy, not the user's file
+    m = MapArtifact.open(out, check_hashes=True)
+    assert m.manifest.intensity == "calibrated:t.npz" and (out / "calibration.npz").is_file()
+    assert m.preprocess().intensity.calibration == str(out / "calibration.npz")
+    from placerec.maps import Localizer
+
+    fix = Localizer(m).localize(SimulatedSequence(world="town", sensor="vlp16", n_scans=3, seed=0)[2])
+    assert fix.accepted, fix.reason
+    (out / "calibration.npz").unlink()
+    data = _manifest(out)
+    data["files"].pop("calibration.npz")
+    _write_manifest(out, data)
+    with pytest.raises(ArtifactError, match="disagree on calibration.npz"):
+        MapArtifact.open(out)

@@ -3,6 +3,7 @@ localises against (`placerec.maps.localizer.Localizer`) or extends with a new se
 
 Layout (``MAP_FORMAT_VERSION`` 1)::
 
+    calibration.npz       the intensity calibration table, when the map's scans were calibrated
     manifest.json         what the map is: pipelines (name, parameters, operating threshold, database file), sensor,
                           intensity, preprocessing, keyframe count, sessions, extent, the config that built it, and
                           the size and SHA-256 of every other file
@@ -44,6 +45,7 @@ from placerec.errors import ArtifactError, ConfigError, short_repr
 from placerec.io.artifact_schema import Member, check_offsets
 from placerec.io.atomic import atomic_write, load_artifact, save_artifact
 from placerec.params import Params
+from placerec.preprocess import PreprocessParams
 from placerec.quantise import FixedPointCloud
 from placerec.slam.graph import LoopFactor, PoseGraph, write_g2o
 from placerec.types import PlaceRecognizer, SensorInfo, as_pose, rigid_problem
@@ -64,6 +66,8 @@ __all__ = [
 MAP_KIND: Literal["placerec-map"] = "placerec-map"
 MAP_FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
+#: the intensity calibration table of a map whose scans were calibrated (``preprocess.intensity.calibration``)
+CALIBRATION = "calibration.npz"
 #: files up to this size are hashed every time a map opens; bigger ones (clouds, databases) with ``check_hashes``
 HASH_ON_OPEN_BYTES = 64 << 20
 _MAX_MANIFEST_BYTES = 64 << 20
@@ -267,7 +271,16 @@ class MapArtifact:
         if len(sessions) and int(kf["session"].max(initial=0)) >= len(sessions):
             raise ArtifactError(f"{kf_path}: 'session' names a session the manifest does not list")
         _check_pipelines(path / MANIFEST, manifest.pipelines)
-        return cls(path, manifest, kf, cl)
+        table = (manifest.preprocess.get("intensity") or {}).get("calibration")
+        if table is not None and table != CALIBRATION:
+            raise ArtifactError(
+                f"{path / MANIFEST}: 'preprocess' names calibration {short_repr(table)}, not the map's"
+            )
+        if (table is not None) != (CALIBRATION in manifest.files):
+            raise ArtifactError(f"{path / MANIFEST}: 'files' and 'preprocess' disagree on {CALIBRATION}")
+        artifact = cls(path, manifest, kf, cl)
+        artifact.preprocess()
+        return artifact
 
     def __len__(self) -> int:
         return int(self.manifest.n_keyframes)
@@ -369,6 +382,18 @@ class MapArtifact:
                     f"map {self.path} was built from sensor {mine!r}, the queries come from {sensor.name!r} "
                     "(allow it explicitly to query across sensors: --allow-other-sensor)"
                 )
+
+    def preprocess(self) -> PreprocessParams:
+        """The preprocessing the map's scans had, which queries must have too; a calibration table is the map's own
+        copy (``calibration.npz`` in the folder)."""
+        data = json.loads(json.dumps(self.manifest.preprocess))
+        intensity = data.get("intensity") or {}
+        if intensity.get("calibration") is not None:
+            intensity["calibration"] = str(self.path / _safe_relative(intensity["calibration"], self.path))
+        try:
+            return PreprocessParams.model_validate(data)
+        except ConfigError as exc:
+            raise ArtifactError(f"{self.path / MANIFEST}: 'preprocess': {exc}") from None
 
     # -- graph -----------------------------------------------------------------------------------------------
     def graph(self) -> MapGraph | None:
@@ -545,17 +570,26 @@ class MapWriter:
                 )
         self.out.parent.mkdir(parents=True, exist_ok=True)
         self.pipelines = dict(pipelines)
+        preprocess = json.loads(json.dumps(dict(preprocess or {})))
+        table = (preprocess.get("intensity") or {}).get("calibration")
+        if table is not None:
+            from placerec.calibration.table import load_calibration
+
+            load_calibration(table)  # a table that cannot serve the queries fails here, before any work
         self._meta = dict(
             name=name,
             sensor=sensor_dict(sensor),
             intensity=intensity,
-            preprocess=dict(preprocess or {}),
+            preprocess=preprocess,
             config=json.loads(json.dumps(dict(config or {}), default=str)),
             poses_source=poses_source,
             cloud_voxel_m=float(cloud_voxel_m),
         )
         self.voxel = float(cloud_voxel_m)
         self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.{os.getpid()}.", dir=self.out.parent))
+        if table is not None:  # the map carries the table its intensities were calibrated with
+            shutil.copyfile(table, self.tmp / CALIBRATION)
+            preprocess["intensity"]["calibration"] = CALIBRATION
         self._codes = open(self.tmp / ".codes.raw", "wb")  # noqa: SIM115 - closed in finish / abort
         self._counts: list[int] = []
         self._centres: list[np.ndarray] = []

@@ -36,7 +36,7 @@ from pydantic import Field
 from placerec.errors import ScanDataError
 from placerec.maps.artifact import MapArtifact
 from placerec.params import Params
-from placerec.preprocess import PreprocessParams, preprocess_scan
+from placerec.preprocess import preprocess_scan
 from placerec.types import Scan, as_pose, interpolate_trajectory, valid_points
 from placerec.verify import IcpCloud, as_source, as_target, verify_icp
 from placerec.verify.params import IcpParams, ScoreParams, VerifyParams
@@ -141,7 +141,7 @@ class Localizer:
         self.recognizer = self.map.recognizer(self.pipeline.name)  # loaded now: a bad database fails here
         t = self.params.threshold
         self.threshold = t if t is not None else self.pipeline.threshold
-        self.preprocess = PreprocessParams.model_validate(self.map.manifest.preprocess)
+        self.preprocess = self.map.preprocess()
         self._targets: OrderedDict[int, IcpCloud | None] = OrderedDict()
         self._sensors_checked: set[str] = set()
         self.reset()
