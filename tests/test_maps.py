@@ -398,3 +398,15 @@ def test_a_calibrated_map_carries_its_table(tmp_path: Path) -> None:
     _write_manifest(out, data)
     with pytest.raises(ArtifactError, match="disagree on calibration.npz"):
         MapArtifact.open(out)
+
+
+def test_top_level_names_are_imported_on_first_use() -> None:
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, placerec; assert 'placerec.maps' not in sys.modules; "
+        "from placerec.maps import Localizer, MapArtifact; "
+        "assert placerec.Localizer is Localizer and placerec.MapArtifact is MapArtifact"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)

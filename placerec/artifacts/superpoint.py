@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from placerec import __version__
+from placerec._version import __version__
 from placerec.config import load_params_file
 from placerec.experiment.superpoint_pairs import (
     PairData,

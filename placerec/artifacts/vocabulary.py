@@ -218,7 +218,7 @@ def build_vocabulary(
 ) -> Path:
     """Train the vocabulary ``config`` describes (`load_training_config` reads one from YAML) and write it
     atomically (plus ``<stem>.json``) to ``output`` (default: the config's); returns the vocabulary path."""
-    from placerec import __version__
+    from placerec._version import __version__
     from placerec.retrieval.dbow.io import save_vocabulary
     from placerec.retrieval.dbow.vocabulary import train_vocabulary
 

@@ -258,7 +258,7 @@ def load_benchmark_config(path: str | Path, overrides: list[str] | None = None) 
 def _cell_key(cfg: ExperimentConfig) -> str:
     """The stamp of a cell's result: its config and the placerec version (not the thresholds: the figures at a
     threshold are recomputed from the cell's files, `cell_metrics`; nor the localisation settings)."""
-    from placerec import __version__
+    from placerec._version import __version__
 
     data = cfg.model_dump(mode="json")
     data["evaluation"].pop("localize", None)  # localisation settings: no part of a loop-mode cell
