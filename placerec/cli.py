@@ -643,7 +643,9 @@ def map_build(
     pipeline: Annotated[
         list[str] | None,
         typer.Option(
-            "--pipeline", "-p", help="A pipeline whose database the map holds (repeatable; default orb-hbst)."
+            "--pipeline",
+            "-p",
+            help="A pipeline whose database the map holds (repeatable; default: orb-hbst, scan-context).",
         ),
     ] = None,
     config: Annotated[

@@ -8,9 +8,11 @@ variant of one of ``--base`` simulated OS1-64 town scans, as in ``tools/bench_st
 1 m grid of streets. Then, in a fresh process per pipeline: ``MapArtifact.open`` (manifest, files' sizes, the small
 files' hashes, keyframes, the clouds' memory map), the pipeline's database load, then ``--queries`` global
 queries with base scans (described once) and the tracking step's cloud access; times, resident memory (``VmRSS``
-after each step, peak ``VmHWM``) and the folder's size on disk. The last line printed is one JSON object.
+after each step, peak ``VmHWM``), the private part of it (``RssAnon``: what the process itself holds, not pages
+of the map's files that the kernel may drop again) and the folder's size on disk. The last line printed is one JSON object.
 
     python tools/bench_map_scale.py --keyframes 1000 10000
+    python tools/bench_map_scale.py --keyframes 10000 --cold --dir /tmp/maps   # as after a reboot; keeps the maps
 """
 
 from __future__ import annotations
@@ -57,19 +59,33 @@ def write(base: dict[str, list[dict]], n: int, out: Path) -> float:
     return time.perf_counter() - t0
 
 
+def drop_page_cache() -> bool:
+    """Empty the kernel's page cache (needs root), so the map is read from disk as after a reboot."""
+    import os
+
+    try:
+        os.sync()
+        with open("/proc/sys/vm/drop_caches", "w") as fh:
+            fh.write("1\n")
+        return True
+    except OSError:
+        return False
+
+
 def measure(args: tuple) -> dict:
-    path, name, base_file, n_queries = args
+    path, name, base_file, n_queries, cold = args
+    cold = cold and drop_page_cache()
     with open(base_file, "rb") as fh:
         base = pickle.load(fh)[name]
-    rss0 = status_kb("VmRSS")
+    rss0, anon0 = status_kb("VmRSS"), status_kb("RssAnon")
     t0 = time.perf_counter()
     m = MapArtifact.open(path)
     t_open = time.perf_counter() - t0
-    rss_open = status_kb("VmRSS")
+    rss_open, anon_open = status_kb("VmRSS"), status_kb("RssAnon")
     t0 = time.perf_counter()
     rec = m.recognizer(name)
     t_load = time.perf_counter() - t0
-    rss_load = status_kb("VmRSS")
+    rss_load, anon_load = status_kb("VmRSS"), status_kb("RssAnon")
     times, hits = [], 0
     for q in range(n_queries):
         d = base[(q * 7) % len(base)]
@@ -83,6 +99,7 @@ def measure(args: tuple) -> dict:
     t_cloud = (time.perf_counter() - t0) * 1e3
     return {
         "pipeline": name,
+        "cold": cold,
         "open_s": t_open,
         "load_s": t_load,
         "first_query_ms": times[0],
@@ -93,6 +110,10 @@ def measure(args: tuple) -> dict:
         "rss_start_mb": rss0 / 1024,
         "rss_after_open_mb": rss_open / 1024,
         "rss_after_load_mb": rss_load / 1024,
+        "anon_start_mb": anon0 / 1024,
+        "anon_after_open_mb": anon_open / 1024,
+        "anon_after_load_mb": anon_load / 1024,
+        "anon_after_queries_mb": status_kb("RssAnon") / 1024,
         "peak_rss_mb": status_kb("VmHWM") / 1024,
     }
 
@@ -102,6 +123,8 @@ def main() -> None:
     ap.add_argument("--keyframes", type=int, nargs="+", default=[1000, 10_000])
     ap.add_argument("--base", type=int, default=120)
     ap.add_argument("--queries", type=int, default=20)
+    ap.add_argument("--cold", action="store_true", help="drop the page cache before each open (needs root)")
+    ap.add_argument("--dir", type=Path, help="keep the maps here and reuse those already there")
     args = ap.parse_args()
     results: list[dict] = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -112,26 +135,30 @@ def main() -> None:
             pickle.dump(base, fh)
         print(f"{args.base} base scans described in {time.perf_counter() - t0:.0f} s", flush=True)
         for n in args.keyframes:
-            out = Path(tmp) / f"map{n}"
-            build_s = write(base, n, out)
+            out = (args.dir or Path(tmp)) / f"map{n}"
+            build_s = float("nan") if out.exists() else write(base, n, out)
             size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
             print(f"{n} keyframes: written in {build_s:.0f} s, {size / 1e6:.0f} MB on disk", flush=True)
             for name in PIPES:
                 with multiprocessing.get_context("spawn").Pool(1) as pool:
-                    r = pool.apply(measure, ((str(out), name, base_file, args.queries),))
+                    r = pool.apply(measure, ((str(out), name, base_file, args.queries, args.cold),))
                 r.update(keyframes=n, map_mb=size / 1e6, build_s=build_s)
                 results.append(r)
                 print(
-                    f"  {name:13s} open {r['open_s']:.2f} s, database load {r['load_s']:.2f} s, first query "
+                    f"  {name:13s} {'cold' if r['cold'] else 'warm'} open {r['open_s']:.2f} s, database load {r['load_s']:.2f} s, first query "
                     f"{r['first_query_ms']:.0f} ms (median {r['query_ms_median']:.0f} ms, {r['accepted']}/"
                     f"{args.queries} accepted), 3 nearest clouds {r['nearest_clouds_ms']:.1f} ms; resident MB: "
                     f"start {r['rss_start_mb']:.0f}, opened {r['rss_after_open_mb']:.0f}, loaded "
-                    f"{r['rss_after_load_mb']:.0f}, peak {r['peak_rss_mb']:.0f} (map {size / 1e6:.0f} MB)",
+                    f"{r['rss_after_load_mb']:.0f}, peak {r['peak_rss_mb']:.0f} (map {size / 1e6:.0f} MB); private "
+                    f"(RssAnon, not file pages the kernel can drop): start {r['anon_start_mb']:.0f}, opened "
+                    f"{r['anon_after_open_mb']:.0f}, loaded {r['anon_after_load_mb']:.0f}, after queries "
+                    f"{r['anon_after_queries_mb']:.0f}",
                     flush=True,
                 )
-            import shutil
+            if args.dir is None:
+                import shutil
 
-            shutil.rmtree(out)
+                shutil.rmtree(out)
     print(json.dumps({"bench": "map_scale", "results": results}))
 
 

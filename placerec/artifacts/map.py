@@ -36,8 +36,9 @@ class MapBuild(Params):
     source: SequenceSource
     out: FilePath
     pipelines: list[PipelineSpec] = Field(
-        default_factory=lambda: [PipelineSpec(name="orb-hbst")],
-        description="pipelines whose databases the map holds (the first answers global queries by default)",
+        default_factory=lambda: [PipelineSpec(name="orb-hbst"), PipelineSpec(name="scan-context")],
+        description="pipelines whose databases the map holds; global search asks them in this order (chosen on the"
+        " tuning split: tools/tune_map_pipelines.py, docs/maps.md)",
     )
     preprocess: PreprocessParams = Field(default_factory=PreprocessParams)
     keyframe_metres: float = Field(

@@ -8,12 +8,14 @@ the caller's placerec error class naming the file (and member) and what was expe
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import io
 import math
 import struct
 import zipfile
 import zlib
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import IO, cast
 
@@ -22,9 +24,27 @@ import numpy as np
 from placerec.errors import PlacerecError, short_repr
 from placerec.io.limits import FileClass, check_size
 
-__all__ = ["parse_npy", "read_npz_arrays"]
+__all__ = ["parse_npy", "read_npz_arrays", "mapped_without_crc"]
 
 _CODECS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflate"}
+#: set by `mapped_without_crc`: memory-mapped members are not read for their CRC-32
+_SKIP_MAPPED_CRC: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "placerec_skip_mapped_crc", default=False
+)
+
+
+@contextlib.contextmanager
+def mapped_without_crc() -> Iterator[None]:
+    """Inside this block, memory-mapped members (``mmap=True``) are not read for their CRC-32, so opening a large
+    archive reads none of its data: for a caller that vouches for the bytes another way (a map folder's manifest
+    lists every file's SHA-256, checked with ``placerec info MAP --check``). Every structural check still runs."""
+    token = _SKIP_MAPPED_CRC.set(True)
+    try:
+        yield
+    finally:
+        _SKIP_MAPPED_CRC.reset(token)
+
+
 _CRC_CHUNK = 64 << 20
 # what corrupt bytes can raise inside zipfile / zlib / numpy's header parser
 _ZIP_ERRORS = (
@@ -184,7 +204,8 @@ def _map_member(
     path: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo, where: str, error: type[PlacerecError]
 ) -> np.ndarray:
     """A stored member as a view of a copy-on-write memory map of ``path``, after checking its CRC-32 on the
-    mapped bytes (read once, in chunks: the pages stay reclaimable page cache, nothing is allocated)."""
+    mapped bytes (read once, in chunks: the pages stay reclaimable page cache, nothing is allocated; not inside
+    `mapped_without_crc`)."""
     with zf.open(info) as fh:
         shape, fortran, dtype = _read_header(fh, where, error)
         header_len = fh.tell()
@@ -204,10 +225,11 @@ def _map_member(
     if start + info.file_size > path.stat().st_size:
         raise error(f"{where}: .npy data truncated: the file ends before the member's {info.file_size} bytes")
     member = np.memmap(path, dtype=np.uint8, mode="c", offset=start, shape=(info.file_size,))
-    crc = 0
-    for k in range(0, info.file_size, _CRC_CHUNK):
-        crc = zlib.crc32(member[k : k + _CRC_CHUNK].data, crc)
-    if crc != info.CRC:
-        raise error(f"{where}: CRC-32 mismatch (the member's bytes are corrupt)")
+    if not _SKIP_MAPPED_CRC.get():
+        crc = 0
+        for k in range(0, info.file_size, _CRC_CHUNK):
+            crc = zlib.crc32(member[k : k + _CRC_CHUNK].data, crc)
+        if crc != info.CRC:
+            raise error(f"{where}: CRC-32 mismatch (the member's bytes are corrupt)")
     arr = np.frombuffer(member, dtype=dtype, count=math.prod(shape), offset=header_len)
     return arr.reshape(shape, order="F" if fortran else "C")

@@ -26,6 +26,7 @@ Nothing else is read until asked: pipelines load on first use, clouds are pages 
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import hashlib
 import json
@@ -44,6 +45,7 @@ from placerec._version import __version__
 from placerec.errors import ArtifactError, ConfigError, short_repr
 from placerec.io.artifact_schema import Member, check_offsets
 from placerec.io.atomic import atomic_write, load_artifact, save_artifact
+from placerec.io.npz import mapped_without_crc
 from placerec.params import Params
 from placerec.preprocess import PreprocessParams
 from placerec.quantise import FixedPointCloud
@@ -236,6 +238,7 @@ class MapArtifact:
         self._clouds = clouds
         self._tree: Any = None
         self._recognizers: dict[str, PlaceRecognizer] = {}
+        self._hashed = False  # whether every file's SHA-256 was checked when the map opened
 
     # -- opening ---------------------------------------------------------------------------------------------
     @classmethod
@@ -257,7 +260,8 @@ class MapArtifact:
                 f"{kf_path}: pose of keyframe {problem[0]} is not a rigid motion ({problem[1]})"
             )
         cl_path = path / "clouds.npz"
-        cl, _ = load_artifact(cl_path, _CLOUDS_KIND, (MAP_FORMAT_VERSION,), _CLOUDS_SCHEMA, mmap=True)
+        with _unread(manifest, "clouds.npz", check_hashes):
+            cl, _ = load_artifact(cl_path, _CLOUDS_KIND, (MAP_FORMAT_VERSION,), _CLOUDS_SCHEMA, mmap=True)
         if cl["centre"].shape[0] != n:
             raise ArtifactError(f"{cl_path}: {cl['centre'].shape[0]} clouds for {n} keyframes")
         check_offsets(cl["offsets"], n, int(cl["codes"].shape[0]), cl_path, "offsets")
@@ -280,6 +284,7 @@ class MapArtifact:
             raise ArtifactError(f"{path / MANIFEST}: 'files' and 'preprocess' disagree on {CALIBRATION}")
         artifact = cls(path, manifest, kf, cl)
         artifact.preprocess()
+        artifact._hashed = check_hashes
         return artifact
 
     def __len__(self) -> int:
@@ -343,10 +348,10 @@ class MapArtifact:
         if pipe.name not in self._recognizers:
             from placerec.recognizer import make_pipeline
 
-            rec = make_pipeline(
-                pipe.name, pipe.params, path=f"pipelines[{pipe.name}].params"
-            )  # checked on open
-            rec.load(self.path / _safe_relative(pipe.file, self.path))
+            params_at = f"pipelines[{pipe.name}].params"
+            rec = make_pipeline(pipe.name, pipe.params, path=params_at)  # checked on open
+            with _unread(self.manifest, pipe.file, self._hashed):
+                rec.load(self.path / _safe_relative(pipe.file, self.path))
             self._recognizers[pipe.name] = rec
         return self._recognizers[pipe.name]
 
@@ -487,6 +492,15 @@ def _read_manifest(path: Path) -> MapManifest:
     if len(manifest.extent) != 2 or any(len(v) != 3 for v in manifest.extent):
         raise ArtifactError(f"{mp}: 'extent' must be [[x, y, z], [x, y, z]]")
     return manifest
+
+
+def _unread(manifest: MapManifest, name: str, hashed: bool) -> contextlib.AbstractContextManager[None]:
+    """Load ``name`` without reading its memory-mapped data for CRCs when its hash was not checked on open (a file
+    above `HASH_ON_OPEN_BYTES`): a big map opens without reading its bulk; ``check_hashes`` reads and checks all."""
+    entry = manifest.files.get(name)
+    if hashed or entry is None or entry.bytes <= HASH_ON_OPEN_BYTES:
+        return contextlib.nullcontext()
+    return mapped_without_crc()
 
 
 def _check_pipelines(where: Path, pipelines: list[MapPipeline]) -> None:

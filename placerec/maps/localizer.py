@@ -37,7 +37,7 @@ from placerec.errors import ScanDataError
 from placerec.maps.artifact import MapArtifact
 from placerec.params import Params
 from placerec.preprocess import preprocess_scan
-from placerec.types import Scan, as_pose, interpolate_trajectory, valid_points
+from placerec.types import PlaceRecognizer, Scan, as_pose, interpolate_trajectory, valid_points
 from placerec.verify import IcpCloud, as_source, as_target, verify_icp
 from placerec.verify.params import IcpParams, ScoreParams, VerifyParams
 
@@ -83,11 +83,13 @@ class LocalizerParams(Params):
     """Everything `Localizer` uses (``placerec localize --set key=value`` sets them)."""
 
     pipeline: str | None = Field(
-        None, description="the map pipeline for global search (None: the map's first)"
+        None,
+        description="the map pipeline for global search (None: each of the map's pipelines in turn, in the"
+        " map's order, until one gives a fix)",
     )
     k: int = Field(5, ge=1, le=1000, description="candidates per global query")
     threshold: float | None = Field(
-        None, description="global fixes score at least this (None: the map pipeline's operating threshold)"
+        None, description="global fixes score at least this (None: each map pipeline's operating threshold)"
     )
     tracking: TrackingParams = Field(default_factory=TrackingParams)
     allow_other_sensor: bool = Field(
@@ -137,10 +139,13 @@ class Localizer:
     def __init__(self, map: MapArtifact | str | Path, params: LocalizerParams | None = None) -> None:
         self.map = map if isinstance(map, MapArtifact) else MapArtifact.open(map)
         self.params = params or LocalizerParams()
-        self.pipeline = self.map.pipeline(self.params.pipeline)
-        self.recognizer = self.map.recognizer(self.pipeline.name)  # loaded now: a bad database fails here
+        name = self.params.pipeline
+        pipes = self.map.manifest.pipelines if name is None else [self.map.pipeline(name)]
         t = self.params.threshold
-        self.threshold = t if t is not None else self.pipeline.threshold
+        #: (pipeline, its database, its threshold) for global search, in the order they are asked; the databases
+        #: are loaded now, so a damaged one fails here, before any scan
+        self.searches = [(p, self.map.recognizer(p.name), t if t is not None else p.threshold) for p in pipes]
+        self.pipeline, self.recognizer, self.threshold = self.searches[0]
         self.preprocess = self.map.preprocess()
         self._targets: OrderedDict[int, IcpCloud | None] = OrderedDict()
         self._sensors_checked: set[str] = set()
@@ -277,20 +282,34 @@ class Localizer:
 
     # -- global search ----------------------------------------------------------------------------------------
     def _global(self, scan: Scan, timing: dict[str, float]) -> Fix:
-        rec = self.recognizer
+        """Global search: each pipeline of `searches` in turn until one gives a fix; the reasons of all when none
+        does."""
+        reasons, tried = [], 0
+        for pipe, rec, threshold in self.searches:
+            fix = self._global_one(scan, rec, threshold, timing)
+            tried += fix.candidates_tried
+            if fix.accepted or len(self.searches) == 1:
+                return replace(fix, candidates_tried=tried)
+            reasons.append(f"{pipe.name}: {fix.reason}")
+        return replace(fix, reason="; ".join(reasons), candidates_tried=tried)
+
+    def _global_one(
+        self, scan: Scan, rec: PlaceRecognizer, threshold: float | None, timing: dict[str, float]
+    ) -> Fix:
+        """One pipeline's global search: its best candidate it accepted with a score >= ``threshold``."""
         t = time.perf_counter()
         try:
             desc = rec.describe(scan)
         except ScanDataError as exc:
-            timing["describe"] = (time.perf_counter() - t) * 1e3
+            timing["describe"] = timing.get("describe", 0.0) + (time.perf_counter() - t) * 1e3
             return Fix(None, False, "global", f"scan cannot be described: {exc}")
-        timing["describe"] = (time.perf_counter() - t) * 1e3
+        timing["describe"] = timing.get("describe", 0.0) + (time.perf_counter() - t) * 1e3
         t = time.perf_counter()
         candidates = rec.query_description(desc, k=self.params.k, max_id=None)
-        timing["query"] = (time.perf_counter() - t) * 1e3
+        timing["query"] = timing.get("query", 0.0) + (time.perf_counter() - t) * 1e3
         if not candidates:
             return Fix(None, False, "global", "no candidate")
-        threshold = -math.inf if self.threshold is None else self.threshold
+        threshold = -math.inf if threshold is None else threshold
         first_rejection = None
         for c in candidates:
             fitness = float("nan") if c.verification is None else c.verification.fitness
