@@ -60,8 +60,8 @@ def main() -> None:
                     if fix.accepted:
                         assert fix.T_world_query is not None
                         te, re = pose_errors(fix.T_world_query[None], pair.query.poses[i][None])
-                        good = te[0] <= 1.0 and re[0] <= 5.0
-                        correct, wrong = correct + good, wrong + (not good)
+                        good = bool(te[0] <= 1.0 and re[0] <= 5.0)
+                        correct, wrong = correct + int(good), wrong + int(not good)
                 ms = (time.perf_counter() - t0) / max(len(idx), 1) * 1e3
                 rows.append({"kind": kind, "search": label, "scans": len(idx), "correct": correct, "wrong": wrong,
                              "ms_per_scan": round(ms, 1)})  # fmt: skip
