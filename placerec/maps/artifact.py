@@ -39,7 +39,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from placerec._version import __version__
 from placerec.errors import ArtifactError, ConfigError, short_repr
@@ -102,8 +102,10 @@ class MapMismatchError(ConfigError):
     intensity or sensor than the caller uses (the message names what differs)."""
 
 
-class FileEntry(Params):
-    """A file of the map folder: its size and SHA-256."""
+class FileEntry(BaseModel):
+    """A file of the map folder: its size and SHA-256 (a record, not a parameter: sizes pass 10^9 bytes)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
     bytes: int = Field(ge=0, le=1 << 50)
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
