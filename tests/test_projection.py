@@ -245,3 +245,27 @@ def test_clip_at_a_saturation_value():
     intensity = np.array([[0.0, 50.0, 200.0, 400.0]])
     img = to_uint8(intensity, np.ones_like(intensity, bool), ImageParams(clip="saturation", saturation=100.0))
     assert img.tolist() == [[0, 127, 255, 255]]
+
+
+def test_each_pixel_keeps_its_nearest_point_and_the_first_of_equal_ranges():
+    """The one-pass kernel of `_scatter_nearest` against the sort it replaced: per pixel the smallest range, the
+    lowest point index among equal ranges (many ties: ranges rounded to metres, 40k points in 512 pixels)."""
+    from placerec.image import projection as P
+    from placerec.types import Scan
+
+    rng = np.random.default_rng(4)
+    n = 40_000
+    xyz = rng.normal(size=(n, 3)).astype(np.float32)
+    scan = Scan(xyz, rng.uniform(0, 1, n).astype(np.float32))
+    rows, cols = rng.integers(0, 8, n), rng.integers(0, 64, n)
+    ranges = np.round(rng.uniform(1, 9, n)).astype(np.float32)
+    idx = np.arange(n)
+    inten, rngs, pidx = P._scatter_nearest(rows, cols, ranges, scan, idx, (8, 64))
+    pix = rows * 64 + cols
+    order = np.lexsort((idx, ranges, pix))
+    first = order[np.r_[True, pix[order][1:] != pix[order][:-1]]]
+    expect = np.full(8 * 64, -1)
+    expect[pix[first]] = first
+    np.testing.assert_array_equal(pidx.ravel(), expect)
+    np.testing.assert_array_equal(rngs.ravel()[pix[first]], ranges[first])
+    np.testing.assert_array_equal(inten.ravel()[pix[first]], scan.intensity[first])

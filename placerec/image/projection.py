@@ -37,6 +37,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+import numba
 import numpy as np
 from pydantic import Field, model_validator
 
@@ -184,13 +185,24 @@ def _scatter_nearest(
     if rows.size == 0:
         return inten.reshape(shape), rng.reshape(shape), pidx.reshape(shape)
     pix = rows * w + cols
-    order = np.lexsort((ranges, pix))
-    pix_sorted = pix[order]
-    first = order[np.r_[True, pix_sorted[1:] != pix_sorted[:-1]]]
+    first = _nearest_per_pixel(pix, np.ascontiguousarray(ranges, np.float32), h * w)
     inten[pix[first]] = scan.intensity[idx[first]]
     rng[pix[first]] = ranges[first]
     pidx[pix[first]] = idx[first]
     return inten.reshape(shape), rng.reshape(shape), pidx.reshape(shape)
+
+
+@numba.njit(cache=True)
+def _nearest_per_pixel(pix: np.ndarray, ranges: np.ndarray, n_pixels: int) -> np.ndarray:  # pragma: no cover
+    """Indices (into ``pix``) of each occupied pixel's nearest point, the first of equal ranges, in pixel order:
+    one pass over the points (a sort of them costs several times more on a 120k-point scan)."""
+    best = np.full(n_pixels, -1, np.int64)
+    for i in range(pix.shape[0]):
+        p = pix[i]
+        b = best[p]
+        if b < 0 or ranges[i] < ranges[b]:
+            best[p] = i
+    return best[best >= 0]
 
 
 def _valid_points(scan: Scan) -> tuple[np.ndarray, np.ndarray]:
