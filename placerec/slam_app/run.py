@@ -221,8 +221,10 @@ def slam_sequence(
     With ``prior`` (`open_prior_map`; ``recognizer`` is then its database) the run is a second session: its
     odometry starts at the identity, its closures against the map join it to the map when enough agree, and
     ``map_writer`` (holding the map's keyframes) writes the merged map only if they were joined."""
-    rec = recognizer or make_pipeline(
-        cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params"
+    rec = (
+        recognizer
+        if recognizer is not None
+        else make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
     )
     odometry = odometry or odometry_source(cfg, seq)
     if prior is not None:
