@@ -223,14 +223,15 @@ def kidnap(pair: SessionPair, loc: Localizer, n_trials: int, seed: int) -> dict[
         # the odometry does not see the teleport: one ordinary step on, then the new place's relative motion
         step = np.linalg.inv(odo[t.tracking[-2]]) @ odo[t.tracking[-1]] if t.teleport > 1 else np.eye(4)
         start = seen[-1] @ step
-        hit = None
+        hit, why = None, []
         for n, i in enumerate(t.after):
             f = loc.track(pair.query[int(i)], start @ np.linalg.inv(odo[t.after[0]]) @ odo[i])
             if f.accepted:
                 hit = (n, int(i), f)
                 break
+            why.append(f.reason)
         if hit is None:
-            failures.append({"after": [int(i) for i in t.after], "reason": "no fix"})
+            failures.append({"after": [int(i) for i in t.after], "reason": "no fix", "reasons": why})
             continue
         n, i, f = hit
         assert f.T_world_query is not None

@@ -1,0 +1,45 @@
+"""tools/eval_sessions.py on a tiny cut: a cell's fields, a revisit relocalised and joined, a disjoint one not."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("gtsam")
+
+
+def _tool():
+    path = Path(__file__).resolve().parents[1] / "tools" / "eval_sessions.py"
+    spec = importlib.util.spec_from_file_location("eval_sessions", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_revisit_cell_is_relocalised_and_joined_and_a_disjoint_one_is_not(tmp_path: Path) -> None:
+    tool = _tool()
+    cell = tool.run_cell("town", 0, "revisit", scans=25, kidnaps=2, work=tmp_path)
+    assert {"relocalisation", "kidnap", "multisession", "slam_session1", "n_map", "n_query"} <= set(cell)
+    r = cell["relocalisation"]
+    assert r["scans"] == 25 and r["overlap_scans"] == 25
+    assert r["success"] >= 0.9 and r["wrong"] == 0 and r["tracking_ms"]["n"] > 0
+    assert cell["kidnap"]["trials"] == 0 and "skipped" in cell["kidnap"]  # 25 m leave no 50 m teleport
+    m = cell["multisession"]
+    assert m["joined"] and m["false_inter_loops"] == 0 and m["merged_ate_rmse"] < 0.15
+    assert m["join_error_m"]["median"] < 0.15 and cell["slam_session1"]["scans"] == 25
+    truth = cell["multisession_truth_map"]  # the same session 2 against the true-pose map
+    assert truth["joined"] and truth["false_inter_loops"] == 0 and truth["merged_ate_rmse"] < 0.15
+    assert "|" in tool.cell_line(cell)
+
+    other = tool.run_cell(
+        "town", 0, "disjoint", scans=25, kidnaps=2, work=tmp_path
+    )  # session 1's maps reused
+    assert other["relocalisation"]["overlap_scans"] == 0 and other["relocalisation"]["wrong"] == 0
+    assert not other["multisession"]["joined"] and other["multisession"]["merged_ate_rmse"] is None
+    assert not other["multisession_truth_map"]["joined"]
+    assert len(list(tmp_path.glob("*-truth"))) == 1
