@@ -196,7 +196,7 @@ def describe_visual(
         "keypoint_xyz": kp_xyz,
     }
     if verify is not None:
-        out["cloud"] = scan_cloud(scan.select(ok), verify)
+        out["cloud"] = scan_cloud(scan.xyz[ok], verify)
     return out
 
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from placerec.errors import DependencyError, ScanDataError
 from placerec.verify.params import IcpParams
@@ -67,13 +68,25 @@ class IcpResult:
 
 def as_points(points: Any, what: str = "points") -> np.ndarray:
     """(N, 3) float64 finite points from an array (extra columns such as intensity are dropped) or a `Scan`."""
-    xyz = getattr(points, "xyz", points)
-    p = np.asarray(xyz, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] < 3:
-        raise ScanDataError(f"{what} must be an (N, 3) array, got shape {p.shape}")
-    p = p[:, :3]
-    keep = np.isfinite(p).all(axis=1) & (np.abs(p).sum(axis=1) > 0)  # zeros are the invalid returns
-    return np.ascontiguousarray(p[keep])
+    xyz = np.asarray(getattr(points, "xyz", points))
+    if xyz.dtype.kind != "f":
+        xyz = xyz.astype(np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] < 3:
+        raise ScanDataError(f"{what} must be an (N, 3) array, got shape {xyz.shape}")
+    # selected in the input's own float type (finiteness and zeros do not change in float64), then only the
+    # kept points converted
+    p = xyz[:, :3]
+    return np.ascontiguousarray(p[_returns(p)], dtype=np.float64)
+
+
+@njit(cache=True, nogil=True)
+def _returns(p: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """Mask of the rows of ``p`` (N, 3) that are finite and not all zero (zeros are the invalid returns)."""
+    keep = np.empty(p.shape[0], np.bool_)
+    for i in range(p.shape[0]):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        keep[i] = np.isfinite(x) and np.isfinite(y) and np.isfinite(z) and (x != 0 or y != 0 or z != 0)
+    return keep
 
 
 def _crop(p: np.ndarray, params: IcpParams) -> np.ndarray:
