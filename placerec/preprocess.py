@@ -43,17 +43,24 @@ def remove_invalid(scan: Scan, keep_organized: bool = False) -> tuple[Scan, dict
     unorganised unless ``keep_organized``, which zeroes invalid points in place (the organised convention for no
     return).
     """
-    finite = np.isfinite(scan.xyz).all(axis=1) & np.isfinite(scan.intensity)
     keep = valid_points(scan, intensity=True)
-    counts = {"nonfinite": int((~finite).sum()), "no_return": int((finite & ~keep).sum())}
-    if counts["nonfinite"] or counts["no_return"]:
+    return _keep(scan, keep, keep_organized), _invalid_counts(scan, keep)
+
+
+def _invalid_counts(scan: Scan, valid: np.ndarray) -> dict[str, int]:
+    """How many of the points outside ``valid`` are not finite and how many have no return (logged at debug)."""
+    # a point that is not finite has no finite range, so it is among the invalid ones: only those are checked
+    dropped = np.flatnonzero(~valid)
+    finite = np.isfinite(scan.xyz[dropped]).all(axis=1) & np.isfinite(scan.intensity[dropped])
+    counts = {"nonfinite": int((~finite).sum()), "no_return": int(finite.sum())}
+    if dropped.size:
         log.debug(
             "%s: removed %d non-finite points and %d without a return",
             scan.source or "scan",
             counts["nonfinite"],
             counts["no_return"],
         )
-    return _keep(scan, keep, keep_organized), counts
+    return counts
 
 
 def crop(
@@ -65,19 +72,31 @@ def crop(
     keep_organized: bool = False,
 ) -> Scan:
     """Keep points with ``min_range <= |p| <= max_range`` and ``min_z <= z <= max_z`` (None = unbounded)."""
+    r = scan.ranges if min_range is not None or max_range is not None else None
+    return _keep(scan, _crop_mask(scan, r, min_range, max_range, min_z, max_z), keep_organized)
+
+
+def _crop_mask(
+    scan: Scan,
+    ranges: np.ndarray | None,
+    min_range: float | None,
+    max_range: float | None,
+    min_z: float | None,
+    max_z: float | None,
+) -> np.ndarray:
+    """`crop`'s mask, from the scan's ``ranges`` (needed only with a range bound)."""
     keep = np.ones(len(scan), dtype=bool)
-    if min_range is not None or max_range is not None:
-        r = scan.ranges
+    if ranges is not None:
         if min_range is not None:
-            keep &= r >= min_range
+            keep &= ranges >= min_range
         if max_range is not None:
-            keep &= r <= max_range
+            keep &= ranges <= max_range
     z = scan.xyz[:, 2]
     if min_z is not None:
         keep &= z >= min_z
     if max_z is not None:
         keep &= z <= max_z
-    return _keep(scan, keep, keep_organized)
+    return keep
 
 
 def voxel_downsample(scan: Scan, voxel_size: float) -> Scan:
@@ -176,8 +195,13 @@ def preprocess_scan(scan: Scan, params: PreprocessParams | None = None, keep_org
     is what image-based pipelines need.
     """
     p = params or PreprocessParams()
-    scan, _ = remove_invalid(scan, keep_organized)
-    scan = crop(scan, p.min_range, p.max_range, p.min_z, p.max_z, keep_organized)
+    # `remove_invalid` then `crop` as one selection: the ranges computed once, the points copied once (a point's
+    # range does not depend on the other points; a dropped point stays dropped, zeroed in an organised scan)
+    r = scan.ranges
+    keep = valid_points(scan, intensity=True, ranges=r)
+    _invalid_counts(scan, keep)
+    keep &= _crop_mask(scan, r, p.min_range, p.max_range, p.min_z, p.max_z)
+    scan = _keep(scan, keep, keep_organized)
     if p.intensity.calibration:
         # per-beam calibration table: output already in [0, 1]; NaN (beyond its range cut-off) -> dropped
         from placerec.calibration.table import load_calibration

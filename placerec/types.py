@@ -416,10 +416,11 @@ MAX_RANGE_M = 1e4
 MIN_RETURN_M = 1e-6
 
 
-def valid_points(scan: Scan, intensity: bool = False) -> np.ndarray:
+def valid_points(scan: Scan, intensity: bool = False, ranges: np.ndarray | None = None) -> np.ndarray:
     """Mask of the points that are real returns: finite, not at the origin (organised scans' invalid returns),
-    closer than `MAX_RANGE_M`; with ``intensity`` also a finite intensity. The one definition every stage uses."""
-    r = scan.ranges
+    closer than `MAX_RANGE_M`; with ``intensity`` also a finite intensity. The one definition every stage uses.
+    ``ranges``: ``scan.ranges`` where the caller has computed them already."""
+    r = scan.ranges if ranges is None else ranges
     with np.errstate(invalid="ignore"):
         ok = np.isfinite(r) & (r > MIN_RETURN_M) & (r < MAX_RANGE_M)
     return ok & np.isfinite(scan.intensity) if intensity else ok
