@@ -206,8 +206,9 @@ def _nearest_per_pixel(pix: np.ndarray, ranges: np.ndarray, n_pixels: int) -> np
 
 
 def _valid_points(scan: Scan) -> tuple[np.ndarray, np.ndarray]:
-    idx = np.flatnonzero(valid_points(scan, intensity=True))
-    return idx, scan.ranges[idx]
+    r = scan.ranges
+    idx = np.flatnonzero(valid_points(scan, intensity=True, ranges=r))
+    return idx, r[idx]
 
 
 def _fov(scan: Scan, params: ImageParams, xyz: np.ndarray, r: np.ndarray) -> tuple[float, float]:
@@ -401,19 +402,36 @@ def fill_empty_rows(image: np.ndarray, empty: np.ndarray) -> np.ndarray:
 def fill_vertical_holes(image: np.ndarray, valid: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.ndarray]:
     """Fill empty pixels from the nearest valid pixels above and below in the same column when both lie within
     ``max_gap`` rows (linear interpolation). Returns (image, valid)."""
-    h = image.shape[0]
+    holes = _vertical_holes(valid, max_gap)
+    if holes is None:
+        return image, valid
+    return _fill_holes(image, holes), valid | holes[0]
+
+
+_Holes = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _vertical_holes(valid: np.ndarray, max_gap: int) -> _Holes | None:
+    """The pixels `fill_vertical_holes` fills: (hole mask, row above, row below, column, weight of the row below)
+    of each, row-major; None when there is none. Found once, they fill every image of the same pixels."""
+    h = valid.shape[0]
     rows = np.arange(h)[:, None]
     above = np.maximum.accumulate(np.where(valid, rows, -1), axis=0)
     below = np.minimum.accumulate(np.where(valid, rows, h)[::-1], axis=0)[::-1]
     hole = ~valid & (above >= 0) & (below < h) & (rows - above <= max_gap) & (below - rows <= max_gap)
-    if not hole.any():
-        return image, valid
-    cols = np.broadcast_to(np.arange(image.shape[1]), image.shape)
-    a, b, c = above[hole], below[hole], cols[hole]
-    t = (rows.repeat(image.shape[1], axis=1)[hole] - a) / (b - a)
+    r, c = np.nonzero(hole)
+    if r.size == 0:
+        return None
+    a, b = above[r, c], below[r, c]
+    return hole, a, b, c, (r - a) / (b - a)
+
+
+def _fill_holes(image: np.ndarray, holes: _Holes) -> np.ndarray:
+    """``image`` with the pixels of `_vertical_holes` interpolated between the rows above and below."""
+    hole, a, b, c, t = holes
     out = image.astype(np.float32, copy=True)
     out[hole] = (1 - t) * image[a, c] + t * image[b, c]
-    return out, valid | hole
+    return out
 
 
 def to_uint8(intensity: np.ndarray, valid: np.ndarray, params: ImageParams = _DEFAULT_PARAMS) -> np.ndarray:
@@ -472,8 +490,8 @@ def make_image(scan: Scan, params: ImageParams = _DEFAULT_PARAMS) -> IntensityIm
     gap = params.fill_holes_max_gap
     if gap is None:
         gap = UNIFORM_HOLES_MAX_GAP if mode == "uniform" else 0
-    if gap > 0:
-        rng, _ = fill_vertical_holes(rng, valid, gap)
-        inten, valid = fill_vertical_holes(inten, valid, gap)
+    holes = _vertical_holes(valid, gap) if gap > 0 else None
+    if holes is not None:  # the range and the intensity image have the same holes
+        rng, inten, valid = _fill_holes(rng, holes), _fill_holes(inten, holes), valid | holes[0]
     image = to_uint8(inten, valid, params)
     return IntensityImage(inten, rng, valid, pidx, image, filled, mode)
