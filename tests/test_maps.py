@@ -264,7 +264,7 @@ def test_bad_manifest_names_what_is_wrong(copy: Path, edit, message: str) -> Non
 
 def test_manifest_not_json(copy: Path) -> None:
     (copy / "manifest.json").write_bytes(b"\xff{")
-    with pytest.raises(ArtifactError, match="manifest.json: not valid JSON"):
+    with pytest.raises(ArtifactError, match="manifest.json is not valid JSON"):
         MapArtifact.open(copy)
     with pytest.raises(ArtifactError, match="no such map folder"):
         MapArtifact.open(copy / "nothing")

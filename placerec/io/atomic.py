@@ -30,7 +30,7 @@ from placerec.io.artifact_schema import Schema, check_members
 from placerec.io.limits import check_size
 from placerec.io.npz import read_npz_arrays
 
-__all__ = ["atomic_write", "save_artifact", "load_artifact", "peek_artifact", "HEADER_KEY"]
+__all__ = ["atomic_write", "save_artifact", "load_artifact", "peek_artifact", "json_object", "HEADER_KEY"]
 
 HEADER_KEY = "__header__"
 _MAX_HEADER_BYTES = 16 << 20
@@ -209,6 +209,17 @@ def peek_artifact(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, An
     return arrays, _parse_header(arrays.pop(HEADER_KEY), path)
 
 
+def json_object(raw: bytes, where: str) -> dict[str, Any]:
+    """``raw`` (UTF-8 JSON) as the object it must hold; `ArtifactError` starting with ``where`` otherwise."""
+    try:
+        data = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ArtifactError(f"{where} is not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise ArtifactError(f"{where} must be a JSON object, got {type(data).__name__}")
+    return data
+
+
 def _parse_header(raw: np.ndarray | None, path: Path) -> dict[str, Any]:
     if raw is None:
         raise ArtifactError(f"{path}: not a placerec artifact (no {HEADER_KEY!r} member)")
@@ -216,12 +227,7 @@ def _parse_header(raw: np.ndarray | None, path: Path) -> dict[str, Any]:
         raise ArtifactError(
             f"{path}: header must be UTF-8 JSON bytes (uint8, 1-D), got {raw.dtype} {raw.shape}"
         )
-    try:
-        header = json.loads(raw.tobytes().decode("utf-8"))
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise ArtifactError(f"{path}: header is not valid JSON ({exc})") from None
-    if not isinstance(header, dict):
-        raise ArtifactError(f"{path}: header must be a JSON object, got {type(header).__name__}")
+    header = json_object(raw.tobytes(), f"{path}: header")
     kind, version, meta = header.get("kind"), header.get("format_version"), header.get("meta", {})
     if not isinstance(kind, str):
         raise ArtifactError(f"{path}: header 'kind' must be a string, got {short_repr(kind)}")

@@ -44,7 +44,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from placerec._version import __version__
 from placerec.errors import ArtifactError, ConfigError, short_repr
 from placerec.io.artifact_schema import Member, check_offsets
-from placerec.io.atomic import atomic_write, load_artifact, save_artifact
+from placerec.io.atomic import atomic_write, json_object, load_artifact, save_artifact
 from placerec.io.npz import mapped_without_crc
 from placerec.params import Params
 from placerec.preprocess import PreprocessParams
@@ -474,12 +474,7 @@ def _read_manifest(path: Path) -> MapManifest:
         raise ArtifactError(f"{path}: not a placerec map (no {MANIFEST})")
     if mp.stat().st_size > _MAX_MANIFEST_BYTES:
         raise ArtifactError(f"{mp}: {mp.stat().st_size} bytes, more than a manifest can be")
-    try:
-        data = json.loads(mp.read_bytes().decode("utf-8"))
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise ArtifactError(f"{mp}: not valid JSON ({exc})") from None
-    if not isinstance(data, dict):
-        raise ArtifactError(f"{mp}: must hold a JSON object, got {type(data).__name__}")
+    data = json_object(mp.read_bytes(), str(mp))
     if data.get("kind") != MAP_KIND:
         raise ArtifactError(f"{mp}: kind is {short_repr(data.get('kind'))}, expected {MAP_KIND!r}")
     if data.get("format_version") != MAP_FORMAT_VERSION:
