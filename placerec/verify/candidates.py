@@ -44,7 +44,7 @@ from pydantic import Field
 
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.quantise import FixedPointCloud, PackedCloud
-from placerec.types import Candidate
+from placerec.types import Candidate, take_rows
 from placerec.verify.icp import IcpCloud, as_points
 from placerec.verify.params import VerifyParams
 from placerec.verify.spill import SpilledArrays, SpillFile, SpillRef, memory_mapped
@@ -134,7 +134,7 @@ def scan_cloud(scan: Any, params: VerifyParams | None = None) -> np.ndarray:
     icp = (params or VerifyParams()).icp
     p = as_points(scan, "scan")
     if icp.max_range is not None:
-        p = p[np.einsum("ni,ni->n", p, p) <= icp.max_range**2]
+        p = take_rows(p, np.einsum("ni,ni->n", p, p) <= icp.max_range**2)
     return voxel_points(p, icp.voxel_size)
 
 

@@ -21,6 +21,7 @@ import numpy as np
 from numba import njit
 
 from placerec.errors import DependencyError, ScanDataError
+from placerec.types import take_rows
 from placerec.verify.params import IcpParams
 
 __all__ = [
@@ -75,8 +76,8 @@ def as_points(points: Any, what: str = "points") -> np.ndarray:
         raise ScanDataError(f"{what} must be an (N, 3) array, got shape {xyz.shape}")
     # selected in the input's own float type (finiteness and zeros do not change in float64), then only the
     # kept points converted
-    p = xyz[:, :3]
-    return np.ascontiguousarray(p[_returns(p)], dtype=np.float64)
+    p = xyz[:, :3] if xyz.shape[1] > 3 else xyz
+    return np.ascontiguousarray(take_rows(p, _returns(p)), dtype=np.float64)
 
 
 @njit(cache=True, nogil=True)
@@ -92,7 +93,7 @@ def _returns(p: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
 def _crop(p: np.ndarray, params: IcpParams) -> np.ndarray:
     if params.max_range is None:
         return p
-    return p[np.einsum("ni,ni->n", p, p) <= params.max_range**2]
+    return take_rows(p, np.einsum("ni,ni->n", p, p) <= params.max_range**2)
 
 
 def _prepare(points: Any, params: IcpParams, voxel: float, role: str) -> IcpCloud:
