@@ -410,3 +410,33 @@ def test_top_level_names_are_imported_on_first_use() -> None:
         "assert placerec.Localizer is Localizer and placerec.MapArtifact is MapArtifact"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_poses_in_another_convention_are_refused(tmp_path: Path, seq: SimulatedSequence) -> None:
+    """Inverted poses (T_sensor_world) or poses of a camera frame do not fit the scans: no map is built from them,
+    and a map holding them is refused as a prior map before the run."""
+    from placerec.maps.artifact import MapMismatchError as Mismatch
+
+    cam = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1.0]])
+    for name, poses in (("inverted", np.linalg.inv(seq.poses)), ("camera", seq.poses @ cam)):
+        cfg = MapBuild.model_validate({"source": {"sim": {"world": "town"}}, "out": str(tmp_path / name),
+                                       "pipelines": [{"name": "scan-context"}], "keyframe_metres": 0})  # fmt: skip
+        with pytest.raises(Mismatch, match="the poses do not fit the scans"):
+            write_map(seq, cfg, poses=poses)
+        assert not (tmp_path / name).exists() and not list(tmp_path.glob(f".{name}*"))
+    # the same scans at their true poses fit (write_map above in the fixture); a map written with inverted poses
+    # by hand is refused when a session would join it
+    rec = make_pipeline("orb-hbst")
+    inverted = np.linalg.inv(seq.poses)
+    with MapWriter(tmp_path / "bad", {"orb-hbst": (rec, 0.25)}, name="bad") as w:
+        for i in range(12):
+            scan = preprocess_scan(seq[i], None, keep_organized=True)
+            rec.add(i, scan, inverted[i])
+            w.add_keyframe(inverted[i], scan.xyz)
+        w.finish()
+    with pytest.raises(Mismatch, match="do not fit"):
+        MapArtifact.open(tmp_path / "bad").check_pose_fit()
+
+
+def test_the_built_map_fits_its_poses(built: Path) -> None:
+    MapArtifact.open(built).check_pose_fit()

@@ -18,11 +18,12 @@ from pydantic import Field
 from placerec.artifacts.sources import FilePath, SequenceSource
 from placerec.config import PipelineSpec
 from placerec.errors import ConfigError, ScanDataError
-from placerec.maps.artifact import MapWriter
+from placerec.maps.artifact import MapWriter, check_pose_fit, pose_fit
 from placerec.params import Params
 from placerec.preprocess import PreprocessParams, preprocess_scan
 from placerec.recognizer import make_pipeline
 from placerec.types import PlaceRecognizer, Sequence, valid_points
+from placerec.verify.candidates import voxel_points
 
 log = logging.getLogger(__name__)
 
@@ -124,6 +125,11 @@ def write_map(
         overwrite=config.overwrite,
     ) as writer:
         skipped = 0
+        # a few consecutive keyframes spread over the map, to check that the poses fit the scans before writing
+        probes = set(
+            np.linspace(0, max(len(chosen) - 2, 0), min(8, max(len(chosen) - 1, 0))).astype(int).tolist()
+        )
+        probed: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         for done, i in enumerate(chosen, 1):
             i = int(i)
             raw = seq[i]
@@ -138,11 +144,16 @@ def write_map(
             for rec, desc in descriptions:
                 rec.add_description(kf, desc, poses[i])
             stamp = None if seq.timestamps is None else float(seq.timestamps[i])
-            writer.add_keyframe(poses[i], scan.xyz[valid_points(scan)], stamp, scan_index=i)
+            xyz = scan.xyz[valid_points(scan)]
+            writer.add_keyframe(poses[i], xyz, stamp, scan_index=i)
+            if done - 1 in probes or done - 2 in probes:
+                probed[done - 1] = (poses[i], voxel_points(xyz, config.cloud_voxel_m))
             if progress is not None:
                 progress(done, len(chosen))
         if len(writer) == 0:
             raise ScanDataError(f"{seq.name}: no scan could be described; no map written")
         if skipped:
             log.warning("%s: %d of %d keyframe scans could not be described", seq.name, skipped, len(chosen))
+        pairs = [(probed[k], probed[k + 1]) for k in sorted(probes) if k in probed and k + 1 in probed]
+        check_pose_fit([pose_fit(Ta, a, Tb, b) for (Ta, a), (Tb, b) in pairs], f"{seq.name} ({source} poses)")
         return writer.finish()

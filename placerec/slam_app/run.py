@@ -176,8 +176,8 @@ def _backend(
 
 def open_prior_map(cfg: SlamConfig, seq: Sequence) -> tuple[MapArtifact, PlaceRecognizer]:
     """The map of ``prior_map.path`` and its database of the run's pipeline, once checked to serve this run (the
-    same pipeline and front end, intensity and, unless allowed, sensor: `MapMismatchError` naming what differs;
-    a pose graph when ``prior_map.anchor`` is ``anchored``)."""
+    same pipeline and front end, intensity and, unless allowed, sensor, poses that fit its clouds:
+    `MapMismatchError` naming what differs; a pose graph when ``prior_map.anchor`` is ``anchored``)."""
     from placerec.artifacts.map import intensity_label
 
     assert cfg.prior_map.path is not None
@@ -186,6 +186,7 @@ def open_prior_map(cfg: SlamConfig, seq: Sequence) -> tuple[MapArtifact, PlaceRe
     prior.check_pipeline(spec.name, spec.params)
     sensor = seq[0].sensor if len(seq) else None
     prior.check_query(sensor, intensity_label(cfg.preprocess), cfg.prior_map.allow_other_sensor)
+    prior.check_pose_fit()
     if cfg.prior_map.anchor == "anchored" and "graph.npz" not in prior.manifest.files:
         raise ConfigError(
             f"prior_map.anchor 'anchored' holds the map by its own pose graph; {prior.path} has none (it was not "
