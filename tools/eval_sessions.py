@@ -90,10 +90,15 @@ def pipeline_label(pipeline: str | None) -> str:
     return "+".join(p.name for p in map_pipelines(pipeline))
 
 
-def settings(sensor: str, pipeline: str | None, scans: int | None, kidnaps: int) -> dict[str, Any]:
+def settings(
+    sensor: str, pipeline: str | None, scans: int | None, kidnaps: int, map_closes_loop: bool = False
+) -> dict[str, Any]:
     """What a cell depends on besides its world, seed and kind (stored with it; a mismatch recomputes it)."""
-    return {"version": VERSION, "sensor": sensor, "pipeline": pipeline_label(pipeline), "scans": scans, "kidnaps": kidnaps,
-            "slam_config": SLAM_CONFIG, "correct_within": [CORRECT_M, CORRECT_DEG]}  # fmt: skip
+    out = {"version": VERSION, "sensor": sensor, "pipeline": pipeline_label(pipeline), "scans": scans, "kidnaps": kidnaps,
+           "slam_config": SLAM_CONFIG, "correct_within": [CORRECT_M, CORRECT_DEG]}  # fmt: skip
+    if map_closes_loop:
+        out["map_closes_loop"] = True
+    return out
 
 
 def odometry(pair: SessionPair) -> np.ndarray:
@@ -339,11 +344,12 @@ def run_cell(
     kidnaps: int = 10,
     work: Path = Path("results/eval_sessions/maps"),
     params: LocalizerParams | None = None,
+    map_closes_loop: bool = False,
 ) -> dict[str, Any]:
     """One world x seed x kind: relocalisation, kidnap and multi-session (module docstring). The maps of session 1
     are built under ``work`` once per world, seed, sensor, pipeline and cut."""
-    pair = make_session_pair(world, sensor, seed, kind, n_scans=scans)
-    tag = f"{world}-{sensor}-s{seed}-n{scans or 'all'}"
+    pair = make_session_pair(world, sensor, seed, kind, n_scans=scans, map_closes_loop=map_closes_loop)
+    tag = f"{world}-{sensor}-s{seed}-n{scans or 'all'}{'-closed' if map_closes_loop else ''}"
     params = params or LocalizerParams(pipeline=pipeline, allow_other_sensor=kind == "sensor")
     t0 = time.perf_counter()
     out: dict[str, Any] = {
@@ -419,16 +425,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--out", type=Path, default=Path("results/eval_sessions"), help="cell JSON cache")
     ap.add_argument("--work", type=Path, default=None, help="session 1's maps (default OUT/maps)")
     ap.add_argument("--fresh", action="store_true", help="recompute cached cells (maps are kept)")
+    ap.add_argument(
+        "--map-closes-loop",
+        action="store_true",
+        help="session 1 drives its loop's first street again at the end (a loop its SLAM can close)",
+    )
     args = ap.parse_args(argv)
     work = args.work or args.out / "maps"
     work.mkdir(parents=True, exist_ok=True)
-    want = settings(args.sensor, args.pipeline, args.scans, args.kidnaps)
+    want = settings(args.sensor, args.pipeline, args.scans, args.kidnaps, args.map_closes_loop)
     cells = []
     t0 = time.perf_counter()
     for world in args.worlds:
         for seed in args.seeds:
             for kind in args.kinds:
-                name = f"{world}-{args.sensor}-s{seed}-{kind}-{pipeline_label(args.pipeline)}-n{args.scans or 'all'}.json"
+                closed = "-closed" if args.map_closes_loop else ""
+                name = f"{world}-{args.sensor}-s{seed}-{kind}-{pipeline_label(args.pipeline)}-n{args.scans or 'all'}{closed}.json"
                 path = args.out / name
                 if path.is_file() and not args.fresh:
                     cached = json.loads(path.read_text())
@@ -436,7 +448,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         log(f"{name}: cached")
                         cells.append(cached)
                         continue
-                cell = run_cell(world, seed, kind, args.sensor, args.pipeline, args.scans, args.kidnaps, work)
+                cell = run_cell(world, seed, kind, args.sensor, args.pipeline, args.scans, args.kidnaps, work,
+                                map_closes_loop=args.map_closes_loop)  # fmt: skip
                 cell["settings"] = want
                 tmp = path.with_suffix(".tmp")
                 tmp.write_text(json.dumps(cell, indent=1))

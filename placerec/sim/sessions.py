@@ -231,6 +231,7 @@ def make_session_pair(
     clutter: bool | ClutterConfig = True,
     odometry_drift: OdometryDrift | float | bool | None = None,
     sweep_motion: bool = False,
+    map_closes_loop: bool = False,
 ) -> SessionPair:
     """The two sessions of ``kind`` (see the module docstring) over ``world``.
 
@@ -239,7 +240,9 @@ def make_session_pair(
     start time (other clutter). ``n_scans`` cuts each session to at most that many scans (None: the whole plan;
     the overlap figures of the docstring are for whole plans). ``query_sensor`` defaults to ``sensor`` except for
     ``kind="sensor"``. ``spacing``/``rate_hz``, ``clutter``, ``odometry_drift`` and ``sweep_motion`` apply to
-    both sessions as in `SimulatedSequence`."""
+    both sessions as in `SimulatedSequence`. ``map_closes_loop``: the map session drives its loop's first street
+    once more at the end (a same-direction revisit SLAM can close, as a mapping drive does); the second session's
+    route is the same either way."""
     if kind not in KINDS:
         raise ConfigError(f"sim.sessions.kind: unknown kind {kind!r}; allowed: {list(KINDS)}")
     if n_scans is not None and n_scans < 1:
@@ -276,6 +279,8 @@ def make_session_pair(
                                  name=f"sim-{w.preset}-{sens.name}-session-{kind}-{role}-s{s}",
                                  sweep_motion=sweep_motion)  # fmt: skip
 
+    if map_closes_loop:
+        map_nodes, map_lanes = [*map_nodes, map_nodes[1]], [*map_lanes, map_lanes[0]]
     mapping = session(map_nodes, map_lanes, map_sensor, int(seed), 0.0, 0.0, "map")
     query = session(q_nodes, q_lanes, q_sensor, q_seed, float(query_t0), 0.5, "query")
     mxy, qxy = mapping.poses[:, :2, 3], query.poses[:, :2, 3]
