@@ -245,3 +245,17 @@ def test_take_rows_is_row_indexing():
             got = take_rows(a, index)
             same(got, a[index])
             assert got.flags.c_contiguous
+
+
+@pytest.mark.parametrize("shape", [(1, 7), (5, 1), (16, 64), (64, 300)])
+def test_fill_vertical_holes_of_random_masks(shape):
+    rng = np.random.default_rng(3)
+    image = rng.random(shape).astype(np.float32)
+    for density in (0.0, 0.3, 0.8, 1.0):
+        valid = rng.random(shape) < density
+        for gap in (1, 2, 5):
+            for v in (valid, np.asfortranarray(valid), valid[:, ::-1]):
+                got, got_valid = fill_vertical_holes(image, v, gap)
+                want, want_valid = ref_fill_vertical_holes(image, v, gap)
+                same(got, want)
+                same(got_valid, want_valid)

@@ -211,7 +211,15 @@ def _valid_points(scan: Scan) -> tuple[np.ndarray, np.ndarray]:
     return idx, r[idx]
 
 
-def _fov(scan: Scan, params: ImageParams, xyz: np.ndarray, r: np.ndarray) -> tuple[float, float]:
+def _elevations(xyz: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Elevation (deg) of points ``xyz`` at ranges ``r``."""
+    return np.degrees(np.arcsin(np.clip(xyz[:, 2] / r, -1.0, 1.0)))
+
+
+def _fov(
+    scan: Scan, params: ImageParams, xyz: np.ndarray, r: np.ndarray, phi: np.ndarray | None = None
+) -> tuple[float, float]:
+    """(up, down) field of view of the image; ``phi``: the points' `_elevations` where computed already."""
     up, down = params.fov_up_deg, params.fov_down_deg
     sensor_fov = scan.sensor.vertical_fov_deg
     if (up is None or down is None) and sensor_fov is not None:
@@ -224,7 +232,7 @@ def _fov(scan: Scan, params: ImageParams, xyz: np.ndarray, r: np.ndarray) -> tup
         up = sensor_fov[0] + margin if up is None else up
         down = sensor_fov[1] + margin if down is None else down
     if up is None or down is None:
-        phi = np.degrees(np.arcsin(np.clip(xyz[:, 2] / r, -1, 1)))
+        phi = _elevations(xyz, r) if phi is None else phi
         up = float(phi.max()) + 0.1 if up is None else up
         down = float(-phi.min()) + 0.1 if down is None else down
     if up + down <= 0:
@@ -242,8 +250,8 @@ def project_uniform(
     xyz = take_rows(scan.xyz, idx)
     if idx.size == 0:
         return _scatter_nearest(idx, idx, r, scan, idx, (h, w))
-    up, down = _fov(scan, params, xyz, r)
-    phi = np.degrees(np.arcsin(np.clip(xyz[:, 2] / r, -1.0, 1.0)))
+    phi = _elevations(xyz, r)
+    up, down = _fov(scan, params, xyz, r, phi)
     v = np.floor((1.0 - (phi + down) / (up + down)) * h).astype(np.int64)
     inside = (v >= 0) & (v < h)
     cols = _columns(xyz, w)
@@ -298,7 +306,7 @@ class SphericalGrid:
     def pixels(self, xyz: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rows, columns, inside) of points ``xyz`` at ranges ``r``."""
         theta = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
-        phi = np.degrees(np.arcsin(np.clip(xyz[:, 2] / r, -1.0, 1.0)))
+        phi = _elevations(xyz, r)
         u = np.floor((0.5 * self.h_fov - theta) / self.h_fov * self.width).astype(np.int64)
         v = np.floor((1.0 - (phi + self.down) / (self.up + self.down)) * self.height).astype(np.int64)
         if self.h_fov >= 360.0:
@@ -416,14 +424,34 @@ def _vertical_holes(valid: np.ndarray, max_gap: int) -> _Holes | None:
     of each, row-major; None when there is none. Found once, they fill every image of the same pixels."""
     h = valid.shape[0]
     rows = np.arange(h)[:, None]
-    above = np.maximum.accumulate(np.where(valid, rows, -1), axis=0)
-    below = np.minimum.accumulate(np.where(valid, rows, h)[::-1], axis=0)[::-1]
+    above, below = _valid_above_below(np.ascontiguousarray(valid, dtype=np.bool_))
     hole = ~valid & (above >= 0) & (below < h) & (rows - above <= max_gap) & (below - rows <= max_gap)
     r, c = np.nonzero(hole)
     if r.size == 0:
         return None
     a, b = above[r, c], below[r, c]
     return hole, a, b, c, (r - a) / (b - a)
+
+
+@numba.njit(cache=True)
+def _valid_above_below(valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Per pixel, the nearest valid row at or above it (-1: none) and at or below it (the height: none)."""
+    h, w = valid.shape
+    above = np.empty((h, w), np.int64)
+    below = np.empty((h, w), np.int64)
+    last = np.full(w, -1, np.int64)
+    for r in range(h):
+        for c in range(w):
+            if valid[r, c]:
+                last[c] = r
+            above[r, c] = last[c]
+    last[:] = h
+    for r in range(h - 1, -1, -1):
+        for c in range(w):
+            if valid[r, c]:
+                last[c] = r
+            below[r, c] = last[c]
+    return above, below
 
 
 def _fill_holes(image: np.ndarray, holes: _Holes) -> np.ndarray:
