@@ -31,12 +31,28 @@ order), ``relative_pose`` maps the query keyframe's frame into the matched keyfr
 which scans (numbered 0, 1, ... in the order fed) a keyframe holds. ``pose`` is the scan's odometry (needed unless
 ``keyframes.odometry`` is ``kiss-icp``), ``timestamp`` overrides the scan's own. `flush` makes a keyframe of the
 scans fed since the last one (the end of a stream).
+
+**Real-time mode** (``realtime``: `placerec.realtime.RealtimeParams`, a time budget per scan and a most backlog):
+`process` does in the caller's thread only what must happen in order and is cheap to keep (the keyframe, the
+description, the motion record, the exclusion bound), then hands "query with that bound, then add" to one worker
+thread (`placerec.realtime.SerialWorker`) that runs those steps in scan order, so the database sees exactly the
+sequential mode's operations and the same closures are accepted, only later: each call returns the closures that
+completed since the last call (each `Candidate` names its ``query_id``; ``last_completed`` holds their places'
+results). When the worker is more than ``max_backlog`` places behind, `process` waits; counters (scans over
+budget, closures deferred and by how many places) are in ``realtime_stats`` (`placerec.realtime.RealtimeStats`).
+`flush` (the end of a stream) waits for the worker and returns every closure still due; `close` (or leaving a
+``with`` block) does that and ends the thread. A query that failed in the worker is raised at the next call as
+`placerec.realtime.LateScanError` naming its scan, before that call's own scan is touched. The recognizer is the
+worker's while it runs: `flush` before reading or saving it.
 """
 
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Mapping
+from dataclasses import dataclass
+from types import TracebackType
 from typing import Any
 
 import numpy as np
@@ -45,9 +61,23 @@ from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES, ExclusionWindow, path_length
 from placerec.keyframes import Keyframe, KeyframeBuilder, KeyframeParams
 from placerec.loop_filter import LoopFilter, LoopFilterParams
+from placerec.realtime import LateScanError, RealtimeParams, RealtimeStats, SerialWorker
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, as_pose
 
-__all__ = ["LoopClosureDetector"]
+__all__ = ["LoopClosureDetector", "PlaceResult", "RealtimeParams", "RealtimeStats", "LateScanError"]
+
+
+@dataclass
+class PlaceResult:
+    """One place's query and insertion: its id, the bound it queried with, every candidate, the accepted ones,
+    the loop filter's status (None: no filter ran) and the stage times (ms: query, insert, verify)."""
+
+    place_id: int
+    max_id: int
+    candidates: list[Candidate]
+    accepted: list[Candidate]
+    status: str | None
+    timing_ms: dict[str, float]
 
 
 class LoopClosureDetector:
@@ -61,7 +91,8 @@ class LoopClosureDetector:
     ``k``: candidates requested per query (accepted ones are returned best first). ``loop_filter``: DLoopDetector's
     islands and temporal consistency over each query's candidates (`placerec.loop_filter`; None: off); the reason a
     filtered query has no candidate is in ``last_status``. ``prior_entries``: places of a prior map the recognizer
-    already holds under ids 0..prior_entries-1, always eligible (module docstring); 0: none.
+    already holds under ids 0..prior_entries-1, always eligible (module docstring); 0: none. ``realtime``:
+    the real-time mode (module docstring; None: sequential).
     """
 
     @classmethod
@@ -96,6 +127,7 @@ class LoopClosureDetector:
         loop_filter: LoopFilterParams | None = None,
         keyframes: KeyframeParams | None = None,
         prior_entries: int = 0,
+        realtime: RealtimeParams | None = None,
     ) -> None:
         if prior_entries < 0:
             raise ConfigError(f"prior_entries must be >= 0 (places of a prior map), got {prior_entries}")
@@ -118,6 +150,32 @@ class LoopClosureDetector:
         self.last_candidates: list[Candidate] = []
         self.last_timing_ms: dict[str, float] = {}
         self.closures: list[Candidate] = []
+        self.last_completed: list[PlaceResult] = []
+        self.realtime = realtime
+        self.realtime_stats = None if realtime is None else RealtimeStats(realtime.budget_ms)
+        self._worker = None if realtime is None else SerialWorker(self._run_job)
+        self._calls = 0  # process / flush calls (real-time mode)
+        self._submitted: dict[int, tuple[int, int]] = {}  # place id -> (its call, its own index)
+        self._ready: list[Candidate] = []  # closures collected, not yet returned
+        self._late: deque[tuple[int, Exception]] = deque()  # failed places, raised at the next call
+        self._waited = 0.0
+
+    def __enter__(self) -> LoopClosureDetector:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()  # an error is on its way: end the thread without raising another
+
+    def abort(self) -> None:
+        """End the real-time worker's thread (after the places queued) without handing anything over or raising:
+        for a caller that is failing; `flush` can still hand over what is due."""
+        if self._worker is not None:
+            self._worker.stop()
 
     @property
     def n_processed(self) -> int:
@@ -180,8 +238,34 @@ class LoopClosureDetector:
         All candidates, accepted or not, are kept in ``last_candidates``; stage times (ms) in ``last_timing_ms``.
         With ``keyframes`` the scan is accumulated and a keyframe processed when it completes (module docstring;
         a scan the keyframe builder refuses leaves no trace; a keyframe the recognizer cannot describe takes its id
-        as `skip` does, with the reason in ``last_status``).
+        as `skip` does, with the reason in ``last_status``). In real-time mode: the closures completed since the
+        last call, ``last_candidates`` empty, ``last_timing_ms`` the caller's stages (``describe``, ``wait``).
         """
+        if self._worker is None:
+            self.last_completed = []
+            return self._process(scan, pose, timestamp, description)
+        if self._worker.closed:
+            raise ConfigError("this real-time detector is closed: it takes no more scans")
+        t0 = time.perf_counter()
+        self._start_call()
+        self._process(scan, pose, timestamp, description)
+        out = self._end_call()
+        st = self.realtime_stats
+        assert st is not None
+        ms = (time.perf_counter() - t0) * 1e3
+        st.scans += 1
+        st.process_ms.append(ms)
+        st.waited += self._waited > 0
+        st.over_budget += ms > st.budget_ms
+        return out
+
+    def _process(
+        self,
+        scan: Scan | None,
+        pose: np.ndarray | None,
+        timestamp: float | None,
+        description: Description | None,
+    ) -> list[Candidate]:
         if self.keyframes is None:
             return self._process_place(scan, pose, timestamp, description)
         if description is not None or scan is None:
@@ -195,7 +279,69 @@ class LoopClosureDetector:
 
     def flush(self) -> list[Candidate]:
         """With ``keyframes``: process the keyframe of the scans fed since the last one (none: nothing to do) and
-        return its closures; without, nothing to do."""
+        return its closures; without, nothing to do. In real-time mode also wait for the worker to finish every
+        place queued and return every closure not returned yet."""
+        if self._worker is None:
+            self.last_completed = []
+            return self._flush()
+        self._start_call()
+        self._flush()
+        self._worker.wait(0)
+        return self._end_call(raise_late=True)
+
+    def close(self) -> list[Candidate]:
+        """`flush`, then end the real-time worker's thread (also when `flush` raises); a closed detector takes no
+        more scans (`flush` still hands over what is due)."""
+        try:
+            return self.flush()
+        finally:
+            if self._worker is not None:
+                self._worker.stop()
+
+    def _start_call(self) -> None:
+        """Real-time mode, a call's start: raise the oldest failed place, else count the call."""
+        assert self._worker is not None
+        self._raise_late()
+        self.last_completed = []
+        self._waited = 0.0
+        self._calls += 1
+
+    def _raise_late(self) -> None:
+        if not self._late:
+            return
+        place, exc = self._late.popleft()
+        if isinstance(exc, ScanDataError):
+            raise LateScanError(place, exc) from exc
+        exc.add_note(f"scan {place}: raised in the real-time loop-closure worker")
+        raise exc
+
+    def _end_call(self, raise_late: bool = False) -> list[Candidate]:
+        """Real-time mode, a call's end: collect the places the worker finished; return the closures due."""
+        assert self._worker is not None and self.realtime_stats is not None
+        st = self.realtime_stats
+        for done in self._worker.take():
+            st.worker_ms.append(done.ms)
+            call, own = self._submitted.pop(done.key)
+            if done.error is not None or done.result is None:
+                st.worker_errors += 1
+                self._late.append((done.key, done.error or RuntimeError("no result")))
+                continue
+            result = done.result
+            self.last_completed.append(result)
+            late = self._calls > call
+            for _ in result.accepted:
+                st.closures += 1
+                if late:
+                    st.deferred_closures += 1
+                    st.max_delay = max(st.max_delay, self.n_processed - 1 - own)
+            self._ready.extend(result.accepted)
+            self.closures.extend(result.accepted)
+        if raise_late:
+            self._raise_late()
+        out, self._ready = self._ready, []
+        return out
+
+    def _flush(self) -> list[Candidate]:
         if self.keyframes is None:
             return []
         t0 = time.perf_counter()
@@ -237,26 +383,69 @@ class LoopClosureDetector:
         own, scan_id = self.n_processed, self.next_id
         self._record_motion(pose, timestamp)
         max_id = self.last_max_id = self._max_eligible_id(own)
+        if self._worker is not None:
+            return self._submit(scan_id, own, description, pose, max_id, timing)
+        result = self._query_and_add(scan_id, description, pose, max_id)
+        if result.status is not None:
+            self.last_status = result.status
+        self.last_candidates = result.candidates
+        self.last_timing_ms = timing | result.timing_ms
+        self.last_completed = [result]
+        self.closures.extend(result.accepted)
+        return result.accepted
+
+    def _submit(
+        self,
+        scan_id: int,
+        own: int,
+        description: Description,
+        pose: np.ndarray | None,
+        max_id: int,
+        timing: dict[str, float],
+    ) -> list[Candidate]:
+        """Real-time mode: queue the place's query and insertion; wait while the worker is too far behind."""
+        assert self._worker is not None and self.realtime is not None and self.realtime_stats is not None
+        self._submitted[scan_id] = (self._calls, own)
+        backlog = self._worker.submit(scan_id, (scan_id, description, pose, max_id))
+        st = self.realtime_stats
+        st.max_backlog = max(st.max_backlog, backlog)
+        t0 = time.perf_counter()
+        if backlog > self.realtime.max_backlog:
+            self._worker.wait(self.realtime.max_backlog)
+            self._waited = timing["wait"] = (time.perf_counter() - t0) * 1e3
+        self.last_candidates = []
+        self.last_timing_ms = timing
+        return []
+
+    def _run_job(self, job: tuple[int, Description, np.ndarray | None, int]) -> PlaceResult:
+        return self._query_and_add(*job)
+
+    def _query_and_add(
+        self, scan_id: int, description: Description, pose: np.ndarray | None, max_id: int
+    ) -> PlaceResult:
+        """Query the database with ``description`` restricted to ids <= ``max_id`` (none when -1), filter,
+        threshold, then add the place: the only steps that touch the recognizer's database (in real-time mode
+        they run in the worker thread, in place order)."""
+        rec = self.recognizer
+        timing: dict[str, float] = {}
         t0 = time.perf_counter()
         answered: list[Candidate] = []
+        status = None
         lf = self.loop_filter
         if max_id >= 0:
             k = self.k if lf is None else max(self.k, lf.params.max_candidates)
             answered = rec.query_description(description, k=k, max_id=max_id, query_id=scan_id)
         candidates = answered
         if lf is not None and max_id >= 0:
-            candidates, self.last_status = lf.apply(scan_id, answered)
+            candidates, status = lf.apply(scan_id, answered)
             candidates = candidates[: self.k]
         timing["query"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         rec.add_description(scan_id, description, pose)
         timing["insert"] = (time.perf_counter() - t0) * 1e3
         split_verify_time(answered, timing)
-        self.last_candidates = candidates
-        self.last_timing_ms = timing
         accepted = [c for c in candidates if c.score >= self.threshold]
-        self.closures.extend(accepted)
-        return accepted
+        return PlaceResult(scan_id, max_id, candidates, accepted, status, timing)
 
     def skip(self, pose: np.ndarray | None = None, timestamp: float | None = None) -> int:
         """Record a frame that is not a place (e.g. one `process` refused): it takes the next id and counts in

@@ -9,6 +9,9 @@ Sequences (``--sequences``):
   m = 5, and the forward half queries frames 10 back). No ground truth.
 * ``kitti00``: the 4 real KITTI 00 frames (94, 95, 198, 199) in that order, exclusion 1 frame. Not a trajectory
   (two pairs 100 frames apart): times only, no ATE.
+* ``sim-revisit`` (asked for by name; for ``--realtime``): simulated HDL-64 along the town's second street, then
+  back along it one lane over (scans 72-91 and 335-354 of the default route), 40 scans, exclusion 15 frames: a
+  real revisit (reverse direction), so closures are accepted. ATE against the true poses.
 * ``sim-hdl64``, ``sim-os1-128``: `placerec.sim.SimulatedSequence` (town, route default, seed 0, ``--scans``
   scans), exported once as KITTI-style folders (`placerec.sim.write_kitti_sequence`, cached in ``--cache``) and
   read back from them, so placerec and KISS-SLAM see the same files; ATE against their true poses.
@@ -39,8 +42,19 @@ scan is the "Average Runtime" its pipeline logs (its loop over the frames); its 
 (start-up and final optimisation included) are reported beside. Ratios placerec / KISS-SLAM: mean slam total
 wall per scan / KISS-SLAM's runtime, and ATE (simulated sequences only).
 
+**Real-time mode** (``--realtime BUDGET_MS``; this replaces the profile above): for every sequence and pipeline
+the detector alone and `slam_sequence`, each sequential then with the detector's real-time mode
+(`placerec.realtime.RealtimeParams`: ``budget_ms``, ``--max-backlog``), scans fed at ``--rate-hz`` (a scan is
+not given before its time slot; a call that overruns its slot delays the next). Reported per mode: the wall time
+of each ``process()`` call (detector) or of each scan's whole loop (slam: odometry + preprocess + the online
+back end, the worker's wait included) as median / p95 / max, scans over the budget, the closures deferred
+(returned by a later call than their scan's) and the most scans late, the flush at the end, and whether the
+accepted closures (ids, scores, poses to 1e-9) are the sequential run's. No stage wrappers (they are not
+thread-safe); KISS-SLAM not run.
+
     .venv/bin/python tools/bench_realtime.py                            # everything, --scans 150
     .venv/bin/python tools/bench_realtime.py --scans 60 --pipelines orb-hbst --no-kiss-slam
+    .venv/bin/python tools/bench_realtime.py --realtime 100 --sequences kitti-raw sim-hdl64 --scans 60
 """
 
 from __future__ import annotations
@@ -73,6 +87,8 @@ REAL = ROOT.parent / "shared" / "data" / "real"
 CONFIG = ROOT / "configs" / "slam_kitti.yaml"
 PIPELINES = ("orb-hbst", "orb-dbow", "scan-context")
 SEQUENCES = ("kitti-raw", "kitti00", "sim-hdl64", "sim-os1-128")
+#: a simulated revisit for the real-time mode (not in the default profile)
+REVISIT = "sim-revisit"
 SIM_SENSORS = {"sim-hdl64": "hdl-64", "sim-os1-128": "os1-128"}
 #: Reported stages in order; the indented ones are parts of the one above them.
 STAGES = (
@@ -197,8 +213,10 @@ class Replayed:
     """``base``'s scans in the order ``index`` (each read from ``base`` when asked, timed in ``reads``), 10 Hz
     time stamps, ``base``'s poses in that order when it has them."""
 
-    def __init__(self, base: Any, index: list[int], name: str) -> None:
-        self.base, self.index, self.name = base, list(index), name
+    def __init__(
+        self, base: Any, index: list[int], name: str, pace: Callable[[int], None] | None = None
+    ) -> None:
+        self.base, self.index, self.name, self.pace = base, list(index), name, pace
         self.poses = None if base.poses is None else np.asarray(base.poses)[self.index]
         self.timestamps = np.arange(len(self.index)) * 0.1
         self.points: list[int] = []  # points of each scan read
@@ -208,6 +226,8 @@ class Replayed:
         return len(self.index)
 
     def __getitem__(self, i: int) -> Any:
+        if self.pace is not None:  # the real-time mode's sensor rate: not before the scan's time slot
+            self.pace(i)
         w, c = time.perf_counter(), time.process_time()
         scan = self.base[self.index[i]]
         self.reads.append(((time.perf_counter() - w) * 1e3, (time.process_time() - c) * 1e3))
@@ -243,12 +263,32 @@ def _write_bins(base: Any, index: list[int], folder: Path) -> Path:
     return folder
 
 
+def _revisit_folder(folder: Path) -> Path:
+    """``sim-revisit``: simulated HDL-64 scans along the town's second street (scans 72-91 of the default route),
+    then the same street the other way one lane over (scans 335-354: the demo's reverse-direction revisit), 40
+    scans, exclusion 15 frames, written once as a KITTI folder."""
+    if not (folder / "sensor.yaml").is_file():
+        from placerec.sim import SimulatedSequence, write_kitti_sequence
+        from placerec.sim.routes import Route
+
+        full = SimulatedSequence("town", "hdl-64", seed=0)
+        index = np.r_[72:92, 335:355]
+        route = Route(full.poses[index], np.arange(index.size, dtype=float), "reverse-street")
+        write_kitti_sequence(SimulatedSequence("town", "hdl-64", seed=0, route=route), folder, progress=False)
+    return folder
+
+
 def sources(
     names: list[str], n_scans: int, real_exclusion: int, cache: Path, sim_exclusion: int = 100
 ) -> list[Source]:
     """The sequences of ``names`` (module docstring); a real one whose data is missing is left out, said so."""
     out = []
     for name in names:
+        if name == REVISIT:
+            folder = _revisit_folder(cache / "sequences" / REVISIT)
+            base = open_sequence(folder)
+            out.append(Source(name, base, list(range(len(base))), 15, folder, True))
+            continue
         if name in SIM_SENSORS:
             over = [f"dataset.simulator.sensor={SIM_SENSORS[name]}", f"dataset.simulator.n_scans={n_scans}"]
             cfg = load_slam_config(ROOT / "configs" / "slam_demo.yaml", over)
@@ -272,9 +312,9 @@ def sources(
 # --- the runs -------------------------------------------------------------------------------------------------
 
 
-def slam_config(pipeline: str, exclusion: int) -> SlamConfig:
+def slam_config(pipeline: str, exclusion: int, *more: str) -> SlamConfig:
     over = [f"loops.pipeline.name={pipeline}", f"loops.exclusion.frames={exclusion}", "output.progress=false"]
-    return load_slam_config(CONFIG, over)
+    return load_slam_config(CONFIG, [*over, *more])
 
 
 def run_slam(src: Source, pipeline: str) -> dict[str, Any]:
@@ -414,6 +454,179 @@ def bench(
     return report
 
 
+# --- the real-time mode -----------------------------------------------------------------------------------------
+
+
+def _slots(rate_hz: float) -> Callable[[int], None]:
+    """``wait(i)``: sleep until scan ``i``'s time slot (``i / rate_hz`` after the first call's)."""
+    start: list[float] = []
+
+    def wait(i: int) -> None:
+        if not start:
+            start.append(time.perf_counter())
+        ahead = start[0] + i / rate_hz - time.perf_counter()
+        if ahead > 0:
+            time.sleep(ahead)
+
+    return wait
+
+
+def _closure_keys(closures: list[Any]) -> list[tuple[int, int, float]]:
+    return sorted((int(c.match_id), int(c.query_id), float(c.score)) for c in closures)
+
+
+def _same_closures(a: list[Any], b: list[Any]) -> bool:
+    """The same accepted closures (ids, scores; poses to 1e-9), in whatever order they came."""
+    if _closure_keys(a) != _closure_keys(b):
+        return False
+    key = lambda c: (int(c.match_id), int(c.query_id), float(c.score))  # noqa: E731
+    pa = {key(c): c for c in a}
+    pose = lambda c: getattr(c, "relative_pose", getattr(c, "T_match_query", None))  # noqa: E731
+    for c in b:
+        px, py = pose(pa[key(c)]), pose(c)
+        if (px is None) != (py is None):
+            return False
+        if px is not None and py is not None and not np.allclose(px, py, atol=1e-9, rtol=0):
+            return False
+    return True
+
+
+def _rt_summary(ms: list[float], budget_ms: float) -> dict[str, Any]:
+    return {"ms": stats(ms)[:3], "over_budget": int(sum(m > budget_ms for m in ms)), "scans": len(ms)}
+
+
+def run_detector_modes(
+    src: Source, pipeline: str, budget_ms: float, max_backlog: int, rate_hz: float
+) -> dict[str, Any]:
+    """The detector alone over ``src``'s scans (read and preprocessed first), sequential then real-time."""
+    from placerec.loop_closure import LoopClosureDetector, RealtimeParams
+    from placerec.preprocess import preprocess_scan
+    from placerec.recognizer import make_pipeline
+
+    cfg = slam_config(pipeline, src.exclusion)
+    seq = Replayed(src.base, src.index, src.name)
+    scans = [preprocess_scan(seq[i], cfg.preprocess, keep_organized=True) for i in range(len(seq))]
+    warm = LoopClosureDetector(make_pipeline(pipeline, cfg.loops.pipeline.params), cfg.loops.threshold, 1)
+    for i, scan in enumerate(
+        scans[:4]
+    ):  # untimed: first-call costs (imports, compiled kernels) out of both modes
+        warm.process(scan, timestamp=0.1 * i)
+    out: dict[str, Any] = {}
+    closures: dict[str, list[Any]] = {}
+    for mode, rt in (
+        ("sequential", None),
+        ("realtime", RealtimeParams(budget_ms=budget_ms, max_backlog=max_backlog)),
+    ):
+        det = LoopClosureDetector(
+            make_pipeline(pipeline, cfg.loops.pipeline.params), cfg.loops.threshold, cfg.loops.exclusion.frames,
+            k=cfg.loops.k, realtime=rt,
+        )  # fmt: skip
+        wait, ms, got = _slots(rate_hz), [], []
+        cpu0 = time.process_time()
+        with det:
+            for i, scan in enumerate(scans):
+                wait(i)
+                t0 = time.perf_counter()
+                got += det.process(scan, timestamp=0.1 * i)
+                ms.append((time.perf_counter() - t0) * 1e3)
+            t0 = time.perf_counter()
+            got += det.flush()
+            flush_ms = (time.perf_counter() - t0) * 1e3
+        entry = _rt_summary(ms, budget_ms) | {"closures": len(got), "flush_ms": round(flush_ms, 1)}
+        entry["cpu_ms_per_scan"] = round((time.process_time() - cpu0) * 1e3 / len(scans), 1)
+        if det.realtime_stats is not None:
+            st = det.realtime_stats.as_dict()
+            entry |= {k: st[k] for k in ("deferred_closures", "max_delay", "waited", "max_backlog")}
+            entry["worker_ms"] = [round(st["worker_ms"][k], 2) for k in ("median", "p95", "max")]
+        out[mode], closures[mode] = entry, got
+    out["identical"] = _same_closures(closures["sequential"], closures["realtime"])
+    return out
+
+
+def run_slam_modes(
+    src: Source, pipeline: str, budget_ms: float, max_backlog: int, rate_hz: float
+) -> dict[str, Any]:
+    """`slam_sequence` on ``src`` (KISS-ICP odometry), sequential then with ``loops.realtime``; per scan the wall
+    time of its whole loop (odometry + preprocess + online back end), scans paced at ``rate_hz``."""
+    from placerec.recognizer import make_pipeline
+    from placerec.slam.result import ONLINE_STAGES
+    from placerec.slam_app.run import odometry_source, slam_sequence
+
+    out: dict[str, Any] = {}
+    loops: dict[str, list[Any]] = {}
+    for mode in ("sequential", "realtime"):
+        more = (
+            [f"loops.realtime={{budget_ms: {budget_ms}, max_backlog: {max_backlog}}}"]
+            if mode == "realtime"
+            else []
+        )
+        cfg = slam_config(pipeline, src.exclusion, *more)
+        seq = Replayed(src.base, src.index, src.name, pace=_slots(rate_hz))
+        cpu0 = time.process_time()
+        rec = make_pipeline(pipeline, cfg.loops.pipeline.params)
+        result = slam_sequence(cfg, seq, rec, odometry_source(cfg, seq))
+        t = result.timing_ms
+        stages = [*ONLINE_STAGES, "odometry", *(["wait"] if "wait" in t else [])]
+        per_scan = np.sum([t[s] for s in stages], axis=0)
+        reads = [r[0] for r in seq.reads]
+        total = [float(a + b) for a, b in zip(per_scan, reads, strict=True)]
+        entry = _rt_summary(total, budget_ms) | {"loops": len(result.loops)}
+        entry["cpu_ms_per_scan"] = round((time.process_time() - cpu0) * 1e3 / len(total), 1)
+        if result.realtime is not None:
+            r = result.realtime
+            entry |= {k: r[k] for k in ("deferred_closures", "max_delay", "waited", "max_backlog")}
+            entry["detector_over_budget"] = r["over_budget"]
+        if src.ground_truth and result.ground_truth is not None:
+            entry["ate_m"] = round(trajectory_errors(result.optimized, result.ground_truth).ate_rmse, 4)
+        out[mode], loops[mode] = entry, result.loops
+    out["identical"] = _same_closures(loops["sequential"], loops["realtime"])
+    return out
+
+
+def bench_realtime_mode(
+    names: list[str], pipelines: list[str], n_scans: int, cache: Path, budget_ms: float, max_backlog: int,
+    rate_hz: float, real_exclusion: int = 10, sim_exclusion: int = 100,
+) -> dict[str, Any]:  # fmt: skip
+    """``--realtime``: per sequence and pipeline the detector's and the slam loop's modes (module docstring)."""
+    report: dict[str, Any] = {"bench": "realtime-mode", "budget_ms": budget_ms, "max_backlog": max_backlog,
+                              "rate_hz": rate_hz, "cpus": os.cpu_count(), "load_before": os.getloadavg()}  # fmt: skip
+    report["sequences"] = {}
+    for src in sources(names, n_scans, real_exclusion, cache, sim_exclusion):
+        entry: dict[str, Any] = {"scans": len(src.index), "exclusion": src.exclusion, "pipelines": {}}
+        for p in pipelines:
+            print(f"{src.name}: {p} detector, sequential and real-time ...", flush=True)
+            det = run_detector_modes(src, p, budget_ms, max_backlog, rate_hz)
+            print(f"{src.name}: {p} slam, sequential and real-time ...", flush=True)
+            slam = run_slam_modes(src, p, budget_ms, max_backlog, rate_hz)
+            entry["pipelines"][p] = {"detector": det, "slam": slam}
+        report["sequences"][src.name] = entry
+    report["load_after"] = os.getloadavg()
+    return report
+
+
+def print_realtime(report: dict[str, Any]) -> None:
+    f = lambda xs: "/".join(f"{x:.0f}" for x in xs)  # noqa: E731
+    rows = []
+    for name, seq in report["sequences"].items():
+        for p, v in seq["pipelines"].items():
+            for path in ("detector", "slam"):
+                r = v[path]
+                for mode in ("sequential", "realtime"):
+                    e = r[mode]
+                    deferred = (
+                        f"{e['deferred_closures']} (<= {e['max_delay']})" if "deferred_closures" in e else "-"
+                    )
+                    rows.append([
+                        f"{name} {p}", path, mode, f(e["ms"]), f"{e['over_budget']} / {e['scans']}",
+                        str(e.get("closures", e.get("loops"))), deferred, str(e.get("waited", "-")),
+                        f"{e['cpu_ms_per_scan']:.0f}", "yes" if r["identical"] else "NO",
+                    ])  # fmt: skip
+    header = ["sequence pipeline", "path", "mode", "wall ms/scan med/p95/max",
+              f"over {report['budget_ms']:g} ms", "closures", "deferred (scans late)", "waited", "CPU ms/scan",
+              "same closures"]  # fmt: skip
+    print_rows(header, rows, f"real-time mode at {report['rate_hz']:g} Hz", show_legend=False)
+
+
 # --- output ---------------------------------------------------------------------------------------------------
 
 
@@ -476,14 +689,29 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sequences", nargs="+", choices=SEQUENCES, default=list(SEQUENCES))
+    ap.add_argument("--sequences", nargs="+", choices=[*SEQUENCES, REVISIT], default=list(SEQUENCES))
     ap.add_argument("--pipelines", nargs="+", choices=PIPELINES, default=list(PIPELINES))
     ap.add_argument("--scans", type=int, default=150, help="scans of each simulated sequence")
     ap.add_argument("--real-exclusion", type=int, default=10, help="exclusion window (frames) on kitti-raw")
     ap.add_argument("--cache", type=Path, default=ROOT / "results" / "bench_realtime")
     ap.add_argument("--kiss-slam-venv", type=Path, default=KISS_SLAM_VENV)
     ap.add_argument("--no-kiss-slam", action="store_true", help="placerec only")
+    ap.add_argument(
+        "--realtime", type=float, metavar="BUDGET_MS", help="the real-time mode's comparison instead"
+    )
+    ap.add_argument(
+        "--max-backlog", type=int, default=3, help="real-time mode: scans the worker may be behind"
+    )
+    ap.add_argument("--rate-hz", type=float, default=10.0, help="real-time mode: scans fed at this rate")
     args = ap.parse_args()
+    if args.realtime is not None:
+        rt = bench_realtime_mode(
+            args.sequences, args.pipelines, args.scans, args.cache, args.realtime, args.max_backlog, args.rate_hz,
+            args.real_exclusion,
+        )  # fmt: skip
+        print_realtime(rt)
+        print(json.dumps(rt))
+        return
     venv = None
     if not args.no_kiss_slam:
         version = kiss_slam_version(args.kiss_slam_venv)

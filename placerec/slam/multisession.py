@@ -55,8 +55,9 @@ from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES
 from placerec.eval.pose_error import pose_errors
 from placerec.loop_closure import LoopClosureDetector
+from placerec.realtime import RealtimeParams
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
-from placerec.slam.online import detect_closures
+from placerec.slam.online import detect_closures, finish_closures
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, rigid_problem
 
 __all__ = ["MultiSessionSlam", "MultiSessionResult", "Anchor", "OdometryFactor"]
@@ -133,6 +134,9 @@ class MultiSessionSlam:
     held; the map's own factors, which must connect every map pose to pose 0, hold the rest: `ConfigError`
     otherwise). ``min_join_loops`` (>= 2), ``join_translation_m``, ``join_rotation_deg``: the join's consistency
     test. The map's part of the graph is built (and its factors checked) here; it is solved at the join.
+    ``realtime``: the detector's real-time mode (`placerec.slam.online`): closures arrive a few scans late and are
+    routed as they come; `finish` waits for the rest. The closures are the sequential mode's, but the join is
+    tested on the estimates of when they arrive, so it may happen at another scan.
     """
 
     def __init__(
@@ -151,6 +155,7 @@ class MultiSessionSlam:
         min_join_loops: int = 2,
         join_translation_m: float = 1.0,
         join_rotation_deg: float = 5.0,
+        realtime: RealtimeParams | None = None,
     ) -> None:
         if anchor not in ("fixed", "anchored"):
             raise ConfigError(f"anchor must be 'fixed' or 'anchored', got {anchor!r}")
@@ -172,8 +177,9 @@ class MultiSessionSlam:
         self.join_rotation_deg = float(join_rotation_deg)
         self.params = graph or GraphParams()
         self.detector = LoopClosureDetector(
-            recognizer, threshold, exclusion_frames, exclusion_seconds, exclusion_metres, k=k, prior_entries=M
-        )
+            recognizer, threshold, exclusion_frames, exclusion_seconds, exclusion_metres, k=k, prior_entries=M,
+            realtime=realtime,
+        )  # fmt: skip
         self._map = self._map_graph(prior_odometry or [], prior_loops or [])
         self.session = PoseGraph(self.params)  # the session in its own frame, keys 0..N-1 (detector ids - M)
         self.graph = self.session  # the graph new scans go into: the joined one after the join
@@ -231,10 +237,23 @@ class MultiSessionSlam:
         consistency test and, when it succeeds, building the joined graph)."""
         added = detect_closures(self.detector, scan, odometry_pose, timestamp, description)
         timing = dict(self.detector.last_timing_ms)
-        self.candidates.append(self.detector.last_candidates)
+        self._completed()
         t0 = time.perf_counter()
         self.graph.add_pose(odometry_pose)
         added += list(extra_loops or [])
+        self._route(added, timing, t0)
+        self.last_timing_ms = timing
+        return added
+
+    def _completed(self) -> None:
+        """One candidate list per scan, filled in as the detector completes its queries."""
+        self.candidates += [[] for _ in range(self.detector.n_processed - len(self.candidates))]
+        for done in self.detector.last_completed:
+            self.candidates[done.place_id - self.n_map] = done.candidates
+
+    def _route(self, added: list[LoopFactor], timing: dict[str, float], t0: float) -> None:
+        """``added`` into the graph (intra-session, or anything once joined) or pending (inter-session before the
+        join, which is then tried); iSAM2 updated; stage times into ``timing``."""
         inter = [lp for lp in added if self._is_inter(lp)]
         intra = [lp for lp in added if lp.match_id >= self.n_map]
         if self.joined:
@@ -251,10 +270,8 @@ class MultiSessionSlam:
         if inter and not self.joined:
             t0 = time.perf_counter()
             self.pending += inter
-            self._try_join()
+            self._try_join(max(lp.query_id for lp in inter) - self.n_map)
             timing["join"] = (time.perf_counter() - t0) * 1e3
-        self.last_timing_ms = timing
-        return added
 
     def _is_inter(self, lp: LoopFactor) -> bool:
         """Whether ``lp`` (detector ids) is inter-session; `ScanDataError` unless its query is one of the session's
@@ -296,8 +313,9 @@ class MultiSessionSlam:
                 best = group
         return best
 
-    def _try_join(self) -> None:
-        """Join the sessions if enough pending closures agree (module docstring)."""
+    def _try_join(self, latest: int) -> None:
+        """Join the sessions if enough pending closures agree (module docstring); ``latest``: the session scan of
+        the newest closure (the join's ``joined_at``)."""
         group = self._agreeing()
         queries = {self.pending[i].query_id for i in group}
         if len(group) < self.min_join_loops or len(queries) < 2:
@@ -310,7 +328,7 @@ class MultiSessionSlam:
         joined.update()
         self.graph, self.joined = joined, True
         self.T_map_session = align[0]
-        self.joined_at = self.n_scans - 1
+        self.joined_at = latest
         self.inter_loops = [self.pending[i] for i in group]
         kept = set(group)
         self.rejected_at_join = [lp for i, lp in enumerate(self.pending) if i not in kept]
@@ -328,7 +346,11 @@ class MultiSessionSlam:
 
     def finish(self) -> MultiSessionResult:
         """The final batch optimisation (`GraphParams.batch`) of the joined graph, or of the session alone when it
-        was never joined; see `MultiSessionResult`."""
+        was never joined; see `MultiSessionResult`. A real-time detector's closures still due are routed first."""
+        late = finish_closures(self.detector)
+        self._completed()
+        if late:
+            self._route(late, {}, time.perf_counter())
         poses, info = self.graph.optimize()
         M = self.n_map
         if not self.joined:

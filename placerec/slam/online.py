@@ -12,10 +12,17 @@ poses) and adds it; the graph gets the scan's pose with an odometry factor from 
 robust loop factor per accepted closure (``T_match_query``); then iSAM2 updates (every scan, and with extra passes
 when a loop arrived). ``extra_loops`` lets a caller add loop edges of its own (the robustness benchmarks inject
 false ones this way). Stage times (ms) of the last scan are in ``last_timing_ms``.
+
+With ``realtime`` (`placerec.realtime.RealtimeParams`) the detector runs in its real-time mode: a scan's query and
+verification run in a worker thread while the next scans come in, and a closure enters the graph when it
+completes, a few scans after its query scan (a loop factor between two poses already in the graph, which iSAM2
+takes as any other). `finish` first waits for the worker and adds the closures still due. The closures are the
+sequential mode's; the iSAM2 estimates along the way differ (the loops come later).
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Any
 
@@ -25,10 +32,13 @@ from placerec.errors import ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES
 from placerec.eval.pose_error import full_pose_mask
 from placerec.loop_closure import LoopClosureDetector
+from placerec.realtime import LateScanError, RealtimeParams
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan
 
-__all__ = ["OnlineSlam", "detect_closures"]
+__all__ = ["OnlineSlam", "detect_closures", "finish_closures"]
+
+log = logging.getLogger(__name__)
 
 
 def _usable(c: Candidate) -> bool:
@@ -48,12 +58,36 @@ def detect_closures(
 ) -> list[LoopFactor]:
     """Query with and add one scan (`LoopClosureDetector.process`); the accepted closures a pose graph can use
     (`_usable`) as loop factors, with the detector's ids. A scan the recognizer cannot describe (`ScanDataError`)
-    is `LoopClosureDetector.skip`-ped: it takes its id, so ids stay the graph's keys, and gives no closure."""
-    try:
-        accepted = detector.process(scan, odometry_pose, timestamp, description)
-    except ScanDataError:
-        detector.skip(odometry_pose, timestamp)
-        accepted = []
+    is `LoopClosureDetector.skip`-ped: it takes its id, so ids stay the graph's keys, and gives no closure.
+    A real-time detector returns the closures completed since the last call (earlier scans' too); a query that
+    failed in its worker (`LateScanError`) is logged, as a skipped scan would be, and this scan fed again."""
+    while True:
+        try:
+            accepted = detector.process(scan, odometry_pose, timestamp, description)
+            break
+        except LateScanError as exc:  # an earlier scan's; this one was left untouched
+            log.warning("%s: that scan gets no loop closure", exc)
+        except ScanDataError:
+            detector.skip(odometry_pose, timestamp)
+            accepted = []
+            break
+    return _loop_factors(accepted)
+
+
+def finish_closures(detector: LoopClosureDetector) -> list[LoopFactor]:
+    """The end of a stream: `LoopClosureDetector.close` (a real-time detector's worker finished and ended), the
+    closures still due as loop factors; failed queries logged as in `detect_closures`."""
+    accepted: list[Candidate] = []
+    while True:
+        try:
+            accepted += detector.close()
+            return _loop_factors(accepted)
+        except LateScanError as exc:
+            log.warning("%s: that scan gets no loop closure", exc)
+
+
+def _loop_factors(accepted: list[Candidate]) -> list[LoopFactor]:
+    """The accepted closures a pose graph can use (`_usable`), as loop factors with the detector's ids."""
     return [
         LoopFactor(c.match_id, c.query_id, np.asarray(c.relative_pose, dtype=np.float64), float(c.score))
         for c in accepted
@@ -66,7 +100,9 @@ class OnlineSlam:
 
     ``threshold``: verified score from which a closure is accepted (closures without a 6-DoF pose, or that the
     pipeline's verification rejected, never enter the graph); ``k``: closures accepted per scan at most;
-    the exclusion limits are those of `LoopClosureDetector`; ``graph``: `GraphParams`.
+    the exclusion limits are those of `LoopClosureDetector`; ``graph``: `GraphParams`; ``realtime``: the
+    detector's real-time mode (module docstring; None: sequential). ``candidates[i]``: scan i's candidates
+    (in real-time mode filled in when its query completes).
     """
 
     def __init__(
@@ -78,9 +114,16 @@ class OnlineSlam:
         exclusion_seconds: float | None = None,
         exclusion_metres: float | None = None,
         k: int = 1,
+        realtime: RealtimeParams | None = None,
     ) -> None:
         self.detector = LoopClosureDetector(
-            recognizer, threshold, exclusion_frames, exclusion_seconds, exclusion_metres, k=k
+            recognizer,
+            threshold,
+            exclusion_frames,
+            exclusion_seconds,
+            exclusion_metres,
+            k=k,
+            realtime=realtime,
         )
         self.graph = PoseGraph(graph or GraphParams())
         self.loops: list[LoopFactor] = []
@@ -95,13 +138,16 @@ class OnlineSlam:
         description: Description | None = None,
         extra_loops: list[LoopFactor] | None = None,
     ) -> list[LoopFactor]:
-        """Add the next scan with its odometry pose ``T_world_sensor``; returns the loop factors added for it.
+        """Add the next scan with its odometry pose ``T_world_sensor``; returns the loop factors added for it
+        (real-time mode: those completed since the last call, of this scan or earlier ones).
 
         A scan the recognizer cannot describe (`ScanDataError`) still gets its pose and odometry factor, but is
         never queried or matched."""
         added = detect_closures(self.detector, scan, odometry_pose, timestamp, description)
         timing = dict(self.detector.last_timing_ms)  # empty for a skipped scan
-        self.candidates.append(self.detector.last_candidates)
+        self.candidates.append([])
+        for done in self.detector.last_completed:
+            self.candidates[done.place_id] = done.candidates
         t0 = time.perf_counter()
         self.graph.add_pose(odometry_pose)
         added += list(extra_loops or [])
@@ -122,6 +168,15 @@ class OnlineSlam:
         return self.graph.poses()
 
     def finish(self) -> np.ndarray:
-        """The final batch optimisation (`GraphParams.batch`); details in ``batch_info``."""
+        """The final batch optimisation (`GraphParams.batch`); details in ``batch_info``. A real-time detector's
+        closures still due are added first (one more iSAM2 update), and its worker ended."""
+        late = finish_closures(self.detector)
+        for done in self.detector.last_completed:
+            self.candidates[done.place_id] = done.candidates
+        if late:
+            for loop in late:
+                self.graph.add_loop(loop)
+            self.loops.extend(late)
+            self.graph.update()
         poses, self.batch_info = self.graph.optimize()
         return poses

@@ -40,3 +40,5 @@ class SlamResult:
     #: loops in session scan ids, and ``graph_poses`` every pose of ``graph`` (the map's, then the session's)
     multisession: MultiSessionResult | None = None
     graph_poses: np.ndarray | None = None
+    #: the detector's real-time counters (`placerec.realtime.RealtimeStats.as_dict`); None: sequential mode
+    realtime: dict[str, Any] | None = None

@@ -23,6 +23,7 @@ from placerec.config import (
 )
 from placerec.params import Params, resolve
 from placerec.preprocess import PreprocessParams
+from placerec.realtime import RealtimeParams
 from placerec.sim.odometry import OdometryDrift
 from placerec.slam.graph import GraphParams
 from placerec.slam.odometry import KissIcpParams
@@ -82,6 +83,11 @@ class LoopsConfig(Params):
     )
     exclusion: ExclusionConfig = Field(default_factory=ExclusionConfig)
     k: int = Field(1, ge=1, description="closures accepted per scan at most (best first)")
+    realtime: RealtimeParams | None = Field(
+        None,
+        description="the detector's real-time mode ({budget_ms: 100, max_backlog: 3}: query and verification in a"
+        " worker thread, closures a few scans late, the same ones); None: sequential",
+    )
 
 
 class SlamEvaluationConfig(Params):

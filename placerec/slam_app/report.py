@@ -12,6 +12,8 @@
   ``opposite`` (headings more than 135 deg apart: a reverse-direction revisit);
 * ``metrics.json`` — ATE / RPE of the odometry, the online and the optimised trajectory, the loop counts, per-scan
   times (online loop with and without odometry, each stage, iSAM2 updates) and the batch optimiser's summary;
+  with ``loops.realtime`` also ``realtime`` (`placerec.realtime.RealtimeStats.as_dict`: scans over budget,
+  closures deferred, the detector's and its worker's time per scan) and the ``wait`` stage;
 * ``trajectory.png`` (before / after with the loop edges), ``index.html``; ``map.ply`` with ``output.map_ply``.
 """
 
@@ -136,14 +138,15 @@ def slam_metrics(cfg: SlamConfig, result: SlamResult, cols: dict[str, np.ndarray
         loops["max_translation_error"] = float(te.max()) if te.size else None
         loops["median_translation_error"] = float(np.median(te)) if te.size else None
     t = result.timing_ms
-    per_scan = np.sum([t[s] for s in ONLINE_STAGES], axis=0) if n else np.zeros(0)
+    stages = (*ONLINE_STAGES, "wait") if "wait" in t else ONLINE_STAGES  # wait: a real-time detector's
+    per_scan = np.sum([t[s] for s in stages], axis=0) if n else np.zeros(0)
     queried = np.asarray(result.queried, dtype=bool) if len(result.queried) == n else np.ones(n, bool)
     timing = {
         "online_without_odometry": timing_summary(per_scan),
         "online_without_odometry_querying": timing_summary(per_scan[queried]),
         "online_with_odometry": timing_summary(per_scan + np.asarray(t["odometry"])),
         "online_without_odometry_cpu": timing_summary(t["cpu"]) if "cpu" in t else None,
-        "stages": {s: timing_summary(t[s]) for s in (*ONLINE_STAGES, "odometry")},
+        "stages": {s: timing_summary(t[s]) for s in (*stages, "odometry")},
         "isam2_update": timing_summary(result.isam2_ms),
         "isam2_loop_update": timing_summary(result.isam2_loop_ms),
         "batch_ms": result.batch.get("time_ms"),
@@ -159,6 +162,8 @@ def slam_metrics(cfg: SlamConfig, result: SlamResult, cols: dict[str, np.ndarray
         "time_ms": timing,
         "batch": {k: v for k, v in result.batch.items() if k not in ("loop_weights", "loop_residuals")},
     }
+    if result.realtime is not None:
+        payload["realtime"] = result.realtime
     if traj:
         opt = traj["optimized"]["ate_rmse"]
         payload["ate_reduction"] = traj["odometry"]["ate_rmse"] / opt if opt > 0 else None
@@ -211,6 +216,10 @@ def _loop_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
         _fmt(tm["isam2_update"]["median"]),
         _fmt(tm["isam2_loop_update"]["median"]),
     ]
+    rt = payload.get("realtime")
+    if rt is not None:  # the real-time mode's budget
+        header.append(f"scans over budget ({rt['budget_ms']:g} ms)")
+        row.append(f"{rt['over_budget']} / {rt['scans']}")
     return header, [row]
 
 
@@ -226,7 +235,7 @@ def print_slam_table(payload: dict[str, Any], title: str) -> None:
         print_rows(*_rows(payload), title)
     header, rows = _loop_rows(payload)
     print_rows(header[:_TIME_FROM], [r[:_TIME_FROM] for r in rows], f"{title}: loop closures")
-    times = ["median ms", "per scan, no odom", "with odom", "iSAM2 update", "iSAM2 loop update"]
+    times = ["median ms", "per scan, no odom", "with odom", "iSAM2 update", "iSAM2 loop update", *header[11:]]
     print_rows(times, [[r[0], *r[_TIME_FROM:]] for r in rows], f"{title}: time")
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -161,8 +161,9 @@ def _backend(
     ex = cfg.loops.exclusion
     if prior is None:
         return OnlineSlam(
-            rec, cfg.loops.threshold, cfg.graph, ex.frames, ex.seconds, ex.metres, k=cfg.loops.k
-        )
+            rec, cfg.loops.threshold, cfg.graph, ex.frames, ex.seconds, ex.metres, k=cfg.loops.k,
+            realtime=cfg.loops.realtime,
+        )  # fmt: skip
     pm = cfg.prior_map
     graph = prior.graph()
     return MultiSessionSlam(
@@ -170,7 +171,7 @@ def _backend(
         prior_odometry=None if graph is None else graph.odometry,
         prior_loops=None if graph is None else graph.loops,
         anchor=pm.anchor, min_join_loops=pm.min_join_loops, join_translation_m=pm.join_translation_m,
-        join_rotation_deg=pm.join_rotation_deg,
+        join_rotation_deg=pm.join_rotation_deg, realtime=cfg.loops.realtime,
     )  # fmt: skip
 
 
@@ -235,10 +236,11 @@ def slam_sequence(
     stamps = _timestamps(seq)
     injected = _injected(cfg, seq)
     pre = cfg.preprocess
-    timing: dict[str, list[float]] = {s: [] for s in (*ONLINE_STAGES, "odometry", "cpu")}
+    realtime = ("wait",) if cfg.loops.realtime is not None else ()  # the detector's wait for its worker
+    timing: dict[str, list[float]] = {s: [] for s in (*ONLINE_STAGES, *realtime, "odometry", "cpu")}
     odo = np.empty((n, 4, 4))
     queried = []
-    with progress_bars(cfg.output.progress) as progress:
+    with progress_bars(cfg.output.progress) as progress, _closing(slam):
         task = progress.add_task(f"slam ({cfg.loops.pipeline.display_name})", total=n)
         for i in range(n):
             raw = seq[i]
@@ -259,11 +261,12 @@ def slam_sequence(
             for s in timing:
                 timing[s].append(stages.get(s, 0.0))
             progress.advance(task)
-    online = slam.poses()
+    online = slam.poses()  # before the closures a real-time detector still owes (finish adds them)
     common: dict[str, Any] = dict(name=seq.name, odometry=odo, timing_ms=timing, ground_truth=seq.poses, timestamps=stamps,
                   candidates=slam.candidates, queried=queried)  # fmt: skip
     if isinstance(slam, OnlineSlam):
         optimized = slam.finish()
+        common["realtime"] = _realtime_stats(slam)
         if map_writer is not None:
             map_writer.finish(poses=optimized, graph=slam.graph)
         return SlamResult(
@@ -272,6 +275,7 @@ def slam_sequence(
         )  # fmt: skip
     assert prior is not None
     ms = slam.finish()
+    common["realtime"] = _realtime_stats(slam)
     M = len(prior)
     graph_poses = np.concatenate([ms.map_poses, ms.session_poses]) if ms.joined else ms.session_poses
     if map_writer is not None:
@@ -286,6 +290,22 @@ def slam_sequence(
         isam2_ms=list(ms.graph.update_ms), isam2_loop_ms=list(ms.graph.loop_update_ms), multisession=ms,
         graph_poses=graph_poses, **common,
     )  # fmt: skip
+
+
+@contextlib.contextmanager
+def _closing(slam: OnlineSlam | MultiSessionSlam) -> Iterator[None]:
+    """End a real-time detector's worker thread when the online loop fails (`finish` ends it otherwise)."""
+    try:
+        yield
+    except BaseException:
+        slam.detector.abort()
+        raise
+
+
+def _realtime_stats(slam: OnlineSlam | MultiSessionSlam) -> dict[str, Any] | None:
+    """The detector's real-time counters (`placerec.realtime.RealtimeStats.as_dict`); None when sequential."""
+    stats = slam.detector.realtime_stats
+    return None if stats is None else stats.as_dict()
 
 
 def _merged_graph(prior: MapArtifact, joined: PoseGraph, M: int) -> MapGraph:
