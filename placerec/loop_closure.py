@@ -146,6 +146,7 @@ class LoopClosureDetector:
         self._times: list[float] = []
         self._path: list[float] = []
         self._last_position: np.ndarray | None = None
+        self._position_before: np.ndarray | None = None  # the position before the last recorded place
         self.last_max_id = -1
         self.last_candidates: list[Candidate] = []
         self.last_timing_ms: dict[str, float] = {}
@@ -202,6 +203,12 @@ class LoopClosureDetector:
         window over the stream's own places, shifted past the prior map's entries, which are all eligible."""
         return self.prior_entries + int(self.exclusion.max_eligible(own_index, self._times, self._path))
 
+    def _forget_motion(self) -> None:
+        """Undo the last `_record_motion` (its time, its path length and the position it moved to)."""
+        self._times.pop()
+        self._path.pop()
+        self._last_position = self._position_before
+
     def _record_motion(self, pose: np.ndarray | None, timestamp: float | None) -> None:
         """Append the scan's timestamp and distance travelled (checked first, so a refused scan leaves no trace)."""
         if self.exclusion.seconds is not None:
@@ -216,6 +223,7 @@ class LoopClosureDetector:
                 "exclusion_metres is set: process() needs the scan's pose (odometry is enough)"
             )
         step = 0.0
+        self._position_before = self._last_position
         if pose is not None:
             position = as_pose(pose)[:3, 3]
             if self._last_position is not None:  # the ground truth's formula, so both agree to the last bit
@@ -385,7 +393,11 @@ class LoopClosureDetector:
         max_id = self.last_max_id = self._max_eligible_id(own)
         if self._worker is not None:
             return self._submit(scan_id, own, description, pose, max_id, timing)
-        result = self._query_and_add(scan_id, description, pose, max_id)
+        try:
+            result = self._query_and_add(scan_id, description, pose, max_id)
+        except ScanDataError:
+            self._forget_motion()  # a refused place leaves no trace: a `skip` of it records it once
+            raise
         if result.status is not None:
             self.last_status = result.status
         self.last_candidates = result.candidates

@@ -239,3 +239,29 @@ def test_multi_session_in_real_time_joins_with_the_same_closures():
     assert rt.joined_at >= seq.joined_at
     np.testing.assert_allclose(rt.session_poses[:, :3, 3], seq.session_poses[:, :3, 3], atol=0.05)
     assert not _worker_threads()
+
+
+def test_a_query_that_refuses_a_place_leaves_one_trace() -> None:
+    """A recognizer whose query refuses a description (ScanDataError) after the detector recorded the place's
+    motion: the back end skips the scan, and the detector's ids and path stay one per scan, as the graph's poses."""
+    pytest.importorskip("gtsam")
+    from placerec.baselines.scan_context import ScanContext
+    from placerec.errors import ScanDataError
+    from placerec.slam.online import OnlineSlam
+
+    class RefusesScan5(ScanContext):
+        def query_description(self, description, k=1, max_id=None, query_id=-1):
+            if query_id == 5:
+                raise ScanDataError("query 5: refused")
+            return super().query_description(description, k, max_id, query_id)
+
+    seq = SimulatedSequence(world="town", sensor="vlp16", n_scans=8, seed=2)
+    slam = OnlineSlam(RefusesScan5(), 0.3, exclusion_frames=2)
+    for i in range(8):
+        slam.process(seq[i], seq.poses[i], float(i))
+    det = slam.detector
+    assert det.n_processed == slam.graph.n_poses == 8
+    assert len(det._times) == len(det._path) == 8
+    np.testing.assert_allclose(
+        det._path[-1], np.linalg.norm(np.diff(seq.poses[:, :3, 3], axis=0), axis=1).sum()
+    )
