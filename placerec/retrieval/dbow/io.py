@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from placerec.errors import ArtifactError, short_repr
-from placerec.io.atomic import atomic_write
+from placerec.io.atomic import atomic_write, json_object
 from placerec.io.limits import check_size
 from placerec.retrieval.dbow.vocabulary import Vocabulary
 
@@ -201,12 +201,7 @@ def _read_binary_header(data: bytes, path: Path) -> tuple[dict[str, Any], int]:
     blob = data[head_start:head_end]
     if version > 1 and zlib.crc32(blob) != crc:
         raise ArtifactError(f"{path}: corrupt vocabulary file (checksum of the header)")
-    try:
-        header = json.loads(blob.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise ArtifactError(f"{path}: vocabulary header is not valid JSON ({exc})") from None
-    if not isinstance(header, dict):
-        raise ArtifactError(f"{path}: vocabulary header must be a JSON object")
+    header = json_object(blob, f"{path}: vocabulary header")
     for key, (types, expected) in _HEADER_TYPES.items():
         value = header.get(key)
         if not isinstance(value, types) or isinstance(value, bool):
