@@ -34,6 +34,7 @@ import numpy as np
 from pydantic import Field
 
 from placerec.errors import ScanDataError
+from placerec.eval.pose_error import pose_errors
 from placerec.maps.artifact import MapArtifact
 from placerec.params import Params
 from placerec.preprocess import preprocess_scan
@@ -123,10 +124,9 @@ class Fix:
 
 
 def correction(T_prior: np.ndarray, T_fix: np.ndarray) -> tuple[float, float]:
-    """(metres, degrees) that ``T_fix`` moves and turns ``T_prior`` by."""
-    D = np.linalg.inv(T_prior) @ T_fix
-    cos = (np.trace(D[:3, :3]) - 1.0) / 2.0
-    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    """(metres, degrees) that ``T_fix`` moves and turns ``T_prior`` by (`pose_errors` of one pose)."""
+    metres, degrees = pose_errors(T_fix, T_prior)
+    return float(metres[0]), float(degrees[0])
 
 
 class Localizer:
