@@ -319,8 +319,7 @@ def make_route(
     """Plan, smooth and sample a route of ``kind`` (see the module docstring) in ``world``."""
     if kind not in ROUTES:
         raise ConfigError(f"sim.route: unknown route {kind!r}; allowed: {sorted(ROUTES)}")
-    if spacing <= 0 or (rate_hz is not None and rate_hz <= 0):
-        raise ConfigError("sim.route: spacing and rate_hz must be positive")
+    _check_sampling(spacing, rate_hz)
     roads = world.roads
     ai, aj = roads.anchor
     rel, lanes = ROUTES[kind]
@@ -370,10 +369,7 @@ def route_from_plan(
             raise ConfigError(
                 f"sim.route: the plan's leg {a} -> {b} is not a street of world {world.preset!r}"
             )
-    if spacing <= 0 or (rate_hz is not None and rate_hz <= 0):
-        raise ConfigError("sim.route: spacing and rate_hz must be positive")
-    if not 0.0 <= phase < 1.0:
-        raise ConfigError(f"sim.route: phase must be in [0, 1), got {phase}")
+    _check_sampling(spacing, rate_hz, phase)
     rng = np.random.default_rng([int(seed), 0x2077])
     return _sample_route(
         world,
@@ -390,6 +386,13 @@ def route_from_plan(
         rng,
         phase,
     )
+
+
+def _check_sampling(spacing: float, rate_hz: float | None, phase: float = 0.0) -> None:
+    if spacing <= 0 or (rate_hz is not None and rate_hz <= 0):
+        raise ConfigError("sim.route: spacing and rate_hz must be positive")
+    if not 0.0 <= phase < 1.0:
+        raise ConfigError(f"sim.route: phase must be in [0, 1), got {phase}")
 
 
 def _sample_route(
