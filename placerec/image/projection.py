@@ -317,20 +317,20 @@ class SphericalGrid:
 
 def spherical_grid(scan: Scan, params: ImageParams = _DEFAULT_PARAMS) -> SphericalGrid:
     """The spherical grid ``scan`` is projected onto (see the module docstring for the automatic resolution)."""
-    return _spherical_grid(scan, params, *_valid_points(scan))
+    idx, r = _valid_points(scan)
+    return _spherical_grid(scan, params, take_rows(scan.xyz, idx), r)
 
 
-def _spherical_grid(scan: Scan, params: ImageParams, idx: np.ndarray, r: np.ndarray) -> SphericalGrid:
-    """`spherical_grid` of the valid points ``idx`` at ranges ``r``."""
-    xyz = take_rows(scan.xyz, idx)
+def _spherical_grid(scan: Scan, params: ImageParams, xyz: np.ndarray, r: np.ndarray) -> SphericalGrid:
+    """`spherical_grid` of the valid points ``xyz`` at ranges ``r``."""
     h_fov = float(scan.sensor.horizontal_fov_deg or 360.0)
-    if idx.size == 0:
+    if len(xyz) == 0:
         up, down = scan.sensor.vertical_fov_deg or (1.0, 1.0)
     else:
         up, down = _fov(scan, params, xyz, r)
     res = params.resolution_deg
     if res is None:
-        n = max(int(idx.size), 1)
+        n = max(len(xyz), 1)
         res = float(np.sqrt(h_fov * (up + down) * params.density_points_per_pixel / n))
         res = round(res / _RESOLUTION_STEP_DEG) * _RESOLUTION_STEP_DEG
         res = float(np.clip(res, *_RESOLUTION_BOUNDS_DEG))
@@ -344,8 +344,9 @@ def project_spherical(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A spherical grid over the sensor's field of view: (intensity, range, point index) images."""
     idx, r = _valid_points(scan)
-    grid = _spherical_grid(scan, params, idx, r)
-    rows, cols, inside = grid.pixels(take_rows(scan.xyz, idx), r)
+    xyz = take_rows(scan.xyz, idx)
+    grid = _spherical_grid(scan, params, xyz, r)
+    rows, cols, inside = grid.pixels(xyz, r)
     return _scatter_nearest(
         rows[inside], cols[inside], r[inside], scan, idx[inside], (grid.height, grid.width)
     )
