@@ -40,19 +40,24 @@ from pathlib import Path
 import numpy as np
 
 from placerec.artifacts import build
+from placerec.eval.metrics import timing_summary
 from placerec.eval.pose_error import pose_errors
 from placerec.experiment.protocol import is_test_seed
 from placerec.maps import Fix, Localizer, LocalizerParams
 from placerec.sim import SimulatedSequence
+from placerec.slam_app.localize import CORRECT_DEG, CORRECT_M
 from placerec.types import Sequence
 
 
+def ok_pose(T: np.ndarray, truth: np.ndarray) -> bool:
+    """Whether ``T`` is within `CORRECT_M` / `CORRECT_DEG` (1 m / 5 deg) of ``truth``."""
+    te, re = pose_errors(T, truth)
+    return bool(te[0] <= CORRECT_M and re[0] <= CORRECT_DEG)
+
+
 def ok(fix: Fix, truth: np.ndarray) -> bool:
-    """Whether ``fix`` is accepted and within 1 m / 5 deg of ``truth``."""
-    if not fix.accepted or fix.T_world_query is None:
-        return False
-    te, re = pose_errors(fix.T_world_query, truth)
-    return bool(te[0] <= 1.0 and re[0] <= 5.0)
+    """Whether ``fix`` is accepted and `ok_pose`."""
+    return fix.accepted and fix.T_world_query is not None and ok_pose(fix.T_world_query, truth)
 
 
 def summary(fixes: list[Fix], truth: np.ndarray | None, mode: str | None = None) -> dict:
@@ -64,7 +69,8 @@ def summary(fixes: list[Fix], truth: np.ndarray | None, mode: str | None = None)
         good = np.array([ok(f, T) for f, T in zip(fixes, truth, strict=True)])
         out.update(correct=int(good.sum()), false_fixes=int((acc & ~good).sum()), success=float(good.mean()))
     if t.size:
-        out.update(n_timed=int(t.size), median_ms=float(np.median(t)), p95_ms=float(np.percentile(t, 95)))
+        ts = timing_summary(t)
+        out.update(n_timed=ts["n"], median_ms=ts["median"], p95_ms=ts["p95"])
     return out
 
 
@@ -91,7 +97,7 @@ def tune(loc: Localizer, scans: list, truth: np.ndarray, seed: int) -> dict:
         for kf in m.nearest(P[:3, 3], k=2, radius=15.0)[0]:
             v = verify_icp(src, as_target(m.cloud(int(kf)), vp), np.linalg.inv(m.poses[kf]) @ P, vp)
             T = m.poses[kf] @ v.T_match_query
-            good = true is not None and bool(np.all(np.array(pose_errors(T, true)) <= [[1.0], [5.0]]))
+            good = true is not None and ok_pose(T, true)
             rows.append((good, v.score, v.fitness))
 
     n = len(scans)
