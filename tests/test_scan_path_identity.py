@@ -259,3 +259,16 @@ def test_fill_vertical_holes_of_random_masks(shape):
                 want, want_valid = ref_fill_vertical_holes(image, v, gap)
                 same(got, want)
                 same(got_valid, want_valid)
+
+
+def test_as_points_of_any_numeric_dtype():
+    """The float32 / float64 inputs are filtered as they are; any other type (half, extended precision, integers,
+    extra columns) is converted first, as the reference does."""
+    rng = np.random.default_rng(5)
+    base = rng.normal(size=(200, 4)) * 50
+    base[::7] = 0.0
+    base[3::11, 1] = np.nan
+    for dt in (np.float16, np.float32, np.float64, np.longdouble, np.int32):
+        a = (np.nan_to_num(base) if dt is np.int32 else base).astype(dt)
+        same(as_points(a), ref_as_points(a))
+        same(as_points(a[:, :3]), ref_as_points(a[:, :3]))

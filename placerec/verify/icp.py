@@ -70,13 +70,13 @@ class IcpResult:
 def as_points(points: Any, what: str = "points") -> np.ndarray:
     """(N, 3) float64 finite points from an array (extra columns such as intensity are dropped) or a `Scan`."""
     xyz = np.asarray(getattr(points, "xyz", points))
-    if xyz.dtype.kind != "f":
+    if xyz.dtype not in (np.float32, np.float64):  # the types the kernel takes (no float16 / longdouble)
         xyz = xyz.astype(np.float64)
     if xyz.ndim != 2 or xyz.shape[1] < 3:
         raise ScanDataError(f"{what} must be an (N, 3) array, got shape {xyz.shape}")
     # selected in the input's own float type (finiteness and zeros do not change in float64), then only the
     # kept points converted
-    p = xyz[:, :3] if xyz.shape[1] > 3 else xyz
+    p = xyz[:, :3]
     return np.ascontiguousarray(take_rows(p, _returns(p)), dtype=np.float64)
 
 
