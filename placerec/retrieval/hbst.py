@@ -41,7 +41,7 @@ ARTIFACT_KIND = "hbst"
 FORMAT_VERSION = 1
 _TREE_MEMBERS = ("split", "child", "leaf_start", "leaf_count", "descriptors", "image_id", "keypoint_id")
 # a saved tree (`FlatTree.to_arrays`, all or none of the tree members) and the image ids by insertion index
-TREE_SCHEMA = _SCHEMA = {
+TREE_SCHEMA = {
     "images": Member("iu", ("n_images",)),
     "split": Member("iu", ("n_nodes",), optional=True),
     "child": Member("iu", ("n_nodes", 2), optional=True),
@@ -267,14 +267,14 @@ class HBST:
         """Read a tree written by `save`; raises `ArtifactError` if the file is corrupt or of another version."""
         from placerec.io.atomic import load_artifact
 
-        arrays, header = load_artifact(path, ARTIFACT_KIND, (FORMAT_VERSION,), _SCHEMA, mmap=True)
+        arrays, header = load_artifact(path, ARTIFACT_KIND, (FORMAT_VERSION,), TREE_SCHEMA, mmap=True)
         hbst = cls.from_arrays(arrays, header["meta"], path)
         log.debug("loaded %r from %s", hbst, path)
         return hbst
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], meta: dict[str, Any], path: str | Path) -> HBST:
-        """The tree `to_arrays` described (checked against `_SCHEMA` by the caller); `ArtifactError` naming
+        """The tree `to_arrays` described (checked against `TREE_SCHEMA` by the caller); `ArtifactError` naming
         ``path`` when the arrays or ``meta`` are inconsistent. The restored tree answers and grows exactly as the
         saved one (the split retry state it lacks only prunes attempts that cannot succeed)."""
         present = [k for k in _TREE_MEMBERS if k in arrays]
