@@ -77,12 +77,11 @@ class LocalizeRun:
         ground truth)."""
         n = len(self.fixes)
         te, re = np.full(n, np.nan), np.full(n, np.nan)
-        if self.ground_truth is None:
+        fixed = [i for i, f in enumerate(self.fixes) if f.accepted and f.T_world_query is not None]
+        if self.ground_truth is None or not fixed:
             return te, re
-        for i, f in enumerate(self.fixes):
-            if f.accepted and f.T_world_query is not None:
-                t, r = pose_errors(f.T_world_query, self.ground_truth[i])
-                te[i], re[i] = t[0], r[0]
+        est = np.stack([self.fixes[i].T_world_query for i in fixed])  # type: ignore[misc]
+        te[fixed], re[fixed] = pose_errors(est, self.ground_truth[fixed])
         return te, re
 
     def correct(self) -> np.ndarray | None:
@@ -102,8 +101,8 @@ def localize_sequence(
     odometry: Literal["none", "kiss-icp"] = "none",
     progress: Callable[[int, int], None] | None = None,
 ) -> LocalizeRun:
-    """Localise every scan of ``seq`` in ``map`` (module docstring). The map's `check_query` (the sensor of the
-    first scan, unless ``params.allow_other_sensor``) runs before any scan is localised."""
+    """Localise every scan of ``seq`` in ``map`` (module docstring). The `Localizer` checks the first scan's
+    sensor against the map's (`MapArtifact.check_query`, unless ``params.allow_other_sensor``) before localising it."""
     if mode not in ("tracking", "global"):
         raise ConfigError(f"mode must be 'tracking' or 'global', got {mode!r}")
     if odometry not in ("none", "kiss-icp"):
@@ -115,8 +114,6 @@ def localize_sequence(
     n = len(seq)
     if n == 0:
         raise ConfigError(f"{seq.name}: the sequence has no scans")
-    first = seq[0]
-    loc.map.check_query(first.sensor, allow_other_sensor=params.allow_other_sensor)
     odo = None
     if odometry == "kiss-icp":
         from placerec.slam.odometry import KissIcpOdometry
@@ -124,7 +121,7 @@ def localize_sequence(
         odo = KissIcpOdometry()
     fixes = []
     for i in range(n):
-        scan = first if i == 0 else seq[i]
+        scan = seq[i]
         if odo is None:
             fix = loc.track(scan) if mode == "tracking" else loc.localize(scan)
         else:
