@@ -1,7 +1,9 @@
 """Multi-session SLAM (placerec.slam.multisession) on simulated sessions with a real recognizer (ORB-HBST) and
 GTSAM: a second session over the same world joins the prior map and lands in its frame; a session over another
 world, or one false inter-session closure, never joins; the prior map fixed or anchored; the detector's
-``prior_entries`` arithmetic; bad input."""
+``prior_entries`` arithmetic; bad input; the same closures in the detector's real-time mode."""
+
+import threading
 
 import numpy as np
 import pytest
@@ -10,6 +12,7 @@ from placerec.errors import ConfigError, ScanDataError
 from placerec.eval import ExclusionWindow
 from placerec.eval.pose_error import pose_errors
 from placerec.loop_closure import LoopClosureDetector
+from placerec.realtime import RealtimeParams
 from placerec.recognizer import make_pipeline
 from placerec.sim import SimulatedSequence
 from placerec.sim.geometry import euler_rotation
@@ -248,3 +251,23 @@ def test_add_graph_appends_a_graph_under_the_next_keys():
     assert np.abs(poses[1:] - expected).max() < 1e-6
     with pytest.raises(ScanDataError, match="odometry factor 2 -> 9"):
         joined.add_odometry(2, 9, np.eye(4))
+
+
+def test_multi_session_in_real_time_joins_with_the_same_closures(sessions):
+    """MultiSessionSlam with the detector's real-time mode: the same closures, joined (maybe a few scans later),
+    poses close; no worker thread left."""
+    results = []
+    for realtime in (None, RealtimeParams(max_backlog=3)):
+        slam = MultiSessionSlam(
+            _recognizer(sessions), 0.25, sessions["map_poses"], exclusion_frames=30, realtime=realtime
+        )
+        for d, T in zip(sessions["b"], sessions["odo_b"], strict=True):
+            slam.process(None, T, description=d)
+        results.append(slam.finish())
+    seq, rt = results
+    key = lambda lp: (lp.match_id, lp.query_id, lp.score)  # noqa: E731
+    every = lambda r: sorted(map(key, r.intra_loops + r.inter_loops + r.rejected_at_join + r.pending))  # noqa: E731
+    assert seq.joined and rt.joined and every(seq) == every(rt)
+    assert rt.joined_at >= seq.joined_at
+    np.testing.assert_allclose(rt.session_poses[:, :3, 3], seq.session_poses[:, :3, 3], atol=0.05)
+    assert not [t for t in threading.enumerate() if t.name == "placerec-loop-closure"]

@@ -1,8 +1,8 @@
 """The loop-closure detector's real-time mode (placerec.realtime, LoopClosureDetector(realtime=...)) with real
 recognizers on a small simulated revisit: the same closures as the sequential mode (ids, scores, poses), late but
 all by flush(); the backlog's wait; a failed query raised at the next call naming its scan; no thread left after
-close(); OnlineSlam and `placerec slam` with the real-time mode: the same loop factors, the same final poses;
-MultiSessionSlam: the same closures, joined (maybe a few scans later), poses close."""
+close(); OnlineSlam and `placerec slam` with the real-time mode: the same loop factors, the same final poses
+(MultiSessionSlam's: tests/test_multisession.py, on that module's sessions)."""
 
 from __future__ import annotations
 
@@ -215,29 +215,6 @@ def test_placerec_slam_with_loops_realtime(revisit, tmp_path):
     assert sorted(next(seq_loops).read_text().splitlines()) == sorted(
         (run / "loops.csv").read_text().splitlines()
     )
-    assert not _worker_threads()
-
-
-def test_multi_session_in_real_time_joins_with_the_same_closures():
-    pytest.importorskip("gtsam")
-    from placerec.slam.multisession import MultiSessionSlam
-    from tests.test_multisession import _recognizer, sessions
-
-    data = sessions.__wrapped__()  # that module's fixture, called (imported here: the module needs gtsam)
-    results = []
-    for realtime in (None, RealtimeParams(max_backlog=3)):
-        slam = MultiSessionSlam(
-            _recognizer(data), 0.25, data["map_poses"], exclusion_frames=30, realtime=realtime
-        )
-        for d, T in zip(data["b"], data["odo_b"], strict=True):
-            slam.process(None, T, description=d)
-        results.append(slam.finish())
-    seq, rt = results
-    key = lambda lp: (lp.match_id, lp.query_id, lp.score)  # noqa: E731
-    every = lambda r: sorted(map(key, r.intra_loops + r.inter_loops + r.rejected_at_join + r.pending))  # noqa: E731
-    assert seq.joined and rt.joined and every(seq) == every(rt)
-    assert rt.joined_at >= seq.joined_at
-    np.testing.assert_allclose(rt.session_poses[:, :3, 3], seq.session_poses[:, :3, 3], atol=0.05)
     assert not _worker_threads()
 
 
