@@ -199,7 +199,8 @@ def preprocess_scan(scan: Scan, params: PreprocessParams | None = None, keep_org
     # range does not depend on the other points; a dropped point stays dropped, zeroed in an organised scan)
     r = scan.ranges
     keep = valid_points(scan, intensity=True, ranges=r)
-    _invalid_counts(scan, keep)
+    if log.isEnabledFor(logging.DEBUG):  # the counts are only logged here
+        _invalid_counts(scan, keep)
     keep &= _crop_mask(scan, r, p.min_range, p.max_range, p.min_z, p.max_z)
     scan = _keep(scan, keep, keep_organized)
     if p.intensity.calibration:
