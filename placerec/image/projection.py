@@ -374,7 +374,7 @@ def from_organized(scan: Scan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if scan.shape is None:
         raise ScanDataError(f"{scan.source or 'scan'}: not an organised scan")
     r = scan.ranges
-    ok = valid_points(scan, intensity=True)
+    ok = valid_points(scan, intensity=True, ranges=r)
     inten = np.where(ok, scan.intensity, 0.0).astype(np.float32).reshape(scan.shape)
     rng = np.where(ok, r, 0.0).astype(np.float32).reshape(scan.shape)
     pidx = np.where(ok, np.arange(len(scan), dtype=np.int32), -1).reshape(scan.shape)
