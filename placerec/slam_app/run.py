@@ -154,9 +154,9 @@ def _timestamps(seq: Sequence) -> np.ndarray | None:
 
 
 def _backend(
-    cfg: SlamConfig, rec: PlaceRecognizer, prior: MapArtifact | None
+    cfg: SlamConfig, rec: PlaceRecognizer, prior: MapArtifact | None, graph: MapGraph | None
 ) -> OnlineSlam | MultiSessionSlam:
-    """The online back end: `OnlineSlam`, or against ``prior`` a `MultiSessionSlam` (its graph's factors held
+    """The online back end: `OnlineSlam`, or against ``prior`` a `MultiSessionSlam` (its ``graph``'s factors held
     when ``prior_map.anchor`` is ``anchored``)."""
     ex = cfg.loops.exclusion
     if prior is None:
@@ -165,7 +165,6 @@ def _backend(
             realtime=cfg.loops.realtime,
         )  # fmt: skip
     pm = cfg.prior_map
-    graph = prior.graph()
     return MultiSessionSlam(
         rec, cfg.loops.threshold, prior.poses, cfg.graph, ex.frames, ex.seconds, ex.metres, k=cfg.loops.k,
         prior_odometry=None if graph is None else graph.odometry,
@@ -229,9 +228,11 @@ def slam_sequence(
         else make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
     )
     odometry = odometry or odometry_source(cfg, seq)
+    prior_graph = None
     if prior is not None:
         odometry = _own_frame(odometry)
-    slam = _backend(cfg, rec, prior)
+        prior_graph = prior.graph()
+    slam = _backend(cfg, rec, prior, prior_graph)
     n = len(seq)
     stamps = _timestamps(seq)
     injected = _injected(cfg, seq)
@@ -280,7 +281,7 @@ def slam_sequence(
     graph_poses = np.concatenate([ms.map_poses, ms.session_poses]) if ms.joined else ms.session_poses
     if map_writer is not None:
         if ms.joined:
-            map_writer.finish(poses=graph_poses, graph=_merged_graph(prior, ms.graph, M))
+            map_writer.finish(poses=graph_poses, graph=_merged_graph(prior_graph, ms.graph, M))
         else:
             map_writer.abort()
             log.warning("%s: %s; no merged map written", seq.name, ms.summary())
@@ -308,10 +309,10 @@ def _realtime_stats(slam: OnlineSlam | MultiSessionSlam) -> dict[str, Any] | Non
     return None if stats is None else stats.as_dict()
 
 
-def _merged_graph(prior: MapArtifact, joined: PoseGraph, M: int) -> MapGraph:
-    """The merged map's graph: the prior map's own factors, then the joined graph's odometry of the session
-    (keys M..) and every loop factor of the joined graph (intra- and inter-session)."""
-    own = prior.graph() or MapGraph()
+def _merged_graph(prior_graph: MapGraph | None, joined: PoseGraph, M: int) -> MapGraph:
+    """The merged map's graph: the prior map's own factors (``prior_graph``), then the joined graph's odometry of
+    the session (keys M..) and every loop factor of the joined graph (intra- and inter-session)."""
+    own = prior_graph or MapGraph()
     session_odometry = [f for f in joined.odometry if f[0] >= M and f[1] >= M]
     merged = MapGraph.from_pose_graph(joined)
     return MapGraph(own.odometry + session_odometry, own.loops + merged.loops, merged.loop_sigmas)
