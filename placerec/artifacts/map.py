@@ -18,7 +18,7 @@ from pydantic import Field
 from placerec.artifacts.sources import FilePath, SequenceSource
 from placerec.config import PipelineSpec
 from placerec.errors import ConfigError, ScanDataError
-from placerec.maps.artifact import MapWriter, check_pose_fit, pose_fit
+from placerec.maps.artifact import MapWriter, check_pose_fit, pose_fit, pose_fit_probes
 from placerec.params import Params
 from placerec.preprocess import PreprocessParams, preprocess_scan
 from placerec.recognizer import make_pipeline
@@ -126,9 +126,7 @@ def write_map(
     ) as writer:
         skipped = 0
         # a few consecutive keyframes spread over the map, to check that the poses fit the scans before writing
-        probes = set(
-            np.linspace(0, max(len(chosen) - 2, 0), min(8, max(len(chosen) - 1, 0))).astype(int).tolist()
-        )
+        probes = set(pose_fit_probes(len(chosen)).tolist())
         probed: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         for done, i in enumerate(chosen, 1):
             i = int(i)

@@ -65,6 +65,7 @@ __all__ = [
     "is_map_folder",
     "pose_fit",
     "check_pose_fit",
+    "pose_fit_probes",
     "MIN_POSE_FIT",
 ]
 
@@ -212,6 +213,14 @@ def pose_fit(T_a: np.ndarray, cloud_a: np.ndarray, T_b: np.ndarray, cloud_b: np.
     target = prepare_target(np.asarray(cloud_a, np.float64))
     T = np.linalg.inv(T_a) @ T_b
     return alignment_stats(np.asarray(cloud_b, np.float64), target, T, 0.5, None, 2000)[0]
+
+
+def pose_fit_probes(n: int, pairs: int = 8) -> np.ndarray:
+    """The first keyframes of up to ``pairs`` consecutive pairs ``(i, i + 1)`` spread over ``n`` keyframes: those
+    `pose_fit` compares (none when ``n`` < 2)."""
+    if n < 2:
+        return np.zeros(0, np.int64)
+    return np.unique(np.linspace(0, n - 2, min(pairs, n - 1)).astype(np.int64))
 
 
 def check_pose_fit(fits: list[float], where: str) -> None:
@@ -439,11 +448,7 @@ class MapArtifact:
     def check_pose_fit(self, pairs: int = 8) -> None:
         """`MapMismatchError` unless up to ``pairs`` consecutive keyframes spread over the map overlap at their
         poses (`pose_fit`, `check_pose_fit`): a map whose poses follow another convention."""
-        n = len(self)
-        if n < 2:
-            return
-        firsts = np.unique(np.linspace(0, n - 2, min(pairs, n - 1)).astype(int))
-        same = [int(i) for i in firsts if self.session[i] == self.session[i + 1]]
+        same = [int(i) for i in pose_fit_probes(len(self), pairs) if self.session[i] == self.session[i + 1]]
         fits = [pose_fit(self.poses[i], self.cloud(i), self.poses[i + 1], self.cloud(i + 1)) for i in same]
         check_pose_fit(fits, f"map {self.path}")
 
