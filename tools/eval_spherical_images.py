@@ -65,20 +65,24 @@ def main() -> None:
         kfs = KeyframeSequence(seq, KeyframeParams(seconds=seconds), odometry_poses=seq.poses)
         scans = [kfs[i] for i in range(len(kfs))]
         rows = {}
+        raw: dict[float, list[float]] = {}  # unfilled valid fraction per density (any radius's)
         for radius in RADII:
             for density in DENSITIES:
                 params = ImageParams(
                     mode="spherical", fill_radius_px=radius, density_points_per_pixel=density
                 )
                 imgs = [make_image(s, params) for s in scans]
-                raw = [
-                    make_image(s, params.model_copy(update={"fill_radius_px": 0})).valid.mean() for s in scans
-                ]
+                if density not in raw:
+                    unfilled = params.model_copy(update={"fill_radius_px": 0})
+                    raw[density] = [
+                        (im if radius == 0 else make_image(s, unfilled)).valid.mean()
+                        for s, im in zip(scans, imgs, strict=True)
+                    ]
                 feats = [orb.extract(im.image, (im.valid * 255).astype(np.uint8)) for im in imgs]
                 matched = [_matched_fraction(feats[i], feats[i + 1]) for i in range(len(feats) - 1)]
                 row = {
                     "image": list(imgs[0].shape),
-                    "valid": round(float(np.mean(raw)), 3),
+                    "valid": round(float(np.mean(raw[density])), 3),
                     "after_fill": round(float(np.mean([im.valid.mean() for im in imgs])), 3),
                     "orb": round(float(np.mean([len(f) for f in feats])), 1),
                     "matched_next": round(float(np.mean(matched)), 3),
