@@ -57,6 +57,8 @@ def main() -> None:
         f"{'sensor':7} {'fill':>4} {'pts/px':>6} {'image':>9} {'valid':>6} {'filled':>6} {'ORB':>6} {'matched':>7}"
     )
     for sensor, capture in CAPTURE.items():
+        if "keyframes" not in capture:  # a spinning sensor's entry (its feature parameters only)
+            continue
         t0 = time.perf_counter()
         seconds = capture["keyframes"]["seconds"]
         n_scans = int(round(args.keyframes * seconds * capture["rate_hz"])) + 2

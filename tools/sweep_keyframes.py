@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--sensors", nargs="+", default=list(CAPTURE))
+    ap.add_argument("--sensors", nargs="+", default=[s for s, c in CAPTURE.items() if "keyframes" in c])
     ap.add_argument("--seconds", nargs="+", type=float, default=[0.5, 1.0])
     ap.add_argument("--every", nargs="+", type=float, default=[0.0], help="every_metres values (0: none)")
     ap.add_argument("--out", default=str(ROOT / "results" / "sweep_keyframes"))
