@@ -80,6 +80,7 @@ from bench_slam_matrix import KISS_SLAM_VENV, export_sequence, kiss_slam_version
 from placerec.eval.trajectory import trajectory_errors  # noqa: E402
 from placerec.experiment.tables import print_rows  # noqa: E402
 from placerec.io import open_sequence  # noqa: E402
+from placerec.io.kitti import write_kitti_bin  # noqa: E402
 from placerec.slam_app.config import SlamConfig, load_slam_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -254,11 +255,7 @@ def _write_bins(base: Any, index: list[int], folder: Path) -> Path:
         for k, i in enumerate(index):
             scan = base[i]
             ok = np.isfinite(scan.xyz).all(axis=1) & np.any(scan.xyz != 0, axis=1)
-            rec = np.zeros((int(ok.sum()), 4), np.float32)
-            rec[:, :3] = scan.xyz[ok]
-            if scan.intensity is not None:
-                rec[:, 3] = scan.intensity[ok]
-            (folder / "velodyne" / f"{k:06d}.bin").write_bytes(rec.tobytes())
+            write_kitti_bin(folder / "velodyne" / f"{k:06d}.bin", scan.select(ok))
         (folder / "done").write_text("")
     return folder
 
