@@ -237,12 +237,9 @@ def report_localize(run: LocalizeRun, out_dir: str | Path, figure: bool = True) 
 
 def plot_fixes(run: LocalizeRun, path: Path) -> Path:
     """``fixes.png``: the fixes on the map (module docstring)."""
-    import matplotlib
+    from placerec.experiment.figures import _finish, _frame, _pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.5, 6.5), dpi=110)
+    fig, ax = _pyplot().subplots(figsize=(6.5, 6.5), dpi=110)
     kf = run.map.positions()
     ax.plot(kf[:, 0], kf[:, 1], ".", color="0.7", ms=3, label=f"map keyframes ({len(kf)})", zorder=1)
     accepted = np.array([f.accepted for f in run.fixes], bool)
@@ -267,15 +264,10 @@ def plot_fixes(run: LocalizeRun, path: Path) -> Path:
         ax.plot(g[:, 0], g[:, 1], "x", color="k", ms=4, label=f"no fix ({int(missing.sum())})", zorder=4)
     elif missing.any():
         ax.plot([], [], " ", label=f"no fix: {int(missing.sum())} scans")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
+    ax.set(xlabel="x [m]", ylabel="y [m]")
     n = len(run.fixes)
     ax.set_title(f"{run.name} in map {run.map.manifest.name}\n{int(accepted.sum())} of {n} scans fixed "
                  f"({run.mode}, odometry {run.odometry})", fontsize=9)  # fmt: skip
-    ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    with atomic_write(path) as fh:
-        fig.savefig(fh, format="png")
-    plt.close(fig)
-    return path
+    truth = run.ground_truth[:, :3, 3] if run.ground_truth is not None else np.zeros((0, 3))
+    _frame(ax, kf, xy, truth)
+    return _finish(fig, ax, path, loc="best")

@@ -310,14 +310,9 @@ def prior_map_metrics(cfg: SlamConfig, result: SlamResult, prior: MapArtifact) -
 
 def _sessions_figure(path: Path, prior: MapArtifact, result: SlamResult, title: str) -> None:
     """The prior map's keyframes and the session (in the map's frame when joined) with its inter-session closures."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     ms = result.multisession
     assert ms is not None
-    fig, ax = plt.subplots(figsize=(7, 7), dpi=100)
+    fig, ax = figures._pyplot().subplots(figsize=(7, 7), dpi=100)
     mp = (ms.map_poses if ms.joined else prior.poses)[:, :3, 3]
     sp = result.optimized[:, :3, 3]
     ax.plot(mp[:, 0], mp[:, 1], ".", ms=2, color="0.6", label=f"prior map ({len(mp)} keyframes)")
@@ -328,15 +323,10 @@ def _sessions_figure(path: Path, prior: MapArtifact, result: SlamResult, title: 
         for lp in ms.inter_loops:
             a, b = mp[lp.match_id], sp[lp.query_id - M]
             ax.plot([a[0], b[0]], [a[1], b[1]], "-", lw=0.5, color="tab:green", alpha=0.6)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
+    ax.set(xlabel="x [m]", ylabel="y [m]")
     ax.set_title(title, fontsize=9)
-    ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    with atomic_write(path) as fh:
-        fig.savefig(fh, format="png")
-    plt.close(fig)
+    figures._frame(ax, mp, sp)
+    figures._finish(fig, ax, path, loc="best")
 
 
 def report_slam(
