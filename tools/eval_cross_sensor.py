@@ -525,6 +525,7 @@ def run_pair(
 ) -> dict[str, Any]:
     """Localise and loop figures of one pair under one intensity mode."""
     w, ws = split["world"], split["world_seed"]
+    cfg = make_config("localize", args.pipelines, str(tmp / "runs"), args.pipeline_params)
     seqs = []
     for sensor, role, seed, spacing in (
         (map_sensor, "map", split["map_seed"], args.map_spacing),
@@ -534,14 +535,12 @@ def run_pair(
         if base.name not in stores:
             stores[base.name] = ScanStore(base, tmp / "scans" / base.name)
         fn = intensity_fn(mode, sensor, cals.get((sensor, role)))
-        loc_cfg = make_config("localize", args.pipelines, str(tmp / "runs"), args.pipeline_params)
         seqs.append(
-            places(stores[base.name], sensor, lambda s, fn=fn: IntensityView(s, fn, mode), spacing, loc_cfg)
+            places(stores[base.name], sensor, lambda s, fn=fn: IntensityView(s, fn, mode), spacing, cfg)
         )
     map_seq, query_seq = seqs
     out: dict[str, Any] = {"n_map": len(map_seq), "n_queries": len(query_seq)}
     t0 = time.perf_counter()
-    cfg = make_config("localize", args.pipelines, str(tmp / "runs"), args.pipeline_params)
     _, _, records = run_localize(cfg, (map_seq, query_seq), memo_pipelines(cfg, memo))
     mp, qp = np.asarray(map_seq.poses), np.asarray(query_seq.poses)
     out["localise"] = {r.pipeline: localize_figures(r, mp, qp) for r in records}
