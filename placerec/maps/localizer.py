@@ -145,7 +145,6 @@ class Localizer:
         #: (pipeline, its database, its threshold) for global search, in the order they are asked; the databases
         #: are loaded now, so a damaged one fails here, before any scan
         self.searches = [(p, self.map.recognizer(p.name), t if t is not None else p.threshold) for p in pipes]
-        self.pipeline, self.recognizer, self.threshold = self.searches[0]
         self.preprocess = self.map.preprocess()
         self._targets: OrderedDict[int, IcpCloud | None] = OrderedDict()
         self._sensors_checked: set[str] = set()
