@@ -4,7 +4,8 @@ keyframe length was chosen; docs/sensors.md). Not a result: tuning data.
 Each (sensor, length) is one loop-mode cell of ``configs/benchmark_sensors_tuning.yaml`` (town, seed 0) with the
 sensor's capture and the keyframe length replaced, run into ``--out``; reported per pipeline: recall at the
 preset's fixed threshold under the pose ground truth (precision beside it), and the same-direction revisits'
-recall@1 (a sensor with a limited horizontal field of view cannot see a revisit driven the other way).
+recall at that threshold (``same R``; a sensor with a limited horizontal field of view cannot see a revisit
+driven the other way).
 
     .venv/bin/python tools/sweep_keyframes.py [--sensors avia e1r mid360] [--seconds 0.5 1.0] [--every 0 0.9]
 
