@@ -310,12 +310,14 @@ def _realtime_stats(slam: OnlineSlam | MultiSessionSlam) -> dict[str, Any] | Non
 
 
 def _merged_graph(prior_graph: MapGraph | None, joined: PoseGraph, M: int) -> MapGraph:
-    """The merged map's graph: the prior map's own factors (``prior_graph``), then the joined graph's odometry of
-    the session (keys M..) and every loop factor of the joined graph (intra- and inter-session)."""
+    """The merged map's graph: the prior map's own factors (``prior_graph``), then the joined graph's factors that
+    touch the session (keys M..): its odometry and its loops (intra- and inter-session). The joined graph's
+    factors among map keys alone are the prior map's own again (``anchored`` adds them), so they are not repeated."""
     own = prior_graph or MapGraph()
-    session_odometry = [f for f in joined.odometry if f[0] >= M and f[1] >= M]
     merged = MapGraph.from_pose_graph(joined)
-    return MapGraph(own.odometry + session_odometry, own.loops + merged.loops, merged.loop_sigmas)
+    session_odometry = [f for f in merged.odometry if f[0] >= M and f[1] >= M]
+    session_loops = [lp for lp in merged.loops if max(lp.match_id, lp.query_id) >= M]
+    return MapGraph(own.odometry + session_odometry, own.loops + session_loops, merged.loop_sigmas)
 
 
 def map_writer_for(
