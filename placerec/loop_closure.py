@@ -154,9 +154,9 @@ class LoopClosureDetector:
         self.last_completed: list[PlaceResult] = []
         self.realtime = realtime
         self.realtime_stats = None if realtime is None else RealtimeStats(realtime.budget_ms)
-        self._worker = None if realtime is None else SerialWorker(self._run_job)
+        self._worker = None if realtime is None else SerialWorker(lambda job: self._query_and_add(*job))
         self._calls = 0  # process / flush calls (real-time mode)
-        self._submitted: dict[int, tuple[int, int]] = {}  # place id -> (its call, its own index)
+        self._submitted: dict[int, int] = {}  # place id -> the call that fed it
         self._ready: list[Candidate] = []  # closures collected, not yet returned
         self._late: deque[tuple[int, Exception]] = deque()  # failed places, raised at the next call
         self._waited = 0.0
@@ -329,19 +329,17 @@ class LoopClosureDetector:
         st = self.realtime_stats
         for done in self._worker.take():
             st.worker_ms.append(done.ms)
-            call, own = self._submitted.pop(done.key)
+            call = self._submitted.pop(done.key)
             if done.error is not None or done.result is None:
                 st.worker_errors += 1
                 self._late.append((done.key, done.error or RuntimeError("no result")))
                 continue
             result = done.result
             self.last_completed.append(result)
-            late = self._calls > call
-            for _ in result.accepted:
-                st.closures += 1
-                if late:
-                    st.deferred_closures += 1
-                    st.max_delay = max(st.max_delay, self.n_processed - 1 - own)
+            st.closures += len(result.accepted)
+            if result.accepted and self._calls > call:  # returned by a later call than its place's
+                st.deferred_closures += len(result.accepted)
+                st.max_delay = max(st.max_delay, self.next_id - 1 - done.key)
             self._ready.extend(result.accepted)
             self.closures.extend(result.accepted)
         if raise_late:
@@ -392,7 +390,7 @@ class LoopClosureDetector:
         self._record_motion(pose, timestamp)
         max_id = self.last_max_id = self._max_eligible_id(own)
         if self._worker is not None:
-            return self._submit(scan_id, own, description, pose, max_id, timing)
+            return self._submit(scan_id, description, pose, max_id, timing)
         try:
             result = self._query_and_add(scan_id, description, pose, max_id)
         except ScanDataError:
@@ -409,7 +407,6 @@ class LoopClosureDetector:
     def _submit(
         self,
         scan_id: int,
-        own: int,
         description: Description,
         pose: np.ndarray | None,
         max_id: int,
@@ -417,7 +414,7 @@ class LoopClosureDetector:
     ) -> list[Candidate]:
         """Real-time mode: queue the place's query and insertion; wait while the worker is too far behind."""
         assert self._worker is not None and self.realtime is not None and self.realtime_stats is not None
-        self._submitted[scan_id] = (self._calls, own)
+        self._submitted[scan_id] = self._calls
         backlog = self._worker.submit(scan_id, (scan_id, description, pose, max_id))
         st = self.realtime_stats
         st.max_backlog = max(st.max_backlog, backlog)
@@ -428,9 +425,6 @@ class LoopClosureDetector:
         self.last_candidates = []
         self.last_timing_ms = timing
         return []
-
-    def _run_job(self, job: tuple[int, Description, np.ndarray | None, int]) -> PlaceResult:
-        return self._query_and_add(*job)
 
     def _query_and_add(
         self, scan_id: int, description: Description, pose: np.ndarray | None, max_id: int

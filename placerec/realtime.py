@@ -103,7 +103,7 @@ class _Done(Generic[R]):
 class SerialWorker(Generic[R]):
     """One daemon thread running ``run(job)`` for each submitted job, one at a time, in submission order.
 
-    `submit` queues a job (starting the thread on the first one); ``backlog`` counts jobs queued or running;
+    `submit` queues a job (starting the thread on the first one) and returns the backlog (jobs queued or running);
     `wait` blocks until it is at most a number; `take` hands over the finished jobs in order (an exception a job
     raised is kept with it, never lost); `stop` lets the thread finish every queued job, then joins it.
     """
@@ -119,19 +119,10 @@ class SerialWorker(Generic[R]):
         self._thread: threading.Thread | None = None
 
     @property
-    def backlog(self) -> int:
-        with self._cv:
-            return self._backlog
-
-    @property
     def closed(self) -> bool:
         """Whether `stop` was called: no more jobs are taken."""
         with self._cv:
             return self._stopping
-
-    @property
-    def alive(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
 
     def submit(self, key: int, job: Any) -> int:
         """Queue ``job`` under ``key``; returns the backlog with it. `ConfigError` once stopped."""
