@@ -667,14 +667,10 @@ def map_build(
       placerec map build ../shared/data/real/kitti_raw_0027 --out maps/kitti27
     """
     from placerec.artifacts.map import MapBuild, build_map
+    from placerec.config import read_config_file
     from placerec.maps import MapArtifact
-    from placerec.safe_yaml import load_yaml_file
 
-    values = {} if config is None else load_yaml_file(config)
-    if not isinstance(values, dict):
-        from placerec.errors import ConfigError
-
-        raise ConfigError(f"{config}: a map build YAML must be a mapping")
+    values = {} if config is None else read_config_file(config)
     values = dict(values, out=str(out), overwrite=overwrite or bool(values.get("overwrite", False)))
     if pipeline:
         values["pipelines"] = [{"name": name} for name in pipeline]
