@@ -440,3 +440,21 @@ def test_poses_in_another_convention_are_refused(tmp_path: Path, seq: SimulatedS
 
 def test_the_built_map_fits_its_poses(built: Path) -> None:
     MapArtifact.open(built).check_pose_fit()
+
+
+def test_the_merged_graph_holds_each_factor_once() -> None:
+    """An anchored join's graph already holds the map's own factors: the merged map keeps them once."""
+    from types import SimpleNamespace
+
+    from placerec.slam_app.run import _merged_graph
+
+    eye, sig = np.eye(4), np.ones(6)
+    prior = MapGraph([(0, 1, eye, sig), (1, 2, eye, sig)], [LoopFactor(0, 2, eye, 0.5)], sig)
+    joined = SimpleNamespace(
+        params=SimpleNamespace(loop_sigma_rotation_deg=1.0, loop_sigma_translation=0.1),
+        odometry=[(0, 1, eye, sig), (1, 2, eye, sig), (3, 4, eye, sig)],
+        loops=[LoopFactor(0, 2, eye, 0.5), LoopFactor(1, 3, eye, 0.4), LoopFactor(3, 4, eye, 0.3)],
+    )
+    merged = _merged_graph(prior, joined, 3)  # type: ignore[arg-type]
+    assert [(i, j) for i, j, _, _ in merged.odometry] == [(0, 1), (1, 2), (3, 4)]
+    assert [(lp.match_id, lp.query_id) for lp in merged.loops] == [(0, 2), (1, 3), (3, 4)]
