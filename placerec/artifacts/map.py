@@ -111,12 +111,12 @@ def write_map(
     if not recs:
         raise ConfigError("pipelines: a map needs at least one pipeline")
     chosen = select_keyframes(poses, config.keyframe_metres)
-    sensor = seq[int(chosen[0])].sensor if len(chosen) else None
+    first = seq[int(chosen[0])] if len(chosen) else None  # its sensor is the map's; read once
     with MapWriter(
         config.out,
         recs,
         name=seq.name,
-        sensor=sensor,
+        sensor=None if first is None else first.sensor,
         intensity=intensity_label(config.preprocess),
         preprocess=config.preprocess.saved_dump(),
         config=config.model_dump(mode="json"),
@@ -130,7 +130,7 @@ def write_map(
         probed: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         for done, i in enumerate(chosen, 1):
             i = int(i)
-            raw = seq[i]
+            raw = first if done == 1 and first is not None else seq[i]
             scan = preprocess_scan(raw, config.preprocess, keep_organized=True)
             try:
                 descriptions = [(rec, rec.describe(scan)) for rec, _ in recs.values()]
