@@ -57,7 +57,7 @@ from placerec.eval.pose_error import pose_errors
 from placerec.loop_closure import LoopClosureDetector
 from placerec.realtime import RealtimeParams
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
-from placerec.slam.online import detect_closures, finish_closures
+from placerec.slam.online import detect_closures, finish_closures, record_candidates
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, rigid_problem
 
 __all__ = ["MultiSessionSlam", "MultiSessionResult", "Anchor", "OdometryFactor"]
@@ -237,19 +237,13 @@ class MultiSessionSlam:
         consistency test and, when it succeeds, building the joined graph)."""
         added = detect_closures(self.detector, scan, odometry_pose, timestamp, description)
         timing = dict(self.detector.last_timing_ms)
-        self._completed()
+        record_candidates(self.candidates, self.detector)
         t0 = time.perf_counter()
         self.graph.add_pose(odometry_pose)
         added += list(extra_loops or [])
         self._route(added, timing, t0)
         self.last_timing_ms = timing
         return added
-
-    def _completed(self) -> None:
-        """One candidate list per scan, filled in as the detector completes its queries."""
-        self.candidates += [[] for _ in range(self.detector.n_processed - len(self.candidates))]
-        for done in self.detector.last_completed:
-            self.candidates[done.place_id - self.n_map] = done.candidates
 
     def _route(self, added: list[LoopFactor], timing: dict[str, float], t0: float) -> None:
         """``added`` into the graph (intra-session, or anything once joined) or pending (inter-session before the
@@ -348,7 +342,7 @@ class MultiSessionSlam:
         """The final batch optimisation (`GraphParams.batch`) of the joined graph, or of the session alone when it
         was never joined; see `MultiSessionResult`. A real-time detector's closures still due are routed first."""
         late = finish_closures(self.detector)
-        self._completed()
+        record_candidates(self.candidates, self.detector)
         if late:
             self._route(late, {}, time.perf_counter())
         poses, info = self.graph.optimize()

@@ -36,7 +36,7 @@ from placerec.realtime import LateScanError, RealtimeParams
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan
 
-__all__ = ["OnlineSlam", "detect_closures", "finish_closures"]
+__all__ = ["OnlineSlam", "detect_closures", "finish_closures", "record_candidates"]
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +84,14 @@ def finish_closures(detector: LoopClosureDetector) -> list[LoopFactor]:
             return _loop_factors(accepted)
         except LateScanError as exc:
             log.warning("%s: that scan gets no loop closure", exc)
+
+
+def record_candidates(candidates: list[list[Any]], detector: LoopClosureDetector) -> None:
+    """Keep ``candidates`` one list per place of the stream (``candidates[i]``: its place ``prior_entries + i``),
+    filled in as the detector completes their queries (``last_completed``; a real-time detector's come late)."""
+    candidates += [[] for _ in range(detector.n_processed - len(candidates))]
+    for done in detector.last_completed:
+        candidates[done.place_id - detector.prior_entries] = done.candidates
 
 
 def _loop_factors(accepted: list[Candidate]) -> list[LoopFactor]:
@@ -145,9 +153,7 @@ class OnlineSlam:
         never queried or matched."""
         added = detect_closures(self.detector, scan, odometry_pose, timestamp, description)
         timing = dict(self.detector.last_timing_ms)  # empty for a skipped scan
-        self.candidates.append([])
-        for done in self.detector.last_completed:
-            self.candidates[done.place_id] = done.candidates
+        record_candidates(self.candidates, self.detector)
         t0 = time.perf_counter()
         self.graph.add_pose(odometry_pose)
         added += list(extra_loops or [])
@@ -171,8 +177,7 @@ class OnlineSlam:
         """The final batch optimisation (`GraphParams.batch`); details in ``batch_info``. A real-time detector's
         closures still due are added first (one more iSAM2 update), and its worker ended."""
         late = finish_closures(self.detector)
-        for done in self.detector.last_completed:
-            self.candidates[done.place_id] = done.candidates
+        record_candidates(self.candidates, self.detector)
         if late:
             for loop in late:
                 self.graph.add_loop(loop)
