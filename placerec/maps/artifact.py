@@ -821,11 +821,23 @@ def _replace_folder(src: Path, dst: Path) -> None:
 
 
 def _trajectory_figure(path: Path, poses: np.ndarray, session: np.ndarray, title: str) -> None:
-    """A bird's-eye figure of the keyframes, one colour per session."""
-    from placerec.experiment.figures import _finish_map, _pyplot
+    """A bird's-eye figure of the keyframes, one colour per session (drawn here: the experiment figure helpers
+    are a layer above the maps)."""
+    import matplotlib
 
-    fig, ax = _pyplot().subplots(figsize=(6, 6), dpi=100)
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 6), dpi=100)
     for s in np.unique(session):
         p = poses[session == s, :3, 3]
         ax.plot(p[:, 0], p[:, 1], ".-", ms=2, lw=0.6, label=f"session {int(s)}")
-    _finish_map(fig, ax, path, f"map {title}: {len(poses)} keyframes", (poses[:, :3, 3],), loc="best")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"map {title}: {len(poses)} keyframes")
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    with atomic_write(path) as fh:
+        fig.savefig(fh, format="png")
+    plt.close(fig)
