@@ -333,16 +333,15 @@ class KeyframeBuilder:
         self._stamps: list[float] = []
         self._poses: list[np.ndarray] = []
         self._first_x = 0.0
-        self._last_x: float | None = None
         self._last_stamp: float | None = None
         self._last_pose: np.ndarray | None = None
         self._before: tuple[float, np.ndarray] | None = None
         self._count = 0
         self._icp: KissIcpOdometry | None = None
-        # overlapping windows (every_metres): progress of the held scans, distance travelled (at the last scan, at
-        # the last keyframe's last scan) and the count of scans added since the last keyframe
+        self._travelled = 0.0  # along the odometry, at the last scan
+        # overlapping windows (every_metres): progress of the held scans, distance travelled at the last keyframe's
+        # last scan and the count of scans added since the last keyframe
         self._xs: list[float] = []
-        self._travelled = 0.0
         self._keyframe_travelled: float | None = None
         self._since = 0
 
@@ -394,52 +393,35 @@ class KeyframeBuilder:
                 self._icp = _kiss_icp(origin)
             pose = self._icp.register(scan)
         # checked: from here on nothing raises
-        if p.every_metres is not None:
-            return self._add_overlapping(points, index, stamp, pose)
+        step = 0.0 if self._last_pose is None else float(np.linalg.norm(pose[:3, 3] - self._last_pose[:3, 3]))
+        self._travelled += step  # as `placerec.types.path_length` sums it
         if p.seconds is not None:
             assert stamp is not None  # _needs_timestamps
             x = float(stamp)
-        else:  # distance travelled, as `placerec.types.path_length` sums it
-            step = (
-                0.0
-                if self._last_pose is None
-                else float(np.linalg.norm(pose[:3, 3] - self._last_pose[:3, 3]))
-            )
-            x = (self._last_x or 0.0) + step
+        else:
+            x = self._travelled
         if not self._scans:
             self._first_x = x
         self._scans.append(points)
         self._indices.append(index)
         self._stamps.append(float(stamp) if stamp is not None else float("nan"))
         self._poses.append(pose)
-        self._last_x, self._last_stamp, self._last_pose = x, stamp, pose
+        self._last_stamp, self._last_pose = stamp, pose
         self._count += 1
+        if p.every_metres is not None:
+            return self._add_overlapping(x, stamp)
         if _completes(p, self._first_x, x, len(self._scans)):
             return self.flush()
         return None
 
-    def _add_overlapping(
-        self, points: Scan, index: int, stamp: float | None, pose: np.ndarray
-    ) -> Keyframe | None:
-        """`add` of a checked scan with overlapping windows (``every_metres``; module docstring)."""
-        p = self.params
-        step = 0.0 if self._last_pose is None else float(np.linalg.norm(pose[:3, 3] - self._last_pose[:3, 3]))
-        travelled = self._travelled + step  # as `placerec.types.path_length` sums it
-        if p.seconds is not None:
-            assert stamp is not None  # _needs_timestamps
-            x = float(stamp)
-        else:
-            x = travelled
-        self._scans.append(points)
-        self._indices.append(index)
-        self._stamps.append(float(stamp) if stamp is not None else float("nan"))
-        self._poses.append(pose)
+    def _add_overlapping(self, x: float, stamp: float | None) -> Keyframe | None:
+        """`add`'s end with overlapping windows (``every_metres``; module docstring): the scan just held, at
+        progress ``x``, ends a keyframe or not; the scans before the last complete trailing window are dropped."""
         self._xs.append(x)
-        self._last_x, self._last_stamp, self._last_pose = x, stamp, pose
-        self._travelled = travelled
-        self._count += 1
         self._since += 1
-        start, make = _overlapping(p, self._xs, 0, len(self._xs) - 1, travelled, self._keyframe_travelled)
+        start, make = _overlapping(
+            self.params, self._xs, 0, len(self._xs) - 1, self._travelled, self._keyframe_travelled
+        )
         if start:  # no later window starts before this complete one: drop the scans before it
             if stamp is not None:
                 self._before = (self._stamps[start - 1], self._poses[start - 1])
