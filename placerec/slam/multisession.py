@@ -287,8 +287,9 @@ class MultiSessionSlam:
         in_session = np.stack([self.session.pose(lp.query_id - M) for lp in loops])
         return in_map, in_session, in_map @ np.linalg.inv(in_session)
 
-    def _agreeing(self) -> list[int]:
-        """The largest set of pending closures (indices) that agree pairwise (module docstring), greedy."""
+    def _agreeing(self) -> tuple[list[int], np.ndarray]:
+        """The largest set of pending closures (indices) that agree pairwise (module docstring), greedy, and the
+        alignment ``T_map_session`` each pending closure implies (P, 4, 4)."""
         in_map, in_session, align = self._alignments(self.pending)
         L = len(self.pending)
         # predicted[b, a]: where closure b's alignment puts closure a's query, against a's own map pose
@@ -305,23 +306,22 @@ class MultiSessionSlam:
                     group.append(int(b))
             if len(group) > len(best):
                 best = group
-        return best
+        return best, align
 
     def _try_join(self, latest: int) -> None:
         """Join the sessions if enough pending closures agree (module docstring); ``latest``: the session scan of
         the newest closure (the join's ``joined_at``)."""
-        group = self._agreeing()
+        group, align = self._agreeing()
         queries = {self.pending[i].query_id for i in group}
         if len(group) < self.min_join_loops or len(queries) < 2:
             return
-        _, _, align = self._alignments([self.pending[group[0]]])
         joined = self._map
-        joined.add_graph(self.session, transform=align[0], priors=False)
+        joined.add_graph(self.session, transform=align[group[0]], priors=False)
         for i in group:
             joined.add_loop(self.pending[i])
         joined.update()
         self.graph, self.joined = joined, True
-        self.T_map_session = align[0]
+        self.T_map_session = align[group[0]]
         self.joined_at = latest
         self.inter_loops = [self.pending[i] for i in group]
         kept = set(group)
