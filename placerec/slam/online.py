@@ -60,7 +60,8 @@ def detect_closures(
     (`_usable`) as loop factors, with the detector's ids. A scan the recognizer cannot describe (`ScanDataError`)
     is `LoopClosureDetector.skip`-ped: it takes its id, so ids stay the graph's keys, and gives no closure.
     A real-time detector returns the closures completed since the last call (earlier scans' too); a query that
-    failed in its worker (`LateScanError`) is logged, as a skipped scan would be, and this scan fed again."""
+    failed in its worker (`LateScanError`) is logged (that scan keeps its id and gets no closure, as a skipped
+    one) and this scan fed again."""
     while True:
         try:
             accepted = detector.process(scan, odometry_pose, timestamp, description)
