@@ -34,6 +34,7 @@ __all__ = [
     "valid_points",
     "take_rows",
     "Verification",
+    "REJECTIONS",
     "Description",
     "PlaceRecognizer",
     "as_pose",
@@ -488,7 +489,8 @@ class Verification:
     None for ICP-only), ``correspondences``: pairs given. ``fitness``, ``rmse`` (m), ``residual`` (m^2, the eps_ICP
     quantity): ICP statistics (NaN when ICP did not run). ``rejected_at``: the stage that ended it early (``grouping``, ``ransac``) or None.
     ``timings_ms``: per stage (``prepare``, ``grouping``, ``ransac``, ``icp``, ``total``). ``inlier_mask``: over
-    the given correspondences, those RANSAC kept (None for ICP-only).
+    the given correspondences, those RANSAC kept (None for ICP-only). ``rejection``: why it was rejected, one of
+    `REJECTIONS`' keys (None when accepted).
     """
 
     T_match_query: np.ndarray
@@ -504,6 +506,7 @@ class Verification:
     rejected_at: str | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     inlier_mask: np.ndarray | None = None
+    rejection: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """Scalars only (for a Candidate's ``extra`` or a CSV row)."""
@@ -518,8 +521,20 @@ class Verification:
             "ransac_iterations": self.ransac_iterations,
             "icp_iterations": self.icp_iterations,
             "rejected_at": self.rejected_at,
+            "rejection": self.rejection,
             **{f"ms_{k}": v for k, v in self.timings_ms.items()},
         }
+
+
+#: Why verification rejects a candidate (`Verification.rejection`), the stages in the order they are applied.
+REJECTIONS: dict[str, str] = {
+    "grouping": "too few consistent correspondences",
+    "ransac": "too few RANSAC inliers",
+    "rank": "not refined: ICP was spent on better candidates",
+    "fitness": "ICP overlap (fitness) below min_fitness",
+    "score": "verified score below min_score",
+    "residual": "ICP residual above eps_icp",
+}
 
 
 @dataclass(frozen=True)
@@ -536,7 +551,10 @@ class Candidate:
     verify), ``verification`` (the `Verification`: statistics and, when rejected, the stage that rejected it),
     ``retrieval_score`` (the score that ranked the candidate before verification), ``verify_ms`` (milliseconds
     spent verifying it, its share of the verification stage) and ``T_world_query`` (the query's pose in the map
-    when the recognizer knows the matched entry's pose). ``extra`` holds recognizer-specific diagnostics only:
+    when the recognizer knows the matched entry's pose). ``matches`` (M, 2) int32: the (query feature, match
+    feature) indices of the correspondences verification was given, row-aligned with
+    ``verification.inlier_mask`` (for the visual pipelines the indices of the descriptions' ``keypoints``); None
+    when it verified without feature correspondences. ``extra`` holds recognizer-specific diagnostics only:
     nothing outside the recognizer depends on them.
     """
 
@@ -551,6 +569,7 @@ class Candidate:
     retrieval_score: float | None = None
     verify_ms: float = 0.0
     T_world_query: np.ndarray | None = None
+    matches: np.ndarray | None = None
 
 
 #: A scan's description by a recognizer's front end: named NumPy arrays (so it can be cached as ``.npz``).

@@ -11,7 +11,7 @@ from placerec.image.correspondence import keypoint_points
 from placerec.pipelines.visual import mutual_nearest
 from placerec.recognizer import make_pipeline
 from placerec.sim import SimulatedSequence
-from placerec.types import relative_pose
+from placerec.types import REJECTIONS, relative_pose
 
 
 @pytest.fixture(scope="module")
@@ -94,6 +94,28 @@ def test_true_loop_gets_the_6dof_pose_and_a_wrong_place_ranks_lower(sim, name):
     assert 0 < best.score <= 1 and best.score == best.verification.score
     min_score = rec.params.verify.score.min_score
     assert all(c.score < min_score and not c.accepted for c in cands[1:])
+
+
+def test_candidate_matches_are_the_keypoint_pairs_verification_was_given(sim):
+    """``matches`` index the two descriptions' keypoints, row-aligned with the inlier mask: the inliers' 3D points
+    agree under the verified pose, and a rejected candidate says why."""
+    scans, _ = sim
+    rec = make_pipeline("orb-hbst")
+    descs = {i: rec.describe(scans[i]) for i in (0, 2, 30)}
+    rec.add_description(0, descs[0])
+    rec.add_description(30, descs[30])
+    best, other = rec.query_description(descs[2], k=2, query_id=2)
+    v = best.verification
+    assert best.accepted and v.rejection is None
+    m = best.matches
+    assert m.dtype == np.int32 and m.shape == (v.correspondences, 2) and v.inlier_mask.shape == (m.shape[0],)
+    assert m[:, 0].max() < len(descs[2]["keypoints"]) and m[:, 1].max() < len(descs[0]["keypoints"])
+    src = descs[2]["keypoint_xyz"][m[:, 0]].astype(np.float64)
+    dst = descs[0]["keypoint_xyz"][m[:, 1]].astype(np.float64)
+    moved = src @ best.relative_pose[:3, :3].T + best.relative_pose[:3, 3]
+    err = np.linalg.norm(moved - dst, axis=1)
+    assert np.median(err[v.inlier_mask]) < 0.3 < np.median(err[~v.inlier_mask])
+    assert not other.accepted and other.verification.rejection in REJECTIONS
 
 
 def test_verification_needs_the_descriptions_3d_parts(sim):

@@ -389,6 +389,33 @@ def test_min_fitness_gates_every_acceptance_rule(sim_scans):
         ScoreParams(min_fitness=1.5)
 
 
+def test_rejection_names_the_rule_that_rejected():
+    from placerec.types import REJECTIONS
+    from placerec.verify.score import is_accepted, rejection
+
+    score = ScoreParams(acceptance="score", min_score=0.25)
+    assert rejection(0.3, 99.0, score) is None and rejection(0.2, 1.0, score) == "score"
+    eps = ScoreParams(acceptance="eps_icp", eps_icp=7.0)
+    assert rejection(0.0, 1.0, eps) is None and rejection(0.9, 8.0, eps) == "residual"
+    both = ScoreParams(acceptance="both", min_score=0.25, eps_icp=7.0)
+    assert rejection(0.2, 1.0, both) == "score" and rejection(0.3, 8.0, both) == "residual"
+    gated = ScoreParams(min_fitness=0.5)
+    assert rejection(0.9, 1.0, gated, fitness=0.4) == "fitness"
+    for args in [(0.3, 99.0, score), (0.2, 1.0, score), (0.9, 8.0, eps), (0.9, 1.0, gated, 0.4)]:
+        assert is_accepted(*args) == (rejection(*args) is None)
+    assert {"grouping", "ransac", "rank", "fitness", "score", "residual"} == set(REJECTIONS)
+
+
+def test_a_rejected_verification_says_at_which_stage(sim_scans):
+    from placerec.verify.verify import hypothesise
+
+    seq, scans = sim_scans
+    few = hypothesise(np.zeros((2, 3)), np.zeros((2, 3)))
+    assert few.rejected().rejection == "grouping" and few.rejected("rank").rejection == "rank"
+    bad = verify_icp(scans[36], scans[10], params=VerifyParams())
+    assert not bad.accepted and bad.rejection == "score"
+
+
 def _greedy_reference(src, dst, order, res, min_size):
     """PCL's clustering written plainly (members checked one by one), for comparison."""
     n = len(src)

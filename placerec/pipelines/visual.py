@@ -297,8 +297,16 @@ class VisualFrontend(Generic[VP]):
         ok = np.isfinite(src).all(axis=1) & np.isfinite(dst).all(axis=1)
         q = None if quality is None else quality[ok]
         ms = spent_ms + (time.perf_counter() - t0) * 1e3
+        pairs = np.stack([np.asarray(query_idx)[ok], np.asarray(match_idx)[ok]], axis=1)
         return Retrieved(
-            match_id, score, src[ok], dst[ok], q, extra={**extra, "matches": int(ok.sum())}, verify_ms=ms
+            match_id,
+            score,
+            src[ok],
+            dst[ok],
+            q,
+            extra={**extra, "matches": int(ok.sum())},
+            verify_ms=ms,
+            pairs=pairs,
         )
 
 

@@ -115,7 +115,8 @@ class Retrieved:
     without keypoints, ICP starts from ``init`` (``T_match_query``; None: identity). ``target`` (no arguments,
     returns the prepared `IcpCloud`) replaces the store's cloud of ``match_id`` as ICP target, e.g. a place merged
     with its neighbours. ``extra`` is copied into the candidate; ``verify_ms`` is the time the pipeline took to find
-    the correspondences, counted in the candidate's ``verify_ms``."""
+    the correspondences, counted in the candidate's ``verify_ms``. ``pairs`` (M, 2): the (query feature, match
+    feature) indices of the correspondences, row by row (the candidate's ``matches``; None: not known)."""
 
     match_id: int
     retrieval_score: float
@@ -126,6 +127,7 @@ class Retrieved:
     extra: dict[str, Any] = field(default_factory=dict)
     target: Callable[[], IcpCloud] | None = None
     verify_ms: float = 0.0
+    pairs: np.ndarray | None = None
 
 
 def scan_cloud(scan: Any, params: VerifyParams | None = None) -> np.ndarray:
@@ -461,6 +463,7 @@ def verify_candidates(
             verification=v,
             retrieval_score=float(r.retrieval_score),
             verify_ms=ms[j],
+            matches=None if r.pairs is None else np.asarray(r.pairs, np.int32).reshape(-1, 2),
         )
         out.append(cand)
     # retrieval_score is set on every candidate above (`or 0.0` only narrows its Optional type)

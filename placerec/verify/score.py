@@ -19,7 +19,7 @@ import math
 
 from placerec.verify.params import ScoreParams
 
-__all__ = ["verified_score", "is_accepted"]
+__all__ = ["verified_score", "is_accepted", "rejection"]
 
 
 def verified_score(
@@ -40,15 +40,23 @@ def is_accepted(
 ) -> bool:
     """The acceptance rule chosen by ``params.acceptance``, and the ``min_fitness`` gate on ``fitness`` when set
     (see the module docstring)."""
+    return rejection(score, residual, params, fitness) is None
+
+
+def rejection(
+    score: float, residual: float, params: ScoreParams | None = None, fitness: float | None = None
+) -> str | None:
+    """Why `is_accepted` rejects a verified candidate (``"fitness"``, ``"score"`` or ``"residual"``, the keys of
+    `placerec.types.REJECTIONS`), or None when it accepts it."""
     params = params or ScoreParams()
     if params.min_fitness is not None and not (
         fitness is not None and math.isfinite(fitness) and fitness >= params.min_fitness
     ):
-        return False
+        return "fitness"
     by_score = score >= params.min_score and score > 0.0
     by_eps = math.isfinite(residual) and residual < params.eps_icp
-    if params.acceptance == "score":
-        return by_score
-    if params.acceptance == "eps_icp":
-        return by_eps
-    return by_score and by_eps
+    if params.acceptance in ("score", "both") and not by_score:
+        return "score"
+    if params.acceptance in ("eps_icp", "both") and not by_eps:
+        return "residual"
+    return None

@@ -26,7 +26,7 @@ from placerec.verify.icp import IcpCloud, prepare_source, prepare_target, refine
 from placerec.verify.kabsch import check_pairs
 from placerec.verify.params import VerifyParams
 from placerec.verify.ransac import RansacResult, ransac_pose, refit
-from placerec.verify.score import is_accepted, verified_score
+from placerec.verify.score import rejection, verified_score
 
 __all__ = [
     "Verification",
@@ -100,6 +100,7 @@ class Hypothesis:
             stage or self.rejected_at,
             timings,
             self.inlier_mask,
+            stage or self.rejected_at,
         )
 
 
@@ -173,10 +174,11 @@ def complete(
     timings["icp"] = icp.ms + coarse_ms
     timings["total"] = sum(v for k, v in timings.items() if k != "total")
     score = verified_score(hypothesis.inliers, icp.fitness, icp.rmse, sp)
+    why = rejection(score, icp.residual, sp, icp.fitness)
     return Verification(
         T_match_query=icp.T,
         score=score,
-        accepted=is_accepted(score, icp.residual, sp, icp.fitness),
+        accepted=why is None,
         inliers=hypothesis.inliers,
         correspondences=hypothesis.correspondences,
         fitness=icp.fitness,
@@ -186,6 +188,7 @@ def complete(
         icp_iterations=icp.iterations,
         timings_ms=timings,
         inlier_mask=hypothesis.inlier_mask,
+        rejection=why,
     )
 
 
