@@ -3,7 +3,8 @@
 #   bash tools/bootstrap.sh demo   # the main job: configs/demo.yaml on the built-in simulator
 #   bash tools/bootstrap.sh test   # the test suite
 # It creates ./.venv (Python >= 3.10, 3.11 preferred), installs placerec with the extras the job needs and the
-# system library open3d needs (libusb-1.0-0: installed with apt-get when run as root, else the command is printed).
+# system library open3d needs (libusb-1.0-0: installed with apt-get when run as root, else the command is printed);
+# the test job also installs the viewer extra and Debian's chromium (the report's browser tests).
 # Re-running is cheap: the install is skipped while pyproject.toml is unchanged.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -22,6 +23,18 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
   fi
 fi
 
+# the tests open reports in a real browser: Debian's chromium, driven by playwright (whose own browser download
+# needs a network placerec does not assume)
+if [ "$job" = test ] && ! command -v chromium >/dev/null; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "[bootstrap] installing chromium (the report's browser tests)"
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null
+  else
+    echo "[bootstrap] the browser tests need chromium; run: sudo apt-get install -y chromium (they are skipped without it)" >&2
+  fi
+fi
+
 # 2. a local venv
 PY=""
 for cand in python3.11 python3.12 python3.10 python3; do
@@ -35,6 +48,8 @@ fi
 
 # 3. packages (skipped when pyproject.toml is unchanged since the last successful install)
 extras="dev,ouster,ros,dask,slam,superpoint"
+# the tests read Rerun recordings back; the demo does not need the viewer's 170 MB wheel
+if [ "$job" = test ]; then extras="$extras,viewer"; fi
 stamp=".venv/.placerec-installed"
 want="$(sha256sum pyproject.toml | cut -d' ' -f1) $extras"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
