@@ -5,6 +5,9 @@
   the scan index); ``odometry_kitti.txt`` and ``online_kitti.txt`` (iSAM2's estimate at the last scan) beside it,
   ``ground_truth_kitti.txt`` when the dataset has poses;
 * ``graph.g2o`` — the pose graph (vertices at the optimised poses, odometry and loop edges with information);
+* ``closures.mcap`` — the optimised poses and the loop edges for Foxglove (`placerec.io.mcap_export`, docs/slam.md):
+  the graph's loops (rejected when the batch step weighs them below 0.5) and the candidates verification rejected
+  (`loop_edges`), at the scans' times;
 * ``loops.csv`` — one row per loop edge: ``match_id, query_id, score, injected, x, y, z, roll, pitch, yaw``
   (``T_match_query`` as in `placerec.experiment.candidates`), ``residual_sigmas, weight`` (`BATCH_COLUMNS`), and
   with ground truth ``true_distance``,
@@ -36,15 +39,17 @@ from placerec.experiment.run_folder import finite_or_null, json_default, point_l
 from placerec.experiment.tables import print_rows, write_html_page
 from placerec.io import write_kitti_poses, write_tum_poses
 from placerec.io.atomic import atomic_write
+from placerec.io.mcap_export import LoopEdge, write_closures_mcap
 from placerec.maps.artifact import MapArtifact
 from placerec.preprocess import preprocess_scan
 from placerec.slam.result import ONLINE_STAGES, SlamResult
 from placerec.slam_app.config import SlamConfig
-from placerec.types import Scan, Sequence, relative_pose
+from placerec.types import Candidate, Scan, Sequence, relative_pose, rigid_problem
 
 __all__ = [
     "report_slam",
     "loop_table",
+    "loop_edges",
     "slam_metrics",
     "print_slam_table",
     "write_map_ply",
@@ -92,6 +97,39 @@ def loop_table(cfg: SlamConfig, result: SlamResult) -> dict[str, np.ndarray]:
         )
         cols["opposite"] = cos < np.cos(np.radians(135.0))
     return cols
+
+
+def loop_edges(result: SlamResult, cols: dict[str, np.ndarray]) -> list[LoopEdge]:
+    """The edges of ``closures.mcap``: every loop of the graph, in `loop_table`'s order (``cols``), accepted unless
+    the batch step weighed it below 0.5 (rejection ``back-end``), with its candidate's inlier count; then every
+    candidate verification rejected between two scans of the run, with its rejection stage and its pose when it
+    has a rigid one (a run against a prior map: between two of the session's scans)."""
+    n = len(result.optimized)
+    # the detector's ids: a prior map's keyframes first, then the session's scans
+    offset = 0 if result.multisession is None else len(result.multisession.map_poses)
+    loops = {(lp.query_id, lp.match_id) for lp in result.loops}
+    found: dict[tuple[int, int], Candidate] = {}
+    rejected: list[LoopEdge] = []
+    for cands in result.candidates:
+        for c in cands:
+            q, m = c.query_id - offset, c.match_id - offset
+            if not (0 <= q < n and 0 <= m < n):
+                continue
+            v = c.verification
+            if c.accepted is not False or v is None:
+                found[(q, m)] = c
+            elif (q, m) not in loops:
+                T = c.relative_pose if c.relative_pose is not None else v.T_match_query
+                T = T if T is not None and rigid_problem(np.asarray(T)[None]) is None else None
+                rejected.append(LoopEdge(q, m, c.score, T, c.inliers, False, v.rejection))
+    weight = cols.get("weight")
+    edges = []
+    for k, lp in enumerate(result.loops):
+        c = found.get((lp.query_id, lp.match_id))
+        back = weight is not None and bool(weight[k] < 0.5)
+        edges.append(LoopEdge(lp.query_id, lp.match_id, lp.score, lp.T_match_query, None if c is None else c.inliers,
+                              not back, "back-end" if back else None, lp.injected))  # fmt: skip
+    return edges + rejected
 
 
 def _write_loops(path: Path, cols: dict[str, np.ndarray]) -> None:
@@ -348,6 +386,13 @@ def report_slam(
     )
     cols = loop_table(cfg, result)
     _write_loops(run / "loops.csv", cols)
+    write_closures_mcap(
+        run / "closures.mcap",
+        result.optimized,
+        loop_edges(result, cols),
+        timestamps=result.timestamps,
+        ground_truth=result.ground_truth,
+    )
     payload = slam_metrics(cfg, result, cols)
     if prior is not None:
         payload["prior_map"] = prior_map_metrics(cfg, result, prior)
