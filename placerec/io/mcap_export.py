@@ -409,7 +409,8 @@ def write_closures_mcap(
     ns, time_source = _stamps_ns(where, timestamps, n, rate_hz)
     edges = _check_edges(where, loops, n, len(M))
     q = matrix_to_quat(P[:, :3, :3])
-    end = _time(int(ns.max())) if n else _time(0)
+    t_end = int(ns.max()) if n else 0  # the trajectories' time: the last scan's
+    end = _time(t_end)
 
     # (time ns, order of writing, topic, message): sorted by time, so the file's messages are in time order
     messages: list[tuple[int, int, str, dict[str, Any]]] = []
@@ -433,7 +434,6 @@ def write_closures_mcap(
             entity = _entity(e, _time(t), frame_id, M[e.match], P[e.query])
             topic = "/placerec/loops" if e.accepted else "/placerec/loops_rejected"
             add(t, topic, {"deletions": [], "entities": [entity]})
-    t_end = int(ns.max()) if n else 0
     trajectory = [_pose(P[i], q[i]) for i in np.flatnonzero(known)]
     add(t_end, "/placerec/trajectory", {"timestamp": end, "frame_id": frame_id, "poses": trajectory})
     if gt is not None:
