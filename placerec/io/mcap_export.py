@@ -70,9 +70,10 @@ _LINE_LIST = 2  # foxglove.LineType: individual segments 0-1, 2-3, ...
 class LoopEdge:
     """One loop-closure edge: ``query`` and ``match`` index the poses (``match``: ``match_poses`` when given),
     ``T_match_query`` the estimated relative pose (4x4; None: none estimated), ``score`` (NaN: none),
-    ``inliers`` (None: not counted), ``accepted``, ``rejection`` (why not: a key of `placerec.types.REJECTIONS`,
-    ``"back-end"`` for a loop the pose graph's robust optimisation turned down, or None) and ``injected`` (a
-    false loop added on purpose to test the back end)."""
+    ``inliers`` (None: not counted), ``accepted``, ``rejection`` (why not, None when accepted: a key of
+    `placerec.types.REJECTIONS` for verification's stages, ``"back-end"`` for a loop the pose graph's robust
+    optimisation turned down, ``"threshold"`` for a score below the operating threshold, or a caller's own short
+    text) and ``injected`` (a false loop added on purpose to test the back end)."""
 
     query: int
     match: int
@@ -216,8 +217,9 @@ LOOP_CLOSURE_SCHEMA = _object(
         "accepted": {"type": "boolean"},
         "rejection": {
             "type": ["string", "null"],
-            "description": "why not accepted: a verification stage (placerec.types.REJECTIONS: grouping, ransac,"
-            " rank, fitness, score, residual) or back-end (turned down by the robust pose graph); null if accepted",
+            "description": "why not accepted, null if accepted: a verification stage (placerec.types.REJECTIONS:"
+            " grouping, ransac, rank, fitness, score, residual), back-end (turned down by the robust pose graph),"
+            " threshold (score below the operating threshold) or another short text",
         },
         "injected": {"type": "boolean", "description": "a false loop added on purpose to test the back end"},
     },
