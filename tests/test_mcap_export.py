@@ -21,10 +21,9 @@ from placerec.io.mcap_export import (
     REJECTED_COLOR,
     TOPICS,
     LoopEdge,
-    matrix_to_quat,
     write_closures_mcap,
 )
-from placerec.io.poses import quat_to_matrix
+from placerec.io.poses import matrix_to_quat, quat_to_matrix
 from placerec.types import REJECTIONS
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -34,12 +34,12 @@ import numpy as np
 from placerec._version import __version__
 from placerec.errors import ScanDataError
 from placerec.io.atomic import atomic_write
+from placerec.io.poses import matrix_to_quat
 from placerec.types import as_pose, check_poses
 
 __all__ = [
     "LoopEdge",
     "write_closures_mcap",
-    "matrix_to_quat",
     "DEFAULT_RATE_HZ",
     "DEFAULT_FRAME",
     "TOPICS",
@@ -229,15 +229,6 @@ SCHEMAS["placerec.LoopClosure"] = LOOP_CLOSURE_SCHEMA
 
 
 # --- messages
-
-
-def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices to (N, 4) unit quaternions (x, y, z, w): the inverse of
-    `placerec.io.poses.quat_to_matrix`."""
-    from scipy.spatial.transform import Rotation
-
-    R = np.asarray(R, dtype=np.float64)
-    return Rotation.from_matrix(R).as_quat() if len(R) else np.empty((0, 4))
 
 
 def _time(ns: int) -> dict[str, int]:

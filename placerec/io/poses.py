@@ -13,7 +13,14 @@ from placerec.io._common import check_file
 from placerec.io.atomic import atomic_write
 from placerec.types import check_poses, rigid_problem
 
-__all__ = ["read_poses", "write_kitti_poses", "write_tum_poses", "quat_to_matrix", "POSE_FORMATS"]
+__all__ = [
+    "read_poses",
+    "write_kitti_poses",
+    "write_tum_poses",
+    "quat_to_matrix",
+    "matrix_to_quat",
+    "POSE_FORMATS",
+]
 
 POSE_FORMATS = {"kitti": 12, "tum": 8}
 
@@ -34,6 +41,14 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     R[:, 2, 1] = 2 * (y * z + x * w)
     R[:, 2, 2] = 1 - 2 * (x * x + y * y)
     return R
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices to (N, 4) unit quaternions (qx, qy, qz, qw): the inverse of `quat_to_matrix`."""
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(R, dtype=np.float64)
+    return Rotation.from_matrix(R).as_quat() if len(R) else np.empty((0, 4))
 
 
 def _rows(path: Path, fmt: str | None) -> tuple[str, np.ndarray, list[int]]:
@@ -126,12 +141,10 @@ def write_kitti_poses(path: str | Path, poses: np.ndarray) -> None:
 
 def write_tum_poses(path: str | Path, poses: np.ndarray, timestamps: np.ndarray) -> None:
     """Write (N, 4, 4) poses with (N,) timestamps as TUM lines ``t tx ty tz qx qy qz qw`` (atomic)."""
-    from scipy.spatial.transform import Rotation
-
     P = check_poses(poses, None, str(path))
     t = np.asarray(timestamps, dtype=np.float64).reshape(-1)
     check_poses(P, t.shape[0], str(path))
-    q = Rotation.from_matrix(P[:, :3, :3]).as_quat() if len(P) else np.empty((0, 4))
+    q = matrix_to_quat(P[:, :3, :3])
     lines = [
         f"{ti:.9f} " + " ".join(f"{v:.12e}" for v in (*xyz, *qi)) + "\n"
         for ti, xyz, qi in zip(t, P[:, :3, 3], q, strict=True)

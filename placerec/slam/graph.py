@@ -40,6 +40,7 @@ from pydantic import Field
 
 from placerec.errors import DependencyError, ScanDataError
 from placerec.io.atomic import atomic_write
+from placerec.io.poses import matrix_to_quat
 from placerec.params import Params
 from placerec.types import as_pose
 
@@ -415,10 +416,9 @@ def write_g2o(
     """A pose graph as g2o text, atomically: a ``VERTEX_SE3:QUAT`` per pose, an ``EDGE_SE3:QUAT`` per odometry
     factor ``(i, j, T_ij, sigmas)`` and per loop (``loop_sigmas``), sigmas in GTSAM's order (rotation rad x3, then
     translation m x3) turned into g2o's information matrix (translation first, upper triangle), and ``FIX 0``."""
-    from scipy.spatial.transform import Rotation
 
     def se3(T: np.ndarray) -> str:
-        q = Rotation.from_matrix(T[:3, :3]).as_quat()
+        q = matrix_to_quat(T[None, :3, :3])[0]
         return " ".join(f"{v:.9g}" for v in (*T[:3, 3], *q))
 
     lines = [f"VERTEX_SE3:QUAT {i} {se3(T)}" for i, T in enumerate(poses)]
