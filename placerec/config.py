@@ -215,6 +215,14 @@ class OutputConfig(Params):
         ".cache/descriptions", description="per-scan description cache (None = off)"
     )
     progress: bool = True
+    evidence: bool = Field(
+        True,
+        description="loop mode: per-closure evidence in the report (galleries, why candidates were rejected);"
+        " needs figures",
+    )
+    evidence_per_gallery: int = Field(
+        4, ge=1, le=100, description="closures shown per gallery (accepted, false, missed) and pipeline"
+    )
 
 
 #: Most worker processes any setting may ask for (a typo of a few zeros would start that many processes).

@@ -13,7 +13,9 @@ Output folder ``<output.dir>/<name>_<timestamp>/`` (and a ``latest`` link beside
   mode also ``operating`` (the figures at the pipeline's fixed threshold, `operating_point`), ``max_false_score``,
   ``max_score``, ``min_score``, and ``pose_truth`` / ``icp_truth`` (the same under the pose ground truth and the
   ICP-confirmed one, docs/protocol.md); plus peak memory and, when a row needs one, ``notes`` (label -> texts,
-  `pipeline_notes`: a local-map peer that closed no local map, a non-deterministic peer). Strict JSON: a value that is undefined for the run is ``null`` (``threshold_at_max_f1`` with no
+  `pipeline_notes`: a local-map peer that closed no local map, a non-deterministic peer); per pipeline also
+  ``rejections`` {``all``, ``top``: how verification ended for every candidate and for each query's top one,
+  `placerec.experiment.evidence.rejection_counts`}. Strict JSON: a value that is undefined for the run is ``null`` (``threshold_at_max_f1`` with no
   candidate, ``mean_error`` with no estimate, times with no scan, pose errors with no 6-DoF pose). A sequence
   without revisits (too short, shorter than the exclusion window) has ``no_revisits: true`` and recalls, F1 and
   AUC of 0; no scans at all give ``n_queries: 0``;
@@ -21,7 +23,11 @@ Output folder ``<output.dir>/<name>_<timestamp>/`` (and a ``latest`` link beside
   verification statistics (`placerec.experiment.candidates`);
 * ``poses.txt`` — the ground-truth poses (KITTI format) the ids index into (localize mode: ``map_poses.txt`` and
   ``query_poses.txt``), so the metrics can be recomputed from the folder alone (`recompute_loop_metrics`);
-* ``pr_curves.png``, ``trajectory_<label>.png`` (or ``localization_<label>.png``), ``timing.png``, ``index.html``.
+* ``pr_curves.png``, ``trajectory_<label>.png`` (or ``localization_<label>.png``), ``timing.png``, ``index.html``;
+* loop mode with ``output.evidence`` (and figures): ``evidence/<label>/<kind>_<query>_<match>.png``, a few
+  accepted, false and missed closures per pipeline (`placerec.experiment.evidence`), shown in ``index.html`` with
+  the rejection counts, and ``plotly.min.js``, which the page's interactive PR curves and trajectories use
+  (`placerec.experiment.interactive`): the folder opens from disk with no network.
 
 ``latest`` is repointed only once every file of the report is written: a run that fails keeps its folder (for
 inspection) but leaves ``latest`` on the last complete run.
@@ -32,6 +38,7 @@ from __future__ import annotations
 import json
 import resource
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -58,13 +65,14 @@ from placerec.eval.icp_truth import icp_ground_truth
 from placerec.eval.pose_truth import PoseGroundTruth, correct_candidates, overlap_truth, with_candidates
 from placerec.experiment import figures
 from placerec.experiment.candidates import CandidateTable, read_candidates, write_candidates
+from placerec.experiment.evidence import rejection_counts
 from placerec.experiment.run_folder import finite_or_null, json_default, point_latest, slug
 from placerec.experiment.runner import PER_SCAN_TIME, STAGES, PipelineRecord
 from placerec.experiment.tables import lookup, write_index_html
 from placerec.experiment.truth import TruthClouds
 from placerec.io import read_poses, write_kitti_poses
 from placerec.io.atomic import atomic_write
-from placerec.types import Sequence
+from placerec.types import PlaceRecognizer, Sequence
 
 __all__ = [
     "NONDETERMINISTIC",
@@ -315,10 +323,13 @@ def report_loop(
     records: list[PipelineRecord],
     truth: TruthClouds | None = None,
     link_latest: bool = True,
+    recognizers: Iterable[PlaceRecognizer] | None = None,
 ) -> dict[str, Any]:
     """Loop-mode metrics and all outputs; returns the metrics dict written to ``metrics.json``. ``truth`` (the
     scans' voxels collected by the run) adds the pose and ICP ground truths' figures; ``link_latest`` False leaves
-    ``latest`` alone (a benchmark's cells)."""
+    ``latest`` alone (a benchmark's cells). With ``output.evidence`` (and figures) the page gets each pipeline's
+    evidence (`placerec.experiment.evidence_figures.draw_evidence`), for which ``recognizers`` (the run's, aligned
+    with ``records``) describe the scans the figures show again; without them those pipelines are built again."""
     poses = require_poses(seq)
     write_kitti_poses(run / "poses.txt", poses)
     if seq.timestamps is not None:
@@ -328,16 +339,20 @@ def report_loop(
     curves: dict[str, dict[str, Any]] = {}
     tables = [record.table() for record in records]
     pose_gts = pose_truths(cfg, tables, poses, seq.timestamps, truth)
+    all_metrics = []
     for record, table, pose_gt in zip(records, tables, pose_gts, strict=True):
         write_candidates(run / f"candidates_{slug(record.label)}.csv", record.query_ids, record.candidates)
         metrics, summary = loop_summary(cfg, table, poses, seq.timestamps, record.threshold, truth, pose_gt)
+        all_metrics.append(metrics)
         q, m = metrics.query_ids, metrics.match_ids
         summary["time_ms"] = _timing(record)
         summary["min_score"] = _min_score(record.params)
+        summary["rejections"] = rejection_counts(record.candidates).as_dict()
         results[record.label] = summary
         curves[record.label] = {
             "precision": metrics.precision,
             "recall": metrics.recall,
+            "thresholds": metrics.thresholds,
             "max_f1": metrics.max_f1,
             "best": (metrics.recall_at_max_f1, metrics.precision_at_max_f1),
         }
@@ -367,8 +382,41 @@ def report_loop(
     notes = pipeline_notes(records)
     if notes:
         payload["notes"] = notes
-    _finish(cfg, run, payload, curves, records, link_latest)
+    page = None
+    if cfg.output.figures and cfg.output.evidence:
+        page = _evidence_page(cfg, run, seq, records, all_metrics, curves, recognizers)
+    _finish(cfg, run, payload, curves, records, link_latest, page)
     return payload
+
+
+def _evidence_page(
+    cfg: ExperimentConfig,
+    run: Path,
+    seq: Sequence,
+    records: list[PipelineRecord],
+    metrics: list[LoopMetrics],
+    curves: dict[str, dict[str, Any]],
+    recognizers: Iterable[PlaceRecognizer] | None,
+) -> tuple[str, list[str]]:
+    """The interactive figures (plotly.js written into ``run``) and one evidence section per pipeline of
+    ``index.html`` (`write_index_html`'s ``interactive`` and ``sections``), the evidence figures drawn."""
+    from placerec.experiment import interactive
+    from placerec.experiment.evidence_figures import draw_evidence
+    from placerec.experiment.tables import evidence_section
+
+    poses = require_poses(seq)
+    gt = loop_ground_truth(poses, **_gt_options(cfg, seq.timestamps))
+    recs = None if recognizers is None else list(recognizers)
+    evidence = draw_evidence(cfg, run, seq, records, metrics, gt, recs)
+    interactive.write_plotly_js(run)
+    pr = interactive.pr_curves_html(curves, f"{cfg.name}: precision-recall (threshold under the mouse)")
+    sections = []
+    for k, (record, m, ev) in enumerate(zip(records, metrics, evidence, strict=True)):
+        trajectory = interactive.trajectory_html(
+            poses[:, :3, 3], m, record.candidates, m.threshold_at_max_f1, record.label, f"trajectory-{k}"
+        )
+        sections.append(evidence_section(ev, trajectory))
+    return pr, sections
 
 
 def report_localize(
@@ -459,7 +507,10 @@ def _finish(
     curves: dict[str, Any],
     records: list[PipelineRecord],
     link_latest: bool = True,
+    page: tuple[str, list[str]] | None = None,
 ) -> None:
+    """Write ``metrics.json``, ``pipelines.yaml``, the run's figures and ``index.html`` (with ``page``'s
+    interactive figures and sections, `_evidence_page`), then point ``latest`` at the run."""
     with atomic_write(run / "metrics.json", "w") as fh:
         json.dump(finite_or_null(payload), fh, indent=2, default=json_default, allow_nan=False)
     with atomic_write(run / "pipelines.yaml", "w") as fh:  # resolved parameters: presets and defaults applied
@@ -475,6 +526,7 @@ def _finish(
         figures.plot_timing(
             means, run / "timing.png", shared[0] if shared else None, PER_SCAN_TIME.replace("; ", "\n")
         )
-        write_index_html(run, cfg, payload)
+        interactive, sections = page if page is not None else ("", [])
+        write_index_html(run, cfg, payload, interactive, sections)
     if link_latest:
         point_latest(run)  # last: a run that failed before this point leaves latest where it was

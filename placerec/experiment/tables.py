@@ -9,13 +9,17 @@ from __future__ import annotations
 
 import html
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from placerec.config import ExperimentConfig
+from placerec.experiment.interactive import PLOTLY_JS
 from placerec.experiment.runner import PER_SCAN_TIME
 from placerec.io.atomic import atomic_write
+
+if TYPE_CHECKING:
+    from placerec.experiment.evidence_figures import PipelineEvidence
 
 __all__ = [
     "LEGEND",
@@ -24,6 +28,7 @@ __all__ = [
     "operating_rows",
     "print_rows",
     "print_table",
+    "evidence_section",
     "protocol_rows",
     "table_rows",
     "write_html_page",
@@ -287,13 +292,89 @@ def print_rows(
         print(textwrap.fill(line, width, subsequent_indent="    ", break_on_hyphens=False))
 
 
-def write_index_html(run: Path, cfg: ExperimentConfig, payload: dict[str, Any]) -> Path:
-    """A single page with the tables and every figure of the run."""
+def write_index_html(
+    run: Path,
+    cfg: ExperimentConfig,
+    payload: dict[str, Any],
+    interactive: str = "",
+    sections: list[str] | None = None,
+) -> Path:
+    """A single page with the tables and every figure of the run; ``interactive`` (HTML: the plotly figures,
+    `placerec.experiment.interactive`, whose plotly.js the folder holds) goes after the tables, ``sections``
+    (HTML, e.g. `evidence_section`) after the figures."""
     tables = [table_rows(payload)] + [
         t for t in [protocol_rows(payload), operating_rows(payload)] if t is not None
     ]
     notes = payload.get("notes") or {}
-    return write_html_page(run, cfg.name, f"mode: {html.escape(payload['mode'])}", tables, notes=notes)
+    scripts = (PLOTLY_JS,) if interactive else ()
+    return write_html_page(
+        run,
+        cfg.name,
+        f"mode: {html.escape(payload['mode'])}",
+        tables,
+        notes=notes,
+        interactive=interactive,
+        sections=sections or [],
+        scripts=scripts,
+    )
+
+
+def _table_html(header: list[str], rows: list[list[str]]) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    cells = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{cells}</table>"
+
+
+def evidence_section(evidence: PipelineEvidence, trajectory: str = "") -> str:
+    """A pipeline's part of ``index.html``: why its candidates ended as they did (every candidate, and the top
+    candidate of each query), its interactive ``trajectory`` (HTML), and its galleries of accepted, false and
+    missed closures (`placerec.experiment.evidence`), each figure with its decision under it."""
+    from placerec.experiment.evidence import ACCEPTED, KINDS, REJECTED, UNVERIFIED
+    from placerec.types import REJECTIONS
+
+    words = {
+        ACCEPTED: "accepted",
+        REJECTED: "rejected (no reason given)",
+        UNVERIFIED: "not verified (score only)",
+    }
+    counts = evidence.counts
+    keys = list(counts.all) + [k for k in counts.top if k not in counts.all]
+    rows = [
+        [
+            f"{k}: {REJECTIONS[k]}" if k in REJECTIONS else words.get(k, k),
+            str(counts.all.get(k, 0)),
+            str(counts.top.get(k, 0)),
+        ]
+        for k in keys
+    ]
+    name = html.escape(evidence.label)
+    body = f'<section class="evidence" id="evidence-{name}"><h2>{name}</h2>'
+    body += "<h3>Why candidates ended as they did</h3>"
+    body += _table_html(["verification", "all candidates", "top candidate per query"], rows)
+    body += trajectory
+    titles = {
+        "accepted": "Accepted true closures",
+        "false": "False closures (accepted, wrong place)",
+        "missed": "Missed revisits (the best candidate, or with none the revisited scan)",
+    }
+    for kind in KINDS:
+        shown = [
+            (c, f, n)
+            for c, f, n in zip(evidence.cases, evidence.figures, evidence.lines, strict=True)
+            if c.kind == kind
+        ]
+        body += f"<h3>{titles[kind]} ({len(shown)} shown)</h3>"
+        if not shown:
+            body += '<p class="legend">none at the max-F1 threshold</p>'
+        for case, figure, lines in shown:
+            caption = f"query {case.query_id}, match {case.match_id}: {case.decision}"
+            if lines is not None:
+                caption += f"; {lines[0]} inlier pairs drawn of {lines[1]}"
+            body += (
+                f'<figure class="closure"><img src="{html.escape(figure)}" alt="{html.escape(caption)}">'
+                f"<figcaption>{html.escape(caption)}</figcaption></figure>"
+            )
+    return body + "</section>"
 
 
 def write_html_page(
@@ -304,11 +385,15 @@ def write_html_page(
     first: tuple[str, ...] = ("pr_curves.png",),
     last: tuple[str, ...] = ("timing.png",),
     notes: dict[str, list[str]] | None = None,
+    interactive: str = "",
+    sections: list[str] | None = None,
+    scripts: tuple[str, ...] = (),
 ) -> Path:
     """``run/index.html``: ``title``, ``subtitle`` (HTML) with links to the folder's data files (metrics.json,
     config.yaml, pipelines.yaml, the CSVs, ...), the ``tables`` (header, rows) each with the legend of its
-    abbreviations, the first one with ``notes`` (row label -> texts, numbered beside the rows), and every PNG of
-    the folder (``first`` ones first, ``last`` ones last)."""
+    abbreviations, the first one with ``notes`` (row label -> texts, numbered beside the rows), ``interactive``
+    (HTML), every PNG of the folder (``first`` ones first, ``last`` ones last) and the ``sections`` (HTML);
+    ``scripts``: files of the folder the page loads first (plotly.js)."""
     marks, texts = _numbered(notes or {})
     body = ""
     for n, (header, rows) in enumerate(tables):
@@ -338,10 +423,14 @@ def write_html_page(
         key=lambda n: (_LINK_ORDER.index(n) if n in _LINK_ORDER else len(_LINK_ORDER), n),
     )
     links = ",\n".join(f'<a href="{html.escape(n)}">{html.escape(n)}</a>' for n in data)
+    head = "".join(f'<script src="{html.escape(n)}"></script>' for n in scripts)
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse;margin-bottom:0.3em}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}
-td:first-child{{text-align:left;font-weight:bold}}.legend{{font-size:smaller;color:#444;margin-top:0}}figure{{display:inline-block;margin:1em}}img{{max-width:560px}}</style></head><body>
-<h1>{html.escape(title)}</h1><p>{subtitle} &middot; files: {links}</p>{body}{figs}</body></html>"""
+td:first-child{{text-align:left;font-weight:bold}}.legend{{font-size:smaller;color:#444;margin-top:0}}figure{{display:inline-block;margin:1em}}img{{max-width:560px}}
+figure.closure{{vertical-align:top}}figure.closure img{{max-width:640px}}section.evidence{{border-top:2px solid #888;margin-top:2em}}</style>
+{head}</head><body>
+<h1>{html.escape(title)}</h1><p>{subtitle} &middot; files: {links}</p>{body}{interactive}{figs}{"".join(sections or [])}
+</body></html>"""
     path = run / "index.html"
     with atomic_write(path, "w") as fh:
         fh.write(page)

@@ -1,0 +1,374 @@
+"""The evidence figures of a run: one PNG per closure `placerec.experiment.evidence.select_cases` picked.
+
+Each figure holds the query's and the match's intensity images, one above the other, with the correspondences
+the verification was given (`placerec.types.Candidate.matches`) as lines: its inliers
+(``verification.inlier_mask``) green, the others faint red; a bird's-eye view of the two clouds, the match's in
+its own frame (blue) and the query's moved onto it by the candidate's relative pose (orange: they overlap where
+the pose is right); and the candidate's numbers (score, inliers, ICP fitness, the decision, the pose error).
+Lines are drawn for the intensity-image pipelines (`placerec.pipelines.visual.VisualFrontend`), whose feature
+indices index their description's ``keypoints``; the others get the images (`placerec.image.make_image` with
+default parameters) without lines.
+
+The scans are read again after the run (the sequence is random access), each once for all pipelines, and
+described again by the pipelines that draw lines (descriptions are deterministic); a figure costs about a
+tenth of a second (docs/evaluation.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence as Seq
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from placerec.config import ExperimentConfig
+from placerec.errors import ConfigError, ScanDataError
+from placerec.eval import LoopGroundTruth, LoopMetrics
+from placerec.experiment.evidence import EvidenceCase, RejectionCounts, rejection_counts, select_cases
+from placerec.experiment.figures import _pyplot
+from placerec.experiment.preprocessing import preprocessed_scan
+from placerec.experiment.run_folder import slug
+from placerec.experiment.runner import PipelineRecord
+from placerec.image import ImageParams, make_image
+from placerec.pipelines.visual import VisualFrontend
+from placerec.types import PlaceRecognizer, Sequence, relative_pose
+
+__all__ = [
+    "EVIDENCE_DIR",
+    "PipelineEvidence",
+    "ClosureView",
+    "correspondence_segments",
+    "bev_raster",
+    "plot_closure",
+    "draw_evidence",
+]
+
+#: the run folder's subfolder of evidence figures, one folder per pipeline
+EVIDENCE_DIR = "evidence"
+#: bird's-eye view: half its width (m) around the match's origin, and the side of a cell (m)
+BEV_RADIUS_M = 40.0
+BEV_CELL_M = 0.25
+#: points of a cloud kept for the bird's-eye view (every k-th, in scan order)
+BEV_POINTS = 40_000
+_KIND_WORDS = {"accepted": "accepted true closure", "false": "false closure", "missed": "missed revisit"}
+_MATCH_RGB = np.array([40, 90, 200], np.uint8)
+_QUERY_RGB = np.array([245, 130, 20], np.uint8)
+_BOTH_RGB = np.array([60, 60, 60], np.uint8)
+
+
+@dataclass(frozen=True)
+class PipelineEvidence:
+    """A pipeline's evidence: its ``cases`` (`select_cases`), the figure of each (a path relative to the run
+    folder, aligned with ``cases``), the (inlier, all) correspondences each figure draws as lines (None where it
+    draws none), and its `RejectionCounts`."""
+
+    label: str
+    cases: list[EvidenceCase]
+    figures: list[str]
+    lines: list[tuple[int, int] | None]
+    counts: RejectionCounts
+
+
+@dataclass(frozen=True, eq=False)
+class ClosureView:
+    """What one closure figure draws: the 8-bit intensity images of the query and the match, the segments of the
+    inlier and outlier correspondences ((K, 2, 2) pixel coordinates on the canvas `plot_closure` stacks: the
+    query image above, then a gap of ``gap`` rows, then the match image), the query's and the match's clouds in
+    the match frame ((N, 3)), the title and the lines of numbers beside the bird's-eye view."""
+
+    image_query: np.ndarray
+    image_match: np.ndarray
+    gap: int
+    inliers: np.ndarray
+    outliers: np.ndarray
+    cloud_query: np.ndarray
+    cloud_match: np.ndarray
+    title: str
+    facts: list[str] = field(default_factory=list)
+
+
+def correspondence_segments(
+    matches: np.ndarray,
+    inlier_mask: np.ndarray,
+    keypoints_query: np.ndarray,
+    keypoints_match: np.ndarray,
+    offset: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(inlier, outlier) segments, each (K, 2, 2): from the query keypoint of each pair of ``matches`` ((M, 2)
+    feature indices) to its match keypoint shifted down by ``offset`` rows; ``inlier_mask`` (M,) splits them.
+    `ScanDataError` when a feature index is out of range or the mask does not fit the pairs."""
+    pairs = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
+    mask = np.asarray(inlier_mask, dtype=bool).reshape(-1)
+    kq = np.asarray(keypoints_query, np.float64).reshape(-1, 2)
+    km = np.asarray(keypoints_match, np.float64).reshape(-1, 2)
+    if mask.size != pairs.shape[0]:
+        raise ScanDataError(f"an inlier mask of {mask.size} for {pairs.shape[0]} correspondences")
+    if pairs.size and (pairs.min() < 0 or pairs[:, 0].max() >= len(kq) or pairs[:, 1].max() >= len(km)):
+        raise ScanDataError(
+            f"correspondences index {len(kq)} query and {len(km)} match keypoints, got indices up to"
+            f" {pairs.max(axis=0).tolist()}"
+        )
+    seg = np.stack([kq[pairs[:, 0]], km[pairs[:, 1]] + [0.0, offset]], axis=1)
+    return seg[mask], seg[~mask]
+
+
+def bev_raster(cloud_match: np.ndarray, cloud_query: np.ndarray, radius: float, cell: float) -> np.ndarray:
+    """An RGB (H, W, 3) top view of two clouds within ``radius`` m of the origin in ``cell`` m cells (row 0 at
+    +y): match cells blue, query cells orange, cells of both dark grey, empty white."""
+    n = int(np.ceil(2 * radius / cell))
+    occupied = []
+    for cloud in (cloud_match, cloud_query):
+        xy = np.asarray(cloud, np.float64).reshape(-1, 3)[:, :2]
+        ij = np.floor((xy + radius) / cell).astype(np.int64)
+        ok = ((ij >= 0) & (ij < n)).all(axis=1)
+        grid = np.zeros((n, n), dtype=bool)
+        grid[n - 1 - ij[ok, 1], ij[ok, 0]] = True
+        occupied.append(grid)
+    rgb = np.full((n, n, 3), 255, np.uint8)
+    rgb[occupied[0]] = _MATCH_RGB
+    rgb[occupied[1]] = _QUERY_RGB
+    rgb[occupied[0] & occupied[1]] = _BOTH_RGB
+    return rgb
+
+
+def plot_closure(view: ClosureView, path: Path) -> Path:
+    """Draw ``view`` (see `ClosureView`) into the PNG ``path``: the image pair across the top, the bird's-eye
+    view and the numbers under it. Axes are placed by hand (no tight layout): a gallery draws many figures."""
+    from matplotlib.collections import LineCollection
+
+    plt = _pyplot()
+    hq, wq = view.image_query.shape
+    hm, wm = view.image_match.shape
+    width = max(wq, wm)
+    canvas = np.full((hq + view.gap + hm, width), 255, np.uint8)
+    canvas[:hq, :wq] = view.image_query
+    canvas[hq + view.gap :, :wm] = view.image_match
+    w_in, bev_in, pad = 10.0, 3.6, 0.45
+    top_in = max(w_in * canvas.shape[0] / width, 0.6)
+    h_in = top_in + bev_in + 3 * pad
+    fig = plt.figure(figsize=(w_in, h_in), dpi=80)
+    ax = fig.add_axes((0.01, (bev_in + 2 * pad) / h_in, 0.98, top_in / h_in))
+    ax.imshow(canvas, cmap="gray", aspect="auto", interpolation="nearest")
+    if len(view.outliers):
+        ax.add_collection(LineCollection(list(view.outliers), colors="#d62728", lw=0.5, alpha=0.25))
+    if len(view.inliers):
+        ax.add_collection(LineCollection(list(view.inliers), colors="#2ca02c", lw=0.8))
+    ax.set_axis_off()
+    fig.text(0.01, 1 - 0.35 * pad / h_in, view.title, fontsize=9, va="top")
+    bev = fig.add_axes((0.6 / w_in, pad / h_in, bev_in / w_in, bev_in / h_in))
+    r = BEV_RADIUS_M
+    bev.imshow(bev_raster(view.cloud_match, view.cloud_query, r, BEV_CELL_M), extent=(-r, r, -r, r))
+    ticks = np.linspace(-r, r, 5)
+    bev.set_xticks(ticks)
+    bev.set_yticks(ticks)
+    bev.tick_params(labelsize=7)
+    bev.set_title("blue: match, orange: query moved by the pose (m)", fontsize=8)
+    fig.text(
+        (bev_in + 1.2) / w_in,
+        (bev_in + pad) / h_in,
+        "\n".join(view.facts),
+        va="top",
+        fontsize=9,
+        family="monospace",
+    )
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _bev_points(xyz: np.ndarray) -> np.ndarray:
+    """The finite, non-zero points of a scan within the bird's-eye view, at most `BEV_POINTS` of them."""
+    p = np.asarray(xyz, np.float32)
+    ok = np.isfinite(p).all(axis=1) & (np.abs(p[:, :2]) < BEV_RADIUS_M * 1.5).all(axis=1) & p.any(axis=1)
+    p = p[ok]
+    return p[:: max(1, -(-len(p) // BEV_POINTS))]
+
+
+def _moved(cloud: np.ndarray, T: np.ndarray) -> np.ndarray:
+    return cloud @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
+
+
+def _num(value: float | None, fmt: str) -> str:
+    """``value`` formatted, ``-`` when it is None or NaN (a statistic that was not computed)."""
+    return "-" if value is None or not np.isfinite(value) else format(value, fmt)
+
+
+def _facts(case: EvidenceCase, pose_source: str) -> list[str]:
+    """The lines of numbers beside a closure's bird's-eye view."""
+    c = case.candidate
+    lines = [
+        f"query {case.query_id}  match {case.match_id}",
+        f"right place: {'yes' if case.correct else 'no'} (ground truth)",
+        f"decision: {case.decision}",
+    ]
+    if c is None:
+        return [*lines, "no candidate: the revisited scan,", "posed by the ground truth"]
+    lines.append(f"rank {case.rank + 1}  score {c.score:.4g}")
+    v = c.verification
+    if v is not None:
+        if v.correspondences:
+            inl = "-" if v.inliers is None else str(v.inliers)
+            lines.append(f"inliers {inl} of {v.correspondences} pairs")
+        lines.append(f"fitness {_num(v.fitness, '.3f')}  rmse {_num(v.rmse, '.3f')} m")
+        lines.append(f"verified score {v.score:.3f}")
+    elif c.inliers is not None:
+        lines.append(f"inliers {c.inliers}")
+    if np.isfinite(case.translation_m):
+        lines.append(f"pose error {case.translation_m:.2f} m / {case.rotation_deg:.2f} deg")
+    lines.append(f"pose: {pose_source}")
+    return lines
+
+
+def _draws_lines(rec: PlaceRecognizer | None, case: EvidenceCase) -> bool:
+    c = case.candidate
+    return (
+        isinstance(rec, VisualFrontend)
+        and c is not None
+        and c.matches is not None
+        and c.verification is not None
+        and c.verification.inlier_mask is not None
+    )
+
+
+def _image_params(rec: PlaceRecognizer | None) -> ImageParams:
+    return rec.params.image if isinstance(rec, VisualFrontend) else ImageParams()
+
+
+def _recognizers(
+    records: list[PipelineRecord], cases: list[list[EvidenceCase]], given: Seq[PlaceRecognizer] | None
+) -> list[PlaceRecognizer | None]:
+    """The recognizers the figures describe scans with (``given``, aligned with ``records``); without them each
+    intensity-image pipeline with a case is built again from its record. None for the others, and for a record
+    whose pipeline is no registered name or importable class (made by hand): its figures draw no lines."""
+    from placerec.recognizer import make_pipeline, pipeline_class
+
+    if given is not None:
+        return list(given)
+    out: list[PlaceRecognizer | None] = []
+    for record, cs in zip(records, cases, strict=True):
+        try:
+            visual = bool(cs) and issubclass(pipeline_class(record.pipeline), VisualFrontend)
+        except ConfigError:
+            visual = False
+        out.append(make_pipeline(record.pipeline, record.params) if visual else None)
+    return out
+
+
+@dataclass
+class _Shown:
+    """What the figures show of each scan, the scan read once for every pipeline: bird's-eye points by scan
+    index, 8-bit images by (image parameters as JSON, index), keypoints by (front end key, index; None for a
+    scan the front end cannot describe)."""
+
+    points: dict[int, np.ndarray] = field(default_factory=dict)
+    images: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)
+    keypoints: dict[tuple[str, int], np.ndarray | None] = field(default_factory=dict)
+
+
+def _read_shown(
+    cfg: ExperimentConfig, seq: Sequence, recs: list[PlaceRecognizer | None], cases: list[list[EvidenceCase]]
+) -> _Shown:
+    shown = _Shown()
+    uses: dict[
+        int, list[tuple[PlaceRecognizer | None, bool]]
+    ] = {}  # scan -> (recognizer, draws lines) per use
+    for rec, cs in zip(recs, cases, strict=True):
+        for c in cs:
+            for i in (c.query_id, c.match_id):
+                uses.setdefault(i, []).append((rec, _draws_lines(rec, c)))
+    for i in sorted(uses):
+        scan, _ = preprocessed_scan(seq, i, cfg.preprocess)
+        shown.points[i] = _bev_points(scan.xyz)
+        for rec, lines in uses[i]:
+            params = _image_params(rec)
+            key = params.model_dump_json()
+            if (key, i) not in shown.images:
+                shown.images[key, i] = make_image(scan, params).image
+            if lines and rec is not None and (rec.frontend_key, i) not in shown.keypoints:
+                try:
+                    shown.keypoints[rec.frontend_key, i] = np.asarray(rec.describe(scan)["keypoints"])
+                except ScanDataError:
+                    shown.keypoints[rec.frontend_key, i] = None
+    return shown
+
+
+def _view(
+    label: str, case: EvidenceCase, rec: PlaceRecognizer | None, shown: _Shown, poses: np.ndarray
+) -> ClosureView:
+    """The `ClosureView` of one case of pipeline ``label``."""
+    q, m = case.query_id, case.match_id
+    key = _image_params(rec).model_dump_json()
+    image_q = shown.images[key, q]
+    gap = max(4, image_q.shape[0] // 4)
+    inl = outl = np.zeros((0, 2, 2))
+    lines = _draws_lines(rec, case)
+    if lines:
+        assert rec is not None and case.candidate is not None and case.candidate.verification is not None
+        kq, km = shown.keypoints[rec.frontend_key, q], shown.keypoints[rec.frontend_key, m]
+        if kq is not None and km is not None:
+            c = case.candidate
+            inl, outl = correspondence_segments(
+                c.matches, c.verification.inlier_mask, kq, km, image_q.shape[0] + gap
+            )
+    T, source = _pose_for(case, poses)
+    title = f"{label}: {_KIND_WORDS[case.kind]}, query {q} (top) / match {m} (bottom): {case.decision}"
+    if lines:
+        title += f"; {len(inl)} inliers (green) of {len(inl) + len(outl)} pairs"
+    return ClosureView(
+        image_q,
+        shown.images[key, m],
+        gap,
+        inl,
+        outl,
+        _moved(shown.points[q], T),
+        shown.points[m],
+        title,
+        _facts(case, source),
+    )
+
+
+def draw_evidence(
+    cfg: ExperimentConfig,
+    run: Path,
+    seq: Sequence,
+    records: list[PipelineRecord],
+    metrics: list[LoopMetrics],
+    truth: LoopGroundTruth,
+    recognizers: Seq[PlaceRecognizer] | None = None,
+) -> list[PipelineEvidence]:
+    """Each pipeline's `PipelineEvidence`, its figures written under ``run/evidence/<pipeline>/``: ``metrics``
+    are the records' loop metrics under ``truth``; ``recognizers`` (aligned with ``records``) describe the scans
+    of the pipelines that draw lines; without them those pipelines are built again from their records."""
+    poses = seq.poses
+    assert poses is not None  # loop mode's report checks the poses before it gets here
+    per = cfg.output.evidence_per_gallery
+    cases = [select_cases(r, m, truth, poses, per) for r, m in zip(records, metrics, strict=True)]
+    recs = _recognizers(records, cases, recognizers)
+    shown = _read_shown(cfg, seq, recs, cases)
+    out = []
+    for record, rec, cs in zip(records, recs, cases, strict=True):
+        folder = run / EVIDENCE_DIR / slug(record.label)
+        folder.mkdir(parents=True, exist_ok=True)
+        names, lines = [], []
+        for case in cs:
+            name = f"{case.kind}_{case.query_id:06d}_{case.match_id:06d}.png"
+            view = _view(record.label, case, rec, shown, poses)
+            plot_closure(view, folder / name)
+            names.append(f"{EVIDENCE_DIR}/{slug(record.label)}/{name}")
+            drawn = len(view.inliers) + len(view.outliers)
+            lines.append((len(view.inliers), drawn) if drawn else None)
+        out.append(PipelineEvidence(record.label, cs, names, lines, rejection_counts(record.candidates)))
+    return out
+
+
+def _pose_for(case: EvidenceCase, poses: np.ndarray) -> tuple[np.ndarray, str]:
+    """The pose that moves the query onto the match in the bird's-eye view, and where it comes from."""
+    T = case.T_match_query
+    if case.candidate is None:
+        return relative_pose(poses[case.match_id], poses[case.query_id]), "ground truth"
+    if T is None or not np.isfinite(T).all():
+        return np.eye(4), "none (clouds in their own frames)"
+    if case.candidate.accepted is False:
+        return np.asarray(T, np.float64), "the candidate's, as rejected"
+    return np.asarray(T, np.float64), "the candidate's estimate"

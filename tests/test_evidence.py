@@ -1,0 +1,283 @@
+"""The report's per-closure evidence: which closures the galleries show, why candidates were rejected, the lines
+and overlays of a closure figure, and a real run's page (every file it references exists)."""
+
+from __future__ import annotations
+
+import json
+import re
+from html.parser import HTMLParser
+
+import numpy as np
+import pytest
+
+from placerec.errors import ScanDataError
+from placerec.eval import ExclusionWindow, evaluate_loop
+from placerec.experiment.evidence import (
+    UNVERIFIED,
+    decision_text,
+    rejection_counts,
+    select_cases,
+    spread,
+)
+from placerec.experiment.evidence_figures import bev_raster, correspondence_segments
+from placerec.experiment.runner import PipelineRecord
+from placerec.types import Candidate, Verification, relative_pose
+
+
+def _pose(x, y, yaw_deg=0.0):
+    T = np.eye(4)
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = x, y
+    return T
+
+
+def _verification(accepted, rejection=None, T=None):
+    return Verification(
+        np.eye(4) if T is None else T,
+        0.9 if accepted else 0.0,
+        accepted,
+        20 if accepted else 2,
+        40,
+        0.8 if accepted else float("nan"),
+        0.2 if accepted else float("nan"),
+        0.01 if accepted else float("nan"),
+        rejection=rejection,
+    )
+
+
+def _cand(q, m, score, accepted, rejection=None, T=None):
+    return Candidate(q, m, score, T, accepted=accepted, verification=_verification(accepted, rejection, T))
+
+
+# scans 0-9 on y = 0 (10 m apart), 10-19 far away (y = 500), 20-24 revisit 0-4 (0.5 m off): the revisits are
+# exactly queries 20-24, query k's true match scan k - 20
+POSES = np.stack(
+    [_pose(10 * i, 0) for i in range(10)]
+    + [_pose(10 * i, 500) for i in range(10)]
+    + [_pose(10 * i, 0.5, 3.0) for i in range(5)]
+)
+#: the estimate of query 20's closure: the truth moved 0.3 m along x and turned 2 degrees
+EST_20 = relative_pose(POSES[0], POSES[20]) @ _pose(0.3, 0.0, 2.0)
+
+
+@pytest.fixture(scope="module")
+def constructed():
+    """A record with one case of each outcome at the max-F1 threshold (0.9: query 20's true closure):
+    20 accepted true (score 0.9), 21 accepted false (0.95, the wrong place 15), 22 missed (top wrong and rejected
+    by RANSAC, the right place 2 second and rejected by fitness), 23 missed with no candidate, 24 missed below the
+    threshold (the right place, accepted by verification, score 0.1); queries 10-19 (no revisits) close wrongly
+    at 0.5."""
+    cands: dict[int, list[Candidate]] = {q: [] for q in range(len(POSES))}
+    for q in range(10, 20):
+        cands[q] = [_cand(q, 0, 0.5, True)]
+    cands[20] = [_cand(20, 0, 0.9, True, T=EST_20)]
+    cands[21] = [_cand(21, 15, 0.95, True)]
+    cands[22] = [_cand(22, 16, 0.0, False, "ransac"), _cand(22, 2, 0.0, False, "fitness")]
+    cands[24] = [_cand(24, 4, 0.1, True)]
+    record = PipelineRecord("p", "P", "p", query_ids=list(cands), candidates=list(cands.values()))
+    q, m, s = record.table().top1()
+    metrics, gt = evaluate_loop(q, m, s, POSES, exclusion=ExclusionWindow(frames=5))
+    assert metrics.threshold_at_max_f1 == pytest.approx(0.9)
+    assert np.flatnonzero(metrics.revisit).tolist() == [20, 21, 22, 23, 24]
+    return record, metrics, gt
+
+
+def test_each_gallery_holds_the_right_closures(constructed):
+    record, metrics, gt = constructed
+    cases = select_cases(record, metrics, gt, POSES, per_gallery=5)
+    got = [(c.kind, c.query_id, c.match_id, c.rank, c.correct) for c in cases]
+    assert got == [
+        ("accepted", 20, 0, 0, True),
+        ("false", 21, 15, 0, False),
+        ("missed", 22, 2, 1, True),  # the right place, second and rejected, not the wrong top one
+        ("missed", 23, 3, -1, True),  # no candidate: the scan it revisits
+        ("missed", 24, 4, 0, True),
+    ]
+    decisions = {c.query_id: c.decision for c in cases}
+    assert decisions[20] == "accepted"
+    assert decisions[21] == "accepted"
+    assert decisions[22] == "rejected: ICP overlap (fitness) below min_fitness"
+    assert decisions[23] == "no candidate"
+    assert decisions[24] == "below threshold (0.1 < 0.9)"
+    assert cases[3].candidate is None and cases[3].T_match_query is None
+
+
+def test_the_pose_error_is_that_of_the_estimate_against_the_truth(constructed):
+    record, metrics, gt = constructed
+    accepted = select_cases(record, metrics, gt, POSES, per_gallery=5)[0]
+    assert accepted.translation_m == pytest.approx(0.3, abs=1e-9)
+    assert accepted.rotation_deg == pytest.approx(2.0, abs=1e-9)
+    # a candidate without a 6-DoF pose has no error (not the true offset)
+    assert all(np.isnan(c.translation_m) for c in select_cases(record, metrics, gt, POSES, 5)[1:])
+
+
+def test_a_gallery_is_bounded_and_spread_over_the_sequence(constructed):
+    record, metrics, gt = constructed
+    missed = [
+        c.query_id for c in select_cases(record, metrics, gt, POSES, per_gallery=2) if c.kind == "missed"
+    ]
+    assert missed == [22, 24]
+    assert spread(np.arange(100, 200), 4).tolist() == [100, 133, 166, 199]
+    assert spread(np.array([3, 5]), 4).tolist() == [3, 5]
+
+
+def test_the_rejection_counts(constructed):
+    record, _, _ = constructed
+    counts = rejection_counts(record.candidates)
+    assert counts.all == {"accepted": 13, "ransac": 1, "fitness": 1}
+    assert counts.top == {"accepted": 13, "ransac": 1}
+    assert list(counts.as_dict()) == ["all", "top"]
+    unverified = rejection_counts([[Candidate(1, 0, 0.4)], [Candidate(2, 0, 0.2), Candidate(2, 1, 0.1)], []])
+    assert unverified.all == {UNVERIFIED: 3} and unverified.top == {UNVERIFIED: 2}
+
+
+def test_a_pipeline_that_does_not_verify_is_judged_by_its_score():
+    assert decision_text(Candidate(1, 0, 0.25), 0.5) == "below threshold (0.25 < 0.5)"
+    assert decision_text(Candidate(1, 0, 0.75), 0.5) == "accepted"
+    assert decision_text(None, 0.5) == "no candidate"
+
+
+def test_the_lines_drawn_are_the_inlier_pairs():
+    kq = np.array([[10, 1], [20, 2], [30, 3], [40, 4]], np.float32)
+    km = np.array([[11, 5], [21, 6], [31, 7]], np.float32)
+    matches = np.array([[0, 2], [1, 1], [3, 0], [2, 2]], np.int32)
+    mask = np.array([True, False, True, True])
+    inl, outl = correspondence_segments(matches, mask, kq, km, offset=100)
+    assert len(inl) == mask.sum() and len(outl) == (~mask).sum()
+    assert inl.tolist() == [
+        [[10, 1], [31, 107]],
+        [[40, 4], [11, 105]],
+        [[30, 3], [31, 107]],
+    ]
+    assert outl.tolist() == [[[20, 2], [21, 106]]]
+    with pytest.raises(ScanDataError, match="inlier mask of 3 for 4"):
+        correspondence_segments(matches, mask[:3], kq, km, 100)
+    with pytest.raises(ScanDataError, match="index 4 query and 3 match keypoints"):
+        correspondence_segments(np.array([[0, 3]]), np.array([True]), kq, km, 100)
+
+
+def test_the_overlay_marks_each_cloud_and_their_overlap():
+    match = np.array([[10.1, 0.1, 0.0], [-5.1, 5.1, 1.0], [100.0, 0.0, 0.0]])  # the last: outside the view
+    query = np.array([[10.2, 0.2, 0.0], [0.1, -20.1, 0.0]])
+    rgb = bev_raster(match, query, radius=40.0, cell=1.0)
+    assert rgb.shape == (80, 80, 3)
+    colour = {tuple(c) for c in rgb.reshape(-1, 3)}
+    assert len(colour) == 4  # white, match, query, both
+    assert tuple(rgb[80 - 1 - 40, 50]) == (60, 60, 60)  # (10, 0): both clouds
+    assert tuple(rgb[80 - 1 - 45, 34]) == (40, 90, 200)  # (-5, 5): the match's
+    assert tuple(rgb[80 - 1 - 19, 40]) == (245, 130, 20)  # (0, -20): the query's
+    assert (rgb == 255).all(axis=2).sum() == 80 * 80 - 3
+
+
+TINY = """
+name: tiny
+dataset:
+  simulator: {world: town, sensor: os1-64, route: loop, spacing: 2.0, seed: 3}
+pipelines:
+  - name: scan-context
+  - name: orb-hbst
+evaluation:
+  exclusion: {frames: 50}
+output:
+  cache_dir: null
+  progress: false
+  evidence_per_gallery: 2
+"""
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A tiny simulated run (the block loop twice) reported with its recognizers."""
+    from placerec.config import load_config
+    from placerec.experiment.report import report_loop
+    from placerec.experiment.run_folder import make_run_dir
+    from placerec.experiment.runner import build_pipelines, run_loop
+
+    root = tmp_path_factory.mktemp("evidence")
+    path = root / "tiny.yaml"
+    path.write_text(TINY)
+    cfg = load_config(path, [f"output.dir={root / 'results'}"])
+    pipelines = build_pipelines(cfg)
+    seq, records = run_loop(cfg, None, pipelines)
+    run = make_run_dir(cfg)
+    payload = report_loop(cfg, run, seq, records, recognizers=[rec for _, rec in pipelines])
+    return run, payload, records
+
+
+class _Refs(HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.refs: list[tuple[str, str]] = []
+
+    def handle_starttag(self, tag, attrs):
+        for name, value in attrs:
+            if name in ("src", "href") and value:
+                self.refs.append((tag, value))
+
+
+def test_the_page_references_only_files_of_the_folder(tiny_run):
+    run, _, _ = tiny_run
+    parser = _Refs()
+    parser.feed((run / "index.html").read_text())
+    refs = [v for _, v in parser.refs]
+    assert "plotly.min.js" in refs
+    evidence = [v for v in refs if v.startswith("evidence/")]
+    assert evidence and len(evidence) == len(list((run / "evidence").rglob("*.png")))
+    for ref in refs:
+        assert not re.match(r"[a-z]+://", ref), f"{ref}: the folder must open without a network"
+        assert (run / ref).is_file(), ref
+
+
+def test_the_run_shows_each_pipelines_evidence(tiny_run):
+    run, payload, records = tiny_run
+    page = (run / "index.html").read_text()
+    on_disk = json.loads((run / "metrics.json").read_text())
+    for record in records:
+        label = record.label
+        figures = sorted((run / "evidence" / label).glob("*.png"))
+        kinds = [f.name.split("_")[0] for f in figures]
+        assert 1 <= kinds.count("accepted") <= 2 and kinds.count("false") <= 2 and kinds.count("missed") <= 2
+        assert f'id="evidence-{label}"' in page
+        counts = rejection_counts(record.candidates).as_dict()
+        assert (
+            on_disk["pipelines"][label]["rejections"] == counts == payload["pipelines"][label]["rejections"]
+        )
+        assert sum(counts["top"].values()) == sum(1 for c in record.candidates if c)
+    # the image-feature pipeline draws the pairs verification was given, green its inliers
+    orb = records[[r.label for r in records].index("orb-hbst")]
+    drawn = re.findall(r"query (\d+), match (\d+): accepted; (\d+) inlier pairs drawn of (\d+)", page)
+    assert drawn
+    for q, m, inliers, pairs in drawn:
+        top = orb.candidates[orb.query_ids.index(int(q))][0]
+        assert top.match_id == int(m)
+        assert int(inliers) == top.verification.inliers == top.verification.inlier_mask.sum()
+        assert int(pairs) == top.verification.correspondences == len(top.matches)
+    assert "inlier pairs drawn" not in page.split('id="evidence-scan-context"')[1].split("</section>")[0]
+    assert page.count('class="plotly-graph-div"') == 1 + len(records)  # PR curves + one trajectory each
+
+
+def test_evidence_off_leaves_the_page_as_it_was(tmp_path):
+    from placerec.config import load_config
+    from placerec.experiment.report import report_loop
+    from placerec.experiment.run_folder import make_run_dir
+    from placerec.experiment.runner import run_loop
+    from tests.test_experiment import pole_world_sequence
+
+    cfg = load_config(
+        None,
+        [
+            f"output.dir={tmp_path}",
+            "output.cache_dir=null",
+            "output.progress=false",
+            "output.evidence=false",
+            "evaluation.exclusion.frames=50",
+            "pipelines=[{name: scan-context}]",
+        ],
+    )
+    seq, records = run_loop(cfg, pole_world_sequence(n_loop=60, n_revisit=20))
+    run = make_run_dir(cfg)
+    payload = report_loop(cfg, run, seq, records)
+    assert not (run / "evidence").exists() and not (run / "plotly.min.js").exists()
+    assert "plotly" not in (run / "index.html").read_text()
+    assert "rejections" in payload["pipelines"]["scan-context"]
