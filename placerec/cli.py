@@ -8,12 +8,15 @@ import logging
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from placerec import cli_support as support
 from placerec._version import __version__
+
+if TYPE_CHECKING:
+    from placerec.viewer import ViewerTarget
 
 app = typer.Typer(
     name="placerec",
@@ -195,6 +198,28 @@ Overrides = Annotated[
     ),
 ]
 
+#: ``--viewer`` and ``--rrd`` of the commands that can log to Rerun (`placerec.viewer`, docs/viewer.md)
+Viewer = Annotated[
+    bool,
+    typer.Option("--viewer", help="Show the run live in a Rerun viewer it starts (extra: placerec[viewer])."),
+]
+Rrd = Annotated[
+    Path | None,
+    typer.Option(
+        "--rrd", help="Save a Rerun recording of the run to this .rrd file (open it with `rerun FILE`)."
+    ),
+]
+
+
+def _viewer(viewer: bool, rrd: Path | None) -> ViewerTarget:
+    """The Rerun target of ``--viewer`` / ``--rrd``, checked before anything runs (`check_target`)."""
+    from placerec.viewer import ViewerTarget, check_target
+
+    target = ViewerTarget(spawn=viewer, rrd=rrd)
+    check_target(target)
+    return target
+
+
 #: ``--wide`` of the commands that print a results table
 Wide = Annotated[
     bool,
@@ -219,18 +244,27 @@ def run(
         ),
     ] = None,
     wide: Wide = False,
+    viewer: Viewer = False,
+    rrd: Rrd = None,
 ) -> None:
     """Run an experiment: every pipeline of CONFIG on its dataset; metrics, figures and a report.
 
-    Example: placerec run configs/demo.yaml --set dataset.simulator.n_scans=200 --workers 2
+    Examples:
+
+      placerec run configs/demo.yaml --set dataset.simulator.n_scans=200 --workers 2
+
+      placerec run configs/demo.yaml --rrd demo.rrd   (then: rerun demo.rrd)
     """
     from placerec.config import load_config
     from placerec.experiment import run_experiment
     from placerec.experiment.tables import print_table
+    from placerec.viewer import recording
 
+    target = _viewer(viewer, rrd)
     overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
     cfg = load_config(config, overrides)
-    run_dir, payload = run_experiment(cfg, out)
+    with recording(target, f"run {cfg.name}"):
+        run_dir, payload = run_experiment(cfg, out)
     print_table(payload, f"{cfg.name} ({payload['mode']} mode)", wide=wide)
     typer.echo(f"results: {run_dir}  (report: {run_dir / 'index.html'})")
 
@@ -383,6 +417,8 @@ def slam(
         Path | None,
         typer.Option("--prior-map", help="Run as a second session against this map (prior_map.path)."),
     ] = None,
+    viewer: Viewer = False,
+    rrd: Rrd = None,
 ) -> None:
     """SLAM back end: odometry + verified loop closures + a GTSAM pose graph; poses, g2o, ATE/RPE, a report.
 
@@ -397,9 +433,13 @@ def slam(
       placerec slam configs/slam_demo.yaml --save-map maps/town
 
       placerec slam configs/slam_demo.yaml --prior-map maps/town --save-map maps/both
+
+      placerec slam configs/slam_demo.yaml --rrd slam.rrd
     """
     from placerec.slam_app.config import load_slam_config
+    from placerec.viewer import recording
 
+    target = _viewer(viewer, rrd)
     overrides = list(set_ or [])
     if save_map is not None:
         overrides.append(f"output.save_map={save_map}")
@@ -414,7 +454,8 @@ def slam(
     from placerec.slam_app.report import print_slam_table
     from placerec.slam_app.run import run_slam
 
-    run_dir, payload = run_slam(cfg, out)
+    with recording(target, f"slam {cfg.name}"):
+        run_dir, payload = run_slam(cfg, out)
     print_slam_table(payload, f"{cfg.name} (slam, {payload['n_scans']} scans)")
     typer.echo(f"results: {run_dir}  (report: {run_dir / 'index.html'})")
     if "prior_map" in payload:
@@ -729,6 +770,8 @@ def localize(
         list[str] | None,
         typer.Option("--set", "-s", help="A LocalizerParams field: key=value, e.g. tracking.radius_m=20."),
     ] = None,
+    viewer: Viewer = False,
+    rrd: Rrd = None,
 ) -> None:
     """Relocalise a sequence's scans in a map (query only: the map is never changed): poses, fixes.csv, a figure.
 
@@ -737,17 +780,21 @@ def localize(
       placerec localize maps/town sim/town_vlp16_day2 --out results/loc
 
       placerec localize maps/town drive.mcap --mode global --pipeline scan-context
+
+      placerec localize maps/town sim/town_vlp16_day2 --viewer
     """
     from placerec.artifacts.sources import open_path
     from placerec.maps import MapArtifact
     from placerec.maps.localizer import LocalizerParams
     from placerec.slam_app.localize import default_out, localize_sequence, report_localize
+    from placerec.viewer import recording
 
+    target = _viewer(viewer, rrd)
     the_map = MapArtifact.open(map_dir)
     seq = open_path(sequence, format, poses)
     values = {"pipeline": pipeline, "allow_other_sensor": allow_other_sensor}
     params = support.with_overrides(LocalizerParams, values, set_, "localizer parameters")
-    with support.progress_bar(f"localizing ({mode})") as progress:
+    with recording(target, f"localize {seq.name}"), support.progress_bar(f"localizing ({mode})") as progress:
         run = localize_sequence(the_map, seq, params, mode, odometry, progress)  # type: ignore[arg-type]
     folder = out or default_out(seq.name)
     m = report_localize(run, folder)

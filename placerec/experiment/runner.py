@@ -30,6 +30,7 @@ from placerec.loop_filter import LoopFilterParams
 from placerec.params import Params
 from placerec.recognizer import make_pipeline
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, Sequence
+from placerec.viewer import active
 
 log = logging.getLogger(__name__)
 
@@ -256,6 +257,7 @@ def run_loop(
         for record, rec in pipelines
     ]
     poses, stamps = seq.poses, seq.timestamps
+    viewer = active()
     with progress_bars(cfg.output.progress) as progress, ExitStack() as stack:
         if own_data and cfg.execution.parallel:
             cache = stack.enter_context(description_cache(cfg, cfg.dataset, len(seq), cache_dir, progress))
@@ -263,12 +265,19 @@ def run_loop(
             cache = DescriptionCache(cache_dir, _data_key(cfg, cfg.dataset))
         frontends = _Frontends(cache)
         tasks = [progress.add_task(record.label, total=len(seq)) for record, _ in pipelines]
+        if viewer is not None:
+            for record, rec in pipelines:
+                stack.enter_context(viewer.watching(record.label, rec))
+            if poses is not None:
+                viewer.trajectory("gt", poses, static=True)
         for i in range(len(seq)):
             scan, pre_ms = preprocessed_scan(seq, i, cfg.preprocess)
             if on_scan is not None:
                 on_scan(i, scan)
             pose = None if poses is None else poses[i]
             stamp = None if stamps is None else float(stamps[i])
+            if viewer is not None:
+                viewer.scan(i, scan, pose, stamp)
             for (record, rec), det, task in zip(pipelines, detectors, tasks, strict=True):
                 timing = {"preprocess": pre_ms}
                 try:
@@ -279,10 +288,14 @@ def run_loop(
                 else:
                     det.process(None, pose=pose, timestamp=stamp, description=desc)
                     timing.update({k: v for k, v in det.last_timing_ms.items() if k != "describe"})
+                    if viewer is not None:
+                        viewer.description(record.label, rec, scan, desc)
                 for stage in STAGES:
                     record.timing_ms[stage].append(timing.get(stage, 0.0))
                 record.query_ids.append(i)
                 record.candidates.append(det.last_candidates)
+                if viewer is not None:
+                    viewer.candidates(record.label, det.last_candidates, record.threshold)
                 progress.advance(task)
     return seq, [record for record, _ in pipelines]
 
@@ -338,6 +351,7 @@ def run_localize(
     map_seq, query_seq = localize_sequences(cfg) if sequences is None else _with_poses(*sequences)
     map_cfg = cfg.evaluation.localize.map or cfg.dataset
     query_front = _Frontends(DescriptionCache(None, "queries"))
+    viewer = active()
     with progress_bars(cfg.output.progress) as progress, ExitStack() as stack:
         if sequences is None and cfg.execution.parallel and cfg.evaluation.localize.map is not None:
             cache = stack.enter_context(description_cache(cfg, map_cfg, len(map_seq), cache_dir, progress))
@@ -346,20 +360,35 @@ def run_localize(
         map_front = _Frontends(cache)
         map_poses = map_seq.poses
         assert map_poses is not None  # localize_sequences and _with_poses require them
+        if viewer is not None:
+            viewer.matches_in = "map"
+            viewer.trajectory("map", map_poses, static=True)
+            for record, rec in pipelines:
+                stack.enter_context(viewer.watching(record.label, rec))
         tasks = [progress.add_task(f"{record.label} (map)", total=len(map_seq)) for record, _ in pipelines]
         for i in range(len(map_seq)):
             scan, _ = preprocessed_scan(map_seq, i, cfg.preprocess)
+            if viewer is not None:
+                viewer.remember("map", i, scan, map_poses[i])
             for (record, rec), task in zip(pipelines, tasks, strict=True):
                 try:
-                    rec.add_description(i, map_front.describe(rec, i, scan)[0], map_poses[i])
+                    desc = map_front.describe(rec, i, scan)[0]
+                    rec.add_description(i, desc, map_poses[i])
                 except ScanDataError as exc:
                     log.warning("%s: map scan %d not added: %s", record.label, i, exc)
+                else:
+                    if viewer is not None:
+                        viewer.description(record.label, rec, scan, desc, space="map", index=i)
                 progress.advance(task)
         tasks = [
             progress.add_task(f"{record.label} (queries)", total=len(query_seq)) for record, _ in pipelines
         ]
+        query_poses, query_stamps = query_seq.poses, query_seq.timestamps
         for q in range(len(query_seq)):
             scan, pre_ms = preprocessed_scan(query_seq, q, cfg.preprocess)
+            if viewer is not None:
+                stamp = None if query_stamps is None else float(query_stamps[q])
+                viewer.scan(q, scan, None if query_poses is None else query_poses[q], stamp)
             for (record, rec), task in zip(pipelines, tasks, strict=True):
                 timing = {"preprocess": pre_ms}
                 cands: list[Candidate] = []
@@ -372,9 +401,13 @@ def run_localize(
                     cands = rec.query_description(desc, k=cfg.evaluation.top_n, query_id=q)
                     timing["query"] = (time.perf_counter() - t0) * 1e3
                     split_verify_time(cands, timing)
+                    if viewer is not None:
+                        viewer.description(record.label, rec, scan, desc)
                 for stage in STAGES:
                     record.timing_ms[stage].append(timing.get(stage, 0.0))
                 record.query_ids.append(q)
                 record.candidates.append(cands)
+                if viewer is not None:
+                    viewer.localized(record.label, cands, record.threshold)
                 progress.advance(task)
     return map_seq, query_seq, [record for record, _ in pipelines]

@@ -48,6 +48,8 @@ candidates within 7.5 m of one already verified (``verify.separation_m``: their 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from dataclasses import dataclass
 from functools import cached_property
 from typing import Any, ClassVar, Literal
 
@@ -63,7 +65,14 @@ from placerec.three_d.vote_model import TauEdges, VoteModel
 
 log = logging.getLogger(__name__)
 
-__all__ = ["InlineVoteModel", "PosteriorVotes", "ProbabilisticParams", "ProbabilisticVoting", "ARTIFACT_KIND"]
+__all__ = [
+    "InlineVoteModel",
+    "PosteriorStep",
+    "PosteriorVotes",
+    "ProbabilisticParams",
+    "ProbabilisticVoting",
+    "ARTIFACT_KIND",
+]
 
 
 class InlineVoteModel(Params):
@@ -130,6 +139,19 @@ class ProbabilisticParams(VotingParams):
     )
 
 
+@dataclass(frozen=True)
+class PosteriorStep:
+    """The posterior after one batch of a query's keypoints (what `ProbabilisticVoting.posterior_observer`
+    sees): ``query_id``, ``matched`` keypoints so far of ``n`` described, ``ids`` (E,) the entries' ids and
+    ``probabilities`` (E,) the posterior over them (0 for the entries the query may not match)."""
+
+    query_id: int
+    matched: int
+    n: int
+    ids: np.ndarray
+    probabilities: np.ndarray
+
+
 class PosteriorVotes(VoteStrategy["ProbabilisticVoting"]):
     """The paper's query (module docstring): batches of keypoints in a random order update the posterior over the
     entries; a place (or region) above ``xi_v`` is verified; a rejection may scale its region's posterior."""
@@ -168,6 +190,10 @@ class PosteriorVotes(VoteStrategy["ProbabilisticVoting"]):
         self.post.update(voted, self.vote_model.range_of(tau))
         self.votes += np.bincount(voted[tau < self.p.search.tau_max], minlength=self.votes.size)
         self.matched += batch.size
+        observer = self.rec.posterior_observer
+        if observer is not None:
+            ids = np.asarray(self.rec.entries.ids, np.int64)
+            observer(PosteriorStep(qr.query_id, self.matched, self.n, ids, self.post.probabilities))
 
     def ready(self) -> Shortlist | None:
         if not self.p.early_stop:
@@ -216,6 +242,9 @@ class ProbabilisticVoting(KeypointVoting):
     Params: ClassVar[type[Params]] = ProbabilisticParams
     params: ProbabilisticParams
     Strategy: ClassVar[type[VoteStrategy[Any]]] = PosteriorVotes
+    #: called with the posterior after every batch of every query (e.g. `placerec.viewer`); None: nothing is
+    #: computed for it
+    posterior_observer: Callable[[PosteriorStep], None] | None = None
 
     def __init__(self, params: ProbabilisticParams | None = None, **overrides: Any) -> None:
         super().__init__(params, **overrides)

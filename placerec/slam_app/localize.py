@@ -40,6 +40,7 @@ from placerec.io.atomic import atomic_write
 from placerec.maps.artifact import MapArtifact
 from placerec.maps.localizer import Fix, Localizer, LocalizerParams
 from placerec.types import Sequence
+from placerec.viewer import active
 
 __all__ = [
     "CORRECT_M",
@@ -120,8 +121,17 @@ def localize_sequence(
 
         odo = KissIcpOdometry()
     fixes = []
+    viewer = active()
+    truth = None if seq.poses is None else np.asarray(seq.poses, np.float64)
+    stamps = None if seq.timestamps is None else np.asarray(seq.timestamps, np.float64)
+    if viewer is not None:
+        viewer.points("world/map/keyframes", loc.map.positions(), (150, 150, 150), static=True)
+        if truth is not None:
+            viewer.trajectory("gt", truth, static=True)
     for i in range(n):
         scan = seq[i]
+        if viewer is not None:
+            viewer.scan(i, scan, None if truth is None else truth[i], None if stamps is None else stamps[i])
         if odo is None:
             fix = loc.track(scan) if mode == "tracking" else loc.localize(scan)
         else:
@@ -131,11 +141,20 @@ def localize_sequence(
             fix = loc.track(scan, pose)
             fix = _with_odometry_time(fix, odo_ms)
         fixes.append(fix)
+        if viewer is not None:
+            viewer.fix("localizer", fix.T_world_query, fix_text(fix), fix.accepted)
         if progress is not None:
             progress(i + 1, n)
-    stamps = None if seq.timestamps is None else np.asarray(seq.timestamps, np.float64)
-    gt = None if seq.poses is None else np.asarray(seq.poses, np.float64)
-    return LocalizeRun(seq.name, loc.map, fixes, stamps, gt, mode, odometry, params)
+    return LocalizeRun(seq.name, loc.map, fixes, stamps, truth, mode, odometry, params)
+
+
+def fix_text(fix: Fix) -> str:
+    """A fix in words (the recording's ``localize/localizer``): mode, reason, keyframe, score, fitness, time."""
+    head = "**fixed**" if fix.accepted else "**no fix**"
+    return (
+        f"{head} ({fix.mode}): {fix.reason}  \nkeyframe {fix.keyframe_id}, score {fix.score:.3g}, "
+        f"fitness {fix.fitness:.3g}, {fix.candidates_tried} tried, {fix.time_ms:.0f} ms"
+    )
 
 
 def _with_odometry_time(fix: Fix, ms: float) -> Fix:

@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -32,7 +32,11 @@ from placerec.slam.online import OnlineSlam
 from placerec.slam.result import ONLINE_STAGES, SlamResult
 from placerec.slam_app.config import SlamConfig
 from placerec.slam_app.report import report_slam
-from placerec.types import MAX_TRANSLATION_M, PlaceRecognizer, Scan, Sequence, valid_points
+from placerec.types import MAX_TRANSLATION_M, Description, PlaceRecognizer, Scan, Sequence, valid_points
+from placerec.viewer import active
+
+if TYPE_CHECKING:
+    from placerec.viewer.recorder import Recorder
 
 __all__ = ["slam_sequence", "run_slam", "odometry_source", "false_loops", "map_writer_for", "open_prior_map"]
 
@@ -241,8 +245,15 @@ def slam_sequence(
     timing: dict[str, list[float]] = {s: [] for s in (*ONLINE_STAGES, *realtime, "odometry", "cpu")}
     odo = np.empty((n, 4, 4))
     queried = []
-    with progress_bars(cfg.output.progress) as progress, _closing(slam):
-        task = progress.add_task(f"slam ({cfg.loops.pipeline.display_name})", total=n)
+    viewer = active()
+    label = cfg.loops.pipeline.display_name
+    with progress_bars(cfg.output.progress) as progress, _closing(slam), contextlib.ExitStack() as stack:
+        task = progress.add_task(f"slam ({label})", total=n)
+        if viewer is not None:
+            stack.enter_context(viewer.watching(label, rec))
+            viewer.matches_in = "scan" if prior is None else "prior map"  # its ids are not this run's scans
+            if seq.poses is not None:
+                viewer.trajectory("gt", seq.poses, static=True)
         for i in range(n):
             raw = seq[i]
             t0 = time.perf_counter()
@@ -250,15 +261,22 @@ def slam_sequence(
             t1, c1 = time.perf_counter(), time.process_time()
             scan = preprocess_scan(raw, pre, keep_organized=True)
             t2 = time.perf_counter()
-            slam.process(
-                scan, odo[i], None if stamps is None else float(stamps[i]), extra_loops=injected.get(i)
-            )
+            stamp = None if stamps is None else float(stamps[i])
+            desc: Description | None = None
+            describe_ms: dict[str, float] = {}
+            if viewer is not None:
+                viewer.scan(i, scan, odo[i], stamp)
+                desc, describe_ms = _described(rec, scan)
+            added = slam.process(scan, odo[i], stamp, description=desc, extra_loops=injected.get(i))
+            if viewer is not None:
+                _log_slam_step(viewer, label, slam, rec, scan, desc, added, odo[: i + 1], i, n)
             cpu = (time.process_time() - c1) * 1e3
             if map_writer is not None:
                 stamp = None if stamps is None else float(stamps[i])
                 map_writer.add_keyframe(odo[i], scan.xyz[valid_points(scan)], stamp, scan_index=i)
             queried.append(slam.detector.last_max_id >= 0)
-            stages = dict(slam.last_timing_ms, odometry=(t1 - t0) * 1e3, preprocess=(t2 - t1) * 1e3, cpu=cpu)
+            stages = dict(slam.last_timing_ms, **describe_ms, odometry=(t1 - t0) * 1e3, preprocess=(t2 - t1) * 1e3,
+                          cpu=cpu)  # fmt: skip
             for s in timing:
                 timing[s].append(stages.get(s, 0.0))
             progress.advance(task)
@@ -266,7 +284,10 @@ def slam_sequence(
     common: dict[str, Any] = dict(name=seq.name, odometry=odo, timing_ms=timing, ground_truth=seq.poses, timestamps=stamps,
                   candidates=slam.candidates, queried=queried)  # fmt: skip
     if isinstance(slam, OnlineSlam):
+        before = len(slam.loops)
         optimized = slam.finish()
+        if viewer is not None:
+            _log_slam_end(viewer, label, slam, optimized, slam.loops[before:])
         common["realtime"] = _realtime_stats(slam)
         if map_writer is not None:
             map_writer.finish(poses=optimized, graph=slam.graph)
@@ -276,6 +297,8 @@ def slam_sequence(
         )  # fmt: skip
     assert prior is not None
     ms = slam.finish()
+    if viewer is not None:
+        _log_slam_end(viewer, label, slam, ms.session_poses, [])
     common["realtime"] = _realtime_stats(slam)
     M = len(prior)
     graph_poses = np.concatenate([ms.map_poses, ms.session_poses]) if ms.joined else ms.session_poses
@@ -291,6 +314,64 @@ def slam_sequence(
         isam2_ms=list(ms.graph.update_ms), isam2_loop_ms=list(ms.graph.loop_update_ms), multisession=ms,
         graph_poses=graph_poses, **common,
     )  # fmt: skip
+
+
+def _described(rec: PlaceRecognizer, scan: Scan) -> tuple[Description | None, dict[str, float]]:
+    """With a recording on, the scan is described before the back end gets it, so the recording can show what
+    the front end found (the detector takes the description instead of describing again): (description, its
+    ``describe`` time); (None, {}) when the front end refuses the scan (the detector then skips it)."""
+    t0 = time.perf_counter()
+    try:
+        desc = rec.describe(scan)
+    except ScanDataError:
+        return None, {}
+    return desc, {"describe": (time.perf_counter() - t0) * 1e3}
+
+
+def _log_slam_step(
+    viewer: Recorder,
+    label: str,
+    slam: OnlineSlam | MultiSessionSlam,
+    rec: PlaceRecognizer,
+    scan: Scan,
+    desc: Description | None,
+    added: list[LoopFactor],
+    odometry: np.ndarray,
+    i: int,
+    n: int,
+) -> None:
+    """One scan of the online loop in the recording: the front end's findings, the queries completed (their
+    candidates; the best one's rejection as a ``rejected`` edge), the loops the graph took (``accepted``, or
+    ``injected`` for `false_loops`) and, every ``n // 200`` scans and at the last, the odometry and the online
+    estimate so far."""
+    if desc is not None:
+        viewer.description(label, rec, scan, desc)
+    for done in slam.detector.last_completed:
+        viewer.candidates(label, done.candidates, slam.detector.threshold, edges=False)
+        if done.candidates and done.candidates[0].accepted is False:
+            viewer.edge(label, "rejected", done.candidates[0].match_id, done.candidates[0].query_id)
+    for loop in added:
+        viewer.edge(label, "injected" if loop.injected else "accepted", loop.match_id, loop.query_id)
+    if i % max(1, n // 200) == 0 or i == n - 1:
+        viewer.trajectory("odometry", odometry)
+        viewer.trajectory("online", slam.poses())
+
+
+def _log_slam_end(
+    viewer: Recorder,
+    label: str,
+    slam: OnlineSlam | MultiSessionSlam,
+    optimized: np.ndarray,
+    late: list[LoopFactor],
+) -> None:
+    """The end of the run in the recording: the queries a real-time detector completed last and their loops
+    (``late``), the final optimised trajectory, and every loop edge moved onto it."""
+    for done in slam.detector.last_completed:
+        viewer.candidates(label, done.candidates, slam.detector.threshold, edges=False)
+    for loop in late:
+        viewer.edge(label, "accepted", loop.match_id, loop.query_id)
+    viewer.trajectory("optimized", optimized)
+    viewer.replace_positions(optimized)
 
 
 @contextlib.contextmanager
