@@ -19,7 +19,7 @@ over each query's top one: the confusion summary of the report. The figures are 
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -39,6 +39,7 @@ __all__ = [
     "decision_text",
     "select_cases",
     "spread",
+    "with_pose_error",
 ]
 
 #: the galleries of a pipeline, in the order the report shows them
@@ -138,14 +139,14 @@ def spread(rows: np.ndarray, n: int) -> np.ndarray:
     return rows[np.unique(np.round(np.linspace(0, rows.size - 1, n)).astype(np.int64))]
 
 
-def _pose_error(candidate: Candidate | None, poses: np.ndarray, q: int, m: int) -> tuple[float, float]:
-    """(translation m, rotation deg) of ``candidate``'s relative pose against the truth (NaN without a 6-DoF
-    estimate, `placerec.eval.full_pose_mask`)."""
-    rel = None if candidate is None else candidate.relative_pose
+def with_pose_error(case: EvidenceCase, poses: np.ndarray) -> EvidenceCase:
+    """``case`` with the error of its candidate's relative pose against the truth of ``poses`` (the
+    ``T_world_sensor`` its ids index into); unchanged without a 6-DoF estimate (`placerec.eval.full_pose_mask`)."""
+    rel = case.T_match_query
     if rel is None or not full_pose_mask(rel)[0]:
-        return float("nan"), float("nan")
-    t, r = pose_errors(rel, relative_pose(poses[m], poses[q]))
-    return float(t[0]), float(r[0])
+        return case
+    t, r = pose_errors(rel, relative_pose(poses[case.match_id], poses[case.query_id]))
+    return replace(case, translation_m=float(t[0]), rotation_deg=float(r[0]))
 
 
 def select_cases(
@@ -185,6 +186,6 @@ def select_cases(
             if m < 0:
                 continue  # a revisit always has an eligible scan; nothing to show otherwise
             correct = cand is None or bool(right[rank])
-            t, r = _pose_error(cand, poses, q, m)
-            cases.append(EvidenceCase(kind, q, m, rank, cand, decision_text(cand, threshold), correct, t, r))
+            case = EvidenceCase(kind, q, m, rank, cand, decision_text(cand, threshold), correct)
+            cases.append(with_pose_error(case, poses))
     return cases

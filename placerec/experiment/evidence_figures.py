@@ -25,14 +25,21 @@ import numpy as np
 from placerec.config import ExperimentConfig
 from placerec.errors import ConfigError, ScanDataError
 from placerec.eval import LoopGroundTruth, LoopMetrics
-from placerec.experiment.evidence import EvidenceCase, RejectionCounts, rejection_counts, select_cases
+from placerec.experiment.evidence import (
+    EvidenceCase,
+    RejectionCounts,
+    decision_text,
+    rejection_counts,
+    select_cases,
+    with_pose_error,
+)
 from placerec.experiment.figures import _pyplot
 from placerec.experiment.preprocessing import preprocessed_scan
 from placerec.experiment.run_folder import slug
 from placerec.experiment.runner import PipelineRecord
 from placerec.image import ImageParams, make_image
 from placerec.pipelines.visual import VisualFrontend
-from placerec.types import PlaceRecognizer, Sequence, relative_pose
+from placerec.types import Candidate, PlaceRecognizer, Scan, Sequence, relative_pose
 
 __all__ = [
     "EVIDENCE_DIR",
@@ -42,6 +49,7 @@ __all__ = [
     "bev_raster",
     "plot_closure",
     "draw_evidence",
+    "draw_pair",
 ]
 
 #: the run folder's subfolder of evidence figures, one folder per pipeline
@@ -265,32 +273,64 @@ class _Shown:
     images: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)
     keypoints: dict[tuple[str, int], np.ndarray | None] = field(default_factory=dict)
 
+    def add(self, index: int, scan: Scan, uses: list[tuple[PlaceRecognizer | None, bool]]) -> None:
+        """Keep what the figures show of ``scan`` (id ``index``) for each (recognizer, draws lines) of ``uses``."""
+        self.points[index] = _bev_points(scan.xyz)
+        for rec, lines in uses:
+            params = _image_params(rec)
+            key = params.model_dump_json()
+            if (key, index) not in self.images:
+                self.images[key, index] = make_image(scan, params).image
+            if lines and rec is not None and (rec.frontend_key, index) not in self.keypoints:
+                try:
+                    self.keypoints[rec.frontend_key, index] = np.asarray(rec.describe(scan)["keypoints"])
+                except ScanDataError:
+                    self.keypoints[rec.frontend_key, index] = None
+
 
 def _read_shown(
     cfg: ExperimentConfig, seq: Sequence, recs: list[PlaceRecognizer | None], cases: list[list[EvidenceCase]]
 ) -> _Shown:
-    shown = _Shown()
-    uses: dict[
-        int, list[tuple[PlaceRecognizer | None, bool]]
-    ] = {}  # scan -> (recognizer, draws lines) per use
+    """`_Shown` of every scan a case shows, each read once."""
+    uses: dict[int, list[tuple[PlaceRecognizer | None, bool]]] = {}
     for rec, cs in zip(recs, cases, strict=True):
         for c in cs:
             for i in (c.query_id, c.match_id):
                 uses.setdefault(i, []).append((rec, _draws_lines(rec, c)))
+    shown = _Shown()
     for i in sorted(uses):
-        scan, _ = preprocessed_scan(seq, i, cfg.preprocess)
-        shown.points[i] = _bev_points(scan.xyz)
-        for rec, lines in uses[i]:
-            params = _image_params(rec)
-            key = params.model_dump_json()
-            if (key, i) not in shown.images:
-                shown.images[key, i] = make_image(scan, params).image
-            if lines and rec is not None and (rec.frontend_key, i) not in shown.keypoints:
-                try:
-                    shown.keypoints[rec.frontend_key, i] = np.asarray(rec.describe(scan)["keypoints"])
-                except ScanDataError:
-                    shown.keypoints[rec.frontend_key, i] = None
+        shown.add(i, preprocessed_scan(seq, i, cfg.preprocess)[0], uses[i])
     return shown
+
+
+def draw_pair(
+    label: str,
+    kind: str,
+    scan_query: Scan,
+    scan_match: Scan,
+    candidate: Candidate,
+    rec: PlaceRecognizer,
+    path: Path,
+    threshold: float,
+    correct: bool,
+    T_match_query_truth: np.ndarray | None = None,
+) -> ClosureView:
+    """The evidence figure of one closure outside a run (e.g. the docs' figures): ``candidate``, the answer of
+    ``rec`` for ``scan_query`` against ``scan_match``, drawn as a ``kind`` (one of `KINDS`) case of pipeline
+    ``label`` judged at ``threshold``; ``correct`` says whether it is the right place, ``T_match_query_truth``
+    (when known) gives its pose error. Returns the view drawn into ``path``."""
+    q, m = 1, 0
+    poses = np.stack([np.eye(4), np.eye(4) if T_match_query_truth is None else T_match_query_truth])
+    case = EvidenceCase(kind, q, m, 0, candidate, decision_text(candidate, threshold), correct)
+    if T_match_query_truth is not None:
+        case = with_pose_error(case, poses)
+    shown = _Shown()
+    lines = _draws_lines(rec, case)
+    shown.add(q, scan_query, [(rec, lines)])
+    shown.add(m, scan_match, [(rec, lines)])
+    view = _view(label, case, rec, shown, poses)
+    plot_closure(view, path)
+    return view
 
 
 def _view(
