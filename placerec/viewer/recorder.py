@@ -96,6 +96,14 @@ def _transform(T: np.ndarray) -> rr.Transform3D:
     return rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3])
 
 
+def _jpeg(image: np.ndarray) -> rr.EncodedImage:
+    """An 8-bit image as JPEG (OpenCV's encoder: about 3x faster than Rerun's own ``compress``)."""
+    import cv2
+
+    _, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 85])
+    return rr.EncodedImage(contents=data.tobytes(), media_type="image/jpeg")
+
+
 def _stacked(top: np.ndarray, bottom: np.ndarray) -> np.ndarray:
     """Two 8-bit images one above the other (the narrower padded with black on the right)."""
     w = max(top.shape[1], bottom.shape[1])
@@ -235,7 +243,7 @@ class Recorder:
                 key, "scan/image" if not self._image_keys else f"scan/image_{len(self._image_keys)}"
             )
             if space == "scan":
-                self.rr.log(path, rr.Image(img, color_model="L").compress(jpeg_quality=85))
+                self.rr.log(path, _jpeg(img))
         return key
 
     # --- per query ------------------------------------------------------------------------------------------
@@ -299,7 +307,7 @@ class Recorder:
         if q_img is None or m_img is None or kq is None or km is None:
             return False
         pair = _stacked(q_img, m_img)
-        self.rr.log(f"{path}/pair", rr.Image(pair, color_model="L").compress(jpeg_quality=85))
+        self.rr.log(f"{path}/pair", _jpeg(pair))
         m = np.asarray(c.matches, np.int64).reshape(-1, 2)
         a, b = kq[m[:, 0]], km[m[:, 1]] + np.array([0, q_img.shape[0]], np.float32)
         inlier = np.zeros(len(m), bool) if v.inlier_mask is None else np.asarray(v.inlier_mask, bool)
