@@ -266,3 +266,55 @@ def test_localize_refuses_an_unwritable_recording_before_opening_the_map(tmp_pat
         app, ["localize", str(tmp_path / "no-map"), str(tmp_path / "no-seq"), "--rrd", str(rrd)]
     )
     assert result.exit_code == 2 and str(rrd) in result.output, result.output
+
+
+TINY_LOCALIZE = """
+name: loc
+dataset:
+  simulator: {world: town, sensor: vlp16, seed: 0, n_scans: 40}
+pipelines:
+  - name: ishot-prob
+evaluation:
+  mode: localize
+  localize: {n_queries: 3}
+output:
+  cache_dir: null
+  progress: false
+"""
+
+
+def test_localize_mode_logs_the_fixes_on_the_map_and_the_posterior(tmp_path):
+    cfg = tmp_path / "loc.yaml"
+    cfg.write_text(TINY_LOCALIZE)
+    rrd = tmp_path / "loc.rrd"
+    result = CliRunner().invoke(app, ["run", str(cfg), "--out", str(tmp_path / "out"), "--rrd", str(rrd)])
+    assert result.exit_code == 0, result.output
+    folder = tmp_path / "out" / "latest"
+    table = read_candidates(folder / "candidates_ishot-prob.csv")
+    map_poses = np.loadtxt(folder / "map_poses.txt").reshape(-1, 3, 4)
+    rec = read_rrd(rrd)
+    assert [t for t, _ in _with(rec["/world/scan"], "Points3D:positions")] == list(
+        range(len(table.query_ids))
+    )
+    assert len(rec["/world/trajectory/map"][0][1]["LineStrips3D:strips"][0]) == len(map_poses)
+    logged = sum(
+        len(_with(rows, "TextDocument:text")) for p, rows in rec.items() if p.endswith("/verification")
+    )
+    assert logged == int((table.match_ids >= 0).sum())
+    # the fixes: each accepted best candidate's T_world_query, i.e. its map pose moved by relative_pose
+    fixed = [q for q in range(len(table.query_ids)) if table.accepted[q, 0] == 1]
+    expected = []
+    for q in fixed:
+        T_map = np.vstack([map_poses[table.match_ids[q, 0]], [0, 0, 0, 1]])
+        expected.append((T_map @ table.relative_poses[q, 0])[:3, 3])
+    fixes = rec["/world/fixes/ishot-prob"][-1][1]["Points3D:positions"]
+    assert len(fixed) > 0
+    np.testing.assert_allclose(np.array(fixes), np.array(expected), atol=1e-3)
+    posterior = _with(rec["/pipelines/ishot-prob/posterior"], "BarChart:values")
+    assert len(posterior) >= len(table.query_ids)  # at least one batch a query
+    sizes = set()
+    for _, r in posterior:
+        values = np.array(r["BarChart:values"][0]["buffer"])
+        sizes.add(len(values))
+        assert np.isclose(values.sum(), 1.0)
+    assert len(sizes) == 1 and 1 < sizes.pop() <= len(map_poses)  # one probability per place of the map
