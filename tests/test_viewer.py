@@ -318,3 +318,23 @@ def test_localize_mode_logs_the_fixes_on_the_map_and_the_posterior(tmp_path):
         sizes.add(len(values))
         assert np.isclose(values.sum(), 1.0)
     assert len(sizes) == 1 and 1 < sizes.pop() <= len(map_poses)  # one probability per place of the map
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the display check is Linux's")
+def test_viewer_without_a_display_fails_before_the_run(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(TINY_RUN)
+    env = {"DISPLAY": "", "WAYLAND_DISPLAY": "", "WAYLAND_SOCKET": ""}
+    result = CliRunner(env=env).invoke(app, ["run", str(cfg), "--out", str(tmp_path / "o"), "--viewer"])
+    assert result.exit_code == 2 and "no display" in result.output and "--rrd" in result.output, result.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_viewer_executable_is_found_beside_python_off_path(monkeypatch):
+    from placerec.viewer import viewer_executable
+
+    beside = os.path.join(os.path.dirname(sys.executable), "rerun")
+    if not os.access(beside, os.X_OK):
+        pytest.skip("rerun-sdk's viewer is not installed beside this Python")
+    monkeypatch.setenv("PATH", "/nonexistent")
+    assert str(viewer_executable()) == beside

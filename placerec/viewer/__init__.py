@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import contextvars
 import os
+import shutil
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -27,7 +29,7 @@ from placerec.errors import ConfigError, DependencyError
 if TYPE_CHECKING:
     from placerec.viewer.recorder import Recorder
 
-__all__ = ["ViewerTarget", "check_target", "recording", "active", "INSTALL_HINT"]
+__all__ = ["ViewerTarget", "check_target", "recording", "active", "viewer_executable", "INSTALL_HINT"]
 
 INSTALL_HINT = "pip install 'placerec[viewer]'"
 
@@ -50,7 +52,8 @@ class ViewerTarget:
 
 def check_target(target: ViewerTarget) -> None:
     """Refuse, before anything runs, a target that cannot work: `DependencyError` naming the extra when
-    ``rerun-sdk`` is not installed, `ConfigError` when ``rrd`` cannot be written (its folder missing, not a
+    ``rerun-sdk`` is not installed (or, for ``spawn``, its viewer executable cannot be found), `ConfigError` when
+    ``spawn`` has no display to open a window on (Linux) or ``rrd`` cannot be written (its folder missing, not a
     folder or not writable; the path itself a folder)."""
     if not target.enabled:
         return
@@ -60,6 +63,16 @@ def check_target(target: ViewerTarget) -> None:
         raise DependencyError(
             f"--viewer / --rrd need the Rerun SDK, which is not installed ({exc}): {INSTALL_HINT}"
         ) from None
+    if target.spawn and sys.platform.startswith("linux") and not _has_display():
+        raise ConfigError(
+            "--viewer opens a window, but there is no display (DISPLAY and WAYLAND_DISPLAY are unset): write a "
+            "recording with --rrd FILE and open it with `rerun FILE` where there is one"
+        )
+    if target.spawn and viewer_executable() is None:
+        raise DependencyError(
+            "--viewer starts the Rerun viewer, the executable 'rerun' that rerun-sdk installs: it is neither on "
+            f"PATH nor beside {sys.executable} ({INSTALL_HINT}, or write a recording with --rrd FILE)"
+        )
     if target.rrd is None:
         return
     path = Path(target.rrd).expanduser()
@@ -73,6 +86,22 @@ def check_target(target: ViewerTarget) -> None:
     if path.exists() and not os.access(path, os.W_OK):
         # atomic_write replaces the file, which the folder's permission allows; a read-only file says "keep me"
         raise ConfigError(f"--rrd {target.rrd}: the file exists and is read-only")
+
+
+def _has_display() -> bool:
+    return bool(
+        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY") or os.environ.get("WAYLAND_SOCKET")
+    )
+
+
+def viewer_executable() -> Path | None:
+    """The Rerun viewer executable ``rerun``: the one on PATH, else the one beside this Python (a virtual
+    environment used without activating it); None when there is neither."""
+    found = shutil.which("rerun")
+    if found is not None:
+        return Path(found)
+    beside = shutil.which("rerun", path=str(Path(sys.executable).parent))
+    return None if beside is None else Path(beside)
 
 
 @contextmanager

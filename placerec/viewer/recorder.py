@@ -111,6 +111,23 @@ def _stacked(top: np.ndarray, bottom: np.ndarray) -> np.ndarray:
     return np.vstack(pad)
 
 
+def _spawn(stream: rr.RecordingStream) -> None:
+    """Start the Rerun viewer (`placerec.viewer.viewer_executable`: Rerun looks for it on PATH, so a viewer
+    found beside Python is put on PATH for the start only)."""
+    import os
+
+    from placerec.viewer import viewer_executable
+
+    exe = viewer_executable()
+    old = os.environ.get("PATH", "")
+    if exe is not None:
+        os.environ["PATH"] = os.pathsep.join([str(exe.parent), old])
+    try:
+        stream.spawn(connect=False)
+    finally:
+        os.environ["PATH"] = old
+
+
 class Recorder:
     """Logs a run's events to one Rerun recording (module docstring); made by `placerec.viewer.recorder`."""
 
@@ -155,7 +172,7 @@ class Recorder:
                         fh.write(data)
 
             if target.spawn:
-                stream.spawn(connect=False)
+                _spawn(stream)
                 sinks.append(rr.GrpcSink())
             stream.set_sinks(*sinks)
             rec = cls(stream, target.max_points, sink)
