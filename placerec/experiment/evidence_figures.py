@@ -308,20 +308,27 @@ def draw_pair(
     kind: str,
     scan_query: Scan,
     scan_match: Scan,
-    candidate: Candidate,
+    candidate: Candidate | None,
     rec: PlaceRecognizer,
     path: Path,
     threshold: float,
     correct: bool,
     T_match_query_truth: np.ndarray | None = None,
+    ids: tuple[int, int] = (1, 0),
 ) -> ClosureView:
     """The evidence figure of one closure outside a run (e.g. the docs' figures): ``candidate``, the answer of
-    ``rec`` for ``scan_query`` against ``scan_match``, drawn as a ``kind`` (one of `KINDS`) case of pipeline
-    ``label`` judged at ``threshold``; ``correct`` says whether it is the right place, ``T_match_query_truth``
-    (when known) gives its pose error. Returns the view drawn into ``path``."""
-    q, m = 1, 0
-    poses = np.stack([np.eye(4), np.eye(4) if T_match_query_truth is None else T_match_query_truth])
-    case = EvidenceCase(kind, q, m, 0, candidate, decision_text(candidate, threshold), correct)
+    ``rec`` for ``scan_query`` against ``scan_match`` (None: it gave none), drawn as a ``kind`` (one of `KINDS`)
+    case of pipeline ``label`` judged at ``threshold``; ``correct`` says whether it is the right place,
+    ``T_match_query_truth`` (when known) gives its pose error, and without a candidate the overlay's pose.
+    ``ids``: the (query, match) ids the figure names. Returns the view drawn into ``path``."""
+    q, m = ids
+    poses = np.tile(
+        np.eye(4), (max(q, m) + 1, 1, 1)
+    )  # the match at the origin, the query where the truth puts it
+    if T_match_query_truth is not None:
+        poses[q] = T_match_query_truth
+    rank = -1 if candidate is None else 0
+    case = EvidenceCase(kind, q, m, rank, candidate, decision_text(candidate, threshold), correct)
     if T_match_query_truth is not None:
         case = with_pose_error(case, poses)
     shown = _Shown()
