@@ -281,3 +281,23 @@ def test_evidence_off_leaves_the_page_as_it_was(tmp_path):
     assert not (run / "evidence").exists() and not (run / "plotly.min.js").exists()
     assert "plotly" not in (run / "index.html").read_text()
     assert "rejections" in payload["pipelines"]["scan-context"]
+
+
+def test_one_pair_outside_a_run_draws_its_verified_inliers(real_data, tmp_path):
+    """`draw_pair` (the docs' closure figures) on the real OS1-64 revisit pair: the lines are the verification's
+    pairs, its inliers green."""
+    from placerec.experiment.evidence_figures import draw_pair
+    from placerec.io import read_scan
+    from placerec.recognizer import make_pipeline
+
+    layout = (64, 1024, "column-major")
+    pair = real_data / "ouster_os1_64_revisit_pair"
+    a, b = (read_scan(pair / f"32line_{k}.bin", organized=True, layout=layout) for k in (1, 2))
+    rec = make_pipeline("orb-hbst")
+    rec.add_description(0, rec.describe(a))
+    (cand,) = rec.query_description(rec.describe(b), k=1, query_id=1)
+    view = draw_pair("orb-hbst", "accepted", b, a, cand, rec, tmp_path / "pair.png", 0.2, True, ids=(2, 1))
+    assert (tmp_path / "pair.png").stat().st_size > 10_000
+    assert len(view.inliers) == cand.verification.inliers == cand.verification.inlier_mask.sum()
+    assert len(view.inliers) + len(view.outliers) == cand.verification.correspondences
+    assert "query 2 (top) / match 1 (bottom): accepted" in view.title

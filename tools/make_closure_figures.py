@@ -49,6 +49,7 @@ def _draw(
 ) -> None:
     cand = _verified(rec, query, match)
     threshold = PIPELINES[PIPELINE].threshold
+    assert threshold is not None  # orb-hbst's preset has its operating threshold
     kind = "accepted" if cand is not None and cand.accepted else "missed"
     view = draw_pair(PIPELINE, kind, query, match, cand, rec, path, threshold, True, truth, ids)
     print(f"wrote {path.relative_to(ROOT)}: {view.title}")

@@ -228,15 +228,18 @@ def _facts(case: EvidenceCase, pose_source: str) -> list[str]:
     return lines
 
 
-def _draws_lines(rec: PlaceRecognizer | None, case: EvidenceCase) -> bool:
+def _line_pairs(rec: PlaceRecognizer | None, case: EvidenceCase) -> tuple[np.ndarray, np.ndarray] | None:
+    """The (matches, inlier mask) a case's figure draws as lines: an intensity-image pipeline's verified
+    candidate with its correspondences; None otherwise."""
     c = case.candidate
-    return (
-        isinstance(rec, VisualFrontend)
-        and c is not None
-        and c.matches is not None
-        and c.verification is not None
-        and c.verification.inlier_mask is not None
-    )
+    if not isinstance(rec, VisualFrontend) or c is None or c.matches is None or c.verification is None:
+        return None
+    mask = c.verification.inlier_mask
+    return None if mask is None else (c.matches, mask)
+
+
+def _draws_lines(rec: PlaceRecognizer | None, case: EvidenceCase) -> bool:
+    return _line_pairs(rec, case) is not None
 
 
 def _image_params(rec: PlaceRecognizer | None) -> ImageParams:
@@ -349,18 +352,14 @@ def _view(
     image_q = shown.images[key, q]
     gap = max(4, image_q.shape[0] // 4)
     inl = outl = np.zeros((0, 2, 2))
-    lines = _draws_lines(rec, case)
-    if lines:
-        assert rec is not None and case.candidate is not None and case.candidate.verification is not None
+    lines = _line_pairs(rec, case)
+    if lines is not None and rec is not None:
         kq, km = shown.keypoints[rec.frontend_key, q], shown.keypoints[rec.frontend_key, m]
         if kq is not None and km is not None:
-            c = case.candidate
-            inl, outl = correspondence_segments(
-                c.matches, c.verification.inlier_mask, kq, km, image_q.shape[0] + gap
-            )
+            inl, outl = correspondence_segments(*lines, kq, km, image_q.shape[0] + gap)
     T, source = _pose_for(case, poses)
     title = f"{label}: {_KIND_WORDS[case.kind]}, query {q} (top) / match {m} (bottom): {case.decision}"
-    if lines:
+    if lines is not None:
         title += f"; {len(inl)} inliers (green) of {len(inl) + len(outl)} pairs"
     return ClosureView(
         image_q,
