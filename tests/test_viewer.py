@@ -40,12 +40,15 @@ TINY_SLAM = [
 GREEN = 0x28C850FF  # placerec.viewer.recorder.ACCEPTED as Rerun packs it (RGBA)
 
 
-_SKIP = {"rerun.controls.RowId", "log_time", "log_tick", "scan_time"}  # columns the checks never read
+_SKIP = {"log_time", "log_tick", "scan_time"}  # columns the checks never read
+ROW_ID = (
+    "rerun.controls.RowId"  # big-endian log time first: orders rows logged at the same scan as Rerun does
+)
 
 
 def read_rrd(path):
-    """Entity path -> (scan times, record batches' rows as dicts of python values), every chunk merged, in time
-    order; static rows get time -1."""
+    """Entity path -> [(scan, row as a dict of python values)], every chunk merged, in the order Rerun's
+    latest-at queries use (scan, then row id); static rows get scan -1."""
     rows = defaultdict(list)
     for chunk in rr_recording.load_recording(path).chunks():
         batch = chunk.to_record_batch()
@@ -55,7 +58,7 @@ def read_rrd(path):
         times = table.get("scan", [-1] * n)
         for i in range(n):
             rows[str(chunk.entity_path)].append((times[i], {k: v[i] for k, v in table.items()}))
-    return {k: sorted(v, key=lambda r: r[0]) for k, v in rows.items()}
+    return {k: sorted(v, key=lambda r: (r[0], r[1][ROW_ID])) for k, v in rows.items()}
 
 
 def _with(rows, component):
@@ -338,3 +341,18 @@ def test_the_viewer_executable_is_found_beside_python_off_path(monkeypatch):
         pytest.skip("rerun-sdk's viewer is not installed beside this Python")
     monkeypatch.setenv("PATH", "/nonexistent")
     assert str(viewer_executable()) == beside
+
+
+def test_growing_entities_are_logged_a_linear_number_of_items():
+    from placerec.viewer.recorder import _Growing
+
+    g, items_logged, logs = _Growing(), 0, 0
+    for i in range(5000):
+        if g.add(i):
+            logs += 1
+            items_logged += len(g.items)
+            g.logged = len(g.items)
+    assert (
+        logs < 150 and items_logged < 25 * 5000
+    )  # every addition logged again would be 5000 logs, 12.5M items
+    assert len(g.items) - g.logged <= g.logged // 20  # what the end of the recording still has to log

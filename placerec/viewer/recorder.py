@@ -96,12 +96,22 @@ def _transform(T: np.ndarray) -> rr.Transform3D:
     return rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3])
 
 
-def _jpeg(image: np.ndarray) -> rr.EncodedImage:
+def _jpeg(image: np.ndarray) -> bytes:
     """An 8-bit image as JPEG (OpenCV's encoder: about 3x faster than Rerun's own ``compress``)."""
     import cv2
 
     _, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 85])
-    return rr.EncodedImage(contents=data.tobytes(), media_type="image/jpeg")
+    return data.tobytes()
+
+
+def _unjpeg(data: bytes) -> np.ndarray:
+    import cv2
+
+    return np.asarray(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE))
+
+
+def _encoded(data: bytes) -> rr.EncodedImage:
+    return rr.EncodedImage(contents=data, media_type="image/jpeg")
 
 
 def _stacked(top: np.ndarray, bottom: np.ndarray) -> np.ndarray:
@@ -128,26 +138,44 @@ def _spawn(stream: rr.RecordingStream) -> None:
         os.environ["PATH"] = old
 
 
+class _Growing:
+    """Items shown as one entity that grows during the run (loop edges, fixes). Re-logging all of them at every
+    addition would make the file grow with their square, so the entity is logged again once it has grown by 5 %
+    (at least one item) since it was last logged, and at the end of the recording: the file grows linearly."""
+
+    def __init__(self) -> None:
+        self.items: list[Any] = []
+        self.logged = 0
+
+    def add(self, item: Any) -> bool:
+        """Add ``item``; True when the entity is due to be logged again."""
+        self.items.append(item)
+        return len(self.items) - self.logged >= max(1, self.logged // 20)
+
+
 class Recorder:
     """Logs a run's events to one Rerun recording (module docstring); made by `placerec.viewer.recorder`."""
 
-    def __init__(self, stream: rr.RecordingStream, max_points: int, sink: Callable[[], None] | None) -> None:
+    def __init__(
+        self, stream: rr.RecordingStream, max_points: int, sink: Callable[[bool], None] | None
+    ) -> None:
         self.rr = stream
         self.max_points = max_points
         self._drain = sink
         self.index = -1
         #: where candidates' match ids point: ``scan`` (the run's own scans) or ``map`` (`remember`-ed scans)
         self.matches_in = "scan"
-        # (space, scan index) -> subsampled points in the sensor frame / the scan's position (world)
+        # (space, scan index) -> every other point of its logged cloud (sensor frame) / its position (world): what
+        # the alignments and fixes show; a run keeps them for every scan, candidates match any earlier one
         self._clouds: dict[tuple[str, int], np.ndarray] = {}
         self._positions: dict[tuple[str, int], np.ndarray] = {}
-        self._images: dict[tuple[str, str, int], np.ndarray] = {}  # (image key, space, index) -> 8-bit image
+        self._images: dict[tuple[str, str, int], bytes] = {}  # (image key, space, index) -> its JPEG
         self._image_keys: dict[str, str] = {}  # image key -> its entity path
         self._keypoints: dict[tuple[str, str, int], np.ndarray] = {}  # (pipeline, space, index) -> (K, 2)
         self._pipeline_image: dict[str, str] = {}  # pipeline -> its image key
         self._ranks: dict[str, int] = {}  # pipeline -> candidates logged for the last query
-        self._edges: dict[tuple[str, str], list[tuple[int, int]]] = {}
-        self._fix_positions: dict[str, list[np.ndarray]] = {}
+        self._edges: dict[tuple[str, str], _Growing] = {}  # (pipeline, kind) -> (match id, query id)
+        self._fixes: dict[str, _Growing] = {}  # pipeline -> fix positions
         self._shown: set[str] = set()  # candidate parts (pair, alignment) showing a logged value
         self._batch = 0
 
@@ -159,14 +187,15 @@ class Recorder:
         stream = rr.RecordingStream("placerec")
         stream.send_recording_name(name)
         with ExitStack() as stack:
-            sink: Callable[[], None] | None = None
+            sink: Callable[[bool], None] | None = None
             sinks: list[Any] = []
             if target.rrd is not None:
                 fh: IO[bytes] = stack.enter_context(atomic_write(target.rrd))
                 binary = rr.binary_stream(recording=stream)
                 sinks.append(binary)
 
-                def sink(flush: bool = False) -> None:
+                def sink(flush: bool) -> None:
+                    """Copy what Rerun has encoded into the file (``flush``: all of it, waiting for the encoder)."""
                     data = binary.read(flush=flush)
                     if data:
                         fh.write(data)
@@ -178,14 +207,24 @@ class Recorder:
             rec = cls(stream, target.max_points, sink)
             rec._layout()
             yield rec
+            rec._finish()
             stream.flush()
             if sink is not None:
-                sink(flush=True)  # type: ignore[call-arg]
+                sink(True)
             stream.disconnect()
 
     def _layout(self) -> None:
-        """Static axes: the world is z up, images have their origin top left."""
+        """Static axes: the world is z up."""
         self.rr.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+
+    def _finish(self) -> None:
+        """Log the growing entities (edges, fixes) whose last items are not logged yet."""
+        for (label, kind), edges in self._edges.items():
+            if edges.logged < len(edges.items):
+                self._log_edges(label, kind)
+        for label, fixes in self._fixes.items():
+            if fixes.logged < len(fixes.items):
+                self._log_fixes(label)
 
     # --- per scan -------------------------------------------------------------------------------------------
 
@@ -193,7 +232,7 @@ class Recorder:
         """Start scan ``index`` (the timelines) and log it at ``world/scan``: its points (at most ``max_points``,
         coloured by intensity) in the sensor frame, placed at ``pose`` (T_world_sensor; None: the origin)."""
         if self._drain is not None:
-            self._drain()
+            self._drain(False)
         self.index = index
         self.rr.set_time("scan", sequence=index)
         if timestamp is not None and np.isfinite(timestamp):
@@ -203,17 +242,16 @@ class Recorder:
                 self.rr.set_time("scan_time", duration=timestamp)
         keep = self.remember("scan", index, scan, pose)
         T = np.eye(4) if pose is None else np.asarray(pose, np.float64)
-        xyz = self._clouds[("scan", index)]
-        self.rr.log(
-            "world/scan", _transform(T), rr.Points3D(xyz, colors=_colours(scan.intensity[keep]), radii=0.04)
-        )
+        points = rr.Points3D(scan.xyz[keep], colors=_colours(scan.intensity[keep]), radii=0.04)
+        self.rr.log("world/scan", _transform(T), points)
 
     def remember(self, space: str, index: int, scan: Scan, pose: np.ndarray | None) -> np.ndarray:
-        """Keep scan ``index`` of ``space`` (its subsampled cloud and position) for the candidates that will
-        match it, without logging it (a map's scans, ``space`` ``map``); returns the kept points' indices."""
+        """Keep scan ``index`` of ``space`` (every other point of its subsampled cloud, its position) for the
+        candidates that will match it, without logging it (a map's scans, ``space`` ``map``); returns the indices
+        of the subsampled points (at most ``max_points``)."""
         ok = np.flatnonzero(valid_points(scan, intensity=True))
         keep = ok[_subsample(ok.size, self.max_points)]
-        self._clouds[(space, index)] = scan.xyz[keep]
+        self._clouds[(space, index)] = scan.xyz[keep[::2]]
         T = np.eye(4) if pose is None else np.asarray(pose, np.float64)
         self._positions[(space, index)] = T[:3, 3].copy()
         return keep
@@ -254,13 +292,13 @@ class Recorder:
 
         key = rec.params.image.model_dump_json()
         if (key, space, index) not in self._images:
-            img = make_image(scan, rec.params.image).image
-            self._images[(key, space, index)] = img
+            jpeg = _jpeg(make_image(scan, rec.params.image).image)
+            self._images[(key, space, index)] = jpeg
             path = self._image_keys.setdefault(
                 key, "scan/image" if not self._image_keys else f"scan/image_{len(self._image_keys)}"
             )
             if space == "scan":
-                self.rr.log(path, _jpeg(img))
+                self.rr.log(path, _encoded(jpeg))
         return key
 
     # --- per query ------------------------------------------------------------------------------------------
@@ -319,12 +357,12 @@ class Recorder:
         if key is None or c.matches is None or v is None:
             return False
         ms = self.matches_in
-        q_img, m_img = self._images.get((key, "scan", query)), self._images.get((key, ms, c.match_id))
+        q_jpeg, m_jpeg = self._images.get((key, "scan", query)), self._images.get((key, ms, c.match_id))
         kq, km = self._keypoints.get((label, "scan", query)), self._keypoints.get((label, ms, c.match_id))
-        if q_img is None or m_img is None or kq is None or km is None:
+        if q_jpeg is None or m_jpeg is None or kq is None or km is None:
             return False
-        pair = _stacked(q_img, m_img)
-        self.rr.log(f"{path}/pair", _jpeg(pair))
+        q_img = _unjpeg(q_jpeg)
+        self.rr.log(f"{path}/pair", _encoded(_jpeg(_stacked(q_img, _unjpeg(m_jpeg)))))
         m = np.asarray(c.matches, np.int64).reshape(-1, 2)
         a, b = kq[m[:, 0]], km[m[:, 1]] + np.array([0, q_img.shape[0]], np.float32)
         inlier = np.zeros(len(m), bool) if v.inlier_mask is None else np.asarray(v.inlier_mask, bool)
@@ -338,23 +376,23 @@ class Recorder:
         if c.relative_pose is None or cloud is None or match is None:
             return False
         T = np.asarray(c.relative_pose, np.float64)
-        self.rr.log(f"{path}/alignment/match", rr.Points3D(match[::2], colors=MATCH_CLOUD, radii=0.04))
-        self.rr.log(
-            f"{path}/alignment/query", rr.Points3D(_moved(cloud[::2], T), colors=QUERY_CLOUD, radii=0.04)
-        )
+        self.rr.log(f"{path}/alignment/match", rr.Points3D(match, colors=MATCH_CLOUD, radii=0.04))
+        self.rr.log(f"{path}/alignment/query", rr.Points3D(_moved(cloud, T), colors=QUERY_CLOUD, radii=0.04))
         return True
 
     def edge(self, label: str, kind: str, match_id: int, query_id: int) -> None:
         """Add a loop edge ``match_id`` -- ``query_id`` of ``kind`` (``accepted``, ``rejected``) to
-        ``world/loops/<label>/<kind>``, drawn between the places the two scans were logged at."""
-        edges = self._edges.setdefault((label, kind), [])
-        edges.append((match_id, query_id))
-        self._log_edges(label, kind)
+        ``world/loops/<label>/<kind>``, drawn between the places the two scans were logged at (logged again as it
+        grows, `_Growing`)."""
+        if self._edges.setdefault((label, kind), _Growing()).add((match_id, query_id)):
+            self._log_edges(label, kind)
 
     def _log_edges(self, label: str, kind: str) -> None:
-        edges = self._edges.get((label, kind), [])
+        edges = self._edges[(label, kind)]
+        edges.logged = len(edges.items)
         ends = [
-            (self._positions.get((self.matches_in, m)), self._positions.get(("scan", q))) for m, q in edges
+            (self._positions.get((self.matches_in, m)), self._positions.get(("scan", q)))
+            for m, q in edges.items
         ]
         strips = [np.stack([a, b]) for a, b in ends if a is not None and b is not None]
         colour = REJECTED if kind == "rejected" else ACCEPTED if kind == "accepted" else INJECTED
@@ -405,7 +443,7 @@ class Recorder:
     def fix(self, label: str, T_world_query: np.ndarray | None, text: str, accepted: bool) -> None:
         """A relocalisation's answer for the current scan: ``world/fix/<label>`` (the scan's pose in the map and
         its cloud there when accepted, cleared otherwise), the answer in words at ``localize/<label>``, and the
-        accepted fixes so far as points at ``world/fixes/<label>``."""
+        accepted fixes so far as points at ``world/fixes/<label>`` (logged again as they grow, `_Growing`)."""
         self.rr.log(f"localize/{label}", rr.TextDocument(text, media_type="text/markdown"))
         if not accepted or T_world_query is None:
             self.rr.log(f"world/fix/{label}", rr.Clear(recursive=True))
@@ -413,9 +451,13 @@ class Recorder:
         T = np.asarray(T_world_query, np.float64)
         cloud = self._clouds.get(("scan", self.index), np.zeros((0, 3), np.float32))
         self.rr.log(f"world/fix/{label}", rr.Points3D(_moved(cloud, T), colors=ACCEPTED, radii=0.05))
-        xyz = self._fix_positions.setdefault(label, [])
-        xyz.append(T[:3, 3].copy())
-        self.rr.log(f"world/fixes/{label}", rr.Points3D(np.array(xyz), colors=ACCEPTED, radii=0.25))
+        if self._fixes.setdefault(label, _Growing()).add(T[:3, 3].copy()):
+            self._log_fixes(label)
+
+    def _log_fixes(self, label: str) -> None:
+        fixes = self._fixes[label]
+        fixes.logged = len(fixes.items)
+        self.rr.log(f"world/fixes/{label}", rr.Points3D(np.array(fixes.items), colors=ACCEPTED, radii=0.25))
 
     @contextmanager
     def watching(self, label: str, rec: PlaceRecognizer) -> Iterator[None]:
