@@ -301,3 +301,63 @@ def test_one_pair_outside_a_run_draws_its_verified_inliers(real_data, tmp_path):
     assert len(view.inliers) == cand.verification.inliers == cand.verification.inlier_mask.sum()
     assert len(view.inliers) + len(view.outliers) == cand.verification.correspondences
     assert "query 2 (top) / match 1 (bottom): accepted" in view.title
+
+
+def test_localize_galleries_show_answers_wrong_answers_and_the_best_unanswered_candidate(tmp_path):
+    """Map scans 0-4 on y = 0, 10 m apart; queries 0-3 1 m off map scans 0-3: query 0 localised by map scan 0
+    (its pose 0.5 m off), query 1 answered with map scan 4 (30 m from it), query 2 not answered (top: map scan 4
+    rejected by RANSAC, then the right map scan 2 rejected by fitness), query 3 with no candidate."""
+    from placerec.eval import localization_metrics
+    from placerec.experiment.evidence import select_localize_cases
+    from placerec.experiment.report import localize_estimates
+
+    map_poses = np.stack([_pose(10 * i, 0) for i in range(5)])
+    query_poses = np.stack([_pose(10 * i, 1.0) for i in range(4)])
+    truth = lambda m, q: relative_pose(map_poses[m], query_poses[q])  # noqa: E731
+    cands = [
+        [_cand(0, 0, 0.9, True, T=truth(0, 0) @ _pose(0.5, 0))],
+        [_cand(1, 4, 0.8, True, T=_pose(0.5, 0))],  # puts query 1 beside map scan 4: 30 m off
+        [_cand(2, 4, 0.0, False, "ransac"), _cand(2, 2, 0.0, False, "fitness", T=truth(2, 2))],
+        [],
+    ]
+    record = PipelineRecord("p", "P", "p", query_ids=[0, 1, 2, 3], candidates=cands)
+    estimates, basis, rule = localize_estimates(record.table(), map_poses)
+    metrics = localization_metrics(estimates, query_poses, 5.0, basis=basis, answer_rule=rule)
+    cases = select_localize_cases(record, metrics, map_poses, query_poses, per_gallery=4)
+    _localize_page_shows(record, map_poses, query_poses, tmp_path)
+    got = [(c.kind, c.query_id, c.match_id, c.rank, c.correct, c.decision) for c in cases]
+    assert got == [
+        ("accepted", 0, 0, 0, True, "accepted"),
+        ("false", 1, 4, 0, False, "accepted"),
+        ("missed", 2, 2, 1, True, "rejected: ICP overlap (fitness) below min_fitness"),
+        ("missed", 3, 3, -1, True, "no candidate"),
+    ]
+    assert cases[0].translation_m == pytest.approx(0.5)
+    assert cases[2].translation_m == pytest.approx(0.0, abs=1e-9)  # the rejected candidate's pose was right
+
+
+def _localize_page_shows(record, map_poses, query_poses, tmp_path):
+    """``record`` reported in localize mode (the pole world's scans standing in for the map's and the queries'):
+    one figure per gallery entry, the localize headings."""
+    from placerec.config import load_config
+    from placerec.experiment.report import report_localize
+    from placerec.experiment.run_folder import make_run_dir
+    from placerec.types import ListSequence
+    from tests.test_experiment import pole_world_sequence
+
+    scans = pole_world_sequence(n_loop=9, n_revisit=0)
+    map_seq = ListSequence([scans[i] for i in range(5)], map_poses, name="map")
+    query_seq = ListSequence([scans[i] for i in range(5, 9)], query_poses, name="queries")
+    cfg = load_config(None, [f"output.dir={tmp_path}", "output.cache_dir=null", "evaluation.mode=localize"])
+    run = make_run_dir(cfg)
+    payload = report_localize(cfg, run, map_seq, query_seq, [record])
+    names = sorted(p.name for p in (run / "evidence" / "p").glob("*.png"))
+    assert names == [
+        "accepted_000000_000000.png",
+        "false_000001_000004.png",
+        "missed_000002_000002.png",
+        "missed_000003_000003.png",
+    ]
+    page = (run / "index.html").read_text()
+    assert "Localised queries (the answer) (1 shown)" in page and "No answer" in page
+    assert payload["pipelines"]["p"]["rejections"]["top"] == {"accepted": 2, "ransac": 1}

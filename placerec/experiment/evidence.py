@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from placerec.eval import LoopGroundTruth, LoopMetrics, full_pose_mask, pose_errors
+from placerec.eval import LocalizationMetrics, LoopGroundTruth, LoopMetrics, full_pose_mask, pose_errors
 from placerec.experiment.runner import PipelineRecord
 from placerec.types import REJECTIONS, Candidate, relative_pose
 
@@ -38,6 +38,7 @@ __all__ = [
     "rejection_counts",
     "decision_text",
     "select_cases",
+    "select_localize_cases",
     "spread",
     "with_pose_error",
 ]
@@ -120,13 +121,14 @@ def rejection_counts(candidates: list[list[Candidate]]) -> RejectionCounts:
 def decision_text(candidate: Candidate | None, threshold: float) -> str:
     """What became of ``candidate`` at ``threshold``, in words: ``accepted``, ``rejected: <reason>`` (the
     verification's, `placerec.types.REJECTIONS`), ``below threshold (<score> < <threshold>)`` (a pipeline that
-    does not verify, or a verified score under the max-F1 threshold), or ``no candidate``."""
+    does not verify, or a verified score under the max-F1 threshold; a NaN threshold, a run without candidates,
+    accepts nothing, ``-inf`` everything verification did not reject), or ``no candidate``."""
     if candidate is None:
         return "no candidate"
     key = rejection_key(candidate)
     if key not in (ACCEPTED, UNVERIFIED):
         return f"rejected: {REJECTIONS.get(key, 'by verification')}"
-    if not np.isfinite(threshold) or candidate.score < threshold:
+    if np.isnan(threshold) or candidate.score < threshold:
         return f"below threshold ({candidate.score:.3g} < {threshold:.3g})"
     return "accepted"
 
@@ -139,13 +141,17 @@ def spread(rows: np.ndarray, n: int) -> np.ndarray:
     return rows[np.unique(np.round(np.linspace(0, rows.size - 1, n)).astype(np.int64))]
 
 
-def with_pose_error(case: EvidenceCase, poses: np.ndarray) -> EvidenceCase:
-    """``case`` with the error of its candidate's relative pose against the truth of ``poses`` (the
-    ``T_world_sensor`` its ids index into); unchanged without a 6-DoF estimate (`placerec.eval.full_pose_mask`)."""
+def with_pose_error(
+    case: EvidenceCase, match_poses: np.ndarray, query_poses: np.ndarray | None = None
+) -> EvidenceCase:
+    """``case`` with the error of its candidate's relative pose against the truth: the ``T_world_sensor`` its
+    match id indexes in ``match_poses`` and its query id in ``query_poses`` (default: the same poses, loop mode);
+    unchanged without a 6-DoF estimate (`placerec.eval.full_pose_mask`)."""
     rel = case.T_match_query
     if rel is None or not full_pose_mask(rel)[0]:
         return case
-    t, r = pose_errors(rel, relative_pose(poses[case.match_id], poses[case.query_id]))
+    queries = match_poses if query_poses is None else query_poses
+    t, r = pose_errors(rel, relative_pose(match_poses[case.match_id], queries[case.query_id]))
     return replace(case, translation_m=float(t[0]), rotation_deg=float(r[0]))
 
 
@@ -188,4 +194,47 @@ def select_cases(
             correct = cand is None or bool(right[rank])
             case = EvidenceCase(kind, q, m, rank, cand, decision_text(cand, threshold), correct)
             cases.append(with_pose_error(case, poses))
+    return cases
+
+
+def select_localize_cases(
+    record: PipelineRecord,
+    metrics: LocalizationMetrics,
+    map_poses: np.ndarray,
+    query_poses: np.ndarray,
+    per_gallery: int,
+) -> list[EvidenceCase]:
+    """Localize mode's galleries, up to ``per_gallery`` queries each (spread over the queries): ``accepted``, the
+    queries localised (`placerec.eval.LocalizationMetrics.success`), ``false``, those answered wrongly, and
+    ``missed``, those with no answer. A localised or wrong query shows its top candidate (its answer); one with
+    no answer its best candidate: the first whose map scan lies within the success distance of the query's true
+    position, else the top one, else, with no candidate, the nearest map scan posed by the ground truth. A case
+    is ``correct`` when the map scan shown lies within the success distance (the answer's position is what
+    localised or not).
+    ``metrics`` are ``record``'s (rows aligned with ``record.query_ids``); query ids index ``query_poses``, match
+    ids ``map_poses``."""
+    rows = {
+        "accepted": metrics.success,
+        "false": metrics.answered & ~metrics.success,
+        "missed": ~metrics.answered,
+    }
+    cases = []
+    for kind in KINDS:
+        for row in spread(np.flatnonzero(rows[kind]), per_gallery):
+            q = int(record.query_ids[row])
+            cands = record.candidates[row]
+            here = query_poses[q, :3, 3]
+            distance = np.linalg.norm(map_poses[[c.match_id for c in cands], :3, 3] - here, axis=1)
+            right = distance <= metrics.success_distance
+            rank = 0 if cands else -1
+            if kind == "missed" and right.any():
+                rank = int(np.argmax(right))
+            cand = cands[rank] if rank >= 0 else None
+            to_map = np.linalg.norm(map_poses[:, :3, 3] - here, axis=1)
+            if cand is None and not to_map.size:
+                continue  # an empty map: nothing to show
+            m = int(np.argmin(to_map)) if cand is None else int(cand.match_id)
+            correct = bool(to_map[m] <= metrics.success_distance)
+            case = EvidenceCase(kind, q, m, rank, cand, decision_text(cand, -np.inf), correct)
+            cases.append(with_pose_error(case, map_poses, query_poses))
     return cases

@@ -24,13 +24,11 @@ import numpy as np
 
 from placerec.config import ExperimentConfig
 from placerec.errors import ConfigError, ScanDataError
-from placerec.eval import LoopGroundTruth, LoopMetrics
 from placerec.experiment.evidence import (
     EvidenceCase,
     RejectionCounts,
     decision_text,
     rejection_counts,
-    select_cases,
     with_pose_error,
 )
 from placerec.experiment.figures import _pyplot
@@ -43,11 +41,13 @@ from placerec.types import Candidate, PlaceRecognizer, Scan, Sequence, relative_
 
 __all__ = [
     "EVIDENCE_DIR",
+    "KIND_WORDS",
     "PipelineEvidence",
     "ClosureView",
     "correspondence_segments",
     "bev_raster",
     "plot_closure",
+    "CaseScans",
     "draw_evidence",
     "draw_pair",
 ]
@@ -59,7 +59,11 @@ BEV_RADIUS_M = 40.0
 BEV_CELL_M = 0.25
 #: points of a cloud kept for the bird's-eye view (every k-th, in scan order)
 BEV_POINTS = 40_000
-_KIND_WORDS = {"accepted": "accepted true closure", "false": "false closure", "missed": "missed revisit"}
+#: what each gallery kind is called, per mode (loop: `select_cases`, localize: `select_localize_cases`)
+KIND_WORDS = {
+    "loop": {"accepted": "accepted true closure", "false": "false closure", "missed": "missed revisit"},
+    "localize": {"accepted": "localised", "false": "wrong answer", "missed": "no answer"},
+}
 _MATCH_RGB = np.array([40, 90, 200], np.uint8)
 _QUERY_RGB = np.array([245, 130, 20], np.uint8)
 _BOTH_RGB = np.array([60, 60, 60], np.uint8)
@@ -266,43 +270,74 @@ def _recognizers(
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class CaseScans:
+    """Where the scans and true poses of a run's cases come from: ``queries``, the sequence a case's query id
+    indexes, and ``matches``, the one its match id indexes (the same sequence in loop mode; the map in localize
+    mode). Both have poses."""
+
+    queries: Sequence
+    matches: Sequence
+
+    @property
+    def match_side(self) -> int:
+        """The side (0: queries) a match id's scan is kept under: one per sequence, so a loop run reads each scan
+        once."""
+        return 0 if self.matches is self.queries else 1
+
+    @property
+    def mode(self) -> str:
+        """``loop`` (one sequence) or ``localize`` (queries against a map)."""
+        return "loop" if self.matches is self.queries else "localize"
+
+    def poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """(query poses, match poses)."""
+        assert self.queries.poses is not None and self.matches.poses is not None  # the reports check them
+        return self.queries.poses, self.matches.poses
+
+
 @dataclass
 class _Shown:
-    """What the figures show of each scan, the scan read once for every pipeline: bird's-eye points by scan
-    index, 8-bit images by (image parameters as JSON, index), keypoints by (front end key, index; None for a
-    scan the front end cannot describe)."""
+    """What the figures show of each scan, read once for every pipeline and keyed by (side, index) (side 0 for
+    the queries' sequence, `CaseScans.match_side` for the matches'): bird's-eye points, 8-bit images by image
+    parameters (as JSON), keypoints by front end key (None for a scan the front end cannot describe)."""
 
-    points: dict[int, np.ndarray] = field(default_factory=dict)
-    images: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)
-    keypoints: dict[tuple[str, int], np.ndarray | None] = field(default_factory=dict)
+    points: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
+    images: dict[tuple[str, tuple[int, int]], np.ndarray] = field(default_factory=dict)
+    keypoints: dict[tuple[str, tuple[int, int]], np.ndarray | None] = field(default_factory=dict)
 
-    def add(self, index: int, scan: Scan, uses: list[tuple[PlaceRecognizer | None, bool]]) -> None:
-        """Keep what the figures show of ``scan`` (id ``index``) for each (recognizer, draws lines) of ``uses``."""
-        self.points[index] = _bev_points(scan.xyz)
+    def add(self, at: tuple[int, int], scan: Scan, uses: list[tuple[PlaceRecognizer | None, bool]]) -> None:
+        """Keep what the figures show of ``scan`` (at (side, index)) for each (recognizer, draws lines) of
+        ``uses``."""
+        self.points[at] = _bev_points(scan.xyz)
         for rec, lines in uses:
             params = _image_params(rec)
             key = params.model_dump_json()
-            if (key, index) not in self.images:
-                self.images[key, index] = make_image(scan, params).image
-            if lines and rec is not None and (rec.frontend_key, index) not in self.keypoints:
+            if (key, at) not in self.images:
+                self.images[key, at] = make_image(scan, params).image
+            if lines and rec is not None and (rec.frontend_key, at) not in self.keypoints:
                 try:
-                    self.keypoints[rec.frontend_key, index] = np.asarray(rec.describe(scan)["keypoints"])
+                    self.keypoints[rec.frontend_key, at] = np.asarray(rec.describe(scan)["keypoints"])
                 except ScanDataError:
-                    self.keypoints[rec.frontend_key, index] = None
+                    self.keypoints[rec.frontend_key, at] = None
 
 
 def _read_shown(
-    cfg: ExperimentConfig, seq: Sequence, recs: list[PlaceRecognizer | None], cases: list[list[EvidenceCase]]
+    cfg: ExperimentConfig,
+    scans: CaseScans,
+    recs: list[PlaceRecognizer | None],
+    cases: list[list[EvidenceCase]],
 ) -> _Shown:
     """`_Shown` of every scan a case shows, each read once."""
-    uses: dict[int, list[tuple[PlaceRecognizer | None, bool]]] = {}
+    uses: dict[tuple[int, int], list[tuple[PlaceRecognizer | None, bool]]] = {}
     for rec, cs in zip(recs, cases, strict=True):
         for c in cs:
-            for i in (c.query_id, c.match_id):
-                uses.setdefault(i, []).append((rec, _draws_lines(rec, c)))
+            for at in ((0, c.query_id), (scans.match_side, c.match_id)):
+                uses.setdefault(at, []).append((rec, _draws_lines(rec, c)))
     shown = _Shown()
-    for i in sorted(uses):
-        shown.add(i, preprocessed_scan(seq, i, cfg.preprocess)[0], uses[i])
+    for side, i in sorted(uses):
+        seq = scans.queries if side == 0 else scans.matches
+        shown.add((side, i), preprocessed_scan(seq, i, cfg.preprocess)[0], uses[side, i])
     return shown
 
 
@@ -320,34 +355,41 @@ def draw_pair(
     ids: tuple[int, int] = (1, 0),
 ) -> ClosureView:
     """The evidence figure of one closure outside a run (e.g. the docs' figures): ``candidate``, the answer of
-    ``rec`` for ``scan_query`` against ``scan_match`` (None: it gave none), drawn as a ``kind`` (one of `KINDS`)
-    case of pipeline ``label`` judged at ``threshold``; ``correct`` says whether it is the right place,
+    ``rec`` for ``scan_query`` against ``scan_match`` (None: it gave none), drawn as a loop-mode ``kind`` (one of
+    `KINDS`) case of pipeline ``label`` judged at ``threshold``; ``correct`` says whether it is the right place,
     ``T_match_query_truth`` (when known) gives its pose error, and without a candidate the overlay's pose.
     ``ids``: the (query, match) ids the figure names. Returns the view drawn into ``path``."""
     q, m = ids
-    poses = np.tile(
-        np.eye(4), (max(q, m) + 1, 1, 1)
-    )  # the match at the origin, the query where the truth puts it
+    # the match at the origin, the query where the truth puts it
+    match_poses = np.tile(np.eye(4), (m + 1, 1, 1))
+    query_poses = np.tile(np.eye(4), (q + 1, 1, 1))
     if T_match_query_truth is not None:
-        poses[q] = T_match_query_truth
+        query_poses[q] = T_match_query_truth
     rank = -1 if candidate is None else 0
     case = EvidenceCase(kind, q, m, rank, candidate, decision_text(candidate, threshold), correct)
     if T_match_query_truth is not None:
-        case = with_pose_error(case, poses)
+        case = with_pose_error(case, match_poses, query_poses)
     shown = _Shown()
     lines = _draws_lines(rec, case)
-    shown.add(q, scan_query, [(rec, lines)])
-    shown.add(m, scan_match, [(rec, lines)])
-    view = _view(label, case, rec, shown, poses)
+    shown.add((0, q), scan_query, [(rec, lines)])
+    shown.add((1, m), scan_match, [(rec, lines)])
+    view = _view(label, case, rec, shown, 1, (query_poses, match_poses), KIND_WORDS["loop"])
     plot_closure(view, path)
     return view
 
 
 def _view(
-    label: str, case: EvidenceCase, rec: PlaceRecognizer | None, shown: _Shown, poses: np.ndarray
+    label: str,
+    case: EvidenceCase,
+    rec: PlaceRecognizer | None,
+    shown: _Shown,
+    match_side: int,
+    poses: tuple[np.ndarray, np.ndarray],
+    words: dict[str, str],
 ) -> ClosureView:
-    """The `ClosureView` of one case of pipeline ``label``."""
-    q, m = case.query_id, case.match_id
+    """The `ClosureView` of one case of pipeline ``label``; ``poses``: (query poses, match poses), ``words``: what
+    each kind is called (`KIND_WORDS`)."""
+    q, m = (0, case.query_id), (match_side, case.match_id)
     key = _image_params(rec).model_dump_json()
     image_q = shown.images[key, q]
     gap = max(4, image_q.shape[0] // 4)
@@ -357,8 +399,8 @@ def _view(
         kq, km = shown.keypoints[rec.frontend_key, q], shown.keypoints[rec.frontend_key, m]
         if kq is not None and km is not None:
             inl, outl = correspondence_segments(*lines, kq, km, image_q.shape[0] + gap)
-    T, source = _pose_for(case, poses)
-    title = f"{label}: {_KIND_WORDS[case.kind]}, query {q} (top) / match {m} (bottom): {case.decision}"
+    T, source = _pose_for(case, *poses)
+    title = f"{label}: {words[case.kind]}, query {q[1]} (top) / match {m[1]} (bottom): {case.decision}"
     if lines is not None:
         title += f"; {len(inl)} inliers (green) of {len(inl) + len(outl)} pairs"
     return ClosureView(
@@ -377,21 +419,17 @@ def _view(
 def draw_evidence(
     cfg: ExperimentConfig,
     run: Path,
-    seq: Sequence,
     records: list[PipelineRecord],
-    metrics: list[LoopMetrics],
-    truth: LoopGroundTruth,
+    cases: list[list[EvidenceCase]],
+    scans: CaseScans,
     recognizers: Seq[PlaceRecognizer] | None = None,
 ) -> list[PipelineEvidence]:
-    """Each pipeline's `PipelineEvidence`, its figures written under ``run/evidence/<pipeline>/``: ``metrics``
-    are the records' loop metrics under ``truth``; ``recognizers`` (aligned with ``records``) describe the scans
-    of the pipelines that draw lines; without them those pipelines are built again from their records."""
-    poses = seq.poses
-    assert poses is not None  # loop mode's report checks the poses before it gets here
-    per = cfg.output.evidence_per_gallery
-    cases = [select_cases(r, m, truth, poses, per) for r, m in zip(records, metrics, strict=True)]
+    """Each pipeline's `PipelineEvidence`, its ``cases`` (`select_cases` or `select_localize_cases`, aligned with
+    ``records``) drawn under ``run/evidence/<pipeline>/``; ``recognizers`` (aligned with ``records``) describe
+    the scans of the pipelines that draw lines; without them those pipelines are built again from their
+    records."""
     recs = _recognizers(records, cases, recognizers)
-    shown = _read_shown(cfg, seq, recs, cases)
+    shown = _read_shown(cfg, scans, recs, cases)
     out = []
     for record, rec, cs in zip(records, recs, cases, strict=True):
         folder = run / EVIDENCE_DIR / slug(record.label)
@@ -399,7 +437,9 @@ def draw_evidence(
         names, lines = [], []
         for case in cs:
             name = f"{case.kind}_{case.query_id:06d}_{case.match_id:06d}.png"
-            view = _view(record.label, case, rec, shown, poses)
+            view = _view(
+                record.label, case, rec, shown, scans.match_side, scans.poses(), KIND_WORDS[scans.mode]
+            )
             plot_closure(view, folder / name)
             names.append(f"{EVIDENCE_DIR}/{slug(record.label)}/{name}")
             drawn = len(view.inliers) + len(view.outliers)
@@ -408,11 +448,11 @@ def draw_evidence(
     return out
 
 
-def _pose_for(case: EvidenceCase, poses: np.ndarray) -> tuple[np.ndarray, str]:
+def _pose_for(case: EvidenceCase, query_poses: np.ndarray, match_poses: np.ndarray) -> tuple[np.ndarray, str]:
     """The pose that moves the query onto the match in the bird's-eye view, and where it comes from."""
     T = case.T_match_query
     if case.candidate is None:
-        return relative_pose(poses[case.match_id], poses[case.query_id]), "ground truth"
+        return relative_pose(match_poses[case.match_id], query_poses[case.query_id]), "ground truth"
     if T is None or not np.isfinite(T).all():
         return np.eye(4), "none (clouds in their own frames)"
     if case.candidate.accepted is False:

@@ -401,13 +401,16 @@ def _evidence_page(
     """The interactive figures (plotly.js written into ``run``) and one evidence section per pipeline of
     ``index.html`` (`write_index_html`'s ``interactive`` and ``sections``), the evidence figures drawn."""
     from placerec.experiment import interactive
-    from placerec.experiment.evidence_figures import draw_evidence
+    from placerec.experiment.evidence import select_cases
+    from placerec.experiment.evidence_figures import CaseScans, draw_evidence
     from placerec.experiment.tables import evidence_section
 
     poses = require_poses(seq)
     gt = loop_ground_truth(poses, **_gt_options(cfg, seq.timestamps))
+    per = cfg.output.evidence_per_gallery
+    cases = [select_cases(r, m, gt, poses, per) for r, m in zip(records, metrics, strict=True)]
     recs = None if recognizers is None else list(recognizers)
-    evidence = draw_evidence(cfg, run, seq, records, metrics, gt, recs)
+    evidence = draw_evidence(cfg, run, records, cases, CaseScans(seq, seq), recs)
     interactive.write_plotly_js(run)
     pr = interactive.pr_curves_html(curves, f"{cfg.name}: precision-recall (threshold under the mouse)")
     sections = []
@@ -420,15 +423,23 @@ def _evidence_page(
 
 
 def report_localize(
-    cfg: ExperimentConfig, run: Path, map_seq: Sequence, query_seq: Sequence, records: list[PipelineRecord]
+    cfg: ExperimentConfig,
+    run: Path,
+    map_seq: Sequence,
+    query_seq: Sequence,
+    records: list[PipelineRecord],
+    recognizers: Iterable[PlaceRecognizer] | None = None,
 ) -> dict[str, Any]:
-    """Localize-mode metrics (success within ``success_distance``) and outputs."""
+    """Localize-mode metrics (success within ``success_distance``) and outputs; with ``output.evidence`` (and
+    figures) the page gets each pipeline's evidence: queries localised, answered wrongly and not answered
+    (`placerec.experiment.evidence.select_localize_cases`), ``recognizers`` as in `report_loop`."""
     map_poses, query_poses = map_seq.poses, query_seq.poses
     assert map_poses is not None and query_poses is not None  # localize mode checks them before it runs
     write_kitti_poses(run / "map_poses.txt", map_poses)
     write_kitti_poses(run / "query_poses.txt", query_poses)
     success_distance = cfg.evaluation.localize.success_distance
     results: dict[str, Any] = {}
+    all_metrics = []
     for record in records:
         write_candidates(run / f"candidates_{slug(record.label)}.csv", record.query_ids, record.candidates)
         estimates, basis, rule = localize_estimates(record.table(), map_poses)
@@ -439,8 +450,10 @@ def report_localize(
             basis=basis,
             answer_rule=rule,
         )
+        all_metrics.append(metrics)
         summary = metrics.summary()
         summary["time_ms"] = _timing(record)
+        summary["rejections"] = rejection_counts(record.candidates).as_dict()
         results[record.label] = summary
         if cfg.output.figures:
             figures.plot_localization(
@@ -465,7 +478,21 @@ def report_localize(
     notes = pipeline_notes(records)
     if notes:
         payload["notes"] = notes
-    _finish(cfg, run, payload, {}, records)
+    page = None
+    if cfg.output.figures and cfg.output.evidence:
+        from placerec.experiment.evidence import select_localize_cases
+        from placerec.experiment.evidence_figures import CaseScans, draw_evidence
+        from placerec.experiment.tables import evidence_section
+
+        per = cfg.output.evidence_per_gallery
+        cases = [
+            select_localize_cases(r, m, map_poses, query_poses, per)
+            for r, m in zip(records, all_metrics, strict=True)
+        ]
+        recs = None if recognizers is None else list(recognizers)
+        evidence = draw_evidence(cfg, run, records, cases, CaseScans(query_seq, map_seq), recs)
+        page = ("", [evidence_section(ev, mode="localize") for ev in evidence])
+    _finish(cfg, run, payload, {}, records, page=page)
     return payload
 
 

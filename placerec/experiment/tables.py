@@ -325,10 +325,26 @@ def _table_html(header: list[str], rows: list[list[str]]) -> str:
     return f"<table><tr>{head}</tr>{cells}</table>"
 
 
-def evidence_section(evidence: PipelineEvidence, trajectory: str = "") -> str:
+#: the headings of the evidence galleries per mode (`evidence_section`)
+GALLERY_TITLES = {
+    "loop": {
+        "accepted": "Accepted true closures",
+        "false": "False closures (accepted, wrong place)",
+        "missed": "Missed revisits (the best candidate, or with none the revisited scan)",
+    },
+    "localize": {
+        "accepted": "Localised queries (the answer)",
+        "false": "Wrong answers (beyond the success distance)",
+        "missed": "No answer (the best candidate, or with none the nearest map scan)",
+    },
+}
+
+
+def evidence_section(evidence: PipelineEvidence, trajectory: str = "", mode: str = "loop") -> str:
     """A pipeline's part of ``index.html``: why its candidates ended as they did (every candidate, and the top
-    candidate of each query), its interactive ``trajectory`` (HTML), and its galleries of accepted, false and
-    missed closures (`placerec.experiment.evidence`), each figure with its decision under it."""
+    candidate of each query), its interactive ``trajectory`` (HTML), and its galleries (`GALLERY_TITLES` of
+    ``mode``: accepted, false and missed closures, or localised, wrong and unanswered queries;
+    `placerec.experiment.evidence`), each figure with its decision under it."""
     from placerec.experiment.evidence import ACCEPTED, KINDS, REJECTED, UNVERIFIED
     from placerec.types import REJECTIONS
 
@@ -352,11 +368,7 @@ def evidence_section(evidence: PipelineEvidence, trajectory: str = "") -> str:
     body += "<h3>Why candidates ended as they did</h3>"
     body += _table_html(["verification", "all candidates", "top candidate per query"], rows)
     body += trajectory
-    titles = {
-        "accepted": "Accepted true closures",
-        "false": "False closures (accepted, wrong place)",
-        "missed": "Missed revisits (the best candidate, or with none the revisited scan)",
-    }
+    titles = GALLERY_TITLES[mode]
     for kind in KINDS:
         shown = [
             (c, f, n)
@@ -365,7 +377,7 @@ def evidence_section(evidence: PipelineEvidence, trajectory: str = "") -> str:
         ]
         body += f"<h3>{titles[kind]} ({len(shown)} shown)</h3>"
         if not shown:
-            body += '<p class="legend">none at the max-F1 threshold</p>'
+            body += '<p class="legend">none</p>'
         for case, figure, lines in shown:
             caption = f"query {case.query_id}, match {case.match_id}: {case.decision}"
             if lines is not None:
