@@ -217,8 +217,8 @@ class OutputConfig(Params):
     progress: bool = True
     evidence: bool = Field(
         True,
-        description="loop mode: per-closure evidence in the report (galleries, why candidates were rejected);"
-        " needs figures",
+        description="per-closure evidence in the report (galleries, why candidates were rejected); needs"
+        " figures",
     )
     evidence_per_gallery: int = Field(
         4, ge=1, le=100, description="closures shown per gallery (accepted, false, missed) and pipeline"

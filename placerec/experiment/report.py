@@ -24,9 +24,10 @@ Output folder ``<output.dir>/<name>_<timestamp>/`` (and a ``latest`` link beside
 * ``poses.txt`` — the ground-truth poses (KITTI format) the ids index into (localize mode: ``map_poses.txt`` and
   ``query_poses.txt``), so the metrics can be recomputed from the folder alone (`recompute_loop_metrics`);
 * ``pr_curves.png``, ``trajectory_<label>.png`` (or ``localization_<label>.png``), ``timing.png``, ``index.html``;
-* loop mode with ``output.evidence`` (and figures): ``evidence/<label>/<kind>_<query>_<match>.png``, a few
-  accepted, false and missed closures per pipeline (`placerec.experiment.evidence`), shown in ``index.html`` with
-  the rejection counts, and ``plotly.min.js``, which the page's interactive PR curves and trajectories use
+* with ``output.evidence`` (and figures): ``evidence/<label>/<kind>_<query>_<match>.png``, a few accepted, false
+  and missed closures per pipeline (localize mode: queries localised, answered wrongly, not answered;
+  `placerec.experiment.evidence`), shown in ``index.html`` with the rejection counts; in loop mode also
+  ``plotly.min.js``, which the page's interactive PR curves and trajectories use
   (`placerec.experiment.interactive`): the folder opens from disk with no network.
 
 ``latest`` is repointed only once every file of the report is written: a run that fails keeps its folder (for
