@@ -108,6 +108,7 @@ def test_the_pose_error_is_that_of_the_estimate_against_the_truth(constructed):
     accepted = select_cases(record, metrics, gt, POSES, per_gallery=5)[0]
     assert accepted.translation_m == pytest.approx(0.3, abs=1e-9)
     assert accepted.rotation_deg == pytest.approx(2.0, abs=1e-9)
+    assert accepted.distance_m == pytest.approx(0.5)  # query 20 is 0.5 m from scan 0
     # a candidate without a 6-DoF pose has no error (not the true offset)
     assert all(np.isnan(c.translation_m) for c in select_cases(record, metrics, gt, POSES, 5)[1:])
 

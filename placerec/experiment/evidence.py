@@ -40,7 +40,7 @@ __all__ = [
     "select_cases",
     "select_localize_cases",
     "spread",
-    "with_pose_error",
+    "with_truth",
 ]
 
 #: the galleries of a pipeline, in the order the report shows them
@@ -58,9 +58,9 @@ class EvidenceCase:
     """One closure of a gallery: ``kind`` (one of `KINDS`), the ``query_id`` and the ``match_id`` shown,
     ``rank`` of the candidate shown among the query's (0 = top; -1 when the query had no candidate and the
     revisited scan is shown), the ``candidate`` (None then), ``decision`` (`decision_text`), whether the match
-    shown is the right place (``correct``, by the ground truth the metrics use) and the pose error
-    of the candidate's relative pose against the ground truth (``translation_m``, ``rotation_deg``; NaN without
-    a 6-DoF estimate)."""
+    shown is the right place (``correct``, by the ground truth the metrics use), and by the ground truth poses
+    (`with_truth`) the distance between the two scans (``distance_m``) and the pose error of the candidate's
+    relative pose (``translation_m``, ``rotation_deg``; NaN without a 6-DoF estimate)."""
 
     kind: str
     query_id: int
@@ -71,6 +71,7 @@ class EvidenceCase:
     correct: bool
     translation_m: float = float("nan")
     rotation_deg: float = float("nan")
+    distance_m: float = float("nan")
 
     @property
     def T_match_query(self) -> np.ndarray | None:
@@ -141,17 +142,19 @@ def spread(rows: np.ndarray, n: int) -> np.ndarray:
     return rows[np.unique(np.round(np.linspace(0, rows.size - 1, n)).astype(np.int64))]
 
 
-def with_pose_error(
+def with_truth(
     case: EvidenceCase, match_poses: np.ndarray, query_poses: np.ndarray | None = None
 ) -> EvidenceCase:
-    """``case`` with the error of its candidate's relative pose against the truth: the ``T_world_sensor`` its
-    match id indexes in ``match_poses`` and its query id in ``query_poses`` (default: the same poses, loop mode);
-    unchanged without a 6-DoF estimate (`placerec.eval.full_pose_mask`)."""
+    """``case`` with what the ground truth says of it: the distance between its scans and the error of its
+    candidate's relative pose (when a 6-DoF estimate, `placerec.eval.full_pose_mask`). Its match id indexes the
+    ``T_world_sensor`` of ``match_poses``, its query id those of ``query_poses`` (default: the same, loop mode)."""
+    queries = match_poses if query_poses is None else query_poses
+    truth = relative_pose(match_poses[case.match_id], queries[case.query_id])
+    case = replace(case, distance_m=float(np.linalg.norm(truth[:3, 3])))
     rel = case.T_match_query
     if rel is None or not full_pose_mask(rel)[0]:
         return case
-    queries = match_poses if query_poses is None else query_poses
-    t, r = pose_errors(rel, relative_pose(match_poses[case.match_id], queries[case.query_id]))
+    t, r = pose_errors(rel, truth)
     return replace(case, translation_m=float(t[0]), rotation_deg=float(r[0]))
 
 
@@ -193,7 +196,7 @@ def select_cases(
                 continue  # a revisit always has an eligible scan; nothing to show otherwise
             correct = cand is None or bool(right[rank])
             case = EvidenceCase(kind, q, m, rank, cand, decision_text(cand, threshold), correct)
-            cases.append(with_pose_error(case, poses))
+            cases.append(with_truth(case, poses))
     return cases
 
 
@@ -236,5 +239,5 @@ def select_localize_cases(
             m = int(np.argmin(to_map)) if cand is None else int(cand.match_id)
             correct = bool(to_map[m] <= metrics.success_distance)
             case = EvidenceCase(kind, q, m, rank, cand, decision_text(cand, -np.inf), correct)
-            cases.append(with_pose_error(case, map_poses, query_poses))
+            cases.append(with_truth(case, map_poses, query_poses))
     return cases

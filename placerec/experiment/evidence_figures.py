@@ -29,7 +29,7 @@ from placerec.experiment.evidence import (
     RejectionCounts,
     decision_text,
     rejection_counts,
-    with_pose_error,
+    with_truth,
 )
 from placerec.experiment.figures import _pyplot
 from placerec.experiment.preprocessing import preprocessed_scan
@@ -214,6 +214,8 @@ def _facts(case: EvidenceCase, pose_source: str) -> list[str]:
         f"right place: {'yes' if case.correct else 'no'} (ground truth)",
         f"decision: {case.decision}",
     ]
+    if np.isfinite(case.distance_m):
+        lines.insert(2, f"scans {case.distance_m:.1f} m apart (ground truth)")
     if c is None:
         return [*lines, "no candidate: the revisited scan,", "posed by the ground truth"]
     lines.append(f"rank {case.rank + 1}  score {c.score:.4g}")
@@ -368,7 +370,7 @@ def draw_pair(
     rank = -1 if candidate is None else 0
     case = EvidenceCase(kind, q, m, rank, candidate, decision_text(candidate, threshold), correct)
     if T_match_query_truth is not None:
-        case = with_pose_error(case, match_poses, query_poses)
+        case = with_truth(case, match_poses, query_poses)
     shown = _Shown()
     lines = _draws_lines(rec, case)
     shown.add((0, q), scan_query, [(rec, lines)])
