@@ -1,4 +1,5 @@
-"""The evidence figures of a run: one PNG per closure `placerec.experiment.evidence.select_cases` picked.
+"""The evidence figures of a run: one PNG per case `placerec.experiment.evidence.select_cases` (loop mode) or
+`select_localize_cases` (localize mode) picked.
 
 Each figure holds the query's and the match's intensity images, one above the other, with the correspondences
 the verification was given (`placerec.types.Candidate.matches`) as lines: its inliers
@@ -10,8 +11,8 @@ indices index their description's ``keypoints``; the others get the images (`pla
 default parameters) without lines.
 
 The scans are read again after the run (the sequence is random access), each once for all pipelines, and
-described again by the pipelines that draw lines (descriptions are deterministic); a figure costs about a
-tenth of a second (docs/evaluation.md).
+described again by the pipelines that draw lines (descriptions are deterministic); a figure costs 0.1 to 0.2 s
+(docs/evaluation.md).
 """
 
 from __future__ import annotations
