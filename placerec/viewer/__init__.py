@@ -39,11 +39,14 @@ _active: contextvars.ContextVar[Recorder | None] = contextvars.ContextVar("place
 @dataclass(frozen=True)
 class ViewerTarget:
     """Where a recording goes: a spawned Rerun viewer (``spawn``), an ``.rrd`` file (``rrd``), or both.
-    ``max_points``: points per logged cloud (a scan is subsampled evenly to at most this many)."""
+    ``max_points``: points per logged scan (subsampled evenly to at most this many). ``every_candidate``: the
+    image pair and the aligned clouds of every candidate, not only of each query's best and accepted ones (about
+    twice the recording's cost with visual pipelines verifying their top 5; docs/viewer.md)."""
 
     spawn: bool = False
     rrd: Path | None = None
     max_points: int = 5000
+    every_candidate: bool = False
 
     @property
     def enabled(self) -> bool:

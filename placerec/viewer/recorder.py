@@ -33,6 +33,8 @@ INJECTED = (200, 60, 220)
 MATCH_CLOUD, QUERY_CLOUD = (150, 150, 150), (255, 140, 0)
 #: viridis at 5 stops: the scan's intensity colours
 _STOPS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], np.float32)
+#: the .rrd file gets what Rerun has encoded every this many scans (fewer, larger copies)
+_DRAIN_EVERY = 8
 #: a time stamp above this (s) is a date (Unix time), below it a time since the sequence's start
 _EPOCH_S = 1e8
 
@@ -161,6 +163,8 @@ class Recorder:
     ) -> None:
         self.rr = stream
         self.max_points = max_points
+        #: the pair and alignment of every candidate, not only of the best and the accepted ones
+        self.every_candidate = False
         self._drain = sink
         self.index = -1
         #: where candidates' match ids point: ``scan`` (the run's own scans) or ``map`` (`remember`-ed scans)
@@ -170,6 +174,7 @@ class Recorder:
         self._clouds: dict[tuple[str, int], np.ndarray] = {}
         self._positions: dict[tuple[str, int], np.ndarray] = {}
         self._images: dict[tuple[str, str, int], bytes] = {}  # (image key, space, index) -> its JPEG
+        self._current: dict[str, np.ndarray] = {}  # image key -> the current scan's image (decoded once)
         self._image_keys: dict[str, str] = {}  # image key -> its entity path
         self._keypoints: dict[tuple[str, str, int], np.ndarray] = {}  # (pipeline, space, index) -> (K, 2)
         self._pipeline_image: dict[str, str] = {}  # pipeline -> its image key
@@ -205,6 +210,7 @@ class Recorder:
                 sinks.append(rr.GrpcSink())
             stream.set_sinks(*sinks)
             rec = cls(stream, target.max_points, sink)
+            rec.every_candidate = target.every_candidate
             rec._layout()
             yield rec
             rec._finish()
@@ -231,9 +237,10 @@ class Recorder:
     def scan(self, index: int, scan: Scan, pose: np.ndarray | None, timestamp: float | None = None) -> None:
         """Start scan ``index`` (the timelines) and log it at ``world/scan``: its points (at most ``max_points``,
         coloured by intensity) in the sensor frame, placed at ``pose`` (T_world_sensor; None: the origin)."""
-        if self._drain is not None:
+        if self._drain is not None and index % _DRAIN_EVERY == 0:
             self._drain(False)
         self.index = index
+        self._current.clear()
         self.rr.set_time("scan", sequence=index)
         if timestamp is not None and np.isfinite(timestamp):
             if timestamp > _EPOCH_S:
@@ -292,8 +299,11 @@ class Recorder:
 
         key = rec.params.image.model_dump_json()
         if (key, space, index) not in self._images:
-            jpeg = _jpeg(make_image(scan, rec.params.image).image)
+            image = make_image(scan, rec.params.image).image
+            jpeg = _jpeg(image)
             self._images[(key, space, index)] = jpeg
+            if space == "scan":
+                self._current[key] = image
             path = self._image_keys.setdefault(
                 key, "scan/image" if not self._image_keys else f"scan/image_{len(self._image_keys)}"
             )
@@ -307,10 +317,10 @@ class Recorder:
         self, label: str, cands: list[Candidate], threshold: float | None = None, edges: bool = True
     ) -> str | None:
         """Pipeline ``label``'s candidates for the current scan at ``pipelines/<label>/candidates/<rank>``: the
-        verification's numbers (``verification``, text), the matched image pair with the correspondences
-        (``pair``; inliers green, the others red) and, for the best candidate and every accepted one, the match's
-        cloud and the query's moved onto it by the candidate's pose (``alignment/match``, ``alignment/query``,
-        half the points of ``world/scan`` each); what a rank showed for an earlier query and does not show for
+        verification's numbers (``verification``, text) and, for the best candidate and every accepted one (every
+        candidate with ``every_candidate``), the matched image pair with the correspondences (``pair``; inliers
+        green, the others red) and the match's cloud with the query's moved onto it by the candidate's pose
+        (``alignment/match``, ``alignment/query``, half the points of ``world/scan`` each); what a rank showed for an earlier query and does not show for
         this one is cleared. The top candidate's numbers as scalars
         (``pipelines/<label>/top1/...``); its loop edge (`closure_kind`) added to ``world/loops/<label>/...``.
         Ranks left from a longer list of the previous query are cleared. Returns the edge's kind (not drawn
@@ -323,10 +333,9 @@ class Recorder:
             self.rr.log(
                 f"{path}/verification", rr.TextDocument(candidate_text(c, rank), media_type="text/markdown")
             )
-            self._show(f"{path}/pair", self._pair(label, path, c, query))
-            self._show(
-                f"{path}/alignment", (rank == 0 or bool(c.accepted)) and self._alignment(path, c, query)
-            )
+            shown = rank == 0 or bool(c.accepted) or self.every_candidate
+            self._show(f"{path}/pair", shown and self._pair(label, path, c, query))
+            self._show(f"{path}/alignment", shown and self._alignment(path, c, query))
         for rank in range(len(cands), self._ranks.get(label, 0)):
             self.rr.log(f"{base}/{rank}", rr.Clear(recursive=True))
             self._shown -= {f"{base}/{rank}/pair", f"{base}/{rank}/alignment"}
@@ -361,7 +370,8 @@ class Recorder:
         kq, km = self._keypoints.get((label, "scan", query)), self._keypoints.get((label, ms, c.match_id))
         if q_jpeg is None or m_jpeg is None or kq is None or km is None:
             return False
-        q_img = _unjpeg(q_jpeg)
+        q_img = self._current.get(key) if query == self.index else None
+        q_img = _unjpeg(q_jpeg) if q_img is None else q_img
         self.rr.log(f"{path}/pair", _encoded(_jpeg(_stacked(q_img, _unjpeg(m_jpeg)))))
         m = np.asarray(c.matches, np.int64).reshape(-1, 2)
         a, b = kq[m[:, 0]], km[m[:, 1]] + np.array([0, q_img.shape[0]], np.float32)
