@@ -356,3 +356,27 @@ def test_growing_entities_are_logged_a_linear_number_of_items():
         logs < 150 and items_logged < 25 * 5000
     )  # every addition logged again would be 5000 logs, 12.5M items
     assert len(g.items) - g.logged <= g.logged // 20  # what the end of the recording still has to log
+
+
+def test_placerec_localize_logs_its_fixes_on_the_map(tmp_path):
+    import csv
+
+    runner = CliRunner()
+    build = ["map", "build", "--sim-world", "town", "--sim-sensor", "vlp16", "--sim-scans", "20"]
+    result = runner.invoke(app, [*build, "--pipeline", "scan-context", "--out", str(tmp_path / "map")])
+    assert result.exit_code == 0, result.output
+    sim = ["simulate", "--preset", "town", "--sensor", "vlp16", "--scans", "5", "--seed", "0"]
+    assert runner.invoke(app, [*sim, "--out", str(tmp_path / "seq")]).exit_code == 0
+    rrd = tmp_path / "loc.rrd"
+    args = ["localize", str(tmp_path / "map"), str(tmp_path / "seq"), "--out", str(tmp_path / "out")]
+    result = runner.invoke(app, [*args, "--rrd", str(rrd)])
+    assert result.exit_code == 0, result.output
+    with open(tmp_path / "out" / "fixes.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    rec = read_rrd(rrd)
+    assert len(rec["/world/map/keyframes"][0][1]["Points3D:positions"]) == 20
+    assert [t for t, _ in _with(rec["/world/scan"], "Points3D:positions")] == list(range(len(rows)))
+    assert len(_with(rec["/localize/localizer"], "TextDocument:text")) == len(rows)
+    fixed = [[float(r[k]) for k in "xyz"] for r in rows if r["accepted"] == "1"]
+    assert fixed
+    np.testing.assert_allclose(rec["/world/fixes/localizer"][-1][1]["Points3D:positions"], fixed, atol=1e-4)
