@@ -130,8 +130,6 @@ def localize_sequence(
             viewer.trajectory("gt", truth, static=True)
     for i in range(n):
         scan = seq[i]
-        if viewer is not None:
-            viewer.scan(i, scan, None if truth is None else truth[i], None if stamps is None else stamps[i])
         if odo is None:
             fix = loc.track(scan) if mode == "tracking" else loc.localize(scan)
         else:
@@ -141,14 +139,16 @@ def localize_sequence(
             fix = loc.track(scan, pose)
             fix = _with_odometry_time(fix, odo_ms)
         fixes.append(fix)
-        if viewer is not None:
-            viewer.fix("localizer", fix.T_world_query, fix_text(fix), fix.accepted)
+        if viewer is not None:  # the scan at its true pose, else at its fix (else at the origin)
+            at = fix.T_world_query if truth is None else truth[i]
+            viewer.scan(i, scan, at, None if stamps is None else stamps[i])
+            viewer.fix("localizer", fix.T_world_query, _fix_text(fix), fix.accepted)
         if progress is not None:
             progress(i + 1, n)
     return LocalizeRun(seq.name, loc.map, fixes, stamps, truth, mode, odometry, params)
 
 
-def fix_text(fix: Fix) -> str:
+def _fix_text(fix: Fix) -> str:
     """A fix in words (the recording's ``localize/localizer``): mode, reason, keyframe, score, fitness, time."""
     head = "**fixed**" if fix.accepted else "**no fix**"
     return (

@@ -265,14 +265,13 @@ def slam_sequence(
             desc: Description | None = None
             describe_ms: dict[str, float] = {}
             if viewer is not None:
-                viewer.scan(i, scan, odo[i], stamp)
                 desc, describe_ms = _described(rec, scan)
             added = slam.process(scan, odo[i], stamp, description=desc, extra_loops=injected.get(i))
-            if viewer is not None:
-                _log_slam_step(viewer, label, slam, rec, scan, desc, added, odo[: i + 1], i, n)
             cpu = (time.process_time() - c1) * 1e3
+            if viewer is not None:  # after the times: they are the run's, not the recording's
+                viewer.scan(i, scan, odo[i], stamp)
+                _log_slam_step(viewer, label, slam, rec, scan, desc, added, odo[: i + 1], i, n)
             if map_writer is not None:
-                stamp = None if stamps is None else float(stamps[i])
                 map_writer.add_keyframe(odo[i], scan.xyz[valid_points(scan)], stamp, scan_index=i)
             queried.append(slam.detector.last_max_id >= 0)
             stages = dict(slam.last_timing_ms, **describe_ms, odometry=(t1 - t0) * 1e3, preprocess=(t2 - t1) * 1e3,
