@@ -341,8 +341,8 @@ def _log_slam_step(
 ) -> None:
     """One scan of the online loop in the recording: the front end's findings, the queries completed (their
     candidates; the best one's rejection as a ``rejected`` edge), the loops the graph took (``accepted``, or
-    ``injected`` for `false_loops`) and, every ``n // 200`` scans and at the last, the odometry and the online
-    estimate so far."""
+    ``injected`` for `false_loops`) and, every ``n // 50`` scans and at the last, the odometry and the online
+    estimate so far (each is logged whole: at every scan the file would grow with the square of the scans)."""
     if desc is not None:
         viewer.description(label, rec, scan, desc)
     for done in slam.detector.last_completed:
@@ -351,7 +351,7 @@ def _log_slam_step(
             viewer.edge(label, "rejected", done.candidates[0].match_id, done.candidates[0].query_id)
     for loop in added:
         viewer.edge(label, "injected" if loop.injected else "accepted", loop.match_id, loop.query_id)
-    if i % max(1, n // 200) == 0 or i == n - 1:
+    if i % max(1, n // 50) == 0 or i == n - 1:
         viewer.trajectory("odometry", odometry)
         viewer.trajectory("online", slam.poses())
 
