@@ -362,3 +362,23 @@ def _localize_page_shows(record, map_poses, query_poses, tmp_path):
     page = (run / "index.html").read_text()
     assert "Localised queries (the answer) (1 shown)" in page and "No answer" in page
     assert payload["pipelines"]["p"]["rejections"]["top"] == {"accepted": 2, "ransac": 1}
+
+
+def test_the_interactive_trajectory_names_each_closure_and_why_a_revisit_was_missed(constructed):
+    from placerec.experiment.interactive import trajectory_html
+
+    record, metrics, _ = constructed
+    html = trajectory_html(POSES[:, :3, 3], metrics, record.candidates, 0.9, "p", "trajectory-p")
+    assert 'id="trajectory-p"' in html and "<script" in html and "cdn" not in html.lower()
+    html = html.replace("\\u003c", "<").replace("\\u003e", ">")  # the figure's JSON escapes them
+    for text in (
+        "true closure (1)",
+        "false closure (1)",
+        "missed revisit (3)",
+        "query 20 -> match 0",
+        "query 21 -> match 15",
+        "query 22: missed revisit<br>top candidate: match 16, score 0<br>rejected: too few RANSAC inliers",
+        "query 23: missed revisit<br>no candidate",
+        "query 24: missed revisit<br>top candidate: match 4, score 0.1<br>below threshold (0.1 < 0.9)",
+    ):
+        assert text in html, text
