@@ -76,6 +76,18 @@ def run(tmp_path_factory):
     return root / "results" / "latest", read_rrd(rrd)
 
 
+def test_the_recording_passes_rerun_rrd_verify(run):
+    from placerec.viewer import viewer_executable
+
+    exe = viewer_executable()
+    if exe is None:
+        pytest.skip("rerun-sdk's command line is not installed")
+    rrd = run[0].parent.parent / "tiny.rrd"
+    p = subprocess.run([str(exe), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert [f.name for f in rrd.parent.iterdir() if f.name.startswith(".")] == []  # no temporary folder left
+
+
 def test_every_scan_is_logged_once(run):
     folder, rec = run
     n = len(read_candidates(folder / "candidates_orb-hbst.csv").query_ids)
@@ -380,3 +392,13 @@ def test_placerec_localize_logs_its_fixes_on_the_map(tmp_path):
     fixed = [[float(r[k]) for k in "xyz"] for r in rows if r["accepted"] == "1"]
     assert fixed
     np.testing.assert_allclose(rec["/world/fixes/localizer"][-1][1]["Points3D:positions"], fixed, atol=1e-4)
+
+
+def test_a_run_that_fails_leaves_no_recording(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(TINY_RUN.replace("name: orb-hbst", "name: no-such-pipeline"))
+    (tmp_path / "rec").mkdir()
+    rrd = tmp_path / "rec" / "x.rrd"
+    result = CliRunner().invoke(app, ["run", str(cfg), "--out", str(tmp_path / "o"), "--rrd", str(rrd)])
+    assert result.exit_code == 2 and "no-such-pipeline" in result.output, result.output
+    assert list((tmp_path / "rec").iterdir()) == []  # neither the file nor the temporary folder

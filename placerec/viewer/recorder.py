@@ -10,9 +10,12 @@ This module imports ``rerun`` at its top: only `placerec.viewer.recorder` (asked
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
-from typing import IO, TYPE_CHECKING, Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import rerun as rr
@@ -33,8 +36,6 @@ INJECTED = (200, 60, 220)
 MATCH_CLOUD, QUERY_CLOUD = (150, 150, 150), (255, 140, 0)
 #: viridis at 5 stops: the scan's intensity colours
 _STOPS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], np.float32)
-#: the .rrd file gets what Rerun has encoded every this many scans (fewer, larger copies)
-_DRAIN_EVERY = 8
 #: a time stamp above this (s) is a date (Unix time), below it a time since the sequence's start
 _EPOCH_S = 1e8
 
@@ -158,14 +159,11 @@ class _Growing:
 class Recorder:
     """Logs a run's events to one Rerun recording (module docstring); made by `placerec.viewer.recorder`."""
 
-    def __init__(
-        self, stream: rr.RecordingStream, max_points: int, sink: Callable[[bool], None] | None
-    ) -> None:
+    def __init__(self, stream: rr.RecordingStream, max_points: int) -> None:
         self.rr = stream
         self.max_points = max_points
         #: the pair and alignment of every candidate, not only of the best and the accepted ones
         self.every_candidate = False
-        self._drain = sink
         self.index = -1
         #: where candidates' match ids point: ``scan`` (the run's own scans) or ``map`` (`remember`-ed scans)
         self.matches_in = "scan"
@@ -187,37 +185,37 @@ class Recorder:
     @classmethod
     @contextmanager
     def open(cls, target: ViewerTarget, name: str) -> Iterator[Recorder]:
-        """A recorder streaming to ``target``'s viewer and / or ``.rrd`` file (written through `atomic_write`:
-        the bytes encoded so far are copied into it at every scan, the file put in place when the block ends)."""
+        """A recorder streaming to ``target``'s viewer and / or ``.rrd`` file. Rerun's file sink writes into a
+        temporary folder beside the file (the pieces its in-memory stream hands out one by one do not make one
+        valid ``.rrd``: `rerun rrd verify` refuses their concatenation); when the block ends the recording is
+        copied into place with `atomic_write`, and when it raises nothing is left."""
         stream = rr.RecordingStream("placerec")
         stream.send_recording_name(name)
         with ExitStack() as stack:
-            sink: Callable[[bool], None] | None = None
             sinks: list[Any] = []
+            part = None
             if target.rrd is not None:
-                fh: IO[bytes] = stack.enter_context(atomic_write(target.rrd))
-                binary = rr.binary_stream(recording=stream)
-                sinks.append(binary)
-
-                def sink(flush: bool) -> None:
-                    """Copy what Rerun has encoded into the file (``flush``: all of it, waiting for the encoder)."""
-                    data = binary.read(flush=flush)
-                    if data:
-                        fh.write(data)
-
+                final = Path(target.rrd).expanduser()
+                folder = stack.enter_context(
+                    tempfile.TemporaryDirectory(prefix=f".{final.name}.", dir=final.parent)
+                )
+                part = Path(folder) / final.name
+                sinks.append(rr.FileSink(str(part)))
             if target.spawn:
                 _spawn(stream)
                 sinks.append(rr.GrpcSink())
             stream.set_sinks(*sinks)
-            rec = cls(stream, target.max_points, sink)
+            stack.callback(stream.disconnect)  # the file closed before its folder goes, also on an error
+            rec = cls(stream, target.max_points)
             rec.every_candidate = target.every_candidate
             rec._layout()
             yield rec
             rec._finish()
             stream.flush()
-            if sink is not None:
-                sink(True)
             stream.disconnect()
+            if part is not None:
+                with open(part, "rb") as src, atomic_write(final) as dst:
+                    shutil.copyfileobj(src, dst, 1 << 20)
 
     def _layout(self) -> None:
         """Static axes: the world is z up."""
@@ -237,8 +235,6 @@ class Recorder:
     def scan(self, index: int, scan: Scan, pose: np.ndarray | None, timestamp: float | None = None) -> None:
         """Start scan ``index`` (the timelines) and log it at ``world/scan``: its points (at most ``max_points``,
         coloured by intensity) in the sensor frame, placed at ``pose`` (T_world_sensor; None: the origin)."""
-        if self._drain is not None and index % _DRAIN_EVERY == 0:
-            self._drain(False)
         self.index = index
         self._current.clear()
         self.rr.set_time("scan", sequence=index)
