@@ -4,7 +4,7 @@
 #   bash tools/bootstrap.sh test   # the test suite
 # It creates ./.venv (Python >= 3.10, 3.11 preferred), installs placerec with the extras the job needs and the
 # system library open3d needs (libusb-1.0-0: installed with apt-get when run as root, else the command is printed);
-# the test job also installs the viewer extra and Debian's chromium (the report's browser tests).
+# the test job also installs the viewer and browser extras and Debian's chromium (the report's browser tests).
 # Re-running is cheap: the install is skipped while pyproject.toml is unchanged.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -48,8 +48,9 @@ fi
 
 # 3. packages (skipped when pyproject.toml is unchanged since the last successful install)
 extras="dev,ouster,ros,dask,slam,superpoint"
-# the tests read Rerun recordings back; the demo does not need the viewer's 170 MB wheel
-if [ "$job" = test ]; then extras="$extras,viewer"; fi
+# the tests read Rerun recordings back and open reports in a browser; the demo needs neither (the viewer is a
+# 170 MB wheel)
+if [ "$job" = test ]; then extras="$extras,viewer,browser"; fi
 stamp=".venv/.placerec-installed"
 want="$(sha256sum pyproject.toml | cut -d' ' -f1) $extras"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then

@@ -126,33 +126,6 @@ def fig_sensors(out: Path, seed: int) -> dict:
     return stats
 
 
-def fig_revisit(out: Path, seed: int) -> dict:
-    seq = SimulatedSequence("town", "os1-64", seed=seed)
-    res = {}
-    fig, axes = plt.subplots(4, 1, figsize=(16, 8))
-    for k, kind in enumerate(("same", "opposite")):
-        r = max((x for x in seq.revisits if x.kind == kind), key=lambda x: x.stop - x.start)
-        i = (r.start + r.stop) // 2
-        xy = seq.poses[:, :2, 3]
-        j = r.ref_start + int(np.argmin(np.linalg.norm(xy[r.ref_start : r.ref_stop] - xy[i], axis=1)))
-        a, b = ring_image(seq[j]), ring_image(seq[i])
-        axes[2 * k].imshow(show(a), cmap="gray", aspect="auto", interpolation="nearest")
-        axes[2 * k + 1].imshow(show(b), cmap="gray", aspect="auto", interpolation="nearest")
-        d = float(np.linalg.norm(xy[i] - xy[j]))
-        axes[2 * k].set_title(f"scan {j} (first visit)", fontsize=9)
-        axes[2 * k + 1].set_title(
-            f"scan {i}: {kind}-direction revisit, {d:.1f} m away, {seq.timestamps[i] - seq.timestamps[j]:.0f} s later",
-            fontsize=9,
-        )
-        res[kind] = {"i": i, "j": j, "distance_m": round(d, 2)}
-    for ax in axes:
-        ax.set_yticks([])
-    fig.tight_layout()
-    fig.savefig(out / "sim_revisit_pair.png", dpi=90)
-    plt.close(fig)
-    return res
-
-
 def fig_hdl64(out: Path, seed: int, real: Path | None) -> dict:
     seq = SimulatedSequence("town", "hdl64", seed=seed)
     scan = seq[25]
@@ -370,7 +343,6 @@ def main() -> None:
     real = args.real if args.real.is_dir() else None
     numbers = {
         "sensors": fig_sensors(args.out, args.seed),
-        "revisits": fig_revisit(args.out, args.seed),
         "hdl64": fig_hdl64(args.out, args.seed, real),
         "route": fig_route(args.out, args.seed),
     }

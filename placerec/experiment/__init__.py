@@ -49,11 +49,14 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path | None = None) -> 
         run = make_run_dir(cfg, out_dir)
         with interruptible(run, labels):
             seq, records = run_loop(cfg, None, pipelines, on_scan=truth, opened=opened)
-            payload = report_loop(cfg, run, seq, records, truth)
+            recognizers = [rec for _, rec in pipelines]  # their front ends draw the evidence
+            payload = report_loop(cfg, run, seq, records, truth, recognizers=recognizers)
     else:
         localize_sequences(cfg)
         run = make_run_dir(cfg, out_dir)
         with interruptible(run, labels):
             map_seq, query_seq, records = run_localize(cfg, None, pipelines)
-            payload = report_localize(cfg, run, map_seq, query_seq, records)
+            payload = report_localize(
+                cfg, run, map_seq, query_seq, records, recognizers=[rec for _, rec in pipelines]
+            )
     return run, payload
