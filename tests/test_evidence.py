@@ -382,3 +382,33 @@ def test_the_interactive_trajectory_names_each_closure_and_why_a_revisit_was_mis
         "query 24: missed revisit<br>top candidate: match 4, score 0.1<br>below threshold (0.1 < 0.9)",
     ):
         assert text in html, text
+
+
+def test_the_run_exports_each_pipelines_closures_as_mcap(tiny_run):
+    """closures_<label>.mcap holds each query's top candidate; the accepted edges are the report's closures at
+    max F1 (true + false), the others say why they were not accepted."""
+    from mcap.reader import make_reader
+
+    from placerec.types import REJECTIONS
+
+    run, payload, records = tiny_run
+    for record in records:
+        with (run / f"closures_{record.label}.mcap").open("rb") as fh:
+            loops = [
+                json.loads(msg.data)
+                for _, ch, msg in make_reader(fh).iter_messages()
+                if ch.topic == "/placerec/loop_closures"
+            ]
+        tops = {q: c[0] for q, c in zip(record.query_ids, record.candidates, strict=True) if c}
+        assert [lp["query_index"] for lp in loops] == sorted(tops)
+        for lp in loops:
+            top = tops[lp["query_index"]]
+            assert lp["match_index"] == top.match_id
+            assert lp["accepted"] == (lp["rejection"] is None)
+            if top.accepted is False:
+                assert not lp["accepted"] and lp["rejection"] in REJECTIONS
+        summary = payload["pipelines"][record.label]
+        threshold = summary["threshold_at_max_f1"]
+        n_accepted = sum(lp["accepted"] for lp in loops)
+        expected = sum(1 for c in tops.values() if c.score >= threshold and c.accepted is not False)
+        assert n_accepted == expected > 0

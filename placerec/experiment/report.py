@@ -73,6 +73,7 @@ from placerec.experiment.tables import lookup, write_index_html
 from placerec.experiment.truth import TruthClouds
 from placerec.io import read_poses, write_kitti_poses
 from placerec.io.atomic import atomic_write
+from placerec.io.mcap_export import LoopEdge, write_closures_mcap
 from placerec.types import PlaceRecognizer, Sequence
 
 __all__ = [
@@ -357,12 +358,18 @@ def report_loop(
             "max_f1": metrics.max_f1,
             "best": (metrics.recall_at_max_f1, metrics.precision_at_max_f1),
         }
+        accepted = (
+            metrics.outcomes_at(metrics.threshold_at_max_f1)["accepted"]
+            if metrics.n_candidates
+            else np.zeros(q.size, bool)
+        )
+        write_closures_mcap(
+            run / f"closures_{slug(record.label)}.mcap",
+            poses,
+            loop_edges(record, accepted, metrics.threshold_at_max_f1),
+            timestamps=seq.timestamps,
+        )
         if cfg.output.figures:
-            accepted = (
-                metrics.outcomes_at(metrics.threshold_at_max_f1)["accepted"]
-                if metrics.n_candidates
-                else np.zeros(q.size, bool)
-            )
             figures.plot_trajectory_closures(
                 poses[:, :3, 3],
                 q,
@@ -388,6 +395,24 @@ def report_loop(
         page = _evidence_page(cfg, run, seq, records, all_metrics, curves, recognizers)
     _finish(cfg, run, payload, curves, records, link_latest, page)
     return payload
+
+
+def loop_edges(record: PipelineRecord, accepted: np.ndarray, threshold: float) -> list[LoopEdge]:
+    """Each query's top candidate as a `LoopEdge` for ``closures_<label>.mcap``: accepted where ``accepted`` (the
+    query's answer at ``threshold``, aligned with ``record.query_ids``) holds and verification did not reject it;
+    a rejected one names verification's reason, or ``threshold`` for a score below it."""
+    edges = []
+    for q, ok, cands in zip(record.query_ids, accepted, record.candidates, strict=True):
+        if not cands:
+            continue
+        c = cands[0]
+        v = c.verification
+        if c.accepted is False:
+            why = (v.rejection if v is not None else None) or "rejected"
+        else:
+            why = None if ok else "threshold"
+        edges.append(LoopEdge(q, c.match_id, c.score, c.relative_pose, c.inliers, why is None, why))
+    return edges
 
 
 def _evidence_page(
