@@ -251,8 +251,11 @@ class Recorder:
     def remember(self, space: str, index: int, scan: Scan, pose: np.ndarray | None) -> np.ndarray:
         """Keep scan ``index`` of ``space`` (every other point of its subsampled cloud, its position) for the
         candidates that will match it, without logging it (a map's scans, ``space`` ``map``); returns the indices
-        of the subsampled points (at most ``max_points``)."""
-        ok = np.flatnonzero(valid_points(scan, intensity=True))
+        of the subsampled points (at most ``max_points``, fewer when over half the scan's points are not valid)."""
+        # twice the points wanted, evenly spread, then the valid ones among them (testing every point of a large
+        # scan costs more than the rest of logging it)
+        pre = _subsample(len(scan), 2 * self.max_points)
+        ok = pre[valid_points(scan.select(pre), intensity=True)]
         keep = ok[_subsample(ok.size, self.max_points)]
         self._clouds[(space, index)] = scan.xyz[keep[::2]]
         T = np.eye(4) if pose is None else np.asarray(pose, np.float64)
