@@ -45,7 +45,7 @@ class ViewerTarget:
 
     spawn: bool = False
     rrd: Path | None = None
-    max_points: int = 5000
+    max_points: int = 4000
     every_candidate: bool = False
 
     @property
