@@ -25,7 +25,7 @@ from placerec.types import REJECTIONS, Candidate, Description, PlaceRecognizer, 
 
 if TYPE_CHECKING:
     from placerec.pipelines.probabilistic_voting import PosteriorStep
-    from placerec.viewer import ViewerTarget
+    from placerec.viewer.target import ViewerTarget
 
 __all__ = ["Recorder", "closure_kind", "candidate_text"]
 
@@ -129,7 +129,7 @@ def _spawn(stream: rr.RecordingStream) -> None:
     found beside Python is put on PATH for the start only)."""
     import os
 
-    from placerec.viewer import viewer_executable
+    from placerec.viewer.target import viewer_executable
 
     exe = viewer_executable()
     old = os.environ.get("PATH", "")
@@ -157,13 +157,14 @@ class _Growing:
 
 
 class Recorder:
-    """Logs a run's events to one Rerun recording (module docstring); made by `placerec.viewer.recorder`."""
+    """Logs a run's events to one Rerun recording (module docstring); made by `placerec.viewer.recording`.
+    ``max_points``, ``every_candidate``: `placerec.viewer.ViewerTarget`'s."""
 
-    def __init__(self, stream: rr.RecordingStream, max_points: int) -> None:
+    def __init__(self, stream: rr.RecordingStream, max_points: int, every_candidate: bool = False) -> None:
         self.rr = stream
         self.max_points = max_points
         #: the pair and alignment of every candidate, not only of the best and the accepted ones
-        self.every_candidate = False
+        self.every_candidate = every_candidate
         self.index = -1
         #: where candidates' match ids point: ``scan`` (the run's own scans) or ``map`` (`remember`-ed scans)
         self.matches_in = "scan"
@@ -206,8 +207,7 @@ class Recorder:
                 sinks.append(rr.GrpcSink())
             stream.set_sinks(*sinks)
             stack.callback(stream.disconnect)  # the file closed before its folder goes, also on an error
-            rec = cls(stream, target.max_points)
-            rec.every_candidate = target.every_candidate
+            rec = cls(stream, target.max_points, target.every_candidate)
             rec._layout()
             yield rec
             rec._finish()
