@@ -91,6 +91,11 @@ def _subsample(n: int, most: int) -> np.ndarray:
     return np.arange(n) if n <= most else np.linspace(0, n - 1, most).astype(np.int64)
 
 
+def _part(label: str) -> str:
+    """A pipeline's label as one part of an entity path (``/``, ``:``, spaces escaped as Rerun wants them)."""
+    return str(rr.escape_entity_path_part(label))
+
+
 def _moved(xyz: np.ndarray, T: np.ndarray) -> np.ndarray:
     return xyz @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
 
@@ -288,9 +293,9 @@ class Recorder:
             self._pipeline_image[label] = key
             self._keypoints[(label, space, index)] = kp
             if own:
-                self.rr.log(f"{self._image_keys[key]}/keypoints/{label}", rr.Points2D(kp, radii=1.5))
+                self.rr.log(f"{self._image_keys[key]}/keypoints/{_part(label)}", rr.Points2D(kp, radii=1.5))
         elif own and kp.ndim == 2 and kp.shape[1] == 3:
-            self.rr.log(f"world/scan/keypoints/{label}", rr.Points3D(kp, radii=0.12))
+            self.rr.log(f"world/scan/keypoints/{_part(label)}", rr.Points3D(kp, radii=0.12))
 
     def _image(self, rec: Any, scan: Scan, space: str, index: int) -> str:
         """The key of ``rec``'s image setting; its image of the scan made once (and logged, for the run's own)."""
@@ -326,7 +331,7 @@ class Recorder:
         with ``edges`` False: a caller that decides closures itself draws them with `edge`). The query is the
         candidates' ``query_id`` (a real-time SLAM detector completes earlier scans' queries late)."""
         query = cands[0].query_id if cands else self.index
-        base = f"pipelines/{label}/candidates"
+        base = f"pipelines/{_part(label)}/candidates"
         for rank, c in enumerate(cands):
             path = f"{base}/{rank}"
             self.rr.log(
@@ -342,10 +347,12 @@ class Recorder:
         top = cands[0] if cands else None
         if top is not None:
             v = top.verification
-            self.rr.log(f"pipelines/{label}/top1/score", rr.Scalars(top.score))
+            self.rr.log(f"pipelines/{_part(label)}/top1/score", rr.Scalars(top.score))
             if v is not None:
-                self.rr.log(f"pipelines/{label}/top1/inliers", rr.Scalars(float(v.inliers or 0)))
-                self.rr.log(f"pipelines/{label}/top1/fitness", rr.Scalars(float(np.nan_to_num(v.fitness))))
+                self.rr.log(f"pipelines/{_part(label)}/top1/inliers", rr.Scalars(float(v.inliers or 0)))
+                self.rr.log(
+                    f"pipelines/{_part(label)}/top1/fitness", rr.Scalars(float(np.nan_to_num(v.fitness)))
+                )
         kind = closure_kind(top, threshold)
         if edges and kind is not None and top is not None:
             self.edge(label, kind, top.match_id, query)
@@ -405,7 +412,7 @@ class Recorder:
         ]
         strips = [np.stack([a, b]) for a, b in ends if a is not None and b is not None]
         colour = REJECTED if kind == "rejected" else ACCEPTED if kind == "accepted" else INJECTED
-        self.rr.log(f"world/loops/{label}/{kind}", rr.LineStrips3D(strips, colors=colour, radii=0.08))
+        self.rr.log(f"world/loops/{_part(label)}/{kind}", rr.LineStrips3D(strips, colors=colour, radii=0.08))
 
     def replace_positions(self, poses: np.ndarray) -> None:
         """Move the loop edges onto new scan positions (e.g. SLAM's optimised poses) and draw them again."""
@@ -435,8 +442,8 @@ class Recorder:
             self._batch += 1
             self.rr.set_time("ishot_batch", sequence=self._batch)
             prob = np.asarray(step.probabilities, np.float64)
-            self.rr.log(f"pipelines/{label}/posterior", rr.BarChart(prob))
-            self.rr.log(f"pipelines/{label}/posterior_max", rr.Scalars(float(prob.max(initial=0.0))))
+            self.rr.log(f"pipelines/{_part(label)}/posterior", rr.BarChart(prob))
+            self.rr.log(f"pipelines/{_part(label)}/posterior_max", rr.Scalars(float(prob.max(initial=0.0))))
 
         return observe
 
@@ -453,20 +460,22 @@ class Recorder:
         """A relocalisation's answer for the current scan: ``world/fix/<label>`` (the scan's pose in the map and
         its cloud there when accepted, cleared otherwise), the answer in words at ``localize/<label>``, and the
         accepted fixes so far as points at ``world/fixes/<label>`` (logged again as they grow, `_Growing`)."""
-        self.rr.log(f"localize/{label}", rr.TextDocument(text, media_type="text/markdown"))
+        self.rr.log(f"localize/{_part(label)}", rr.TextDocument(text, media_type="text/markdown"))
         if not accepted or T_world_query is None:
-            self.rr.log(f"world/fix/{label}", rr.Clear(recursive=True))
+            self.rr.log(f"world/fix/{_part(label)}", rr.Clear(recursive=True))
             return
         T = np.asarray(T_world_query, np.float64)
         cloud = self._clouds.get(("scan", self.index), np.zeros((0, 3), np.float32))
-        self.rr.log(f"world/fix/{label}", rr.Points3D(_moved(cloud, T), colors=ACCEPTED, radii=0.05))
+        self.rr.log(f"world/fix/{_part(label)}", rr.Points3D(_moved(cloud, T), colors=ACCEPTED, radii=0.05))
         if self._fixes.setdefault(label, _Growing()).add(T[:3, 3].copy()):
             self._log_fixes(label)
 
     def _log_fixes(self, label: str) -> None:
         fixes = self._fixes[label]
         fixes.logged = len(fixes.items)
-        self.rr.log(f"world/fixes/{label}", rr.Points3D(np.array(fixes.items), colors=ACCEPTED, radii=0.25))
+        self.rr.log(
+            f"world/fixes/{_part(label)}", rr.Points3D(np.array(fixes.items), colors=ACCEPTED, radii=0.25)
+        )
 
     @contextmanager
     def watching(self, label: str, rec: PlaceRecognizer) -> Iterator[None]:
