@@ -157,6 +157,26 @@ def test_localize_sequence_writes_its_report(map_dir: Path, tmp_path: Path) -> N
     rows = (tmp_path / "r" / "fixes.csv").read_text().splitlines()
     assert len(rows) == 9 and rows[0].endswith("translation_error,rotation_error_deg,correct")
     assert (tmp_path / "r" / "fixes.png").stat().st_size > 1000
+    # fixes.mcap: a pose per fix, an edge per scan answered against a keyframe, the fix's pose on the edge
+    from mcap.reader import make_reader
+
+    with (tmp_path / "r" / "fixes.mcap").open("rb") as fh:
+        msgs = [(ch.topic, json.loads(msg.data)) for _, ch, msg in make_reader(fh).iter_messages()]
+    poses = [d for t, d in msgs if t == "/placerec/pose"]
+    assert len(poses) == len(fixed)
+    for i, d in zip(fixed, poses, strict=True):
+        p = d["pose"]["position"]
+        np.testing.assert_allclose([p["x"], p["y"], p["z"]], run.fixes[i].T_world_query[:3, 3], atol=1e-9)
+    edges = [d for t, d in msgs if t == "/placerec/loop_closures"]
+    assert [e["query_index"] for e in edges] == [i for i, f in enumerate(run.fixes) if f.keyframe_id >= 0]
+    for e in edges:
+        f = run.fixes[e["query_index"]]
+        assert e["match_index"] == f.keyframe_id and e["accepted"] == f.accepted
+        if f.accepted:
+            T = np.asarray(e["relative_pose"]).reshape(4, 4)
+            np.testing.assert_allclose(map_dir_poses(map_dir)[f.keyframe_id] @ T, f.T_world_query, atol=1e-9)
+        else:
+            assert e["rejection"] == f.reason
 
     run = localize_sequence(map_dir, seq, mode="tracking", odometry="kiss-icp")
     assert all(_correct(f, seq.poses[i]) for i, f in enumerate(run.fixes) if f.accepted)
@@ -176,6 +196,10 @@ def test_a_sequence_without_poses_is_reported_without_scores(
     np.testing.assert_array_equal(np.loadtxt(tmp_path / "poses_tum.txt")[:, 0], [0, 1, 2])  # scan indices
 
 
+def map_dir_poses(map_dir: Path) -> np.ndarray:
+    return MapArtifact.open(map_dir).poses
+
+
 def _cli_error(res: object) -> list[str]:
     return [line for line in res.output.splitlines() if line.startswith("error:")]  # type: ignore[attr-defined]
 
@@ -186,7 +210,8 @@ def test_cli_localize(map_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
     res = CliRunner().invoke(app, ["localize", str(map_dir), str(folder), "--out", str(out), "--set", "k=3"])
     assert res.exit_code == 0, res.output
-    names = {"poses_tum.txt", "poses_kitti.txt", "fixed_scans.txt", "fixes.csv", "metrics.json", "fixes.png"}
+    names = {"poses_tum.txt", "poses_kitti.txt", "fixed_scans.txt", "fixes.csv", "metrics.json", "fixes.png",
+             "fixes.mcap"}  # fmt: skip
     assert names <= {p.name for p in out.iterdir()}
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["scans"] == 5 and metrics["false_fixes"] == 0 and metrics["params"]["k"] == 3

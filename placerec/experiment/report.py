@@ -366,7 +366,7 @@ def report_loop(
         write_closures_mcap(
             run / f"closures_{slug(record.label)}.mcap",
             poses,
-            loop_edges(record, accepted, metrics.threshold_at_max_f1),
+            loop_edges(record, accepted),
             timestamps=seq.timestamps,
         )
         if cfg.output.figures:
@@ -397,16 +397,17 @@ def report_loop(
     return payload
 
 
-def loop_edges(record: PipelineRecord, accepted: np.ndarray, threshold: float) -> list[LoopEdge]:
+def loop_edges(record: PipelineRecord, accepted: np.ndarray) -> list[LoopEdge]:
     """Each query's top candidate as a `LoopEdge` for ``closures_<label>.mcap``: accepted where ``accepted`` (the
-    query's answer at ``threshold``, aligned with ``record.query_ids``) holds and verification did not reject it;
-    a rejected one names verification's reason, or ``threshold`` for a score below it."""
+    query's answer at the report's threshold, aligned with ``record.query_ids``) holds and verification did not
+    reject it; a rejected one names verification's reason, or ``threshold`` for a score below it."""
     edges = []
     for q, ok, cands in zip(record.query_ids, accepted, record.candidates, strict=True):
         if not cands:
             continue
         c = cands[0]
         v = c.verification
+        why: str | None
         if c.accepted is False:
             why = (v.rejection if v is not None else None) or "rejected"
         else:

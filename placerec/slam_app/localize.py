@@ -13,6 +13,8 @@ alone, no prior). `report_localize` writes what it found into a folder:
   ``translation_error, rotation_error_deg, correct`` (an accepted fix within 1 m and 5 deg);
 * ``metrics.json`` — scans, accepted, correct, false fixes (accepted but beyond 1 m / 5 deg), the success rate
   (correct / scans: accepted answers only), the time per scan of each mode (median, p95, ...);
+* ``fixes.mcap`` — the fixes and an edge from each scan to the keyframe its answer was verified against, for
+  Foxglove (`write_fixes_mcap`; topics in docs/slam.md);
 * ``fixes.png`` — the map's keyframes (grey), correct fixes (green), false fixes (red), and the true positions of
   the scans without a fix (black x; with no ground truth, accepted fixes are blue).
 """
@@ -37,9 +39,10 @@ from placerec.experiment.candidates import pose_to_xyzrpy
 from placerec.experiment.run_folder import finite_or_null, json_default, slug
 from placerec.io import write_kitti_poses, write_tum_poses
 from placerec.io.atomic import atomic_write
+from placerec.io.mcap_export import LoopEdge, write_closures_mcap
 from placerec.maps.artifact import MapArtifact
 from placerec.maps.localizer import Fix, Localizer, LocalizerParams
-from placerec.types import Sequence
+from placerec.types import Sequence, relative_pose
 from placerec.viewer import active
 
 __all__ = [
@@ -246,12 +249,45 @@ def report_localize(run: LocalizeRun, out_dir: str | Path, figure: bool = True) 
         w = csv.writer(fh, lineterminator="\n")
         w.writerow(header)
         w.writerows(rows)
+    write_fixes_mcap(run, out / "fixes.mcap")
     payload = localize_metrics(run)
     with atomic_write(out / "metrics.json", "w") as fh:
         json.dump(finite_or_null(payload), fh, indent=2, default=json_default, allow_nan=False)
     if figure:
         plot_fixes(run, out / "fixes.png")
     return payload
+
+
+def write_fixes_mcap(run: LocalizeRun, path: Path) -> Path:
+    """``fixes.mcap``: the accepted fixes as the poses, and an edge from each scan to the keyframe its answer was
+    verified against (accepted, or rejected with the fix's reason), in the map's frame (`write_closures_mcap`)."""
+    n = len(run.fixes)
+    valid = np.array([f.accepted and f.T_world_query is not None for f in run.fixes], bool).reshape(n)
+    poses = np.full((n, 4, 4), np.nan)
+    for i in np.flatnonzero(valid):
+        poses[i] = run.fixes[i].T_world_query
+    keyframes = run.map.poses
+    edges = [
+        LoopEdge(
+            i,
+            f.keyframe_id,
+            f.score,
+            relative_pose(keyframes[f.keyframe_id], poses[i]) if valid[i] else None,
+            accepted=bool(valid[i]),
+            rejection=None if valid[i] else f.reason,
+        )
+        for i, f in enumerate(run.fixes)
+        if f.keyframe_id >= 0
+    ]
+    return write_closures_mcap(
+        path,
+        poses,
+        edges,
+        timestamps=run.timestamps,
+        ground_truth=run.ground_truth,
+        valid=valid,
+        match_poses=keyframes,
+    )
 
 
 def plot_fixes(run: LocalizeRun, path: Path) -> Path:
