@@ -32,7 +32,7 @@ from placerec.experiment.evidence import (
     rejection_counts,
     with_truth,
 )
-from placerec.experiment.figures import _pyplot
+from placerec.experiment.figures import PNG_OPTIONS, _pyplot
 from placerec.experiment.preprocessing import preprocessed_scan
 from placerec.experiment.run_folder import slug
 from placerec.experiment.runner import PipelineRecord
@@ -185,7 +185,7 @@ def plot_closure(view: ClosureView, path: Path) -> Path:
         fontsize=9,
         family="monospace",
     )
-    fig.savefig(path)
+    fig.savefig(path, pil_kwargs=PNG_OPTIONS)
     plt.close(fig)
     return path
 

@@ -21,10 +21,15 @@ __all__ = [
 ]
 
 
+#: PNG compression of the figures: zlib level 1 writes them ~4x faster than matplotlib's default (6) for files
+#: ~1.3x larger, which matters for a report's dozens of evidence figures
+PNG_OPTIONS = {"compress_level": 1}
+
+
 def _save(fig: Any, path: Path) -> Path:
     """Lay out, write and close a figure; returns its path."""
     fig.tight_layout()
-    fig.savefig(path)
+    fig.savefig(path, pil_kwargs=PNG_OPTIONS)
     _pyplot().close(fig)
     return path
 
