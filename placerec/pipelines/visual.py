@@ -27,7 +27,7 @@ landmark (eq. 2 columns decrease with azimuth). ``check="none"``: HBST's matchin
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, ClassVar, Generic, Literal, TypeVar
 
@@ -166,12 +166,16 @@ def visual_frontend_key(params: VisualPipelineParams) -> str:
 
 
 def describe_visual(
-    scan: Scan, image_params: ImageParams, extractor: Any, verify: VerifyParams | None = None
+    scan: Scan,
+    image_params: ImageParams,
+    extractor: Any,
+    verify: VerifyParams | None = None,
+    keep: Callable[[np.ndarray], None] | None = None,
 ) -> Description:
     """The visual front end: intensity image, then features -> keypoints (K, 2), descriptors, image width and
     ``keypoint_xyz`` (K, 3), the scan point of each keypoint's pixel (`keypoint_points`; NaN where there is none);
     with ``verify`` (the verification stage's parameters) also ``cloud``, the scan voxelised for ICP
-    (`placerec.verify.candidates.scan_cloud`).
+    (`placerec.verify.candidates.scan_cloud`). ``keep`` is given the intensity image.
 
     `ScanDataError` for a scan with too few valid points (`placerec.recognizer.require_points`) or one whose valid
     points all have the same intensity: its image would show only where returns are missing, not the place.
@@ -184,6 +188,8 @@ def describe_visual(
             f"{scan.source or 'scan'}: visual front end: an intensity image {img.image.shape[1]} px wide is "
             f"over {MAX_IMAGE_WIDTH} px (set image.width)"
         )
+    if keep is not None:
+        keep(img.image)
     feats = extractor.extract(img.image)
     keypoints = np.asarray(feats.keypoints, np.float32).reshape(-1, 2)
     idx = keypoint_points(keypoints, img.point_index)
@@ -233,14 +239,22 @@ class VisualFrontend(Generic[VP]):
     name: ClassVar[str]
     params: VP
     extractor: Any
+    #: (scan, its intensity image) of the scan `describe` saw last, so that a viewer shows the image without
+    #: making it again (a viewer compares the scan by identity)
+    last_image: tuple[Scan, np.ndarray] | None = None
 
     @property
     def frontend_key(self) -> str:
         return visual_frontend_key(self.params)
 
     def describe(self, scan: Scan) -> Description:
+        """`describe_visual` with this pipeline's settings; the intensity image is kept as `last_image`."""
         p = self.params
-        return describe_visual(scan, p.image, self.extractor, p.verify if p.verify.enabled else None)
+
+        def keep(image: np.ndarray) -> None:
+            self.last_image = (scan, image)
+
+        return describe_visual(scan, p.image, self.extractor, p.verify if p.verify.enabled else None, keep)
 
     def _reset_features(self) -> None:
         """Empty the per-image features (keypoints, descriptors, image width), their 3D points and ICP clouds. The

@@ -303,7 +303,10 @@ class Recorder:
 
         key = rec.params.image.model_dump_json()
         if (key, space, index) not in self._images:
-            image = make_image(scan, rec.params.image).image
+            last = rec.last_image  # the front end's own image of the scan it described last
+            image = (
+                last[1] if last is not None and last[0] is scan else make_image(scan, rec.params.image).image
+            )
             jpeg = _jpeg(image)
             self._images[(key, space, index)] = jpeg
             if space == "scan":
