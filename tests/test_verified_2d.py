@@ -54,6 +54,9 @@ def test_keypoint_xyz_are_the_scan_points_of_their_pixels(sim):
     assert dcol.max() <= 2.0
     cloud = desc["cloud"]
     assert cloud.dtype == np.float32 and 1000 < cloud.shape[0] < len(scan) // 2
+    seen, image = rec.last_image  # the image describe made, kept for a viewer
+    assert seen is scan
+    np.testing.assert_array_equal(image, img.image)
 
 
 def test_mutual_nearest_matches_a_brute_force_reference():
