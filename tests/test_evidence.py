@@ -22,6 +22,7 @@ from placerec.experiment.evidence import (
 from placerec.experiment.evidence_figures import bev_raster, correspondence_segments
 from placerec.experiment.runner import PipelineRecord
 from placerec.types import Candidate, Verification, relative_pose
+from tests.test_run_sim import TINY as TINY_RUN
 
 
 def _pose(x, y, yaw_deg=0.0):
@@ -171,20 +172,8 @@ def test_the_overlay_marks_each_cloud_and_their_overlap():
     assert (rgb == 255).all(axis=2).sum() == 80 * 80 - 3
 
 
-TINY = """
-name: tiny
-dataset:
-  simulator: {world: town, sensor: os1-64, route: loop, spacing: 2.0, seed: 3}
-pipelines:
-  - name: scan-context
-  - name: orb-hbst
-evaluation:
-  exclusion: {frames: 50}
-output:
-  cache_dir: null
-  progress: false
-  evidence_per_gallery: 2
-"""
+#: the tiny run of tests/test_run_sim.py, 2 closures a gallery
+TINY = TINY_RUN + "  evidence_per_gallery: 2\n"
 
 
 @pytest.fixture(scope="module")

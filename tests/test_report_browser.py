@@ -9,6 +9,7 @@ import pytest
 
 from placerec.errors import ConfigError, DependencyError
 from placerec.experiment.browser import CHROMIUM, check_report
+from tests.test_run_sim import TINY as TINY_RUN
 
 
 def _browser_or_skip() -> None:
@@ -50,20 +51,8 @@ def test_the_check_sees_a_broken_image_and_a_console_error(tmp_path):
     assert not check.ok
 
 
-TINY = """
-name: tiny
-dataset:
-  simulator: {world: town, sensor: os1-64, route: loop, spacing: 2.0, seed: 3}
-pipelines:
-  - name: scan-context
-  - name: orb-hbst
-evaluation:
-  exclusion: {frames: 50}
-output:
-  cache_dir: null
-  progress: false
-  evidence_per_gallery: 3
-"""
+#: the tiny run of tests/test_run_sim.py, 3 closures a gallery
+TINY = TINY_RUN + "  evidence_per_gallery: 3\n"
 
 
 @pytest.mark.slow
