@@ -215,6 +215,7 @@ def test_cli_localize(map_dir: Path, tmp_path: Path) -> None:
     assert names <= {p.name for p in out.iterdir()}
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["scans"] == 5 and metrics["false_fixes"] == 0 and metrics["params"]["k"] == 3
+    assert metrics["pipelines"] == [p.name for p in MapArtifact.open(map_dir).manifest.pipelines]
     assert "within 1 m / 5 deg" in res.output
 
     res = CliRunner().invoke(app, ["localize", str(tmp_path / "nope"), str(folder)])

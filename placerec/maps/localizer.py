@@ -35,14 +35,14 @@ from pydantic import Field
 
 from placerec.errors import ScanDataError
 from placerec.eval.pose_error import pose_errors
-from placerec.maps.artifact import MapArtifact
+from placerec.maps.artifact import MapArtifact, MapPipeline
 from placerec.params import Params
 from placerec.preprocess import preprocess_scan
 from placerec.types import PlaceRecognizer, Scan, as_pose, interpolate_trajectory, valid_points
 from placerec.verify import IcpCloud, as_source, as_target, verify_icp
 from placerec.verify.params import IcpParams, ScoreParams, VerifyParams
 
-__all__ = ["TrackingParams", "LocalizerParams", "Fix", "Localizer", "correction"]
+__all__ = ["TrackingParams", "LocalizerParams", "Fix", "Localizer", "correction", "search_pipelines"]
 
 
 def _tracking_verify() -> VerifyParams:
@@ -123,6 +123,12 @@ class Fix:
     timing_ms: dict[str, float] = field(default_factory=dict)
 
 
+def search_pipelines(map: MapArtifact, params: LocalizerParams) -> list[MapPipeline]:
+    """The map pipelines global search asks, in order: ``params.pipeline``, or every pipeline of the map."""
+    name = params.pipeline
+    return list(map.manifest.pipelines) if name is None else [map.pipeline(name)]
+
+
 def correction(T_prior: np.ndarray, T_fix: np.ndarray) -> tuple[float, float]:
     """(metres, degrees) that ``T_fix`` moves and turns ``T_prior`` by (`pose_errors` of one pose)."""
     metres, degrees = pose_errors(T_fix, T_prior)
@@ -139,8 +145,7 @@ class Localizer:
     def __init__(self, map: MapArtifact | str | Path, params: LocalizerParams | None = None) -> None:
         self.map = map if isinstance(map, MapArtifact) else MapArtifact.open(map)
         self.params = params or LocalizerParams()
-        name = self.params.pipeline
-        pipes = self.map.manifest.pipelines if name is None else [self.map.pipeline(name)]
+        pipes = search_pipelines(self.map, self.params)
         t = self.params.threshold
         #: (pipeline, its database, its threshold) for global search, in the order they are asked; the databases
         #: are loaded now, so a damaged one fails here, before any scan

@@ -41,7 +41,7 @@ from placerec.io import write_kitti_poses, write_tum_poses
 from placerec.io.atomic import atomic_write
 from placerec.io.mcap_export import LoopEdge, write_closures_mcap
 from placerec.maps.artifact import MapArtifact
-from placerec.maps.localizer import Fix, Localizer, LocalizerParams
+from placerec.maps.localizer import Fix, Localizer, LocalizerParams, search_pipelines
 from placerec.types import Sequence, relative_pose
 from placerec.viewer import active
 
@@ -181,7 +181,7 @@ def localize_metrics(run: LocalizeRun) -> dict[str, Any]:
         "mode": "localize",
         "sequence": run.name,
         "map": str(run.map.path),
-        "pipeline": run.map.pipeline(run.params.pipeline).name,
+        "pipelines": [p.name for p in search_pipelines(run.map, run.params)],
         "localize_mode": run.mode,
         "odometry": run.odometry,
         "scans": n,
