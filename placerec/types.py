@@ -571,6 +571,15 @@ class Candidate:
     T_world_query: np.ndarray | None = None
     matches: np.ndarray | None = None
 
+    @property
+    def rejection(self) -> str | None:
+        """Why verification rejected this candidate: its `Verification.rejection` (a key of `REJECTIONS`), or
+        ``"rejected"`` when it names none; None when the candidate was accepted or not verified."""
+        if self.accepted is not False:
+            return None
+        v = self.verification
+        return (v.rejection if v is not None else None) or "rejected"
+
 
 #: A scan's description by a recognizer's front end: named NumPy arrays (so it can be cached as ``.npz``).
 Description = dict[str, np.ndarray]

@@ -49,7 +49,7 @@ KINDS = ("accepted", "false", "missed")
 ACCEPTED = "accepted"
 #: `rejection_key` of a candidate of a pipeline that does not verify (its score alone decides)
 UNVERIFIED = "not verified"
-#: `rejection_key` of a rejected candidate whose verification names no reason
+#: `rejection_key` of a rejected candidate whose verification names no reason (`Candidate.rejection`'s word)
 REJECTED = "rejected"
 
 
@@ -97,10 +97,7 @@ def rejection_key(candidate: Candidate) -> str:
     (rejected, no reason given) or `UNVERIFIED` (a pipeline that does not verify)."""
     if candidate.accepted is None:
         return UNVERIFIED
-    if candidate.accepted:
-        return ACCEPTED
-    v = candidate.verification
-    return v.rejection if v is not None and v.rejection is not None else REJECTED
+    return candidate.rejection or ACCEPTED
 
 
 def rejection_counts(candidates: list[list[Candidate]]) -> RejectionCounts:

@@ -406,12 +406,7 @@ def loop_edges(record: PipelineRecord, accepted: np.ndarray) -> list[LoopEdge]:
         if not cands:
             continue
         c = cands[0]
-        v = c.verification
-        why: str | None
-        if c.accepted is False:
-            why = (v.rejection if v is not None else None) or "rejected"
-        else:
-            why = None if ok else "threshold"
+        why = c.rejection or (None if ok else "threshold")
         edges.append(LoopEdge(q, c.match_id, c.score, c.relative_pose, c.inliers, why is None, why))
     return edges
 

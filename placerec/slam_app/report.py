@@ -121,7 +121,7 @@ def loop_edges(result: SlamResult, cols: dict[str, np.ndarray]) -> list[LoopEdge
             elif (q, m) not in loops:
                 T = c.relative_pose if c.relative_pose is not None else v.T_match_query
                 T = T if T is not None and rigid_problem(np.asarray(T)[None]) is None else None
-                rejected.append(LoopEdge(q, m, c.score, T, c.inliers, False, v.rejection))
+                rejected.append(LoopEdge(q, m, c.score, T, c.inliers, False, c.rejection))
     weight = cols.get("weight")
     edges = []
     for k, lp in enumerate(result.loops):

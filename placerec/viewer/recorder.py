@@ -70,8 +70,8 @@ def candidate_text(c: Candidate, rank: int) -> str:
     elif c.accepted:
         lines.append("**accepted**")
     else:
-        why = None if v is None else v.rejection
-        lines.append(f"**rejected**: {REJECTIONS.get(why, why) if why else 'no reason given'}")
+        why = c.rejection
+        lines.append(f"**rejected**: {REJECTIONS.get(why, 'no reason given') if why else 'no reason given'}")
     return "  \n".join(lines)
 
 
