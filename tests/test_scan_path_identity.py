@@ -272,3 +272,55 @@ def test_as_points_of_any_numeric_dtype():
         a = (np.nan_to_num(base) if dt is np.int32 else base).astype(dt)
         same(as_points(a), ref_as_points(a))
         same(as_points(a[:, :3]), ref_as_points(a[:, :3]))
+
+
+def ref_prepare(points, voxel, neighbors):
+    """small_gicp's own one-call preparation (voxel grid, tree, normals and covariances on one thread)."""
+    import small_gicp
+
+    cloud, _ = small_gicp.preprocess_points(
+        np.asarray(points, np.float64), downsampling_resolution=voxel, num_neighbors=neighbors, num_threads=1
+    )
+    return cloud
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_prepared_clouds_identical_on_any_threads(simulated, real_data, threads):
+    """`prepare_target` / `prepare_source` give small_gicp's one-thread preparation bit for bit on any number of
+    threads (the search tree and normals run on ``prepare_threads``)."""
+    from placerec.verify.icp import prepare_source, prepare_target
+    from placerec.verify.params import IcpParams
+
+    scans = list(simulated)
+    frames = sorted((real_data / "kitti_raw_hdl64_sequence").glob("*.pcd"))[:2]
+    if frames:
+        from placerec.io import read_scan
+
+        scans += [read_scan(f) for f in frames]
+    params = IcpParams(prepare_threads=threads)
+    for scan in scans:
+        # a stored cloud and the raw points
+        for cloud in (scan_cloud(scan, VerifyParams()), as_points(scan)):
+            for prep, voxel in (
+                (prepare_target, params.voxel_size),
+                (prepare_source, params.source_voxel_size),
+            ):
+                got = prep(cloud, params).native
+                want = ref_prepare(cloud, voxel, params.normal_neighbors)
+                for field in ("points", "normals", "covs"):
+                    same(np.asarray(getattr(got, field)()), np.asarray(getattr(want, field)()))
+
+
+def test_prepare_threads_default(monkeypatch):
+    from placerec.verify.icp import prepare_threads
+    from placerec.verify.params import IcpParams
+
+    assert prepare_threads(IcpParams(prepare_threads=3)) == 3
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert prepare_threads(IcpParams()) == 1
+    monkeypatch.setenv("OMP_NUM_THREADS", "junk")
+    assert prepare_threads(IcpParams()) >= 1
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    import os
+
+    assert prepare_threads(IcpParams()) == len(os.sched_getaffinity(0))

@@ -13,6 +13,7 @@ compares the backends.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -29,6 +30,7 @@ __all__ = [
     "IcpResult",
     "prepare_source",
     "prepare_target",
+    "prepare_threads",
     "refine",
     "alignment_stats",
     "as_points",
@@ -106,12 +108,18 @@ def _prepare(points: Any, params: IcpParams, voxel: float, role: str) -> IcpClou
     native_tree = None
     if params.backend == "small_gicp":
         sg = _small_gicp()
+        threads = prepare_threads(params)
+        # small_gicp's one-call preparation makes the grid (its own block-wise one) and the search tree; with
+        # more threads its normals / covariances are made from one neighbour (nearly free) and then remade on
+        # `prepare_threads`: exact neighbours, one point at a time, so the same arrays as on one thread
         native, native_tree = sg.preprocess_points(
             p,
             downsampling_resolution=voxel,
-            num_neighbors=params.normal_neighbors,
+            num_neighbors=params.normal_neighbors if threads == 1 else 1,
             num_threads=params.num_threads,
         )
+        if threads > 1:
+            sg.estimate_normals_covariances(native, native_tree, params.normal_neighbors, num_threads=threads)
         vox = np.asarray(native.points())[:, :3]
     else:
         o3d = _open3d()
@@ -127,6 +135,18 @@ def _prepare(points: Any, params: IcpParams, voxel: float, role: str) -> IcpClou
         tree = native_tree if native_tree is not None else _small_gicp().KdTree(vox)
     ms = (time.perf_counter() - t0) * 1e3
     return IcpCloud(vox, role, params.backend, voxel, native, native_tree, tree, ms)
+
+
+def prepare_threads(params: IcpParams) -> int:
+    """The threads that prepare a cloud: ``params.prepare_threads``, else ``OMP_NUM_THREADS`` when it is a
+    positive number (a Dask worker sets it to 1), else the cores this process may use."""
+    if params.prepare_threads is not None:
+        return params.prepare_threads
+    env = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if env.isdigit() and int(env) > 0:
+        return int(env)
+    affinity = getattr(os, "sched_getaffinity", None)  # Linux; elsewhere all the machine's cores
+    return max(len(affinity(0)) if affinity else os.cpu_count() or 1, 1)
 
 
 def prepare_target(points: Any, params: IcpParams | None = None) -> IcpCloud:

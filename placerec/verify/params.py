@@ -86,6 +86,13 @@ class IcpParams(Params):
     max_correspondence_distance: float = Field(1.0, gt=0, description="m; ICP correspondence gate")
     max_iterations: int = Field(30, ge=1, le=10_000, description="ICP iterations at most")
     num_threads: int = Field(1, ge=1, le=1024, description="threads of the ICP backend")
+    prepare_threads: int | None = Field(
+        None,
+        ge=1,
+        le=1024,
+        description="threads preparing a cloud (search tree, normals / covariances); results do not depend on "
+        "it; None: OMP_NUM_THREADS when set, else the cores this process may use",
+    )
     stats_points: int = Field(
         1000,
         ge=1,
