@@ -23,6 +23,7 @@ import numpy as np
 from placerec.errors import DependencyError, ScanDataError, ScanFormatError
 from placerec.io._common import check_file
 from placerec.io.poses import read_poses
+from placerec.threads import import_openmp
 from placerec.types import Scan, SensorInfo, check_poses
 
 __all__ = ["OusterSequence", "read_ouster_pcap", "find_ouster_metadata", "find_ouster_poses"]
@@ -32,6 +33,7 @@ log = logging.getLogger(__name__)
 
 def _sdk() -> tuple[Any, Any]:
     try:
+        import_openmp("ouster.sdk")  # its OpenMP runtime loaded with idle threads sleeping
         from ouster.sdk import core, open_source
     except ImportError as exc:
         raise DependencyError(

@@ -36,7 +36,7 @@ from pydantic import Field, SerializeAsAny, ValidationError, model_validator
 
 from placerec.errors import ArtifactError, ScanDataError, short_repr
 from placerec.features.registry import ExtractorParams, extractor_params
-from placerec.image import ImageParams, make_image
+from placerec.image import ImageParams, IntensityImage, make_image
 from placerec.image.correspondence import keypoint_points
 from placerec.io.artifact_schema import check_members
 from placerec.io.atomic import load_artifact, save_artifact
@@ -50,6 +50,7 @@ from placerec.recognizer import (
     require_varying_intensity,
 )
 from placerec.retrieval.hbst import HBST, TREE_SCHEMA, HBSTParams, default_threshold
+from placerec.threads import side_by_side
 from placerec.types import Candidate, Description, Scan, take_rows
 from placerec.verify import VerifyParams
 from placerec.verify.candidates import (
@@ -182,15 +183,13 @@ def describe_visual(
     """
     ok = require_points(scan, "visual front end")
     require_varying_intensity(scan, ok, "visual front end", "intensity images need varying intensity")
-    img = make_image(scan, image_params)
-    if img.image.shape[1] > MAX_IMAGE_WIDTH:
-        raise ScanDataError(
-            f"{scan.source or 'scan'}: visual front end: an intensity image {img.image.shape[1]} px wide is "
-            f"over {MAX_IMAGE_WIDTH} px (set image.width)"
-        )
+    # the image and its features on the helper thread while this one voxelises the ICP cloud
+    # (`placerec.threads.side_by_side`: both mostly outside the GIL)
+    image_job = side_by_side(_image_features, scan, image_params, extractor)
+    cloud = None if verify is None else scan_cloud(take_rows(scan.xyz, ok), verify)
+    img, feats = image_job.result()
     if keep is not None:
         keep(img.image)
-    feats = extractor.extract(img.image)
     keypoints = np.asarray(feats.keypoints, np.float32).reshape(-1, 2)
     idx = keypoint_points(keypoints, img.point_index)
     kp_xyz = np.full((idx.size, 3), np.nan, np.float32)
@@ -201,9 +200,20 @@ def describe_visual(
         "width": np.array(img.image.shape[1], np.int64),
         "keypoint_xyz": kp_xyz,
     }
-    if verify is not None:
-        out["cloud"] = scan_cloud(take_rows(scan.xyz, ok), verify)
+    if cloud is not None:
+        out["cloud"] = cloud
     return out
+
+
+def _image_features(scan: Scan, image_params: ImageParams, extractor: Any) -> tuple[IntensityImage, Any]:
+    """The intensity image of ``scan`` (refused over `MAX_IMAGE_WIDTH` px) and ``extractor``'s features of it."""
+    img = make_image(scan, image_params)
+    if img.image.shape[1] > MAX_IMAGE_WIDTH:
+        raise ScanDataError(
+            f"{scan.source or 'scan'}: visual front end: an intensity image {img.image.shape[1]} px wide is "
+            f"over {MAX_IMAGE_WIDTH} px (set image.width)"
+        )
+    return img, extractor.extract(img.image)
 
 
 def shift_consensus(

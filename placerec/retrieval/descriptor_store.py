@@ -29,6 +29,7 @@ import numpy as np
 
 from placerec.errors import ArtifactError, ConfigError, DependencyError, short_repr
 from placerec.quantise import ScalarQuantiser
+from placerec.threads import import_openmp
 
 __all__ = ["StoreDtype", "STORE_DTYPES", "DescriptorStore", "StoreView", "knn", "knn2", "omp_threads"]
 
@@ -43,10 +44,9 @@ _BLOCK = 4096
 
 def _faiss() -> Any:
     try:
-        import faiss
+        return import_openmp("faiss")
     except ImportError as exc:  # pragma: no cover - faiss-cpu is a dependency
         raise DependencyError("descriptor search needs faiss-cpu (pip install faiss-cpu)") from exc
-    return faiss
 
 
 @contextmanager

@@ -8,9 +8,12 @@ approximate search (faiss IVF) a pipeline uses with ``index: ivf``.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from placerec.retrieval.descriptor_store import DescriptorStore, omp_threads
+from placerec.threads import import_openmp
 
 __all__ = ["IvfIndex", "nn_ratio", "ratio_votes"]
 
@@ -37,15 +40,14 @@ class IvfIndex:
         nprobe: int = 16,
         threads: int | None = 1,
     ):
-        import faiss
-
+        faiss = import_openmp("faiss")
         store = rows if isinstance(rows, DescriptorStore) else DescriptorStore.from_rows(rows)
         n, d = store.shape
         self.nlist = max(1, min(n, int(nlist or round(np.sqrt(n)))))
         self.threads = threads
         if store.encoded:
             qt = faiss.ScalarQuantizer.QT_fp16 if store.dtype == "float16" else faiss.ScalarQuantizer.QT_8bit
-            self.index: faiss.IndexIVF = faiss.IndexIVFScalarQuantizer(
+            self.index: Any = faiss.IndexIVFScalarQuantizer(
                 faiss.IndexFlatL2(d), d, self.nlist, qt, faiss.METRIC_L2, False
             )
         else:

@@ -44,6 +44,7 @@ from pydantic import Field
 
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.quantise import FixedPointCloud, PackedCloud
+from placerec.threads import import_openmp
 from placerec.types import Candidate, take_rows
 from placerec.verify.icp import IcpCloud, as_points
 from placerec.verify.params import VerifyParams
@@ -142,8 +143,7 @@ def scan_cloud(scan: Any, params: VerifyParams | None = None) -> np.ndarray:
 
 def voxel_points(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """(N, 3) points voxelised (small_gicp's voxel grid: one point per occupied voxel), (M, 3) float32."""
-    import small_gicp
-
+    small_gicp = import_openmp("small_gicp")
     if points.shape[0] == 0:
         return np.zeros((0, 3), np.float32)
     vox = small_gicp.voxelgrid_sampling(np.ascontiguousarray(points, dtype=np.float64), voxel_size)

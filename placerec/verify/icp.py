@@ -13,7 +13,6 @@ compares the backends.
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -22,6 +21,7 @@ import numpy as np
 from numba import njit
 
 from placerec.errors import DependencyError, ScanDataError
+from placerec.threads import available_threads, import_openmp
 from placerec.types import take_rows
 from placerec.verify.params import IcpParams
 
@@ -138,15 +138,8 @@ def _prepare(points: Any, params: IcpParams, voxel: float, role: str) -> IcpClou
 
 
 def prepare_threads(params: IcpParams) -> int:
-    """The threads that prepare a cloud: ``params.prepare_threads``, else ``OMP_NUM_THREADS`` when it is a
-    positive number (a Dask worker sets it to 1), else the cores this process may use."""
-    if params.prepare_threads is not None:
-        return params.prepare_threads
-    env = os.environ.get("OMP_NUM_THREADS", "").strip()
-    if env.isdigit() and int(env) > 0:
-        return int(env)
-    affinity = getattr(os, "sched_getaffinity", None)  # Linux; elsewhere all the machine's cores
-    return max(len(affinity(0)) if affinity else os.cpu_count() or 1, 1)
+    """The threads that prepare a cloud: ``params.prepare_threads``, else `placerec.threads.available_threads`."""
+    return params.prepare_threads if params.prepare_threads is not None else available_threads()
 
 
 def prepare_target(points: Any, params: IcpParams | None = None) -> IcpCloud:
@@ -252,12 +245,11 @@ def refine(
 
 def _small_gicp() -> Any:
     try:
-        import small_gicp
+        return import_openmp("small_gicp")
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise DependencyError(
             "ICP backend 'small_gicp' needs the small_gicp package: pip install small_gicp"
         ) from exc
-    return small_gicp
 
 
 def _open3d() -> Any:
