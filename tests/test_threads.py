@@ -91,3 +91,37 @@ def test_side_by_side_inline_on_one_thread_and_errors(monkeypatch):
         monkeypatch.setenv("OMP_NUM_THREADS", n)
         with pytest.raises(ValueError, match="from the job"):
             side_by_side(boom).result()
+
+
+@pytest.mark.parametrize("pipeline", ["orb-hbst", "superpoint-dbow"])
+def test_visual_pipelines_give_the_sequential_results(monkeypatch, pipeline):
+    """Descriptions (image and features beside the ICP cloud) and verified candidates (float descriptors matched on
+    two threads) are those of the one-thread path, byte for byte."""
+    import numpy as np
+
+    from placerec.recognizer import make_pipeline
+    from placerec.sim import SimulatedSequence
+
+    seq = SimulatedSequence("town", "os1-64", seed=3, n_scans=14)
+    scans = [seq[i] for i in (*range(8), 3, 4, 5)]  # the last three revisit scans 3-5
+
+    def run(n_threads):
+        monkeypatch.setenv("OMP_NUM_THREADS", n_threads)
+        rec = make_pipeline(pipeline, {"verify": {"top_k": 6}})
+        descriptions, found = [], []
+        for k, scan in enumerate(scans):
+            d = rec.describe(scan)
+            descriptions.append({key: np.asarray(v).tobytes() for key, v in d.items()})
+            if k > 3:
+                for c in rec.query_description(d, 5, max_id=k - 3, query_id=k):
+                    pose = None if c.relative_pose is None else c.relative_pose.tobytes()
+                    found.append(
+                        (c.match_id, c.score, c.accepted, c.rejection, pose, np.asarray(c.matches).tobytes())
+                    )
+            rec.add_description(k, d)
+        return descriptions, found
+
+    one, two = run("1"), run("2")
+    assert one[0] == two[0]
+    assert len(one[1]) > 10 and any(f[2] for f in one[1])  # revisits found and verified
+    assert one[1] == two[1]

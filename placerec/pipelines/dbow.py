@@ -230,19 +230,11 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
         cand, qi, ri = self._match(desc, nodes, image_ids) if by_index else (empty, empty, empty)
         share = (time.perf_counter() - t0) * 1e3 / max(len(image_ids), 1)
         bounds = np.searchsorted(cand, np.arange(len(image_ids) + 1))
-        retrieved = [
-            self._retrieved(
-                description,
-                i,
-                float(s),
-                qi[bounds[c] : bounds[c + 1]],
-                ri[bounds[c] : bounds[c + 1]],
-                {"bow_score": float(s)},
-                share,
-            )
+        todo = [
+            (i, float(s), qi[bounds[c] : bounds[c + 1]], ri[bounds[c] : bounds[c + 1]], {"bow_score": float(s)})
             for c, (i, s) in enumerate(zip(image_ids, scores, strict=False))
         ]
-        return self._verified(description, retrieved, query_id, k)
+        return self._verified(description, self._retrieved_all(description, todo, share), query_id, k)
 
     def _check(
         self,
