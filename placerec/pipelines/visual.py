@@ -181,11 +181,11 @@ def describe_visual(
     `ScanDataError` for a scan with too few valid points (`placerec.recognizer.require_points`) or one whose valid
     points all have the same intensity: its image would show only where returns are missing, not the place.
     """
+    # the image and its features on the helper thread while this one checks the scan and voxelises the ICP cloud
+    # (`placerec.threads.side_by_side`: both mostly outside the GIL); a refused scan's image is never used
+    image_job = side_by_side(_image_features, scan, image_params, extractor)
     ok = require_points(scan, "visual front end")
     require_varying_intensity(scan, ok, "visual front end", "intensity images need varying intensity")
-    # the image and its features on the helper thread while this one voxelises the ICP cloud
-    # (`placerec.threads.side_by_side`: both mostly outside the GIL)
-    image_job = side_by_side(_image_features, scan, image_params, extractor)
     cloud = None if verify is None else scan_cloud(take_rows(scan.xyz, ok), verify)
     img, feats = image_job.result()
     if keep is not None:
