@@ -511,3 +511,23 @@ def test_localize_draws_the_configured_query_draw():
     ]
     with pytest.raises(ConfigError, match="evaluation.localize.draw"):
         localize_sequences(load_config(None, [*base, *paths, "evaluation.localize.draw=2"]))
+
+
+@pytest.mark.filterwarnings("ignore:Gimbal lock")
+def test_poses_to_xyzrpy_is_pose_to_xyzrpy_of_each():
+    """The candidates file converts every pose at once: the same numbers as one pose at a time (and as SciPy's
+    own per-pose conversion), gimbal lock and identity included."""
+    from placerec.experiment.candidates import pose_to_xyzrpy, poses_to_xyzrpy
+
+    rng = np.random.default_rng(3)
+    P = np.tile(np.eye(4), (200, 1, 1))
+    P[:, :3, :3] = Rotation.random(200, random_state=4).as_matrix()
+    P[:, :3, 3] = rng.normal(0, 20, (200, 3))
+    P[0, :3, :3] = np.eye(3)
+    P[1, :3, :3] = Rotation.from_euler("xyz", [10, 90, 30], degrees=True).as_matrix()
+    each = np.array(
+        [np.r_[p[:3, 3], Rotation.from_matrix(p[:3, :3]).as_euler("xyz", degrees=True)] for p in P]
+    )
+    assert poses_to_xyzrpy(P).tobytes() == each.tobytes()
+    assert pose_to_xyzrpy(P[5]).tobytes() == each[5].tobytes()
+    assert poses_to_xyzrpy(np.zeros((0, 4, 4))).shape == (0, 6)

@@ -33,7 +33,14 @@ from placerec.errors import ScanDataError, ScanFormatError
 from placerec.io.atomic import atomic_write
 from placerec.types import Candidate, as_pose
 
-__all__ = ["CandidateTable", "write_candidates", "read_candidates", "pose_to_xyzrpy", "xyzrpy_to_pose"]
+__all__ = [
+    "CandidateTable",
+    "write_candidates",
+    "read_candidates",
+    "pose_to_xyzrpy",
+    "poses_to_xyzrpy",
+    "xyzrpy_to_pose",
+]
 
 POSE_COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")
 VERIFY_COLUMNS = ("verified_score", "fitness", "rmse")
@@ -43,10 +50,17 @@ _REQUIRED = ("query_id", "match_id", "score")
 
 def pose_to_xyzrpy(T: np.ndarray) -> np.ndarray:
     """(x, y, z, roll, pitch, yaw) of a 4x4 pose: metres and degrees, ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
+    return poses_to_xyzrpy(as_pose(T)[None])[0]
+
+
+def poses_to_xyzrpy(P: np.ndarray) -> np.ndarray:
+    """`pose_to_xyzrpy` of (N, 4, 4) rigid poses at once: (N, 6)."""
     from scipy.spatial.transform import Rotation
 
-    P = as_pose(T)
-    return np.r_[P[:3, 3], Rotation.from_matrix(P[:3, :3]).as_euler("xyz", degrees=True)]
+    P = np.asarray(P, dtype=np.float64).reshape(-1, 4, 4)
+    if P.shape[0] == 0:
+        return np.zeros((0, 6))
+    return np.concatenate([P[:, :3, 3], Rotation.from_matrix(P[:, :3, :3]).as_euler("xyz", degrees=True)], 1)
 
 
 def xyzrpy_to_pose(v: Sequence[float] | np.ndarray) -> np.ndarray:
@@ -88,8 +102,11 @@ class _Row:
             accepted=-1 if acc is None else int(bool(acc)),
         )
 
-    def cells(self) -> list[Any]:
-        pose = [""] * 6 if self.pose is None else [repr(float(x)) for x in pose_to_xyzrpy(self.pose)]
+    def cells(self, xyzrpy: np.ndarray | None = None) -> list[Any]:
+        """The row's cells; ``xyzrpy``: `pose_to_xyzrpy` of its pose where computed already."""
+        if self.pose is not None and xyzrpy is None:
+            xyzrpy = pose_to_xyzrpy(self.pose)
+        pose = [""] * 6 if xyzrpy is None else [repr(float(x)) for x in xyzrpy]
         stats = [
             "" if math.isnan(x) else repr(float(x)) for x in (self.verified_score, self.fitness, self.rmse)
         ]
@@ -171,14 +188,17 @@ def write_candidates(
     """Write every query's candidates (best first), atomically."""
     if len(query_ids) != len(candidates):
         raise ScanDataError(f"{path}: {len(query_ids)} query ids for {len(candidates)} candidate lists")
+    rows = [[_Row.of(c) for c in cands] for cands in candidates]
+    posed = [r.pose for rs in rows for r in rs if r.pose is not None]
+    angles = iter(poses_to_xyzrpy(np.asarray(posed)) if posed else ())  # all at once: 0.3 ms a pose alone
     with atomic_write(Path(path), "w") as fh:
         w = csv.writer(fh, lineterminator="\n")
         w.writerow(COLUMNS)
-        for qid, cands in zip(query_ids, candidates, strict=True):
-            if not cands:
+        for qid, rs in zip(query_ids, rows, strict=True):
+            if not rs:
                 w.writerow([int(qid), 1, -1] + [""] * (len(COLUMNS) - 3))
-            for rank, c in enumerate(cands, start=1):
-                w.writerow([int(qid), rank, *_Row.of(c).cells()])
+            for rank, r in enumerate(rs, start=1):
+                w.writerow([int(qid), rank, *r.cells(None if r.pose is None else next(angles))])
 
 
 def _int(path: Path, line: int, key: str, text: str | None) -> int:
