@@ -401,3 +401,24 @@ def test_the_run_exports_each_pipelines_closures_as_mcap(tiny_run):
         n_accepted = sum(lp["accepted"] for lp in loops)
         expected = sum(1 for c in tops.values() if c.score >= threshold and c.accepted is not False)
         assert n_accepted == expected > 0
+
+
+def test_figures_drawn_on_other_processes_are_the_same_files(tmp_path):
+    """`plot_closures` on spawned processes writes the same PNG bytes as drawing in this process."""
+    from placerec.experiment.evidence_figures import ClosureView, plot_closures
+
+    rng = np.random.default_rng(5)
+    views = []
+    for k in range(3):
+        img = rng.integers(0, 255, (16, 128), dtype=np.uint8)
+        seg = rng.uniform(0, 40, (6, 2, 2))
+        cloud = rng.normal(0, 10, (500, 3))
+        views.append(
+            ClosureView(img, img[::-1], 4, seg[:4], seg[4:], cloud + k, cloud, f"view {k}", ["a 1", "b 2"])
+        )
+    here = [(v, tmp_path / f"here_{i}.png") for i, v in enumerate(views)]
+    there = [(v, tmp_path / f"there_{i}.png") for i, v in enumerate(views)]
+    plot_closures(here, processes=1)
+    plot_closures(there, processes=2)
+    for (_, a), (_, b) in zip(here, there, strict=True):
+        assert a.read_bytes() == b.read_bytes() and a.stat().st_size > 1000

@@ -17,7 +17,9 @@ described again by the pipelines that draw lines (descriptions are deterministic
 
 from __future__ import annotations
 
+import multiprocessing
 from collections.abc import Sequence as Seq
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,6 +40,7 @@ from placerec.experiment.run_folder import slug
 from placerec.experiment.runner import PipelineRecord
 from placerec.image import ImageParams, make_image
 from placerec.pipelines.visual import VisualFrontend
+from placerec.threads import available_threads
 from placerec.types import Candidate, PlaceRecognizer, Scan, Sequence, relative_pose
 
 __all__ = [
@@ -48,6 +51,8 @@ __all__ = [
     "correspondence_segments",
     "bev_raster",
     "plot_closure",
+    "plot_closures",
+    "FIGURES_PER_PROCESS",
     "CaseScans",
     "draw_evidence",
     "draw_pair",
@@ -433,7 +438,7 @@ def draw_evidence(
     records."""
     recs = _recognizers(records, cases, recognizers)
     shown = _read_shown(cfg, scans, recs, cases)
-    out = []
+    out, jobs = [], []
     for record, rec, cs in zip(records, recs, cases, strict=True):
         folder = run / EVIDENCE_DIR / slug(record.label)
         folder.mkdir(parents=True, exist_ok=True)
@@ -443,12 +448,32 @@ def draw_evidence(
             view = _view(
                 record.label, case, rec, shown, scans.match_side, scans.poses(), KIND_WORDS[scans.mode]
             )
-            plot_closure(view, folder / name)
+            jobs.append((view, folder / name))
             names.append(f"{EVIDENCE_DIR}/{slug(record.label)}/{name}")
             drawn = len(view.inliers) + len(view.outliers)
             lines.append((len(view.inliers), drawn) if drawn else None)
         out.append(PipelineEvidence(record.label, cs, names, lines, rejection_counts(record.candidates)))
+    plot_closures(jobs)
     return out
+
+
+#: a drawing process takes ~1.5 s to start (imports) and a figure ~0.2 s: one per this many figures at most
+FIGURES_PER_PROCESS = 20
+
+
+def plot_closures(jobs: Seq[tuple[ClosureView, Path]], processes: int | None = None) -> None:
+    """`plot_closure` of each (view, path): on ``processes`` spawned processes (None: one per
+    `FIGURES_PER_PROCESS` figures, at most `placerec.threads.available_threads`), in this one when that is
+    fewer than 2. Each figure is drawn as this process draws it (the same bytes)."""
+    if processes is None:
+        processes = min(available_threads(), len(jobs) // FIGURES_PER_PROCESS)
+    if processes < 2:
+        for view, path in jobs:
+            plot_closure(view, path)
+        return
+    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn")) as pool:
+        for done in [pool.submit(plot_closure, view, path) for view, path in jobs]:
+            done.result()
 
 
 def _pose_for(case: EvidenceCase, query_poses: np.ndarray, match_poses: np.ndarray) -> tuple[np.ndarray, str]:
