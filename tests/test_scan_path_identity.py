@@ -367,3 +367,12 @@ def test_prepare_threads(monkeypatch):
     assert prepare_threads(IcpParams()) == 1
     monkeypatch.delenv("OMP_NUM_THREADS")
     assert prepare_threads(IcpParams()) == available_threads()
+
+
+def test_prepare_threads_is_not_recorded_by_saved_databases():
+    """A database saved before `prepare_threads` existed (or with another value) loads: the count is run-time."""
+    from placerec.verify.candidates import VerifiedParams
+
+    saved = VerifiedParams().saved_dump()
+    assert "prepare_threads" not in saved["icp"]
+    assert VerifiedParams(icp={"prepare_threads": 3}).saved_dump() == saved

@@ -92,6 +92,7 @@ class IcpParams(Params):
         le=1024,
         description="threads preparing a cloud (search tree, normals / covariances); results do not depend on "
         "it; None: OMP_NUM_THREADS when set, else the cores this process may use",
+        json_schema_extra={"runtime": True},  # not recorded by a saved database: results do not depend on it
     )
     stats_points: int = Field(
         1000,
