@@ -231,7 +231,13 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
         share = (time.perf_counter() - t0) * 1e3 / max(len(image_ids), 1)
         bounds = np.searchsorted(cand, np.arange(len(image_ids) + 1))
         todo = [
-            (i, float(s), qi[bounds[c] : bounds[c + 1]], ri[bounds[c] : bounds[c + 1]], {"bow_score": float(s)})
+            (
+                i,
+                float(s),
+                qi[bounds[c] : bounds[c + 1]],
+                ri[bounds[c] : bounds[c + 1]],
+                {"bow_score": float(s)},
+            )
             for c, (i, s) in enumerate(zip(image_ids, scores, strict=False))
         ]
         return self._verified(description, self._retrieved_all(description, todo, share), query_id, k)

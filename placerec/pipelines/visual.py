@@ -419,7 +419,9 @@ class VisualHBST(VisualFrontend[VisualParams], Recognizer[VisualParams]):
             ):
                 sel = result.image_id == image_id
                 extra = {"votes": int(n_votes)}
-                todo.append((int(image_id), float(ratio), result.query_idx[sel], result.keypoint_idx[sel], extra))
+                todo.append(
+                    (int(image_id), float(ratio), result.query_idx[sel], result.keypoint_idx[sel], extra)
+                )
             return self._verified(description, self._retrieved_all(description, todo), query_id, k)
         if p.check == "none":
             return [
