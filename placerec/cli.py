@@ -296,7 +296,7 @@ def bench(
     """
     from placerec.errors import ConfigError
     from placerec.experiment.benchmark import load_benchmark_config, run_benchmark
-    from placerec.experiment.benchmark_summary import bench_line, rows, suggest_thresholds
+    from placerec.experiment.benchmark_summary import bench_line, rows, suggest_by_sensor, suggest_thresholds
     from placerec.experiment.tables import print_rows
 
     overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
@@ -313,6 +313,8 @@ def bench(
 
         cells = {c: json.loads((folder / "cells" / c / "cell.json").read_text()) for c in payload["cells"]}
         typer.echo(f"operating thresholds the tuning rule picks: {suggest_thresholds(cfg, cells)}")
+        if len({c.sensor for c in cfg.cells()}) > 1:
+            typer.echo(f"the same rule on each sensor's cells alone: {suggest_by_sensor(cfg, cells)}")
     typer.echo(f"benchmark: {folder}  (report: {folder / 'index.html'})")
     typer.echo(bench_line(payload))
 

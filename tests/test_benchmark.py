@@ -9,8 +9,8 @@ import yaml
 
 from placerec.errors import ConfigError
 from placerec.experiment import protocol
-from placerec.experiment.benchmark import BenchmarkConfig, load_benchmark_config, run_benchmark
-from placerec.experiment.benchmark_summary import bench_line, suggest_thresholds
+from placerec.experiment.benchmark import BenchmarkConfig, CaptureParams, load_benchmark_config, run_benchmark
+from placerec.experiment.benchmark_summary import bench_line, suggest_by_sensor, suggest_thresholds
 from placerec.params import resolve
 
 
@@ -86,6 +86,30 @@ def test_sensors_that_do_not_spin_are_driven_as_their_capture_says():
         resolve(BenchmarkConfig, {**BASE, "capture": {"hdl128": {}}})
 
 
+def test_a_sensors_thresholds_replace_the_presets_in_its_cells_only():
+    """``capture.<sensor>.thresholds`` sets the operating threshold of that sensor's cells; a pipeline's own
+    ``threshold:`` still wins; the E1R-like sensor's defaults are the ones its tuning cells picked."""
+    bench = resolve(
+        BenchmarkConfig,
+        {
+            "pipelines": [{"name": "scan-context"}, {"name": "orb-dbow", "threshold": 0.5}],
+            "sensors": ["avia", "mid360"],
+            "worlds": ["town"],
+            "seeds": [protocol.TEST_SEEDS[0]],
+            "capture": {"avia": {"thresholds": {"scan-context": 0.45, "orb-dbow": 0.3}}},
+        },
+    )
+    avia, mid360 = (bench.cell_config(c) for c in bench.cells())
+    assert [p.operating_threshold for p in avia.pipelines] == [0.45, 0.5]
+    assert [p.operating_threshold for p in mid360.pipelines] == [0.3, 0.5]  # a config's capture replaces all
+    defaults = resolve(BenchmarkConfig, {**BASE, "sensors": ["avia", "mid360", "e1r"]})
+    picked = [defaults.cell_config(c).pipelines[0].operating_threshold for c in defaults.cells()[:6:2]]
+    assert picked == [0.3, 0.25, 0.4]  # protocol.CAPTURE: the presets' for the Avia, the tuning cells' picks
+    for bad in (-0.1, float("nan"), "high"):
+        with pytest.raises(ConfigError, match="thresholds"):
+            resolve(BenchmarkConfig, {**BASE, "capture": {"avia": {"thresholds": {"scan-context": bad}}}})
+
+
 def test_an_unknown_pipeline_fails_before_any_cell_runs(tmp_path):
     cfg = resolve(
         BenchmarkConfig, {"pipelines": [{"name": "no-such"}], "worlds": ["town"], "sensors": ["vlp16"]}
@@ -137,6 +161,29 @@ def test_two_cells_end_to_end_at_fixed_thresholds_and_resumed(tmp_path):
     assert judged["cells_run"] == 0 and judged["pipelines"]["orb-hbst"]["threshold"] == 0.95
     stricter = judged["pipelines"]["orb-hbst"]["figures"]["recall"]["cells"]
     assert all(stricter[c] <= recall[c] for c in recall) and stricter != recall
+
+    by_sensor = suggest_by_sensor(cfg, cells)
+    assert set(by_sensor) == {"vlp16", "os1-64"} and all(set(v) == set(picked) for v in by_sensor.values())
+    assert all(
+        max(v[k] for v in by_sensor.values()) == picked[k] for k in picked
+    )  # the matrix's is the highest
+
+    per_sensor = cfg.model_copy(
+        update={
+            "capture": {
+                **cfg.capture,
+                "os1-64": resolve(CaptureParams, {"thresholds": {"scan-context": 0.95}}),
+            }
+        }
+    )
+    _, sensor_judged = run_benchmark(per_sensor)  # judged again from the cells' files, nothing rerun
+    sc = sensor_judged["pipelines"]["scan-context"]
+    assert sensor_judged["cells_run"] == 0 and sorted(map(float, sc["threshold"])) == [0.3, 0.95]
+    before = payload["pipelines"]["scan-context"]["figures"]["recall"]["cells"]
+    after = sc["figures"]["recall"]["cells"]
+    assert (
+        after["town_vlp16_0"] == before["town_vlp16_0"] and after["town_os1-64_0"] <= before["town_os1-64_0"]
+    )
 
     (folder / "cells" / "town_os1-64_0" / "cell.json").unlink()  # interrupted before this cell finished
     _, again = run_benchmark(cfg)

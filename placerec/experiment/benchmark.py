@@ -25,7 +25,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -82,7 +82,10 @@ class CaptureParams(Params):
     ``odometry_drift``: the relative translation error of the odometry that de-skews and places keyframes (None:
     the true poses); ``keyframes``: the pipelines see keyframes of these windows; ``exclusion``: the loop
     exclusion window of this sensor's cells (keyframes are metres apart, so a window counted in frames would
-    mean something else); ``feature_params``: extractor settings of this sensor's visual pipelines."""
+    mean something else); ``feature_params``: extractor settings of this sensor's visual pipelines;
+    ``thresholds``: operating thresholds of this sensor's cells per pipeline label, in place of the pipelines'
+    presets (chosen on the sensor's tuning cells by the same rule, docs/protocol.md; a pipeline's own ``threshold:``
+    in the config still wins)."""
 
     rate_hz: float | None = Field(None, gt=0, le=1000, allow_inf_nan=False, description="scans per second")
     sweep_motion: bool = Field(False, description="rays measured from the pose at their own time")
@@ -94,6 +97,9 @@ class CaptureParams(Params):
         description="overrides of the feature extractor's parameters in every pipeline of this sensor's cells that "
         "has an intensity-image front end (e.g. {nfeatures: 1000} for 16- and 32-row images: "
         "docs/intensity_images.md, 'Sparse spinning sensors')",
+    )
+    thresholds: dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)]] = Field(
+        default_factory=dict, description="operating threshold per pipeline label in this sensor's cells"
     )
 
 
@@ -193,6 +199,10 @@ class BenchmarkConfig(Params):
         pipelines = [p.model_dump(mode="json") for p in self.pipelines]
         if capture is not None and capture.feature_params:
             pipelines = [_with_feature_params(p, capture.feature_params) for p in pipelines]
+        if capture is not None and capture.thresholds:
+            for p, spec in zip(pipelines, self.pipelines, strict=True):
+                if p.get("threshold") is None and spec.display_name in capture.thresholds:
+                    p["threshold"] = capture.thresholds[spec.display_name]
         data = {
             "name": f"{self.name}-{cell.name}",
             "dataset": {"source": "simulator", "simulator": simulator},
@@ -410,7 +420,7 @@ def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[
     truth = TruthClouds(cfg.evaluation, poses)
     truth.voxels = [keys[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
     truth.overlap = overlap  # the overlap search of the run, not made again
-    specs = list(bench.pipelines)
+    specs = list(cfg.pipelines)  # the cell's: with its sensor's thresholds
     tables = [read_candidates(folder / f"candidates_{slug(p.display_name)}.csv") for p in specs]
     pose_gts = pose_truths(cfg, tables, poses, stamps, truth)
     out = {}

@@ -26,6 +26,7 @@ __all__ = [
     "bench_line",
     "rows",
     "suggest_thresholds",
+    "suggest_by_sensor",
     "summarise",
     "write_outputs",
 ]
@@ -138,6 +139,18 @@ def suggest_thresholds(
         floors = [lookup(c["metrics"].get(label, {}), ("min_score",)) for c in cells.values()]
         floor = max((f for f in floors if isinstance(f, int | float)), default=0.0)
         out[label] = round(max(pick, floor), 6)
+    return out
+
+
+def suggest_by_sensor(
+    bench: BenchmarkConfig, cells: dict[str, dict[str, Any]], step: float = 0.05
+) -> dict[str, dict[str, float | None]]:
+    """`suggest_thresholds` over each sensor's cells alone (``protocol.CAPTURE``'s per-sensor ``thresholds``)."""
+    sensor_of = {c.name: c.sensor for c in bench.cells()}
+    out: dict[str, dict[str, float | None]] = {}
+    for sensor in dict.fromkeys(sensor_of[name] for name in cells):
+        mine = {name: cell for name, cell in cells.items() if sensor_of[name] == sensor}
+        out[sensor] = suggest_thresholds(bench, mine, step)
     return out
 
 
