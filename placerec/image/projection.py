@@ -43,7 +43,7 @@ from pydantic import Field, model_validator
 
 from placerec.errors import ConfigError, ScanDataError
 from placerec.params import Params
-from placerec.types import MAX_RANGE_M, MIN_RETURN_M, Scan, take_rows, valid_points
+from placerec.types import Scan, take_rows, valid_points
 
 __all__ = [
     "ImageParams",
@@ -251,7 +251,8 @@ def project_uniform(
     h = params.height or scan.sensor.n_beams or 64
     w = params.width or scan.sensor.columns or 1024
     r = scan.ranges
-    valid, phi = _valid_elevations(scan.xyz, scan.intensity, r)
+    valid = valid_points(scan, intensity=True, ranges=r)
+    phi = _valid_elevations(scan.xyz, r, valid)
     if not valid.any():
         empty = np.zeros(0, np.int64)
         return _scatter_nearest(empty, empty, r[:0], scan, empty, (h, w))
@@ -267,25 +268,16 @@ _DEGREES_F32 = np.float32(180.0) / np.float32(np.pi)
 
 
 @numba.njit(cache=True, nogil=True)
-def _valid_elevations(
-    xyz: np.ndarray, intensity: np.ndarray, r: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """`valid_points` (with intensity) of float32 points at ranges ``r``, and their `_elevations` (float32
-    degrees; 0 where not valid)."""
-    n = xyz.shape[0]
-    valid = np.empty(n, np.bool_)
-    phi = np.zeros(n, np.float32)
-    lo, hi = np.float32(MIN_RETURN_M), np.float32(MAX_RANGE_M)
+def _valid_elevations(xyz: np.ndarray, r: np.ndarray, valid: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """`_elevations` (float32 degrees, as numpy computes them) of the ``valid`` float32 points at ranges ``r``;
+    0 elsewhere."""
+    phi = np.zeros(xyz.shape[0], np.float32)
     one = np.float32(1.0)
-    for i in range(n):
-        ri = r[i]
-        ok = np.isfinite(ri) and ri > lo and ri < hi and np.isfinite(intensity[i])
-        valid[i] = ok
-        if ok:
-            s = xyz[i, 2] / ri
-            s = min(max(s, -one), one)
+    for i in range(xyz.shape[0]):
+        if valid[i]:
+            s = min(max(xyz[i, 2] / r[i], -one), one)
             phi[i] = np.arcsin(s) * _DEGREES_F32
-    return valid, phi
+    return phi
 
 
 @numba.njit(cache=True, nogil=True)
