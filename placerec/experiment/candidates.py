@@ -102,10 +102,8 @@ class _Row:
             accepted=-1 if acc is None else int(bool(acc)),
         )
 
-    def cells(self, xyzrpy: np.ndarray | None = None) -> list[Any]:
-        """The row's cells; ``xyzrpy``: `pose_to_xyzrpy` of its pose where computed already."""
-        if self.pose is not None and xyzrpy is None:
-            xyzrpy = pose_to_xyzrpy(self.pose)
+    def cells(self, xyzrpy: np.ndarray | None) -> list[Any]:
+        """The row's cells; ``xyzrpy``: `pose_to_xyzrpy` of its pose (None without one)."""
         pose = [""] * 6 if xyzrpy is None else [repr(float(x)) for x in xyzrpy]
         stats = [
             "" if math.isnan(x) else repr(float(x)) for x in (self.verified_score, self.fitness, self.rmse)

@@ -70,8 +70,7 @@ def candidate_text(c: Candidate, rank: int) -> str:
     elif c.accepted:
         lines.append("**accepted**")
     else:
-        why = c.rejection
-        lines.append(f"**rejected**: {REJECTIONS.get(why, 'no reason given') if why else 'no reason given'}")
+        lines.append(f"**rejected**: {REJECTIONS.get(c.rejection or '', 'no reason given')}")
     return "  \n".join(lines)
 
 
