@@ -135,10 +135,17 @@ class PipelineSpec(Params):
     @property
     def operating_threshold(self) -> float | None:
         """The threshold the pipeline is judged at: ``threshold`` when given, else its preset's (None: none)."""
+        return self.threshold_for(None)
+
+    def threshold_for(self, sensor: str | None) -> float | None:
+        """The threshold the pipeline is judged at on ``sensor``'s scans (a sensor model name, None: unknown):
+        ``threshold`` when given, else its preset's for that sensor (`placerec.recognizer.PipelineEntry`)."""
         from placerec.recognizer import PIPELINES
 
+        if self.threshold is not None:
+            return self.threshold
         entry = PIPELINES.get(self.name)
-        return self.threshold if self.threshold is not None else (entry.threshold if entry else None)
+        return None if entry is None else entry.threshold_for(sensor)
 
 
 class ExclusionConfig(ExclusionWindow):
@@ -304,6 +311,12 @@ class ExperimentConfig(Params):
         description="loop mode: pipelines see keyframes of the scans of each window (placerec.keyframes,"
         " docs/keyframes.md), e.g. {seconds: 0.5} or {metres: 5}; None: single scans",
     )
+
+    def operating_threshold(self, spec: PipelineSpec) -> float | None:
+        """``spec``'s operating threshold in this experiment: on the simulator, its sensor's
+        (`PipelineSpec.threshold_for`); on recorded data the preset's."""
+        sensor = self.dataset.simulator.sensor if self.dataset.source == "simulator" else None
+        return spec.threshold_for(sensor)
 
     @model_validator(mode="after")
     def _keyframes_in_loop_mode(self) -> ExperimentConfig:

@@ -101,19 +101,21 @@ class LoopClosureDetector:
         name: str,
         params: Mapping[str, Any] | None = None,
         threshold: float | None = None,
+        sensor: str | None = None,
         **options: Any,
     ) -> LoopClosureDetector:
         """A detector over the registered pipeline ``name`` (``params`` overrides its preset) at its operating
-        threshold, chosen on the tuning split (docs/protocol.md), unless ``threshold`` is given; ``options`` are
-        the other arguments of the constructor. `ConfigError` when the pipeline has no operating threshold and none
-        is given."""
+        threshold, chosen on the tuning split (docs/protocol.md; for ``sensor``, a sensor model name, the one
+        chosen on that sensor's tuning cells where it differs), unless ``threshold`` is given; ``options`` are the
+        other arguments of the constructor. `ConfigError` when the pipeline has no operating threshold and none is
+        given."""
         from placerec.recognizer import PIPELINES, make_pipeline
 
         entry = PIPELINES.get(name)
         if threshold is None:
-            if entry is None or entry.threshold is None:
+            threshold = None if entry is None else entry.threshold_for(sensor)
+            if threshold is None:
                 raise ConfigError(f"pipeline {name!r} has no operating threshold: give threshold=")
-            threshold = entry.threshold
         return cls(make_pipeline(name, params), threshold=threshold, **options)
 
     def __init__(

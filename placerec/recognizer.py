@@ -206,17 +206,29 @@ class PipelineEntry:
     summary: str
     preset: dict[str, Any] = field(default_factory=dict)
     threshold: float | None = None
+    #: sensor model name (`placerec.sim.sensors.SENSORS`) -> operating threshold on that sensor's scans, where the
+    #: same rule on the sensor's own tuning cells picks another than ``threshold``
+    sensor_thresholds: Mapping[str, float] = field(default_factory=dict)
+
+    def threshold_for(self, sensor: str | None) -> float | None:
+        """The operating threshold on ``sensor``'s scans: its own (``sensor_thresholds``), else ``threshold``."""
+        return self.sensor_thresholds.get(sensor, self.threshold) if sensor is not None else self.threshold
 
 
 #: Registered pipelines by short name. The loop pipelines' operating thresholds were picked by the tuning rule of
 #: docs/protocol.md on the tuning matrix (town x 4 sensors, seed 0): `placerec bench configs/benchmark_tuning.yaml
 #: --suggest`. 0.25 is the verification's min_score (no false closure scored above it on the tuning cells); Scan
-#: Context's ICP-verified false closures reached 0.259, MapClosures' false ones 14 inliers.
+#: Context's ICP-verified false closures reached 0.259, MapClosures' false ones 14 inliers. A sensor's own thresholds
+#: come from the same rule on that sensor's tuning cells alone (`placerec bench ... --suggest` prints them per
+#: sensor; docs/sensors.md): on the VLP-16 and the MID-360-like scanner no false Scan Context closure scored 0.25;
+#: the E1R-like sensor's false closures (repeated blocks 40-100 m away, seen by a 120 deg, 30 m cone) score up to
+#: 0.35-0.40.
 PIPELINES: dict[str, PipelineEntry] = {
     "scan-context": PipelineEntry(
         "placerec.baselines.scan_context:ScanContext",
         "Scan Context (Kim & Kim 2018): polar max-height grid, ring-key search, column-shift distance",
         threshold=0.3,
+        sensor_thresholds={"vlp16": 0.25, "mid360": 0.25, "e1r": 0.4},
     ),
     "map-closures": PipelineEntry(
         "placerec.baselines.map_closures_peer:MapClosuresPeer",
@@ -240,6 +252,7 @@ PIPELINES: dict[str, PipelineEntry] = {
         "VPR paper: intensity image, ORB features, DBoW2 bag of words; RANSAC + ICP verification",
         {"features": "orb", "verify": {"top_k": 20, "icp_top_k": 2}},
         threshold=0.25,
+        sensor_thresholds={"e1r": 0.35},
     ),
     "surf-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
@@ -252,6 +265,7 @@ PIPELINES: dict[str, PipelineEntry] = {
         "VPR paper: intensity image, our SuperPoint (trained on simulated LiDAR), DBoW2; RANSAC + ICP verification",
         {"features": "superpoint", "verify": {"top_k": 20, "icp_top_k": 2}},
         threshold=0.25,
+        sensor_thresholds={"e1r": 0.4},
     ),
     "ishot-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",

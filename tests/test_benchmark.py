@@ -100,11 +100,15 @@ def test_a_sensors_thresholds_replace_the_presets_in_its_cells_only():
         },
     )
     avia, mid360 = (bench.cell_config(c) for c in bench.cells())
-    assert [p.operating_threshold for p in avia.pipelines] == [0.45, 0.5]
-    assert [p.operating_threshold for p in mid360.pipelines] == [0.3, 0.5]  # a config's capture replaces all
-    defaults = resolve(BenchmarkConfig, {**BASE, "sensors": ["avia", "mid360", "e1r"]})
-    picked = [defaults.cell_config(c).pipelines[0].operating_threshold for c in defaults.cells()[:6:2]]
-    assert picked == [0.3, 0.25, 0.4]  # protocol.CAPTURE: the presets' for the Avia, the tuning cells' picks
+    assert [avia.operating_threshold(p) for p in avia.pipelines] == [0.45, 0.5]
+    # the registry's MID-360 threshold (a config's capture for another sensor leaves it)
+    assert [mid360.operating_threshold(p) for p in mid360.pipelines] == [0.25, 0.5]
+    defaults = resolve(BenchmarkConfig, {**BASE, "sensors": ["avia", "mid360", "e1r", "vlp16", "hdl64"]})
+    cells = [defaults.cell_config(c) for c in defaults.cells()[:10:2]]
+    assert [c.dataset.simulator.sensor for c in cells] == ["avia", "mid360", "e1r", "vlp16", "hdl64"]
+    picked = [c.operating_threshold(c.pipelines[0]) for c in cells]
+    # the presets' for the Avia and HDL-64, the others' own tuning cells' picks
+    assert picked == [0.3, 0.25, 0.4, 0.25, 0.3]
     for bad in (-0.1, float("nan"), "high"):
         with pytest.raises(ConfigError, match="thresholds"):
             resolve(BenchmarkConfig, {**BASE, "capture": {"avia": {"thresholds": {"scan-context": bad}}}})
@@ -178,7 +182,7 @@ def test_two_cells_end_to_end_at_fixed_thresholds_and_resumed(tmp_path):
     )
     _, sensor_judged = run_benchmark(per_sensor)  # judged again from the cells' files, nothing rerun
     sc = sensor_judged["pipelines"]["scan-context"]
-    assert sensor_judged["cells_run"] == 0 and sorted(map(float, sc["threshold"])) == [0.3, 0.95]
+    assert sensor_judged["cells_run"] == 0 and sorted(map(float, sc["threshold"])) == [0.25, 0.95]  # VLP-16's
     before = payload["pipelines"]["scan-context"]["figures"]["recall"]["cells"]
     after = sc["figures"]["recall"]["cells"]
     assert (
@@ -201,3 +205,29 @@ def test_a_detector_for_a_registered_pipeline_runs_at_its_operating_threshold():
     assert LoopClosureDetector.for_pipeline("orb-hbst", threshold=0.6, k=3).threshold == 0.6
     with pytest.raises(ConfigError, match="no operating threshold"):
         LoopClosureDetector.for_pipeline("ishot-votes")
+
+
+def test_a_pipelines_threshold_on_a_sensor_is_its_own_where_one_was_chosen():
+    """`PipelineEntry.threshold_for`: the sensor's operating threshold where its tuning cells picked one, else the
+    preset's; a spec's own ``threshold`` wins; a detector for a sensor accepts at that sensor's."""
+    from placerec.config import PipelineSpec
+    from placerec.loop_closure import LoopClosureDetector
+    from placerec.recognizer import PIPELINES
+
+    sc = PIPELINES["scan-context"]
+    assert sc.threshold_for(None) == sc.threshold_for("hdl64") == sc.threshold == 0.3
+    assert sc.threshold_for("vlp16") == 0.25 and sc.threshold_for("e1r") == 0.4
+    assert (
+        PIPELINES["orb-hbst"].threshold_for("e1r") == 0.25
+        and PIPELINES["orb-dbow"].threshold_for("e1r") == 0.35
+    )
+    assert PipelineSpec(name="scan-context").threshold_for("vlp16") == 0.25
+    assert PipelineSpec(name="scan-context", threshold=0.5).threshold_for("vlp16") == 0.5
+    assert PipelineSpec(name="scan-context").operating_threshold == 0.3
+    assert LoopClosureDetector.for_pipeline("scan-context", sensor="vlp16").threshold == 0.25
+    assert LoopClosureDetector.for_pipeline("scan-context", sensor="velodyne-vlp16").threshold == 0.3
+    assert all(
+        0 <= t and n in protocol.TEST_SENSORS + protocol.SENSOR_MATRIX
+        for e in PIPELINES.values()
+        for n, t in e.sensor_thresholds.items()
+    )

@@ -58,7 +58,8 @@ def test_stored_keyframes_come_back(built: Path, seq: SimulatedSequence) -> None
     np.testing.assert_array_equal(m.scan_index, np.arange(N_SCANS))
     np.testing.assert_allclose(m.poses, seq.poses)
     assert [p.name for p in m.manifest.pipelines] == ["orb-hbst", "scan-context"]
-    assert m.manifest.pipelines[0].threshold == 0.25
+    # each pipeline's operating threshold on the map's sensor: Scan Context's chosen on VLP-16 tuning cells
+    assert [p.threshold for p in m.manifest.pipelines] == [0.25, 0.25]
     assert m.manifest.sensor is not None and m.manifest.sensor["name"] == "vlp16"
     # the stored cloud is the scan voxelised at 0.4 m, in the keyframe's frame, to within the int16 step
     cloud = m.cloud(7)

@@ -60,7 +60,7 @@ from placerec.eval.metrics import timing_summary
 from placerec.eval.pose_error import pose_errors
 from placerec.eval.trajectory import trajectory_errors
 from placerec.experiment.protocol import TEST_SEEDS, TEST_WORLDS
-from placerec.maps import Fix, Localizer, LocalizerParams
+from placerec.maps import Fix, Localizer, LocalizerParams, MapArtifact
 from placerec.sim.odometry import OdometryDrift, drift_poses
 from placerec.sim.sessions import SessionPair, kidnap_trials, make_session_pair
 from placerec.slam_app.localize import CORRECT_DEG, CORRECT_M, LocalizeRun
@@ -86,6 +86,11 @@ def map_pipelines(pipeline: str | None) -> list[PipelineSpec]:
     return list(MapBuild(source=SequenceSource(), out=Path(".")).pipelines)
 
 
+def map_thresholds(pipeline: str | None, sensor: str) -> dict[str, float | None]:
+    """The operating thresholds the true-pose map records for its pipelines on ``sensor`` (global search's)."""
+    return {p.name: p.threshold_for(sensor) for p in map_pipelines(pipeline)}
+
+
 def pipeline_label(pipeline: str | None) -> str:
     return "+".join(p.name for p in map_pipelines(pipeline))
 
@@ -95,7 +100,8 @@ def settings(
 ) -> dict[str, Any]:
     """What a cell depends on besides its world, seed and kind (stored with it; a mismatch recomputes it)."""
     out = {"version": VERSION, "sensor": sensor, "pipeline": pipeline_label(pipeline), "scans": scans, "kidnaps": kidnaps,
-           "slam_config": SLAM_CONFIG, "correct_within": [CORRECT_M, CORRECT_DEG]}  # fmt: skip
+           "slam_config": SLAM_CONFIG, "correct_within": [CORRECT_M, CORRECT_DEG],
+           "thresholds": map_thresholds(pipeline, sensor)}  # fmt: skip
     if map_closes_loop:
         out["map_closes_loop"] = True
     return out
@@ -110,9 +116,11 @@ def odometry(pair: SessionPair) -> np.ndarray:
 
 # -- the two maps of a world and seed -------------------------------------------------------------------------
 def true_map(pair: SessionPair, pipeline: str | None, folder: Path) -> Path:
-    """Session 1's map at its true poses (built once; reused when ``folder`` holds one)."""
+    """Session 1's map at its true poses (built once; reused when ``folder`` holds one with the same thresholds)."""
     if (folder / "manifest.json").is_file():
-        return folder
+        held = {p.name: p.threshold for p in MapArtifact.open(folder).manifest.pipelines}
+        if held == map_thresholds(pipeline, pair.map.sensor.name):
+            return folder
     build = MapBuild(source=SequenceSource(), out=folder, pipelines=map_pipelines(pipeline), overwrite=True)
     return write_map(pair.map, build)
 

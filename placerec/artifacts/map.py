@@ -97,6 +97,9 @@ def write_map(
         source = "slam"
     if len(poses) != len(seq):
         raise ConfigError(f"{seq.name}: {len(poses)} poses for {len(seq)} scans")
+    chosen = select_keyframes(poses, config.keyframe_metres)
+    first = seq[int(chosen[0])] if len(chosen) else None  # its sensor is the map's; read once
+    sensor = None if first is None else first.sensor
     recs: dict[str, tuple[PlaceRecognizer, float | None]] = {}
     for k, spec in enumerate(config.pipelines):
         key = spec.name
@@ -106,17 +109,15 @@ def write_map(
             )
         recs[key] = (
             make_pipeline(spec.name, spec.params, path=f"pipelines[{k}].params"),
-            spec.operating_threshold,
+            spec.threshold_for(None if sensor is None else sensor.name),
         )
     if not recs:
         raise ConfigError("pipelines: a map needs at least one pipeline")
-    chosen = select_keyframes(poses, config.keyframe_metres)
-    first = seq[int(chosen[0])] if len(chosen) else None  # its sensor is the map's; read once
     with MapWriter(
         config.out,
         recs,
         name=seq.name,
-        sensor=None if first is None else first.sensor,
+        sensor=sensor,
         intensity=intensity_label(config.preprocess),
         preprocess=config.preprocess.saved_dump(),
         config=config.model_dump(mode="json"),

@@ -83,9 +83,9 @@ class CaptureParams(Params):
     the true poses); ``keyframes``: the pipelines see keyframes of these windows; ``exclusion``: the loop
     exclusion window of this sensor's cells (keyframes are metres apart, so a window counted in frames would
     mean something else); ``feature_params``: extractor settings of this sensor's visual pipelines;
-    ``thresholds``: operating thresholds of this sensor's cells per pipeline label, in place of the pipelines'
-    presets (chosen on the sensor's tuning cells by the same rule, docs/protocol.md; a pipeline's own ``threshold:``
-    in the config still wins)."""
+    ``thresholds``: operating thresholds of this sensor's cells per pipeline label, in place of the registry's for
+    the sensor (`placerec.recognizer.PipelineEntry.threshold_for`: chosen on the sensor's tuning cells by the same
+    rule, docs/protocol.md); a pipeline's own ``threshold:`` in the config still wins."""
 
     rate_hz: float | None = Field(None, gt=0, le=1000, allow_inf_nan=False, description="scans per second")
     sweep_motion: bool = Field(False, description="rays measured from the pose at their own time")
@@ -426,7 +426,7 @@ def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[
     out = {}
     for spec, table, pose_gt in zip(specs, tables, pose_gts, strict=True):
         label = spec.display_name
-        _, summary = loop_summary(cfg, table, poses, stamps, spec.operating_threshold, truth, pose_gt)
+        _, summary = loop_summary(cfg, table, poses, stamps, cfg.operating_threshold(spec), truth, pose_gt)
         kept = stored.get(label, {})
         out[label] = {**kept, **finite_or_null(summary)}
     return out

@@ -145,7 +145,7 @@ def suggest_thresholds(
 def suggest_by_sensor(
     bench: BenchmarkConfig, cells: dict[str, dict[str, Any]], step: float = 0.05
 ) -> dict[str, dict[str, float | None]]:
-    """`suggest_thresholds` over each sensor's cells alone (``protocol.CAPTURE``'s per-sensor ``thresholds``)."""
+    """`suggest_thresholds` over each sensor's cells alone (the registry's ``sensor_thresholds``)."""
     sensor_of = {c.name: c.sensor for c in bench.cells()}
     out: dict[str, dict[str, float | None]] = {}
     for sensor in dict.fromkeys(sensor_of[name] for name in cells):

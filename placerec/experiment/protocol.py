@@ -73,13 +73,8 @@ CAPTURE: dict[str, dict] = {
     }
     for name, seconds in _KEYFRAME_SECONDS.items()
 }
-#: Operating thresholds of these sensors' cells where the tuning rule (docs/protocol.md) picks other ones than the
-#: presets' (chosen on the spinning tuning matrix) on the sensor's own tuning cells (`placerec bench
-#: configs/benchmark_sensors_tuning.yaml --set 'sensors=[avia,mid360,e1r]' --suggest`, 2026-11-27): the MID-360's
-#: highest false Scan Context score stays under 0.25; the E1R's false closures (repeated blocks 40-100 m away, seen
-#: by a 120 deg, 30 m cone) score up to 0.35-0.40. The Avia's picks are the presets'.
-CAPTURE["mid360"]["thresholds"] = {"scan-context": 0.25}
-CAPTURE["e1r"]["thresholds"] = {"scan-context": 0.4, "orb-dbow": 0.35, "superpoint-dbow": 0.4}
+#: Their operating thresholds, where the tuning rule picks others on a sensor's own tuning cells than the presets'
+#: (chosen on the spinning tuning matrix), are the registry's (`placerec.recognizer.PipelineEntry.sensor_thresholds`).
 #: The 16- and 32-beam spinning sensors keep one scan a metre and per-beam images, but their visual pipelines keep
 #: 1000 features an image instead of 300: the 16- and 32-row images repeat their features (58-70 %) yet match few
 #: of them, and more features give 2-3x the correct matches (tools/eval_sparse_sensors.py, tuning data; chosen on

@@ -151,7 +151,7 @@ def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
     stamps = _read_or_empty(times, lambda p: np.loadtxt(p, ndmin=1), (0,)) if times.is_file() else None
     table = read_candidates(run_dir / f"candidates_{slug(label)}.csv")
     spec = next((p for p in cfg.pipelines if p.display_name == label), None)
-    threshold = None if spec is None else spec.operating_threshold
+    threshold = None if spec is None else cfg.operating_threshold(spec)
     return loop_summary(cfg, table, poses, stamps, threshold)[1]
 
 

@@ -159,7 +159,7 @@ def build_pipelines(cfg: ExperimentConfig) -> Pipelines:
         rec = make_pipeline(spec.name, spec.params, path=f"pipelines[{i}].params")
         params = getattr(rec, "params", None)
         resolved = params.model_dump(mode="json") if isinstance(params, Params) else dict(spec.params)
-        threshold = spec.operating_threshold
+        threshold = cfg.operating_threshold(spec)
         out.append(
             (
                 PipelineRecord(
