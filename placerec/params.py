@@ -91,6 +91,25 @@ class Params(BaseModel):
                 out[name] = value.saved_dump()
         return out
 
+    @classmethod
+    def without_runtime(cls, data: Any) -> Any:
+        """``data`` (a saved dump) without the run-time fields, at every level: a database saved before a field
+        became a run-time one compares equal to `saved_dump` again."""
+        if not isinstance(data, Mapping):
+            return data
+        out = dict(data)
+        for name, field in cls.model_fields.items():
+            extra = field.json_schema_extra
+            if isinstance(extra, dict) and extra.get("runtime"):
+                out.pop(name, None)
+            elif (
+                name in out
+                and isinstance(model := _model_in(field.annotation), type)
+                and issubclass(model, Params)
+            ):
+                out[name] = model.without_runtime(out[name])
+        return out
+
     @model_validator(mode="before")
     @classmethod
     def _merge_sections(cls, data: Any) -> Any:

@@ -7,6 +7,8 @@ import pytest
 
 from placerec.artifacts.places import build_places
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
+from placerec.io.atomic import save_artifact
+from placerec.pipelines import keypoint_voting as kv
 from placerec.pipelines.keypoint_voting import KeypointVoting, knn2, ratio_votes
 from placerec.recognizer import make_pipeline
 from placerec.three_d import FeatureParams
@@ -104,6 +106,22 @@ def test_save_load_round_trip_and_parameter_check(tmp_path):
     assert [(c.match_id, c.score) for c in a] == [(c.match_id, c.score) for c in b]
     with pytest.raises(ArtifactError, match="other parameters"):
         KeypointVoting(search={"tau_max": 0.9}, **OFF).load(tmp_path / "db.npz")
+    # how the exact search is computed is no part of a database: another backend loads it, with the same answers
+    other = KeypointVoting(search={"tau_max": 0.8, "backend": "faiss", "nn_threads": 2}, **OFF)
+    other.load(tmp_path / "db.npz")
+    assert [(c.match_id, c.score) for c in other.query_description(desc(query), k=4)] == [
+        (c.match_id, c.score) for c in a
+    ]
+    # a database whose header records them (saved before they were run-time fields) loads too
+    arrays, meta = rec._state()
+    meta["params"] = rec.params.model_dump(mode="json")
+    assert meta["params"]["search"]["backend"] == "numpy"
+    save_artifact(tmp_path / "old.npz", kv._KIND, kv._VERSION, arrays, meta)
+    again.load(tmp_path / "old.npz")
+    meta["params"]["search"]["tau_max"] = 0.9
+    save_artifact(tmp_path / "other.npz", kv._KIND, kv._VERSION, arrays, meta)
+    with pytest.raises(ArtifactError, match="other parameters"):
+        again.load(tmp_path / "other.npz")
 
 
 def test_registry_presets_and_bad_parameters():

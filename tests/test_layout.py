@@ -259,7 +259,7 @@ def _third_party_imports(*folders: Path) -> set[str]:
 
 
 def test_dependencies_match_what_the_code_imports():
-    """A default code path needs only core dependencies: faiss is keypoint voting's default 2-NN backend. Every
+    """A default code path needs only core dependencies: faiss searches the 3D pipelines' compressed stores. Every
     package placerec imports is declared, and an extra lists only packages that the package, its tests or its tools
     import (no empty ``learned`` extra before a module uses torch)."""
     tomllib = pytest.importorskip("tomllib", reason="reading pyproject.toml needs Python >= 3.11")

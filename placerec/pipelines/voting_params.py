@@ -32,14 +32,25 @@ class SearchParams(Params):
     tau_max: float = Field(
         0.9, gt=0, le=1, description="NN ratio d1/d2 below which a descriptor votes (eq. 4)"
     )
-    backend: Literal["faiss", "numpy"] = Field("faiss", description="exact 2-NN search")
+    backend: Literal["faiss", "numpy"] = Field(
+        "numpy",
+        description="how the exact 2-NN of a float32 store are computed, the same neighbours either way: 'numpy', one "
+        "BLAS matrix product a batch; 'faiss', faiss's exact search (one query at a time below faiss's BLAS "
+        "threshold: ~4x slower for 16-keypoint batches over 100k ISHOT rows, docs/benchmarks.md)",
+        json_schema_extra={"runtime": True},
+    )
     index: Literal["flat", "ivf"] = Field(
         "flat",
         description="search over the whole database: exact brute force, or approximate (faiss IVF, sub-linear)",
     )
     ivf_nlist: int | None = Field(None, ge=1, description="IVF lists (None = sqrt of the descriptors)")
     ivf_nprobe: int = Field(16, ge=1, description="IVF lists searched per query descriptor")
-    nn_threads: int | None = Field(1, ge=1, description="faiss OpenMP threads (None = faiss's default)")
+    nn_threads: int | None = Field(
+        1,
+        ge=1,
+        description="faiss OpenMP threads (None = faiss's default)",
+        json_schema_extra={"runtime": True},
+    )
     descriptor_store: StoreDtype | None = Field(
         None,
         description="how descriptors are kept and searched: float32, float16 or sq8 (8-bit codes, 1 byte per "

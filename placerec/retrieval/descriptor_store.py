@@ -2,7 +2,8 @@
 
 ``dtype``:
 
-* ``"float32"`` — the rows as given (5376 bytes per 1344-d ISHOT row); searched with ``faiss.knn`` (BLAS).
+* ``"float32"`` — the rows as given (5376 bytes per 1344-d ISHOT row); 2-NN by `knn2` (one BLAS matrix product a
+  batch, or ``faiss.knn``), k-NN by ``faiss.knn``.
 * ``"float16"`` — half floats (2688 bytes per ISHOT row), in a faiss ``IndexScalarQuantizer`` (``QT_fp16``).
 * ``"sq8"`` — one byte per dimension (1344 bytes per ISHOT row): `placerec.quantise.ScalarQuantiser` codes, in a
   faiss ``IndexScalarQuantizer`` (``QT_8bit``) with the quantiser's ranges. The quantiser is fitted on the rows
