@@ -220,7 +220,8 @@ class PipelineEntry:
 #: --suggest`. 0.25 is the verification's min_score (no false closure scored above it on the tuning cells); Scan
 #: Context's ICP-verified false closures reached 0.259, MapClosures' false ones 14 inliers. A sensor's own thresholds
 #: come from the same rule on that sensor's tuning cells alone (`placerec bench ... --suggest` prints them per
-#: sensor; docs/sensors.md): on the VLP-16 and the MID-360-like scanner no false Scan Context closure scored 0.25;
+#: sensor; docs/sensors.md): on the VLP-16, the HDL-32E and the MID-360-like scanner no false Scan Context closure
+#: scored 0.25;
 #: the E1R-like sensor's false closures (repeated blocks 40-100 m away, seen by a 120 deg, 30 m cone) score up to
 #: 0.35-0.40.
 PIPELINES: dict[str, PipelineEntry] = {
@@ -228,7 +229,7 @@ PIPELINES: dict[str, PipelineEntry] = {
         "placerec.baselines.scan_context:ScanContext",
         "Scan Context (Kim & Kim 2018): polar max-height grid, ring-key search, column-shift distance",
         threshold=0.3,
-        sensor_thresholds={"vlp16": 0.25, "mid360": 0.25, "e1r": 0.4},
+        sensor_thresholds={"vlp16": 0.25, "hdl32": 0.25, "mid360": 0.25, "e1r": 0.4},
     ),
     "map-closures": PipelineEntry(
         "placerec.baselines.map_closures_peer:MapClosuresPeer",
