@@ -428,7 +428,9 @@ def make_config(
         "name": f"cross-sensor-{mode}",
         "dataset": {"source": "simulator", "simulator": {"world": "town", "sensor": "vlp16", "seed": 0}},
         "preprocess": {"min_range": 0.5, "intensity": {"mode": "raw"}},
-        "pipelines": [{"name": n, "params": (params or {}).get(n, {})} for n in pipelines],
+        # the presets' thresholds: the placeholder dataset's sensor is none of a pair's (each pair mixes two)
+        "pipelines": [{"name": n, "params": (params or {}).get(n, {}), "threshold": PIPELINES[n].threshold}
+                      for n in pipelines],
         "evaluation": evaluation,
         "output": {"dir": out_dir, "cache_dir": None, "figures": False, "progress": False},
     })  # fmt: skip
