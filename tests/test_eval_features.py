@@ -358,6 +358,13 @@ def test_tool_on_the_real_pairs(real_data: Path, tmp_path: Path, capsys: pytest.
     assert real["matching_score"] > 0.3 and real["precision"] > 0.6
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == headline
     assert (tmp_path / "matches.png").is_file()
+    # --figure '' draws none (it once wrote './.png' into the working folder)
+    none = tmp_path / "none"
+    none.mkdir()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(none)
+        _tool().main([*args[:-2], "--figure", ""])
+    assert list(none.iterdir()) == []
 
 
 def test_tool_view_cache_round_trip_and_broken_entry(room, tmp_path: Path) -> None:

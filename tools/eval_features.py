@@ -363,8 +363,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     ap.add_argument(
         "--figure",
-        type=Path,
-        default=Path("results/eval_features_matches.png"),
+        default="results/eval_features_matches.png",
         help="matches of ORB and SuperPoint on one pair, correct in green ('' = none)",
     )
     args = ap.parse_args(argv)
@@ -418,8 +417,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if args.csv is not None:
         write_csv(args.csv, rows)
         console.print(f"per-pair figures: {args.csv}")
-    if str(args.figure):
-        console.print(f"matches figure: {match_figure(pairs, extractors, args.figure)}")
+    if args.figure:  # '' asks for none (a Path('') would be '.', written as './.png')
+        console.print(f"matches figure: {match_figure(pairs, extractors, Path(args.figure))}")
     sets = [s for s in SETS if any(s in p.sets for p in pairs)]
     overlap = {s: float(np.mean([p.truth.overlap for p in pairs if s in p.sets])) for s in sets}
     distance = {s: [float(np.linalg.norm(p.truth.a_to_b[:3, 3])) for p in pairs if s in p.sets] for s in sets}
