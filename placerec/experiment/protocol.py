@@ -73,8 +73,9 @@ CAPTURE: dict[str, dict] = {
     }
     for name, seconds in _KEYFRAME_SECONDS.items()
 }
-#: Their operating thresholds, where the tuning rule picks others on a sensor's own tuning cells than the presets'
-#: (chosen on the spinning tuning matrix), are the registry's (`placerec.recognizer.PipelineEntry.sensor_thresholds`).
+# A sensor's operating thresholds, where the tuning rule picks others on its own tuning cells than the presets'
+# (chosen on the spinning tuning matrix), are the registry's (`placerec.recognizer.PipelineEntry.sensor_thresholds`).
+
 #: The 16- and 32-beam spinning sensors keep one scan a metre and per-beam images, but their visual pipelines keep
 #: 1000 features an image instead of 300: the 16- and 32-row images repeat their features (58-70 %) yet match few
 #: of them, and more features give 2-3x the correct matches (tools/eval_sparse_sensors.py, tuning data; chosen on
