@@ -15,6 +15,7 @@ import typer
 if TYPE_CHECKING:
     from placerec.artifacts.sources import SequenceSource, SimWorld
     from placerec.params import Params
+    from placerec.recognizer import PipelineEntry
 
 P = TypeVar("P", bound="Params")
 
@@ -196,11 +197,19 @@ def print_pipelines() -> None:
     table.add_column("threshold", no_wrap=True)
     table.add_column("description", overflow="fold")
     for key, entry in PIPELINES.items():
-        table.add_row(key, "-" if entry.threshold is None else f"{entry.threshold:g}", entry.summary)
+        table.add_row(key, _thresholds_text(entry, "\n"), entry.summary)
     Console().print(table)
     typer.echo(
-        "threshold: the operating threshold on the candidate score, chosen on the tuning split (docs/protocol.md)"
+        "threshold: the operating threshold on the candidate score, chosen on the tuning split (docs/protocol.md);"
+        " 'sensor: value' where a sensor's own tuning cells picked another"
     )
+
+
+def _thresholds_text(entry: PipelineEntry, sep: str) -> str:
+    """A registry entry's operating threshold, then each sensor's own ('vlp16: 0.25'), joined by ``sep``."""
+    if entry.threshold is None:
+        return "-"
+    return sep.join([f"{entry.threshold:g}", *(f"{s}: {t:g}" for s, t in entry.sensor_thresholds.items())])
 
 
 def print_pipeline_params(name: str) -> None:
@@ -222,8 +231,6 @@ def print_pipeline_params(name: str) -> None:
         lines += textwrap.wrap(description, width, initial_indent="    ", subsequent_indent="    ")
     entry = PIPELINES.get(name)
     if entry is not None and entry.threshold is not None:
-        lines += [
-            "",
-            f"operating threshold: {entry.threshold:g} (chosen on the tuning split, docs/protocol.md)",
-        ]
+        text = f"operating threshold: {_thresholds_text(entry, ', ')} (chosen on the tuning split, docs/protocol.md)"
+        lines += ["", *textwrap.wrap(text, width)]
     typer.echo("\n".join(lines))

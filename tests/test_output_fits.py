@@ -35,7 +35,7 @@ def test_pipeline_parameters_read_at_80_columns_in_few_lines():
     assert len(lines) < 3 * len(rows)  # was a 4-column table of 866 lines, descriptions 7 characters wide
     first = next(i for i, line in enumerate(lines) if line.startswith("features = "))
     assert lines[first + 1].startswith("    feature extractor (placerec.features.EXTRACTORS; VPR paper")
-    assert "operating threshold: 0.25" in result.output
+    assert "operating threshold: 0.25, e1r: 0.35" in result.output  # the preset's, then a sensor's own
 
 
 # --- a run's tables: the demo's labels and notes, on hand-made records --------------------------------------------
