@@ -287,3 +287,22 @@ def test_float16_places_round_trip_and_memory_mapped_clouds_stay_mapped(compact_
     assert not calls and store.nbytes == FixedPointCloud.encode(mapped[:40]).nbytes
     np.testing.assert_array_equal(store.cloud(3), mapped[:10])
     assert calls == [1]
+
+
+def test_kept_squared_norms_give_the_same_neighbours_as_computed_ones():
+    """A float32 store keeps its rows' squared norms as rows are appended (`sq_norms_to`): the same values as
+    computed over all rows at once, so the numpy 2-NN of a prefix view is bit for bit the one without them."""
+    from placerec.retrieval.descriptor_store import knn2, sq_norms
+
+    rng = np.random.default_rng(7)
+    rows = rng.random((3000, 64), dtype=np.float32)
+    store = DescriptorStore(64, "float32")
+    q = rows[rng.choice(3000, 16)] + 0.01 * rng.random((16, 64), dtype=np.float32)
+    for a, b in ((0, 1), (1, 700), (700, 1900), (1900, 3000)):
+        store.append(rows[a:b])
+        if b >= 2:  # a 2-NN needs two rows
+            kept, fresh = store.view(b).knn2(q, "numpy"), knn2(q, rows[:b], "numpy")
+            np.testing.assert_array_equal(kept[0], fresh[0])
+            np.testing.assert_array_equal(kept[1], fresh[1])
+        np.testing.assert_array_equal(store.sq_norms_to(b), sq_norms(rows[:b]))
+    np.testing.assert_array_equal(store.view(1200).knn2(q, "numpy")[1], knn2(q, rows[:1200], "numpy")[1])

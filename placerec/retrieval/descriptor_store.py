@@ -32,7 +32,16 @@ from placerec.errors import ArtifactError, ConfigError, DependencyError, short_r
 from placerec.quantise import ScalarQuantiser
 from placerec.threads import import_openmp
 
-__all__ = ["StoreDtype", "STORE_DTYPES", "DescriptorStore", "StoreView", "knn", "knn2", "omp_threads"]
+__all__ = [
+    "StoreDtype",
+    "STORE_DTYPES",
+    "DescriptorStore",
+    "StoreView",
+    "knn",
+    "knn2",
+    "omp_threads",
+    "sq_norms",
+]
 
 StoreDtype = Literal["float32", "float16", "sq8"]
 STORE_DTYPES: tuple[str, ...] = get_args(StoreDtype)
@@ -64,11 +73,16 @@ def omp_threads(threads: int | None) -> Iterator[None]:
 
 
 def knn2(
-    query: np.ndarray, db: np.ndarray, backend: str = "faiss", threads: int | None = 1
+    query: np.ndarray,
+    db: np.ndarray,
+    backend: str = "faiss",
+    threads: int | None = 1,
+    db_sq: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Exact 2 nearest neighbours: (distances (Q, 2) Euclidean, indices (Q, 2)); needs ``len(db) >= 2``.
 
-    ``threads``: OpenMP threads for faiss during the call (None: faiss's default, all cores).
+    ``threads``: OpenMP threads for faiss during the call (None: faiss's default, all cores). ``db_sq``: the rows'
+    squared norms (`sq_norms`) when the caller keeps them, for the numpy backend (else computed here).
     """
     q = np.ascontiguousarray(query, dtype=np.float32)
     x = np.ascontiguousarray(db, dtype=np.float32)
@@ -76,7 +90,7 @@ def knn2(
         with omp_threads(threads):
             d2, idx = _faiss().knn(q, x, 2)
     else:
-        xx = np.einsum("ij,ij->i", x, x)
+        xx = sq_norms(x) if db_sq is None else db_sq
         d2 = np.empty((q.shape[0], 2), np.float32)
         idx = np.empty((q.shape[0], 2), np.int64)
         for a in range(0, q.shape[0], 512):
@@ -89,6 +103,11 @@ def knn2(
                 np.take_along_axis(pd, o, 1) + np.einsum("ij,ij->i", q[a : a + 512], q[a : a + 512])[:, None]
             )
     return np.sqrt(np.maximum(d2, 0.0)), np.asarray(idx, dtype=np.int64)
+
+
+def sq_norms(rows: np.ndarray) -> np.ndarray:
+    """Each row's squared norm, row by row (the same value whichever rows are computed together)."""
+    return np.einsum("ij,ij->i", rows, rows)
 
 
 def knn(query: np.ndarray, db: np.ndarray, k: int, threads: int | None = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -126,6 +145,7 @@ class DescriptorStore:
             (0, self.dim), np.float32
         )  # float32 rows (float32 store, or sq8 before fitting)
         self._n = 0
+        self._sq = np.zeros(0, np.float32)  # squared norms of the first float32 rows (`sq_norms_to`)
         self._index: Any = None  # faiss IndexScalarQuantizer holding the codes (float16, fitted sq8)
         if dtype == "float16":
             self._index = self._new_index()
@@ -191,12 +211,21 @@ class DescriptorStore:
         self._n += x.shape[0]
         if self.dtype == "sq8" and self._n >= self.fit_rows:
             pending, self._rows = self._rows[: self._n], np.zeros((0, self.dim), np.float32)
+            self._sq = np.zeros(0, np.float32)
             self._fit(ScalarQuantiser.fit(pending))
             self._add_codes(self._sq8.encode(pending))
 
     # -- reading ----------------------------------------------------------------------------------------------
     def __len__(self) -> int:
         return self._n
+
+    def sq_norms_to(self, stop: int) -> np.ndarray:
+        """The squared norms of float32 rows ``0:stop``, kept and extended as rows come (rows are only appended),
+        so that a search does not read every row again for them."""
+        done = self._sq.shape[0]
+        if done < stop:
+            self._sq = np.concatenate([self._sq, sq_norms(self._rows[done:stop])])
+        return self._sq[:stop]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -351,7 +380,8 @@ class StoreView:
     def knn2(self, query: np.ndarray, backend: str = "faiss", threads: int | None = 1) -> tuple:
         """Exact 2-NN (`knn2`) over the selection; needs at least 2 rows."""
         if not self.store.encoded:
-            return knn2(query, self.rows(), backend, threads)
+            sq = self.store.sq_norms_to(self.n) if self.ids is None else None
+            return knn2(query, self.rows(), backend, threads, sq)
         return self.knn(query, 2, threads)
 
     def knn(self, query: np.ndarray, k: int, threads: int | None = 1) -> tuple[np.ndarray, np.ndarray]:
