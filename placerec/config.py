@@ -132,11 +132,6 @@ class PipelineSpec(Params):
     def display_name(self) -> str:
         return self.label or self.name
 
-    @property
-    def operating_threshold(self) -> float | None:
-        """The threshold the pipeline is judged at: ``threshold`` when given, else its preset's (None: none)."""
-        return self.threshold_for(None)
-
     def threshold_for(self, sensor: str | None) -> float | None:
         """The threshold the pipeline is judged at on ``sensor``'s scans (a sensor model name, None: unknown):
         ``threshold`` when given, else its preset's for that sensor (`placerec.recognizer.PipelineEntry`)."""

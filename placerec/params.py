@@ -84,8 +84,7 @@ class Params(BaseModel):
         a RAM budget): what a saved database records of its parameters, and what loading it compares."""
         out = self.model_dump(mode="json")
         for name, field in type(self).model_fields.items():
-            extra = field.json_schema_extra
-            if isinstance(extra, dict) and extra.get("runtime"):
+            if _is_runtime(field):
                 out.pop(name, None)
             elif isinstance(value := getattr(self, name), Params):
                 out[name] = value.saved_dump()
@@ -99,8 +98,7 @@ class Params(BaseModel):
             return data
         out = dict(data)
         for name, field in cls.model_fields.items():
-            extra = field.json_schema_extra
-            if isinstance(extra, dict) and extra.get("runtime"):
+            if _is_runtime(field):
                 out.pop(name, None)
             elif (
                 name in out
@@ -160,6 +158,12 @@ def resolve(cls: type[P], *layers: Mapping[str, Any] | None, where: str = "", pa
         raise ConfigError(format_errors(exc, cls, where or cls.__name__, path)) from None
     finally:
         _DEPTH.reset(token)
+
+
+def _is_runtime(field: Any) -> bool:
+    """Whether a model field is a run-time one (``json_schema_extra={"runtime": True}``): not saved with results."""
+    extra = field.json_schema_extra
+    return isinstance(extra, dict) and bool(extra.get("runtime"))
 
 
 def _model_in(annotation: Any) -> Any:

@@ -221,9 +221,8 @@ class PipelineEntry:
 #: Context's ICP-verified false closures reached 0.259, MapClosures' false ones 14 inliers. A sensor's own thresholds
 #: come from the same rule on that sensor's tuning cells alone (`placerec bench ... --suggest` prints them per
 #: sensor; docs/sensors.md): on the VLP-16, the HDL-32E and the MID-360-like scanner no false Scan Context closure
-#: scored 0.25;
-#: the E1R-like sensor's false closures (repeated blocks 40-100 m away, seen by a 120 deg, 30 m cone) score up to
-#: 0.35-0.40.
+#: scored 0.25; the E1R-like sensor's false closures (repeated blocks 40-100 m away, seen by a 120 deg, 30 m cone)
+#: score up to 0.35-0.40.
 PIPELINES: dict[str, PipelineEntry] = {
     "scan-context": PipelineEntry(
         "placerec.baselines.scan_context:ScanContext",

@@ -223,7 +223,7 @@ def test_a_pipelines_threshold_on_a_sensor_is_its_own_where_one_was_chosen():
     )
     assert PipelineSpec(name="scan-context").threshold_for("vlp16") == 0.25
     assert PipelineSpec(name="scan-context", threshold=0.5).threshold_for("vlp16") == 0.5
-    assert PipelineSpec(name="scan-context").operating_threshold == 0.3
+    assert PipelineSpec(name="scan-context").threshold_for(None) == 0.3
     assert LoopClosureDetector.for_pipeline("scan-context", sensor="vlp16").threshold == 0.25
     assert LoopClosureDetector.for_pipeline("scan-context", sensor="velodyne-vlp16").threshold == 0.3
     assert all(
