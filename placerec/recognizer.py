@@ -181,13 +181,15 @@ def _check_integer(where: str, name: str, value: object, error: type[Exception])
 #: every pipeline; the settings measured in docs/localization.md): every nearest neighbour paired, each candidate
 #: verified as a local map of the entries within 15 m, ICP clouds cropped at 40 m, RANSAC from 3 inliers, accepted
 #: by eps_ICP with at least 70 % of the query's voxels overlapping the local map; a candidate within 7.5 m (half
-#: the local map's radius) of one already verified for the query is skipped; when voting ends without an accepted
-#: place, the voting pipelines verify the 30 most voted (their last resort).
+#: the local map's radius) of one already verified for the query is skipped; candidates are verified one at a time
+#: in rank order and the first accepted answers (the paper examines further candidates only when one fails); when
+#: voting ends without an accepted place, the voting pipelines verify the 30 most voted (their last resort).
 LOCALIZE_VERIFY: dict[str, Any] = {
     "verify": {
         "tau_max": 1.0,
         "radius_m": 15.0,
         "separation_m": 7.5,
+        "at_once": 1,
         "fallback_top_k": 30,
         "icp": {"max_range": 40.0},
         "ransac": {"min_inliers": 3},
@@ -280,7 +282,7 @@ PIPELINES: dict[str, PipelineEntry] = {
     "ishot-prob": PipelineEntry(
         "placerec.pipelines.probabilistic_voting:ProbabilisticVoting",
         "ISHOT paper Sec. IV: probabilistic keypoint voting (batches of 16, stop at 15 %), verification + ICP",
-        {"features": {"descriptor": "ishot"}, **LOCALIZE_VERIFY},
+        {"features": {"descriptor": "ishot"}, "search": {"index": "pca"}, **LOCALIZE_VERIFY},
     ),
     "shot-global": PipelineEntry(
         "placerec.pipelines.global_registration:GlobalRegistration",
@@ -300,7 +302,13 @@ PIPELINES: dict[str, PipelineEntry] = {
         "placerec.pipelines.delight:Delight",
         "ISHOT paper's baseline (c): DELIGHT intensity histograms (2 spheres x 8 sectors, chi-squared) rank the "
         "places, then the shared verification on SHOT",
-        {"features": {"descriptor": "shot"}, **LOCALIZE_VERIFY},
+        # its 5 candidates verified together, the best answering: one at a time accepted a wrong pose on the
+        # training queries (docs/localization.md)
+        {
+            "features": {"descriptor": "shot"},
+            **LOCALIZE_VERIFY,
+            "verify": {**LOCALIZE_VERIFY["verify"], "at_once": None},
+        },
     ),
     "fpfh-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",

@@ -11,7 +11,7 @@ from placerec.errors import ArtifactError, ConfigError
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.pipelines.keypoint_voting import KeypointVoting
 from placerec.quantise import FixedPointCloud, ScalarQuantiser, decode_unit, encode_unit
-from placerec.retrieval.descriptor_store import BLAS_BATCH, DescriptorStore
+from placerec.retrieval.descriptor_store import BLAS_BATCH, DescriptorStore, knn2
 from placerec.three_d.places import PlacesDatabase, PlacesParams
 from placerec.verify.candidates import CloudStore
 
@@ -306,3 +306,40 @@ def test_kept_squared_norms_give_the_same_neighbours_as_computed_ones():
             np.testing.assert_array_equal(kept[1], fresh[1])
         np.testing.assert_array_equal(store.sq_norms_to(b), sq_norms(rows[:b]))
     np.testing.assert_array_equal(store.view(1200).knn2(q, "numpy")[1], knn2(q, rows[:1200], "numpy")[1])
+
+
+@pytest.mark.parametrize("dtype", ["float32", "sq8"])
+def test_projected_index_finds_brute_forces_two_nearest_and_prunes_most_rows(dtype, monkeypatch):
+    import placerec.retrieval.nearest as nearest
+    from placerec.retrieval.nearest import ProjectedIndex
+
+    rng = np.random.default_rng(3)
+    basis = rng.normal(size=(24, 200)).astype(np.float32)
+    rows = rng.normal(size=(6000, 24)).astype(np.float32) @ basis / 10 + 0.05 * rng.normal(size=(6000, 200))
+    rows = rows.astype(np.float32)
+    near = rows[rng.choice(6000, 40)] + 0.02 * rng.normal(size=(40, 200)).astype(np.float32)
+    far = rng.normal(size=(10, 200)).astype(np.float32)  # off the rows' subspace: a loose bound
+    queries = np.concatenate([near, far, rows[:2]])  # and exact duplicates of rows
+    store = DescriptorStore.from_rows(rows, dtype)
+    exact = knn2(queries, store.rows(), "numpy", None)
+    taken, brute = [], []
+    real_take = store.take
+    monkeypatch.setattr(store, "take", lambda idx: taken.append(len(idx)) or real_take(idx))
+    monkeypatch.setattr(nearest, "knn2", lambda *a: brute.append(1) or knn2(*a))
+    pruned = {}
+    for dims in (2, 32):
+        idx = ProjectedIndex(store, dims=dims)
+        for name, part in (("near", slice(0, 40)), ("far", slice(40, 50)), ("rows", slice(50, 52))):
+            taken.clear(), brute.clear()
+            dist, ind = idx.knn2(queries[part])
+            assert np.array_equal(ind, exact[1][part]) and np.allclose(dist, exact[0][part], atol=1e-4)
+            pruned[dims, name] = None if brute else taken[-1]  # rows read for their true distances
+    # a good bound reads a small share of the rows in full; the loose ones (2 axes, queries off the rows'
+    # subspace) were exact too, by pruning or by brute force
+    assert pruned[32, "near"] is not None and pruned[32, "near"] < 0.1 * len(rows)
+    assert pruned[32, "rows"] is not None and pruned[32, "rows"] < 0.05 * len(rows)
+    # a database with no low-dimensional structure: candidates beyond half the rows, brute force instead
+    noise = rng.normal(size=(500, 200)).astype(np.float32)
+    brute.clear()
+    d2, i2 = ProjectedIndex(noise, dims=2).knn2(noise[:5] + 0.01)
+    assert brute and np.array_equal(i2[:, 0], np.arange(5))

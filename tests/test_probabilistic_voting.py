@@ -282,7 +282,7 @@ def test_training_draw_gives_other_query_spots_in_the_same_map():
     assert b.queries["gator"].name.endswith("-draw1")
 
 
-def test_ivf_index_finds_the_exact_neighbours_of_near_duplicates_and_the_pipeline_agrees():
+def test_ivf_and_pca_indices_find_the_neighbours_and_the_pipeline_agrees():
     from placerec.pipelines.keypoint_voting import IvfIndex, knn2
 
     rng = np.random.default_rng(6)
@@ -293,12 +293,34 @@ def test_ivf_index_finds_the_exact_neighbours_of_near_duplicates_and_the_pipelin
     assert np.array_equal(i[:, 0], i0[:, 0]) and np.allclose(d[:, 0], d0[:, 0], atol=1e-4)
     common = {"verify": {"enabled": False}, "model": {"tau_edges": [0, 0.8, 1], "sigma": [4, 8],
               "lam": [0.8, 0.1], "d_max": 100}}  # fmt: skip
-    flat, ivf = (
+    flat, ivf, pca = (
         ProbabilisticVoting(common),
         ProbabilisticVoting(common, search={"index": "ivf", "ivf_nlist": 8}),
+        ProbabilisticVoting(common, search={"index": "pca", "pca_dims": 64}),
     )
     descs = _synthetic_db(flat, np.random.default_rng(4))
     _synthetic_db(ivf, np.random.default_rng(4))
+    _synthetic_db(pca, np.random.default_rng(4))
     query = descs[3][:32] + 0.02 * rng.normal(size=(32, 1344)).astype(np.float32)
     desc = {"keypoints": np.zeros((32, 3)), "descriptors": query}
     assert flat.query_description(desc)[0].match_id == ivf.query_description(desc)[0].match_id == 3
+    a, b = flat.query_description(desc, k=3), pca.query_description(desc, k=3)  # exact: the same posterior
+    assert [c.match_id for c in a] == [c.match_id for c in b]
+    assert np.allclose([c.extra["posterior"] for c in a], [c.extra["posterior"] for c in b], rtol=1e-5)
+
+
+def test_verifying_one_at_a_time_stops_at_the_first_accepted_place():
+    from placerec.sim import SimulatedSequence
+
+    seq = SimulatedSequence(world="town", sensor="vlp16", n_scans=7, seed=5, clutter=False, spacing=2.0)
+    descs = None
+    verified = {}
+    for at_once in (None, 1):
+        rec = ProbabilisticVoting(verify={"top_k": 3, "at_once": at_once})
+        descs = descs or {i: rec.describe(seq[i]) for i in range(7)}
+        for i in (0, 2, 4, 6):
+            rec.add_description(i, descs[i], seq.poses[i])
+        cands = rec.query_description(descs[1], k=5, query_id=1)
+        assert cands[0].accepted and cands[0].match_id in (0, 2)
+        verified[at_once] = cands[0].extra["n_verified"]
+    assert verified[None] == 3 and verified[1] == 1

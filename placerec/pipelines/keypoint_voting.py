@@ -1,7 +1,8 @@
 """The 3D pipeline: ISS-BR keypoints + ISHOT (or SHOT/FPFH) descriptors, ratio-tested NN votes per entry.
 
-For every query descriptor the two nearest database descriptors (exact L2, brute force; or approximate with
-``search.index: ivf``, `placerec.retrieval.nearest.IvfIndex`) give the ratio ``tau = d1 / d2`` (ISHOT paper, eq. 4);
+For every query descriptor the two nearest database descriptors (exact L2: brute force, or pruned by a bound with
+``search.index: pca``, `placerec.retrieval.nearest.ProjectedIndex`; or approximate with ``search.index: ivf``,
+`placerec.retrieval.nearest.IvfIndex`) give the ratio ``tau = d1 / d2`` (ISHOT paper, eq. 4);
 when ``tau < tau_max`` the query descriptor votes for the entry its 1st neighbour belongs to. Candidates are
 the entries with most votes. The paper has no hard ratio threshold (its votes are weighted by a model per tau
 range); 0.9 was chosen in a localisation sweep on the simulator (docs/benchmarks.md, component figures). The
@@ -68,7 +69,7 @@ from placerec.recognizer import (
     require_varying_intensity,
 )
 from placerec.retrieval.descriptor_store import DescriptorStore, StoreView, knn, knn2
-from placerec.retrieval.nearest import IvfIndex, nn_ratio, ratio_votes
+from placerec.retrieval.nearest import IvfIndex, ProjectedIndex, nn_ratio, ratio_votes
 from placerec.three_d.descriptors import DESCRIPTOR_DIMS
 from placerec.three_d.entries import EntryTable, far_from_all
 from placerec.three_d.features import extract_features
@@ -327,8 +328,9 @@ class KeypointVoting(Recognizer[VotingParams]):
         return run_query(self, self.Strategy, query)
 
     def search(self, q: np.ndarray, rows: StoreView) -> tuple[np.ndarray, np.ndarray]:
-        """2-NN of ``q`` among ``rows`` (the eligible database rows, `StoreView.knn2`), or with ``search.index = "ivf"``
-        and every row eligible, the `IvfIndex` over the database (built on first use after the entries change)."""
+        """2-NN of ``q`` among ``rows`` (the eligible database rows, `StoreView.knn2`), or with every row eligible
+        and ``search.index`` "ivf" or "pca", the `IvfIndex` / `ProjectedIndex` over the database (built on first use
+        after the entries change)."""
         p = self.params
         store = self.entries.store
         if p.search.index == "ivf" and rows.shape[0] == len(store):
@@ -336,6 +338,8 @@ class KeypointVoting(Recognizer[VotingParams]):
                 "ivf", lambda: IvfIndex(store, p.search.ivf_nlist, p.search.ivf_nprobe, p.search.nn_threads)
             )
             return ivf.knn2(q)
+        if p.search.index == "pca" and rows.shape[0] == len(store):
+            return self.derived("pca", lambda: ProjectedIndex(store, p.search.pca_dims)).knn2(q)
         return rows.knn2(q, p.search.backend, p.search.nn_threads)
 
     def pick(self, ranked: Iterable[Any], taken: Iterable[int], k: int) -> list[int]:

@@ -6,9 +6,10 @@ One query runs:
    is matched against the eligible database rows and turned into evidence for the entries (``vote``);
 2. **stop test**: ``ready`` returns a `Shortlist` of entries to verify now, or None to keep matching;
 3. **verify**: the shortlist's best ``top_k`` entries not verified yet (at least ``verify.separation_m`` from
-   those verified before) go through the shared verification (`placerec.verify.candidates`), ``verify.top_k``
-   at a time, until one is accepted; an accepted candidate ends the query. A rejection is reported to the
-   strategy (``rejected``), which may change its evidence and ask for the stop test again on the same votes;
+   those verified before) go through the shared verification (`placerec.verify.candidates`),
+   ``verify.at_once`` (None: ``verify.top_k``) at a time, until one is accepted; an accepted candidate ends the
+   query. A rejection is reported to the strategy (``rejected``), which may change its evidence and ask for the
+   stop test again on the same votes;
    when the shortlist was ``final`` and nothing was left to verify, matching stops;
 4. **fallback**: when every keypoint is consumed without an accepted candidate, ``fallback`` ranks the entries
    once more and that shortlist is verified;
@@ -185,8 +186,9 @@ class _Verifier:
         if self._source is None and picked:
             self._source = as_source(query.description["cloud"], vp)
         retrieve = short.retrieve or (lambda e: rec.local_matches(e, query, short.score(e), short.extra(e)))
-        for a in range(0, len(picked), vp.top_k):
-            chunk = picked[a : a + vp.top_k]
+        step = vp.at_once or vp.top_k
+        for a in range(0, len(picked), step):
+            chunk = picked[a : a + step]
             cands = verify_candidates(
                 self._source, [retrieve(e) for e in chunk], rec.clouds, vp, query.query_id, None
             )

@@ -39,10 +39,13 @@ class SearchParams(Params):
         "threshold: ~4x slower for 16-keypoint batches over 100k ISHOT rows, docs/benchmarks.md)",
         json_schema_extra={"runtime": True},
     )
-    index: Literal["flat", "ivf"] = Field(
+    index: Literal["flat", "pca", "ivf"] = Field(
         "flat",
-        description="search over the whole database: exact brute force, or approximate (faiss IVF, sub-linear)",
+        description="search over the whole database: exact brute force; 'pca', exact with most rows pruned by a "
+        "lower bound from their projection on pca_dims principal axes (the same neighbours, built on first use "
+        "after the entries change: for fixed maps); or approximate (faiss IVF, sub-linear)",
     )
+    pca_dims: int = Field(256, ge=1, description="principal axes of index 'pca' (4 bytes a row each)")
     ivf_nlist: int | None = Field(None, ge=1, description="IVF lists (None = sqrt of the descriptors)")
     ivf_nprobe: int = Field(16, ge=1, description="IVF lists searched per query descriptor")
     nn_threads: int | None = Field(
@@ -73,6 +76,12 @@ class VotingVerifyParams(VerifiedParams):
     how a voted entry is matched with the query for verification."""
 
     top_k: int = Field(5, ge=1, description="voted entries verified per query (best first); the rest dropped")
+    at_once: int | None = Field(
+        None,
+        ge=1,
+        description="entries of a shortlist verified together (the best verified score of them answers) before an "
+        "accepted one ends the query (None = top_k; 1: one at a time in rank order, the first accepted answers)",
+    )
     tau_max: float | None = Field(
         None,
         gt=0,
