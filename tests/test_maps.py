@@ -459,3 +459,26 @@ def test_the_merged_graph_holds_each_factor_once() -> None:
     merged = _merged_graph(prior, joined, 3)  # type: ignore[arg-type]
     assert [(i, j) for i, j, _, _ in merged.odometry] == [(0, 1), (1, 2), (3, 4)]
     assert [(lp.match_id, lp.query_id) for lp in merged.loops] == [(0, 2), (1, 3), (3, 4)]
+
+
+def test_the_maps_other_pipelines_add_inter_session_closures(tmp_path: Path, built: Path) -> None:
+    pytest.importorskip("gtsam")
+    from placerec.slam_app.run import run_slam
+
+    # another drive (seed 5) through the map's world and with its unit (the map: seed 3)
+    common = ("dataset.simulator.n_scans=12", "dataset.simulator.seed=5", "dataset.simulator.world_seed=3",
+              "dataset.simulator.unit_seed=3", f"prior_map.path={built}")  # fmt: skip
+    closures, stages = {}, {}
+    for join in ([], ["scan-context"]):
+        cfg = _slam_cfg(tmp_path, *common, f"prior_map.join_pipelines={join}")
+        _, payload = run_slam(cfg, tmp_path / "res")
+        closures[len(join)] = payload["prior_map"]["inter_session_closures"]
+        stages[len(join)] = set(payload["time_ms"]["stages"])
+        assert payload["prior_map"]["joined"]
+    # Scan Context's global search of the map found closures ORB-HBST's detector did not
+    assert closures[1] > closures[0] > 0
+    assert "map_search" in stages[1] and "map_search" not in stages[0]
+    for join, message in ((["orb-hbst"], "loops.pipeline already"), (["fpfh-votes"], "no database for")):
+        cfg = _slam_cfg(tmp_path, *common, f"prior_map.join_pipelines={join}")
+        with pytest.raises(ConfigError, match=message):
+            run_slam(cfg, tmp_path / "res2")

@@ -96,7 +96,12 @@ def pipeline_label(pipeline: str | None) -> str:
 
 
 def settings(
-    sensor: str, pipeline: str | None, scans: int | None, kidnaps: int, map_closes_loop: bool = False
+    sensor: str,
+    pipeline: str | None,
+    scans: int | None,
+    kidnaps: int,
+    map_closes_loop: bool = False,
+    join_pipelines: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """What a cell depends on besides its world, seed and kind (stored with it; a mismatch recomputes it)."""
     out = {"version": VERSION, "sensor": sensor, "pipeline": pipeline_label(pipeline), "scans": scans, "kidnaps": kidnaps,
@@ -104,6 +109,8 @@ def settings(
            "thresholds": map_thresholds(pipeline, sensor)}  # fmt: skip
     if map_closes_loop:
         out["map_closes_loop"] = True
+    if join_pipelines:
+        out["join_pipelines"] = list(join_pipelines)
     return out
 
 
@@ -265,12 +272,15 @@ def kidnap(pair: SessionPair, loc: Localizer, n_trials: int, seed: int) -> dict[
 
 
 # -- 3. multi-session -------------------------------------------------------------------------------------------
-def multisession(pair: SessionPair, map_folder: Path) -> dict[str, Any]:
-    """Session 2 through `slam_sequence` against the map at ``map_folder`` (module docstring)."""
+def multisession(pair: SessionPair, map_folder: Path, join_pipelines: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Session 2 through `slam_sequence` against the map at ``map_folder`` (module docstring), with the map's
+    ``join_pipelines`` searching it too (``prior_map.join_pipelines``)."""
     from placerec.slam_app.config import load_slam_config
     from placerec.slam_app.run import open_prior_map, slam_sequence
 
     sets = [*slam_overrides(pair, "query"), f"prior_map.path={map_folder}"]
+    if join_pipelines:
+        sets.append(f"prior_map.join_pipelines={list(join_pipelines)}")
     if pair.kind == "sensor":
         sets.append("prior_map.allow_other_sensor=true")
     cfg = load_slam_config(SLAM_CONFIG, sets)
@@ -353,6 +363,7 @@ def run_cell(
     work: Path = Path("results/eval_sessions/maps"),
     params: LocalizerParams | None = None,
     map_closes_loop: bool = False,
+    join_pipelines: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """One world x seed x kind: relocalisation, kidnap and multi-session (module docstring). The maps of session 1
     are built under ``work`` once per world, seed, sensor, pipeline and cut."""
@@ -380,7 +391,7 @@ def run_cell(
     log(
         f"{tag} {kind}: SLAM session 2 against the true-pose map (diagnostic: the join without the map's drift)"
     )
-    out["multisession_truth_map"] = multisession(pair, tmap)
+    out["multisession_truth_map"] = multisession(pair, tmap, join_pipelines)
     out["seconds"] = round(time.perf_counter() - t0, 1)
     out["load"] = load()
     return out
@@ -438,10 +449,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         action="store_true",
         help="session 1 drives its loop's first street again at the end (a loop its SLAM can close)",
     )
+    ap.add_argument(
+        "--join-pipelines",
+        nargs="+",
+        default=[],
+        help="the true-pose map's other pipelines that also search it for inter-session closures in the SLAM run"
+        " against it (prior_map.join_pipelines; the SLAM-saved map holds only the loop pipeline)",
+    )
     args = ap.parse_args(argv)
     work = args.work or args.out / "maps"
     work.mkdir(parents=True, exist_ok=True)
-    want = settings(args.sensor, args.pipeline, args.scans, args.kidnaps, args.map_closes_loop)
+    args.out.mkdir(parents=True, exist_ok=True)
+    join = tuple(args.join_pipelines)
+    want = settings(args.sensor, args.pipeline, args.scans, args.kidnaps, args.map_closes_loop, join)
     cells = []
     t0 = time.perf_counter()
     for world in args.worlds:
@@ -457,7 +477,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         cells.append(cached)
                         continue
                 cell = run_cell(world, seed, kind, args.sensor, args.pipeline, args.scans, args.kidnaps, work,
-                                map_closes_loop=args.map_closes_loop)  # fmt: skip
+                                map_closes_loop=args.map_closes_loop, join_pipelines=join)  # fmt: skip
                 cell["settings"] = want
                 tmp = path.with_suffix(".tmp")
                 tmp.write_text(json.dumps(cell, indent=1))

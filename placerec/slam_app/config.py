@@ -143,6 +143,13 @@ class PriorMapConfig(Params):
     join_translation_m: float = Field(1.0, gt=0, description="m; two closures agree within this")
     join_rotation_deg: float = Field(5.0, gt=0, description="deg; ... and this")
     allow_other_sensor: bool = Field(False, description="join a session from another sensor than the map's")
+    join_pipelines: list[str] = Field(
+        default_factory=list,
+        max_length=8,
+        description="more of the map's pipelines whose global search (placerec.maps.Localizer, query only, at the"
+        " map's threshold for each) adds inter-session closures for every scan, e.g. scan-context for a session"
+        " driven the other way than the map",
+    )
 
 
 class SlamConfig(Params):

@@ -24,6 +24,7 @@ from placerec.experiment.run_folder import interruptible, make_run_dir
 from placerec.experiment.runner import progress_bars
 from placerec.io import read_poses
 from placerec.maps.artifact import MapArtifact, MapGraph, MapWriter
+from placerec.maps.localizer import Localizer, LocalizerParams
 from placerec.preprocess import preprocess_scan
 from placerec.recognizer import make_pipeline
 from placerec.slam.graph import LoopFactor, PoseGraph
@@ -196,7 +197,36 @@ def open_prior_map(cfg: SlamConfig, seq: Sequence) -> tuple[MapArtifact, PlaceRe
             f"prior_map.anchor 'anchored' holds the map by its own pose graph; {prior.path} has none (it was not "
             "saved by placerec slam): use prior_map.anchor=fixed"
         )
+    for name in cfg.prior_map.join_pipelines:
+        if name == spec.name:
+            raise ConfigError(
+                f"prior_map.join_pipelines: {name!r} is loops.pipeline already; list the map's other pipelines"
+            )
+        prior.pipeline(name)  # MapMismatchError naming the map's pipelines
     return prior, prior.recognizer(spec.name)
+
+
+def _map_searches(cfg: SlamConfig, prior: MapArtifact | None) -> list[Localizer]:
+    """Global search of the map with each of ``prior_map.join_pipelines`` (its databases loaded now)."""
+    if prior is None:
+        return []
+    allow = cfg.prior_map.allow_other_sensor
+    return [
+        Localizer(prior, LocalizerParams(pipeline=n, allow_other_sensor=allow))
+        for n in cfg.prior_map.join_pipelines
+    ]
+
+
+def _map_closures(searches: list[Localizer], raw: Scan, query_id: int) -> list[LoopFactor]:
+    """The inter-session closures of the raw scan ``query_id`` (a detector id) found by ``searches``: each
+    accepted global fix as a loop from its map keyframe (`Localizer.localize` without a prior)."""
+    loops = []
+    for search in searches:
+        fix = search.localize(raw)
+        if fix.accepted and fix.T_world_query is not None:
+            T = np.linalg.inv(search.map.poses[fix.keyframe_id]) @ fix.T_world_query
+            loops.append(LoopFactor(fix.keyframe_id, query_id, T, fix.score))
+    return loops
 
 
 def _own_frame(odometry: Odometry) -> Odometry:
@@ -242,7 +272,11 @@ def slam_sequence(
     injected = _injected(cfg, seq)
     pre = cfg.preprocess
     realtime = ("wait",) if cfg.loops.realtime is not None else ()  # the detector's wait for its worker
-    timing: dict[str, list[float]] = {s: [] for s in (*ONLINE_STAGES, *realtime, "odometry", "cpu")}
+    searches = _map_searches(cfg, prior)
+    searched = ("map_search",) if searches else ()  # the join pipelines' global search of the map
+    timing: dict[str, list[float]] = {
+        s: [] for s in (*ONLINE_STAGES, *realtime, *searched, "odometry", "cpu")
+    }
     odo = np.empty((n, 4, 4))
     queried = []
     viewer = active()
@@ -266,7 +300,12 @@ def slam_sequence(
             describe_ms: dict[str, float] = {}
             if viewer is not None:
                 desc, describe_ms = _described(rec, scan)
-            added = slam.process(scan, odo[i], stamp, description=desc, extra_loops=injected.get(i))
+            extra = injected.get(i)
+            t3 = time.perf_counter()
+            if searches:
+                extra = [*(extra or []), *_map_closures(searches, raw, len(searches[0].map) + i)]
+            search_ms = (time.perf_counter() - t3) * 1e3
+            added = slam.process(scan, odo[i], stamp, description=desc, extra_loops=extra)
             cpu = (time.process_time() - c1) * 1e3
             if viewer is not None:  # after the times: they are the run's, not the recording's
                 viewer.scan(i, scan, odo[i], stamp)
@@ -275,7 +314,7 @@ def slam_sequence(
                 map_writer.add_keyframe(odo[i], scan.xyz[valid_points(scan)], stamp, scan_index=i)
             queried.append(slam.detector.last_max_id >= 0)
             stages = dict(slam.last_timing_ms, **describe_ms, odometry=(t1 - t0) * 1e3, preprocess=(t2 - t1) * 1e3,
-                          cpu=cpu)  # fmt: skip
+                          cpu=cpu, map_search=search_ms)  # fmt: skip
             for s in timing:
                 timing[s].append(stages.get(s, 0.0))
             progress.advance(task)
