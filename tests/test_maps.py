@@ -482,3 +482,31 @@ def test_the_maps_other_pipelines_add_inter_session_closures(tmp_path: Path, bui
         cfg = _slam_cfg(tmp_path, *common, f"prior_map.join_pipelines={join}")
         with pytest.raises(ConfigError, match=message):
             run_slam(cfg, tmp_path / "res2")
+
+
+def test_slam_saves_more_pipelines_and_the_merged_map_extends_them(tmp_path: Path) -> None:
+    pytest.importorskip("gtsam")
+    from placerec.slam_app.run import run_slam
+
+    first = _slam_cfg(tmp_path, "dataset.simulator.n_scans=20", f"output.save_map={tmp_path / 'm1'}",
+                      "output.map_pipelines=[scan-context]")  # fmt: skip
+    run_slam(first, tmp_path / "res")
+    m1 = MapArtifact.open(tmp_path / "m1", check_hashes=True)
+    assert [p.name for p in m1.manifest.pipelines] == ["orb-hbst", "scan-context"]
+    assert m1.pipeline("scan-context").threshold == 0.25  # its preset's on the VLP-16
+    assert len(m1.recognizer("scan-context")) == 20
+    second = _slam_cfg(
+        tmp_path, "dataset.simulator.n_scans=12", "dataset.simulator.seed=5", "dataset.simulator.world_seed=0",
+        "dataset.simulator.unit_seed=0", f"prior_map.path={tmp_path / 'm1'}", "prior_map.join_pipelines=[scan-context]",
+        f"output.save_map={tmp_path / 'm2'}", "output.map_pipelines=[scan-context]",
+    )  # fmt: skip
+    _, payload = run_slam(second, tmp_path / "res")
+    assert payload["prior_map"]["joined"]
+    merged = MapArtifact.open(tmp_path / "m2", check_hashes=True)
+    sc = merged.recognizer("scan-context")
+    assert len(merged) == len(sc) == 32  # the map's 20 keyframes and the session's 12, one entry each
+    assert len(m1.recognizer("scan-context", fresh=True)) == 20  # the prior map's file is untouched
+    bad = _slam_cfg(tmp_path, "dataset.simulator.n_scans=5", f"output.save_map={tmp_path / 'm3'}",
+                    "output.map_pipelines=[orb-hbst]")  # fmt: skip
+    with pytest.raises(ConfigError, match="loops.pipeline already"):
+        run_slam(bad, tmp_path / "res3")

@@ -141,8 +141,11 @@ def slam_overrides(pair: SessionPair, role: str) -> list[str]:
             "output.progress=false", "output.figures=false"]  # fmt: skip
 
 
-def slam_map(pair: SessionPair, folder: Path) -> tuple[Path, dict[str, Any]]:
-    """Session 1 through `slam_sequence` with its map saved (run once; its ATE kept beside it)."""
+def slam_map(
+    pair: SessionPair, folder: Path, map_pipelines: tuple[str, ...] = ()
+) -> tuple[Path, dict[str, Any]]:
+    """Session 1 through `slam_sequence` with its map saved (run once; its ATE kept beside it), holding the
+    ``map_pipelines`` databases as well (``output.map_pipelines``)."""
     from placerec.recognizer import make_pipeline
     from placerec.slam_app.config import load_slam_config
     from placerec.slam_app.run import map_writer_for, slam_sequence
@@ -150,9 +153,10 @@ def slam_map(pair: SessionPair, folder: Path) -> tuple[Path, dict[str, Any]]:
     info_path = folder.parent / f"{folder.name}.json"
     if (folder / "manifest.json").is_file() and info_path.is_file():
         return folder, json.loads(info_path.read_text())
-    cfg = load_slam_config(
-        SLAM_CONFIG, [*slam_overrides(pair, "map"), f"output.save_map={folder}", "output.overwrite_map=true"]
-    )
+    sets = [*slam_overrides(pair, "map"), f"output.save_map={folder}", "output.overwrite_map=true"]
+    if map_pipelines:
+        sets.append(f"output.map_pipelines={list(map_pipelines)}")
+    cfg = load_slam_config(SLAM_CONFIG, sets)
     t0 = time.perf_counter()
     rec = make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
     with map_writer_for(cfg, pair.map, rec) as writer:
@@ -385,9 +389,10 @@ def run_cell(
     log(f"{tag} {kind}: kidnap")
     out["kidnap"] = kidnap(pair, loc, kidnaps, seed)
     log(f"{tag} {kind}: SLAM session 1")
-    smap, out["slam_session1"] = slam_map(pair, work / f"{tag}-slam")
+    joined_by = "".join(f"-{name}" for name in join_pipelines)  # a map holding those databases too
+    smap, out["slam_session1"] = slam_map(pair, work / f"{tag}-slam{joined_by}", join_pipelines)
     log(f"{tag} {kind}: SLAM session 2 against it")
-    out["multisession"] = multisession(pair, smap)
+    out["multisession"] = multisession(pair, smap, join_pipelines)
     log(
         f"{tag} {kind}: SLAM session 2 against the true-pose map (diagnostic: the join without the map's drift)"
     )
@@ -453,8 +458,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--join-pipelines",
         nargs="+",
         default=[],
-        help="the true-pose map's other pipelines that also search it for inter-session closures in the SLAM run"
-        " against it (prior_map.join_pipelines; the SLAM-saved map holds only the loop pipeline)",
+        help="more map pipelines that also search the maps for inter-session closures in the SLAM runs against"
+        " them (prior_map.join_pipelines; session 1's SLAM then saves their databases too: output.map_pipelines)",
     )
     args = ap.parse_args(argv)
     work = args.work or args.out / "maps"

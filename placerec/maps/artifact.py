@@ -386,17 +386,20 @@ class MapArtifact:
             f"map {self.path} has no database for pipeline {name!r}; it has {[p.name for p in pipes]}"
         )
 
-    def recognizer(self, name: str | None = None) -> PlaceRecognizer:
+    def recognizer(self, name: str | None = None, fresh: bool = False) -> PlaceRecognizer:
         """Pipeline ``name``'s database (default: the first pipeline), loaded once and kept; its entry ``i`` is
-        keyframe ``i``. Query it only (``query_description``): adding to it changes the map in memory."""
+        keyframe ``i``. Query it only (``query_description``): adding to it changes the map in memory. ``fresh``:
+        a new copy loaded from the file and not kept (to extend, e.g. into a merged map's database)."""
         pipe = self.pipeline(name)
-        if pipe.name not in self._recognizers:
+        if fresh or pipe.name not in self._recognizers:
             from placerec.recognizer import make_pipeline
 
             params_at = f"pipelines[{pipe.name}].params"
             rec = make_pipeline(pipe.name, pipe.params, path=params_at)  # checked on open
             with _unread(self.manifest, pipe.file, self._hashed):
                 rec.load(self.path / _safe_relative(pipe.file, self.path))
+            if fresh:
+                return rec
             self._recognizers[pipe.name] = rec
         return self._recognizers[pipe.name]
 

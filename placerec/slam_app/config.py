@@ -127,6 +127,13 @@ class SlamOutputConfig(Params):
         " pipeline's database, the graph) for placerec localize and --prior-map",
     )
     overwrite_map: bool = Field(False, description="replace an existing map at save_map")
+    map_pipelines: list[str] = Field(
+        default_factory=list,
+        max_length=8,
+        description="more pipelines whose databases the saved map holds besides loops.pipeline's (every scan"
+        " described and added to each, at its preset's threshold for the sensor), e.g. scan-context for a later"
+        " session's prior_map.join_pipelines; with --prior-map the prior map's own database of each is extended",
+    )
 
 
 class PriorMapConfig(Params):

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from placerec.config import PipelineSpec
 from placerec.errors import ConfigError, ScanDataError
 from placerec.experiment.datasets import SlicedSequence, open_dataset
 from placerec.experiment.run_folder import interruptible, make_run_dir
@@ -311,7 +312,8 @@ def slam_sequence(
                 viewer.scan(i, scan, odo[i], stamp)
                 _log_slam_step(viewer, label, slam, rec, scan, desc, added, odo[: i + 1], i, n)
             if map_writer is not None:
-                map_writer.add_keyframe(odo[i], scan.xyz[valid_points(scan)], stamp, scan_index=i)
+                kf = map_writer.add_keyframe(odo[i], scan.xyz[valid_points(scan)], stamp, scan_index=i)
+                _add_to_map_pipelines(cfg, map_writer, kf, scan, odo[i])
             queried.append(slam.detector.last_max_id >= 0)
             stages = dict(slam.last_timing_ms, **describe_ms, odometry=(t1 - t0) * 1e3, preprocess=(t2 - t1) * 1e3,
                           cpu=cpu, map_search=search_ms)  # fmt: skip
@@ -352,6 +354,18 @@ def slam_sequence(
         isam2_ms=list(ms.graph.update_ms), isam2_loop_ms=list(ms.graph.loop_update_ms), multisession=ms,
         graph_poses=graph_poses, **common,
     )  # fmt: skip
+
+
+def _add_to_map_pipelines(
+    cfg: SlamConfig, writer: MapWriter, keyframe: int, scan: Scan, pose: np.ndarray
+) -> None:
+    """Keyframe ``keyframe`` added to the saved map's ``output.map_pipelines`` databases (a scan one of them cannot
+    describe is left out of that one: the map never proposes it)."""
+    for name in cfg.output.map_pipelines:
+        try:
+            writer.pipelines[name][0].add(keyframe, scan, pose)
+        except ScanDataError as exc:
+            log.warning("map pipeline %s: keyframe %d left out (%s)", name, keyframe, exc)
 
 
 def _described(rec: PlaceRecognizer, scan: Scan) -> tuple[Description | None, dict[str, float]]:
@@ -449,11 +463,26 @@ def map_writer_for(
 
     assert cfg.output.save_map is not None
     spec = cfg.loops.pipeline
+    sensor = seq[0].sensor if len(seq) else None
+    pipelines: dict[str, tuple[PlaceRecognizer, float | None]] = {
+        spec.name: (recognizer, cfg.loops.threshold)
+    }
+    for name in cfg.output.map_pipelines:
+        if name in pipelines:
+            raise ConfigError(
+                f"output.map_pipelines: {name!r} is loops.pipeline already; name other pipelines"
+            )
+        if prior is not None:  # the prior map's database of it, extended by this session's scans
+            pipelines[name] = (prior.recognizer(name, fresh=True), prior.pipeline(name).threshold)
+        else:
+            extra = PipelineSpec(name=name)
+            threshold = extra.threshold_for(sensor.name if sensor is not None else None)
+            pipelines[name] = (make_pipeline(name, path="output.map_pipelines"), threshold)
     writer = MapWriter(
         cfg.output.save_map,
-        {spec.name: (recognizer, cfg.loops.threshold)},
+        pipelines,
         name=seq.name if prior is None else f"{prior.manifest.name} + {seq.name}",
-        sensor=seq[0].sensor if len(seq) else None,
+        sensor=sensor,
         intensity=intensity_label(cfg.preprocess),
         preprocess=cfg.preprocess.saved_dump(),
         config=cfg.model_dump(mode="json"),
