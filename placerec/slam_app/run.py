@@ -3,7 +3,11 @@
 `run_slam` opens the dataset, builds the loop-closure pipeline and the odometry source (all checked before a
 results folder is made), runs `slam_sequence` and writes the results (`placerec.slam_app.report`).
 `slam_sequence` is the online loop: for every scan, in order, read + preprocess it, get its odometry pose, feed
-`placerec.slam.online.OnlineSlam` (loop closure, graph, iSAM2); then the final batch optimisation.
+`placerec.slam.online.OnlineSlam` (loop closure, graph, iSAM2); then the final batch optimisation. With a prior map
+(`open_prior_map`) the session runs in `placerec.slam.multisession.MultiSessionSlam`, and each scan is also
+localised in the map by its ``prior_map.join_pipelines`` (`placerec.maps.Localizer`), whose accepted fixes are
+inter-session closures. `map_writer_for` saves the run as a map: the loop pipeline's database and those of
+``output.map_pipelines``.
 """
 
 from __future__ import annotations
