@@ -479,9 +479,8 @@ def test_the_maps_other_pipelines_add_inter_session_closures(tmp_path: Path, bui
     assert closures[1] > closures[0] > 0
     assert "map_search" in stages[1] and "map_search" not in stages[0]
     for join, message in ((["orb-hbst"], "loops.pipeline already"), (["fpfh-votes"], "no database for")):
-        cfg = _slam_cfg(tmp_path, *common, f"prior_map.join_pipelines={join}")
         with pytest.raises(ConfigError, match=message):
-            run_slam(cfg, tmp_path / "res2")
+            run_slam(_slam_cfg(tmp_path, *common, f"prior_map.join_pipelines={join}"), tmp_path / "res2")
 
 
 def test_slam_saves_more_pipelines_and_the_merged_map_extends_them(tmp_path: Path) -> None:
@@ -506,7 +505,6 @@ def test_slam_saves_more_pipelines_and_the_merged_map_extends_them(tmp_path: Pat
     sc = merged.recognizer("scan-context")
     assert len(merged) == len(sc) == 32  # the map's 20 keyframes and the session's 12, one entry each
     assert len(m1.recognizer("scan-context", fresh=True)) == 20  # the prior map's file is untouched
-    bad = _slam_cfg(tmp_path, "dataset.simulator.n_scans=5", f"output.save_map={tmp_path / 'm3'}",
-                    "output.map_pipelines=[orb-hbst]")  # fmt: skip
     with pytest.raises(ConfigError, match="loops.pipeline already"):
-        run_slam(bad, tmp_path / "res3")
+        _slam_cfg(tmp_path, "dataset.simulator.n_scans=5", f"output.save_map={tmp_path / 'm3'}",
+                  "output.map_pipelines=[orb-hbst]")  # fmt: skip

@@ -333,13 +333,12 @@ class KeypointVoting(Recognizer[VotingParams]):
         after the entries change)."""
         p = self.params
         store = self.entries.store
-        if p.search.index == "ivf" and rows.shape[0] == len(store):
-            ivf = self.derived(
-                "ivf", lambda: IvfIndex(store, p.search.ivf_nlist, p.search.ivf_nprobe, p.search.nn_threads)
-            )
-            return ivf.knn2(q)
-        if p.search.index == "pca" and rows.shape[0] == len(store):
-            return self.derived("pca", lambda: ProjectedIndex(store, p.search.pca_dims)).knn2(q)
+        if p.search.index != "flat" and rows.shape[0] == len(store):
+            build = {
+                "ivf": lambda: IvfIndex(store, p.search.ivf_nlist, p.search.ivf_nprobe, p.search.nn_threads),
+                "pca": lambda: ProjectedIndex(store, p.search.pca_dims),
+            }[p.search.index]
+            return self.derived(p.search.index, build).knn2(q)
         return rows.knn2(q, p.search.backend, p.search.nn_threads)
 
     def pick(self, ranked: Iterable[Any], taken: Iterable[int], k: int) -> list[int]:

@@ -173,6 +173,18 @@ class SlamConfig(Params):
     output: SlamOutputConfig = Field(default_factory=SlamOutputConfig)
     prior_map: PriorMapConfig = Field(default_factory=PriorMapConfig)
 
+    @model_validator(mode="after")
+    def _other_pipelines(self) -> SlamConfig:
+        """``prior_map.join_pipelines`` and ``output.map_pipelines`` name pipelines besides loops.pipeline's."""
+        loop = self.loops.pipeline.name
+        for key, names in (
+            ("prior_map.join_pipelines", self.prior_map.join_pipelines),
+            ("output.map_pipelines", self.output.map_pipelines),
+        ):
+            if loop in names:
+                raise ValueError(f"{key}: {loop!r} is loops.pipeline already; name other pipelines")
+        return self
+
 
 def load_slam_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SlamConfig:
     """Load a SLAM YAML config (None = defaults), apply ``key.path=value`` overrides, validate (`ConfigError`)."""

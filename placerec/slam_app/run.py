@@ -203,10 +203,6 @@ def open_prior_map(cfg: SlamConfig, seq: Sequence) -> tuple[MapArtifact, PlaceRe
             "saved by placerec slam): use prior_map.anchor=fixed"
         )
     for name in cfg.prior_map.join_pipelines:
-        if name == spec.name:
-            raise ConfigError(
-                f"prior_map.join_pipelines: {name!r} is loops.pipeline already; list the map's other pipelines"
-            )
         prior.pipeline(name)  # MapMismatchError naming the map's pipelines
     return prior, prior.recognizer(spec.name)
 
@@ -472,10 +468,6 @@ def map_writer_for(
         spec.name: (recognizer, cfg.loops.threshold)
     }
     for name in cfg.output.map_pipelines:
-        if name in pipelines:
-            raise ConfigError(
-                f"output.map_pipelines: {name!r} is loops.pipeline already; name other pipelines"
-            )
         if prior is not None:  # the prior map's database of it, extended by this session's scans
             pipelines[name] = (prior.recognizer(name, fresh=True), prior.pipeline(name).threshold)
         else:
