@@ -1,4 +1,4 @@
-"""Scan preprocessing: invalid-point removal, range/height crops, voxel downsampling, then `preprocess_scan`
+"""Scan preprocessing: invalid-point removal, range/height/elevation crops, voxel downsampling, then `preprocess_scan`
 with intensity normalisation (`placerec.intensity`) or a per-beam calibration table (`placerec.calibration`).
 
 All functions are vectorised, return new `Scan` objects and never modify their input.
@@ -7,11 +7,12 @@ All functions are vectorised, return new `Scan` objects and never modify their i
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, SerializerFunctionWrapHandler, model_serializer, model_validator
 
 from placerec.errors import ScanDataError
 from placerec.intensity import IntensitySpec, normalize_intensity
@@ -70,10 +71,13 @@ def crop(
     min_z: float | None = None,
     max_z: float | None = None,
     keep_organized: bool = False,
+    elevation_deg: Sequence[float] | None = None,
 ) -> Scan:
-    """Keep points with ``min_range <= |p| <= max_range`` and ``min_z <= z <= max_z`` (None = unbounded)."""
+    """Keep points with ``min_range <= |p| <= max_range``, ``min_z <= z <= max_z`` and an elevation angle (degrees
+    above the sensor's horizontal plane) within ``elevation_deg`` = (lowest, highest) (None = unbounded)."""
     r = scan.ranges if min_range is not None or max_range is not None else None
-    return _keep(scan, _crop_mask(scan, r, min_range, max_range, min_z, max_z), keep_organized)
+    keep = _crop_mask(scan, r, min_range, max_range, min_z, max_z, elevation_deg)
+    return _keep(scan, keep, keep_organized)
 
 
 def _crop_mask(
@@ -83,6 +87,7 @@ def _crop_mask(
     max_range: float | None,
     min_z: float | None,
     max_z: float | None,
+    elevation_deg: Sequence[float] | None = None,
 ) -> np.ndarray:
     """`crop`'s mask, from the scan's ``ranges`` (needed only with a range bound)."""
     keep = np.ones(len(scan), dtype=bool)
@@ -96,6 +101,12 @@ def _crop_mask(
         keep &= z >= min_z
     if max_z is not None:
         keep &= z <= max_z
+    if elevation_deg is not None:
+        # tan is increasing on (-90, 90) deg: z / horizontal distance against the bounds' tangents, no arctan
+        lo, hi = np.tan(np.radians(np.asarray(elevation_deg, dtype=np.float64)))
+        xy = np.hypot(scan.xyz[:, 0], scan.xyz[:, 1]).astype(np.float64)
+        zz = z.astype(np.float64)
+        keep &= (zz >= lo * xy) & (zz <= hi * xy)
     return keep
 
 
@@ -168,14 +179,22 @@ class IntensityParams(IntensitySpec):
 
 
 class PreprocessParams(Params):
-    """What `preprocess_scan` does (None = no limit / not applied): points kept within ``[min_range, max_range]``
-    and ``[min_z, max_z]``, intensity normalised or calibrated (``intensity``), voxel downsampling
+    """What `preprocess_scan` does (None = no limit / not applied): points kept within ``[min_range, max_range]``,
+    ``[min_z, max_z]`` and the elevation band ``elevation_deg``, intensity normalised or calibrated (``intensity``), voxel downsampling
     (``voxel_size``). An experiment config's ``preprocess`` section is one of these."""
 
     min_range: float | None = Field(None, ge=0, description="m; nearer points are dropped")
     max_range: float | None = Field(None, gt=0, description="m; farther points are dropped")
     min_z: float | None = Field(None, description="m; lower points are dropped")
     max_z: float | None = Field(None, description="m; higher points are dropped")
+    elevation_deg: list[float] | None = Field(
+        None,
+        min_length=2,
+        max_length=2,
+        description="deg; (lowest, highest) elevation above the sensor's horizontal plane kept, e.g. the vertical "
+        "field of view two sensors share, so that a map from one and queries from the other hold the same part of "
+        "the scene (None = all)",
+    )
     voxel_size: float | None = Field(None, gt=0, description="m; voxel downsampling (None = off)")
     intensity: IntensityParams = Field(default_factory=IntensityParams)
 
@@ -185,7 +204,22 @@ class PreprocessParams(Params):
             a, b = getattr(self, lo), getattr(self, hi)
             if a is not None and b is not None and a >= b:
                 raise ValueError(f"{lo} ({a}) must be below {hi} ({b}): every point would be dropped")
+        if self.elevation_deg is not None:
+            a, b = self.elevation_deg
+            if not -90.0 < a < b < 90.0:
+                raise ValueError(
+                    f"elevation_deg ({a}, {b}): the lowest must be below the highest, both within (-90, 90)"
+                )
         return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        """The fields, without ``elevation_deg`` when it is None: the dump of a run without the band (description
+        cache keys, saved databases and maps, benchmark cells) stays what it was before the band existed."""
+        data: dict[str, Any] = handler(self)
+        if self.elevation_deg is None:
+            data.pop("elevation_deg", None)
+        return data
 
 
 def preprocess_scan(scan: Scan, params: PreprocessParams | None = None, keep_organized: bool = False) -> Scan:
@@ -201,7 +235,7 @@ def preprocess_scan(scan: Scan, params: PreprocessParams | None = None, keep_org
     keep = valid_points(scan, intensity=True, ranges=r)
     if log.isEnabledFor(logging.DEBUG):  # the counts are only logged here
         _invalid_counts(scan, keep)
-    keep &= _crop_mask(scan, r, p.min_range, p.max_range, p.min_z, p.max_z)
+    keep &= _crop_mask(scan, r, p.min_range, p.max_range, p.min_z, p.max_z, p.elevation_deg)
     scan = _keep(scan, keep, keep_organized)
     if p.intensity.calibration:
         # per-beam calibration table: output already in [0, 1]; NaN (beyond its range cut-off) -> dropped

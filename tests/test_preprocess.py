@@ -41,6 +41,34 @@ def test_crop_range_and_height():
     assert crop(s, min_z=-1).xyz[:, 2].min() >= -1
 
 
+def test_crop_elevation_band_keeps_points_by_their_angle_above_the_horizon():
+    # elevations: 0, +45, -45, +10, -30 deg (the last two just inside, then outside, a (-20, 10) band)
+    r = 10.0
+    angles = np.radians([0.0, 45.0, -45.0, 9.9, 10.1, -19.9, -20.1, -30.0])
+    xyz = np.c_[r * np.cos(angles), np.zeros_like(angles), r * np.sin(angles)]
+    s = Scan(xyz, np.arange(len(angles), dtype=np.float32))
+    kept = crop(s, elevation_deg=(-20.0, 10.0))
+    assert kept.intensity.tolist() == [0.0, 3.0, 5.0]
+    # a point's elevation does not depend on its azimuth or range
+    turned = Scan(np.c_[np.zeros_like(angles), -3 * xyz[:, 0], 3 * xyz[:, 2]], s.intensity)
+    assert crop(turned, elevation_deg=(-20.0, 10.0)).intensity.tolist() == [0.0, 3.0, 5.0]
+    # through preprocess_scan, and an organised scan keeps its grid with the dropped points zeroed
+    p = PreprocessParams.model_validate({"elevation_deg": [-20, 10], "intensity": {"mode": "raw"}})
+    assert preprocess_scan(s, p).intensity.tolist() == [0.0, 3.0, 5.0]
+    org = Scan(xyz, s.intensity + 1, shape=(2, 4))
+    out = preprocess_scan(org, p, keep_organized=True)
+    assert out.shape == (2, 4) and np.count_nonzero(np.any(out.xyz != 0, axis=1)) == 3
+
+
+def test_elevation_band_is_checked_and_absent_from_the_dump_when_unset():
+    assert "elevation_deg" not in PreprocessParams().model_dump(mode="json")
+    band = PreprocessParams.model_validate({"elevation_deg": [-15, 2]})
+    assert band.model_dump()["elevation_deg"] == [-15, 2]
+    for bad in ([2, -15], [-15], [-90, 2], [0, 1, 2], [-1, "2"]):
+        with pytest.raises(ConfigError, match="elevation_deg"):
+            PreprocessParams.model_validate({"elevation_deg": bad})
+
+
 def test_voxel_downsample_hand_computed():
     # two points in voxel (0,0,0), one in voxel (1,0,0) at voxel size 1
     xyz = [[0.1, 0.1, 0.1], [0.5, 0.5, 0.3], [1.5, 0.2, 0.2]]
@@ -103,7 +131,7 @@ def test_preprocess_params_are_checked_when_built():
     with pytest.raises(ConfigError, match=r"intensity\.mode: Input should be"):
         PreprocessParams(intensity={"mode": "bogus"})
     with pytest.raises(
-        ConfigError, match=r"min_rnage: unknown key; allowed keys there: intensity, max_range"
+        ConfigError, match=r"min_rnage: unknown key; allowed keys there: elevation_deg, intensity, max_range"
     ):
         PreprocessParams(min_rnage=1.0)
     assert default_intensity_spec("OS1-64").mode == "percentile"
