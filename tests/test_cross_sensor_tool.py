@@ -50,6 +50,9 @@ def test_success_counts_accepted_answers_only() -> None:
     assert f["answer_rule"] == "accepted"
     assert (f["n_success"], f["n_no_answer"], f["n_wrong"]) == (1, 1, 1)
     assert f["success"] == pytest.approx(1 / 3)
+    assert f["r_at_p1"] == 0.0  # a wrong accepted answer: precision below 1.00
+    rec.candidates[2] = []
+    assert tool.localize_figures(rec, map_poses, query_poses)["r_at_p1"] == pytest.approx(1 / 3)
 
 
 def test_concat_sequence_and_monotone_fit() -> None:
@@ -80,7 +83,8 @@ def test_concat_sequence_and_monotone_fit() -> None:
 def test_quick_path_tiny(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     tool = _tool()
     out = tool.main([
-        "--quick", "--pairs", "vlp16:avia", "--pipelines", "scan-context", "--intensity", "raw", "calibrated",
+        "--quick", "--pairs", "vlp16:avia", "--pipelines", "scan-context", "ishot-prob", "--intensity", "raw",
+        "calibrated",
         "--map-spacing", "40", "--query-spacing", "80", "--cal-scans", "6", "--cache-dir", str(tmp_path),
     ])  # fmt: skip
     line = capsys.readouterr().out.strip().splitlines()[-1]
@@ -90,8 +94,12 @@ def test_quick_path_tiny(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     res = out["results"]["test"]
     assert set(res) == {"raw", "calibrated"}
     assert set(res["raw"]) == {"vlp16>avia", "avia>avia", "vlp16>vlp16"}
+    # every scan cropped to the band both sensors see: the VLP-16's +-15 deg inside the Avia's +-38.6
+    assert out["elevation_deg"] == [-15.0, 15.0]
     for per_pair in res.values():
         for r in per_pair.values():
+            # the 3D voting pipeline has no loop threshold: localised only
+            assert "ishot-prob" not in r["loop"] and "ishot-prob" in r["localise"]
             loc, loop = r["localise"]["scan-context"], r["loop"]["scan-context"]
             assert (
                 loc["n_success"] + loc["n_no_answer"] + loc["n_wrong"] == loc["n_queries"] == r["n_queries"]

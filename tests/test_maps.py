@@ -376,6 +376,20 @@ def test_a_prior_map_that_cannot_serve_the_run_is_refused_before_it(tmp_path: Pa
     assert not (tmp_path / "res").exists()
 
 
+def test_a_maps_elevation_band_is_recorded_and_applied_to_its_queries(tmp_path: Path) -> None:
+    out = build("map", {"source": {"sim": {"world": "town", "scans": 4}}, "out": str(tmp_path / "m"),
+                        "pipelines": [{"name": "scan-context"}],
+                        "preprocess": {"elevation_deg": [-15.0, 2.0]}})  # fmt: skip
+    m = MapArtifact.open(out, check_hashes=True)
+    assert m.preprocess().elevation_deg == [-15.0, 2.0]
+    from placerec.maps import Localizer
+
+    loc = Localizer(m)
+    assert loc.preprocess.elevation_deg == [-15.0, 2.0]
+    fix = loc.localize(SimulatedSequence(world="town", sensor="vlp16", n_scans=3, seed=0)[2])
+    assert fix.accepted, fix.reason
+
+
 def test_a_calibrated_map_carries_its_table(tmp_path: Path) -> None:
     from placerec.artifacts import build as build_artifact
 
