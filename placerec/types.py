@@ -12,6 +12,7 @@ Conventions
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from collections.abc import Sequence as _Seq
 from dataclasses import dataclass, field, replace
@@ -490,7 +491,8 @@ class Verification:
     quantity): ICP statistics (NaN when ICP did not run). ``rejected_at``: the stage that ended it early (``grouping``, ``ransac``) or None.
     ``timings_ms``: per stage (``prepare``, ``grouping``, ``ransac``, ``icp``, ``total``). ``inlier_mask``: over
     the given correspondences, those RANSAC kept (None for ICP-only). ``rejection``: why it was rejected, one of
-    `REJECTIONS`' keys (None when accepted).
+    `REJECTIONS`' keys (None when accepted). ``constraint``: how well the overlap pins the translation down
+    (`placerec.verify.icp.alignment_stats`; NaN unless ``score.min_constraint`` asked for it).
     """
 
     T_match_query: np.ndarray
@@ -507,9 +509,11 @@ class Verification:
     timings_ms: dict[str, float] = field(default_factory=dict)
     inlier_mask: np.ndarray | None = None
     rejection: str | None = None
+    constraint: float = math.nan
 
     def as_dict(self) -> dict[str, Any]:
-        """Scalars only (for a Candidate's ``extra`` or a CSV row)."""
+        """Scalars only (for a Candidate's ``extra`` or a CSV row); ``constraint`` only where it was measured."""
+        extra = {"constraint": self.constraint} if math.isfinite(self.constraint) else {}
         return {
             "score": self.score,
             "accepted": self.accepted,
@@ -522,6 +526,7 @@ class Verification:
             "icp_iterations": self.icp_iterations,
             "rejected_at": self.rejected_at,
             "rejection": self.rejection,
+            **extra,
             **{f"ms_{k}": v for k, v in self.timings_ms.items()},
         }
 
@@ -532,6 +537,7 @@ REJECTIONS: dict[str, str] = {
     "ransac": "too few RANSAC inliers",
     "rank": "not refined: ICP was spent on better candidates",
     "fitness": "ICP overlap (fitness) below min_fitness",
+    "constraint": "the overlap leaves the translation free along a direction (constraint below min_constraint)",
     "score": "verified score below min_score",
     "residual": "ICP residual above eps_icp",
 }

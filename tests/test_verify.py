@@ -403,7 +403,58 @@ def test_rejection_names_the_rule_that_rejected():
     assert rejection(0.9, 1.0, gated, fitness=0.4) == "fitness"
     for args in [(0.3, 99.0, score), (0.2, 1.0, score), (0.9, 8.0, eps), (0.9, 1.0, gated, 0.4)]:
         assert is_accepted(*args) == (rejection(*args) is None)
-    assert {"grouping", "ransac", "rank", "fitness", "score", "residual"} == set(REJECTIONS)
+    pinned = ScoreParams(min_constraint=0.05)
+    assert rejection(0.9, 1.0, pinned, constraint=0.04) == "constraint"
+    assert rejection(0.9, 1.0, pinned, constraint=float("nan")) == "constraint"
+    assert rejection(0.9, 1.0, pinned, constraint=0.05) is None
+    assert rejection(0.9, 1.0, score, constraint=0.0) is None  # off by default
+    assert {"grouping", "ransac", "rank", "fitness", "constraint", "score", "residual"} == set(REJECTIONS)
+
+
+def test_normal_spread_is_the_least_constrained_direction():
+    from placerec.verify.icp import normal_spread
+
+    axes = np.eye(3)
+    assert normal_spread(np.repeat(axes, 5, axis=0)) == pytest.approx(1 / 3)
+    # road and one facade: nothing along the street (y), scaled and zero normals do not count
+    corridor = np.array([[0, 0, 2.0], [0, 0, 1.0], [1.0, 0, 0], [0, 0, 0]])
+    assert normal_spread(corridor) == pytest.approx(0.0, abs=1e-12)
+    # 10 road, 10 facade and 1 cross-wall normal: the street direction holds 1/21 of them
+    assert normal_spread(np.repeat(axes[[2, 0, 1]], [10, 10, 1], axis=0)) == pytest.approx(1 / 21)
+    # a normal in the y-z plane adds nothing along the direction of that plane orthogonal to it
+    tilted = np.array([[0, np.sin(0.1), np.cos(0.1)], [1.0, 0, 0]])
+    assert normal_spread(tilted) == pytest.approx(0.0, abs=1e-12)
+    assert normal_spread(np.zeros((0, 3))) == 0.0
+
+
+def _rect(fixed_axis: int, value: float, lo, hi, step: float = 0.2) -> np.ndarray:
+    """Points on a grid over the rectangle [lo, hi] of the two other axes, at ``value`` on ``fixed_axis``."""
+    u, v = (np.arange(lo[i], hi[i] + 1e-9, step) for i in range(2))
+    g = np.stack(np.meshgrid(u, v), -1).reshape(-1, 2)
+    return np.insert(g, fixed_axis, value, axis=1)
+
+
+def test_a_corridor_leaves_icp_free_and_min_constraint_rejects_it():
+    """Road and one wall along y: ICP aligns it anywhere along the street with a perfect fit; with a cross wall
+    the overlap pins every direction down."""
+    road = _rect(2, 0.0, (-5, -10), (5, 10))
+    wall = _rect(0, 5.0, (-10, 0), (10, 5))
+    cross = _rect(1, 8.0, (-5, 0), (5, 5))
+    shifted = _pose([0, 0, 0], [0, 3.0, 0])  # the query taken 3 m further along the street
+    params = VerifyParams(score={"min_constraint": 0.05}, icp_only_coarse_distances=[])
+    corridor = np.concatenate([road, wall])
+    v = verify_icp(corridor, corridor, init=shifted, params=params)
+    assert (
+        v.fitness > 0.8 and v.constraint < 0.01 and abs(v.T_match_query[1, 3] - 3.0) < 0.3
+    )  # left where it was
+    assert not v.accepted and v.rejection == "constraint"
+    assert verify_icp(
+        corridor, corridor, init=shifted, params=VerifyParams(icp_only_coarse_distances=[])
+    ).accepted
+    box = np.concatenate([road, wall, cross])
+    w = verify_icp(box, box, init=_pose([0, 0, 0], [0, 0.3, 0]), params=params)
+    assert w.constraint > 0.05 and w.accepted and abs(w.T_match_query[1, 3]) < 0.05
+    assert "constraint" in w.as_dict() and "constraint" not in verify_icp(box, box).as_dict()
 
 
 def test_a_rejected_verification_says_at_which_stage(sim_scans):

@@ -103,6 +103,7 @@ from placerec.experiment.truth import TruthClouds
 from placerec.hashing import stable_hash
 from placerec.intensity import normalize_intensity
 from placerec.keyframes import KeyframeParams, KeyframeSequence
+from placerec.params import deep_merge
 from placerec.preprocess import preprocess_scan
 from placerec.recognizer import PIPELINES, make_pipeline
 from placerec.sim import SimulatedSequence
@@ -486,6 +487,12 @@ def common_image_params(sensors: list[str], pipelines: tuple[str, ...], resoluti
     return out
 
 
+def verifies(name: str) -> bool:
+    """Whether pipeline ``name`` verifies its candidates with the shared verification (has ``verify.score``)."""
+    verify = getattr(make_pipeline(name).params, "verify", None)
+    return verify is not None and hasattr(verify, "score")
+
+
 def loop_pipelines(names: tuple[str, ...]) -> tuple[str, ...]:
     """The pipelines run in loop mode: those with a fixed loop-closure threshold. The 3D voting pipelines
     (``ishot-*``, ``shot-*``, ``delight``) have none: they localise against a map, where an answer counts only if
@@ -716,6 +723,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     ap.add_argument("--image-resolution", type=float, default=0.4, help="deg a pixel with --image common")
     ap.add_argument(
+        "--min-constraint",
+        type=float,
+        default=None,
+        help="verify.score.min_constraint of every verifying pipeline (how well the overlap must pin the "
+        "translation down; None: the presets', not tested)",
+    )
+    ap.add_argument(
         "--crop",
         choices=("none", "common"),
         default="common",
@@ -754,6 +768,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         if args.image == "common"
         else {}
     )
+    if args.min_constraint is not None:
+        gate = {"verify": {"score": {"min_constraint": args.min_constraint}}}
+        args.pipeline_params = {
+            name: deep_merge(args.pipeline_params.get(name, {}), gate)
+            for name in args.pipelines
+            if verifies(name)
+        }
     args.elevation = common_elevation(baselines) if args.crop == "common" else None
     t_start = time.perf_counter()
 
@@ -816,6 +837,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "image": args.image,
         "elevation_deg": args.elevation,
         "pipeline_params": args.pipeline_params,
+        "min_constraint": args.min_constraint,
         "intensity": list(args.intensity),
         "skipped": skipped,
         "seconds": round(time.perf_counter() - t_start),

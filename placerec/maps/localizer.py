@@ -38,7 +38,7 @@ from placerec.eval.pose_error import pose_errors
 from placerec.maps.artifact import MapArtifact, MapPipeline
 from placerec.params import Params
 from placerec.preprocess import preprocess_scan
-from placerec.types import PlaceRecognizer, Scan, as_pose, interpolate_trajectory, valid_points
+from placerec.types import PlaceRecognizer, Scan, Verification, as_pose, interpolate_trajectory, valid_points
 from placerec.verify import IcpCloud, as_source, as_target, verify_icp
 from placerec.verify.params import IcpParams, ScoreParams, VerifyParams
 
@@ -255,7 +255,7 @@ class Localizer:
             if best is None or v.score > best[1].score:
                 best = (kf, v)
             if not v.accepted:
-                reason = _rejection(v.score, v.fitness, tp.verify.score)
+                reason = _rejection(v, tp.verify.score)
                 continue
             T = T_kf @ v.T_match_query
             metres, degrees = correction(prior, T)
@@ -333,11 +333,13 @@ class Localizer:
         return Fix(None, False, "global", why, int(c.match_id), float(c.score), fitness, len(candidates))
 
 
-def _rejection(score: float, fitness: float, rule: ScoreParams) -> str:
+def _rejection(v: Verification, rule: ScoreParams) -> str:
     """Why the tracking verification refused a keyframe, in the rule's words."""
-    if rule.min_fitness is not None and not fitness >= rule.min_fitness:
-        return f"rejected: low fitness {fitness:.2f}"
-    return f"rejected: low score {score:.2f}"
+    if rule.min_fitness is not None and not v.fitness >= rule.min_fitness:
+        return f"rejected: low fitness {v.fitness:.2f}"
+    if v.rejection == "constraint":
+        return f"rejected: translation left free (constraint {v.constraint:.3f})"
+    return f"rejected: low score {v.score:.2f}"
 
 
 def _finish(fix: Fix, timing: dict[str, float], t_start: float) -> Fix:

@@ -13,6 +13,7 @@ compares the backends.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -59,7 +60,8 @@ class IcpCloud:
 @dataclass(frozen=True)
 class IcpResult:
     """``T`` = T_target_source after ICP; overlap ``fitness`` in [0, 1], ``rmse`` (m) of the overlapping voxels,
-    ``residual`` (m^2, the eps_ICP quantity), iterations reported by the backend (-1 when it does not say)."""
+    ``residual`` (m^2, the eps_ICP quantity), iterations reported by the backend (-1 when it does not say),
+    ``constraint`` (`alignment_stats`; NaN when not measured)."""
 
     T: np.ndarray
     fitness: float
@@ -67,6 +69,7 @@ class IcpResult:
     residual: float
     iterations: int
     ms: float
+    constraint: float = math.nan
 
 
 def as_points(points: Any, what: str = "points") -> np.ndarray:
@@ -161,15 +164,20 @@ def alignment_stats(
     fitness_distance: float,
     residual_max_range: float | None,
     max_points: int | None = None,
-) -> tuple[float, float, float]:
-    """(fitness, rmse, residual) of ``source`` points moved by ``T`` against ``target`` (see module docstring),
-    measured on at most ``max_points`` of them (evenly strided; None = all)."""
+    constraint: bool = False,
+) -> tuple[float, float, float, float]:
+    """(fitness, rmse, residual, constraint) of ``source`` points moved by ``T`` against ``target`` (see module
+    docstring), measured on at most ``max_points`` of them (evenly strided; None = all). ``constraint`` (only when
+    asked, else NaN): how well the overlap pins the translation down, the smallest eigenvalue of the mean outer
+    product of the unit normals of the target voxels the overlapping source points landed on (1/3 when the
+    normals point every way evenly; ~0 when they leave a direction free, e.g. road and one facade along a
+    street, where ICP can slide)."""
     if target.tree is None:
         raise ScanDataError("alignment_stats needs a cloud made by prepare_target")
     if max_points is not None and len(source) > max_points:
         source = source[:: -(-len(source) // max_points)]
     moved = source @ T[:3, :3].T + T[:3, 3]
-    _, sq = target.tree.batch_nearest_neighbor_search(np.ascontiguousarray(moved))
+    nearest, sq = target.tree.batch_nearest_neighbor_search(np.ascontiguousarray(moved))
     d = np.sqrt(np.asarray(sq, dtype=np.float64))
     close = d <= fitness_distance
     n = max(len(d), 1)
@@ -177,7 +185,31 @@ def alignment_stats(
     rmse = float(np.sqrt(np.mean(d[close] ** 2))) if close.any() else float("inf")
     dr = d if residual_max_range is None else d[d <= residual_max_range]
     residual = float(np.mean(dr**2)) if dr.size else float("inf")
-    return fitness, rmse, residual
+    pinned = math.nan
+    if constraint:
+        pinned = normal_spread(target_normals(target)[np.asarray(nearest, dtype=np.int64)[close]])
+    return fitness, rmse, residual, pinned
+
+
+def target_normals(target: IcpCloud) -> np.ndarray:
+    """The target voxels' normals (M, 3), as the backend estimated them when the cloud was prepared (zero where a
+    voxel had too few neighbours)."""
+    if target.backend == "small_gicp":
+        return np.asarray(target.native.normals(), dtype=np.float64)[:, :3]
+    if target.backend == "open3d":
+        return np.asarray(target.native.normals, dtype=np.float64)
+    return np.asarray(target.native.point.normals.numpy(), dtype=np.float64)
+
+
+def normal_spread(normals: np.ndarray) -> float:
+    """The smallest eigenvalue of the mean outer product of the unit ``normals`` (N, 3) (zero vectors left out):
+    1/3 for normals spread evenly in every direction, 0 when none has a component along some direction; 0 for no
+    normals."""
+    length = np.linalg.norm(normals, axis=1)
+    unit = normals[length > 1e-9] / length[length > 1e-9, None]
+    if unit.shape[0] == 0:
+        return 0.0
+    return float(max(np.linalg.eigvalsh(unit.T @ unit / unit.shape[0])[0], 0.0))
 
 
 def refine(
@@ -187,8 +219,10 @@ def refine(
     params: IcpParams | None = None,
     fitness_distance: float = 0.5,
     residual_max_range: float | None = None,
+    constraint: bool = False,
 ) -> IcpResult:
-    """ICP of ``source`` onto ``target`` from ``init`` (T_target_source, 4x4); see the module docstring."""
+    """ICP of ``source`` onto ``target`` from ``init`` (T_target_source, 4x4); see the module docstring. With
+    ``constraint`` the result's ``constraint`` is measured too (`alignment_stats`)."""
     params = params or IcpParams()
     if source.role != "source" or target.role != "target":
         raise ScanDataError(f"refine needs a source and a target cloud, got {source.role} and {target.role}")
@@ -236,11 +270,11 @@ def refine(
             treg.ICPConvergenceCriteria(max_iteration=params.max_iterations),
         )
         T, iters = res.transformation.numpy().astype(np.float64), int(res.num_iterations)
-    fitness, rmse, residual = alignment_stats(
-        source.points, target, T, fitness_distance, residual_max_range, params.stats_points
+    fitness, rmse, residual, pinned = alignment_stats(
+        source.points, target, T, fitness_distance, residual_max_range, params.stats_points, constraint
     )
     ms = (time.perf_counter() - t0) * 1e3  # ICP and its statistics
-    return IcpResult(T, fitness, rmse, residual, iters, ms)
+    return IcpResult(T, fitness, rmse, residual, iters, ms, pinned)
 
 
 def _small_gicp() -> Any:

@@ -132,6 +132,15 @@ class ScoreParams(Params):
         description="m; nearest-neighbour distances beyond this are left out of the eps_ICP residual (None: PCL's"
         " getFitnessScore default, all points)",
     )
+    min_constraint: float | None = Field(
+        None,
+        ge=0,
+        le=1 / 3,
+        description="accept only when the overlap pins the translation down in every direction: the smallest "
+        "eigenvalue of the mean outer product of the normals of the match voxels the query overlaps after ICP "
+        "(placerec.verify.icp.alignment_stats; 1/3 for normals spread evenly, ~0 for road and one facade, along "
+        "which ICP slides), whatever the rule (None: not tested)",
+    )
 
 
 class VerifyParams(Params):

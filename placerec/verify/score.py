@@ -10,7 +10,9 @@
 
 Each term is in [0, 1] and a candidate scores high only when all three agree. ``acceptance="eps_icp"`` applies
 the ISHOT paper's rule instead (ICP residual < eps_ICP = 7 m^2), ``"both"`` requires both. ``min_fitness``
-(off by default) adds an overlap gate to any rule: the ICP fitness must reach it.
+(off by default) adds an overlap gate to any rule: the ICP fitness must reach it. ``min_constraint`` (off by
+default) adds another: the overlap must pin the translation down in every direction (`placerec.verify.icp.
+alignment_stats`), which a cone of road and one facade, aligned anywhere along the street, does not.
 """
 
 from __future__ import annotations
@@ -36,23 +38,35 @@ def verified_score(
 
 
 def is_accepted(
-    score: float, residual: float, params: ScoreParams | None = None, fitness: float | None = None
+    score: float,
+    residual: float,
+    params: ScoreParams | None = None,
+    fitness: float | None = None,
+    constraint: float | None = None,
 ) -> bool:
-    """The acceptance rule chosen by ``params.acceptance``, and the ``min_fitness`` gate on ``fitness`` when set
-    (see the module docstring)."""
-    return rejection(score, residual, params, fitness) is None
+    """The acceptance rule chosen by ``params.acceptance``, and the ``min_fitness`` / ``min_constraint`` gates on
+    ``fitness`` / ``constraint`` when set (see the module docstring)."""
+    return rejection(score, residual, params, fitness, constraint) is None
 
 
 def rejection(
-    score: float, residual: float, params: ScoreParams | None = None, fitness: float | None = None
+    score: float,
+    residual: float,
+    params: ScoreParams | None = None,
+    fitness: float | None = None,
+    constraint: float | None = None,
 ) -> str | None:
-    """Why `is_accepted` rejects a verified candidate (``"fitness"``, ``"score"`` or ``"residual"``, the keys of
-    `placerec.types.REJECTIONS`), or None when it accepts it."""
+    """Why `is_accepted` rejects a verified candidate (``"fitness"``, ``"constraint"``, ``"score"`` or
+    ``"residual"``, the keys of `placerec.types.REJECTIONS`), or None when it accepts it."""
     params = params or ScoreParams()
     if params.min_fitness is not None and not (
         fitness is not None and math.isfinite(fitness) and fitness >= params.min_fitness
     ):
         return "fitness"
+    if params.min_constraint is not None and not (
+        constraint is not None and math.isfinite(constraint) and constraint >= params.min_constraint
+    ):
+        return "constraint"
     by_score = score >= params.min_score and score > 0.0
     by_eps = math.isfinite(residual) and residual < params.eps_icp
     if params.acceptance in ("score", "both") and not by_score:

@@ -170,11 +170,12 @@ def complete(
             coarse = params.icp.model_copy(update={"max_correspondence_distance": gate})
             step = refine(source, target, T0, coarse, sp.fitness_distance, sp.eps_icp_max_range)
             T0, coarse_ms = step.T, coarse_ms + step.ms
-    icp = refine(source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range)
+    pinned = sp.min_constraint is not None
+    icp = refine(source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range, pinned)
     timings["icp"] = icp.ms + coarse_ms
     timings["total"] = sum(v for k, v in timings.items() if k != "total")
     score = verified_score(hypothesis.inliers, icp.fitness, icp.rmse, sp)
-    why = rejection(score, icp.residual, sp, icp.fitness)
+    why = rejection(score, icp.residual, sp, icp.fitness, icp.constraint)
     return Verification(
         T_match_query=icp.T,
         score=score,
@@ -189,6 +190,7 @@ def complete(
         timings_ms=timings,
         inlier_mask=hypothesis.inlier_mask,
         rejection=why,
+        constraint=icp.constraint,
     )
 
 
