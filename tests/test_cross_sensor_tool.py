@@ -55,6 +55,18 @@ def test_success_counts_accepted_answers_only() -> None:
     assert tool.localize_figures(rec, map_poses, query_poses)["r_at_p1"] == pytest.approx(1 / 3)
 
 
+def test_world_splits_drive_the_test_seeds_in_each_world_and_tuning_in_town_only() -> None:
+    tool = _tool()
+    runs = tool.world_splits(["test"], ["town", "campus"])
+    assert set(runs) == {"test", "test-campus"}
+    assert runs["test-campus"]["world"] == "campus"
+    assert {k: v for k, v in runs["test-campus"].items() if k != "world"} == {
+        k: v for k, v in tool.SPLITS["test"].items() if k != "world"
+    }
+    with pytest.raises(SystemExit, match="no campus"):
+        tool.world_splits(["tuning"], ["campus"])
+
+
 def test_concat_sequence_and_monotone_fit() -> None:
     tool = _tool()
 

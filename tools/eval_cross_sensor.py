@@ -10,6 +10,9 @@ response curves; the map role's unit is 700, the query role's 701, for every sen
   (TEST_SEEDS); nothing is chosen on it.
 * ``tuning``: town, world seed 0, map drive seed 0 (the tuning cell), query drive seed 1.
 
+``--worlds`` runs the test split in more of the benchmark's test worlds (town, campus, industrial; the same seeds);
+the tuning split has town only.
+
 Every fitted quantity comes from the tuning world only: each unit's per-beam Levinson table
 (`placerec.calibration.calibrate_sequence`) is fitted on its own drive through the tuning world (world seed 0, drive
 seed 0 for the map unit, 1 for the query unit, 60 scans 3 m apart), and so is the common-scale mapping below.
@@ -124,6 +127,20 @@ SPLITS: dict[str, dict[str, Any]] = {
     "test": {"world": "town", "world_seed": protocol.TEST_SEEDS[0], "map_seed": protocol.TEST_SEEDS[0],
              "query_seed": protocol.TEST_SEEDS[1]},
 }  # fmt: skip
+
+
+def world_splits(splits: list[str], worlds: list[str]) -> dict[str, dict[str, Any]]:
+    """The runs of ``splits`` in each of ``worlds`` (the test split's seeds in any test world; the tuning split
+    has town only): key ``split`` for town, ``split-world`` for the others."""
+    out = {}
+    for split in splits:
+        for world in worlds:
+            if split == "tuning" and world != "town":
+                raise SystemExit(f"the tuning split has no {world} drive (protocol.TUNING_WORLDS: town)")
+            out[split if world == "town" else f"{split}-{world}"] = {**SPLITS[split], "world": world}
+    return out
+
+
 #: sensor units (per-beam response draws) of the two roles, the same in every split
 UNITS = {"map": 700, "query": 701}
 #: the tuning drive each unit is calibrated on (world seed 0), and the reference of the common scale
@@ -667,8 +684,8 @@ def _pct(x: Any) -> str:
 
 def print_tables(results: dict[str, Any], summary: dict[str, Any], args: argparse.Namespace) -> None:
     for split, per_mode in results.items():
-        print(f"\n{split.upper()} split ({'figures to report' if split == 'test' else 'tuning figures'}): "
-              f"{SPLITS[split]}; loop: recall / precision % at the preset's threshold (pose truth), R@P1 = recall "
+        print(f"\n{split.upper()} split ({'tuning figures' if split == 'tuning' else 'figures to report'}): "
+              f"{args.split_defs[split]}; loop: recall / precision % at the preset's threshold (pose truth), R@P1 = recall "
               "if precision is 100 else 0; localise: success % (accepted answers within 3 m), R@P1 = success if no accepted answer was wrong "
               "else 0; ratio = cross / the query sensor's same-sensor R@P1")  # fmt: skip
         print(f"{'pair':18} {'intensity':11} {'pipeline':16} {'maps':>4} {'qs':>3} {'loop R':>6} {'P':>4} "
@@ -700,6 +717,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="HDL-64 -> VLP-16 and VLP-16's baseline, sparser")
     ap.add_argument("--splits", nargs="+", choices=sorted(SPLITS), default=None, help="default: test")
+    ap.add_argument(
+        "--worlds",
+        nargs="+",
+        choices=protocol.TEST_WORLDS,
+        default=["town"],
+        help="worlds the test split drives (default town; the tuning split has town only)",
+    )
     ap.add_argument("--pairs", nargs="+", default=None, help="MAP:QUERY pairs (default: the issue's four)")
     ap.add_argument("--pipelines", nargs="+", default=None, choices=sorted(PIPELINES))
     ap.add_argument("--intensity", nargs="+", default=None, choices=INTENSITIES)
@@ -761,6 +785,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         for seed in (SPLITS[split]["map_seed"], SPLITS[split]["query_seed"]):
             if split == "tuning" and protocol.is_test_seed(seed):
                 raise SystemExit(f"tuning split uses test seed {seed}")
+    args.split_defs = world_splits(args.splits, args.worlds)
     baselines = sorted({qs for _, qs in cross} | {m for m, _ in cross})
     pairs = [(m, qs) for m, qs in cross] + [(s, s) for s in baselines]
     args.pipeline_params = (
@@ -792,13 +817,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="placerec-cross-sensor-") as tmpdir:
         tmp = Path(tmpdir)
-        for split in args.splits:
+        for split in args.split_defs:
             stores: dict[str, ScanStore] = {}
             for mode in args.intensity:
                 memo: dict = {}  # descriptions of this mode's scans, shared by its localise and loop runs
                 for m, qs in pairs:
                     try:
-                        res = run_pair(SPLITS[split], m, qs, mode, cals, args, stores, memo, tmp)
+                        res = run_pair(args.split_defs[split], m, qs, mode, cals, args, stores, memo, tmp)
                     except Exception as exc:  # one failed pair is reported, not the end of the run
                         log.exception("%s %s %s -> %s failed", split, mode, m, qs)
                         res = {"error": repr(exc)}
@@ -823,7 +848,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     out = {
         "tool": "eval_cross_sensor",
         "quick": q,
-        "splits": {s: {**SPLITS[s], "label": "test" if s == "test" else "tuning"} for s in args.splits},
+        "splits": {
+            s: {**d, "label": "tuning" if s == "tuning" else "test"} for s, d in args.split_defs.items()
+        },
         "units": UNITS,
         "calibration_drives": {
             "world": "town",
