@@ -1,5 +1,6 @@
-"""Scan preprocessing: invalid-point removal, range/height/elevation crops, voxel downsampling, then `preprocess_scan`
-with intensity normalisation (`placerec.intensity`) or a per-beam calibration table (`placerec.calibration`).
+"""Scan preprocessing: invalid-point removal, range/height/elevation crops, voxel downsampling, then
+`preprocess_scan` with intensity normalisation (`placerec.intensity`) or a per-beam calibration table
+(`placerec.calibration`).
 
 All functions are vectorised, return new `Scan` objects and never modify their input.
 """
@@ -180,8 +181,9 @@ class IntensityParams(IntensitySpec):
 
 class PreprocessParams(Params):
     """What `preprocess_scan` does (None = no limit / not applied): points kept within ``[min_range, max_range]``,
-    ``[min_z, max_z]`` and the elevation band ``elevation_deg``, intensity normalised or calibrated (``intensity``), voxel downsampling
-    (``voxel_size``). An experiment config's ``preprocess`` section is one of these."""
+    ``[min_z, max_z]`` and the elevation band ``elevation_deg``, intensity normalised or calibrated
+    (``intensity``), voxel downsampling (``voxel_size``). An experiment config's ``preprocess`` section is one of
+    these."""
 
     min_range: float | None = Field(None, ge=0, description="m; nearer points are dropped")
     max_range: float | None = Field(None, gt=0, description="m; farther points are dropped")

@@ -455,6 +455,12 @@ def test_a_corridor_leaves_icp_free_and_min_constraint_rejects_it():
     w = verify_icp(box, box, init=_pose([0, 0, 0], [0, 0.3, 0]), params=params)
     assert w.constraint > 0.05 and w.accepted and abs(w.T_match_query[1, 3]) < 0.05
     assert "constraint" in w.as_dict() and "constraint" not in verify_icp(box, box).as_dict()
+    for backend in ("open3d", "open3d_t"):  # every backend's target normals
+        other = VerifyParams(
+            score={"min_constraint": 0.05}, icp={"backend": backend}, icp_only_coarse_distances=[]
+        )
+        assert verify_icp(corridor, corridor, init=shifted, params=other).rejection == "constraint"
+        assert verify_icp(box, box, params=other).constraint > 0.05
 
 
 def test_a_rejected_verification_says_at_which_stage(sim_scans):
