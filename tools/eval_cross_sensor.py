@@ -617,14 +617,6 @@ def run_pair(
 
 
 # -- report ---------------------------------------------------------------------------------------------------------
-def r_at_p1(figures: dict[str, Any]) -> float:
-    """A pipeline's recall at precision 1.00 in one mode (figures saved before localise had one: from success and
-    wrong answers)."""
-    if "r_at_p1" in figures:
-        return float(figures["r_at_p1"])
-    return localise_r_at_p1(figures["success"], figures["n_wrong"])
-
-
 def summarise(
     results: dict[str, Any], pairs: list[tuple[str, str]], args: argparse.Namespace
 ) -> dict[str, Any]:
@@ -643,7 +635,7 @@ def summarise(
                 for kind in ("loop", "localise"):
                     per = {}
                     for p in cross[kind]:
-                        c, s = (r_at_p1(run[kind][p]) for run in (cross, same))
+                        c, s = (run[kind][p]["r_at_p1"] for run in (cross, same))
                         per[p] = {"cross": c, "same": s, "ratio": (c / s) if s > 0 else None}
                     best = max(per, key=lambda p, per=per: per[p]["cross"]) if per else None
                     entry[kind] = {"pipelines": per, "best": best}
@@ -707,7 +699,7 @@ def print_tables(results: dict[str, Any], summary: dict[str, Any], args: argpars
                         else f"{'-':>6} {'-':>4} {'-':>5} {'-':>5}"
                     )
                     print(f"{pair.replace('>', ' -> '):18} {mode:11} {p:16} {res['n_map']:>4} {res['n_queries']:>3} "
-                          f"{loop_cols} {_pct(lc['success']):>4} {_pct(r_at_p1(lc)):>5} "
+                          f"{loop_cols} {_pct(lc['success']):>4} {_pct(lc['r_at_p1']):>5} "
                           f"{_pct(r2) if rat else 'same':>5} {lc['n_no_answer']:>6} {lc['n_wrong']:>5}")  # fmt: skip
         for pair, t in summary[split]["targets"].items():
             print(f"  target {pair}: {t}")

@@ -255,7 +255,7 @@ class Localizer:
             if best is None or v.score > best[1].score:
                 best = (kf, v)
             if not v.accepted:
-                reason = _rejection(v, tp.verify.score)
+                reason = _rejection(v)
                 continue
             T = T_kf @ v.T_match_query
             metres, degrees = correction(prior, T)
@@ -333,9 +333,9 @@ class Localizer:
         return Fix(None, False, "global", why, int(c.match_id), float(c.score), fitness, len(candidates))
 
 
-def _rejection(v: Verification, rule: ScoreParams) -> str:
-    """Why the tracking verification refused a keyframe, in the rule's words."""
-    if rule.min_fitness is not None and not v.fitness >= rule.min_fitness:
+def _rejection(v: Verification) -> str:
+    """Why the tracking verification refused a keyframe (its `Verification.rejection`), in the rule's words."""
+    if v.rejection == "fitness":
         return f"rejected: low fitness {v.fitness:.2f}"
     if v.rejection == "constraint":
         return f"rejected: translation left free (constraint {v.constraint:.3f})"

@@ -170,8 +170,10 @@ def complete(
             coarse = params.icp.model_copy(update={"max_correspondence_distance": gate})
             step = refine(source, target, T0, coarse, sp.fitness_distance, sp.eps_icp_max_range)
             T0, coarse_ms = step.T, coarse_ms + step.ms
-    pinned = sp.min_constraint is not None
-    icp = refine(source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range, pinned)
+    measure_constraint = sp.min_constraint is not None
+    icp = refine(
+        source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range, measure_constraint
+    )
     timings["icp"] = icp.ms + coarse_ms
     timings["total"] = sum(v for k, v in timings.items() if k != "total")
     score = verified_score(hypothesis.inliers, icp.fitness, icp.rmse, sp)
