@@ -118,10 +118,25 @@ def test_save_load_round_trip_and_parameter_check(tmp_path):
     assert meta["params"]["search"]["backend"] == "numpy"
     save_artifact(tmp_path / "old.npz", kv._KIND, kv._VERSION, arrays, meta)
     again.load(tmp_path / "old.npz")
+    # one saved before verification fields existed (absent from its header: their defaults, the old behaviour)
+    del (
+        meta["params"]["verify"]["score"]["min_constraint"],
+        meta["params"]["verify"]["icp_only_coarse_voxel_size"],
+    )
+    save_artifact(tmp_path / "older.npz", kv._KIND, kv._VERSION, arrays, meta)
+    again.load(tmp_path / "older.npz")
+    with pytest.raises(ArtifactError, match="other parameters"):  # not when this run sets one
+        KeypointVoting(
+            search={"tau_max": 0.8}, verify={"enabled": False, "icp_only_coarse_voxel_size": 3.0}
+        ).load(tmp_path / "older.npz")
     meta["params"]["search"]["tau_max"] = 0.9
     save_artifact(tmp_path / "other.npz", kv._KIND, kv._VERSION, arrays, meta)
     with pytest.raises(ArtifactError, match="other parameters"):
         again.load(tmp_path / "other.npz")
+    meta["params"]["search"]["no_such_field"] = 1  # a header the parameters cannot even read
+    save_artifact(tmp_path / "unknown.npz", kv._KIND, kv._VERSION, arrays, meta)
+    with pytest.raises(ArtifactError, match="other parameters"):
+        again.load(tmp_path / "unknown.npz")
 
 
 def test_registry_presets_and_bad_parameters():

@@ -357,6 +357,54 @@ def test_prepared_clouds_are_reused_and_checked(sim_scans):
         verify_icp(src, tgt, params=VerifyParams(icp={"backend": "open3d"}))
 
 
+def test_the_coarse_stages_run_on_the_coarser_query_grid_made_once(sim_scans, monkeypatch):
+    import importlib
+
+    from placerec.verify import as_source, as_target
+    from placerec.verify.icp import coarser_source
+
+    verify_module = importlib.import_module("placerec.verify.verify")
+    seq, scans = sim_scans
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    init = _pose([0.5, -0.5, 3.0], [0.4, -0.3, 0.1]) @ T_gt  # 3 m and 3 deg off: the coarse gate is needed
+    params = VerifyParams(icp_only_coarse_voxel_size=3.0)
+    src, tgt = as_source(scans[13], params), as_target(scans[10], params)
+    seen: list[tuple[float, float]] = []  # (source voxel, gate) of every ICP run
+    real_refine = verify_module.refine
+
+    def refine(source, target, init, icp, *args, **kwargs):
+        seen.append((source.voxel_size, icp.max_correspondence_distance))
+        return real_refine(source, target, init, icp, *args, **kwargs)
+
+    monkeypatch.setattr(verify_module, "refine", refine)
+    v = verify_icp(src, tgt, init=init, params=params)
+    assert seen == [
+        (3.0, 4.0),
+        (1.5, 1.0),
+    ]  # the coarse gate on the 3 m grid, the pose judged on the 1.5 m one
+    err = np.linalg.inv(T_gt) @ v.T_match_query
+    assert v.accepted and np.linalg.norm(err[:3, 3]) < 0.05
+    coarse = src.derived[3.0]
+    assert 10 <= len(coarse) < len(src) / 2 and coarse.role == "source"
+    verify_icp(src, tgt, init=init, params=params)  # a second candidate of the same query
+    assert src.derived[3.0] is coarse  # made once
+    # correspondences give a RANSAC pose: no coarse stage, the coarser grid is not used
+    seen.clear()
+    rng = np.random.default_rng(8)
+    q = scans[13][rng.choice(len(scans[13]), 200, replace=False)].astype(np.float64)
+    verify(src, tgt, q, _apply(T_gt, q), params=params)
+    assert seen == [(1.5, 1.0)]
+    # unset, not coarser, or too few voxels: the query's own grid
+    assert coarser_source(src, None, params.icp) is src
+    assert coarser_source(src, 1.0, params.icp) is src
+    few = as_source(np.random.default_rng(0).uniform(0, 20, (40, 3)), params)
+    assert coarser_source(few, 50.0, params.icp) is few  # 1 voxel: too few for normals
+    with pytest.raises(ScanDataError, match="source"):
+        coarser_source(tgt, 3.0, params.icp)
+    with pytest.raises(ConfigError, match="icp_only_coarse_voxel_size"):
+        VerifyParams(icp_only_coarse_voxel_size=0.0)
+
+
 def test_eps_icp_acceptance_rule(sim_scans):
     seq, scans = sim_scans
     T_gt = relative_pose(seq.poses[10], seq.poses[13])

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -29,6 +29,7 @@ from placerec.verify.params import IcpParams
 __all__ = [
     "IcpCloud",
     "IcpResult",
+    "coarser_source",
     "prepare_source",
     "prepare_target",
     "prepare_threads",
@@ -52,6 +53,9 @@ class IcpCloud:
     native_tree: Any = None
     tree: Any = None
     prepare_ms: float = 0.0
+    #: clouds made from this one, by voxel size (`coarser_source`): a query's coarse grid is made once however
+    #: many candidates it is verified against
+    derived: dict[float, IcpCloud] = field(default_factory=dict, compare=False, repr=False)
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -155,6 +159,19 @@ def prepare_source(points: Any, params: IcpParams | None = None) -> IcpCloud:
     """The query scan voxelised at ``source_voxel_size`` (with normals / covariances for GICP)."""
     params = params or IcpParams()
     return _prepare(points, params, params.source_voxel_size, "source")
+
+
+def coarser_source(source: IcpCloud, voxel: float | None, params: IcpParams) -> IcpCloud:
+    """``source`` (a prepared query) voxelised again at the coarser ``voxel``, made once and kept on it; ``source``
+    itself when ``voxel`` is None or not coarser, or when the coarser grid keeps too few voxels for normals."""
+    if source.role != "source":
+        raise ScanDataError(f"coarser_source needs a source cloud, got a {source.role} cloud")
+    if voxel is None or voxel <= source.voxel_size or len(source) < params.normal_neighbors:
+        return source
+    if voxel not in source.derived:
+        coarse = _prepare(source.points, params, voxel, "source")
+        source.derived[voxel] = coarse if len(coarse) >= params.normal_neighbors else source
+    return source.derived[voxel]
 
 
 def alignment_stats(

@@ -161,6 +161,13 @@ class VerifyParams(Params):
         " first runs with these correspondence gates, then with icp.max_correspondence_distance (measured: a"
         " 4 m stage makes yaw-only guesses 3-4 m off converge)",
     )
+    icp_only_coarse_voxel_size: float | None = Field(
+        None,
+        gt=0,
+        description="m; the query's voxel grid in those coarse stages (made from icp.source_voxel_size's voxels;"
+        " None: icp.source_voxel_size); only the last stage, at icp.max_correspondence_distance, sets the pose"
+        " judged",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> VerifyParams:

@@ -22,7 +22,7 @@ import numpy as np
 from placerec.errors import ScanDataError
 from placerec.types import Verification
 from placerec.verify.consistency import group_correspondences
-from placerec.verify.icp import IcpCloud, prepare_source, prepare_target, refine
+from placerec.verify.icp import IcpCloud, coarser_source, prepare_source, prepare_target, refine
 from placerec.verify.kabsch import check_pairs
 from placerec.verify.params import VerifyParams
 from placerec.verify.ransac import RansacResult, ransac_pose, refit
@@ -165,10 +165,11 @@ def complete(
     timings["prepare"] = (time.perf_counter() - t_start) * 1e3
     sp = params.score
     T0, coarse_ms = hypothesis.T_match_query, 0.0
-    if hypothesis.inliers is None:  # a rough initial guess: coarse gates first
+    if hypothesis.inliers is None:  # a rough initial guess: coarse gates first, on a coarser query grid
+        coarse_source = coarser_source(source, params.icp_only_coarse_voxel_size, params.icp)
         for gate in params.icp_only_coarse_distances:
             coarse = params.icp.model_copy(update={"max_correspondence_distance": gate})
-            step = refine(source, target, T0, coarse, sp.fitness_distance, sp.eps_icp_max_range)
+            step = refine(coarse_source, target, T0, coarse, sp.fitness_distance, sp.eps_icp_max_range)
             T0, coarse_ms = step.T, coarse_ms + step.ms
     measure_constraint = sp.min_constraint is not None
     icp = refine(
