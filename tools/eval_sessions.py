@@ -27,7 +27,8 @@ kind of a world and seed, so its two maps are built once and kept under ``--work
    not join. Two diagnostics beside it: the **join error** (each overlapping session-2 pose against where the map
    puts it: the nearest keyframe's estimate moved by the true relative pose; the join's own error, free of the
    map's drift) and the same session 2 run against the **true-pose map** of 1. (its merged ATE: the join with a
-   map that has no drift of its own).
+   map that has no drift of its own). ``--slam-odometry kiss-icp`` runs both SLAM sessions on KISS-ICP odometry
+   over the scans instead of the demo's drift (whose scale error no loop closure can see).
 
 Map load time and size by keyframe count are ``tools/bench_map_scale.py``'s, not redone here.
 
@@ -102,6 +103,7 @@ def settings(
     kidnaps: int,
     map_closes_loop: bool = False,
     join_pipelines: tuple[str, ...] = (),
+    slam_odometry: str = "dataset",
 ) -> dict[str, Any]:
     """What a cell depends on besides its world, seed and kind (stored with it; a mismatch recomputes it)."""
     out = {"version": VERSION, "sensor": sensor, "pipeline": pipeline_label(pipeline), "scans": scans, "kidnaps": kidnaps,
@@ -111,6 +113,8 @@ def settings(
         out["map_closes_loop"] = True
     if join_pipelines:
         out["join_pipelines"] = list(join_pipelines)
+    if slam_odometry != "dataset":
+        out["slam_odometry"] = slam_odometry
     return out
 
 
@@ -132,17 +136,19 @@ def true_map(pair: SessionPair, pipeline: str | None, folder: Path) -> Path:
     return write_map(pair.map, build)
 
 
-def slam_overrides(pair: SessionPair, role: str) -> list[str]:
+def slam_overrides(pair: SessionPair, role: str, odometry: str = "dataset") -> list[str]:
+    """The SLAM config's overrides for session ``role`` (``map`` or ``query``) of ``pair``; ``odometry``: the
+    config's ``odometry.source`` (``dataset``: the demo's drift on the true poses; ``kiss-icp``: on the scans)."""
     seq = pair.map if role == "map" else pair.query
     world = pair.map.world
     return [f"dataset.simulator.world={world.preset}", f"dataset.simulator.sensor={seq.sensor.name}",
             f"dataset.simulator.seed={seq.seed}", f"dataset.simulator.world_seed={world.seed}",
             f"dataset.simulator.unit_seed={pair.map.seed}", f"odometry.drift.seed={seq.seed}",
-            "output.progress=false", "output.figures=false"]  # fmt: skip
+            f"odometry.source={odometry}", "output.progress=false", "output.figures=false"]  # fmt: skip
 
 
 def slam_map(
-    pair: SessionPair, folder: Path, map_pipelines: tuple[str, ...] = ()
+    pair: SessionPair, folder: Path, map_pipelines: tuple[str, ...] = (), odometry: str = "dataset"
 ) -> tuple[Path, dict[str, Any]]:
     """Session 1 through `slam_sequence` with its map saved (run once; its ATE kept beside it), holding the
     ``map_pipelines`` databases as well (``output.map_pipelines``)."""
@@ -153,7 +159,7 @@ def slam_map(
     info_path = folder.parent / f"{folder.name}.json"
     if (folder / "manifest.json").is_file() and info_path.is_file():
         return folder, json.loads(info_path.read_text())
-    sets = [*slam_overrides(pair, "map"), f"output.save_map={folder}", "output.overwrite_map=true"]
+    sets = [*slam_overrides(pair, "map", odometry), f"output.save_map={folder}", "output.overwrite_map=true"]
     if map_pipelines:
         sets.append(f"output.map_pipelines={list(map_pipelines)}")
     cfg = load_slam_config(SLAM_CONFIG, sets)
@@ -276,13 +282,15 @@ def kidnap(pair: SessionPair, loc: Localizer, n_trials: int, seed: int) -> dict[
 
 
 # -- 3. multi-session -------------------------------------------------------------------------------------------
-def multisession(pair: SessionPair, map_folder: Path, join_pipelines: tuple[str, ...] = ()) -> dict[str, Any]:
+def multisession(
+    pair: SessionPair, map_folder: Path, join_pipelines: tuple[str, ...] = (), odometry: str = "dataset"
+) -> dict[str, Any]:
     """Session 2 through `slam_sequence` against the map at ``map_folder`` (module docstring), with the map's
-    ``join_pipelines`` searching it too (``prior_map.join_pipelines``)."""
+    ``join_pipelines`` searching it too (``prior_map.join_pipelines``), on ``odometry`` (`slam_overrides`)."""
     from placerec.slam_app.config import load_slam_config
     from placerec.slam_app.run import open_prior_map, slam_sequence
 
-    sets = [*slam_overrides(pair, "query"), f"prior_map.path={map_folder}"]
+    sets = [*slam_overrides(pair, "query", odometry), f"prior_map.path={map_folder}"]
     if join_pipelines:
         sets.append(f"prior_map.join_pipelines={list(join_pipelines)}")
     if pair.kind == "sensor":
@@ -368,9 +376,10 @@ def run_cell(
     params: LocalizerParams | None = None,
     map_closes_loop: bool = False,
     join_pipelines: tuple[str, ...] = (),
+    slam_odometry: str = "dataset",
 ) -> dict[str, Any]:
     """One world x seed x kind: relocalisation, kidnap and multi-session (module docstring). The maps of session 1
-    are built under ``work`` once per world, seed, sensor, pipeline and cut."""
+    are built under ``work`` once per world, seed, sensor, pipeline, cut and SLAM odometry."""
     pair = make_session_pair(world, sensor, seed, kind, n_scans=scans, map_closes_loop=map_closes_loop)
     tag = f"{world}-{sensor}-s{seed}-n{scans or 'all'}{'-closed' if map_closes_loop else ''}"
     params = params or LocalizerParams(pipeline=pipeline, allow_other_sensor=kind == "sensor")
@@ -390,13 +399,16 @@ def run_cell(
     out["kidnap"] = kidnap(pair, loc, kidnaps, seed)
     log(f"{tag} {kind}: SLAM session 1")
     joined_by = "".join(f"-{name}" for name in join_pipelines)  # a map holding those databases too
-    smap, out["slam_session1"] = slam_map(pair, work / f"{tag}-slam{joined_by}", join_pipelines)
+    on = "" if slam_odometry == "dataset" else f"-{slam_odometry}"
+    smap, out["slam_session1"] = slam_map(
+        pair, work / f"{tag}-slam{joined_by}{on}", join_pipelines, slam_odometry
+    )
     log(f"{tag} {kind}: SLAM session 2 against it")
-    out["multisession"] = multisession(pair, smap, join_pipelines)
+    out["multisession"] = multisession(pair, smap, join_pipelines, slam_odometry)
     log(
         f"{tag} {kind}: SLAM session 2 against the true-pose map (diagnostic: the join without the map's drift)"
     )
-    out["multisession_truth_map"] = multisession(pair, tmap, join_pipelines)
+    out["multisession_truth_map"] = multisession(pair, tmap, join_pipelines, slam_odometry)
     out["seconds"] = round(time.perf_counter() - t0, 1)
     out["load"] = load()
     return out
@@ -461,19 +473,29 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="more map pipelines that also search the maps for inter-session closures in the SLAM runs against"
         " them (prior_map.join_pipelines; session 1's SLAM then saves their databases too: output.map_pipelines)",
     )
+    ap.add_argument(
+        "--slam-odometry",
+        choices=["dataset", "kiss-icp"],
+        default="dataset",
+        help="the odometry of both SLAM sessions: dataset (the demo config's drift on the true poses) or kiss-icp"
+        " (KISS-ICP on the scans); relocalisation and kidnaps keep the simulated drift",
+    )
     args = ap.parse_args(argv)
     work = args.work or args.out / "maps"
     work.mkdir(parents=True, exist_ok=True)
     args.out.mkdir(parents=True, exist_ok=True)
     join = tuple(args.join_pipelines)
-    want = settings(args.sensor, args.pipeline, args.scans, args.kidnaps, args.map_closes_loop, join)
+    want = settings(
+        args.sensor, args.pipeline, args.scans, args.kidnaps, args.map_closes_loop, join, args.slam_odometry
+    )
     cells = []
     t0 = time.perf_counter()
     for world in args.worlds:
         for seed in args.seeds:
             for kind in args.kinds:
                 closed = "-closed" if args.map_closes_loop else ""
-                name = f"{world}-{args.sensor}-s{seed}-{kind}-{pipeline_label(args.pipeline)}-n{args.scans or 'all'}{closed}.json"
+                on = "" if args.slam_odometry == "dataset" else f"-{args.slam_odometry}"
+                name = f"{world}-{args.sensor}-s{seed}-{kind}-{pipeline_label(args.pipeline)}-n{args.scans or 'all'}{closed}{on}.json"
                 path = args.out / name
                 if path.is_file() and not args.fresh:
                     cached = json.loads(path.read_text())
@@ -482,7 +504,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         cells.append(cached)
                         continue
                 cell = run_cell(world, seed, kind, args.sensor, args.pipeline, args.scans, args.kidnaps, work,
-                                map_closes_loop=args.map_closes_loop, join_pipelines=join)  # fmt: skip
+                                map_closes_loop=args.map_closes_loop, join_pipelines=join,
+                                slam_odometry=args.slam_odometry)  # fmt: skip
                 cell["settings"] = want
                 tmp = path.with_suffix(".tmp")
                 tmp.write_text(json.dumps(cell, indent=1))
