@@ -78,6 +78,49 @@ def test_mutual_nearest_matches_a_brute_force_reference():
     assert mi.tolist() == (9 - qi).tolist() and len(qi) == 10
 
 
+def _unit(x: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(x / np.linalg.norm(x, axis=1, keepdims=True), np.float32)
+
+
+def _mirrored(q: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Two columns per row of ``q`` at the same distance from it: a nearby point and its mirror image about a
+    random plane through the row."""
+    near = q + rng.normal(scale=0.02, size=q.shape)
+    u = _unit(rng.normal(size=q.shape)).astype(np.float64)
+    mirror = near - 2 * np.einsum("ij,ij->i", near - q, u)[:, None] * u
+    return np.ascontiguousarray(np.concatenate([near, mirror]), np.float32)
+
+
+def test_float_matching_through_one_product_is_the_all_pairs_loop_bit_for_bit():
+    from placerec.verify.matching import _nearest_both_ways_l2, _nearest_both_ways_product
+
+    rng = np.random.default_rng(4)
+    a = _unit(rng.normal(size=(300, 256)))  # SuperPoint's size
+    cases = {
+        "revisit": (a, _unit(a[rng.permutation(300)] + rng.normal(scale=0.05, size=(300, 256)))),
+        "unrelated": (a, _unit(rng.normal(size=(250, 256)))),
+        # exact ties: repeated rows on both sides (the first index of equal distances wins, as in the loop)
+        "ties": (np.repeat(a[:60], 3, axis=0), np.repeat(a[30:90], 2, axis=0)),
+        # near ties: each row's two nearest columns mirror each other about a plane through it, so their exact
+        # distances differ by float rounding only and the product alone picks the wrong one about half the time
+        "mirrored": (a[:200], _mirrored(a[:200], rng)),
+        "large norms": (a * 300.0, np.ascontiguousarray(a[::-1] * 290.0 + 0.1, np.float32)),
+        "SURF-sized": (_unit(rng.normal(size=(200, 64))), _unit(rng.normal(size=(180, 64)))),
+    }
+    for name, (q, m) in cases.items():
+        loop, product = _nearest_both_ways_l2(q, m), _nearest_both_ways_product(q, m)
+        for x, y in zip(loop, product, strict=True):
+            np.testing.assert_array_equal(x, y, err_msg=name)
+    # mutual_nearest takes the product from 16 rows on, the loop below; both give the brute-force matches
+    for n in (10, 300):
+        q, m = a[:n], _unit(a[:n][::-1] + rng.normal(scale=0.02, size=(n, 256)))
+        D = ((q[:, None, :].astype(np.float64) - m[None, :, :]) ** 2).sum(2)
+        ref = [(i, int(D[i].argmin())) for i in range(n) if D[:, D[i].argmin()].argmin() == i]
+        qi, mi, dist = mutual_nearest(q, m)
+        assert list(zip(qi.tolist(), mi.tolist(), strict=True)) == ref and len(ref) == n
+        np.testing.assert_allclose(dist, np.sqrt(D[qi, mi]), rtol=1e-5)
+
+
 @pytest.mark.parametrize("name", ["orb-hbst", "orb-dbow"])
 def test_true_loop_gets_the_6dof_pose_and_a_wrong_place_ranks_lower(sim, name):
     scans, poses = sim
