@@ -106,6 +106,8 @@ def test_float_matching_through_one_product_is_the_all_pairs_loop_bit_for_bit():
         "mirrored": (a[:200], _mirrored(a[:200], rng)),
         "large norms": (a * 300.0, np.ascontiguousarray(a[::-1] * 290.0 + 0.1, np.float32)),
         "SURF-sized": (_unit(rng.normal(size=(200, 64))), _unit(rng.normal(size=(180, 64)))),
+        # a NaN row matches nothing and hides nothing (the loop's own answer)
+        "NaN": (np.where(np.arange(300)[:, None] == 7, np.nan, a).astype(np.float32), a[::-1].copy()),
     }
     for name, (q, m) in cases.items():
         loop, product = _nearest_both_ways_l2(q, m), _nearest_both_ways_product(q, m)

@@ -109,6 +109,10 @@ def _nearest_both_ways_product(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray
     `_CANDIDATE_TOLERANCE` of its smallest; `_exact_nearest` picks among them by the exact distance."""
     a_sq = np.einsum("ij,ij->i", a, a)
     b_sq = np.einsum("ij,ij->i", b, b)
+    if not (
+        np.isfinite(a_sq).all() and np.isfinite(b_sq).all()
+    ):  # a NaN row would hide every column's nearest
+        return _nearest_both_ways_l2(a, b)
     approx = a @ b.T
     approx *= -2.0
     approx += a_sq[:, None]
