@@ -91,8 +91,8 @@ def _mirrored(q: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate([near, mirror]), np.float32)
 
 
-def test_float_matching_through_one_product_is_the_all_pairs_loop_bit_for_bit():
-    from placerec.verify.matching import _nearest_both_ways_l2, _nearest_both_ways_product
+def test_screened_float_matching_is_the_all_pairs_loop_bit_for_bit():
+    from placerec.verify.matching import _nearest_both_ways_l2, _nearest_both_ways_screened
 
     rng = np.random.default_rng(4)
     a = _unit(rng.normal(size=(300, 256)))  # SuperPoint's size
@@ -102,7 +102,7 @@ def test_float_matching_through_one_product_is_the_all_pairs_loop_bit_for_bit():
         # exact ties: repeated rows on both sides (the first index of equal distances wins, as in the loop)
         "ties": (np.repeat(a[:60], 3, axis=0), np.repeat(a[30:90], 2, axis=0)),
         # near ties: each row's two nearest columns mirror each other about a plane through it, so their exact
-        # distances differ by float rounding only and the product alone picks the wrong one about half the time
+        # distances differ by float rounding only and the approximate distances alone pick the wrong one about half the time
         "mirrored": (a[:200], _mirrored(a[:200], rng)),
         "large norms": (a * 300.0, np.ascontiguousarray(a[::-1] * 290.0 + 0.1, np.float32)),
         "SURF-sized": (_unit(rng.normal(size=(200, 64))), _unit(rng.normal(size=(180, 64)))),
@@ -110,10 +110,10 @@ def test_float_matching_through_one_product_is_the_all_pairs_loop_bit_for_bit():
         "NaN": (np.where(np.arange(300)[:, None] == 7, np.nan, a).astype(np.float32), a[::-1].copy()),
     }
     for name, (q, m) in cases.items():
-        loop, product = _nearest_both_ways_l2(q, m), _nearest_both_ways_product(q, m)
-        for x, y in zip(loop, product, strict=True):
+        loop, screened = _nearest_both_ways_l2(q, m), _nearest_both_ways_screened(q, m)
+        for x, y in zip(loop, screened, strict=True):
             np.testing.assert_array_equal(x, y, err_msg=name)
-    # mutual_nearest takes the product from 16 rows on, the loop below; both give the brute-force matches
+    # mutual_nearest screens from 16 rows on, the loop below; both give the brute-force matches
     for n in (10, 300):
         q, m = a[:n], _unit(a[:n][::-1] + rng.normal(scale=0.02, size=(n, 256)))
         D = ((q[:, None, :].astype(np.float64) - m[None, :, :]) ** 2).sum(2)

@@ -3,10 +3,12 @@
 Binary descriptors (packed ``uint8``, e.g. ORB, BRISK): a compiled single-threaded loop, Hamming distance over
 64-bit words (SWAR popcount); sets are a few hundred descriptors per image, where a threaded library's start-up
 costs more than the work (docs/benchmarks.md, visual pipeline per scan). Float descriptors (SuperPoint, SURF) by
-Euclidean distance: one BLAS product gives every squared distance approximately, which leaves a few candidates
-per row and per column (those within a tolerance far above the product's rounding of the smallest); their exact
-distances, computed by the same compiled loop as the all-pairs kernel `_nearest_both_ways_l2`, decide. So the
-matches and distances are those of the all-pairs loop, bit for bit, at a third of its time for 300 x 256 floats.
+Euclidean distance: float32 dot products give every squared distance approximately, which leaves a few
+candidates per row and per column (those within a tolerance far above the products' rounding of the smallest);
+their exact distances, by the all-pairs loop's own arithmetic (`_nearest_both_ways_l2`), decide. So the matches
+and distances are the all-pairs loop's, bit for bit, in a third of its time for 300 x 256 floats. (A BLAS product
+was faster still but left OpenBLAS's idle threads spinning on the other core after every candidate, which cost
+the concurrent describe more than it saved: docs/benchmarks.md.)
 """
 
 from __future__ import annotations
@@ -89,58 +91,76 @@ def mutual_nearest(dq: np.ndarray, dm: np.ndarray) -> tuple[np.ndarray, np.ndarr
         dist = d.astype(np.float64)
     else:
         q, m = np.ascontiguousarray(dq, np.float32), np.ascontiguousarray(dm, np.float32)
-        small = min(q.shape[0], m.shape[0]) < _BLAS_MIN_ROWS or q.shape[1] == 0
-        nn, d, back = _nearest_both_ways_l2(q, m) if small else _nearest_both_ways_product(q, m)
+        small = min(q.shape[0], m.shape[0]) < _SCREEN_MIN_ROWS or q.shape[1] == 0
+        nn, d, back = _nearest_both_ways_l2(q, m) if small else _nearest_both_ways_screened(q, m)
         dist = np.sqrt(d)
     qi = np.flatnonzero(back[nn] == np.arange(dq.shape[0]))
     return qi, nn[qi], dist[qi]
 
 
-#: fewer rows on either side: the all-pairs loop (the product's set-up costs more than it saves)
-_BLAS_MIN_ROWS = 16
+#: fewer rows on either side: the all-pairs loop (screening saves less than it costs)
+_SCREEN_MIN_ROWS = 16
 #: candidates are kept within this share of the largest squared norms of the smallest approximate distance: float32
-#: products over d dimensions round by ~d * 6e-8 of them (1.5e-5 for 256), so the exact nearest is always kept
+#: dot products over d dimensions round by ~d * 6e-8 of them (1.5e-5 for 256), so the exact nearest is always kept
 _CANDIDATE_TOLERANCE = 1e-3
 
 
-def _nearest_both_ways_product(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`_nearest_both_ways_l2`'s result (the same arrays, bit for bit) from one BLAS product: the approximate
-    squared distances ``|a|^2 + |b|^2 - 2 a b^T`` keep, for each row and each column, the entries within
-    `_CANDIDATE_TOLERANCE` of its smallest; `_exact_nearest` picks among them by the exact distance."""
+def _nearest_both_ways_screened(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_nearest_both_ways_l2`'s result (the same arrays, bit for bit), screened: approximate squared distances
+    ``|a|^2 + |b|^2 - 2 a.b`` in float32 (vectorised dot products, ~3x faster than the exact loop) keep, for each
+    row and each column, the entries within `_CANDIDATE_TOLERANCE` of its smallest; their exact distances, by
+    the exact loop's own arithmetic, decide. Rows that are not finite take the exact loop (a NaN row would hide
+    every column's nearest)."""
     a_sq = np.einsum("ij,ij->i", a, a)
     b_sq = np.einsum("ij,ij->i", b, b)
-    if not (
-        np.isfinite(a_sq).all() and np.isfinite(b_sq).all()
-    ):  # a NaN row would hide every column's nearest
+    if not (np.isfinite(a_sq).all() and np.isfinite(b_sq).all()):
         return _nearest_both_ways_l2(a, b)
-    approx = a @ b.T
-    approx *= -2.0
-    approx += a_sq[:, None]
-    approx += b_sq[None, :]
     tol = np.float32(_CANDIDATE_TOLERANCE * (float(a_sq.max()) + float(b_sq.max())))
-    rows, cols = np.nonzero(approx <= approx.min(axis=1)[:, None] + tol)  # by row, then column
-    nn_ab, d_ab = _exact_nearest(a, b, rows, cols, a.shape[0])
-    cols, rows = np.nonzero((approx <= approx.min(axis=0)[None, :] + tol).T)  # by column, then row
-    nn_ba, _ = _exact_nearest(b, a, cols, rows, b.shape[0])
-    return nn_ab, d_ab, nn_ba
+    return _screened(a, b, a_sq, b_sq, tol)
 
 
 @njit(cache=True, nogil=True, fastmath=True)
-def _exact_nearest(
-    a: np.ndarray, b: np.ndarray, ai: np.ndarray, bj: np.ndarray, n: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """For the candidate pairs (``ai[p]``, ``bj[p]``), ordered by ``ai`` then ``bj``: each row of ``a``'s nearest
-    candidate of ``b`` (the first of equal distances) and its squared distance, computed exactly as
-    `_nearest_both_ways_l2` computes it (the same loop: a difference's square is the same either way round)."""
-    nn = np.zeros(n, np.int64)
-    dd = np.full(n, np.inf)
-    for p in range(ai.shape[0]):
-        i, j = ai[p], bj[p]
-        d = 0.0
-        for k in range(a.shape[1]):
-            e = a[i, k] - b[j, k]
-            d += e * e
-        if d < dd[i]:
-            dd[i] = d
-            nn[i] = j
-    return nn, dd
+def _screened(
+    a: np.ndarray, b: np.ndarray, a_sq: np.ndarray, b_sq: np.ndarray, tol: np.float32
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """`_nearest_both_ways_screened`'s kernel. The exact distance is written out as in `_nearest_both_ways_l2`
+    (a difference's square is the same either way round), and candidates are visited in ascending order, so the
+    first of equal distances wins as there."""
+    n, m = a.shape[0], b.shape[0]
+    approx = np.empty((n, m), np.float32)
+    row_min = np.full(n, np.inf, np.float32)
+    col_min = np.full(m, np.inf, np.float32)
+    for i in range(n):
+        for j in range(m):
+            s = np.float32(0.0)
+            for k in range(a.shape[1]):
+                s += a[i, k] * b[j, k]
+            v = a_sq[i] + b_sq[j] - np.float32(2.0) * s
+            approx[i, j] = v
+            row_min[i] = min(row_min[i], v)
+            col_min[j] = min(col_min[j], v)
+    nn_ab = np.zeros(n, np.int64)
+    d_ab = np.full(n, np.inf)
+    for i in range(n):
+        for j in range(m):
+            if approx[i, j] <= row_min[i] + tol:
+                d = 0.0
+                for k in range(a.shape[1]):
+                    e = a[i, k] - b[j, k]
+                    d += e * e
+                if d < d_ab[i]:
+                    d_ab[i] = d
+                    nn_ab[i] = j
+    nn_ba = np.zeros(m, np.int64)
+    d_ba = np.full(m, np.inf)
+    for j in range(m):
+        for i in range(n):
+            if approx[i, j] <= col_min[j] + tol:
+                d = 0.0
+                for k in range(a.shape[1]):
+                    e = a[i, k] - b[j, k]
+                    d += e * e
+                if d < d_ba[j]:
+                    d_ba[j] = d
+                    nn_ba[j] = i
+    return nn_ab, d_ab, nn_ba
