@@ -139,28 +139,37 @@ def _screened(
             approx[i, j] = v
             row_min[i] = min(row_min[i], v)
             col_min[j] = min(col_min[j], v)
-    nn_ab = np.zeros(n, np.int64)
-    d_ab = np.full(n, np.inf)
-    for i in range(n):
-        for j in range(m):
-            if approx[i, j] <= row_min[i] + tol:
-                d = 0.0
-                for k in range(a.shape[1]):
-                    e = a[i, k] - b[j, k]
-                    d += e * e
-                if d < d_ab[i]:
-                    d_ab[i] = d
-                    nn_ab[i] = j
-    nn_ba = np.zeros(m, np.int64)
-    d_ba = np.full(m, np.inf)
-    for j in range(m):
-        for i in range(n):
-            if approx[i, j] <= col_min[j] + tol:
-                d = 0.0
-                for k in range(a.shape[1]):
-                    e = a[i, k] - b[j, k]
-                    d += e * e
-                if d < d_ba[j]:
-                    d_ba[j] = d
-                    nn_ba[j] = i
+    nn_ab, d_ab = _exact_nearest(approx, row_min + tol, a, b, True)
+    nn_ba, _ = _exact_nearest(approx, col_min + tol, a, b, False)
     return nn_ab, d_ab, nn_ba
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _exact_nearest(
+    approx: np.ndarray, limit: np.ndarray, a: np.ndarray, b: np.ndarray, by_row: bool
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """For each row of ``approx`` (``by_row``; else each column): among the entries at most its ``limit``, the one
+    of least exact distance (the first of equal ones) and that distance."""
+    n_out, n_in = (approx.shape[0], approx.shape[1]) if by_row else (approx.shape[1], approx.shape[0])
+    nn = np.zeros(n_out, np.int64)
+    dd = np.full(n_out, np.inf)
+    for o in range(n_out):
+        for x in range(n_in):
+            i, j = (o, x) if by_row else (x, o)
+            if approx[i, j] <= limit[o]:
+                d = _sq_distance(a, i, b, j)
+                if d < dd[o]:
+                    dd[o] = d
+                    nn[o] = x
+    return nn, dd
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _sq_distance(a: np.ndarray, i: int, b: np.ndarray, j: int) -> float:  # pragma: no cover - compiled
+    """Row ``i`` of ``a`` to row ``j`` of ``b``, squared, in `_nearest_both_ways_l2`'s arithmetic (float32
+    differences squared, summed in float64)."""
+    d = 0.0
+    for k in range(a.shape[1]):
+        e = a[i, k] - b[j, k]
+        d += e * e
+    return d
