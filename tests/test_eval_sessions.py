@@ -43,3 +43,22 @@ def test_a_revisit_cell_is_relocalised_and_joined_and_a_disjoint_one_is_not(tmp_
     assert not other["multisession"]["joined"] and other["multisession"]["merged_ate_rmse"] is None
     assert not other["multisession_truth_map"]["joined"]
     assert len(list(tmp_path.glob("*-truth"))) == 1
+
+
+def test_slam_odometry_reaches_both_sessions_configs_and_the_cache_key() -> None:
+    from placerec.sim.sessions import make_session_pair
+    from placerec.slam_app.config import load_slam_config
+
+    tool = _tool()
+    pair = make_session_pair("town", "vlp16", 0, "revisit", n_scans=5)
+    for role in ("map", "query"):
+        cfg = load_slam_config(tool.SLAM_CONFIG, tool.slam_overrides(pair, role, "kiss-icp"))
+        assert cfg.odometry.source == "kiss-icp"
+        assert (
+            load_slam_config(tool.SLAM_CONFIG, tool.slam_overrides(pair, role)).odometry.source == "dataset"
+        )
+    kiss = tool.settings("vlp16", None, 5, 0, slam_odometry="kiss-icp")
+    drift = tool.settings("vlp16", None, 5, 0)
+    assert (
+        kiss["slam_odometry"] == "kiss-icp" and "slam_odometry" not in drift
+    )  # cached cells of before still match
