@@ -68,10 +68,7 @@ def _nearest_both_ways_l2(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.
     d_ba = np.full(m, np.inf)
     for i in range(n):
         for j in range(m):
-            d = 0.0
-            for k in range(a.shape[1]):
-                e = a[i, k] - b[j, k]
-                d += e * e
+            d = _sq_distance(a, i, b, j)
             if d < d_ab[i]:
                 d_ab[i] = d
                 nn_ab[i] = j
@@ -123,9 +120,8 @@ def _nearest_both_ways_screened(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarra
 def _screened(
     a: np.ndarray, b: np.ndarray, a_sq: np.ndarray, b_sq: np.ndarray, tol: np.float32
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """`_nearest_both_ways_screened`'s kernel. The exact distance is written out as in `_nearest_both_ways_l2`
-    (a difference's square is the same either way round), and candidates are visited in ascending order, so the
-    first of equal distances wins as there."""
+    """`_nearest_both_ways_screened`'s kernel. The exact distance is `_sq_distance`, as in `_nearest_both_ways_l2`,
+    and candidates are visited in ascending order, so the first of equal distances wins as there."""
     n, m = a.shape[0], b.shape[0]
     approx = np.empty((n, m), np.float32)
     row_min = np.full(n, np.inf, np.float32)
@@ -166,8 +162,8 @@ def _exact_nearest(
 
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _sq_distance(a: np.ndarray, i: int, b: np.ndarray, j: int) -> float:  # pragma: no cover - compiled
-    """Row ``i`` of ``a`` to row ``j`` of ``b``, squared, in `_nearest_both_ways_l2`'s arithmetic (float32
-    differences squared, summed in float64)."""
+    """Row ``i`` of ``a`` to row ``j`` of ``b``, squared: float32 differences squared, summed in float64 (the one
+    definition both float kernels use, so their distances agree bit for bit)."""
     d = 0.0
     for k in range(a.shape[1]):
         e = a[i, k] - b[j, k]
