@@ -266,14 +266,19 @@ def load_benchmark_config(path: str | Path, overrides: list[str] | None = None) 
 
 
 def _cell_key(cfg: ExperimentConfig) -> str:
-    """The stamp of a cell's result: its config and the placerec version (not the thresholds: the figures at a
-    threshold are recomputed from the cell's files, `cell_metrics`; nor the localisation settings)."""
+    """The stamp of a cell's result: its config, each pipeline's resolved parameters (a registry preset changed
+    since makes the cell run again) and the placerec version (not the thresholds: the figures at a threshold are
+    recomputed from the cell's files, `cell_metrics`; nor the localisation settings)."""
     from placerec._version import __version__
+    from placerec.recognizer import Recognizer, pipeline_class, pipeline_params
 
     data = cfg.model_dump(mode="json")
     data["evaluation"].pop("localize", None)  # localisation settings: no part of a loop-mode cell
-    for spec in data["pipelines"]:
+    for spec, given in zip(data["pipelines"], cfg.pipelines, strict=True):
         spec.pop("threshold", None)
+        cls = pipeline_class(given.name)
+        if isinstance(cls, type) and issubclass(cls, Recognizer):
+            spec["resolved"] = pipeline_params(given.name, given.params, sensor=cfg.sensor).model_dump(mode="json")
     return stable_hash({"config": data, "placerec": __version__, "v": BENCH_VERSION})
 
 
