@@ -238,8 +238,10 @@ class PipelineEntry:
         return deep_merge(self.preset, self.sensor_params.get(sensor) if sensor is not None else None)
 
 
-#: The verification's acceptance floor of the visual DBoW pipelines on VLP-16 scans: their VLP-16 threshold
-_VLP16_FLOOR: dict[str, Any] = {"verify": {"score": {"min_score": 0.2}}}
+def _vlp16_floor(threshold: float) -> dict[str, Any]:
+    """A visual pipeline's parameters on VLP-16 scans: the verification accepts from its VLP-16 threshold."""
+    return {"verify": {"score": {"min_score": threshold}}}
+
 
 #: Registered pipelines by short name. The loop pipelines' operating thresholds were picked by the tuning rule of
 #: docs/protocol.md on the tuning matrix (town x 4 sensors, seed 0): `placerec bench configs/benchmark_tuning.yaml
@@ -248,10 +250,13 @@ _VLP16_FLOOR: dict[str, Any] = {"verify": {"score": {"min_score": 0.2}}}
 #: come from the same rule on that sensor's tuning cells alone (`placerec bench ... --suggest` prints them per
 #: sensor; docs/sensors.md): on the VLP-16, the HDL-32E and the MID-360-like scanner no false Scan Context closure
 #: scored 0.25; the E1R-like sensor's false closures (repeated blocks 40-100 m away, seen by a 120 deg, 30 m cone)
-#: score up to 0.35-0.40. On the VLP-16 the rule, run with the verification's floor (min_score) lowered to 0.05,
-#: picks 0.20 for ORB-DBoW and SuperPoint-DBoW (their best false score 0.19 on its tuning cell; the 16-ring
-#: scans' sparse ground keeps right poses' overlap near 0.5): they accept at 0.20 there, floor included
-#: (`_VLP16_FLOOR`; docs/sensors.md, "The VLP-16's own floor").
+#: score up to 0.35-0.40. On the VLP-16 the rule, run with the verification's floor (``min_score``) lowered to
+#: 0.05, picks 0.20 for ORB-HBST, ORB-DBoW and SuperPoint-DBoW (false scores below 0.20 on its tuning cell; the
+#: 16-ring scans' sparse ground keeps right poses' overlap near 0.5) and 0.10 for BRISK-HBST and SURF-DBoW, and
+#: their tuning recall rose (0.52 -> 0.55, 0.56 -> 0.66, 0.84 -> 0.87, 0.03 -> 0.15, 0.03 -> 0.14): they accept
+#: there from those thresholds, floor included (`_vlp16_floor`; docs/sensors.md, "The VLP-16's own floor").
+#: Scan Context's rule pick with the floor lowered (0.20) raised no tuning recall, nor did any pick on the
+#: HDL-32E: those floors stay.
 PIPELINES: dict[str, PipelineEntry] = {
     "scan-context": PipelineEntry(
         "placerec.baselines.scan_context:ScanContext",
@@ -272,12 +277,16 @@ PIPELINES: dict[str, PipelineEntry] = {
         "VPR paper: intensity image, ORB features, HBST retrieval; RANSAC + ICP verification",
         {"features": "orb", "hbst": {"threshold": 50}, "verify": {"top_k": 5, "icp_top_k": 2}},
         threshold=0.25,
+        sensor_thresholds={"vlp16": 0.2},
+        sensor_params={"vlp16": _vlp16_floor(0.2)},
     ),
     "brisk-hbst": PipelineEntry(
         "placerec.pipelines.visual:VisualHBST",
         "VPR paper: intensity image, FAST + BRISK features, HBST retrieval; RANSAC + ICP verification",
         {"features": "brisk", "hbst": {"threshold": 100}, "verify": {"top_k": 5, "icp_top_k": 2}},
         threshold=0.25,
+        sensor_thresholds={"vlp16": 0.1},
+        sensor_params={"vlp16": _vlp16_floor(0.1)},
     ),
     "orb-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
@@ -285,13 +294,15 @@ PIPELINES: dict[str, PipelineEntry] = {
         {"features": "orb", "verify": {"top_k": 20, "icp_top_k": 2}},
         threshold=0.25,
         sensor_thresholds={"vlp16": 0.2, "e1r": 0.35},
-        sensor_params={"vlp16": _VLP16_FLOOR},
+        sensor_params={"vlp16": _vlp16_floor(0.2)},
     ),
     "surf-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
         "VPR paper: intensity image, FAST + SURF features, DBoW2 bag of words; RANSAC + ICP verification",
         {"features": "fast-surf", "verify": {"top_k": 20, "icp_top_k": 2}},
         threshold=0.25,
+        sensor_thresholds={"vlp16": 0.1},
+        sensor_params={"vlp16": _vlp16_floor(0.1)},
     ),
     "superpoint-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
@@ -299,7 +310,7 @@ PIPELINES: dict[str, PipelineEntry] = {
         {"features": "superpoint", "verify": {"top_k": 20, "icp_top_k": 2}},
         threshold=0.25,
         sensor_thresholds={"vlp16": 0.2, "e1r": 0.4},
-        sensor_params={"vlp16": _VLP16_FLOOR},
+        sensor_params={"vlp16": _vlp16_floor(0.2)},
     ),
     "ishot-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",

@@ -109,7 +109,10 @@ def write_map(
             )
         recs[key] = (
             make_pipeline(
-                spec.name, spec.params, path=f"pipelines[{k}].params", sensor=None if sensor is None else sensor.name
+                spec.name,
+                spec.params,
+                path=f"pipelines[{k}].params",
+                sensor=None if sensor is None else sensor.name,
             ),
             spec.threshold_for(None if sensor is None else sensor.name),
         )

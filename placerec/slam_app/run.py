@@ -474,7 +474,10 @@ def map_writer_for(
             extra = PipelineSpec(name=name)
             sensor_name = sensor.name if sensor is not None else None
             threshold = extra.threshold_for(sensor_name)
-            pipelines[name] = (make_pipeline(name, path="output.map_pipelines", sensor=sensor_name), threshold)
+            pipelines[name] = (
+                make_pipeline(name, path="output.map_pipelines", sensor=sensor_name),
+                threshold,
+            )
     writer = MapWriter(
         cfg.output.save_map,
         pipelines,
