@@ -116,7 +116,7 @@ class LoopClosureDetector:
             threshold = None if entry is None else entry.threshold_for(sensor)
             if threshold is None:
                 raise ConfigError(f"pipeline {name!r} has no operating threshold: give threshold=")
-        return cls(make_pipeline(name, params, sensor=sensor), threshold=threshold, **options)
+        return cls(make_pipeline(name, params), threshold=threshold, **options)
 
     def __init__(
         self,

@@ -224,23 +224,10 @@ class PipelineEntry:
     #: sensor model name (`placerec.sim.sensors.SENSORS`) -> operating threshold on that sensor's scans, where the
     #: same rule on the sensor's own tuning cells picks another than ``threshold``
     sensor_thresholds: Mapping[str, float] = field(default_factory=dict)
-    #: sensor model name -> parameter overrides merged over ``preset`` on that sensor's scans, chosen on the
-    #: sensor's tuning cells (e.g. the verification's acceptance floor, ``verify.score.min_score``, lowered to a
-    #: sensor threshold below it: a candidate the verification rejects is no answer at any threshold)
-    sensor_params: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     def threshold_for(self, sensor: str | None) -> float | None:
         """The operating threshold on ``sensor``'s scans: its own (``sensor_thresholds``), else ``threshold``."""
         return self.sensor_thresholds.get(sensor, self.threshold) if sensor is not None else self.threshold
-
-    def preset_for(self, sensor: str | None) -> dict[str, Any]:
-        """The parameter preset on ``sensor``'s scans: ``preset`` with that sensor's ``sensor_params`` over it."""
-        return deep_merge(self.preset, self.sensor_params.get(sensor) if sensor is not None else None)
-
-
-def _vlp16_floor(threshold: float) -> dict[str, Any]:
-    """A visual pipeline's parameters on VLP-16 scans: the verification accepts from its VLP-16 threshold."""
-    return {"verify": {"score": {"min_score": threshold}}}
 
 
 #: Registered pipelines by short name. The loop pipelines' operating thresholds were picked by the tuning rule of
@@ -250,13 +237,7 @@ def _vlp16_floor(threshold: float) -> dict[str, Any]:
 #: come from the same rule on that sensor's tuning cells alone (`placerec bench ... --suggest` prints them per
 #: sensor; docs/sensors.md): on the VLP-16, the HDL-32E and the MID-360-like scanner no false Scan Context closure
 #: scored 0.25; the E1R-like sensor's false closures (repeated blocks 40-100 m away, seen by a 120 deg, 30 m cone)
-#: score up to 0.35-0.40. On the VLP-16 the rule, run with the verification's floor (``min_score``) lowered to
-#: 0.05, picks 0.20 for ORB-HBST, ORB-DBoW and SuperPoint-DBoW (false scores below 0.20 on its tuning cell; the
-#: 16-ring scans' sparse ground keeps right poses' overlap near 0.5) and 0.10 for BRISK-HBST and SURF-DBoW, and
-#: their tuning recall rose (0.52 -> 0.55, 0.56 -> 0.66, 0.84 -> 0.87, 0.03 -> 0.15, 0.03 -> 0.14): they accept
-#: there from those thresholds, floor included (`_vlp16_floor`; docs/sensors.md, "The VLP-16's own floor").
-#: Scan Context's rule pick with the floor lowered (0.20) raised no tuning recall, nor did any pick on the
-#: HDL-32E: those floors stay.
+#: score up to 0.35-0.40.
 PIPELINES: dict[str, PipelineEntry] = {
     "scan-context": PipelineEntry(
         "placerec.baselines.scan_context:ScanContext",
@@ -277,40 +258,32 @@ PIPELINES: dict[str, PipelineEntry] = {
         "VPR paper: intensity image, ORB features, HBST retrieval; RANSAC + ICP verification",
         {"features": "orb", "hbst": {"threshold": 50}, "verify": {"top_k": 5, "icp_top_k": 2}},
         threshold=0.25,
-        sensor_thresholds={"vlp16": 0.2},
-        sensor_params={"vlp16": _vlp16_floor(0.2)},
     ),
     "brisk-hbst": PipelineEntry(
         "placerec.pipelines.visual:VisualHBST",
         "VPR paper: intensity image, FAST + BRISK features, HBST retrieval; RANSAC + ICP verification",
         {"features": "brisk", "hbst": {"threshold": 100}, "verify": {"top_k": 5, "icp_top_k": 2}},
         threshold=0.25,
-        sensor_thresholds={"vlp16": 0.1},
-        sensor_params={"vlp16": _vlp16_floor(0.1)},
     ),
     "orb-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
         "VPR paper: intensity image, ORB features, DBoW2 bag of words; RANSAC + ICP verification",
         {"features": "orb", "verify": {"top_k": 20, "icp_top_k": 2}},
         threshold=0.25,
-        sensor_thresholds={"vlp16": 0.2, "e1r": 0.35},
-        sensor_params={"vlp16": _vlp16_floor(0.2)},
+        sensor_thresholds={"e1r": 0.35},
     ),
     "surf-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
         "VPR paper: intensity image, FAST + SURF features, DBoW2 bag of words; RANSAC + ICP verification",
         {"features": "fast-surf", "verify": {"top_k": 20, "icp_top_k": 2}},
         threshold=0.25,
-        sensor_thresholds={"vlp16": 0.1},
-        sensor_params={"vlp16": _vlp16_floor(0.1)},
     ),
     "superpoint-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
         "VPR paper: intensity image, our SuperPoint (trained on simulated LiDAR), DBoW2; RANSAC + ICP verification",
         {"features": "superpoint", "verify": {"top_k": 20, "icp_top_k": 2}},
         threshold=0.25,
-        sensor_thresholds={"vlp16": 0.2, "e1r": 0.4},
-        sensor_params={"vlp16": _vlp16_floor(0.2)},
+        sensor_thresholds={"e1r": 0.4},
     ),
     "ishot-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",
@@ -410,11 +383,8 @@ def pipeline_class(name: str) -> type[Any]:
     return obj
 
 
-def pipeline_params(
-    name: str, params: Mapping[str, Any] | None = None, path: str = "", sensor: str | None = None
-) -> Params:
-    """The resolved parameters of a `Recognizer` pipeline: its defaults, the registry preset (for ``sensor``, a
-    sensor model name, with that sensor's `PipelineEntry.sensor_params`), then ``params``.
+def pipeline_params(name: str, params: Mapping[str, Any] | None = None, path: str = "") -> Params:
+    """The resolved parameters of a `Recognizer` pipeline: its defaults, the registry preset, then ``params``.
 
     ``path`` is where ``params`` sit in a config (e.g. ``pipelines[1].params``), for the error messages.
     """
@@ -424,22 +394,19 @@ def pipeline_params(
             f"pipeline {name!r}: {cls.__name__} does not declare its parameters (not a Recognizer)"
         )
     entry = PIPELINES.get(name)
-    preset = entry.preset_for(sensor) if entry else None
-    return resolve(cls.Params, preset, params, where=name, path=path or "params")
+    return resolve(cls.Params, entry.preset if entry else None, params, where=name, path=path or "params")
 
 
-def make_pipeline(
-    name: str, params: Mapping[str, Any] | None = None, path: str = "", sensor: str | None = None
-) -> PlaceRecognizer:
+def make_pipeline(name: str, params: Mapping[str, Any] | None = None, path: str = "") -> PlaceRecognizer:
     """Build a pipeline by registry name (or ``module:Class``) with parameter overrides from a config.
 
-    A `Recognizer` gets its defaults, the registry preset (for ``sensor``, a sensor model name, the preset on
-    that sensor's scans: `PipelineEntry.preset_for`) and ``params`` merged deeply and validated (`ConfigError`
-    naming ``path.key`` and the allowed keys); any other protocol class is called with ``**params``.
+    A `Recognizer` gets its defaults, the registry preset and ``params`` merged deeply and validated
+    (`ConfigError` naming ``path.key`` and the allowed keys); any other protocol class is called with
+    ``**params``.
     """
     cls = pipeline_class(name)
     if issubclass(cls, Recognizer):
-        return cls(pipeline_params(name, params, path, sensor))
+        return cls(pipeline_params(name, params, path))
     if params is not None and not isinstance(params, Mapping):
         raise ConfigError(f"pipeline {name!r}: {path or 'params'} must be a mapping")
     return cls(**deep_merge({}, params))

@@ -233,67 +233,21 @@ def test_a_pipelines_threshold_on_a_sensor_is_its_own_where_one_was_chosen():
     )
 
 
-def test_a_sensors_own_parameters_put_its_pipelines_floor_at_its_threshold():
-    """`PipelineEntry.sensor_params`: on VLP-16 scans ORB-DBoW and SuperPoint-DBoW accept at 0.20, the
-    verification's floor (``min_score``) included, everywhere else at the preset's 0.25; a config's own value
-    wins; and no registered sensor threshold lies below the floor its sensor's preset gives (such a threshold
-    would accept nothing the floor rejects, silently)."""
-    from placerec.loop_closure import LoopClosureDetector
-    from placerec.recognizer import PIPELINES, Recognizer, pipeline_class, pipeline_params
-
-    for name in ("orb-dbow", "superpoint-dbow"):
-        assert PIPELINES[name].threshold_for("vlp16") == 0.2
-        assert pipeline_params(name, sensor="vlp16").verify.score.min_score == 0.2  # type: ignore[attr-defined]
-        for sensor in (None, "hdl64", "hdl32", "e1r"):
-            assert pipeline_params(name, sensor=sensor).verify.score.min_score == 0.25  # type: ignore[attr-defined]
-        own = {"verify": {"score": {"min_score": 0.3}}}
-        assert pipeline_params(name, own, sensor="vlp16").verify.score.min_score == 0.3  # type: ignore[attr-defined]
-    assert PIPELINES["orb-dbow"].preset_for("vlp16")["verify"] == {
-        "top_k": 20,
-        "icp_top_k": 2,
-        "score": {"min_score": 0.2},
-    }
-    assert PIPELINES["orb-dbow"].preset == {"features": "orb", "verify": {"top_k": 20, "icp_top_k": 2}}
-
-    detector = LoopClosureDetector.for_pipeline("orb-dbow", sensor="vlp16")
-    assert detector.threshold == 0.2 and detector.recognizer.params.verify.score.min_score == 0.2  # type: ignore[attr-defined]
-
-    sensors = set(protocol.TEST_SENSORS + protocol.SENSOR_MATRIX)
-    for name, entry in PIPELINES.items():
-        assert set(entry.sensor_params) <= sensors, name
-        cls = pipeline_class(name)
-        if not (isinstance(cls, type) and issubclass(cls, Recognizer)):
-            continue
-        for sensor in {None, *entry.sensor_thresholds, *entry.sensor_params}:
-            score = getattr(getattr(pipeline_params(name, sensor=sensor), "verify", None), "score", None)
-            threshold = entry.threshold_for(sensor)
-            if score is not None and threshold is not None:
-                assert threshold >= score.min_score, (name, sensor, threshold, score.min_score)
-
-
-def test_a_cells_pipelines_are_built_with_its_sensors_preset_and_the_preset_is_in_its_stamp(monkeypatch):
-    """A benchmark cell builds its pipelines with its sensor's preset (`ExperimentConfig.sensor`), and its stamp
-    holds each pipeline's resolved parameters: a registry preset changed for one sensor makes that sensor's cells
-    run again, not the others'."""
+def test_a_cells_stamp_holds_its_pipelines_resolved_parameters(monkeypatch):
+    """A benchmark cell's stamp holds each pipeline's resolved parameters: a registry preset changed since makes
+    the cells of that pipeline run again (their config did not change), and a change to another pipeline's
+    preset does not."""
     import dataclasses
 
     from placerec.experiment.benchmark import _cell_key
-    from placerec.experiment.runner import build_pipelines
     from placerec.recognizer import PIPELINES
 
-    cfg = resolve(
-        BenchmarkConfig,
-        {"name": "b", "split": "tuning", "sensors": ["vlp16", "os1-64"], "pipelines": [{"name": "orb-dbow"}]},
-    )
-    vlp16, os1 = (cfg.cell_config(c) for c in cfg.cells())
-    assert (vlp16.sensor, os1.sensor) == ("vlp16", "os1-64")
-    ((record, _),) = build_pipelines(vlp16)
-    ((other, _),) = build_pipelines(os1)
-    assert record.params["verify"]["score"]["min_score"] == 0.2 and record.threshold == 0.2
-    assert other.params["verify"]["score"]["min_score"] == 0.25 and other.threshold == 0.25
-
-    before = _cell_key(vlp16), _cell_key(os1)
-    entry = PIPELINES["orb-dbow"]
-    changed = dataclasses.replace(entry, sensor_params={"vlp16": {"verify": {"score": {"min_score": 0.15}}}})
+    cfg = resolve(BenchmarkConfig, {"name": "b", "split": "tuning", "pipelines": [{"name": "orb-dbow"}]})
+    cell = cfg.cell_config(cfg.cells()[0])
+    before = _cell_key(cell)
+    other = dataclasses.replace(PIPELINES["orb-hbst"], preset={"features": "orb", "verify": {"top_k": 3}})
+    monkeypatch.setitem(PIPELINES, "orb-hbst", other)
+    assert _cell_key(cell) == before
+    changed = dataclasses.replace(PIPELINES["orb-dbow"], preset={"features": "orb", "verify": {"top_k": 10}})
     monkeypatch.setitem(PIPELINES, "orb-dbow", changed)
-    assert _cell_key(vlp16) != before[0] and _cell_key(os1) == before[1]
+    assert _cell_key(cell) != before

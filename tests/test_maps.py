@@ -390,18 +390,6 @@ def test_a_maps_elevation_band_is_recorded_and_applied_to_its_queries(tmp_path: 
     assert fix.accepted, fix.reason
 
 
-def test_a_map_holds_its_sensors_preset_and_opens_with_it(tmp_path: Path) -> None:
-    """A VLP-16 map's ORB-DBoW database is built with the VLP-16's preset (`PipelineEntry.sensor_params`: the
-    verification's floor at its threshold, 0.20), records it with that threshold, and opens and checks with it."""
-    out = build("map", {"source": {"sim": {"world": "town", "scans": 4}}, "out": str(tmp_path / "m"),
-                        "pipelines": [{"name": "orb-dbow"}]})  # fmt: skip
-    m = MapArtifact.open(out, check_hashes=True)
-    pipe = m.pipeline("orb-dbow")
-    assert pipe.threshold == 0.2 and pipe.params["verify"]["score"]["min_score"] == 0.2
-    assert m.check_pipeline("orb-dbow") == pipe
-    assert m.recognizer("orb-dbow").params.verify.score.min_score == 0.2  # type: ignore[attr-defined]
-
-
 def test_a_calibrated_map_carries_its_table(tmp_path: Path) -> None:
     from placerec.artifacts import build as build_artifact
 

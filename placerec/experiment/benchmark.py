@@ -278,9 +278,7 @@ def _cell_key(cfg: ExperimentConfig) -> str:
         spec.pop("threshold", None)
         cls = pipeline_class(given.name)
         if isinstance(cls, type) and issubclass(cls, Recognizer):
-            spec["resolved"] = pipeline_params(given.name, given.params, sensor=cfg.sensor).model_dump(
-                mode="json"
-            )
+            spec["resolved"] = pipeline_params(given.name, given.params).model_dump(mode="json")
     return stable_hash({"config": data, "placerec": __version__, "v": BENCH_VERSION})
 
 

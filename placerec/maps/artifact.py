@@ -409,7 +409,7 @@ class MapArtifact:
         from placerec.recognizer import make_pipeline
 
         pipe = self.pipeline(name)
-        wanted = make_pipeline(name, params, sensor=(self.manifest.sensor or {}).get("name"))
+        wanted = make_pipeline(name, params)
         if wanted.frontend_key != pipe.frontend_key:
             raise MapMismatchError(
                 f"map {self.path}: pipeline {name!r} was built with another front end "

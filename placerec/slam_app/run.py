@@ -472,12 +472,8 @@ def map_writer_for(
             pipelines[name] = (prior.recognizer(name, fresh=True), prior.pipeline(name).threshold)
         else:
             extra = PipelineSpec(name=name)
-            sensor_name = sensor.name if sensor is not None else None
-            threshold = extra.threshold_for(sensor_name)
-            pipelines[name] = (
-                make_pipeline(name, path="output.map_pipelines", sensor=sensor_name),
-                threshold,
-            )
+            threshold = extra.threshold_for(sensor.name if sensor is not None else None)
+            pipelines[name] = (make_pipeline(name, path="output.map_pipelines"), threshold)
     writer = MapWriter(
         cfg.output.save_map,
         pipelines,
