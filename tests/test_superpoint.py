@@ -112,6 +112,32 @@ def test_bicubic_sampling_by_hand() -> None:
         assert got == pytest.approx(expected, rel=1e-5)
 
 
+def test_bicubic_taps_are_the_indexed_ones_in_their_layout_and_the_descriptors_bit_for_bit() -> None:
+    """`sample_descriptors` gathers its 4 x 4 taps as whole cells (`_taps`): the same values and the same memory
+    layout as NumPy's indexing ``d[:, rows, cols]``, so the weighting einsum, and the descriptors, are bit for bit
+    those of the indexed gather, at the border too."""
+    from placerec.features.superpoint.post import _taps, cubic_weights
+
+    rng = np.random.default_rng(11)
+    for dim, hc, wc, k in ((256, 8, 128, 300), (64, 4, 9, 40), (3, 2, 2, 5)):
+        desc = rng.normal(size=(dim, hc, wc)).astype(np.float32)
+        uv = np.stack([rng.uniform(0, wc * CELL - 1, k), rng.uniform(0, hc * CELL - 1, k)], 1).round()
+        uv[:4] = [[0, 0], [wc * CELL - 1, hc * CELL - 1], [0, hc * CELL - 1], [wc * CELL - 1, 0]]  # corners
+        x = (uv[:, 0] + 0.5) / CELL - 0.5
+        y = (uv[:, 1] + 0.5) / CELL - 0.5
+        taps = np.arange(-1, 3)
+        cols = np.clip(np.floor(x)[:, None].astype(np.int64) + taps, 0, wc - 1)
+        rows = np.clip(np.floor(y)[:, None].astype(np.int64) + taps, 0, hc - 1)
+        indexed = desc[:, rows[:, :, None], cols[:, None, :]]
+        gathered = _taps(desc, rows, cols)
+        assert gathered.shape == indexed.shape and gathered.strides == indexed.strides
+        np.testing.assert_array_equal(gathered, indexed)
+        wx, wy = cubic_weights(x - np.floor(x)), cubic_weights(y - np.floor(y))
+        ref = np.einsum("dkij,ki,kj->kd", indexed, wy, wx).astype(np.float32)
+        ref /= np.maximum(np.linalg.norm(ref, axis=1, keepdims=True), 1e-12)
+        np.testing.assert_array_equal(sample_descriptors(desc, uv), ref)
+
+
 def test_bicubic_sampling_matches_torch_grid_sample() -> None:
     torch = pytest.importorskip("torch")
     rng = np.random.default_rng(3)

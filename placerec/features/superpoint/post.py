@@ -59,7 +59,17 @@ def sample_descriptors(desc: np.ndarray, uv: np.ndarray) -> np.ndarray:
     taps = np.arange(-1, 3)
     cols = np.clip(x0[:, None].astype(np.int64) + taps, 0, wc - 1)
     rows = np.clip(y0[:, None].astype(np.int64) + taps, 0, hc - 1)
-    patch = d[:, rows[:, :, None], cols[:, None, :]]  # (D, K, 4, 4)
-    out = np.einsum("dkij,ki,kj->kd", patch, wy, wx).astype(np.float32)
+    out = np.einsum("dkij,ki,kj->kd", _taps(d, rows, cols), wy, wx).astype(np.float32)
     norm = np.linalg.norm(out, axis=1, keepdims=True)
     return out / np.maximum(norm, 1e-12)
+
+
+def _taps(d: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``d[:, rows[:, :, None], cols[:, None, :]]`` (D, K, 4, 4), the same values in the same memory layout (the
+    D axis innermost, as NumPy lays out that indexing), gathered as whole cells: one transposed copy of the map,
+    then one row per tap, instead of a strided gather per channel (a 64 x 1024 image's 300 keypoints: ~1 ms
+    against ~4 ms). The einsum that weights the taps therefore adds them in the same order, bit for bit."""
+    dim, hc, wc = d.shape
+    cells = np.ascontiguousarray(d.reshape(dim, hc * wc).T)  # (Hc * Wc, D)
+    index = rows[:, :, None] * wc + cols[:, None, :]  # (K, 4, 4)
+    return cells.take(index.ravel(), axis=0).reshape(*index.shape, dim).transpose(3, 0, 1, 2)
