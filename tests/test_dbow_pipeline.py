@@ -144,3 +144,34 @@ def test_descriptor_cache_key_follows_settings_and_data(tmp_path):
     (folder / "000000.bin").write_bytes(np.ones(12, np.float32).tobytes())  # a scan replaced
     assert descriptor_cache_key(cfg) != key
     assert descriptor_cache_key(VocabTrainingConfig()) != key  # the simulator's sources are part of its key
+
+
+def test_a_queried_description_is_inserted_with_the_queries_bow_vector(trained, scans, monkeypatch):
+    """A loop detector queries a scan, then inserts it: the insert takes the query's BoW vector and direct-index
+    nodes instead of transforming the descriptors again; any other description is transformed, and the database
+    is the one of transforming each."""
+    rec = make_pipeline("orb-dbow", {"vocabulary": str(trained), "verify": {"enabled": False}})
+    fresh = make_pipeline("orb-dbow", {"vocabulary": str(trained), "verify": {"enabled": False}})
+    a, b = (rec.describe(s) for s in scans)
+    calls = []
+    transform = rec.vocabulary.transform
+    monkeypatch.setattr(rec.vocabulary, "transform", lambda *args: calls.append(1) or transform(*args))
+
+    rec.add_description(0, a)  # never queried: transformed
+    assert len(calls) == 1
+    rec.query_description(b, k=1)
+    rec.add_description(1, b)  # the description just queried: its vector reused
+    assert len(calls) == 2
+    rec.query_description(b, k=1)
+    rec.add_description(2, dict(b))  # another description object with the same arrays: transformed
+    assert len(calls) == 4
+
+    for i, d in enumerate((a, b, b)):
+        fresh.add_description(i, d)
+    for i in range(3):
+        mine, theirs = rec.db.bow(i), fresh.db.bow(i)
+        np.testing.assert_array_equal(mine.words, theirs.words)
+        np.testing.assert_array_equal(mine.values, theirs.values)
+    assert [q.match_id for q in rec.query_description(a, k=3)] == [
+        q.match_id for q in fresh.query_description(a, k=3)
+    ]

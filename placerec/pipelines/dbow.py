@@ -52,7 +52,7 @@ from placerec.recognizer import Recognizer, check_saved_params
 from placerec.retrieval.bits import hamming, to_words
 from placerec.retrieval.dbow.database import BowDatabase, candidate_pairs
 from placerec.retrieval.dbow.loop_detector import LoopDetectorParams, normalised_results
-from placerec.retrieval.dbow.vocabulary import Vocabulary, l1_score
+from placerec.retrieval.dbow.vocabulary import BowVector, Vocabulary, l1_score
 from placerec.types import Candidate, Description
 
 log = logging.getLogger(__name__)
@@ -163,13 +163,25 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
 
     def _reset(self) -> None:
         self.db = BowDatabase(self.vocabulary, self.levels_up)
+        #: (description, its descriptors, BoW vector, direct-index nodes) of the last query, for its insert
+        self._queried: tuple[Description, Any, BowVector, np.ndarray] | None = None
         self._reset_features()
+
+    def _transform(self, description: Description, desc: np.ndarray) -> tuple[BowVector, np.ndarray]:
+        """The BoW vector and direct-index nodes of ``description``'s descriptors ``desc``: those of the last
+        query when it was this very description (a loop detector queries a scan, then inserts it), else made."""
+        last = self._queried
+        if last is not None and last[0] is description and last[1] is description["descriptors"]:
+            return last[2], last[3]
+        return self.vocabulary.transform(desc, self.levels_up)
 
     def add_description(self, scan_id: int, description: Description, pose: np.ndarray | None = None) -> None:
         scan_id = int(scan_id)
         desc = np.ascontiguousarray(description["descriptors"])
         self._add_features(scan_id, description, desc)
-        self.db.add_descriptors(desc, scan_id)
+        bow, nodes = self._transform(description, desc)
+        self._queried = None
+        self.db.add(bow, nodes, scan_id)
 
     def __len__(self) -> int:
         return len(self.db)
@@ -181,7 +193,8 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
         desc = np.ascontiguousarray(description["descriptors"])
         if desc.shape[0] == 0 or len(self.db) == 0:
             return []
-        bow, nodes = self.vocabulary.transform(desc, self.levels_up)
+        bow, nodes = self._transform(description, desc)
+        self._queried = (description, description["descriptors"], bow, nodes)
         n_check = p.verify.top_k if p.verify.enabled else p.n_check if p.check == "shift" else k
         n_res = max(k, n_check, p.loop.max_db_results if p.loop.enabled else 0)
         res = self.db.query(bow, n_res, max_id)
