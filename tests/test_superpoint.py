@@ -174,6 +174,49 @@ def test_torch_and_cv2_backends_agree(small_weights: str) -> None:
     np.testing.assert_allclose(desc_c, desc_t, atol=1e-4)
 
 
+def test_onnxruntime_runs_the_onnx_model_as_cv2_does(real_data) -> None:
+    """The onnxruntime backend runs the shipped ONNX model: the network's outputs within 1e-4 of cv2.dnn's on a
+    real KITTI image, and the extractor's keypoints and descriptors with them; its session's idle threads sleep."""
+    pytest.importorskip("onnxruntime")
+    from placerec.features.superpoint.extractor import SuperPointNet
+    from placerec.image import make_image
+    from placerec.io import read_scan
+
+    frames = sorted((real_data / "kitti_raw_hdl64_sequence").glob("*.pcd"))
+    assert frames, f"the real KITTI frames are missing under {real_data}"
+    img = make_image(read_scan(frames[0])).image
+    ort_net, cv2_net = SuperPointNet(None, "onnxruntime"), SuperPointNet(None, "cv2")
+    assert ort_net.files.sha256 == cv2_net.files.sha256  # the same model files
+    options = ort_net._net.get_session_options()
+    assert options.get_session_config_entry("session.intra_op.allow_spinning") == "0"
+    for a, b in zip(ort_net.forward(img), cv2_net.forward(img), strict=True):
+        assert a.shape == b.shape
+        np.testing.assert_allclose(a, b, atol=1e-4)
+    fa = make_extractor("superpoint", backend="onnxruntime").extract(img)
+    fb = make_extractor("superpoint", backend="cv2").extract(img)
+    assert len(fa) >= 200
+    shared = {tuple(k) for k in fa.keypoints} & {tuple(k) for k in fb.keypoints}
+    assert len(shared) >= 0.98 * len(fb)
+    if len(fa) == len(fb) and np.array_equal(fa.keypoints, fb.keypoints):
+        np.testing.assert_allclose(fa.descriptors, fb.descriptors, atol=1e-4)
+
+
+def test_onnxruntime_backend_errors_name_the_fix(tmp_path, monkeypatch) -> None:
+    """Without ONNX Runtime: a `DependencyError` naming the extra; a model it cannot read: an `ArtifactError`
+    naming the ONNX file."""
+    pytest.importorskip("onnxruntime")
+    import sys
+
+    from placerec.errors import DependencyError
+    from placerec.features.superpoint.extractor import _onnxruntime_session
+
+    with pytest.raises(ArtifactError, match=r"w\.onnx.*backend 'cv2'"):
+        _onnxruntime_session(b"not an onnx model", tmp_path / "w.onnx", "w.npz")
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)
+    with pytest.raises(DependencyError, match=r"placerec\[onnxruntime\]"):
+        _onnxruntime_session(b"", tmp_path / "w.onnx", "w.npz")
+
+
 def test_shipped_weights_are_small_onnx_matches_and_backends_agree() -> None:
     if not SHIPPED_WEIGHTS.is_file():
         pytest.fail(f"the shipped SuperPoint weights {SHIPPED_WEIGHTS} are missing")

@@ -311,9 +311,14 @@ def sources(
 # --- the runs -------------------------------------------------------------------------------------------------
 
 
+#: ``--set`` overrides of the SLAM config (e.g. ``loops.pipeline.params.feature_params.backend=onnxruntime``),
+#: applied to every run of this process after the tool's own; set once by `main`
+SETS: list[str] = []
+
+
 def slam_config(pipeline: str, exclusion: int, *more: str) -> SlamConfig:
     over = [f"loops.pipeline.name={pipeline}", f"loops.exclusion.frames={exclusion}", "output.progress=false"]
-    return load_slam_config(CONFIG, [*over, *more])
+    return load_slam_config(CONFIG, [*over, *more, *SETS])
 
 
 def run_slam(src: Source, pipeline: str) -> dict[str, Any]:
@@ -722,14 +727,23 @@ def main() -> None:
         "--max-backlog", type=int, default=3, help="real-time mode: scans the worker may be behind"
     )
     ap.add_argument("--rate-hz", type=float, default=10.0, help="real-time mode: scans fed at this rate")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override the SLAM config of every run (repeatable), e.g. "
+        "loops.pipeline.params.feature_params.backend=onnxruntime; recorded in the JSON line",
+    )
     args = ap.parse_args()
+    SETS[:] = args.set
     if args.realtime is not None:
         rt = bench_realtime_mode(
             args.sequences, args.pipelines, args.scans, args.cache, args.realtime, args.max_backlog, args.rate_hz,
             args.real_exclusion,
         )  # fmt: skip
         print_realtime(rt)
-        print(json.dumps(rt))
+        print(json.dumps({**rt, "sets": SETS}))
         return
     venv = None
     if not args.no_kiss_slam:
@@ -741,7 +755,7 @@ def main() -> None:
         venv = args.kiss_slam_venv
     report = bench(args.sequences, args.pipelines, args.scans, args.cache, venv, args.real_exclusion)
     print_report(report)
-    print(json.dumps(summary(report)))
+    print(json.dumps({**summary(report), "sets": SETS}))
 
 
 if __name__ == "__main__":

@@ -48,9 +48,9 @@ fi
 
 # 3. packages (skipped when pyproject.toml is unchanged since the last successful install)
 extras="dev,ouster,ros,dask,slam,superpoint"
-# the tests read Rerun recordings back and open reports in a browser; the demo needs neither (the viewer is a
-# 170 MB wheel)
-if [ "$job" = test ]; then extras="$extras,viewer,browser"; fi
+# the tests read Rerun recordings back, open reports in a browser and run SuperPoint's onnxruntime backend; the
+# demo needs none of them (the viewer is a 170 MB wheel)
+if [ "$job" = test ]; then extras="$extras,viewer,browser,onnxruntime"; fi
 stamp=".venv/.placerec-installed"
 want="$(sha256sum pyproject.toml | cut -d' ' -f1) $extras"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then

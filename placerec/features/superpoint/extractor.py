@@ -1,5 +1,5 @@
 """The ``superpoint`` feature extractor: our SuperPoint network on the intensity image, run by ``cv2.dnn`` from
-the ONNX model (default; no torch needed) or by torch.
+the ONNX model (default; no torch needed), by ONNX Runtime from the same model, or by torch.
 
 Keypoints where the probability reaches ``min_probability`` (0.005 for our model; VPR paper Table I: 0.05 for
 Magic Leap's, see `SuperPointParams`), non-maximum suppression, at most ``nfeatures`` 300 (Table I). The image is padded around (azimuth wrap-around, as for every extractor:
@@ -22,12 +22,13 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from placerec.errors import ArtifactError
+from placerec.errors import ArtifactError, DependencyError
 from placerec.features.base import ExtractorParams, FeatureExtractor, _Keypoints
 from placerec.features.superpoint.arch import CELL, SuperPointArch
 from placerec.features.superpoint.post import keypoint_probability, sample_descriptors, select_keypoints
 from placerec.features.superpoint.probe import check_outputs, probe_image
 from placerec.features.superpoint.weights import CheckedModel, onnx_path, open_model, resolve_weights
+from placerec.threads import available_threads
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +55,11 @@ class SuperPointParams(ExtractorParams):
         4, ge=0, description="px; non-maximum suppression window (2r+1)^2 (SuperPoint's 4)"
     )
     weights: str | None = Field(None, description="weights .npz (None: the shipped placerec/vocab one)")
-    backend: Literal["cv2", "torch"] = Field(
-        "cv2", description="cv2: the ONNX model through cv2.dnn (no torch); torch: needs placerec[superpoint]"
+    backend: Literal["cv2", "onnxruntime", "torch"] = Field(
+        "cv2",
+        description="cv2: the ONNX model through cv2.dnn (no torch); onnxruntime: the same ONNX model through ONNX "
+        "Runtime, ~1.6x faster on two cores, outputs within ~1e-5 of cv2's (needs placerec[onnxruntime]); torch: "
+        "needs placerec[superpoint]",
     )
     trust_model: bool = Field(
         False,
@@ -78,14 +82,18 @@ class SuperPointNet:
     ) -> None:
         t0 = time.perf_counter()
         path = resolve_weights(None if weights is None else str(weights))
-        files = open_model(path, onnx=backend == "cv2", trust_model=trust_model)
+        files = open_model(path, onnx=backend in ONNX_BACKENDS, trust_model=trust_model)
         self.files: CheckedModel = files
         self.arch: SuperPointArch = files.arch
         self.weights = files.weights
         self.backend = backend
         self._lock = threading.Lock()  # a cv2.dnn.Net is not safe to share between threads
-        self._net: Any  # a cv2.dnn.Net or a torch module
-        if backend == "cv2":
+        self._net: Any  # a cv2.dnn.Net, an ONNX Runtime session or a torch module
+        if backend == "onnxruntime":
+            assert files.onnx is not None
+            self._net = _onnxruntime_session(files.onnx, onnx_path(path), path.name)
+            self._input = self._net.get_inputs()[0].name
+        elif backend == "cv2":
             model = onnx_path(path)
             assert files.onnx is not None
             try:  # from the bytes that were hashed, not the file again
@@ -117,7 +125,7 @@ class SuperPointNet:
         key = (self.backend, self.files.sha256["weights"], self.files.sha256.get("onnx", ""))
         if key in _PROBED:
             return
-        name = str(onnx_path(self.files.path) if self.backend == "cv2" else self.files.path)
+        name = str(onnx_path(self.files.path) if self.backend in ONNX_BACKENDS else self.files.path)
         semi, desc = self.forward(probe_image())
         check_outputs(semi, desc, self.arch, name)
         _PROBED.add(key)
@@ -128,12 +136,43 @@ class SuperPointNet:
             with self._lock:
                 self._net.setInput(x)
                 semi, desc = self._net.forward(["semi", "desc"])
+        elif self.backend == "onnxruntime":  # a session may run from several threads at once
+            semi, desc = self._net.run(["semi", "desc"], {self._input: x})
         else:
             with self._torch.inference_mode():
                 semi, desc = (t.numpy() for t in self._net(self._torch.from_numpy(x)))
         return semi[0], desc[0]
 
 
+def _onnxruntime_session(model: bytes, file: Path, weights_name: str) -> Any:
+    """An ONNX Runtime session of the ONNX ``model`` bytes (those hashed, not the file again) on this process's
+    threads (`placerec.threads.available_threads`), idle threads sleeping instead of spinning after each run (a
+    spinning pool takes the other core from the verification); `DependencyError` when ONNX Runtime is missing,
+    `ArtifactError` naming ``file`` when it cannot read the model."""
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        raise DependencyError(
+            "SuperPoint's onnxruntime backend needs ONNX Runtime (pip install 'placerec[onnxruntime]'); the cv2 "
+            "backend runs the same ONNX model without it"
+        ) from None
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = available_threads()
+    options.inter_op_num_threads = 1
+    options.log_severity_level = 3  # errors only
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    try:
+        return ort.InferenceSession(model, options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # ONNX Runtime's own exception types differ between its versions
+        raise ArtifactError(
+            f"{file}: not a readable SuperPoint ONNX model (write it again from {weights_name} with "
+            f"placerec.features.superpoint.weights.save_weights, or use backend 'cv2'): "
+            f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__}"
+        ) from None
+
+
+#: backends that run the ONNX model written beside the weights
+ONNX_BACKENDS = ("cv2", "onnxruntime")
 #: (backend, weights sha256, ONNX sha256) of the networks that passed the probe in this process
 _PROBED: set[tuple[str, str, str]] = set()
 _NETS: dict[tuple[Any, ...], SuperPointNet] = {}
