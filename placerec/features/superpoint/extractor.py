@@ -58,8 +58,8 @@ class SuperPointParams(ExtractorParams):
     backend: Literal["cv2", "onnxruntime", "torch"] = Field(
         "cv2",
         description="cv2: the ONNX model through cv2.dnn (no torch); onnxruntime: the same ONNX model through ONNX "
-        "Runtime, ~1.6x faster on two cores, outputs within ~1e-5 of cv2's (needs placerec[onnxruntime]); torch: "
-        "needs placerec[superpoint]",
+        "Runtime, the network alone ~1.6x faster on two idle cores, outputs within 1e-5 of cv2's (needs "
+        "placerec[onnxruntime]); torch: needs placerec[superpoint]",
     )
     trust_model: bool = Field(
         False,
