@@ -224,16 +224,21 @@ def _with_feature_params(spec: dict[str, Any], feature_params: dict[str, Any]) -
     """A pipeline spec (JSON) with ``feature_params`` under its own, when the pipeline has an intensity-image front
     end (its parameters have ``feature_params``); other pipelines unchanged."""
     from placerec.params import deep_merge
-    from placerec.recognizer import Recognizer, pipeline_class
 
-    cls = pipeline_class(spec["name"])
-    if not (
-        isinstance(cls, type) and issubclass(cls, Recognizer) and "feature_params" in cls.Params.model_fields
-    ):
+    cls = _recognizer_class(spec["name"])
+    if cls is None or "feature_params" not in cls.Params.model_fields:
         return spec
     params = dict(spec.get("params") or {})
     params["feature_params"] = deep_merge(feature_params, params.get("feature_params"))
     return {**spec, "params": params}
+
+
+def _recognizer_class(name: str) -> Any:
+    """The class of pipeline ``name`` when it is a `Recognizer` (it declares its parameters), else None."""
+    from placerec.recognizer import Recognizer, pipeline_class
+
+    cls = pipeline_class(name)
+    return cls if isinstance(cls, type) and issubclass(cls, Recognizer) else None
 
 
 @dataclass(frozen=True)
@@ -270,14 +275,13 @@ def _cell_key(cfg: ExperimentConfig) -> str:
     since makes the cell run again) and the placerec version (not the thresholds: the figures at a threshold are
     recomputed from the cell's files, `cell_metrics`; nor the localisation settings)."""
     from placerec._version import __version__
-    from placerec.recognizer import Recognizer, pipeline_class, pipeline_params
+    from placerec.recognizer import pipeline_params
 
     data = cfg.model_dump(mode="json")
     data["evaluation"].pop("localize", None)  # localisation settings: no part of a loop-mode cell
     for spec, given in zip(data["pipelines"], cfg.pipelines, strict=True):
         spec.pop("threshold", None)
-        cls = pipeline_class(given.name)
-        if isinstance(cls, type) and issubclass(cls, Recognizer):
+        if _recognizer_class(given.name) is not None:
             spec["resolved"] = pipeline_params(given.name, given.params).model_dump(mode="json")
     return stable_hash({"config": data, "placerec": __version__, "v": BENCH_VERSION})
 
