@@ -537,6 +537,7 @@ REJECTIONS: dict[str, str] = {
     "ransac": "too few RANSAC inliers",
     "rank": "not refined: ICP was spent on better candidates",
     "fitness": "ICP overlap (fitness) below min_fitness",
+    "fitness_ratio": "ICP overlap below min_fitness_ratio of what a right alignment overlaps at that displacement",
     "constraint": "the overlap leaves the translation free along a direction (constraint below min_constraint)",
     "score": "verified score below min_score",
     "residual": "ICP residual above eps_icp",

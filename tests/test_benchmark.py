@@ -86,6 +86,40 @@ def test_sensors_that_do_not_spin_are_driven_as_their_capture_says():
         resolve(BenchmarkConfig, {**BASE, "capture": {"hdl128": {}}})
 
 
+def test_a_sensors_verify_score_reaches_its_visual_pipelines_under_their_own_settings():
+    """``capture.<sensor>.verify_score`` is merged into the verification of that sensor's intensity-image
+    pipelines; a pipeline's own ``verify.score`` keys win, Scan Context and other sensors' cells are left alone."""
+    gate = {"min_fitness_ratio": 0.7, "min_score": 0.05}
+    bench = resolve(
+        BenchmarkConfig,
+        {
+            "split": "tuning",
+            "sensors": ["vlp16", "hdl64"],
+            "pipelines": [
+                {"name": "orb-dbow", "params": {"verify": {"top_k": 7, "score": {"min_score": 0.1}}}},
+                {"name": "superpoint-dbow"},
+                {"name": "scan-context"},
+            ],
+            "capture": {"vlp16": {"verify_score": gate}},
+        },
+    )
+    vlp16, hdl64 = (bench.cell_config(c) for c in bench.cells())
+    orb, sp, sc = (p.params for p in vlp16.pipelines)
+    assert orb["verify"] == {"top_k": 7, "score": {"min_fitness_ratio": 0.7, "min_score": 0.1}}
+    assert sp["verify"] == {"score": gate} and "verify" not in sc
+    assert all("verify" not in (p.params or {}) or p.name == "orb-dbow" for p in hdl64.pipelines)
+    assert hdl64.pipelines[0].params["verify"] == {"top_k": 7, "score": {"min_score": 0.1}}
+    from placerec.recognizer import make_pipeline
+
+    built = make_pipeline("superpoint-dbow", sp)
+    assert (
+        built.params.verify.score.min_fitness_ratio == 0.7 and built.params.verify.top_k == 20
+    )  # preset kept
+    for bad in ({"min_fitness_ratio": 2}, {"min_fitnes_ratio": 0.7}):
+        with pytest.raises(ConfigError, match="verify_score"):
+            resolve(BenchmarkConfig, {**BASE, "capture": {"vlp16": {"verify_score": bad}}})
+
+
 def test_a_sensors_thresholds_replace_the_presets_in_its_cells_only():
     """``capture.<sensor>.thresholds`` sets the operating threshold of that sensor's cells; a pipeline's own
     ``threshold:`` still wins; the E1R-like sensor's defaults are the ones its tuning cells picked."""

@@ -259,7 +259,7 @@ def sim_scans():
     from placerec.sim import SimulatedSequence
 
     seq = SimulatedSequence("town", "os1-64", seed=0, n_scans=40)
-    return seq, {i: seq[i].xyz for i in (10, 13, 36)}
+    return seq, {i: seq[i].xyz for i in (10, 12, 13, 36)}
 
 
 def test_icp_converges_within_5cm_and_the_pose_convention_holds(sim_scans):
@@ -456,7 +456,60 @@ def test_rejection_names_the_rule_that_rejected():
     assert rejection(0.9, 1.0, pinned, constraint=float("nan")) == "constraint"
     assert rejection(0.9, 1.0, pinned, constraint=0.05) is None
     assert rejection(0.9, 1.0, score, constraint=0.0) is None  # off by default
-    assert {"grouping", "ransac", "rank", "fitness", "constraint", "score", "residual"} == set(REJECTIONS)
+    ratio = ScoreParams(min_fitness_ratio=0.7, expected_fitness=0.8, expected_fitness_length_m=10.0)
+    assert rejection(0.9, 1.0, ratio, fitness=0.55, displacement=0.0) == "fitness_ratio"  # 0.55 < 0.7 * 0.8
+    assert rejection(0.9, 1.0, ratio, fitness=0.55, displacement=1.0) is None  # 0.7 * 0.8 * e^-0.1 = 0.507
+    assert (
+        rejection(0.9, 1.0, ratio, fitness=0.55) == "fitness_ratio"
+    )  # no displacement: not judged, rejected
+    assert rejection(0.9, 1.0, ratio, fitness=float("nan"), displacement=1.0) == "fitness_ratio"
+    assert rejection(0.9, 1.0, score, fitness=0.0, displacement=0.0) is None  # off by default
+    assert {
+        "grouping",
+        "ransac",
+        "rank",
+        "fitness",
+        "fitness_ratio",
+        "constraint",
+        "score",
+        "residual",
+    } == set(REJECTIONS)
+
+
+def test_expected_fitness_falls_exponentially_with_the_displacement():
+    from placerec.verify.score import expected_fitness
+
+    p = ScoreParams(expected_fitness=0.75, expected_fitness_length_m=17.5)
+    assert expected_fitness(0.0, p) == pytest.approx(0.75)
+    assert expected_fitness(17.5, p) == pytest.approx(0.75 / np.e)
+    assert expected_fitness(35.0, p) == pytest.approx(0.75 * np.exp(-2.0))
+    assert expected_fitness(-1.0, p) == pytest.approx(0.75)  # a length, never negative
+    with pytest.raises(ValueError):
+        ScoreParams(min_fitness_ratio=0.0)
+    with pytest.raises(ValueError):
+        ScoreParams(expected_fitness_length_m=float("inf"))
+
+
+def test_min_fitness_ratio_judges_the_verified_poses_displacement(sim_scans):
+    """The gate of `complete` uses the translation of the pose ICP verified: scans 3 m apart pass a curve that
+    falls over centimetres and fail one that stays at its d = 0 value, whatever the score."""
+    seq, scans = sim_scans
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    d = float(np.linalg.norm(T_gt[:3, 3]))
+    assert d > 2.0
+    good = verify_icp(scans[13], scans[10], init=T_gt)
+    assert good.accepted and 0.3 < good.fitness < 1.0
+    f0 = min(1.0, good.fitness / 0.9 + 0.01)  # 0.9 * f0 just above the fitness reached
+    short = VerifyParams(
+        score={"min_fitness_ratio": 0.9, "expected_fitness": f0, "expected_fitness_length_m": 0.05}
+    )
+    long = VerifyParams(
+        score={"min_fitness_ratio": 0.9, "expected_fitness": f0, "expected_fitness_length_m": 1e6}
+    )
+    a = verify_icp(scans[13], scans[10], init=T_gt, params=short)
+    b = verify_icp(scans[13], scans[10], init=T_gt, params=long)
+    assert a.accepted and a.rejection is None
+    assert not b.accepted and b.rejection == "fitness_ratio" and b.score == pytest.approx(good.score)
 
 
 def test_normal_spread_is_the_least_constrained_direction():
@@ -672,3 +725,34 @@ def test_verify_ms_of_candidates_not_returned_is_shared_by_those_returned(sim_sc
     assert len(one) == 1 and one[0].match_id == 10
     total = sum(c.verify_ms for c in every)
     assert one[0].verify_ms == pytest.approx(total)
+
+
+def test_a_candidate_a_gate_rejects_scores_zero_and_ranks_below_an_accepted_one(sim_scans):
+    """With score acceptance, a candidate rejected by an overlap gate keeps no score (its score would pass a
+    threshold it was not accepted at): the accepted candidate ranks first even with the lower verified score."""
+    from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, verify_candidates
+
+    seq, scans = sim_scans
+    rng = np.random.default_rng(14)
+    q = scans[13][rng.choice(len(scans[13]), 200, replace=False)].astype(np.float64)
+    store = CloudStore()
+    for sid in (10, 12):
+        store.add(sid, scans[sid])
+    far = _apply(relative_pose(seq.poses[10], seq.poses[13]), q)  # 3 m away, every pair right
+    near = _apply(relative_pose(seq.poses[12], seq.poses[13]), q[:10])  # 1 m away, 10 pairs
+    retrieved = [Retrieved(10, 0.9, q, far), Retrieved(12, 0.8, q[:10], near)]
+    plain = verify_candidates(scans[13], retrieved, store, VerifiedParams(top_k=2), query_id=13)
+    a, b = sorted(plain, key=lambda c: c.match_id)
+    assert a.accepted and b.accepted and a.score > b.score  # more inliers...
+    fa, fb = a.verification.fitness, b.verification.fitness
+    assert fa < fb  # ... less overlap
+    gated = VerifiedParams(top_k=2, score={"min_fitness": (fa + fb) / 2})
+    cands = verify_candidates(scans[13], retrieved, store, gated, query_id=13)
+    assert [c.match_id for c in cands] == [12, 10]
+    assert cands[0].accepted and cands[0].score == pytest.approx(b.score)
+    assert not cands[1].accepted and cands[1].verification.rejection == "fitness" and cands[1].score == 0.0
+    assert cands[1].verification.score == pytest.approx(a.score)  # the verification keeps what it measured
+    # rejected for its score alone, a candidate keeps it (below min_score): the PR curve stays continuous
+    strict = VerifiedParams(top_k=2, score={"min_score": (a.score + b.score) / 2})
+    low = {c.match_id: c for c in verify_candidates(scans[13], retrieved, store, strict, query_id=13)}
+    assert low[10].accepted and not low[12].accepted and low[12].score == pytest.approx(b.score)

@@ -83,6 +83,7 @@ class CaptureParams(Params):
     the true poses); ``keyframes``: the pipelines see keyframes of these windows; ``exclusion``: the loop
     exclusion window of this sensor's cells (keyframes are metres apart, so a window counted in frames would
     mean something else); ``feature_params``: extractor settings of this sensor's visual pipelines;
+    ``verify_score``: their verification's score and acceptance settings (`placerec.verify.ScoreParams`);
     ``thresholds``: operating thresholds of this sensor's cells per pipeline label, in place of the registry's for
     the sensor (`placerec.recognizer.PipelineEntry.threshold_for`: chosen on the sensor's tuning cells by the same
     rule, docs/protocol.md); a pipeline's own ``threshold:`` in the config still wins."""
@@ -98,9 +99,22 @@ class CaptureParams(Params):
         "has an intensity-image front end (e.g. {nfeatures: 1000} for 16- and 32-row images: "
         "docs/intensity_images.md, 'Sparse spinning sensors')",
     )
+    verify_score: dict[str, Any] = Field(
+        default_factory=dict,
+        description="overrides of the verification's score and acceptance settings (verify.score) in the same "
+        "pipelines (e.g. the VLP-16's overlap gate for its displacement: docs/sensors.md)",
+    )
     thresholds: dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)]] = Field(
         default_factory=dict, description="operating threshold per pipeline label in this sensor's cells"
     )
+
+    @field_validator("verify_score")
+    @classmethod
+    def _valid_score_settings(cls, v: dict[str, Any]) -> dict[str, Any]:
+        from placerec.verify.params import ScoreParams
+
+        resolve(ScoreParams, v)  # unknown keys, bad values: named
+        return v
 
 
 def _default_capture() -> dict[str, CaptureParams]:
@@ -197,8 +211,8 @@ class BenchmarkConfig(Params):
             if capture.exclusion is not None:
                 evaluation["exclusion"] = capture.exclusion.model_dump(mode="json")
         pipelines = [p.model_dump(mode="json") for p in self.pipelines]
-        if capture is not None and capture.feature_params:
-            pipelines = [_with_feature_params(p, capture.feature_params) for p in pipelines]
+        if capture is not None and (capture.feature_params or capture.verify_score):
+            pipelines = [_with_visual_params(p, capture) for p in pipelines]
         if capture is not None and capture.thresholds:
             for p, spec in zip(pipelines, self.pipelines, strict=True):
                 if p.get("threshold") is None and spec.display_name in capture.thresholds:
@@ -220,17 +234,22 @@ class BenchmarkConfig(Params):
         return resolve(ExperimentConfig, data, where=f"benchmark cell {cell.name}")
 
 
-def _with_feature_params(spec: dict[str, Any], feature_params: dict[str, Any]) -> dict[str, Any]:
-    """A pipeline spec (JSON) with ``feature_params`` under its own, when the pipeline has an intensity-image front
-    end (its parameters have ``feature_params``); other pipelines unchanged."""
+def _with_visual_params(spec: dict[str, Any], capture: CaptureParams) -> dict[str, Any]:
+    """A pipeline spec (JSON) with the capture's ``feature_params`` and ``verify_score`` under its own (which win),
+    when the pipeline has an intensity-image front end (its parameters have ``feature_params``); other pipelines
+    unchanged."""
     from placerec.params import deep_merge
 
     cls = _recognizer_class(spec["name"])
     if cls is None or "feature_params" not in cls.Params.model_fields:
         return spec
-    params = dict(spec.get("params") or {})
-    params["feature_params"] = deep_merge(feature_params, params.get("feature_params"))
-    return {**spec, "params": params}
+    given = spec.get("params") or {}
+    sensor: dict[str, Any] = {}
+    if capture.feature_params:
+        sensor["feature_params"] = capture.feature_params
+    if capture.verify_score:
+        sensor["verify"] = {"score": capture.verify_score}
+    return {**spec, "params": deep_merge(sensor, given)}
 
 
 def _recognizer_class(name: str) -> Any:

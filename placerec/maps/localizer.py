@@ -337,6 +337,8 @@ def _rejection(v: Verification) -> str:
     """Why the tracking verification refused a keyframe (its `Verification.rejection`), in the rule's words."""
     if v.rejection == "fitness":
         return f"rejected: low fitness {v.fitness:.2f}"
+    if v.rejection == "fitness_ratio":
+        return f"rejected: fitness {v.fitness:.2f} low for the displacement"
     if v.rejection == "constraint":
         return f"rejected: translation left free (constraint {v.constraint:.3f})"
     return f"rejected: low score {v.score:.2f}"

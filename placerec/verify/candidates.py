@@ -24,9 +24,11 @@
   `placerec.loop_closure.split_verify_time`), sorted by verified score (ties: retrieval score), at most ``k``.
 
 Rejected candidates are **kept**, ranked below the accepted ones of equal score, so PR curves stay continuous:
-with ``acceptance = "score"`` a rejected candidate keeps its verified score (below ``min_score`` by definition);
-with ``"eps_icp"`` or ``"both"`` a candidate the rule rejects scores 0 (its overlap score does not carry that
-rule). A threshold of ``min_score`` on ``Candidate.score`` thus never accepts a rejected candidate. Retrieved
+with ``acceptance = "score"`` a candidate rejected for its score keeps its verified score (below ``min_score`` by
+definition); one that the ``eps_icp`` rule (``"eps_icp"``, ``"both"``) or a gate (``min_fitness``,
+``min_fitness_ratio``, ``min_constraint``) rejects scores 0 (its overlap score does not carry that rule), and so
+do those rejected before ICP. A threshold of ``min_score`` or more on ``Candidate.score`` thus never accepts a
+rejected candidate, and an accepted candidate always ranks above a rejected one. Retrieved
 candidates beyond ``top_k`` are dropped: their retrieval scores are on another scale than verified scores.
 """
 
@@ -414,7 +416,9 @@ _NATIVE_BYTES_PER_POINT = 208
 
 
 def _score(v: Verification, params: VerifyParams) -> float:
-    if v.accepted or params.score.acceptance == "score":
+    """The candidate's score: the verified score when accepted, or when rejected for that score alone (below
+    ``min_score``); 0 when another rule or gate rejected it (module docstring)."""
+    if v.accepted or (params.score.acceptance == "score" and v.rejection == "score"):
         return float(v.score)
     return 0.0
 

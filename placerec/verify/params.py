@@ -126,6 +126,29 @@ class ScoreParams(Params):
         description="accept only when the ICP fitness (share of query voxels overlapping the match) is at least this,"
         " whatever the rule (None: no overlap gate; docs/localization.md measures 0.7 for neighbourhood targets)",
     )
+    min_fitness_ratio: float | None = Field(
+        None,
+        gt=0,
+        le=1,
+        description="accept only when the ICP fitness reaches this share of what a right alignment overlaps at the "
+        "candidate's displacement d (the translation of T_match_query): expected_fitness * exp(-d / "
+        "expected_fitness_length_m), whatever the rule (None: not tested; docs/verification.md, 'Overlap expected "
+        "at a displacement')",
+    )
+    expected_fitness: float = Field(
+        0.75,
+        gt=0,
+        le=1,
+        description="the fitness of a right alignment of two scans taken at the same place (d = 0); default: the "
+        "VLP-16 tuning cells' right candidates (docs/sensors.md)",
+    )
+    expected_fitness_length_m: float = Field(
+        17.5,
+        gt=0,
+        allow_inf_nan=False,
+        description="m; the displacement over which a right alignment's expected fitness falls by a factor e; "
+        "default: the VLP-16 tuning cells' right candidates (docs/sensors.md)",
+    )
     eps_icp_max_range: float | None = Field(
         None,
         gt=0,

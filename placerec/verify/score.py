@@ -13,6 +13,14 @@ the ISHOT paper's rule instead (ICP residual < eps_ICP = 7 m^2), ``"both"`` requ
 (off by default) adds an overlap gate to any rule: the ICP fitness must reach it. ``min_constraint`` (off by
 default) adds another: the overlap must pin the translation down in every direction (`placerec.verify.icp.
 alignment_stats`), which a cone of road and one facade, aligned anywhere along the street, does not.
+``min_fitness_ratio`` (off by default) judges the fitness against what a right alignment overlaps at the
+candidate's displacement ``d`` (two scans of one place overlap less the further apart they were taken):
+
+    fitness >= min_fitness_ratio * expected_fitness * exp(-d / expected_fitness_length_m)
+
+A look-alike place (a repeated block, a row of the same sheds) registers with a small displacement, where a right
+alignment would overlap most, but overlaps far less: the gate rejects it where a fixed ``min_fitness`` would also
+reject right alignments of scans taken metres apart.
 """
 
 from __future__ import annotations
@@ -21,7 +29,7 @@ import math
 
 from placerec.verify.params import ScoreParams
 
-__all__ = ["verified_score", "is_accepted", "rejection"]
+__all__ = ["verified_score", "expected_fitness", "is_accepted", "rejection"]
 
 
 def verified_score(
@@ -37,16 +45,24 @@ def verified_score(
     return inlier_term * fit_term * rmse_term
 
 
+def expected_fitness(displacement: float, params: ScoreParams | None = None) -> float:
+    """The fitness a right alignment of two scans ``displacement`` metres apart reaches (module docstring)."""
+    params = params or ScoreParams()
+    return params.expected_fitness * math.exp(-max(displacement, 0.0) / params.expected_fitness_length_m)
+
+
 def is_accepted(
     score: float,
     residual: float,
     params: ScoreParams | None = None,
     fitness: float | None = None,
     constraint: float | None = None,
+    displacement: float | None = None,
 ) -> bool:
-    """The acceptance rule chosen by ``params.acceptance``, and the ``min_fitness`` / ``min_constraint`` gates on
-    ``fitness`` / ``constraint`` when set (see the module docstring)."""
-    return rejection(score, residual, params, fitness, constraint) is None
+    """The acceptance rule chosen by ``params.acceptance``, and the ``min_fitness`` / ``min_constraint`` /
+    ``min_fitness_ratio`` gates on ``fitness`` / ``constraint`` / ``fitness`` at ``displacement`` (metres between
+    the scans: the translation of the verified pose) when set (see the module docstring)."""
+    return rejection(score, residual, params, fitness, constraint, displacement) is None
 
 
 def rejection(
@@ -55,14 +71,21 @@ def rejection(
     params: ScoreParams | None = None,
     fitness: float | None = None,
     constraint: float | None = None,
+    displacement: float | None = None,
 ) -> str | None:
-    """Why `is_accepted` rejects a verified candidate (``"fitness"``, ``"constraint"``, ``"score"`` or
-    ``"residual"``, the keys of `placerec.types.REJECTIONS`), or None when it accepts it."""
+    """Why `is_accepted` rejects a verified candidate (``"fitness"``, ``"fitness_ratio"``, ``"constraint"``,
+    ``"score"`` or ``"residual"``, the keys of `placerec.types.REJECTIONS`), or None when it accepts it."""
     params = params or ScoreParams()
-    if params.min_fitness is not None and not (
-        fitness is not None and math.isfinite(fitness) and fitness >= params.min_fitness
-    ):
+    finite_fitness = fitness is not None and math.isfinite(fitness)
+    if params.min_fitness is not None and not (finite_fitness and fitness >= params.min_fitness):
         return "fitness"
+    if params.min_fitness_ratio is not None and not (
+        finite_fitness
+        and displacement is not None
+        and math.isfinite(displacement)
+        and fitness >= params.min_fitness_ratio * expected_fitness(displacement, params)
+    ):
+        return "fitness_ratio"
     if params.min_constraint is not None and not (
         constraint is not None and math.isfinite(constraint) and constraint >= params.min_constraint
     ):

@@ -178,7 +178,7 @@ def complete(
     timings["icp"] = icp.ms + coarse_ms
     timings["total"] = sum(v for k, v in timings.items() if k != "total")
     score = verified_score(hypothesis.inliers, icp.fitness, icp.rmse, sp)
-    why = rejection(score, icp.residual, sp, icp.fitness, icp.constraint)
+    why = rejection(score, icp.residual, sp, icp.fitness, icp.constraint, float(np.linalg.norm(icp.T[:3, 3])))
     return Verification(
         T_match_query=icp.T,
         score=score,
