@@ -120,6 +120,19 @@ def test_a_sensors_verify_score_reaches_its_visual_pipelines_under_their_own_set
             resolve(BenchmarkConfig, {**BASE, "capture": {"vlp16": {"verify_score": bad}}})
 
 
+def test_the_protocols_capture_names_registered_pipelines_and_valid_score_settings():
+    """Every sensor's thresholds name a registered pipeline and never go below that sensor's acceptance floor;
+    its verification settings are valid `ScoreParams`."""
+    from placerec.recognizer import PIPELINES
+    from placerec.verify.params import ScoreParams
+
+    for sensor, capture in protocol.CAPTURE.items():
+        score = ScoreParams(**capture.get("verify_score", {}))
+        for label, threshold in capture.get("thresholds", {}).items():
+            assert label in PIPELINES, (sensor, label)
+            assert threshold >= score.min_score, (sensor, label)
+
+
 def test_a_sensors_thresholds_replace_the_presets_in_its_cells_only():
     """``capture.<sensor>.thresholds`` sets the operating threshold of that sensor's cells; a pipeline's own
     ``threshold:`` still wins; the E1R-like sensor's defaults are the ones its tuning cells picked."""
