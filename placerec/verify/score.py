@@ -76,14 +76,14 @@ def rejection(
     """Why `is_accepted` rejects a verified candidate (``"fitness"``, ``"fitness_ratio"``, ``"constraint"``,
     ``"score"`` or ``"residual"``, the keys of `placerec.types.REJECTIONS`), or None when it accepts it."""
     params = params or ScoreParams()
-    finite_fitness = fitness is not None and math.isfinite(fitness)
-    if params.min_fitness is not None and not (finite_fitness and fitness >= params.min_fitness):
+    fit = fitness if fitness is not None and math.isfinite(fitness) else None
+    if params.min_fitness is not None and not (fit is not None and fit >= params.min_fitness):
         return "fitness"
     if params.min_fitness_ratio is not None and not (
-        finite_fitness
+        fit is not None
         and displacement is not None
         and math.isfinite(displacement)
-        and fitness >= params.min_fitness_ratio * expected_fitness(displacement, params)
+        and fit >= params.min_fitness_ratio * expected_fitness(displacement, params)
     ):
         return "fitness_ratio"
     if params.min_constraint is not None and not (
