@@ -104,10 +104,20 @@ CAPTURE.update(
         for name, length in _FITNESS_LENGTH_M.items()
     }
 )
+#: The MID-360-like sensor's visual pipelines take the same gate with their own curve (six tuning cells as above,
+#: candidates verified with the floor at 0.05: 0.71 at 0 m, falling by e over 37.5 m: 1 s keyframes of a 360 deg
+#: sensor overlap well even metres apart) and the ratio in the middle of the range that gave the highest tuning
+#: recall at precision 1.00 (0.60-0.70); the floor 0.10 again gave the same tuning recall as 0.05.
+CAPTURE["mid360"]["verify_score"] = {
+    "min_fitness_ratio": 0.65,
+    "expected_fitness": 0.71,
+    "expected_fitness_length_m": 37.5,
+    "min_score": 0.10,
+}
 #: The tuning rule's thresholds with that gate, on each sensor's six tuning cells (`placerec bench
 #: configs/benchmark_tuning.yaml --set 'sensors=[vlp16]' --set 'worlds=[town, campus, industrial]' --set 'seeds=[0,
-#: 1]' --suggest`, and configs/benchmark_sensors_tuning.yaml with 'sensors=[hdl32]'); Scan Context has no gate and
-#: keeps the registry's.
+#: 1]' --suggest`, and configs/benchmark_sensors_tuning.yaml with 'sensors=[hdl32]' or 'sensors=[mid360]'); Scan
+#: Context has no gate and keeps the registry's.
 CAPTURE["vlp16"]["thresholds"] = {
     "orb-hbst": 0.2,
     "brisk-hbst": 0.1,
@@ -116,6 +126,7 @@ CAPTURE["vlp16"]["thresholds"] = {
     "superpoint-dbow": 0.15,
 }
 CAPTURE["hdl32"]["thresholds"] = {"orb-dbow": 0.1, "superpoint-dbow": 0.1}
+CAPTURE["mid360"]["thresholds"] = {"orb-dbow": 0.1, "superpoint-dbow": 0.1}
 
 #: Localisation query draws (`placerec.sim.make_localization_split`'s ``draw``): the training queries, on which
 #: the vote model, ``reject_weight`` and DELIGHT were chosen, and the held-out queries reported as results.
