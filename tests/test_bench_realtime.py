@@ -3,24 +3,18 @@ and slam_sequence keeping the recognizer it is given even when that one is empty
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import pytest
+from tool_modules import load_tool
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("bench_realtime", ROOT / "tools" / "bench_realtime.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_realtime"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("bench_realtime")
 
 
 @pytest.fixture(scope="module")

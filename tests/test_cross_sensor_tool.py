@@ -3,13 +3,12 @@ accepted answers only, the concatenated sequence and the common-scale fit."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from tool_modules import load_tool
 
 from placerec.experiment.runner import PipelineRecord
 from placerec.types import Candidate
@@ -18,14 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location(
-        "eval_cross_sensor", ROOT / "tools" / "eval_cross_sensor.py"
-    )
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["eval_cross_sensor"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("eval_cross_sensor")
 
 
 def _pose(x: float) -> np.ndarray:

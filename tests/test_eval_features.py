@@ -3,12 +3,11 @@ correspondences they rest on (placerec/image/correspondence.py), on scans with k
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from tool_modules import load_tool
 
 from placerec.eval.features import (
     PairTruth,
@@ -287,11 +286,7 @@ def test_empty_features_give_nan_not_errors(room) -> None:
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("eval_features_tool", ROOT / "tools" / "eval_features.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("eval_features", "eval_features_tool")
 
 
 def test_kitti_pair_scores_and_frame_mixup(real_data: Path) -> None:

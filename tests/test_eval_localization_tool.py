@@ -1,21 +1,16 @@
 """tools/eval_localization.py: the config it runs (world, pipelines subset) and the vote model's draw check."""
 
-import importlib.util
 from pathlib import Path
 
 import pytest
+from tool_modules import load_tool
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location(
-        "eval_localization_tool", ROOT / "tools" / "eval_localization.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("eval_localization", "eval_localization_tool")
 
 
 def test_another_world_reads_its_own_places_and_towns_vote_model(tool):

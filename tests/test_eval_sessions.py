@@ -2,23 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
+from tool_modules import load_tool
 
 pytest.importorskip("gtsam")
 
 
 def _tool():
-    path = Path(__file__).resolve().parents[1] / "tools" / "eval_sessions.py"
-    spec = importlib.util.spec_from_file_location("eval_sessions", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("eval_sessions")
 
 
 def test_a_revisit_cell_is_relocalised_and_joined_and_a_disjoint_one_is_not(tmp_path: Path) -> None:

@@ -3,12 +3,11 @@ verified poses' translations; a test-split run is refused."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from tool_modules import load_tool
 
 from placerec.errors import ConfigError
 from placerec.experiment.candidates import CandidateTable
@@ -17,14 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location(
-        "eval_overlap_gate", ROOT / "tools" / "eval_overlap_gate.py"
-    )
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["eval_overlap_gate"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("eval_overlap_gate")
 
 
 def _table() -> CandidateTable:
