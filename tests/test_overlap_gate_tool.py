@@ -3,7 +3,6 @@ verified poses' translations; a test-split run is refused."""
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,8 +10,6 @@ from tool_modules import load_tool
 
 from placerec.errors import ConfigError
 from placerec.experiment.candidates import CandidateTable
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _tool():
