@@ -3,7 +3,6 @@ verified poses' translations; a test-split run is refused."""
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 from tool_modules import load_tool
