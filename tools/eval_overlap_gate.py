@@ -35,12 +35,8 @@ from scipy.optimize import curve_fit
 from placerec.errors import ConfigError
 from placerec.eval.metrics import loop_metrics
 from placerec.eval.pose_truth import PoseGroundTruth
-from placerec.experiment.benchmark import load_benchmark_config
-from placerec.experiment.candidates import CandidateTable, read_candidates
-from placerec.experiment.report import pose_truths
-from placerec.experiment.run_folder import slug
-from placerec.experiment.truth import TruthClouds
-from placerec.io import read_poses
+from placerec.experiment.benchmark import load_benchmark_config, read_cell
+from placerec.experiment.candidates import CandidateTable
 
 BINS_M = (0, 1, 2, 3, 4, 6, 8, 12, 20, 40)
 STEP = 0.05
@@ -49,7 +45,7 @@ STEP = 0.05
 def load_cells(
     run: Path, labels: list[str]
 ) -> list[tuple[str, dict[str, CandidateTable], dict[str, PoseGroundTruth]]]:
-    """Each cell's candidate tables and pose truths (the run's own revisit set) for ``labels``."""
+    """Each finished cell's candidate tables and pose truths (the run's own revisit set) for ``labels``."""
     bench = load_benchmark_config(run / "config.yaml")
     if bench.split != "tuning":
         raise ConfigError(f"{run}: a {bench.split}-split run; the gate is chosen on tuning cells only")
@@ -58,21 +54,15 @@ def load_cells(
         folder = run / "cells" / cell.name
         if not (folder / "cell.json").is_file():
             continue
-        cfg = bench.cell_config(cell)
-        poses = read_poses(folder / "poses.txt")[0]
-        stamps = np.loadtxt(folder / "times.txt", ndmin=1)
-        with np.load(folder / "truth.npz") as z:
-            truth = TruthClouds(cfg.evaluation, poses)
-            truth.voxels = [z["keys"][a:b] for a, b in zip(z["offsets"][:-1], z["offsets"][1:], strict=True)]
-            truth.overlap = (z["revisit"], z["best_overlap"])
-        every = [p.display_name for p in cfg.pipelines]
-        tables = [read_candidates(folder / f"candidates_{slug(label)}.csv") for label in every]
-        gts = pose_truths(cfg, tables, poses, stamps, truth)
-        by = dict(zip(every, zip(tables, gts, strict=True), strict=True))
-        missing = [label for label in labels if label not in by]
+        f = read_cell(bench, cell, folder)
+        every = [p.display_name for p in f.cfg.pipelines]
+        missing = [label for label in labels if label not in every]
         if missing:
             raise ConfigError(f"{folder}: no pipeline {missing[0]!r}; the run has {every}")
-        out.append((cell.name, {k: by[k][0] for k in labels}, {k: by[k][1] for k in labels}))
+        at = {label: every.index(label) for label in labels}
+        out.append(
+            (cell.name, {k: f.tables[i] for k, i in at.items()}, {k: f.pose_gts[i] for k, i in at.items()})
+        )
     if not out:
         raise ConfigError(f"{run}: no finished cell")
     return out

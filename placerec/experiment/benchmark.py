@@ -424,13 +424,26 @@ def run_benchmark(
     return root, payload
 
 
-def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[str, Any]) -> dict[str, Any]:
-    """A finished cell's metrics per pipeline label with the figures at the operating thresholds recomputed from
-    its files (poses, candidates, the scans' voxels in ``truth.npz``) at the thresholds in force now; the stored
-    entries give the rest (times). `ArtifactError` naming the file when one is missing or damaged."""
+@dataclass(frozen=True)
+class CellFiles:
+    """A finished cell read back: its config (with its sensor's settings), poses, scan times, the truth clouds of
+    the run, and per pipeline (in the config's order) its candidate table and pose ground truth."""
+
+    cfg: ExperimentConfig
+    poses: np.ndarray
+    stamps: np.ndarray | None
+    truth: Any
+    tables: list[Any]
+    pose_gts: list[Any]
+
+
+def read_cell(bench: BenchmarkConfig, cell: Cell, folder: Path) -> CellFiles:
+    """A finished cell's files (poses, candidates, the scans' voxels in ``truth.npz``) with its pose truths made
+    from them, the run's overlap search not made again; `ArtifactError` naming the file when one is missing or
+    damaged."""
     from placerec.experiment.candidates import read_candidates
-    from placerec.experiment.report import loop_summary, pose_truths
-    from placerec.experiment.run_folder import finite_or_null, slug
+    from placerec.experiment.report import pose_truths
+    from placerec.experiment.run_folder import slug
     from placerec.experiment.truth import TruthClouds
     from placerec.io import read_poses
 
@@ -448,13 +461,22 @@ def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[
     truth = TruthClouds(cfg.evaluation, poses)
     truth.voxels = [keys[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
     truth.overlap = overlap  # the overlap search of the run, not made again
-    specs = list(cfg.pipelines)  # the cell's: with its sensor's thresholds
-    tables = [read_candidates(folder / f"candidates_{slug(p.display_name)}.csv") for p in specs]
-    pose_gts = pose_truths(cfg, tables, poses, stamps, truth)
+    tables = [read_candidates(folder / f"candidates_{slug(p.display_name)}.csv") for p in cfg.pipelines]
+    return CellFiles(cfg, poses, stamps, truth, tables, pose_truths(cfg, tables, poses, stamps, truth))
+
+
+def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[str, Any]) -> dict[str, Any]:
+    """A finished cell's metrics per pipeline label with the figures at the operating thresholds recomputed from
+    its files (`read_cell`) at the thresholds in force now; the stored entries give the rest (times)."""
+    from placerec.experiment.report import loop_summary
+    from placerec.experiment.run_folder import finite_or_null
+
+    f = read_cell(bench, cell, folder)
     out = {}
-    for spec, table, pose_gt in zip(specs, tables, pose_gts, strict=True):
-        label = spec.display_name
-        _, summary = loop_summary(cfg, table, poses, stamps, cfg.operating_threshold(spec), truth, pose_gt)
+    for spec, table, pose_gt in zip(f.cfg.pipelines, f.tables, f.pose_gts, strict=True):
+        label = spec.display_name  # the cell's spec: with its sensor's thresholds
+        threshold = f.cfg.operating_threshold(spec)
+        _, summary = loop_summary(f.cfg, table, f.poses, f.stamps, threshold, f.truth, pose_gt)
         kept = stored.get(label, {})
         out[label] = {**kept, **finite_or_null(summary)}
     return out
