@@ -12,6 +12,7 @@ from placerec.experiment import protocol
 from placerec.experiment.benchmark import BenchmarkConfig, CaptureParams, load_benchmark_config, run_benchmark
 from placerec.experiment.benchmark_summary import bench_line, suggest_by_sensor, suggest_thresholds
 from placerec.params import resolve
+from placerec.recognizer import make_pipeline
 
 
 def _write(tmp_path, data):
@@ -86,9 +87,10 @@ def test_sensors_that_do_not_spin_are_driven_as_their_capture_says():
         resolve(BenchmarkConfig, {**BASE, "capture": {"hdl128": {}}})
 
 
-def test_a_sensors_verify_score_reaches_its_visual_pipelines_under_their_own_settings():
-    """``capture.<sensor>.verify_score`` is merged into the verification of that sensor's intensity-image
-    pipelines; a pipeline's own ``verify.score`` keys win, Scan Context and other sensors' cells are left alone."""
+def test_a_sensors_verify_score_reaches_its_verified_pipelines_under_their_own_settings():
+    """``capture.<sensor>.verify_score`` is merged into the verification of that sensor's pipelines that verify
+    with a score (the intensity-image ones and Scan Context); a pipeline's own ``verify.score`` keys win,
+    MapClosures (no such verification) and other sensors' cells are left alone."""
     gate = {"min_fitness_ratio": 0.7, "min_score": 0.05}
     bench = resolve(
         BenchmarkConfig,
@@ -99,18 +101,18 @@ def test_a_sensors_verify_score_reaches_its_visual_pipelines_under_their_own_set
                 {"name": "orb-dbow", "params": {"verify": {"top_k": 7, "score": {"min_score": 0.1}}}},
                 {"name": "superpoint-dbow"},
                 {"name": "scan-context"},
+                {"name": "map-closures"},
             ],
             "capture": {"vlp16": {"verify_score": gate}},
         },
     )
     vlp16, hdl64 = (bench.cell_config(c) for c in bench.cells())
-    orb, sp, sc = (p.params for p in vlp16.pipelines)
+    orb, sp, sc, mc = (p.params for p in vlp16.pipelines)
     assert orb["verify"] == {"top_k": 7, "score": {"min_fitness_ratio": 0.7, "min_score": 0.1}}
-    assert sp["verify"] == {"score": gate} and "verify" not in sc
+    assert sp["verify"] == {"score": gate} and sc["verify"] == {"score": gate} and not mc
     assert all("verify" not in (p.params or {}) or p.name == "orb-dbow" for p in hdl64.pipelines)
     assert hdl64.pipelines[0].params["verify"] == {"top_k": 7, "score": {"min_score": 0.1}}
-    from placerec.recognizer import make_pipeline
-
+    assert make_pipeline("scan-context", sc).params.verify.score.min_fitness_ratio == 0.7
     built = make_pipeline("superpoint-dbow", sp)
     assert (
         built.params.verify.score.min_fitness_ratio == 0.7 and built.params.verify.top_k == 20
@@ -148,14 +150,15 @@ def test_a_sensors_thresholds_replace_the_presets_in_its_cells_only():
     )
     avia, mid360 = (bench.cell_config(c) for c in bench.cells())
     assert [avia.operating_threshold(p) for p in avia.pipelines] == [0.45, 0.5]
-    # the registry's MID-360 threshold (a config's capture for another sensor leaves it)
+    # the registry's MID-360 threshold (a config's capture replaces the protocol's)
     assert [mid360.operating_threshold(p) for p in mid360.pipelines] == [0.25, 0.5]
     defaults = resolve(BenchmarkConfig, {**BASE, "sensors": ["avia", "mid360", "e1r", "vlp16", "hdl64"]})
     cells = [defaults.cell_config(c) for c in defaults.cells()[:10:2]]
     assert [c.dataset.simulator.sensor for c in cells] == ["avia", "mid360", "e1r", "vlp16", "hdl64"]
     picked = [c.operating_threshold(c.pipelines[0]) for c in cells]
-    # the presets' for the Avia and HDL-64, the others' own tuning cells' picks
-    assert picked == [0.3, 0.25, 0.4, 0.25, 0.3]
+    # the presets' for the Avia and HDL-64, the others' own tuning cells' picks (with their overlap gate on the
+    # MID-360 and VLP-16: the protocol's capture; the E1R: the registry's)
+    assert picked == [0.3, 0.2, 0.4, 0.1, 0.3]
     for bad in (-0.1, float("nan"), "high"):
         with pytest.raises(ConfigError, match="thresholds"):
             resolve(BenchmarkConfig, {**BASE, "capture": {"avia": {"thresholds": {"scan-context": bad}}}})
@@ -229,7 +232,7 @@ def test_two_cells_end_to_end_at_fixed_thresholds_and_resumed(tmp_path):
     )
     _, sensor_judged = run_benchmark(per_sensor)  # judged again from the cells' files, nothing rerun
     sc = sensor_judged["pipelines"]["scan-context"]
-    assert sensor_judged["cells_run"] == 0 and sorted(map(float, sc["threshold"])) == [0.25, 0.95]  # VLP-16's
+    assert sensor_judged["cells_run"] == 0 and sorted(map(float, sc["threshold"])) == [0.1, 0.95]  # VLP-16's
     before = payload["pipelines"]["scan-context"]["figures"]["recall"]["cells"]
     after = sc["figures"]["recall"]["cells"]
     assert (

@@ -83,7 +83,8 @@ class CaptureParams(Params):
     the true poses); ``keyframes``: the pipelines see keyframes of these windows; ``exclusion``: the loop
     exclusion window of this sensor's cells (keyframes are metres apart, so a window counted in frames would
     mean something else); ``feature_params``: extractor settings of this sensor's visual pipelines;
-    ``verify_score``: their verification's score and acceptance settings (`placerec.verify.ScoreParams`);
+    ``verify_score``: the verification's score and acceptance settings (`placerec.verify.ScoreParams`) of its
+    pipelines that verify with a score (the visual pipelines' and Scan Context's);
     ``thresholds``: operating thresholds of this sensor's cells per pipeline label, in place of the registry's for
     the sensor (`placerec.recognizer.PipelineEntry.threshold_for`: chosen on the sensor's tuning cells by the same
     rule, docs/protocol.md); a pipeline's own ``threshold:`` in the config still wins."""
@@ -101,8 +102,9 @@ class CaptureParams(Params):
     )
     verify_score: dict[str, Any] = Field(
         default_factory=dict,
-        description="overrides of the verification's score and acceptance settings (verify.score) in the same "
-        "pipelines (e.g. the VLP-16's overlap gate for its displacement: docs/sensors.md)",
+        description="overrides of the verification's score and acceptance settings (verify.score) in every "
+        "pipeline of this sensor's cells that verifies with a score (e.g. the VLP-16's overlap gate for its "
+        "displacement: docs/sensors.md)",
     )
     thresholds: dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)]] = Field(
         default_factory=dict, description="operating threshold per pipeline label in this sensor's cells"
@@ -212,7 +214,7 @@ class BenchmarkConfig(Params):
                 evaluation["exclusion"] = capture.exclusion.model_dump(mode="json")
         pipelines = [p.model_dump(mode="json") for p in self.pipelines]
         if capture is not None and (capture.feature_params or capture.verify_score):
-            pipelines = [_with_visual_params(p, capture) for p in pipelines]
+            pipelines = [_with_sensor_params(p, capture) for p in pipelines]
         if capture is not None and capture.thresholds:
             for p, spec in zip(pipelines, self.pipelines, strict=True):
                 if p.get("threshold") is None and spec.display_name in capture.thresholds:
@@ -234,22 +236,29 @@ class BenchmarkConfig(Params):
         return resolve(ExperimentConfig, data, where=f"benchmark cell {cell.name}")
 
 
-def _with_visual_params(spec: dict[str, Any], capture: CaptureParams) -> dict[str, Any]:
-    """A pipeline spec (JSON) with the capture's ``feature_params`` and ``verify_score`` under its own (which win),
-    when the pipeline has an intensity-image front end (its parameters have ``feature_params``); other pipelines
-    unchanged."""
+def _with_sensor_params(spec: dict[str, Any], capture: CaptureParams) -> dict[str, Any]:
+    """A pipeline spec (JSON) with the capture's settings under its own (which win): ``feature_params`` when the
+    pipeline has an intensity-image front end (its parameters have ``feature_params``), ``verify_score`` when it
+    verifies with a score (its parameters have ``verify.score``); other pipelines unchanged."""
     from placerec.params import deep_merge
 
     cls = _recognizer_class(spec["name"])
-    if cls is None or "feature_params" not in cls.Params.model_fields:
+    if cls is None:
         return spec
-    given = spec.get("params") or {}
+    fields = cls.Params.model_fields
+    verify = fields.get("verify")
+    verify_model = None if verify is None else verify.annotation
     sensor: dict[str, Any] = {}
-    if capture.feature_params:
+    if capture.feature_params and "feature_params" in fields:
         sensor["feature_params"] = capture.feature_params
-    if capture.verify_score:
+    if (
+        capture.verify_score
+        and isinstance(verify_model, type)
+        and issubclass(verify_model, Params)
+        and "score" in verify_model.model_fields
+    ):
         sensor["verify"] = {"score": capture.verify_score}
-    return {**spec, "params": deep_merge(sensor, given)}
+    return {**spec, "params": deep_merge(sensor, spec.get("params") or {})} if sensor else spec
 
 
 def _recognizer_class(name: str) -> Any:
