@@ -5,6 +5,7 @@ functions, so ``placerec --help`` stays instant."""
 from __future__ import annotations
 
 import functools
+import json
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -209,7 +210,8 @@ def _thresholds_text(entry: PipelineEntry, sep: str) -> str:
     """A registry entry's operating threshold, then each sensor's own ('vlp16: 0.25'), joined by ``sep``."""
     if entry.threshold is None:
         return "-"
-    return sep.join([f"{entry.threshold:g}", *(f"{s}: {t:g}" for s, t in entry.sensor_thresholds.items())])
+    own = [f"{s}: {p.threshold:g}" for s, p in entry.sensors.items() if p.threshold is not None]
+    return sep.join([f"{entry.threshold:g}", *own])
 
 
 def print_pipeline_params(name: str) -> None:
@@ -233,4 +235,8 @@ def print_pipeline_params(name: str) -> None:
     if entry is not None and entry.threshold is not None:
         text = f"operating threshold: {_thresholds_text(entry, ', ')} (chosen on the tuning split, docs/protocol.md)"
         lines += ["", *textwrap.wrap(text, width)]
+    for sensor, preset in (entry.sensors if entry is not None else {}).items():
+        if preset.params:
+            text = f"on {sensor} scans (sensor={sensor!r}): {json.dumps(preset.params)} (placerec.sensor_presets)"
+            lines += textwrap.wrap(text, width, subsequent_indent="    ")
     typer.echo("\n".join(lines))

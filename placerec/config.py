@@ -307,11 +307,15 @@ class ExperimentConfig(Params):
         " docs/keyframes.md), e.g. {seconds: 0.5} or {metres: 5}; None: single scans",
     )
 
+    @property
+    def sensor(self) -> str | None:
+        """The sensor model whose pipeline settings and thresholds apply (`placerec.sensor_presets`): the
+        simulator's; None on recorded data (the presets')."""
+        return self.dataset.simulator.sensor if self.dataset.source == "simulator" else None
+
     def operating_threshold(self, spec: PipelineSpec) -> float | None:
-        """``spec``'s operating threshold in this experiment: on the simulator, its sensor's
-        (`PipelineSpec.threshold_for`); on recorded data the preset's."""
-        sensor = self.dataset.simulator.sensor if self.dataset.source == "simulator" else None
-        return spec.threshold_for(sensor)
+        """``spec``'s operating threshold in this experiment: its sensor's (`PipelineSpec.threshold_for`)."""
+        return spec.threshold_for(self.sensor)
 
     @model_validator(mode="after")
     def _keyframes_in_loop_mode(self) -> ExperimentConfig:

@@ -105,10 +105,10 @@ class LoopClosureDetector:
         **options: Any,
     ) -> LoopClosureDetector:
         """A detector over the registered pipeline ``name`` (``params`` overrides its preset) at its operating
-        threshold, chosen on the tuning split (docs/protocol.md; for ``sensor``, a sensor model name, the one
-        chosen on that sensor's tuning cells where it differs), unless ``threshold`` is given; ``options`` are the
-        other arguments of the constructor. `ConfigError` when the pipeline has no operating threshold and none is
-        given."""
+        threshold, chosen on the tuning split (docs/protocol.md), unless ``threshold`` is given. For ``sensor``, a
+        sensor model name, the settings and threshold chosen on that sensor's tuning cells where they differ
+        (`placerec.sensor_presets`), ``params`` still winning. ``options`` are the other arguments of the
+        constructor. `ConfigError` when the pipeline has no operating threshold and none is given."""
         from placerec.recognizer import PIPELINES, make_pipeline
 
         entry = PIPELINES.get(name)
@@ -116,7 +116,7 @@ class LoopClosureDetector:
             threshold = None if entry is None else entry.threshold_for(sensor)
             if threshold is None:
                 raise ConfigError(f"pipeline {name!r} has no operating threshold: give threshold=")
-        return cls(make_pipeline(name, params), threshold=threshold, **options)
+        return cls(make_pipeline(name, params, sensor=sensor), threshold=threshold, **options)
 
     def __init__(
         self,

@@ -26,6 +26,7 @@ from pydantic import ValidationError
 from placerec.errors import ArtifactError, ConfigError, ScanDataError, short_repr
 from placerec.hashing import stable_hash
 from placerec.params import Params, deep_merge, resolve
+from placerec.sensor_presets import SENSOR_PRESETS, SensorPreset
 from placerec.types import MAX_RANGE_M, Candidate, Description, PlaceRecognizer, Scan, valid_points
 
 __all__ = [
@@ -215,19 +216,25 @@ LOCALIZE_VERIFY: dict[str, Any] = {
 class PipelineEntry:
     """A registered pipeline: its class (``"module:Class"``), parameter preset, a one-line summary and its
     operating ``threshold`` on the candidate score (what `LoopClosureDetector` accepts and the benchmark judges
-    at), chosen once on the tuning split (docs/protocol.md); None where none was chosen."""
+    at), chosen once on the tuning split (docs/protocol.md); None where none was chosen. ``sensors``: its
+    settings on the sensors whose own tuning cells chose others (`placerec.sensor_presets`)."""
 
     target: str
     summary: str
     preset: dict[str, Any] = field(default_factory=dict)
     threshold: float | None = None
-    #: sensor model name (`placerec.sim.sensors.SENSORS`) -> operating threshold on that sensor's scans, where the
-    #: same rule on the sensor's own tuning cells picks another than ``threshold``
-    sensor_thresholds: Mapping[str, float] = field(default_factory=dict)
+    #: sensor model name (`placerec.sim.sensors.SENSORS`) -> operating threshold and parameters on its scans
+    sensors: Mapping[str, SensorPreset] = field(default_factory=dict)
 
     def threshold_for(self, sensor: str | None) -> float | None:
-        """The operating threshold on ``sensor``'s scans: its own (``sensor_thresholds``), else ``threshold``."""
-        return self.sensor_thresholds.get(sensor, self.threshold) if sensor is not None else self.threshold
+        """The operating threshold on ``sensor``'s scans: its own (``sensors``), else ``threshold``."""
+        own = self.sensors.get(sensor) if sensor is not None else None
+        return own.threshold if own is not None and own.threshold is not None else self.threshold
+
+    def params_for(self, sensor: str | None) -> Mapping[str, Any]:
+        """The parameter overrides on ``sensor``'s scans (``sensors``; none for another or no sensor)."""
+        own = self.sensors.get(sensor) if sensor is not None else None
+        return own.params if own is not None else {}
 
 
 #: Registered pipelines by short name. The loop pipelines' operating thresholds were picked by the tuning rule of
@@ -235,9 +242,7 @@ class PipelineEntry:
 #: --suggest`. 0.25 is the verification's min_score (no false closure scored above it on the tuning cells); Scan
 #: Context's ICP-verified false closures reached 0.259, MapClosures' false ones 14 inliers. A sensor's own thresholds
 #: come from the same rule on that sensor's tuning cells alone (`placerec bench ... --suggest` prints them per
-#: sensor; docs/sensors.md): on the VLP-16, the HDL-32E and the MID-360-like scanner no false Scan Context closure
-#: scored 0.25; the E1R-like sensor's false closures (repeated blocks 40-100 m away, seen by a 120 deg, 30 m cone)
-#: score up to 0.35-0.40.
+#: sensor), with the settings chosen there (`placerec.sensor_presets`, docs/sensors.md).
 PIPELINES: dict[str, PipelineEntry] = {
     "scan-context": PipelineEntry(
         "placerec.baselines.scan_context:ScanContext",
@@ -246,7 +251,7 @@ PIPELINES: dict[str, PipelineEntry] = {
         # cells, a third less verification CPU (docs/verification.md)
         {"verify": {"icp_only_coarse_voxel_size": 3.0}},
         threshold=0.3,
-        sensor_thresholds={"vlp16": 0.25, "hdl32": 0.25, "mid360": 0.25, "e1r": 0.4},
+        sensors=SENSOR_PRESETS["scan-context"],
     ),
     "map-closures": PipelineEntry(
         "placerec.baselines.map_closures_peer:MapClosuresPeer",
@@ -258,32 +263,35 @@ PIPELINES: dict[str, PipelineEntry] = {
         "VPR paper: intensity image, ORB features, HBST retrieval; RANSAC + ICP verification",
         {"features": "orb", "hbst": {"threshold": 50}, "verify": {"top_k": 5, "icp_top_k": 2}},
         threshold=0.25,
+        sensors=SENSOR_PRESETS["orb-hbst"],
     ),
     "brisk-hbst": PipelineEntry(
         "placerec.pipelines.visual:VisualHBST",
         "VPR paper: intensity image, FAST + BRISK features, HBST retrieval; RANSAC + ICP verification",
         {"features": "brisk", "hbst": {"threshold": 100}, "verify": {"top_k": 5, "icp_top_k": 2}},
         threshold=0.25,
+        sensors=SENSOR_PRESETS["brisk-hbst"],
     ),
     "orb-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
         "VPR paper: intensity image, ORB features, DBoW2 bag of words; RANSAC + ICP verification",
         {"features": "orb", "verify": {"top_k": 20, "icp_top_k": 2}},
         threshold=0.25,
-        sensor_thresholds={"e1r": 0.35},
+        sensors=SENSOR_PRESETS["orb-dbow"],
     ),
     "surf-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
         "VPR paper: intensity image, FAST + SURF features, DBoW2 bag of words; RANSAC + ICP verification",
         {"features": "fast-surf", "verify": {"top_k": 20, "icp_top_k": 2}},
         threshold=0.25,
+        sensors=SENSOR_PRESETS["surf-dbow"],
     ),
     "superpoint-dbow": PipelineEntry(
         "placerec.pipelines.dbow:VisualDBoW",
         "VPR paper: intensity image, our SuperPoint (trained on simulated LiDAR), DBoW2; RANSAC + ICP verification",
         {"features": "superpoint", "verify": {"top_k": 20, "icp_top_k": 2}},
         threshold=0.25,
-        sensor_thresholds={"e1r": 0.4},
+        sensors=SENSOR_PRESETS["superpoint-dbow"],
     ),
     "ishot-votes": PipelineEntry(
         "placerec.pipelines.keypoint_voting:KeypointVoting",
@@ -383,8 +391,11 @@ def pipeline_class(name: str) -> type[Any]:
     return obj
 
 
-def pipeline_params(name: str, params: Mapping[str, Any] | None = None, path: str = "") -> Params:
-    """The resolved parameters of a `Recognizer` pipeline: its defaults, the registry preset, then ``params``.
+def pipeline_params(
+    name: str, params: Mapping[str, Any] | None = None, path: str = "", sensor: str | None = None
+) -> Params:
+    """The resolved parameters of a `Recognizer` pipeline: its defaults, the registry preset, its settings on
+    ``sensor``'s scans (a sensor model name; `PipelineEntry.params_for`), then ``params``.
 
     ``path`` is where ``params`` sit in a config (e.g. ``pipelines[1].params``), for the error messages.
     """
@@ -394,19 +405,22 @@ def pipeline_params(name: str, params: Mapping[str, Any] | None = None, path: st
             f"pipeline {name!r}: {cls.__name__} does not declare its parameters (not a Recognizer)"
         )
     entry = PIPELINES.get(name)
-    return resolve(cls.Params, entry.preset if entry else None, params, where=name, path=path or "params")
+    preset, own = (entry.preset, entry.params_for(sensor)) if entry else (None, None)
+    return resolve(cls.Params, preset, own, params, where=name, path=path or "params")
 
 
-def make_pipeline(name: str, params: Mapping[str, Any] | None = None, path: str = "") -> PlaceRecognizer:
+def make_pipeline(
+    name: str, params: Mapping[str, Any] | None = None, path: str = "", sensor: str | None = None
+) -> PlaceRecognizer:
     """Build a pipeline by registry name (or ``module:Class``) with parameter overrides from a config.
 
-    A `Recognizer` gets its defaults, the registry preset and ``params`` merged deeply and validated
-    (`ConfigError` naming ``path.key`` and the allowed keys); any other protocol class is called with
-    ``**params``.
+    A `Recognizer` gets its defaults, the registry preset, its settings on ``sensor``'s scans (a sensor model
+    name, `PipelineEntry.params_for`) and ``params`` merged deeply and validated (`ConfigError` naming
+    ``path.key`` and the allowed keys); any other protocol class is called with ``**params``.
     """
     cls = pipeline_class(name)
     if issubclass(cls, Recognizer):
-        return cls(pipeline_params(name, params, path))
+        return cls(pipeline_params(name, params, path, sensor))
     if params is not None and not isinstance(params, Mapping):
         raise ConfigError(f"pipeline {name!r}: {path or 'params'} must be a mapping")
     return cls(**deep_merge({}, params))

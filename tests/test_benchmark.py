@@ -96,18 +96,18 @@ def test_a_sensors_verify_score_reaches_its_verified_pipelines_under_their_own_s
         BenchmarkConfig,
         {
             "split": "tuning",
-            "sensors": ["vlp16", "hdl64"],
+            "sensors": ["os1-64", "hdl64"],
             "pipelines": [
                 {"name": "orb-dbow", "params": {"verify": {"top_k": 7, "score": {"min_score": 0.1}}}},
                 {"name": "superpoint-dbow"},
                 {"name": "scan-context"},
                 {"name": "map-closures"},
             ],
-            "capture": {"vlp16": {"verify_score": gate}},
+            "capture": {"os1-64": {"verify_score": gate}},
         },
     )
-    vlp16, hdl64 = (bench.cell_config(c) for c in bench.cells())
-    orb, sp, sc, mc = (p.params for p in vlp16.pipelines)
+    os1, hdl64 = (bench.cell_config(c) for c in bench.cells())
+    orb, sp, sc, mc = (p.params for p in os1.pipelines)
     assert orb["verify"] == {"top_k": 7, "score": {"min_fitness_ratio": 0.7, "min_score": 0.1}}
     assert sp["verify"] == {"score": gate} and sc["verify"] == {"score": gate} and not mc
     assert all("verify" not in (p.params or {}) or p.name == "orb-dbow" for p in hdl64.pipelines)
@@ -122,17 +122,28 @@ def test_a_sensors_verify_score_reaches_its_verified_pipelines_under_their_own_s
             resolve(BenchmarkConfig, {**BASE, "capture": {"vlp16": {"verify_score": bad}}})
 
 
-def test_the_protocols_capture_names_registered_pipelines_and_valid_score_settings():
-    """Every sensor's thresholds name a registered pipeline and never go below that sensor's acceptance floor;
-    its verification settings are valid `ScoreParams`."""
-    from placerec.recognizer import PIPELINES
-    from placerec.verify.params import ScoreParams
-
-    for sensor, capture in protocol.CAPTURE.items():
-        score = ScoreParams(**capture.get("verify_score", {}))
-        for label, threshold in capture.get("thresholds", {}).items():
-            assert label in PIPELINES, (sensor, label)
-            assert threshold >= score.min_score, (sensor, label)
+def test_a_cell_runs_with_the_registrys_settings_for_its_sensor_and_shows_them_in_its_config():
+    """A VLP-16 cell's pipelines carry the registry's VLP-16 settings (`placerec.sensor_presets`: 1000 features,
+    the overlap gate) in their params and are judged at the VLP-16 thresholds; an HDL-64 cell's carry none."""
+    bench = resolve(
+        BenchmarkConfig,
+        {
+            "split": "tuning",
+            "worlds": ["town"],
+            "seeds": [0],
+            "sensors": ["vlp16", "hdl64"],
+            "pipelines": [{"name": "superpoint-dbow"}, {"name": "scan-context"}],
+        },
+    )
+    vlp16, hdl64 = (bench.cell_config(c) for c in bench.cells())
+    sp, sc = vlp16.pipelines
+    assert sp.params["feature_params"] == {"nfeatures": 1000} and "feature_params" not in sc.params
+    assert (
+        sp.params["verify"]["score"]["min_fitness_ratio"] == sc.params["verify"]["score"]["min_fitness_ratio"]
+    )
+    assert [vlp16.operating_threshold(p) for p in vlp16.pipelines] == [0.15, 0.1]
+    assert all(not p.params for p in hdl64.pipelines)
+    assert [hdl64.operating_threshold(p) for p in hdl64.pipelines] == [0.25, 0.3]
 
 
 def test_a_sensors_thresholds_replace_the_presets_in_its_cells_only():
@@ -150,14 +161,13 @@ def test_a_sensors_thresholds_replace_the_presets_in_its_cells_only():
     )
     avia, mid360 = (bench.cell_config(c) for c in bench.cells())
     assert [avia.operating_threshold(p) for p in avia.pipelines] == [0.45, 0.5]
-    # the registry's MID-360 threshold (a config's capture replaces the protocol's)
-    assert [mid360.operating_threshold(p) for p in mid360.pipelines] == [0.25, 0.5]
+    # the registry's MID-360 threshold (a config's capture for another sensor leaves it)
+    assert [mid360.operating_threshold(p) for p in mid360.pipelines] == [0.2, 0.5]
     defaults = resolve(BenchmarkConfig, {**BASE, "sensors": ["avia", "mid360", "e1r", "vlp16", "hdl64"]})
     cells = [defaults.cell_config(c) for c in defaults.cells()[:10:2]]
     assert [c.dataset.simulator.sensor for c in cells] == ["avia", "mid360", "e1r", "vlp16", "hdl64"]
     picked = [c.operating_threshold(c.pipelines[0]) for c in cells]
-    # the presets' for the Avia and HDL-64, the others' own tuning cells' picks (with their overlap gate on the
-    # MID-360 and VLP-16: the protocol's capture; the E1R: the registry's)
+    # the presets' for the Avia and HDL-64, the others' own tuning cells' picks (placerec.sensor_presets)
     assert picked == [0.3, 0.2, 0.4, 0.1, 0.3]
     for bad in (-0.1, float("nan"), "high"):
         with pytest.raises(ConfigError, match="thresholds"):
@@ -266,20 +276,20 @@ def test_a_pipelines_threshold_on_a_sensor_is_its_own_where_one_was_chosen():
 
     sc = PIPELINES["scan-context"]
     assert sc.threshold_for(None) == sc.threshold_for("hdl64") == sc.threshold == 0.3
-    assert sc.threshold_for("vlp16") == 0.25 and sc.threshold_for("e1r") == 0.4
+    assert sc.threshold_for("vlp16") == 0.1 and sc.threshold_for("e1r") == 0.4
     assert (
         PIPELINES["orb-hbst"].threshold_for("e1r") == 0.25
         and PIPELINES["orb-dbow"].threshold_for("e1r") == 0.35
     )
-    assert PipelineSpec(name="scan-context").threshold_for("vlp16") == 0.25
+    assert PipelineSpec(name="scan-context").threshold_for("vlp16") == 0.1
     assert PipelineSpec(name="scan-context", threshold=0.5).threshold_for("vlp16") == 0.5
     assert PipelineSpec(name="scan-context").threshold_for(None) == 0.3
-    assert LoopClosureDetector.for_pipeline("scan-context", sensor="vlp16").threshold == 0.25
+    assert LoopClosureDetector.for_pipeline("scan-context", sensor="vlp16").threshold == 0.1
     assert LoopClosureDetector.for_pipeline("scan-context", sensor="velodyne-vlp16").threshold == 0.3
     assert all(
         0 <= t and n in protocol.TEST_SENSORS + protocol.SENSOR_MATRIX
         for e in PIPELINES.values()
-        for n, t in e.sensor_thresholds.items()
+        for n, t in ((n, p.threshold or 0) for n, p in e.sensors.items())
     )
 
 

@@ -58,8 +58,11 @@ def test_stored_keyframes_come_back(built: Path, seq: SimulatedSequence) -> None
     np.testing.assert_array_equal(m.scan_index, np.arange(N_SCANS))
     np.testing.assert_allclose(m.poses, seq.poses)
     assert [p.name for p in m.manifest.pipelines] == ["orb-hbst", "scan-context"]
-    # each pipeline's operating threshold on the map's sensor: Scan Context's chosen on VLP-16 tuning cells
-    assert [p.threshold for p in m.manifest.pipelines] == [0.25, 0.25]
+    # each pipeline's operating threshold on the map's sensor, chosen on VLP-16 tuning cells with the VLP-16's
+    # settings, which its databases were built with (placerec.sensor_presets)
+    assert [p.threshold for p in m.manifest.pipelines] == [0.2, 0.1]
+    assert all(p.params["verify"]["score"]["min_fitness_ratio"] == 0.75 for p in m.manifest.pipelines)
+    assert m.manifest.pipelines[0].params["feature_params"]["nfeatures"] == 1000
     assert m.manifest.sensor is not None and m.manifest.sensor["name"] == "vlp16"
     # the stored cloud is the scan voxelised at 0.4 m, in the keyframe's frame, to within the int16 step
     cloud = m.cloud(7)
@@ -506,7 +509,8 @@ def test_slam_saves_more_pipelines_and_the_merged_map_extends_them(tmp_path: Pat
     run_slam(first, tmp_path / "res")
     m1 = MapArtifact.open(tmp_path / "m1", check_hashes=True)
     assert [p.name for p in m1.manifest.pipelines] == ["orb-hbst", "scan-context"]
-    assert m1.pipeline("scan-context").threshold == 0.25  # its preset's on the VLP-16
+    sc = m1.pipeline("scan-context")  # its threshold on the VLP-16, with the VLP-16's settings it was chosen with
+    assert sc.threshold == 0.1 and sc.params["verify"]["score"]["min_fitness_ratio"] == 0.75
     assert len(m1.recognizer("scan-context")) == 20
     second = _slam_cfg(
         tmp_path, "dataset.simulator.n_scans=12", "dataset.simulator.seed=5", "dataset.simulator.world_seed=0",

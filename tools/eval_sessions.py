@@ -152,9 +152,8 @@ def slam_map(
 ) -> tuple[Path, dict[str, Any]]:
     """Session 1 through `slam_sequence` with its map saved (run once; its ATE kept beside it), holding the
     ``map_pipelines`` databases as well (``output.map_pipelines``)."""
-    from placerec.recognizer import make_pipeline
     from placerec.slam_app.config import load_slam_config
-    from placerec.slam_app.run import map_writer_for, slam_sequence
+    from placerec.slam_app.run import loop_pipeline, map_writer_for, slam_sequence
 
     info_path = folder.parent / f"{folder.name}.json"
     if (folder / "manifest.json").is_file() and info_path.is_file():
@@ -164,7 +163,7 @@ def slam_map(
         sets.append(f"output.map_pipelines={list(map_pipelines)}")
     cfg = load_slam_config(SLAM_CONFIG, sets)
     t0 = time.perf_counter()
-    rec = make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
+    rec = loop_pipeline(cfg, pair.map)
     with map_writer_for(cfg, pair.map, rec) as writer:
         result = slam_sequence(cfg, pair.map, rec, None, writer)
     err = trajectory_errors(result.optimized, pair.map.poses)

@@ -108,7 +108,12 @@ def write_map(
                 f"pipelines[{k}]: {key!r} is listed twice (a map holds one database per pipeline)"
             )
         recs[key] = (
-            make_pipeline(spec.name, spec.params, path=f"pipelines[{k}].params"),
+            make_pipeline(
+                spec.name,
+                spec.params,
+                path=f"pipelines[{k}].params",
+                sensor=None if sensor is None else sensor.name,
+            ),
             spec.threshold_for(None if sensor is None else sensor.name),
         )
     if not recs:

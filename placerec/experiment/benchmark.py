@@ -212,13 +212,7 @@ class BenchmarkConfig(Params):
                 extra["keyframes"] = capture.keyframes.model_dump(mode="json")
             if capture.exclusion is not None:
                 evaluation["exclusion"] = capture.exclusion.model_dump(mode="json")
-        pipelines = [p.model_dump(mode="json") for p in self.pipelines]
-        if capture is not None and (capture.feature_params or capture.verify_score):
-            pipelines = [_with_sensor_params(p, capture) for p in pipelines]
-        if capture is not None and capture.thresholds:
-            for p, spec in zip(pipelines, self.pipelines, strict=True):
-                if p.get("threshold") is None and spec.display_name in capture.thresholds:
-                    p["threshold"] = capture.thresholds[spec.display_name]
+        pipelines = [_cell_spec(p, cell.sensor, capture) for p in self.pipelines]
         data = {
             "name": f"{self.name}-{cell.name}",
             "dataset": {"source": "simulator", "simulator": simulator},
@@ -236,29 +230,46 @@ class BenchmarkConfig(Params):
         return resolve(ExperimentConfig, data, where=f"benchmark cell {cell.name}")
 
 
-def _with_sensor_params(spec: dict[str, Any], capture: CaptureParams) -> dict[str, Any]:
-    """A pipeline spec (JSON) with the capture's settings under its own (which win): ``feature_params`` when the
-    pipeline has an intensity-image front end (its parameters have ``feature_params``), ``verify_score`` when it
-    verifies with a score (its parameters have ``verify.score``); other pipelines unchanged."""
+def _cell_spec(spec: PipelineSpec, sensor: str, capture: CaptureParams | None) -> dict[str, Any]:
+    """A pipeline spec (JSON) in a cell of ``sensor``: its parameters on that sensor (the registry's,
+    `placerec.sensor_presets`, then the capture's overrides) under its own, which win, so a cell's config shows
+    every setting it ran with; the capture's threshold for it when it gives none (else the registry's for the
+    sensor applies, `ExperimentConfig.operating_threshold`)."""
     from placerec.params import deep_merge
+    from placerec.recognizer import PIPELINES
 
-    cls = _recognizer_class(spec["name"])
+    out = spec.model_dump(mode="json")
+    entry = PIPELINES.get(spec.name)
+    own = entry.params_for(sensor) if entry is not None else {}
+    given = _capture_params(spec.name, capture) if capture is not None else {}
+    if own or given:
+        out["params"] = deep_merge(own, given, out.get("params") or {})
+    if capture is not None and out.get("threshold") is None and spec.display_name in capture.thresholds:
+        out["threshold"] = capture.thresholds[spec.display_name]
+    return out
+
+
+def _capture_params(name: str, capture: CaptureParams) -> dict[str, Any]:
+    """The capture's parameter overrides for pipeline ``name``: ``feature_params`` when it has an intensity-image
+    front end (its parameters have ``feature_params``), ``verify_score`` when it verifies with a score (its
+    parameters have ``verify.score``); none for other pipelines."""
+    cls = _recognizer_class(name)
     if cls is None:
-        return spec
+        return {}
     fields = cls.Params.model_fields
     verify = fields.get("verify")
     verify_model = None if verify is None else verify.annotation
-    sensor: dict[str, Any] = {}
+    out: dict[str, Any] = {}
     if capture.feature_params and "feature_params" in fields:
-        sensor["feature_params"] = capture.feature_params
+        out["feature_params"] = capture.feature_params
     if (
         capture.verify_score
         and isinstance(verify_model, type)
         and issubclass(verify_model, Params)
         and "score" in verify_model.model_fields
     ):
-        sensor["verify"] = {"score": capture.verify_score}
-    return {**spec, "params": deep_merge(sensor, spec.get("params") or {})} if sensor else spec
+        out["verify"] = {"score": capture.verify_score}
+    return out
 
 
 def _recognizer_class(name: str) -> Any:
@@ -310,7 +321,9 @@ def _cell_key(cfg: ExperimentConfig) -> str:
     for spec, given in zip(data["pipelines"], cfg.pipelines, strict=True):
         spec.pop("threshold", None)
         if _recognizer_class(given.name) is not None:
-            spec["resolved"] = pipeline_params(given.name, given.params).model_dump(mode="json")
+            spec["resolved"] = pipeline_params(given.name, given.params, sensor=cfg.sensor).model_dump(
+                mode="json"
+            )
     return stable_hash({"config": data, "placerec": __version__, "v": BENCH_VERSION})
 
 

@@ -73,63 +73,9 @@ CAPTURE: dict[str, dict] = {
     }
     for name, seconds in _KEYFRAME_SECONDS.items()
 }
-# A sensor's operating thresholds, where the tuning rule picks others on its own tuning cells than the presets'
-# (chosen on the spinning tuning matrix), are the registry's (`placerec.recognizer.PipelineEntry.sensor_thresholds`).
-
-#: The 16- and 32-beam spinning sensors keep one scan a metre and per-beam images, but their visual pipelines keep
-#: 1000 features an image instead of 300: the 16- and 32-row images repeat their features (58-70 %) yet match few
-#: of them, and more features give 2-3x the correct matches (tools/eval_sparse_sensors.py, tuning data; chosen on
-#: the town seed-0 cells: docs/intensity_images.md, "Sparse spinning sensors").
-#: They also judge a verified pose's overlap against what a right alignment reaches at its displacement
-#: (`placerec.verify.score`, ``min_fitness_ratio``): their false closures are look-alike places registered a few
-#: decimetres off (fitness 0.3-0.49 where a right pose overlaps ~0.75), while right poses of scans metres apart score
-#: under the 0.25 floor for want of overlap on the sparse rings. Each curve is the median fitness of the right
-#: candidates of six tuning cells of the sensor (town, campus, industrial x seeds 0, 1): 0.75 at 0 m, falling by e
-#: over 17.5 m (VLP-16) and 22.5 m (HDL-32E). The ratio 0.75 lies in the range that gave both sensors their highest
-#: recall at precision 1.00 there (VLP-16 0.65-0.75, HDL-32E 0.70-0.80); the floor 0.10 gave the same tuning recall as
-#: 0.05; each pipeline's threshold is the tuning rule's on those cells (docs/sensors.md, "An overlap gate for the
-#: displacement").
-_FITNESS_LENGTH_M = {"vlp16": 17.5, "hdl32": 22.5}
-CAPTURE.update(
-    {
-        name: {
-            "feature_params": {"nfeatures": 1000},
-            "verify_score": {
-                "min_fitness_ratio": 0.75,
-                "expected_fitness": 0.75,
-                "expected_fitness_length_m": length,
-                "min_score": 0.10,
-            },
-        }
-        for name, length in _FITNESS_LENGTH_M.items()
-    }
-)
-#: The MID-360-like sensor's visual pipelines take the same gate with their own curve (six tuning cells as above,
-#: candidates verified with the floor at 0.05: 0.71 at 0 m, falling by e over 37.5 m: 1 s keyframes of a 360 deg
-#: sensor overlap well even metres apart) and the ratio in the middle of the range that gave the highest tuning
-#: recall at precision 1.00 (0.60-0.70); the floor 0.10 again gave the same tuning recall as 0.05.
-CAPTURE["mid360"]["verify_score"] = {
-    "min_fitness_ratio": 0.65,
-    "expected_fitness": 0.71,
-    "expected_fitness_length_m": 37.5,
-    "min_score": 0.10,
-}
-#: The gate reaches every pipeline of the sensor's cells that verifies with a score, Scan Context's ICP too: its
-#: right candidates' fitness follows the same curve (0.75 exp(-d / 19.5 m) VLP-16, 0.75 exp(-d / 24 m) HDL-32E, 0.71
-#: exp(-d / 29 m) MID-360 on the same cells) and its false closures are the same look-alikes (fitness ~0.3).
-#: The tuning rule's thresholds with that gate, on each sensor's six tuning cells (`placerec bench
-#: configs/benchmark_tuning.yaml --set 'sensors=[vlp16]' --set 'worlds=[town, campus, industrial]' --set 'seeds=[0,
-#: 1]' --suggest`, and configs/benchmark_sensors_tuning.yaml with 'sensors=[hdl32]' or 'sensors=[mid360]').
-CAPTURE["vlp16"]["thresholds"] = {
-    "scan-context": 0.1,
-    "orb-hbst": 0.2,
-    "brisk-hbst": 0.1,
-    "orb-dbow": 0.1,
-    "surf-dbow": 0.1,
-    "superpoint-dbow": 0.15,
-}
-CAPTURE["hdl32"]["thresholds"] = {"scan-context": 0.1, "orb-dbow": 0.1, "superpoint-dbow": 0.1}
-CAPTURE["mid360"]["thresholds"] = {"scan-context": 0.2, "orb-dbow": 0.1, "superpoint-dbow": 0.1}
+# A sensor's pipeline settings and operating thresholds, where its own tuning cells chose others than the presets'
+# (the 16- and 32-beam spinning sensors' feature counts, the overlap gate of the sparse sensors, their thresholds),
+# are the registry's (`placerec.sensor_presets`), so a user of the sensor gets what its cells measured.
 
 #: Localisation query draws (`placerec.sim.make_localization_split`'s ``draw``): the training queries, on which
 #: the vote model, ``reject_weight`` and DELIGHT were chosen, and the held-out queries reported as results.

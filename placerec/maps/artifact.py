@@ -405,11 +405,13 @@ class MapArtifact:
 
     def check_pipeline(self, name: str, params: Mapping[str, Any] | None = None) -> MapPipeline:
         """The map's entry for pipeline ``name`` if it was built with the same front end and parameters as
-        ``params`` (a mapping over the pipeline's preset); `MapMismatchError` naming what differs."""
+        ``params`` (a mapping over the pipeline's preset and its settings on the map's sensor,
+        `placerec.sensor_presets`, which the map was built with); `MapMismatchError` naming what differs."""
         from placerec.recognizer import make_pipeline
 
         pipe = self.pipeline(name)
-        wanted = make_pipeline(name, params)
+        sensor = self.manifest.sensor.get("name") if self.manifest.sensor else None
+        wanted = make_pipeline(name, params, sensor=sensor)
         if wanted.frontend_key != pipe.frontend_key:
             raise MapMismatchError(
                 f"map {self.path}: pipeline {name!r} was built with another front end "

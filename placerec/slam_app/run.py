@@ -184,6 +184,15 @@ def _backend(
     )  # fmt: skip
 
 
+def loop_pipeline(cfg: SlamConfig, seq: Sequence) -> PlaceRecognizer:
+    """The run's loop-closure pipeline (``loops.pipeline``) with its settings on the scans' sensor
+    (`placerec.sensor_presets`, the sensor of the first scan) under the config's."""
+    sensor = seq[0].sensor if len(seq) else None
+    spec = cfg.loops.pipeline
+    name = None if sensor is None else sensor.name
+    return make_pipeline(spec.name, spec.params, path="loops.pipeline.params", sensor=name)
+
+
 def open_prior_map(cfg: SlamConfig, seq: Sequence) -> tuple[MapArtifact, PlaceRecognizer]:
     """The map of ``prior_map.path`` and its database of the run's pipeline, once checked to serve this run (the
     same pipeline and front end, intensity and, unless allowed, sensor, poses that fit its clouds:
@@ -257,11 +266,7 @@ def slam_sequence(
     With ``prior`` (`open_prior_map`; ``recognizer`` is then its database) the run is a second session: its
     odometry starts at the identity, its closures against the map join it to the map when enough agree, and
     ``map_writer`` (holding the map's keyframes) writes the merged map only if they were joined."""
-    rec = (
-        recognizer
-        if recognizer is not None
-        else make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
-    )
+    rec = recognizer if recognizer is not None else loop_pipeline(cfg, seq)
     odometry = odometry or odometry_source(cfg, seq)
     prior_graph = None
     if prior is not None:
@@ -473,7 +478,10 @@ def map_writer_for(
         else:
             extra = PipelineSpec(name=name)
             threshold = extra.threshold_for(sensor.name if sensor is not None else None)
-            pipelines[name] = (make_pipeline(name, path="output.map_pipelines"), threshold)
+            built = make_pipeline(
+                name, path="output.map_pipelines", sensor=None if sensor is None else sensor.name
+            )
+            pipelines[name] = (built, threshold)
     writer = MapWriter(
         cfg.output.save_map,
         pipelines,
@@ -513,7 +521,7 @@ def run_slam(
         seq = open_dataset(cfg.dataset)
     prior = None
     if cfg.prior_map.path is None:
-        rec = make_pipeline(cfg.loops.pipeline.name, cfg.loops.pipeline.params, path="loops.pipeline.params")
+        rec = loop_pipeline(cfg, seq)
     else:
         prior, rec = open_prior_map(cfg, seq)
     odometry = odometry_source(cfg, seq)

@@ -1,0 +1,70 @@
+"""A pipeline's settings on one sensor (`placerec.sensor_presets`) reach every path that knows the sensor, with the
+threshold chosen under them."""
+
+from __future__ import annotations
+
+import pytest
+
+from placerec.config import parse_config
+from placerec.experiment.runner import build_pipelines
+from placerec.loop_closure import LoopClosureDetector
+from placerec.recognizer import PIPELINES, make_pipeline, pipeline_params
+from placerec.sensor_presets import SENSOR_PRESETS, VISUAL_PIPELINES
+
+
+def test_a_sensors_settings_sit_between_the_preset_and_the_given_params():
+    sp = make_pipeline("superpoint-dbow", sensor="vlp16").params
+    assert (
+        sp.feature_params.nfeatures == 1000 and sp.verify.top_k == 20
+    )  # the sensor's, and the preset's kept
+    assert sp.verify.score.min_fitness_ratio == 0.75 and sp.verify.score.expected_fitness_length_m == 17.5
+    given = make_pipeline(
+        "superpoint-dbow", {"verify": {"score": {"min_fitness_ratio": None}}}, sensor="vlp16"
+    )
+    assert (
+        given.params.verify.score.min_fitness_ratio is None and given.params.feature_params.nfeatures == 1000
+    )
+    for other in (None, "hdl64", "os1-64", "no-such-sensor"):
+        assert pipeline_params("superpoint-dbow", sensor=other) == pipeline_params("superpoint-dbow")
+    assert pipeline_params("scan-context", sensor="mid360").verify.score.min_fitness_ratio == 0.65
+    assert "feature_params" not in type(pipeline_params("scan-context")).model_fields
+
+
+def test_every_sensor_threshold_is_reachable_under_the_settings_it_was_chosen_with():
+    """A sensor's threshold below the pipeline's acceptance floor is only reachable with the floor its settings
+    lower; each sensor's settings are valid parameters of the pipeline."""
+    for name, by_sensor in SENSOR_PRESETS.items():
+        assert name in PIPELINES and PIPELINES[name].sensors is by_sensor
+        for sensor, preset in by_sensor.items():
+            params = pipeline_params(name, sensor=sensor)  # validates them
+            if preset.threshold is not None:
+                assert params.verify.score.min_score <= preset.threshold, (name, sensor)
+            if name in VISUAL_PIPELINES and sensor in ("vlp16", "hdl32"):
+                assert params.feature_params.nfeatures == 1000, (name, sensor)
+
+
+def test_a_detector_for_a_sensor_gets_its_threshold_and_settings_together():
+    det = LoopClosureDetector.for_pipeline("scan-context", sensor="vlp16")
+    assert det.threshold == 0.1 and det.recognizer.params.verify.score.min_fitness_ratio == 0.75
+    plain = LoopClosureDetector.for_pipeline("scan-context")
+    assert plain.threshold == 0.3 and plain.recognizer.params.verify.score.min_fitness_ratio is None
+    own = LoopClosureDetector.for_pipeline("superpoint-dbow", {"verify": {"top_k": 5}}, sensor="hdl32")
+    assert own.threshold == 0.1 and own.recognizer.params.verify.top_k == 5
+    assert own.recognizer.params.verify.score.expected_fitness_length_m == 22.5
+
+
+@pytest.mark.parametrize("sensor, nfeatures, threshold", [("vlp16", 1000, 0.15), ("os1-64", 300, 0.25)])
+def test_an_experiment_on_the_simulator_runs_its_sensors_settings(sensor, nfeatures, threshold):
+    cfg = parse_config(
+        {
+            "dataset": {
+                "source": "simulator",
+                "simulator": {"world": "town", "sensor": sensor, "n_scans": 5},
+            },
+            "pipelines": [{"name": "superpoint-dbow"}],
+        }
+    )
+    ((record, rec),) = build_pipelines(cfg)
+    assert rec.params.feature_params.nfeatures == nfeatures
+    assert record.params["feature_params"]["nfeatures"] == nfeatures  # the run records what it ran with
+    assert cfg.operating_threshold(cfg.pipelines[0]) == threshold
