@@ -509,7 +509,9 @@ def test_slam_saves_more_pipelines_and_the_merged_map_extends_them(tmp_path: Pat
     run_slam(first, tmp_path / "res")
     m1 = MapArtifact.open(tmp_path / "m1", check_hashes=True)
     assert [p.name for p in m1.manifest.pipelines] == ["orb-hbst", "scan-context"]
-    sc = m1.pipeline("scan-context")  # its threshold on the VLP-16, with the VLP-16's settings it was chosen with
+    sc = m1.pipeline(
+        "scan-context"
+    )  # its threshold on the VLP-16, with the VLP-16's settings it was chosen with
     assert sc.threshold == 0.1 and sc.params["verify"]["score"]["min_fitness_ratio"] == 0.75
     assert len(m1.recognizer("scan-context")) == 20
     second = _slam_cfg(
