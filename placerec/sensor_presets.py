@@ -3,9 +3,10 @@
 The registry (`placerec.recognizer.PipelineEntry.sensors`) holds `SENSOR_PRESETS`: `make_pipeline(name, params,
 sensor=...)` merges the sensor's ``params`` under the given ones and `PipelineEntry.threshold_for(sensor)` gives
 its operating threshold, so what the benchmark measured on a sensor is what every user of that sensor gets: an
-experiment or a benchmark cell on the simulator, `LoopClosureDetector.for_pipeline(..., sensor=)`, `placerec slam`
-and `placerec map build` (the scans' sensor). A threshold and the parameters it was chosen with travel together:
-a threshold chosen with an acceptance gate is never applied without it.
+experiment or a benchmark cell on the simulator, `LoopClosureDetector.for_pipeline(..., sensor=)`, map builds
+(`placerec map build`, `placerec slam --save-map`: the scans' sensor, recorded in the map) and `placerec slam`'s
+loop pipeline (whose threshold is the config's ``loops.threshold``). A threshold and the parameters it was chosen
+with travel together: a threshold chosen with an acceptance gate is never applied without it.
 
 Every value was chosen by the tuning rule of docs/protocol.md (above every false closure's score on the tuning
 cells, rounded up to 0.05, never below the verification's floor) on the sensor's own tuning cells, never on the

@@ -82,12 +82,11 @@ class CaptureParams(Params):
     ``odometry_drift``: the relative translation error of the odometry that de-skews and places keyframes (None:
     the true poses); ``keyframes``: the pipelines see keyframes of these windows; ``exclusion``: the loop
     exclusion window of this sensor's cells (keyframes are metres apart, so a window counted in frames would
-    mean something else); ``feature_params``: extractor settings of this sensor's visual pipelines;
-    ``verify_score``: the verification's score and acceptance settings (`placerec.verify.ScoreParams`) of its
-    pipelines that verify with a score (the visual pipelines' and Scan Context's);
-    ``thresholds``: operating thresholds of this sensor's cells per pipeline label, in place of the registry's for
-    the sensor (`placerec.recognizer.PipelineEntry.threshold_for`: chosen on the sensor's tuning cells by the same
-    rule, docs/protocol.md); a pipeline's own ``threshold:`` in the config still wins."""
+    mean something else). Overrides of the registry's settings for the sensor (`placerec.sensor_presets`, chosen
+    on its tuning cells), for trying others: ``feature_params``, extractor settings of this sensor's visual
+    pipelines; ``verify_score``, the verification's score and acceptance settings (`placerec.verify.ScoreParams`)
+    of its pipelines that verify with a score; ``thresholds``, operating thresholds per pipeline label. A
+    pipeline's own ``params:`` and ``threshold:`` in the config still win."""
 
     rate_hz: float | None = Field(None, gt=0, le=1000, allow_inf_nan=False, description="scans per second")
     sweep_motion: bool = Field(False, description="rays measured from the pose at their own time")
