@@ -458,7 +458,9 @@ def make_config(
         evaluation["localize"] = {"success_distance": SUCCESS_M}
     return parse_config({
         "name": f"cross-sensor-{mode}",
-        "dataset": {"source": "simulator", "simulator": {"world": "town", "sensor": "vlp16", "seed": 0}},
+        # a placeholder dataset (the pairs' sequences are given): a sensor without settings of its own
+        # (placerec.sensor_presets), so every pipeline runs its preset whatever the pair
+        "dataset": {"source": "simulator", "simulator": {"world": "town", "sensor": "hdl64", "seed": 0}},
         "preprocess": {"min_range": 0.5, "intensity": {"mode": "raw"},
                        **({} if elevation is None else {"elevation_deg": elevation})},
         # the presets' thresholds: the placeholder dataset's sensor is none of a pair's (each pair mixes two)
