@@ -28,6 +28,8 @@ def test_a_revisit_cell_is_relocalised_and_joined_and_a_disjoint_one_is_not(tmp_
     truth = cell["multisession_truth_map"]  # the same session 2 against the true-pose map
     assert truth["joined"] and truth["false_inter_loops"] == 0 and truth["merged_ate_rmse"] < 0.15
     assert "|" in tool.cell_line(cell)
+    (slam_info,) = tmp_path.glob("*-slam.json")
+    made = slam_info.stat().st_mtime_ns
 
     other = tool.run_cell(
         "town", 0, "disjoint", scans=25, kidnaps=2, work=tmp_path
@@ -36,6 +38,15 @@ def test_a_revisit_cell_is_relocalised_and_joined_and_a_disjoint_one_is_not(tmp_
     assert not other["multisession"]["joined"] and other["multisession"]["merged_ate_rmse"] is None
     assert not other["multisession_truth_map"]["joined"]
     assert len(list(tmp_path.glob("*-truth"))) == 1
+    assert slam_info.stat().st_mtime_ns == made  # session 1's SLAM map too: the same config and parameters
+
+
+def test_a_cells_key_holds_the_map_pipelines_parameters_on_its_sensor() -> None:
+    """The VLP-16's own pipeline settings (placerec.sensor_presets) are part of a cell's key: a cell or map made
+    with other parameters at the same thresholds is not reused."""
+    tool = _tool()
+    vlp16, hdl64 = tool.settings("vlp16", None, 5, 0), tool.settings("hdl64", None, 5, 0)
+    assert vlp16["params"] == tool.map_params(None, "vlp16") != hdl64["params"]
 
 
 def test_slam_odometry_reaches_both_sessions_configs_and_the_cache_key() -> None:

@@ -61,7 +61,9 @@ from placerec.eval.metrics import timing_summary
 from placerec.eval.pose_error import pose_errors
 from placerec.eval.trajectory import trajectory_errors
 from placerec.experiment.protocol import TEST_SEEDS, TEST_WORLDS
+from placerec.hashing import stable_hash
 from placerec.maps import Fix, Localizer, LocalizerParams, MapArtifact
+from placerec.recognizer import pipeline_params
 from placerec.sim.odometry import OdometryDrift, drift_poses
 from placerec.sim.sessions import SessionPair, kidnap_trials, make_session_pair
 from placerec.slam_app.localize import CORRECT_DEG, CORRECT_M, LocalizeRun
@@ -92,6 +94,23 @@ def map_thresholds(pipeline: str | None, sensor: str) -> dict[str, float | None]
     return {p.name: p.threshold_for(sensor) for p in map_pipelines(pipeline)}
 
 
+def map_params(pipeline: str | None, sensor: str) -> str:
+    """A key of the parameters the true-pose map's pipelines run with on ``sensor`` (`placerec.sensor_presets`):
+    a map or cell made with other parameters (the same thresholds) is not reused."""
+    return stable_hash(
+        {
+            p.name: pipeline_params(p.name, p.params, sensor=sensor).saved_dump()
+            for p in map_pipelines(pipeline)
+        }
+    )
+
+
+def _saved(rec: Any) -> dict[str, Any]:
+    """A recognizer's parameters as a map stores them (none for one that declares none)."""
+    params = getattr(rec, "params", None)
+    return params.saved_dump() if params is not None else {}
+
+
 def pipeline_label(pipeline: str | None) -> str:
     return "+".join(p.name for p in map_pipelines(pipeline))
 
@@ -108,7 +127,7 @@ def settings(
     """What a cell depends on besides its world, seed and kind (stored with it; a mismatch recomputes it)."""
     out = {"version": VERSION, "sensor": sensor, "pipeline": pipeline_label(pipeline), "scans": scans, "kidnaps": kidnaps,
            "slam_config": SLAM_CONFIG, "correct_within": [CORRECT_M, CORRECT_DEG],
-           "thresholds": map_thresholds(pipeline, sensor)}  # fmt: skip
+           "thresholds": map_thresholds(pipeline, sensor), "params": map_params(pipeline, sensor)}  # fmt: skip
     if map_closes_loop:
         out["map_closes_loop"] = True
     if join_pipelines:
@@ -127,10 +146,14 @@ def odometry(pair: SessionPair) -> np.ndarray:
 
 # -- the two maps of a world and seed -------------------------------------------------------------------------
 def true_map(pair: SessionPair, pipeline: str | None, folder: Path) -> Path:
-    """Session 1's map at its true poses (built once; reused when ``folder`` holds one with the same thresholds)."""
+    """Session 1's map at its true poses (built once; reused when ``folder`` holds one with the same thresholds and
+    parameters)."""
     if (folder / "manifest.json").is_file():
-        held = {p.name: p.threshold for p in MapArtifact.open(folder).manifest.pipelines}
-        if held == map_thresholds(pipeline, pair.map.sensor.name):
+        held = MapArtifact.open(folder).manifest.pipelines
+        sensor = pair.map.sensor.name
+        if {p.name: p.threshold for p in held} == map_thresholds(pipeline, sensor) and stable_hash(
+            {p.name: p.params for p in held}
+        ) == map_params(pipeline, sensor):
             return folder
     build = MapBuild(source=SequenceSource(), out=folder, pipelines=map_pipelines(pipeline), overwrite=True)
     return write_map(pair.map, build)
@@ -156,19 +179,22 @@ def slam_map(
     from placerec.slam_app.run import loop_pipeline, map_writer_for, slam_sequence
 
     info_path = folder.parent / f"{folder.name}.json"
-    if (folder / "manifest.json").is_file() and info_path.is_file():
-        return folder, json.loads(info_path.read_text())
     sets = [*slam_overrides(pair, "map", odometry), f"output.save_map={folder}", "output.overwrite_map=true"]
     if map_pipelines:
         sets.append(f"output.map_pipelines={list(map_pipelines)}")
     cfg = load_slam_config(SLAM_CONFIG, sets)
-    t0 = time.perf_counter()
     rec = loop_pipeline(cfg, pair.map)
+    key = stable_hash({"config": cfg.model_dump(mode="json"), "loop_params": _saved(rec)})
+    if (folder / "manifest.json").is_file() and info_path.is_file():
+        info = json.loads(info_path.read_text())
+        if info.get("key") == key:  # made with the same config and loop pipeline parameters
+            return folder, info
+    t0 = time.perf_counter()
     with map_writer_for(cfg, pair.map, rec) as writer:
         result = slam_sequence(cfg, pair.map, rec, None, writer)
     err = trajectory_errors(result.optimized, pair.map.poses)
     info = {"scans": len(pair.map), "ate_rmse": err.ate_rmse, "loops": len(result.loops),
-            "seconds": round(time.perf_counter() - t0, 1)}  # fmt: skip
+            "seconds": round(time.perf_counter() - t0, 1), "key": key}  # fmt: skip
     info_path.write_text(json.dumps(info))
     return folder, info
 
