@@ -228,13 +228,12 @@ class PipelineEntry:
 
     def threshold_for(self, sensor: str | None) -> float | None:
         """The operating threshold on ``sensor``'s scans: its own (``sensors``), else ``threshold``."""
-        own = self.sensors.get(sensor) if sensor is not None else None
-        return own.threshold if own is not None and own.threshold is not None else self.threshold
+        own = self.sensors.get(sensor or "", SensorPreset()).threshold
+        return self.threshold if own is None else own
 
     def params_for(self, sensor: str | None) -> Mapping[str, Any]:
         """The parameter overrides on ``sensor``'s scans (``sensors``; none for another or no sensor)."""
-        own = self.sensors.get(sensor) if sensor is not None else None
-        return own.params if own is not None else {}
+        return self.sensors.get(sensor or "", SensorPreset()).params
 
 
 #: Registered pipelines by short name. The loop pipelines' operating thresholds were picked by the tuning rule of

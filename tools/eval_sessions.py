@@ -105,12 +105,6 @@ def map_params(pipeline: str | None, sensor: str) -> str:
     )
 
 
-def _saved(rec: Any) -> dict[str, Any]:
-    """A recognizer's parameters as a map stores them (none for one that declares none)."""
-    params = getattr(rec, "params", None)
-    return params.saved_dump() if params is not None else {}
-
-
 def pipeline_label(pipeline: str | None) -> str:
     return "+".join(p.name for p in map_pipelines(pipeline))
 
@@ -183,13 +177,16 @@ def slam_map(
     if map_pipelines:
         sets.append(f"output.map_pipelines={list(map_pipelines)}")
     cfg = load_slam_config(SLAM_CONFIG, sets)
-    rec = loop_pipeline(cfg, pair.map)
-    key = stable_hash({"config": cfg.model_dump(mode="json"), "loop_params": _saved(rec)})
+    sensor = pair.map.sensor.name
+    specs = [cfg.loops.pipeline, *(PipelineSpec(name=n) for n in map_pipelines)]
+    params = [pipeline_params(p.name, p.params, sensor=sensor).saved_dump() for p in specs]
+    key = stable_hash({"config": cfg.model_dump(mode="json"), "params": params})
     if (folder / "manifest.json").is_file() and info_path.is_file():
         info = json.loads(info_path.read_text())
-        if info.get("key") == key:  # made with the same config and loop pipeline parameters
+        if info.get("key") == key:  # made with the same config and pipeline parameters on the sensor
             return folder, info
     t0 = time.perf_counter()
+    rec = loop_pipeline(cfg, pair.map)
     with map_writer_for(cfg, pair.map, rec) as writer:
         result = slam_sequence(cfg, pair.map, rec, None, writer)
     err = trajectory_errors(result.optimized, pair.map.poses)

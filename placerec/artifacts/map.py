@@ -100,6 +100,7 @@ def write_map(
     chosen = select_keyframes(poses, config.keyframe_metres)
     first = seq[int(chosen[0])] if len(chosen) else None  # its sensor is the map's; read once
     sensor = None if first is None else first.sensor
+    model = None if sensor is None else sensor.name  # its pipelines' settings and thresholds on it
     recs: dict[str, tuple[PlaceRecognizer, float | None]] = {}
     for k, spec in enumerate(config.pipelines):
         key = spec.name
@@ -108,13 +109,8 @@ def write_map(
                 f"pipelines[{k}]: {key!r} is listed twice (a map holds one database per pipeline)"
             )
         recs[key] = (
-            make_pipeline(
-                spec.name,
-                spec.params,
-                path=f"pipelines[{k}].params",
-                sensor=None if sensor is None else sensor.name,
-            ),
-            spec.threshold_for(None if sensor is None else sensor.name),
+            make_pipeline(spec.name, spec.params, path=f"pipelines[{k}].params", sensor=model),
+            spec.threshold_for(model),
         )
     if not recs:
         raise ConfigError("pipelines: a map needs at least one pipeline")

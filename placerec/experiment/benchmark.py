@@ -256,17 +256,11 @@ def _capture_params(name: str, capture: CaptureParams) -> dict[str, Any]:
     if cls is None:
         return {}
     fields = cls.Params.model_fields
-    verify = fields.get("verify")
-    verify_model = None if verify is None else verify.annotation
+    verify = fields["verify"].annotation if "verify" in fields else None
     out: dict[str, Any] = {}
     if capture.feature_params and "feature_params" in fields:
         out["feature_params"] = capture.feature_params
-    if (
-        capture.verify_score
-        and isinstance(verify_model, type)
-        and issubclass(verify_model, Params)
-        and "score" in verify_model.model_fields
-    ):
+    if capture.verify_score and "score" in getattr(verify, "model_fields", {}):
         out["verify"] = {"score": capture.verify_score}
     return out
 

@@ -477,11 +477,9 @@ def map_writer_for(
             pipelines[name] = (prior.recognizer(name, fresh=True), prior.pipeline(name).threshold)
         else:
             extra = PipelineSpec(name=name)
-            threshold = extra.threshold_for(sensor.name if sensor is not None else None)
-            built = make_pipeline(
-                name, path="output.map_pipelines", sensor=None if sensor is None else sensor.name
-            )
-            pipelines[name] = (built, threshold)
+            model = None if sensor is None else sensor.name
+            built = make_pipeline(name, path="output.map_pipelines", sensor=model)
+            pipelines[name] = (built, extra.threshold_for(model))
     writer = MapWriter(
         cfg.output.save_map,
         pipelines,
