@@ -36,6 +36,7 @@ from placerec.errors import ConfigError
 from placerec.eval.metrics import loop_metrics
 from placerec.eval.pose_truth import PoseGroundTruth
 from placerec.experiment.benchmark import load_benchmark_config, read_cell
+from placerec.experiment.benchmark_summary import tuning_pick
 from placerec.experiment.candidates import CandidateTable
 
 BINS_M = (0, 1, 2, 3, 4, 6, 8, 12, 20, 40)
@@ -132,7 +133,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(
         f"\nratio sweep (floor {args.floor:g}; ratio 0: no gate): threshold the tuning rule picks, recall there"
     )
-    for ratio in [0.0, *args.ratios]:
+    for ratio in dict.fromkeys([0.0, *args.ratios]):
         row = {}
         for label in args.pipelines:
             worst, recalls, per_cell = -math.inf, [], []
@@ -146,7 +147,7 @@ def main(argv: list[str] | None = None) -> dict:
                 wrong = (met.match_ids >= 0) & ~met.correct
                 worst = max(worst, float(met.scores[wrong].max()) if wrong.any() else -math.inf)
                 per_cell.append(met)
-            pick = max(args.floor, (math.floor(worst / STEP + 1e-9) + 1) * STEP if worst > -math.inf else 0.0)
+            pick = tuning_pick(worst, args.floor, STEP)
             for met in per_cell:
                 acc = (met.match_ids >= 0) & (met.scores >= pick)
                 recalls.append(float((acc & met.correct).sum()) / max(met.n_revisits, 1))

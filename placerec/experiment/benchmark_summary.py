@@ -135,17 +135,23 @@ def suggest_thresholds(
             continue
         unit = step if max(t for t in top if math.isfinite(t)) <= 1.0 else 1.0
         worst = max((f for f in false if math.isfinite(f)), default=-math.inf)
-        pick = 0.0 if worst == -math.inf else (math.floor(worst / unit + 1e-9) + 1) * unit
         floors = [lookup(c["metrics"].get(label, {}), ("min_score",)) for c in cells.values()]
         floor = max((f for f in floors if isinstance(f, int | float)), default=0.0)
-        out[label] = round(max(pick, floor), 6)
+        out[label] = tuning_pick(worst, floor, unit)
     return out
+
+
+def tuning_pick(worst_false: float, floor: float, step: float = 0.05) -> float:
+    """The tuning rule (docs/protocol.md): above ``worst_false``, the best score of any false closure (-inf: none),
+    rounded up to the next multiple of ``step``, and never below the verification's ``floor``."""
+    pick = 0.0 if worst_false == -math.inf else (math.floor(worst_false / step + 1e-9) + 1) * step
+    return round(max(pick, floor), 6)
 
 
 def suggest_by_sensor(
     bench: BenchmarkConfig, cells: dict[str, dict[str, Any]], step: float = 0.05
 ) -> dict[str, dict[str, float | None]]:
-    """`suggest_thresholds` over each sensor's cells alone (the registry's ``sensor_thresholds``)."""
+    """`suggest_thresholds` over each sensor's cells alone (what `placerec.sensor_presets` holds)."""
     sensor_of = {c.name: c.sensor for c in bench.cells()}
     out: dict[str, dict[str, float | None]] = {}
     for sensor in dict.fromkeys(sensor_of[name] for name in cells):
