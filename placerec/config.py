@@ -20,9 +20,11 @@ from placerec.errors import ConfigError, short_repr
 from placerec.eval.exclusion import ExclusionWindow
 from placerec.keyframes import KeyframeParams
 from placerec.loop_filter import LoopFilterParams
+from placerec.odometry_gate import OdometryGateParams
 from placerec.params import Params, resolve
 from placerec.preprocess import PreprocessParams
 from placerec.safe_yaml import load_yaml, load_yaml_file
+from placerec.sim.odometry import OdometryDrift, slam_demo_drift
 
 P = TypeVar("P", bound=Params)
 
@@ -182,6 +184,17 @@ class PoseTruthConfig(Params):
     voxel: float = Field(1.0, gt=0, allow_inf_nan=False, description="m")
 
 
+class OdometryGateConfig(Params):
+    """Judge closures as a SLAM system with odometry does (`placerec.odometry_gate`): a closure that disagrees
+    with the odometry by more than ``bounds`` is no answer, and the pipeline's next candidate that agrees is. The
+    odometry is the dataset's true poses drifting as ``drift`` says (default configs/slam_demo.yaml's), drawn with
+    ``seed`` (None: the simulator's seed, else 0), the odometry `placerec slam` runs on with that config."""
+
+    bounds: OdometryGateParams = Field(default_factory=OdometryGateParams)
+    drift: OdometryDrift = Field(default_factory=slam_demo_drift)
+    seed: int | None = Field(None, description="the drift's seed (None: the simulator's seed, else 0)")
+
+
 class EvaluationConfig(Params):
     """How pipelines are evaluated (loop: VPR paper protocol; localize: ISHOT paper protocol)."""
 
@@ -206,6 +219,9 @@ class EvaluationConfig(Params):
         description="VPR paper's ground truth: a revisit is near AND an ICP from the true pose succeeds (1 m, 20 deg)",
     )
     localize: LocalizeConfig = Field(default_factory=LocalizeConfig)
+    odometry_gate: OdometryGateConfig | None = Field(
+        None, description="loop mode: closures judged against a drifting odometry (None: appearance alone)"
+    )
 
 
 class OutputConfig(Params):

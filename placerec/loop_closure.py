@@ -61,6 +61,7 @@ from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES, ExclusionWindow, path_length
 from placerec.keyframes import Keyframe, KeyframeBuilder, KeyframeParams
 from placerec.loop_filter import LoopFilter, LoopFilterParams
+from placerec.odometry_gate import OdometryGateParams, odometry_disagreement
 from placerec.realtime import LateScanError, RealtimeParams, RealtimeStats, SerialWorker
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, as_pose
 
@@ -70,7 +71,7 @@ __all__ = ["LoopClosureDetector", "PlaceResult", "RealtimeParams", "RealtimeStat
 @dataclass
 class PlaceResult:
     """One place's query and insertion: its id, the bound it queried with, every candidate, the accepted ones,
-    the loop filter's status (None: no filter ran) and the stage times (ms: query, insert, verify)."""
+    the loop filter's or odometry gate's status (None: neither ran) and the stage times (ms: query, insert, verify)."""
 
     place_id: int
     max_id: int
@@ -92,7 +93,10 @@ class LoopClosureDetector:
     islands and temporal consistency over each query's candidates (`placerec.loop_filter`; None: off); the reason a
     filtered query has no candidate is in ``last_status``. ``prior_entries``: places of a prior map the recognizer
     already holds under ids 0..prior_entries-1, always eligible (module docstring); 0: none. ``realtime``:
-    the real-time mode (module docstring; None: sequential).
+    the real-time mode (module docstring; None: sequential). ``odometry_gate``: a closure is accepted only where
+    it agrees with the odometry ``pose`` given to `process` (`placerec.odometry_gate`; each place then needs its
+    pose; a prior map's places, in another frame, are not gated); a query whose candidates passed the threshold
+    but not the gate has ``last_status`` ``odometry_gate``. None: off.
     """
 
     @classmethod
@@ -130,6 +134,7 @@ class LoopClosureDetector:
         keyframes: KeyframeParams | None = None,
         prior_entries: int = 0,
         realtime: RealtimeParams | None = None,
+        odometry_gate: OdometryGateParams | None = None,
     ) -> None:
         if prior_entries < 0:
             raise ConfigError(f"prior_entries must be >= 0 (places of a prior map), got {prior_entries}")
@@ -144,9 +149,11 @@ class LoopClosureDetector:
         self.threshold = float(threshold)
         self.k = int(k)
         self.loop_filter = None if loop_filter is None else LoopFilter(loop_filter)
+        self.odometry_gate = odometry_gate
         self.last_status = "ok"
         self._times: list[float] = []
         self._path: list[float] = []
+        self._poses: list[np.ndarray] = []  # each own place's pose, NaN where none (the odometry gate's)
         self._last_position: np.ndarray | None = None
         self._position_before: np.ndarray | None = None  # the position before the last recorded place
         self.last_max_id = -1
@@ -209,6 +216,7 @@ class LoopClosureDetector:
         """Undo the last `_record_motion` (its time, its path length and the position it moved to)."""
         self._times.pop()
         self._path.pop()
+        self._poses.pop()
         self._last_position = self._position_before
 
     def _record_motion(self, pose: np.ndarray | None, timestamp: float | None) -> None:
@@ -224,15 +232,19 @@ class LoopClosureDetector:
             raise ScanDataError(
                 "exclusion_metres is set: process() needs the scan's pose (odometry is enough)"
             )
+        if pose is None and self.odometry_gate is not None:
+            raise ScanDataError("odometry_gate is set: process() needs the scan's odometry pose")
         step = 0.0
         self._position_before = self._last_position
         if pose is not None:
-            position = as_pose(pose)[:3, 3]
+            pose = as_pose(pose)
+            position = pose[:3, 3]
             if self._last_position is not None:  # the ground truth's formula, so both agree to the last bit
                 step = float(path_length(np.stack([self._last_position, position]))[1])
             self._last_position = position
         self._times.append(float(timestamp) if timestamp is not None else float(len(self._times)))
         self._path.append((self._path[-1] if self._path else 0.0) + step)
+        self._poses.append(pose if pose is not None else np.full((4, 4), np.nan))
 
     def process(
         self,
@@ -438,7 +450,7 @@ class LoopClosureDetector:
         timing: dict[str, float] = {}
         t0 = time.perf_counter()
         answered: list[Candidate] = []
-        status = None
+        status: str | None = None
         lf = self.loop_filter
         if max_id >= 0:
             k = self.k if lf is None else max(self.k, lf.params.max_candidates)
@@ -453,7 +465,30 @@ class LoopClosureDetector:
         timing["insert"] = (time.perf_counter() - t0) * 1e3
         split_verify_time(answered, timing)
         accepted = [c for c in candidates if c.score >= self.threshold]
+        if self.odometry_gate is not None:
+            kept = self._gated(scan_id, accepted) if accepted else accepted
+            status = "odometry_gate" if accepted and not kept else status or "ok"
+            accepted = kept
         return PlaceResult(scan_id, max_id, candidates, accepted, status, timing)
+
+    def _gated(self, scan_id: int, accepted: list[Candidate]) -> list[Candidate]:
+        """The ``accepted`` closures of place ``scan_id`` that agree with the odometry (`odometry_gate`); a
+        prior map's place and a closure without a relative pose pass."""
+        assert self.odometry_gate is not None
+        own = scan_id - self.prior_entries
+        checked = [c for c in accepted if c.match_id >= self.prior_entries and c.relative_pose is not None]
+        if not checked:
+            return accepted
+        matches = [c.match_id - self.prior_entries for c in checked]
+        trans, rot = odometry_disagreement(
+            np.stack([np.asarray(c.relative_pose, dtype=np.float64) for c in checked]),
+            np.stack([self._poses[m] for m in matches]),
+            np.stack([self._poses[own]] * len(checked)),
+        )
+        path = self._path[own] - np.array([self._path[m] for m in matches])
+        ok = self.odometry_gate.admits(trans, rot, path)
+        refused = {id(c) for c, good in zip(checked, ok, strict=True) if not good}
+        return [c for c in accepted if id(c) not in refused]
 
     def skip(self, pose: np.ndarray | None = None, timestamp: float | None = None) -> int:
         """Record a frame that is not a place (e.g. one `process` refused): it takes the next id and counts in

@@ -305,12 +305,13 @@ def load_benchmark_config(path: str | Path, overrides: list[str] | None = None) 
 def _cell_key(cfg: ExperimentConfig) -> str:
     """The stamp of a cell's result: its config, each pipeline's resolved parameters (a registry preset changed
     since makes the cell run again) and the placerec version (not the thresholds: the figures at a threshold are
-    recomputed from the cell's files, `cell_metrics`; nor the localisation settings)."""
+    recomputed from the cell's files, `cell_metrics`, and so is the odometry gate; nor the localisation settings)."""
     from placerec._version import __version__
     from placerec.recognizer import pipeline_params
 
     data = cfg.model_dump(mode="json")
     data["evaluation"].pop("localize", None)  # localisation settings: no part of a loop-mode cell
+    data["evaluation"].pop("odometry_gate", None)  # judged from the cell's files, as the thresholds
     for spec, given in zip(data["pipelines"], cfg.pipelines, strict=True):
         spec.pop("threshold", None)
         if _recognizer_class(given.name) is not None:
@@ -442,7 +443,8 @@ def run_benchmark(
 @dataclass(frozen=True)
 class CellFiles:
     """A finished cell read back: its config (with its sensor's settings), poses, scan times, the truth clouds of
-    the run, and per pipeline (in the config's order) its candidate table and pose ground truth."""
+    the run, and per pipeline (in the config's order) its candidate table (after the odometry gate, if the
+    evaluation has one), pose ground truth and the candidates the gate refused."""
 
     cfg: ExperimentConfig
     poses: np.ndarray
@@ -450,6 +452,7 @@ class CellFiles:
     truth: Any
     tables: list[Any]
     pose_gts: list[Any]
+    refused: list[np.ndarray]
 
 
 def read_cell(bench: BenchmarkConfig, cell: Cell, folder: Path) -> CellFiles:
@@ -457,7 +460,7 @@ def read_cell(bench: BenchmarkConfig, cell: Cell, folder: Path) -> CellFiles:
     from them, the run's overlap search not made again; `ArtifactError` naming the file when one is missing or
     damaged."""
     from placerec.experiment.candidates import read_candidates
-    from placerec.experiment.report import pose_truths
+    from placerec.experiment.report import odometry_refusals, pose_truths
     from placerec.experiment.run_folder import slug
     from placerec.experiment.truth import TruthClouds
     from placerec.io import read_poses
@@ -476,8 +479,12 @@ def read_cell(bench: BenchmarkConfig, cell: Cell, folder: Path) -> CellFiles:
     truth = TruthClouds(cfg.evaluation, poses)
     truth.voxels = [keys[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
     truth.overlap = overlap  # the overlap search of the run, not made again
-    tables = [read_candidates(folder / f"candidates_{slug(p.display_name)}.csv") for p in cfg.pipelines]
-    return CellFiles(cfg, poses, stamps, truth, tables, pose_truths(cfg, tables, poses, stamps, truth))
+    raw = [read_candidates(folder / f"candidates_{slug(p.display_name)}.csv") for p in cfg.pipelines]
+    refused = odometry_refusals(cfg, raw, poses)
+    tables = [t.refused(r) for t, r in zip(raw, refused, strict=True)]
+    return CellFiles(
+        cfg, poses, stamps, truth, tables, pose_truths(cfg, tables, poses, stamps, truth), refused
+    )
 
 
 def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[str, Any]) -> dict[str, Any]:
@@ -488,10 +495,12 @@ def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[
 
     f = read_cell(bench, cell, folder)
     out = {}
-    for spec, table, pose_gt in zip(f.cfg.pipelines, f.tables, f.pose_gts, strict=True):
+    for spec, table, pose_gt, refused in zip(f.cfg.pipelines, f.tables, f.pose_gts, f.refused, strict=True):
         label = spec.display_name  # the cell's spec: with its sensor's thresholds
         threshold = f.cfg.operating_threshold(spec)
         _, summary = loop_summary(f.cfg, table, f.poses, f.stamps, threshold, f.truth, pose_gt)
+        if f.cfg.evaluation.odometry_gate is not None:
+            summary["odometry_gate_refused"] = int(refused.sum())
         kept = stored.get(label, {})
         out[label] = {**kept, **finite_or_null(summary)}
     return out

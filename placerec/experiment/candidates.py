@@ -150,6 +150,28 @@ class CandidateTable:
         """(query_ids, match_ids, scores) of the best candidate (-1 / NaN where none)."""
         return self.query_ids, self.match_ids[:, 0], self.scores[:, 0]
 
+    def refused(self, refused: np.ndarray) -> CandidateTable:
+        """The table with the (Q, N) ``refused`` candidates turned into rejected ones (score 0, ``accepted`` 0, the
+        verification's rule for a gate, `placerec.verify.candidates`) and each query's ranks sorted again by
+        score, accepted ones first on equal scores, the order kept otherwise."""
+        refused = np.asarray(refused, dtype=bool) & (self.match_ids >= 0)
+        scores = np.where(refused, 0.0, self.scores)
+        accepted = np.where(refused, np.int8(0), self.accepted).astype(np.int8)
+        primary = np.where(self.match_ids >= 0, -scores, np.inf)  # padding last
+        order = np.lexsort((accepted != 1, primary), axis=1)  # stable: equal keys keep their ranks
+        take = lambda a: np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), 1)  # noqa: E731
+        return CandidateTable(
+            self.query_ids,
+            take(self.match_ids),
+            take(scores),
+            take(self.inliers),
+            take(self.relative_poses),
+            take(self.verified_scores),
+            take(self.fitness),
+            take(self.rmse),
+            take(accepted),
+        )
+
     def topn(self, n: int) -> np.ndarray:
         """(Q, n) match ids of the first ``n`` ranks, -1 padded."""
         out = np.full((self.match_ids.shape[0], n), -1, dtype=np.int64)

@@ -282,6 +282,36 @@ def loop_summary(
     return metrics, summary
 
 
+def odometry_refusals(
+    cfg: ExperimentConfig, tables: list[CandidateTable], poses: np.ndarray
+) -> list[np.ndarray]:
+    """Per table, the (Q, N) candidates ``evaluation.odometry_gate`` refuses (all False without it): each
+    candidate's relative pose against the drifting odometry made from ``poses`` (`OdometryGateConfig`), over the
+    odometry's path between the two places (`placerec.odometry_gate`)."""
+    gate = cfg.evaluation.odometry_gate
+    if gate is None:
+        return [np.zeros(t.match_ids.shape, bool) for t in tables]
+    from placerec.odometry_gate import odometry_disagreement
+    from placerec.sim.odometry import drift_poses
+    from placerec.types import path_length
+
+    seed = gate.seed
+    if seed is None:
+        seed = cfg.dataset.simulator.seed if cfg.dataset.source == "simulator" else 0
+    odom = drift_poses(poses, gate.drift, seed)
+    path = path_length(odom[:, :3, 3])
+    out = []
+    for t in tables:
+        refused = np.zeros(t.match_ids.shape, bool)
+        qi, rank = np.nonzero(t.match_ids >= 0)
+        if qi.size:
+            q, m = t.query_ids[qi], t.match_ids[qi, rank]
+            trans, rot = odometry_disagreement(t.relative_poses[qi, rank], odom[m], odom[q])
+            refused[qi, rank] = ~gate.bounds.admits(trans, rot, path[q] - path[m])
+        out.append(refused)
+    return out
+
+
 def pose_truths(
     cfg: ExperimentConfig,
     tables: list[CandidateTable],
@@ -339,12 +369,16 @@ def report_loop(
             np.savetxt(fh, seq.timestamps, fmt="%.6f")
     results: dict[str, Any] = {}
     curves: dict[str, dict[str, Any]] = {}
-    tables = [record.table() for record in records]
+    raw = [record.table() for record in records]
+    refusals = odometry_refusals(cfg, raw, poses)
+    tables = [t.refused(r) for t, r in zip(raw, refusals, strict=True)]
     pose_gts = pose_truths(cfg, tables, poses, seq.timestamps, truth)
     all_metrics = []
-    for record, table, pose_gt in zip(records, tables, pose_gts, strict=True):
+    for record, table, pose_gt, refused in zip(records, tables, pose_gts, refusals, strict=True):
         write_candidates(run / f"candidates_{slug(record.label)}.csv", record.query_ids, record.candidates)
         metrics, summary = loop_summary(cfg, table, poses, seq.timestamps, record.threshold, truth, pose_gt)
+        if cfg.evaluation.odometry_gate is not None:
+            summary["odometry_gate_refused"] = int(refused.sum())
         all_metrics.append(metrics)
         q, m = metrics.query_ids, metrics.match_ids
         summary["time_ms"] = _timing(record)
@@ -366,7 +400,7 @@ def report_loop(
         write_closures_mcap(
             run / f"closures_{slug(record.label)}.mcap",
             poses,
-            loop_edges(record, accepted),
+            loop_edges(record, accepted, refused[:, 0] if refused.size else None),
             timestamps=seq.timestamps,
         )
         if cfg.output.figures:
@@ -397,16 +431,20 @@ def report_loop(
     return payload
 
 
-def loop_edges(record: PipelineRecord, accepted: np.ndarray) -> list[LoopEdge]:
+def loop_edges(
+    record: PipelineRecord, accepted: np.ndarray, refused_top: np.ndarray | None = None
+) -> list[LoopEdge]:
     """Each query's top candidate as a `LoopEdge` for ``closures_<label>.mcap``: accepted where ``accepted`` (the
     query's answer at the report's threshold, aligned with ``record.query_ids``) holds and verification did not
-    reject it; a rejected one names verification's reason, or ``threshold`` for a score below it."""
+    reject it; a rejected one names verification's reason, ``odometry_gate`` where ``refused_top`` (the
+    evaluation's odometry gate refused it), or ``threshold`` for a score below it."""
     edges = []
-    for q, ok, cands in zip(record.query_ids, accepted, record.candidates, strict=True):
+    refused = np.zeros(len(record.query_ids), bool) if refused_top is None else refused_top
+    for q, ok, cands, gated in zip(record.query_ids, accepted, record.candidates, refused, strict=True):
         if not cands:
             continue
         c = cands[0]
-        why = c.rejection or (None if ok else "threshold")
+        why = c.rejection or ("odometry_gate" if gated else None) or (None if ok else "threshold")
         edges.append(LoopEdge(q, c.match_id, c.score, c.relative_pose, c.inliers, why is None, why))
     return edges
 

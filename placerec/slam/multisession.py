@@ -55,6 +55,7 @@ from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES
 from placerec.eval.pose_error import pose_errors
 from placerec.loop_closure import LoopClosureDetector
+from placerec.odometry_gate import OdometryGateParams
 from placerec.realtime import RealtimeParams
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
 from placerec.slam.online import detect_closures, finish_closures, record_candidates
@@ -136,7 +137,9 @@ class MultiSessionSlam:
     test. The map's part of the graph is built (and its factors checked) here; it is solved at the join.
     ``realtime``: the detector's real-time mode (`placerec.slam.online`): closures arrive a few scans late and are
     routed as they come; `finish` waits for the rest. The closures are the sequential mode's, but the join is
-    tested on the estimates of when they arrive, so it may happen at another scan.
+    tested on the estimates of when they arrive, so it may happen at another scan. ``odometry_gate``: the
+    detector's check of the session's own closures against its odometry (`placerec.odometry_gate`; the map's
+    places are in another frame and pass; None: off).
     """
 
     def __init__(
@@ -156,6 +159,7 @@ class MultiSessionSlam:
         join_translation_m: float = 1.0,
         join_rotation_deg: float = 5.0,
         realtime: RealtimeParams | None = None,
+        odometry_gate: OdometryGateParams | None = None,
     ) -> None:
         if anchor not in ("fixed", "anchored"):
             raise ConfigError(f"anchor must be 'fixed' or 'anchored', got {anchor!r}")
@@ -178,7 +182,7 @@ class MultiSessionSlam:
         self.params = graph or GraphParams()
         self.detector = LoopClosureDetector(
             recognizer, threshold, exclusion_frames, exclusion_seconds, exclusion_metres, k=k, prior_entries=M,
-            realtime=realtime,
+            realtime=realtime, odometry_gate=odometry_gate,
         )  # fmt: skip
         self._map = self._map_graph(prior_odometry or [], prior_loops or [])
         self.session = PoseGraph(self.params)  # the session in its own frame, keys 0..N-1 (detector ids - M)

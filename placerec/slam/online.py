@@ -32,6 +32,7 @@ from placerec.errors import ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES
 from placerec.eval.pose_error import full_pose_mask
 from placerec.loop_closure import LoopClosureDetector
+from placerec.odometry_gate import OdometryGateParams
 from placerec.realtime import LateScanError, RealtimeParams
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan
@@ -110,7 +111,8 @@ class OnlineSlam:
     ``threshold``: verified score from which a closure is accepted (closures without a 6-DoF pose, or that the
     pipeline's verification rejected, never enter the graph); ``k``: closures accepted per scan at most;
     the exclusion limits are those of `LoopClosureDetector`; ``graph``: `GraphParams`; ``realtime``: the
-    detector's real-time mode (module docstring; None: sequential). ``candidates[i]``: scan i's candidates
+    detector's real-time mode (module docstring; None: sequential); ``odometry_gate``: the detector's check of
+    each closure against the odometry poses given to `process` (`placerec.odometry_gate`; None: off). ``candidates[i]``: scan i's candidates
     (in real-time mode filled in when its query completes).
     """
 
@@ -124,6 +126,7 @@ class OnlineSlam:
         exclusion_metres: float | None = None,
         k: int = 1,
         realtime: RealtimeParams | None = None,
+        odometry_gate: OdometryGateParams | None = None,
     ) -> None:
         self.detector = LoopClosureDetector(
             recognizer,
@@ -133,6 +136,7 @@ class OnlineSlam:
             exclusion_metres,
             k=k,
             realtime=realtime,
+            odometry_gate=odometry_gate,
         )
         self.graph = PoseGraph(graph or GraphParams())
         self.loops: list[LoopFactor] = []

@@ -21,6 +21,7 @@ from placerec.config import (
     experiment_preprocess,
     read_config_file,
 )
+from placerec.odometry_gate import OdometryGateParams
 from placerec.params import Params, resolve
 from placerec.preprocess import PreprocessParams
 from placerec.realtime import RealtimeParams
@@ -87,6 +88,11 @@ class LoopsConfig(Params):
         None,
         description="the detector's real-time mode ({budget_ms: 100, max_backlog: 3}: query and verification in a"
         " worker thread, closures a few scans late, the same ones); None: sequential",
+    )
+    odometry_gate: OdometryGateParams | None = Field(
+        None,
+        description="accept a closure only where it agrees with the odometry (placerec.odometry_gate: {} for the"
+        " bounds chosen for the demo's drift); None: off, the robust back end alone judges",
     )
 
 

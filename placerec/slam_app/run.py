@@ -172,7 +172,7 @@ def _backend(
     if prior is None:
         return OnlineSlam(
             rec, cfg.loops.threshold, cfg.graph, ex.frames, ex.seconds, ex.metres, k=cfg.loops.k,
-            realtime=cfg.loops.realtime,
+            realtime=cfg.loops.realtime, odometry_gate=cfg.loops.odometry_gate,
         )  # fmt: skip
     pm = cfg.prior_map
     return MultiSessionSlam(
@@ -180,7 +180,7 @@ def _backend(
         prior_odometry=None if graph is None else graph.odometry,
         prior_loops=None if graph is None else graph.loops,
         anchor=pm.anchor, min_join_loops=pm.min_join_loops, join_translation_m=pm.join_translation_m,
-        join_rotation_deg=pm.join_rotation_deg, realtime=cfg.loops.realtime,
+        join_rotation_deg=pm.join_rotation_deg, realtime=cfg.loops.realtime, odometry_gate=cfg.loops.odometry_gate,
     )  # fmt: skip
 
 

@@ -1,0 +1,195 @@
+"""The odometry gate (placerec.odometry_gate): its formula, the detector's use of it and the evaluation's."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from placerec.config import parse_config
+from placerec.errors import ConfigError, ScanDataError
+from placerec.experiment.benchmark import _cell_key
+from placerec.experiment.candidates import CandidateTable
+from placerec.experiment.report import odometry_refusals
+from placerec.loop_closure import LoopClosureDetector
+from placerec.odometry_gate import OdometryGateParams, odometry_disagreement
+from placerec.recognizer import Recognizer
+from placerec.safe_yaml import load_yaml_file
+from placerec.sim.odometry import OdometryDrift, drift_poses, slam_demo_drift
+from placerec.types import Candidate
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _pose(x=0.0, y=0.0, yaw_deg=0.0):
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = x, y
+    return T
+
+
+def test_disagreement_is_the_translation_and_angle_between_the_closure_and_the_odometrys_motion():
+    # odometry: the query 10 m ahead of the match, turned 30 deg; the closure says 3 m to the side and 40 deg
+    odom_m, odom_q = _pose(5.0, 2.0, 90.0), _pose(5.0, 2.0, 90.0) @ _pose(10.0, 0.0, 30.0)
+    t, r = odometry_disagreement(_pose(10.0, 3.0, 40.0), odom_m, odom_q)
+    assert t[0] == pytest.approx(3.0) and r[0] == pytest.approx(10.0)
+    # the match's frame, not the world's: the same closure in another heading of the match disagrees as much
+    t2, r2 = odometry_disagreement(_pose(10.0, 3.0, 40.0), _pose(), _pose(10.0, 0.0, 30.0))
+    assert t2[0] == pytest.approx(3.0) and r2[0] == pytest.approx(10.0)
+    nan_t, nan_r = odometry_disagreement(np.full((4, 4), np.nan), odom_m, odom_q)
+    assert np.isnan(nan_t[0]) and np.isnan(nan_r[0])
+
+
+def test_bounds_grow_with_the_path_and_a_closure_without_a_pose_passes():
+    g = OdometryGateParams(metres=1.0, per_metre=0.04, degrees=4.0, degrees_per_metre=0.05)
+    # at 100 m of path: 5 m and 9 deg
+    ok = g.admits(
+        np.array([4.9, 5.1, 0.0, 0.0, np.nan]), np.array([0.0, 0.0, 8.9, 9.1, 50.0]), np.full(5, 100.0)
+    )
+    assert ok.tolist() == [True, False, True, False, True]
+    assert g.admits(np.array([1.0]), np.array([4.0]), np.array([0.0])).all()
+    with pytest.raises(ConfigError, match="per_metre"):
+        OdometryGateParams.model_validate({"per_metre": -0.1})
+
+
+class _Posed(Recognizer):
+    """Answers each query with fixed (match id, relative pose) candidates, best first."""
+
+    name = "posed"
+
+    def __init__(self, answers):
+        super().__init__()
+        self.answers = answers
+
+    def describe(self, scan):
+        return {"x": np.zeros(1)}
+
+    def add_description(self, scan_id, description, pose=None):
+        pass
+
+    def save(self, path):
+        raise NotImplementedError
+
+    def load(self, path):
+        raise NotImplementedError
+
+    def query_description(self, description, k=1, max_id=None, query_id=-1):
+        got = [(m, T) for m, T in self.answers.get(query_id, []) if m <= max_id]
+        return [Candidate(query_id, m, 0.9 - 0.1 * r, relative_pose=T) for r, (m, T) in enumerate(got)][:k]
+
+
+def test_the_detector_drops_a_closure_far_from_the_odometry_and_keeps_the_one_that_agrees():
+    # a straight 1 m-spaced drive; place 150 is 150 m past place 0 by odometry, so its true closure onto place 0
+    # would have to be 150 m long: none here. Its candidates: place 100 (true: 50 m back) and a look-alike
+    # (place 10, whose closure claims the query sits 2 m ahead of it, 138 m from where the odometry has it)
+    odom = [_pose(float(i)) for i in range(151)]
+    answers = {150: [(10, _pose(2.0)), (100, _pose(50.3))]}
+    det = LoopClosureDetector(
+        _Posed(answers), threshold=0.5, exclusion_frames=20, k=2, odometry_gate=OdometryGateParams()
+    )
+    out = [det.process(None, pose=odom[i], description={"x": np.zeros(1)}) for i in range(151)]
+    assert [c.match_id for c in out[150]] == [100] and det.last_status == "ok"
+    assert [c.match_id for c in det.last_candidates] == [10, 100]  # every candidate is kept for the caller
+    alone = LoopClosureDetector(
+        _Posed({150: answers[150][:1]}),
+        threshold=0.5,
+        exclusion_frames=20,
+        odometry_gate=OdometryGateParams(),
+    )
+    got = [alone.process(None, pose=odom[i], description={"x": np.zeros(1)}) for i in range(151)]
+    assert got[150] == [] and alone.last_status == "odometry_gate"
+    ungated = LoopClosureDetector(_Posed({150: answers[150][:1]}), threshold=0.5, exclusion_frames=20)
+    got = [ungated.process(None, description={"x": np.zeros(1)}) for _ in range(151)]
+    assert [c.match_id for c in got[150]] == [10]
+
+
+def test_the_gated_detector_needs_each_places_pose_and_leaves_a_prior_maps_places_alone():
+    det = LoopClosureDetector(_Posed({}), threshold=0.5, odometry_gate=OdometryGateParams())
+    with pytest.raises(ScanDataError, match="odometry_gate"):
+        det.process(None, description={"x": np.zeros(1)})
+    assert det.n_processed == 0
+    # a prior map of 5 places in its own frame: a closure onto place 2 is not the session odometry's to judge
+    det = LoopClosureDetector(
+        _Posed({5: [(2, _pose(400.0))]}), threshold=0.5, prior_entries=5, odometry_gate=OdometryGateParams()
+    )
+    assert [c.match_id for c in det.process(None, pose=_pose(), description={"x": np.zeros(1)})] == [2]
+
+
+def _table(rows):
+    """A CandidateTable of (match id, score, accepted, pose) rows per query (queries 0, 1, ...)."""
+    q, n = len(rows), max(len(r) for r in rows)
+    match = np.full((q, n), -1)
+    score = np.full((q, n), np.nan)
+    acc = np.full((q, n), -1, np.int8)
+    poses = np.full((q, n, 4, 4), np.nan)
+    for i, r in enumerate(rows):
+        for j, (m, s, a, T) in enumerate(r):
+            match[i, j], score[i, j], acc[i, j], poses[i, j] = m, s, a, T
+    nan = np.full((q, n), np.nan)
+    return CandidateTable(np.arange(q), match, score, np.full((q, n), -1), poses, nan, nan, nan, acc)
+
+
+def test_a_refused_candidate_becomes_a_rejected_one_and_the_next_accepted_one_the_answer():
+    t = _table(
+        [
+            [(7, 0.6, 1, _pose(1.0)), (8, 0.5, 1, _pose(2.0)), (9, 0.0, 0, _pose(3.0))],
+            [(4, 0.4, 1, _pose(4.0))],
+        ]
+    )
+    refused = np.array([[True, False, False], [False, False, False]])
+    g = t.refused(refused)
+    assert g.match_ids.tolist() == [[8, 7, 9], [4, -1, -1]]  # the refused one after the other rejected one
+    assert g.scores[0].tolist() == [0.5, 0.0, 0.0] and g.accepted[0].tolist() == [1, 0, 0]
+    assert g.relative_poses[0, 0, 0, 3] == 2.0 and g.relative_poses[0, 1, 0, 3] == 1.0
+    assert np.isnan(g.scores[1, 1]) and g.match_ids[1, 1] == -1  # padding stays last
+    same = t.refused(np.zeros_like(refused))
+    assert (same.match_ids == t.match_ids).all() and np.array_equal(same.scores, t.scores, equal_nan=True)
+
+
+def _cfg(gate=None, seed=3):
+    ev = {"mode": "loop"} | ({} if gate is None else {"odometry_gate": gate})
+    return parse_config(
+        {"dataset": {"source": "simulator", "simulator": {"seed": seed}}, "pipelines": [{"name": "scan-context"}],
+         "evaluation": ev}
+    )  # fmt: skip
+
+
+def test_the_evaluation_refuses_what_a_drifting_odometry_rules_out_and_nothing_without_the_gate():
+    poses = np.stack([_pose(float(i)) for i in range(200)])  # a straight drive, 1 m apart
+    # query 180: a true closure onto scan 20 (160 m back, as the truth says) and a look-alike 30 m off
+    t = _table([[(20, 0.5, 1, np.linalg.inv(poses[20]) @ poses[180]), (20, 0.4, 1, _pose(190.0))]])
+    t = CandidateTable(np.array([180]), *(getattr(t, f) for f in list(t.__dataclass_fields__)[1:]))
+    assert not odometry_refusals(_cfg(), [t], poses)[0].any()
+    refused = odometry_refusals(_cfg({}), [t], poses)[0]
+    assert refused.tolist() == [[False, True]]
+    # the drift is the demo's, drawn with the simulator's seed, so the same refusals follow from that odometry
+    odom = drift_poses(poses, slam_demo_drift(), 3)
+    tr, _ = odometry_disagreement(t.relative_poses[0, 1], odom[20], odom[180])
+    assert tr[0] > 1.0 + 0.04 * 160
+
+
+def test_the_demo_drift_is_configs_slam_demo_yamls():
+    drift = load_yaml_file(ROOT / "configs" / "slam_demo.yaml")["odometry"]["drift"]
+    assert OdometryDrift(**drift) == slam_demo_drift()
+
+
+def test_a_benchmark_cells_stamp_leaves_out_the_odometry_gate_judged_from_its_files():
+    assert _cell_key(_cfg()) == _cell_key(_cfg({"bounds": {"per_metre": 0.1}}))
+    assert _cell_key(_cfg()) != _cell_key(_cfg(seed=4))
+
+
+def test_the_status_of_a_gated_query_does_not_stay_for_the_next():
+    odom = [_pose(float(i)) for i in range(152)]
+    det = LoopClosureDetector(
+        _Posed({150: [(10, _pose(2.0))], 151: [(101, _pose(50.0))]}),
+        threshold=0.5,
+        exclusion_frames=20,
+        odometry_gate=OdometryGateParams(),
+    )
+    for i in range(151):
+        det.process(None, pose=odom[i], description={"x": np.zeros(1)})
+    assert det.last_status == "odometry_gate"
+    assert [c.match_id for c in det.process(None, pose=odom[151], description={"x": np.zeros(1)})] == [101]
+    assert det.last_status == "ok"
