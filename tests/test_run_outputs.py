@@ -531,3 +531,22 @@ def test_poses_to_xyzrpy_is_pose_to_xyzrpy_of_each():
     assert poses_to_xyzrpy(P).tobytes() == each.tobytes()
     assert pose_to_xyzrpy(P[5]).tobytes() == each[5].tobytes()
     assert poses_to_xyzrpy(np.zeros((0, 4, 4))).shape == (0, 6)
+
+
+def test_the_odometry_gate_judges_a_runs_candidates_and_leaves_its_files_raw(sequence_dir, tmp_path):
+    run, plain = run_experiment(config(sequence_dir, tmp_path / "plain"))
+    gate = "evaluation.odometry_gate={bounds: {metres: 0.001, per_metre: 0, degrees: 0.001, degrees_per_metre: 0}}"
+    run_default, default = run_experiment(
+        config(sequence_dir, tmp_path / "d", extra=("evaluation.odometry_gate={}",))
+    )
+    run_tight, tight = run_experiment(config(sequence_dir, tmp_path / "t", extra=(gate,)))
+    p, d, t = (x["pipelines"]["scan-context"] for x in (plain, default, tight))
+    # the loop's true closures agree with the drifting odometry: only wrong lower-ranked candidates are refused
+    assert "odometry_gate_refused" not in p and d["odometry_gate_refused"] > 0
+    assert (d["recall_at_100_precision"], d["max_f1"]) == (p["recall_at_100_precision"], p["max_f1"])
+    # bounds no closure can meet: every candidate with a pose refused, no answer left at the operating threshold
+    assert p["operating"]["n_accepted"] > 0 and t["operating"]["n_accepted"] == 0
+    assert t["operating"]["missed"]["below_threshold"] == p["operating"]["n_revisits"]
+    for folder in (run_default, run_tight):  # the candidates file is the run's, the gate only judges it
+        name = "candidates_scan-context.csv"
+        assert (folder / name).read_text() == (run / name).read_text()
