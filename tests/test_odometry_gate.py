@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_loop_filter import _Echo
 
 from placerec.config import parse_config
 from placerec.errors import ConfigError, ScanDataError
@@ -14,7 +15,6 @@ from placerec.experiment.candidates import CandidateTable
 from placerec.experiment.report import odometry_refusals
 from placerec.loop_closure import LoopClosureDetector
 from placerec.odometry_gate import OdometryGateParams, odometry_disagreement
-from placerec.recognizer import Recognizer
 from placerec.safe_yaml import load_yaml_file
 from placerec.sim.odometry import OdometryDrift, drift_poses, slam_demo_drift
 from placerec.types import Candidate
@@ -54,26 +54,10 @@ def test_bounds_grow_with_the_path_and_a_closure_without_a_pose_passes():
         OdometryGateParams.model_validate({"per_metre": -0.1})
 
 
-class _Posed(Recognizer):
+class _Posed(_Echo):
     """Answers each query with fixed (match id, relative pose) candidates, best first."""
 
     name = "posed"
-
-    def __init__(self, answers):
-        super().__init__()
-        self.answers = answers
-
-    def describe(self, scan):
-        return {"x": np.zeros(1)}
-
-    def add_description(self, scan_id, description, pose=None):
-        pass
-
-    def save(self, path):
-        raise NotImplementedError
-
-    def load(self, path):
-        raise NotImplementedError
 
     def query_description(self, description, k=1, max_id=None, query_id=-1):
         got = [(m, T) for m, T in self.answers.get(query_id, []) if m <= max_id]
