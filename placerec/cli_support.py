@@ -239,4 +239,11 @@ def print_pipeline_params(name: str) -> None:
         if preset.params:
             text = f"on {sensor} scans (sensor={sensor!r}): {json.dumps(preset.params)} (placerec.sensor_presets)"
             lines += textwrap.wrap(text, width, subsequent_indent="    ")
+        if preset.odometry is not None:
+            o = preset.odometry
+            text = (
+                f"on {sensor} scans with the odometry gate (odometry_gate=...): threshold {o.threshold:g}, "
+                f"{json.dumps(o.params)} (placerec.sensor_presets)"
+            )
+            lines += textwrap.wrap(text, width, subsequent_indent="    ")
     typer.echo("\n".join(lines))

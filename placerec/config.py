@@ -134,15 +134,16 @@ class PipelineSpec(Params):
     def display_name(self) -> str:
         return self.label or self.name
 
-    def threshold_for(self, sensor: str | None) -> float | None:
+    def threshold_for(self, sensor: str | None, odometry: bool = False) -> float | None:
         """The threshold the pipeline is judged at on ``sensor``'s scans (a sensor model name, None: unknown):
-        ``threshold`` when given, else its preset's for that sensor (`placerec.recognizer.PipelineEntry`)."""
+        ``threshold`` when given, else its preset's for that sensor, with the odometry gate when ``odometry``
+        (`placerec.recognizer.PipelineEntry`)."""
         from placerec.recognizer import PIPELINES
 
         if self.threshold is not None:
             return self.threshold
         entry = PIPELINES.get(self.name)
-        return None if entry is None else entry.threshold_for(sensor)
+        return None if entry is None else entry.threshold_for(sensor, odometry)
 
 
 class ExclusionConfig(ExclusionWindow):
@@ -329,9 +330,16 @@ class ExperimentConfig(Params):
         simulator's; None on recorded data (the presets')."""
         return self.dataset.simulator.sensor if self.dataset.source == "simulator" else None
 
+    @property
+    def with_odometry(self) -> bool:
+        """Whether closures are judged with the odometry gate (``evaluation.odometry_gate``): the pipelines then
+        run with their sensor's settings chosen with it (`placerec.sensor_presets`)."""
+        return self.evaluation.odometry_gate is not None
+
     def operating_threshold(self, spec: PipelineSpec) -> float | None:
-        """``spec``'s operating threshold in this experiment: its sensor's (`PipelineSpec.threshold_for`)."""
-        return spec.threshold_for(self.sensor)
+        """``spec``'s operating threshold in this experiment: its sensor's (`PipelineSpec.threshold_for`), the one
+        chosen with the odometry gate when the evaluation has it."""
+        return spec.threshold_for(self.sensor, self.with_odometry)
 
     @model_validator(mode="after")
     def _keyframes_in_loop_mode(self) -> ExperimentConfig:

@@ -111,16 +111,20 @@ class LoopClosureDetector:
         """A detector over the registered pipeline ``name`` (``params`` overrides its preset) at its operating
         threshold, chosen on the tuning split (docs/protocol.md), unless ``threshold`` is given. For ``sensor``, a
         sensor model name, the settings and threshold chosen on that sensor's tuning cells where they differ
-        (`placerec.sensor_presets`), ``params`` still winning. ``options`` are the other arguments of the
-        constructor. `ConfigError` when the pipeline has no operating threshold and none is given."""
+        (`placerec.sensor_presets`; with ``odometry_gate`` among ``options``, those chosen with the gate),
+        ``params`` still winning. ``options`` are the other arguments of the constructor. `ConfigError` when the
+        pipeline has no operating threshold and none is given."""
         from placerec.recognizer import PIPELINES, make_pipeline
 
         entry = PIPELINES.get(name)
+        odometry = options.get("odometry_gate") is not None
         if threshold is None:
-            threshold = None if entry is None else entry.threshold_for(sensor)
+            threshold = None if entry is None else entry.threshold_for(sensor, odometry)
             if threshold is None:
                 raise ConfigError(f"pipeline {name!r} has no operating threshold: give threshold=")
-        return cls(make_pipeline(name, params, sensor=sensor), threshold=threshold, **options)
+        return cls(
+            make_pipeline(name, params, sensor=sensor, odometry=odometry), threshold=threshold, **options
+        )
 
     def __init__(
         self,

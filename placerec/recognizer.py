@@ -226,14 +226,16 @@ class PipelineEntry:
     #: sensor model name (`placerec.sim.sensors.SENSORS`) -> operating threshold and parameters on its scans
     sensors: Mapping[str, SensorPreset] = field(default_factory=dict)
 
-    def threshold_for(self, sensor: str | None) -> float | None:
-        """The operating threshold on ``sensor``'s scans: its own (``sensors``), else ``threshold``."""
-        own = self.sensors.get(sensor or "", SensorPreset()).threshold
+    def threshold_for(self, sensor: str | None, odometry: bool = False) -> float | None:
+        """The operating threshold on ``sensor``'s scans: its own (``sensors``; with ``odometry``, the one chosen
+        with the odometry gate where there is one), else ``threshold``."""
+        own = self.sensors.get(sensor or "", SensorPreset()).with_odometry(odometry).threshold
         return self.threshold if own is None else own
 
-    def params_for(self, sensor: str | None) -> Mapping[str, Any]:
-        """The parameter overrides on ``sensor``'s scans (``sensors``; none for another or no sensor)."""
-        return self.sensors.get(sensor or "", SensorPreset()).params
+    def params_for(self, sensor: str | None, odometry: bool = False) -> Mapping[str, Any]:
+        """The parameter overrides on ``sensor``'s scans (``sensors``, with ``odometry`` as for `threshold_for`;
+        none for another or no sensor)."""
+        return self.sensors.get(sensor or "", SensorPreset()).with_odometry(odometry).params
 
 
 #: Registered pipelines by short name. The loop pipelines' operating thresholds were picked by the tuning rule of
@@ -391,10 +393,15 @@ def pipeline_class(name: str) -> type[Any]:
 
 
 def pipeline_params(
-    name: str, params: Mapping[str, Any] | None = None, path: str = "", sensor: str | None = None
+    name: str,
+    params: Mapping[str, Any] | None = None,
+    path: str = "",
+    sensor: str | None = None,
+    odometry: bool = False,
 ) -> Params:
     """The resolved parameters of a `Recognizer` pipeline: its defaults, the registry preset, its settings on
-    ``sensor``'s scans (a sensor model name; `PipelineEntry.params_for`), then ``params``.
+    ``sensor``'s scans (a sensor model name; `PipelineEntry.params_for`, those chosen with the odometry gate for a
+    detector that has one when ``odometry``), then ``params``.
 
     ``path`` is where ``params`` sit in a config (e.g. ``pipelines[1].params``), for the error messages.
     """
@@ -404,22 +411,27 @@ def pipeline_params(
             f"pipeline {name!r}: {cls.__name__} does not declare its parameters (not a Recognizer)"
         )
     entry = PIPELINES.get(name)
-    preset, own = (entry.preset, entry.params_for(sensor)) if entry else (None, None)
+    preset, own = (entry.preset, entry.params_for(sensor, odometry)) if entry else (None, None)
     return resolve(cls.Params, preset, own, params, where=name, path=path or "params")
 
 
 def make_pipeline(
-    name: str, params: Mapping[str, Any] | None = None, path: str = "", sensor: str | None = None
+    name: str,
+    params: Mapping[str, Any] | None = None,
+    path: str = "",
+    sensor: str | None = None,
+    odometry: bool = False,
 ) -> PlaceRecognizer:
     """Build a pipeline by registry name (or ``module:Class``) with parameter overrides from a config.
 
     A `Recognizer` gets its defaults, the registry preset, its settings on ``sensor``'s scans (a sensor model
-    name, `PipelineEntry.params_for`) and ``params`` merged deeply and validated (`ConfigError` naming
-    ``path.key`` and the allowed keys); any other protocol class is called with ``**params``.
+    name, `PipelineEntry.params_for`; with ``odometry``, those chosen with the odometry gate, for a detector that
+    has it) and ``params`` merged deeply and validated (`ConfigError` naming ``path.key`` and the allowed keys);
+    any other protocol class is called with ``**params``.
     """
     cls = pipeline_class(name)
     if issubclass(cls, Recognizer):
-        return cls(pipeline_params(name, params, path, sensor))
+        return cls(pipeline_params(name, params, path, sensor, odometry))
     if params is not None and not isinstance(params, Mapping):
         raise ConfigError(f"pipeline {name!r}: {path or 'params'} must be a mapping")
     return cls(**deep_merge({}, params))

@@ -24,10 +24,17 @@ __all__ = ["SensorPreset", "SENSOR_PRESETS", "VISUAL_PIPELINES"]
 
 @dataclass(frozen=True)
 class SensorPreset:
-    """A pipeline's operating ``threshold`` (None: the pipeline's own) and parameter overrides on one sensor."""
+    """A pipeline's operating ``threshold`` (None: the pipeline's own) and parameter overrides on one sensor;
+    ``odometry``: the threshold and overrides chosen on that sensor's tuning cells with the odometry gate
+    (`placerec.odometry_gate`), for a detector that has it (None: the same as without)."""
 
     threshold: float | None = None
     params: Mapping[str, Any] = field(default_factory=dict)
+    odometry: SensorPreset | None = None
+
+    def with_odometry(self, odometry: bool) -> SensorPreset:
+        """The preset for a detector with (``odometry``) or without the odometry gate."""
+        return self.odometry if odometry and self.odometry is not None else self
 
 
 #: The registered pipelines with an intensity-image front end.
@@ -90,16 +97,37 @@ _THRESHOLDS: dict[str, dict[str, float]] = {
 }
 
 
+#: With the odometry gate (`placerec.odometry_gate`) the forward-looking sensors' look-alike closures (repeated
+#: blocks 40-100 m away, which set their thresholds above) are refused, so their verification floor comes down to
+#: 0.05 and the tuning rule picks its thresholds again with the gate in place, on the six tuning cells of each
+#: sensor (`placerec bench configs/benchmark_sensors_tuning.yaml --set 'sensors=[avia, e1r]' --set 'worlds=[town,
+#: campus, industrial]' --set 'seeds=[0, 1]' --set pipelines.{0,1,2}.params.verify.score.min_score=0.05 --set
+#: 'evaluation.odometry_gate={}' --suggest`; tuning recall at precision 1.00 in docs/sensors.md). Without the gate
+#: the same cells have 9-108 false closures a cell at that floor, scoring up to 0.40.
+_ODOMETRY_FLOOR = {"verify": {"score": {"min_score": 0.05}}}
+_ODOMETRY_THRESHOLDS: dict[str, dict[str, float]] = {
+    "scan-context": {"avia": 0.2, "e1r": 0.35},
+    "orb-dbow": {"avia": 0.2, "e1r": 0.3},
+    "superpoint-dbow": {"avia": 0.15, "e1r": 0.15},
+}
+
+
 def _presets() -> dict[str, dict[str, SensorPreset]]:
+    from placerec.params import deep_merge
+
     out: dict[str, dict[str, SensorPreset]] = {}
     for pipeline in ("scan-context", *VISUAL_PIPELINES):
         thresholds = _THRESHOLDS.get(pipeline, {})
+        with_odometry = _ODOMETRY_THRESHOLDS.get(pipeline, {})
         by_sensor: dict[str, SensorPreset] = {}
-        for sensor in sorted(set(thresholds) | set(_GATES)):
+        for sensor in sorted(set(thresholds) | set(_GATES) | set(with_odometry)):
             params: dict[str, Any] = dict(_GATES.get(sensor, {}))
             if pipeline in VISUAL_PIPELINES and _FEATURES.get(sensor):
                 params = {"feature_params": _FEATURES[sensor], **params}
-            by_sensor[sensor] = SensorPreset(thresholds.get(sensor), params)
+            odometry = None
+            if sensor in with_odometry:
+                odometry = SensorPreset(with_odometry[sensor], deep_merge(params, _ODOMETRY_FLOOR))
+            by_sensor[sensor] = SensorPreset(thresholds.get(sensor), params, odometry)
         out[pipeline] = by_sensor
     return out
 

@@ -3,6 +3,8 @@ threshold chosen under them."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from placerec.config import parse_config
@@ -10,6 +12,8 @@ from placerec.experiment.runner import build_pipelines
 from placerec.loop_closure import LoopClosureDetector
 from placerec.recognizer import PIPELINES, make_pipeline, pipeline_params
 from placerec.sensor_presets import SENSOR_PRESETS, VISUAL_PIPELINES
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_a_sensors_settings_sit_between_the_preset_and_the_given_params():
@@ -39,6 +43,9 @@ def test_every_sensor_threshold_is_reachable_under_the_settings_it_was_chosen_wi
             params = pipeline_params(name, sensor=sensor)  # validates them
             if preset.threshold is not None:
                 assert params.verify.score.min_score <= preset.threshold, (name, sensor)
+            if preset.odometry is not None:  # the same for the settings chosen with the odometry gate
+                gated = pipeline_params(name, sensor=sensor, odometry=True)
+                assert gated.verify.score.min_score <= preset.odometry.threshold, (name, sensor)
             if name in VISUAL_PIPELINES and sensor in ("vlp16", "hdl32"):
                 assert params.feature_params.nfeatures == 1000, (name, sensor)
 
@@ -68,3 +75,29 @@ def test_an_experiment_on_the_simulator_runs_its_sensors_settings(sensor, nfeatu
     assert rec.params.feature_params.nfeatures == nfeatures
     assert record.params["feature_params"]["nfeatures"] == nfeatures  # the run records what it ran with
     assert cfg.operating_threshold(cfg.pipelines[0]) == threshold
+
+
+def test_with_the_odometry_gate_a_forward_looking_sensor_gets_the_settings_chosen_with_it():
+    from placerec.experiment.benchmark import _cell_key, load_benchmark_config
+    from placerec.odometry_gate import OdometryGateParams
+
+    gate = OdometryGateParams()
+    det = LoopClosureDetector.for_pipeline("orb-dbow", sensor="avia", odometry_gate=gate)
+    assert det.threshold == 0.2 and det.recognizer.params.verify.score.min_score == 0.05
+    assert det.odometry_gate == gate
+    plain = LoopClosureDetector.for_pipeline("orb-dbow", sensor="avia")
+    assert plain.threshold == 0.25 and plain.recognizer.params.verify.score.min_score == 0.25
+    # a sensor without settings of its own for the gate keeps its own with it
+    vlp = LoopClosureDetector.for_pipeline("orb-dbow", sensor="vlp16", odometry_gate=gate)
+    assert vlp.threshold == 0.1 and vlp.recognizer.params.verify.score.min_fitness_ratio == 0.75
+    # a benchmark judged with the gate runs its cells with them, so their stamps differ from the ungated ones
+    with_gate = ["sensors=[avia, vlp16]", "seeds=[0]", "worlds=[town]", "evaluation.odometry_gate={}"]
+    bench = load_benchmark_config(ROOT / "configs" / "benchmark_sensors_tuning.yaml", with_gate)
+    alone = load_benchmark_config(ROOT / "configs" / "benchmark_sensors_tuning.yaml", with_gate[:-1])
+    for cell in bench.cells():
+        cfg, cfg0 = bench.cell_config(cell), alone.cell_config(cell)
+        orb = next(p for p in cfg.pipelines if p.name == "orb-dbow")
+        floor = (orb.params or {}).get("verify", {}).get("score", {}).get("min_score")
+        assert cfg.operating_threshold(orb) == {"avia": 0.2, "vlp16": 0.1}[cell.sensor]
+        assert floor == {"avia": 0.05, "vlp16": 0.1}[cell.sensor]
+        assert (_cell_key(cfg) == _cell_key(cfg0)) == (cell.sensor == "vlp16")

@@ -211,7 +211,8 @@ class BenchmarkConfig(Params):
                 extra["keyframes"] = capture.keyframes.model_dump(mode="json")
             if capture.exclusion is not None:
                 evaluation["exclusion"] = capture.exclusion.model_dump(mode="json")
-        pipelines = [_cell_spec(p, cell.sensor, capture) for p in self.pipelines]
+        odometry = self.evaluation.odometry_gate is not None
+        pipelines = [_cell_spec(p, cell.sensor, capture, odometry) for p in self.pipelines]
         data = {
             "name": f"{self.name}-{cell.name}",
             "dataset": {"source": "simulator", "simulator": simulator},
@@ -229,9 +230,12 @@ class BenchmarkConfig(Params):
         return resolve(ExperimentConfig, data, where=f"benchmark cell {cell.name}")
 
 
-def _cell_spec(spec: PipelineSpec, sensor: str, capture: CaptureParams | None) -> dict[str, Any]:
+def _cell_spec(
+    spec: PipelineSpec, sensor: str, capture: CaptureParams | None, odometry: bool = False
+) -> dict[str, Any]:
     """A pipeline spec (JSON) in a cell of ``sensor``: its parameters on that sensor (the registry's,
-    `placerec.sensor_presets`, then the capture's overrides) under its own, which win, so a cell's config shows
+    `placerec.sensor_presets`, those chosen with the odometry gate when ``odometry``, then the capture's
+    overrides) under its own, which win, so a cell's config shows
     every setting it ran with; the capture's threshold for it when it gives none (else the registry's for the
     sensor applies, `ExperimentConfig.operating_threshold`)."""
     from placerec.params import deep_merge
@@ -239,7 +243,7 @@ def _cell_spec(spec: PipelineSpec, sensor: str, capture: CaptureParams | None) -
 
     out = spec.model_dump(mode="json")
     entry = PIPELINES.get(spec.name)
-    own = entry.params_for(sensor) if entry is not None else {}
+    own = entry.params_for(sensor, odometry) if entry is not None else {}
     given = _capture_params(spec.name, capture) if capture is not None else {}
     if own or given:
         out["params"] = deep_merge(own, given, out.get("params") or {})
@@ -315,9 +319,10 @@ def _cell_key(cfg: ExperimentConfig) -> str:
     for spec, given in zip(data["pipelines"], cfg.pipelines, strict=True):
         spec.pop("threshold", None)
         if _recognizer_class(given.name) is not None:
-            spec["resolved"] = pipeline_params(given.name, given.params, sensor=cfg.sensor).model_dump(
-                mode="json"
+            resolved = pipeline_params(
+                given.name, given.params, sensor=cfg.sensor, odometry=cfg.with_odometry
             )
+            spec["resolved"] = resolved.model_dump(mode="json")
     return stable_hash({"config": data, "placerec": __version__, "v": BENCH_VERSION})
 
 

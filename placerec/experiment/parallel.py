@@ -53,7 +53,13 @@ def _frontends(cfg: ExperimentConfig) -> list[PlaceRecognizer]:
     """One recognizer per distinct cached front end of the config's pipelines."""
     seen: dict[str, PlaceRecognizer] = {}
     for i, spec in enumerate(cfg.pipelines):
-        rec = make_pipeline(spec.name, spec.params, path=f"pipelines[{i}].params", sensor=cfg.sensor)
+        rec = make_pipeline(
+            spec.name,
+            spec.params,
+            path=f"pipelines[{i}].params",
+            sensor=cfg.sensor,
+            odometry=cfg.with_odometry,
+        )
         if getattr(rec, "cache_descriptions", True):
             seen.setdefault(rec.frontend_key, rec)
     return list(seen.values())

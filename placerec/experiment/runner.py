@@ -156,7 +156,13 @@ def build_pipelines(cfg: ExperimentConfig) -> Pipelines:
     unknown name, a ``module:Class`` that is no recognizer, or a bad parameter)."""
     out = []
     for i, spec in enumerate(cfg.pipelines):
-        rec = make_pipeline(spec.name, spec.params, path=f"pipelines[{i}].params", sensor=cfg.sensor)
+        rec = make_pipeline(
+            spec.name,
+            spec.params,
+            path=f"pipelines[{i}].params",
+            sensor=cfg.sensor,
+            odometry=cfg.with_odometry,
+        )
         params = getattr(rec, "params", None)
         resolved = params.model_dump(mode="json") if isinstance(params, Params) else dict(spec.params)
         threshold = cfg.operating_threshold(spec)
