@@ -306,7 +306,8 @@ def bench(
     folder, payload = run_benchmark(cfg, out, fresh=fresh)
     print_rows(
         *rows(payload, wide),
-        f"{cfg.name} ({cfg.split} split, {len(payload['cells'])} cells): matrix mean / worst",
+        f"{cfg.name} ({cfg.split} split, {len(payload['cells'])} cells"
+        f"{', judged with the odometry gate' if payload['odometry_gate'] else ''}): matrix mean / worst",
     )
     if suggest:
         import json

@@ -249,6 +249,17 @@ def test_two_cells_end_to_end_at_fixed_thresholds_and_resumed(tmp_path):
         after["town_vlp16_0"] == before["town_vlp16_0"] and after["town_os1-64_0"] <= before["town_os1-64_0"]
     )
 
+    gate = {"bounds": {"metres": 0.001, "per_metre": 0.0, "degrees": 0.001, "degrees_per_metre": 0.0}}
+    data = cfg.model_dump(mode="json")
+    data["evaluation"]["odometry_gate"] = gate
+    gated = resolve(BenchmarkConfig, data)
+    _, refused = run_benchmark(gated)  # the odometry gate: judged again from the cells' files, nothing rerun
+    assert refused["cells_run"] == 0 and refused["odometry_gate"] and not payload["odometry_gate"]
+    assert json.loads(bench_line(refused))["odometry_gate"] is True
+    assert (
+        max(refused["pipelines"]["orb-hbst"]["figures"]["recall"]["cells"].values()) == 0.0
+    )  # no pose agrees
+
     (folder / "cells" / "town_os1-64_0" / "cell.json").unlink()  # interrupted before this cell finished
     _, again = run_benchmark(cfg)
     assert again["cells_run"] == 1

@@ -62,7 +62,8 @@ CELL_FIGURES: tuple[tuple[str, tuple[str, ...], str], ...] = (
 
 def summarise(bench: BenchmarkConfig, cells: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """``benchmark.json``: per pipeline, each figure per cell and over the matrix (mean, worst), the accepted
-    closures' pose errors pooled over the matrix, and the threshold each pipeline was judged at."""
+    closures' pose errors pooled over the matrix, and the threshold each pipeline was judged at; whether the
+    closures were judged with the odometry gate (``odometry_gate``) or on appearance alone."""
     labels = [p.display_name for p in bench.pipelines]
     pipelines: dict[str, Any] = {}
     for label in labels:
@@ -102,6 +103,7 @@ def summarise(bench: BenchmarkConfig, cells: dict[str, dict[str, Any]]) -> dict[
         "version": BENCH_VERSION,
         "name": bench.name,
         "split": bench.split,
+        "odometry_gate": bench.evaluation.odometry_gate is not None,
         "cells": list(cells),
         "n_scans": {name: c.get("n_scans") for name, c in cells.items()},
         "pipelines": pipelines,
@@ -177,7 +179,8 @@ def bench_line(payload: dict[str, Any]) -> str:
             "ms_per_scan_mean": f["ms_per_scan"]["mean"],
         }
     line = {"tool": "bench", "name": payload["name"], "split": payload["split"], "cells": len(payload["cells"]),
-            "seconds": payload.get("seconds"), "pipelines": short}  # fmt: skip
+            "odometry_gate": payload.get("odometry_gate", False), "seconds": payload.get("seconds"),
+            "pipelines": short}  # fmt: skip
     return json.dumps(_finite(line), separators=(",", ":"))
 
 
