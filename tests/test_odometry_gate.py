@@ -177,3 +177,30 @@ def test_the_status_of_a_gated_query_does_not_stay_for_the_next():
     assert det.last_status == "odometry_gate"
     assert [c.match_id for c in det.process(None, pose=odom[151], description={"x": np.zeros(1)})] == [101]
     assert det.last_status == "ok"
+
+
+def test_the_real_time_detector_gates_the_same_closures_as_the_sequential_one():
+    from placerec.realtime import RealtimeParams
+
+    odom = [_pose(float(i)) for i in range(160)]
+    answers = {
+        150: [(10, _pose(2.0)), (100, _pose(50.3))],
+        155: [(20, _pose(1.0))],
+        158: [(108, _pose(50.0))],
+    }
+    got = {}
+    for mode, realtime in (("sequential", None), ("real-time", RealtimeParams(budget_ms=100, max_backlog=3))):
+        with LoopClosureDetector(
+            _Posed(answers),
+            0.5,
+            exclusion_frames=20,
+            k=2,
+            odometry_gate=OdometryGateParams(),
+            realtime=realtime,
+        ) as det:
+            out = [
+                c for i in range(160) for c in det.process(None, pose=odom[i], description={"x": np.zeros(1)})
+            ]
+            out += det.flush()
+        got[mode] = sorted((c.query_id, c.match_id) for c in out)
+    assert got["sequential"] == got["real-time"] == [(150, 100), (158, 108)]
