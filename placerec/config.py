@@ -336,6 +336,20 @@ class ExperimentConfig(Params):
         run with their sensor's settings chosen with it (`placerec.sensor_presets`)."""
         return self.evaluation.odometry_gate is not None
 
+    def make_pipeline(self, i: int) -> Any:
+        """Pipeline ``i`` of the config, built with its sensor's settings (those chosen with the odometry gate when
+        the evaluation has it; `placerec.recognizer.make_pipeline`); errors name ``pipelines[i].params``."""
+        from placerec.recognizer import make_pipeline
+
+        spec = self.pipelines[i]
+        return make_pipeline(
+            spec.name,
+            spec.params,
+            path=f"pipelines[{i}].params",
+            sensor=self.sensor,
+            odometry=self.with_odometry,
+        )
+
     def operating_threshold(self, spec: PipelineSpec) -> float | None:
         """``spec``'s operating threshold in this experiment: its sensor's (`PipelineSpec.threshold_for`), the one
         chosen with the odometry gate when the evaluation has it."""

@@ -25,7 +25,6 @@ from placerec.experiment.cache import DescriptionCache
 from placerec.experiment.datasets import keyframed, open_dataset
 from placerec.experiment.preprocessing import preprocessed_scan
 from placerec.hashing import stable_hash
-from placerec.recognizer import make_pipeline
 from placerec.types import PlaceRecognizer, Sequence
 
 __all__ = ["ChunkResult", "describe_chunk", "describe_in_parallel", "task_pool"]
@@ -52,14 +51,8 @@ _OPENED: dict[str, tuple[Sequence, list[PlaceRecognizer]]] = {}
 def _frontends(cfg: ExperimentConfig) -> list[PlaceRecognizer]:
     """One recognizer per distinct cached front end of the config's pipelines."""
     seen: dict[str, PlaceRecognizer] = {}
-    for i, spec in enumerate(cfg.pipelines):
-        rec = make_pipeline(
-            spec.name,
-            spec.params,
-            path=f"pipelines[{i}].params",
-            sensor=cfg.sensor,
-            odometry=cfg.with_odometry,
-        )
+    for i in range(len(cfg.pipelines)):
+        rec = cfg.make_pipeline(i)
         if getattr(rec, "cache_descriptions", True):
             seen.setdefault(rec.frontend_key, rec)
     return list(seen.values())

@@ -28,7 +28,6 @@ from placerec.experiment.preprocessing import preprocessed_scan
 from placerec.loop_closure import LoopClosureDetector, split_verify_time
 from placerec.loop_filter import LoopFilterParams
 from placerec.params import Params
-from placerec.recognizer import make_pipeline
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, Sequence
 from placerec.viewer import active
 
@@ -156,13 +155,7 @@ def build_pipelines(cfg: ExperimentConfig) -> Pipelines:
     unknown name, a ``module:Class`` that is no recognizer, or a bad parameter)."""
     out = []
     for i, spec in enumerate(cfg.pipelines):
-        rec = make_pipeline(
-            spec.name,
-            spec.params,
-            path=f"pipelines[{i}].params",
-            sensor=cfg.sensor,
-            odometry=cfg.with_odometry,
-        )
+        rec = cfg.make_pipeline(i)
         params = getattr(rec, "params", None)
         resolved = params.model_dump(mode="json") if isinstance(params, Params) else dict(spec.params)
         threshold = cfg.operating_threshold(spec)
