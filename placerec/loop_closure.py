@@ -157,7 +157,7 @@ class LoopClosureDetector:
         self.last_status = "ok"
         self._times: list[float] = []
         self._path: list[float] = []
-        self._poses: list[np.ndarray] = []  # each own place's pose, NaN where none (the odometry gate's)
+        self._poses: list[np.ndarray] = []  # with the odometry gate: each own place's pose
         self._last_position: np.ndarray | None = None
         self._position_before: np.ndarray | None = None  # the position before the last recorded place
         self.last_max_id = -1
@@ -220,7 +220,8 @@ class LoopClosureDetector:
         """Undo the last `_record_motion` (its time, its path length and the position it moved to)."""
         self._times.pop()
         self._path.pop()
-        self._poses.pop()
+        if self.odometry_gate is not None:
+            self._poses.pop()
         self._last_position = self._position_before
 
     def _record_motion(self, pose: np.ndarray | None, timestamp: float | None) -> None:
@@ -248,7 +249,8 @@ class LoopClosureDetector:
             self._last_position = position
         self._times.append(float(timestamp) if timestamp is not None else float(len(self._times)))
         self._path.append((self._path[-1] if self._path else 0.0) + step)
-        self._poses.append(pose if pose is not None else np.full((4, 4), np.nan))
+        if pose is not None and self.odometry_gate is not None:  # a pose is required then (above)
+            self._poses.append(pose)
 
     def process(
         self,
