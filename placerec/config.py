@@ -25,6 +25,7 @@ from placerec.params import Params, resolve
 from placerec.preprocess import PreprocessParams
 from placerec.safe_yaml import load_yaml, load_yaml_file
 from placerec.sim.odometry import OdometryDrift, slam_demo_drift
+from placerec.types import PlaceRecognizer
 
 P = TypeVar("P", bound=Params)
 
@@ -336,7 +337,7 @@ class ExperimentConfig(Params):
         run with their sensor's settings chosen with it (`placerec.sensor_presets`)."""
         return self.evaluation.odometry_gate is not None
 
-    def make_pipeline(self, i: int) -> Any:
+    def make_pipeline(self, i: int) -> PlaceRecognizer:
         """Pipeline ``i`` of the config, built with its sensor's settings (those chosen with the odometry gate when
         the evaluation has it; `placerec.recognizer.make_pipeline`); errors name ``pipelines[i].params``."""
         from placerec.recognizer import make_pipeline
