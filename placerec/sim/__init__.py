@@ -10,59 +10,51 @@ It is the default dataset of every placerec config and the test bed of every pip
     simulate("town", "hdl64", 200, 0, "out/town_hdl64")             # KITTI-style folder (the CLI's command)
     make_session_pair("town", "vlp16", 0, kind="partial")           # a map drive and a second session
 
-See ``docs/simulator.md`` for the models, presets, file layout and what still differs from real scans.
+See ``docs/simulator.md`` for the models, presets, file layout and what still differs from real scans. Names
+are imported on first use, so ``import placerec.sim.odometry`` (a config's drift model) does not import the
+renderer.
 """
-
-from __future__ import annotations
 
 import logging
 
-from placerec.sim.clutter import ClutterConfig
-from placerec.sim.export import simulate, write_kitti_sequence
-from placerec.sim.intensity import BeamResponse, IntensityModel, surface_response
-from placerec.sim.localization import CONDITIONS, LocalizationSplit, make_localization_split
-from placerec.sim.materials import MATERIALS, M, Material
-from placerec.sim.odometry import OdometryDrift
-from placerec.sim.presets import PRESETS, preset_names
-from placerec.sim.routes import ROUTES, Revisit, Route, find_revisits, make_route
-from placerec.sim.sensors import SENSORS, SensorModel, frame_rays, get_sensor, sensor_names
-from placerec.sim.sequence import SimulatedSequence
-from placerec.sim.sessions import KidnapTrial, SessionPair, kidnap_trials, make_session_pair
-from placerec.sim.world import World, build_world
+from placerec._lazy import lazy_exports
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
-__all__ = [
-    "SimulatedSequence",
-    "simulate",
-    "write_kitti_sequence",
-    "make_localization_split",
-    "LocalizationSplit",
-    "CONDITIONS",
-    "make_session_pair",
-    "SessionPair",
-    "kidnap_trials",
-    "KidnapTrial",
-    "SensorModel",
-    "SENSORS",
-    "get_sensor",
-    "sensor_names",
-    "frame_rays",
-    "World",
-    "build_world",
-    "PRESETS",
-    "preset_names",
-    "Route",
-    "Revisit",
-    "ROUTES",
-    "make_route",
-    "find_revisits",
-    "BeamResponse",
-    "IntensityModel",
-    "surface_response",
-    "ClutterConfig",
-    "OdometryDrift",
-    "M",
-    "Material",
-    "MATERIALS",
-]
+_EXPORTS = {
+    "SimulatedSequence": "sequence",
+    "simulate": "export",
+    "write_kitti_sequence": "export",
+    "make_localization_split": "localization",
+    "LocalizationSplit": "localization",
+    "CONDITIONS": "localization",
+    "make_session_pair": "sessions",
+    "SessionPair": "sessions",
+    "kidnap_trials": "sessions",
+    "KidnapTrial": "sessions",
+    "SensorModel": "sensors",
+    "SENSORS": "sensors",
+    "get_sensor": "sensors",
+    "sensor_names": "sensors",
+    "frame_rays": "sensors",
+    "World": "world",
+    "build_world": "world",
+    "PRESETS": "presets",
+    "preset_names": "presets",
+    "Route": "routes",
+    "Revisit": "routes",
+    "ROUTES": "routes",
+    "make_route": "routes",
+    "find_revisits": "routes",
+    "BeamResponse": "intensity",
+    "IntensityModel": "intensity",
+    "surface_response": "intensity",
+    "ClutterConfig": "clutter",
+    "OdometryDrift": "odometry",
+    "M": "materials",
+    "Material": "materials",
+    "MATERIALS": "materials",
+}
+
+__all__ = list(_EXPORTS)
+__getattr__ = lazy_exports(__name__, _EXPORTS)
