@@ -12,7 +12,7 @@ from placerec.config import parse_config
 from placerec.errors import ConfigError, ScanDataError
 from placerec.experiment.benchmark import _cell_key
 from placerec.experiment.candidates import CandidateTable
-from placerec.experiment.report import odometry_refusals
+from placerec.experiment.report import odometry_gated
 from placerec.loop_closure import LoopClosureDetector
 from placerec.odometry_gate import OdometryGateParams, odometry_disagreement
 from placerec.safe_yaml import load_yaml_file
@@ -145,8 +145,8 @@ def test_the_evaluation_refuses_what_a_drifting_odometry_rules_out_and_nothing_w
     # query 180: a true closure onto scan 20 (160 m back, as the truth says) and a look-alike 30 m off
     t = _table([[(20, 0.5, 1, np.linalg.inv(poses[20]) @ poses[180]), (20, 0.4, 1, _pose(190.0))]])
     t = CandidateTable(np.array([180]), *(getattr(t, f) for f in list(t.__dataclass_fields__)[1:]))
-    assert not odometry_refusals(_cfg(), [t], poses)[0].any()
-    refused = odometry_refusals(_cfg({}), [t], poses)[0]
+    assert not odometry_gated(_cfg(), [t], poses)[1][0].any()
+    refused = odometry_gated(_cfg({}), [t], poses)[1][0]
     assert refused.tolist() == [[False, True]]
     # the drift is the demo's, drawn with the simulator's seed, so the same refusals follow from that odometry
     odom = drift_poses(poses, slam_demo_drift(), 3)

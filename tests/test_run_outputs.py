@@ -547,6 +547,10 @@ def test_the_odometry_gate_judges_a_runs_candidates_and_leaves_its_files_raw(seq
     # bounds no closure can meet: every candidate with a pose refused, no answer left at the operating threshold
     assert p["operating"]["n_accepted"] > 0 and t["operating"]["n_accepted"] == 0
     assert t["operating"]["missed"]["below_threshold"] == p["operating"]["n_revisits"]
+    again = recompute_loop_metrics(run_tight, "scan-context")  # from the folder alone, judged with its gate
+    assert (
+        again["operating"]["n_accepted"] == 0 and again["odometry_gate_refused"] == t["odometry_gate_refused"]
+    )
     for folder in (run_default, run_tight):  # the candidates file is the run's, the gate only judges it
         name = "candidates_scan-context.csv"
         assert (folder / name).read_text() == (run / name).read_text()

@@ -465,7 +465,7 @@ def read_cell(bench: BenchmarkConfig, cell: Cell, folder: Path) -> CellFiles:
     from them, the run's overlap search not made again; `ArtifactError` naming the file when one is missing or
     damaged."""
     from placerec.experiment.candidates import read_candidates
-    from placerec.experiment.report import odometry_refusals, pose_truths
+    from placerec.experiment.report import odometry_gated, pose_truths
     from placerec.experiment.run_folder import slug
     from placerec.experiment.truth import TruthClouds
     from placerec.io import read_poses
@@ -485,8 +485,7 @@ def read_cell(bench: BenchmarkConfig, cell: Cell, folder: Path) -> CellFiles:
     truth.voxels = [keys[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
     truth.overlap = overlap  # the overlap search of the run, not made again
     raw = [read_candidates(folder / f"candidates_{slug(p.display_name)}.csv") for p in cfg.pipelines]
-    refused = odometry_refusals(cfg, raw, poses)
-    tables = [t.refused(r) for t, r in zip(raw, refused, strict=True)]
+    tables, refused = odometry_gated(cfg, raw, poses)
     return CellFiles(
         cfg, poses, stamps, truth, tables, pose_truths(cfg, tables, poses, stamps, truth), refused
     )
@@ -503,9 +502,7 @@ def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[
     for spec, table, pose_gt, refused in zip(f.cfg.pipelines, f.tables, f.pose_gts, f.refused, strict=True):
         label = spec.display_name  # the cell's spec: with its sensor's thresholds
         threshold = f.cfg.operating_threshold(spec)
-        _, summary = loop_summary(f.cfg, table, f.poses, f.stamps, threshold, f.truth, pose_gt)
-        if f.cfg.evaluation.odometry_gate is not None:
-            summary["odometry_gate_refused"] = int(refused.sum())
+        _, summary = loop_summary(f.cfg, table, f.poses, f.stamps, threshold, f.truth, pose_gt, refused)
         kept = stored.get(label, {})
         out[label] = {**kept, **finite_or_null(summary)}
     return out

@@ -141,7 +141,7 @@ def _gt_options(cfg: ExperimentConfig, timestamps: np.ndarray | None) -> dict[st
 def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
     """Recompute a pipeline's loop metrics (recall@N, the closures' pose errors and the figures at its operating
     threshold included) from the run folder alone (config, poses, candidates CSV): ``metrics.json``'s entry for
-    ``label`` without the times and the other ground truths."""
+    ``label`` without the times and the other ground truths (judged with the run's odometry gate, if any)."""
     from placerec.config import load_config
 
     run_dir = Path(run_dir)
@@ -149,10 +149,12 @@ def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
     poses = _read_or_empty(run_dir / "poses.txt", lambda p: read_poses(p)[0], (0, 4, 4))
     times = run_dir / "times.txt"
     stamps = _read_or_empty(times, lambda p: np.loadtxt(p, ndmin=1), (0,)) if times.is_file() else None
-    table = read_candidates(run_dir / f"candidates_{slug(label)}.csv")
+    (table,), (refused,) = odometry_gated(
+        cfg, [read_candidates(run_dir / f"candidates_{slug(label)}.csv")], poses
+    )
     spec = next((p for p in cfg.pipelines if p.display_name == label), None)
     threshold = None if spec is None else cfg.operating_threshold(spec)
-    return loop_summary(cfg, table, poses, stamps, threshold)[1]
+    return loop_summary(cfg, table, poses, stamps, threshold, refused=refused)[1]
 
 
 def operating_point(
@@ -247,11 +249,13 @@ def loop_summary(
     threshold: float | None = None,
     truth: TruthClouds | None = None,
     pose_truth: PoseGroundTruth | None = None,
+    refused: np.ndarray | None = None,
 ) -> tuple[LoopMetrics, dict[str, Any]]:
     """A pipeline's loop metrics and their ``metrics.json`` entry (without times): PR metrics of the top
     candidates, recall@N, the pose errors of the closures accepted at the max-F1 threshold, the figures at the
     operating ``threshold`` (``operating``), the same under ``pose_truth`` (`pose_truths`) and, with ``truth``'s
-    clouds (``evaluation.gt_icp``), under the VPR paper's ICP-confirmed ground truth (``icp_truth``)."""
+    clouds (``evaluation.gt_icp``), under the VPR paper's ICP-confirmed ground truth (``icp_truth``); with
+    ``evaluation.odometry_gate``, how many candidates it ``refused`` (`odometry_gated`, which ``table`` is after)."""
     q, m, s = table.top1()
     ev = cfg.evaluation
     options = _gt_options(cfg, stamps)
@@ -279,18 +283,21 @@ def loop_summary(
     )
     summary["retrieval"] = retrieval_metrics(metrics.query_ids, topn, retrieval_gt).summary()
     summary["pose_error"] = closure_pose_errors(metrics, rel, poses).summary()
+    if cfg.evaluation.odometry_gate is not None and refused is not None:
+        summary["odometry_gate_refused"] = int(refused.sum())
     return metrics, summary
 
 
-def odometry_refusals(
+def odometry_gated(
     cfg: ExperimentConfig, tables: list[CandidateTable], poses: np.ndarray
-) -> list[np.ndarray]:
-    """Per table, the (Q, N) candidates ``evaluation.odometry_gate`` refuses (all False without it): each
-    candidate's relative pose against the drifting odometry made from ``poses`` (`OdometryGateConfig`), over the
-    odometry's path between the two places (`placerec.odometry_gate`)."""
+) -> tuple[list[CandidateTable], list[np.ndarray]]:
+    """The tables as the evaluation judges them, and per table the (Q, N) candidates ``evaluation.odometry_gate``
+    refused: each candidate's relative pose against the drifting odometry made from ``poses``
+    (`OdometryGateConfig`) over the odometry's path between the two places (`placerec.odometry_gate`), a refused
+    one turned into a rejected one (`CandidateTable.refused`). Without the gate the tables as given, none refused."""
     gate = cfg.evaluation.odometry_gate
     if gate is None:
-        return [np.zeros(t.match_ids.shape, bool) for t in tables]
+        return tables, [np.zeros(t.match_ids.shape, bool) for t in tables]
     from placerec.odometry_gate import odometry_disagreement
     from placerec.sim.odometry import drift_poses
     from placerec.types import path_length
@@ -300,7 +307,7 @@ def odometry_refusals(
         seed = cfg.dataset.simulator.seed if cfg.dataset.source == "simulator" else 0
     odom = drift_poses(poses, gate.drift, seed)
     path = path_length(odom[:, :3, 3])
-    out = []
+    refusals = []
     for t in tables:
         refused = np.zeros(t.match_ids.shape, bool)
         qi, rank = np.nonzero(t.match_ids >= 0)
@@ -308,8 +315,8 @@ def odometry_refusals(
             q, m = t.query_ids[qi], t.match_ids[qi, rank]
             trans, rot = odometry_disagreement(t.relative_poses[qi, rank], odom[m], odom[q])
             refused[qi, rank] = ~gate.bounds.admits(trans, rot, path[q] - path[m])
-        out.append(refused)
-    return out
+        refusals.append(refused)
+    return [t.refused(r) for t, r in zip(tables, refusals, strict=True)], refusals
 
 
 def pose_truths(
@@ -369,16 +376,14 @@ def report_loop(
             np.savetxt(fh, seq.timestamps, fmt="%.6f")
     results: dict[str, Any] = {}
     curves: dict[str, dict[str, Any]] = {}
-    raw = [record.table() for record in records]
-    refusals = odometry_refusals(cfg, raw, poses)
-    tables = [t.refused(r) for t, r in zip(raw, refusals, strict=True)]
+    tables, refusals = odometry_gated(cfg, [record.table() for record in records], poses)
     pose_gts = pose_truths(cfg, tables, poses, seq.timestamps, truth)
     all_metrics = []
     for record, table, pose_gt, refused in zip(records, tables, pose_gts, refusals, strict=True):
         write_candidates(run / f"candidates_{slug(record.label)}.csv", record.query_ids, record.candidates)
-        metrics, summary = loop_summary(cfg, table, poses, seq.timestamps, record.threshold, truth, pose_gt)
-        if cfg.evaluation.odometry_gate is not None:
-            summary["odometry_gate_refused"] = int(refused.sum())
+        metrics, summary = loop_summary(
+            cfg, table, poses, seq.timestamps, record.threshold, truth, pose_gt, refused
+        )
         all_metrics.append(metrics)
         q, m = metrics.query_ids, metrics.match_ids
         summary["time_ms"] = _timing(record)
