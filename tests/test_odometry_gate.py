@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_loop_filter import _Echo
+from test_pose_truth import _pose
 
 from placerec.config import parse_config
 from placerec.errors import ConfigError, ScanDataError
@@ -22,21 +23,13 @@ from placerec.types import Candidate
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _pose(x=0.0, y=0.0, yaw_deg=0.0):
-    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
-    T = np.eye(4)
-    T[:2, :2] = [[c, -s], [s, c]]
-    T[:2, 3] = x, y
-    return T
-
-
 def test_disagreement_is_the_translation_and_angle_between_the_closure_and_the_odometrys_motion():
     # odometry: the query 10 m ahead of the match, turned 30 deg; the closure says 3 m to the side and 40 deg
     odom_m, odom_q = _pose(5.0, 2.0, 90.0), _pose(5.0, 2.0, 90.0) @ _pose(10.0, 0.0, 30.0)
     t, r = odometry_disagreement(_pose(10.0, 3.0, 40.0), odom_m, odom_q)
     assert t[0] == pytest.approx(3.0) and r[0] == pytest.approx(10.0)
     # the match's frame, not the world's: the same closure in another heading of the match disagrees as much
-    t2, r2 = odometry_disagreement(_pose(10.0, 3.0, 40.0), _pose(), _pose(10.0, 0.0, 30.0))
+    t2, r2 = odometry_disagreement(_pose(10.0, 3.0, 40.0), np.eye(4), _pose(10.0, 0.0, 30.0))
     assert t2[0] == pytest.approx(3.0) and r2[0] == pytest.approx(10.0)
     nan_t, nan_r = odometry_disagreement(np.full((4, 4), np.nan), odom_m, odom_q)
     assert np.isnan(nan_t[0]) and np.isnan(nan_r[0])
@@ -98,7 +91,7 @@ def test_the_gated_detector_needs_each_places_pose_and_leaves_a_prior_maps_place
     det = LoopClosureDetector(
         _Posed({5: [(2, _pose(400.0))]}), threshold=0.5, prior_entries=5, odometry_gate=OdometryGateParams()
     )
-    assert [c.match_id for c in det.process(None, pose=_pose(), description={"x": np.zeros(1)})] == [2]
+    assert [c.match_id for c in det.process(None, pose=np.eye(4), description={"x": np.zeros(1)})] == [2]
 
 
 def _table(rows):
