@@ -162,6 +162,42 @@ def test_a_false_closure_beside_true_ones_is_rejected_at_the_join(sessions):
     assert pose_errors(res.session_poses, sessions["truth_b"])[0].max() < 0.3
 
 
+def _offset_closure(sessions, query_scan: int, dx: float) -> LoopFactor:
+    """A closure of session scan ``query_scan`` onto its nearest map place, its true relative pose moved ``dx``
+    metres along the match's x axis."""
+    truth = sessions["truth_b"][query_scan]
+    m = int(np.argmin(np.linalg.norm(sessions["map_poses"][:, :3, 3] - truth[:3, 3], axis=1)))
+    T = relative_pose(sessions["map_poses"][m], truth)
+    T[0, 3] += dx
+    return LoopFactor(m, N_MAP + query_scan, T, 0.9, injected=True)
+
+
+def test_the_odometry_gate_checks_inter_session_closures_against_the_joined_estimate(sessions, joined_fixed):
+    """After the join an inter-session closure must agree with the joined estimate: a look-alike place 40 deg and
+    3.6 m off, and a closure 1.5 m off next to tied scans (bound 1 m + 0.04 m/m over a step or two), are refused;
+    0.5 m off is admitted; bases of 2 m admit the 1.5 m one. The detector's own closures all agree."""
+    from placerec.odometry_gate import OdometryGateParams
+
+    _, plain = joined_fixed
+    gate = OdometryGateParams()
+    slam, res = _run(sessions, odometry_gate=gate)
+    assert res.joined and not res.refused_by_gate and "odometry gate" not in res.summary()
+    key = lambda lp: (lp.match_id, lp.query_id)  # noqa: E731
+    assert list(map(key, res.inter_loops)) == list(map(key, plain.inter_loops))
+    far, off, near = _false_closure(30, 12), _offset_closure(sessions, 32, 1.5), _offset_closure(sessions, 34, 0.5)
+    extra = {30: [far], 32: [off], 34: [near]}
+    _, gated = _run(sessions, extra=extra, odometry_gate=gate)
+    ids = lambda loops: [id(lp) for lp in loops]  # noqa: E731 (LoopFactor holds arrays: compare by identity)
+    assert ids(gated.refused_by_gate) == ids([far, off])
+    assert id(near) in ids(gated.inter_loops) and not {id(far), id(off)} & set(ids(gated.inter_loops))
+    assert gated.summary().endswith(", 2 refused by the odometry gate")
+    assert pose_errors(gated.session_poses, sessions["truth_b"])[0].max() < 0.3
+    _, wide = _run(sessions, extra=extra, odometry_gate=gate.model_copy(update={"metres": 2.0}))
+    assert ids(wide.refused_by_gate) == ids([far])
+    _, off_gate = _run(sessions, extra=extra)  # without the gate all three reach the graph
+    assert set(ids([far, off, near])) <= set(ids(off_gate.inter_loops))
+
+
 def test_anchored_map_moves_within_its_own_factors(sessions, joined_fixed):
     map_poses = sessions["map_poses"]
     _, res = _run(sessions, anchor="anchored", prior_odometry=_chain(map_poses))

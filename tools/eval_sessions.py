@@ -28,7 +28,10 @@ kind of a world and seed, so its two maps are built once and kept under ``--work
    puts it: the nearest keyframe's estimate moved by the true relative pose; the join's own error, free of the
    map's drift) and the same session 2 run against the **true-pose map** of 1. (its merged ATE: the join with a
    map that has no drift of its own). ``--slam-odometry kiss-icp`` runs both SLAM sessions on KISS-ICP odometry
-   over the scans instead of the demo's drift (whose scale error no loop closure can see).
+   over the scans instead of the demo's drift (whose scale error no loop closure can see); ``--odometry-gate``
+   runs both SLAM sessions with ``loops.odometry_gate`` (`placerec.odometry_gate`: after the join the
+   inter-session closures are checked against the joined estimate; those refused are counted, and how many of
+   them were false).
 
 Map load time and size by keyframe count are ``tools/bench_map_scale.py``'s, not redone here.
 
@@ -117,6 +120,7 @@ def settings(
     map_closes_loop: bool = False,
     join_pipelines: tuple[str, ...] = (),
     slam_odometry: str = "dataset",
+    odometry_gate: bool = False,
 ) -> dict[str, Any]:
     """What a cell depends on besides its world, seed and kind (stored with it; a mismatch recomputes it)."""
     out = {"version": VERSION, "sensor": sensor, "pipeline": pipeline_label(pipeline), "scans": scans, "kidnaps": kidnaps,
@@ -128,6 +132,8 @@ def settings(
         out["join_pipelines"] = list(join_pipelines)
     if slam_odometry != "dataset":
         out["slam_odometry"] = slam_odometry
+    if odometry_gate:
+        out["odometry_gate"] = True
     return out
 
 
@@ -153,19 +159,25 @@ def true_map(pair: SessionPair, pipeline: str | None, folder: Path) -> Path:
     return write_map(pair.map, build)
 
 
-def slam_overrides(pair: SessionPair, role: str, odometry: str = "dataset") -> list[str]:
+def slam_overrides(pair: SessionPair, role: str, odometry: str = "dataset", gate: bool = False) -> list[str]:
     """The SLAM config's overrides for session ``role`` (``map`` or ``query``) of ``pair``; ``odometry``: the
-    config's ``odometry.source`` (``dataset``: the demo's drift on the true poses; ``kiss-icp``: on the scans)."""
+    config's ``odometry.source`` (``dataset``: the demo's drift on the true poses; ``kiss-icp``: on the scans);
+    ``gate``: ``loops.odometry_gate`` at its defaults (`placerec.odometry_gate`)."""
     seq = pair.map if role == "map" else pair.query
     world = pair.map.world
     return [f"dataset.simulator.world={world.preset}", f"dataset.simulator.sensor={seq.sensor.name}",
             f"dataset.simulator.seed={seq.seed}", f"dataset.simulator.world_seed={world.seed}",
             f"dataset.simulator.unit_seed={pair.map.seed}", f"odometry.drift.seed={seq.seed}",
-            f"odometry.source={odometry}", "output.progress=false", "output.figures=false"]  # fmt: skip
+            f"odometry.source={odometry}", "output.progress=false", "output.figures=false",
+            *(["loops.odometry_gate={}"] if gate else [])]  # fmt: skip
 
 
 def slam_map(
-    pair: SessionPair, folder: Path, map_pipelines: tuple[str, ...] = (), odometry: str = "dataset"
+    pair: SessionPair,
+    folder: Path,
+    map_pipelines: tuple[str, ...] = (),
+    odometry: str = "dataset",
+    gate: bool = False,
 ) -> tuple[Path, dict[str, Any]]:
     """Session 1 through `slam_sequence` with its map saved (run once; its ATE kept beside it), holding the
     ``map_pipelines`` databases as well (``output.map_pipelines``)."""
@@ -173,7 +185,7 @@ def slam_map(
     from placerec.slam_app.run import loop_pipeline, map_writer_for, slam_sequence
 
     info_path = folder.parent / f"{folder.name}.json"
-    sets = [*slam_overrides(pair, "map", odometry), f"output.save_map={folder}", "output.overwrite_map=true"]
+    sets = [*slam_overrides(pair, "map", odometry, gate), f"output.save_map={folder}", "output.overwrite_map=true"]
     if map_pipelines:
         sets.append(f"output.map_pipelines={list(map_pipelines)}")
     cfg = load_slam_config(SLAM_CONFIG, sets)
@@ -305,14 +317,19 @@ def kidnap(pair: SessionPair, loc: Localizer, n_trials: int, seed: int) -> dict[
 
 # -- 3. multi-session -------------------------------------------------------------------------------------------
 def multisession(
-    pair: SessionPair, map_folder: Path, join_pipelines: tuple[str, ...] = (), odometry: str = "dataset"
+    pair: SessionPair,
+    map_folder: Path,
+    join_pipelines: tuple[str, ...] = (),
+    odometry: str = "dataset",
+    gate: bool = False,
 ) -> dict[str, Any]:
     """Session 2 through `slam_sequence` against the map at ``map_folder`` (module docstring), with the map's
-    ``join_pipelines`` searching it too (``prior_map.join_pipelines``), on ``odometry`` (`slam_overrides`)."""
+    ``join_pipelines`` searching it too (``prior_map.join_pipelines``), on ``odometry`` with or without the
+    odometry ``gate`` (`slam_overrides`)."""
     from placerec.slam_app.config import load_slam_config
     from placerec.slam_app.run import open_prior_map, slam_sequence
 
-    sets = [*slam_overrides(pair, "query", odometry), f"prior_map.path={map_folder}"]
+    sets = [*slam_overrides(pair, "query", odometry, gate), f"prior_map.path={map_folder}"]
     if join_pipelines:
         sets.append(f"prior_map.join_pipelines={list(join_pipelines)}")
     if pair.kind == "sensor":
@@ -330,7 +347,7 @@ def multisession(
         "joined": bool(ms.joined), "summary": ms.summary(), "map_keyframes": M,
         "inter_loops": len(ms.inter_loops), "rejected_at_join": len(ms.rejected_at_join),
         "pending": len(ms.pending), "rejected_by_graph": int(ms.rejected_by_graph),
-        "seconds": round(time.perf_counter() - t0, 1),
+        "refused_by_gate": len(ms.refused_by_gate), "seconds": round(time.perf_counter() - t0, 1),
     }  # fmt: skip
     out["false_inter_loops"] = _false(ms.inter_loops, gt1, gt2, M)
     out["false_inter_loops_kept"] = sum(  # in the graph at a weight >= 0.5
@@ -340,6 +357,7 @@ def multisession(
     )
     out["false_rejected_at_join"] = _false(ms.rejected_at_join, gt1, gt2, M)
     out["false_pending"] = _false(ms.pending, gt1, gt2, M)
+    out["false_refused_by_gate"] = _false(ms.refused_by_gate, gt1, gt2, M)
     out["session_ate_rmse"] = trajectory_errors(ms.session_poses, gt2).ate_rmse
     out.update(merged_ate_rmse=None, merged_ate_max=None, map_ate_rmse=None, join_error_m=None)
     if ms.joined:
@@ -399,9 +417,10 @@ def run_cell(
     map_closes_loop: bool = False,
     join_pipelines: tuple[str, ...] = (),
     slam_odometry: str = "dataset",
+    odometry_gate: bool = False,
 ) -> dict[str, Any]:
     """One world x seed x kind: relocalisation, kidnap and multi-session (module docstring). The maps of session 1
-    are built under ``work`` once per world, seed, sensor, pipeline, cut and SLAM odometry."""
+    are built under ``work`` once per world, seed, sensor, pipeline, cut, SLAM odometry and odometry gate."""
     pair = make_session_pair(world, sensor, seed, kind, n_scans=scans, map_closes_loop=map_closes_loop)
     tag = f"{world}-{sensor}-s{seed}-n{scans or 'all'}{'-closed' if map_closes_loop else ''}"
     params = params or LocalizerParams(pipeline=pipeline, allow_other_sensor=kind == "sensor")
@@ -421,16 +440,16 @@ def run_cell(
     out["kidnap"] = kidnap(pair, loc, kidnaps, seed)
     log(f"{tag} {kind}: SLAM session 1")
     joined_by = "".join(f"-{name}" for name in join_pipelines)  # a map holding those databases too
-    on = "" if slam_odometry == "dataset" else f"-{slam_odometry}"
+    on = ("" if slam_odometry == "dataset" else f"-{slam_odometry}") + ("-gate" if odometry_gate else "")
     smap, out["slam_session1"] = slam_map(
-        pair, work / f"{tag}-slam{joined_by}{on}", join_pipelines, slam_odometry
+        pair, work / f"{tag}-slam{joined_by}{on}", join_pipelines, slam_odometry, odometry_gate
     )
     log(f"{tag} {kind}: SLAM session 2 against it")
-    out["multisession"] = multisession(pair, smap, join_pipelines, slam_odometry)
+    out["multisession"] = multisession(pair, smap, join_pipelines, slam_odometry, odometry_gate)
     log(
         f"{tag} {kind}: SLAM session 2 against the true-pose map (diagnostic: the join without the map's drift)"
     )
-    out["multisession_truth_map"] = multisession(pair, tmap, join_pipelines, slam_odometry)
+    out["multisession_truth_map"] = multisession(pair, tmap, join_pipelines, slam_odometry, odometry_gate)
     out["seconds"] = round(time.perf_counter() - t0, 1)
     out["load"] = load()
     return out
@@ -502,13 +521,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="the odometry of both SLAM sessions: dataset (the demo config's drift on the true poses) or kiss-icp"
         " (KISS-ICP on the scans); relocalisation and kidnaps keep the simulated drift",
     )
+    ap.add_argument(
+        "--odometry-gate",
+        action="store_true",
+        help="both SLAM sessions with loops.odometry_gate at its defaults: intra-session closures checked against"
+        " the odometry, inter-session ones after the join against the joined estimate",
+    )
     args = ap.parse_args(argv)
     work = args.work or args.out / "maps"
     work.mkdir(parents=True, exist_ok=True)
     args.out.mkdir(parents=True, exist_ok=True)
     join = tuple(args.join_pipelines)
     want = settings(
-        args.sensor, args.pipeline, args.scans, args.kidnaps, args.map_closes_loop, join, args.slam_odometry
+        args.sensor, args.pipeline, args.scans, args.kidnaps, args.map_closes_loop, join, args.slam_odometry,
+        args.odometry_gate,
     )
     cells = []
     t0 = time.perf_counter()
@@ -517,6 +543,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             for kind in args.kinds:
                 closed = "-closed" if args.map_closes_loop else ""
                 on = "" if args.slam_odometry == "dataset" else f"-{args.slam_odometry}"
+                on += "-gate" if args.odometry_gate else ""
                 name = f"{world}-{args.sensor}-s{seed}-{kind}-{pipeline_label(args.pipeline)}-n{args.scans or 'all'}{closed}{on}.json"
                 path = args.out / name
                 if path.is_file() and not args.fresh:
@@ -527,7 +554,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         continue
                 cell = run_cell(world, seed, kind, args.sensor, args.pipeline, args.scans, args.kidnaps, work,
                                 map_closes_loop=args.map_closes_loop, join_pipelines=join,
-                                slam_odometry=args.slam_odometry)  # fmt: skip
+                                slam_odometry=args.slam_odometry, odometry_gate=args.odometry_gate)  # fmt: skip
                 cell["settings"] = want
                 tmp = path.with_suffix(".tmp")
                 tmp.write_text(json.dumps(cell, indent=1))
@@ -562,6 +589,8 @@ def _summary(cells: list[dict[str, Any]]) -> dict[str, Any]:
         "kidnap_false": sum(k["false_first_fixes"] for k in kid),
         "max_merged_ate": max(ates, default=None),
         "false_inter_loops": sum(c["multisession"]["false_inter_loops"] for c in cells),
+        "refused_by_gate": sum(c["multisession"].get("refused_by_gate", 0) for c in cells),
+        "false_refused_by_gate": sum(c["multisession"].get("false_refused_by_gate", 0) for c in cells),
         "max_merged_ate_truth_map": max(
             (c["multisession_truth_map"]["merged_ate_rmse"] or 0.0 for c in cells), default=None
         ),

@@ -37,6 +37,13 @@ join and never enter the graph. After the join every new closure, intra- or inte
 graph (robust kernel online; the batch at `finish` is `GraphParams.batch`, GNC by default, which can still
 reject any loop factor).
 
+With ``odometry_gate`` (`placerec.odometry_gate`) the session's own closures are checked against its odometry by
+the detector, and after the join the inter-session ones against the **joined estimate**: a closure must put its
+query within the gate's bounds of where the joined graph has it, ``inv(T_map_match) @ T_map_query``, with ``L`` the
+session's odometry path from the nearest session scan already tied to the map by an inter-session loop in the
+graph (the query's estimate can have drifted from the map only since then). A refused closure never enters the
+graph (``refused_by_gate``). Before the join there is no common frame: the join's consensus test stands in.
+
 The session's places enter the recognizer with their odometry poses, in the session's frame: pipelines that use
 entry poses (local-map verification of the 3D pipelines) would mix the two frames; ORB-HBST and Scan Context do
 not use them.
@@ -55,7 +62,7 @@ from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES
 from placerec.eval.pose_error import pose_errors
 from placerec.loop_closure import LoopClosureDetector
-from placerec.odometry_gate import OdometryGateParams
+from placerec.odometry_gate import OdometryGateParams, odometry_disagreement
 from placerec.realtime import RealtimeParams
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
 from placerec.slam.online import detect_closures, finish_closures, record_candidates
@@ -82,8 +89,9 @@ class MultiSessionResult:
     the prior map's as given, ``T_map_session`` None. ``inter_loops``: the inter-session closures in the graph,
     with ``inter_weights`` (the batch's weight of each: below 0.5 the back end rejected it);
     ``rejected_at_join``: closures that disagreed with the join's consensus; ``pending``: the inter-session
-    closures of a session never joined (kept out of any graph); ``joined_at``: the session scan whose closure
-    completed the join. ``batch``: `PoseGraph.optimize`'s info, its loop lists aligned with ``graph.loops``.
+    closures of a session never joined (kept out of any graph); ``refused_by_gate``: inter-session closures after
+    the join that the odometry gate refused against the joined estimate (kept out of the graph); ``joined_at``:
+    the session scan whose closure completed the join. ``batch``: `PoseGraph.optimize`'s info, its loop lists aligned with ``graph.loops``.
     """
 
     joined: bool
@@ -99,6 +107,7 @@ class MultiSessionResult:
     batch: dict[str, Any]
     graph: PoseGraph
     anchor: Anchor = "fixed"
+    refused_by_gate: list[LoopFactor] = field(default_factory=list)
     rejected_by_graph: int = field(init=False)
 
     def __post_init__(self) -> None:
@@ -116,6 +125,7 @@ class MultiSessionResult:
                 f"joined to the prior map ({self.anchor}) at session scan {self.joined_at}: "
                 f"{len(self.inter_loops)} inter-session loops in the graph ({self.rejected_by_graph} rejected by "
                 f"the graph), {len(self.rejected_at_join)} rejected at the join"
+                + (f", {len(self.refused_by_gate)} refused by the odometry gate" if self.refused_by_gate else "")
             )
         if not self.pending:
             return "sessions never overlapped: kept separate (no inter-session closure)"
@@ -138,8 +148,8 @@ class MultiSessionSlam:
     ``realtime``: the detector's real-time mode (`placerec.slam.online`): closures arrive a few scans late and are
     routed as they come; `finish` waits for the rest. The closures are the sequential mode's, but the join is
     tested on the estimates of when they arrive, so it may happen at another scan. ``odometry_gate``: the
-    detector's check of the session's own closures against its odometry (`placerec.odometry_gate`; the map's
-    places are in another frame and pass; None: off).
+    detector's check of the session's own closures against its odometry and, after the join, of the inter-session
+    closures against the joined estimate (module docstring; None: off).
     """
 
     def __init__(
@@ -194,6 +204,11 @@ class MultiSessionSlam:
         self.inter_loops: list[LoopFactor] = []
         self.pending: list[LoopFactor] = []
         self.rejected_at_join: list[LoopFactor] = []
+        self.odometry_gate = odometry_gate
+        self.refused_by_gate: list[LoopFactor] = []
+        self._path: list[float] = []  # the session's odometry path (m) at each of its scans
+        self._last_position = np.zeros(3)
+        self._tied: set[int] = set()  # session scans (detector ids) with an inter-session loop in the graph
         self.candidates: list[list[Candidate]] = []
         self.last_timing_ms: dict[str, float] = {}
 
@@ -244,6 +259,7 @@ class MultiSessionSlam:
         record_candidates(self.candidates, self.detector)
         t0 = time.perf_counter()
         self.graph.add_pose(odometry_pose)
+        self._record_path(odometry_pose)
         added += list(extra_loops or [])
         self._route(added, timing, t0)
         self.last_timing_ms = timing
@@ -255,9 +271,14 @@ class MultiSessionSlam:
         inter = [lp for lp in added if self._is_inter(lp)]
         intra = [lp for lp in added if lp.match_id >= self.n_map]
         if self.joined:
+            refused = self._refused(inter)
+            inter = [lp for lp in inter if id(lp) not in refused]
             for lp in added:  # keys are the detector's ids
-                self.graph.add_loop(lp)
+                if id(lp) not in refused:
+                    self.graph.add_loop(lp)
+            self.refused_by_gate += [lp for lp in added if id(lp) in refused]
             self.inter_loops += inter
+            self._tied.update(lp.query_id for lp in inter)
         else:
             M = self.n_map
             for lp in intra:
@@ -270,6 +291,30 @@ class MultiSessionSlam:
             self.pending += inter
             self._try_join(max(lp.query_id for lp in inter) - self.n_map)
             timing["join"] = (time.perf_counter() - t0) * 1e3
+
+    def _record_path(self, odometry_pose: np.ndarray) -> None:
+        """Extend the session's odometry path (m) with its newest scan's pose (already checked by the graph)."""
+        T = np.asarray(odometry_pose, dtype=np.float64)
+        step = 0.0 if not self._path else float(np.linalg.norm(T[:3, 3] - self._last_position))
+        self._path.append((self._path[-1] if self._path else 0.0) + step)
+        self._last_position = T[:3, 3].copy()
+
+    def _refused(self, inter: list[LoopFactor]) -> set[int]:
+        """The ``id``s of the inter-session closures (after the join) that the odometry gate refuses against the
+        joined estimate (module docstring); empty without a gate."""
+        if self.odometry_gate is None or not inter:
+            return set()
+        M = self.n_map
+        path = np.asarray(self._path)
+        tied = path[np.fromiter(self._tied, dtype=np.int64) - M]
+        trans, rot = odometry_disagreement(
+            np.stack([lp.T_match_query for lp in inter]),
+            np.stack([self.graph.pose(lp.match_id) for lp in inter]),
+            np.stack([self.graph.pose(lp.query_id) for lp in inter]),
+        )
+        since = np.array([np.abs(tied - path[lp.query_id - M]).min() for lp in inter])
+        ok = self.odometry_gate.admits(trans, rot, since)
+        return {id(lp) for lp, good in zip(inter, ok, strict=True) if not good}
 
     def _is_inter(self, lp: LoopFactor) -> bool:
         """Whether ``lp`` (detector ids) is inter-session; `ScanDataError` unless its query is one of the session's
@@ -328,6 +373,7 @@ class MultiSessionSlam:
         self.T_map_session = align[group[0]]
         self.joined_at = latest
         self.inter_loops = [self.pending[i] for i in group]
+        self._tied = {lp.query_id for lp in self.inter_loops}
         kept = set(group)
         self.rejected_at_join = [lp for i, lp in enumerate(self.pending) if i not in kept]
         self.pending = []
@@ -368,6 +414,7 @@ class MultiSessionSlam:
         return MultiSessionResult(
             True, T_map_session, poses[M:], poses[:M], list(self.intra_loops), list(self.inter_loops),
             inter_weights, list(self.rejected_at_join), [], self.joined_at, info, self.graph, self.anchor,
+            list(self.refused_by_gate),
         )  # fmt: skip
 
 

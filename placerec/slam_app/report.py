@@ -324,6 +324,7 @@ def prior_map_metrics(cfg: SlamConfig, result: SlamResult, prior: MapArtifact) -
         "inter_session_closures": len(inter),
         "rejected_at_join": len(ms.rejected_at_join),
         "rejected_by_graph": ms.rejected_by_graph,
+        "refused_by_odometry_gate": len(ms.refused_by_gate),
         "map_poses_source": prior.manifest.poses_source,
     }
     gt = result.ground_truth
