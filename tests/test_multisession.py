@@ -184,7 +184,11 @@ def test_the_odometry_gate_checks_inter_session_closures_against_the_joined_esti
     assert res.joined and not res.refused_by_gate and "odometry gate" not in res.summary()
     key = lambda lp: (lp.match_id, lp.query_id)  # noqa: E731
     assert list(map(key, res.inter_loops)) == list(map(key, plain.inter_loops))
-    far, off, near = _false_closure(30, 12), _offset_closure(sessions, 32, 1.5), _offset_closure(sessions, 34, 0.5)
+    far, off, near = (
+        _false_closure(30, 12),
+        _offset_closure(sessions, 32, 1.5),
+        _offset_closure(sessions, 34, 0.5),
+    )
     extra = {30: [far], 32: [off], 34: [near]}
     _, gated = _run(sessions, extra=extra, odometry_gate=gate)
     ids = lambda loops: [id(lp) for lp in loops]  # noqa: E731 (LoopFactor holds arrays: compare by identity)

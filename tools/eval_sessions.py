@@ -185,7 +185,11 @@ def slam_map(
     from placerec.slam_app.run import loop_pipeline, map_writer_for, slam_sequence
 
     info_path = folder.parent / f"{folder.name}.json"
-    sets = [*slam_overrides(pair, "map", odometry, gate), f"output.save_map={folder}", "output.overwrite_map=true"]
+    sets = [
+        *slam_overrides(pair, "map", odometry, gate),
+        f"output.save_map={folder}",
+        "output.overwrite_map=true",
+    ]
     if map_pipelines:
         sets.append(f"output.map_pipelines={list(map_pipelines)}")
     cfg = load_slam_config(SLAM_CONFIG, sets)
@@ -533,7 +537,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args.out.mkdir(parents=True, exist_ok=True)
     join = tuple(args.join_pipelines)
     want = settings(
-        args.sensor, args.pipeline, args.scans, args.kidnaps, args.map_closes_loop, join, args.slam_odometry,
+        args.sensor,
+        args.pipeline,
+        args.scans,
+        args.kidnaps,
+        args.map_closes_loop,
+        join,
+        args.slam_odometry,
         args.odometry_gate,
     )
     cells = []

@@ -125,7 +125,11 @@ class MultiSessionResult:
                 f"joined to the prior map ({self.anchor}) at session scan {self.joined_at}: "
                 f"{len(self.inter_loops)} inter-session loops in the graph ({self.rejected_by_graph} rejected by "
                 f"the graph), {len(self.rejected_at_join)} rejected at the join"
-                + (f", {len(self.refused_by_gate)} refused by the odometry gate" if self.refused_by_gate else "")
+                + (
+                    f", {len(self.refused_by_gate)} refused by the odometry gate"
+                    if self.refused_by_gate
+                    else ""
+                )
             )
         if not self.pending:
             return "sessions never overlapped: kept separate (no inter-session closure)"
