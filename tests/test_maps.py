@@ -328,6 +328,7 @@ def test_a_second_session_joins_the_map_and_the_merged_map_is_saved(tmp_path: Pa
     run, payload = run_slam(second, tmp_path / "res")
     pm = payload["prior_map"]
     assert pm["joined"] and pm["inter_session_closures"] >= 10 and pm["rejected_by_graph"] == 0
+    assert pm["refused_by_odometry_gate"] == 0  # no gate in this run
     # the session's odometry started at the identity; the join put it where it truly is in the map's frame
     T = np.array(pm["T_map_session"])
     truth = SimulatedSequence(world="town", sensor="vlp16", n_scans=1, seed=5, world_seed=0).poses[0]
