@@ -66,3 +66,20 @@ def test_slam_odometry_reaches_both_sessions_configs_and_the_cache_key() -> None
     assert (
         kiss["slam_odometry"] == "kiss-icp" and "slam_odometry" not in drift
     )  # cached cells of before still match
+
+
+def test_the_odometry_gate_reaches_both_sessions_configs_and_the_cache_key() -> None:
+    from placerec.sim.sessions import make_session_pair
+    from placerec.slam_app.config import load_slam_config
+
+    tool = _tool()
+    pair = make_session_pair("town", "vlp16", 0, "revisit", n_scans=5)
+    for role in ("map", "query"):
+        gated = load_slam_config(tool.SLAM_CONFIG, tool.slam_overrides(pair, role, gate=True))
+        assert gated.loops.odometry_gate is not None and gated.loops.odometry_gate.per_metre == 0.04
+        assert load_slam_config(tool.SLAM_CONFIG, tool.slam_overrides(pair, role)).loops.odometry_gate is None
+    gate = tool.settings("vlp16", None, 5, 0, odometry_gate=True)
+    plain = tool.settings("vlp16", None, 5, 0)
+    assert gate["odometry_gate"] is True and "odometry_gate" not in plain  # cached cells of before still match
+    summary = tool._summary([])
+    assert summary["refused_by_gate"] == 0 and summary["false_refused_by_gate"] == 0
