@@ -311,3 +311,25 @@ def test_multi_session_in_real_time_joins_with_the_same_closures(sessions):
     assert rt.joined_at >= seq.joined_at
     np.testing.assert_allclose(rt.session_poses[:, :3, 3], seq.session_poses[:, :3, 3], atol=0.05)
     assert not [t for t in threading.enumerate() if t.name == "placerec-loop-closure"]
+
+
+def test_the_sessions_figure_draws_the_closures_the_gate_refused(sessions, tmp_path, monkeypatch):
+    """sessions.png (placerec slam --prior-map) shows a refused closure, dashed and labelled with their count."""
+    from placerec.experiment import figures
+    from placerec.odometry_gate import OdometryGateParams
+    from placerec.slam_app import report
+
+    far = _false_closure(30, 12)
+    _, res = _run(sessions, extra={30: [far]}, odometry_gate=OdometryGateParams())
+    seen = {}
+
+    def keep(fig, ax, path, **legend):
+        seen["labels"] = ax.get_legend_handles_labels()[1]
+        seen["dashed"] = [line for line in ax.get_lines() if line.get_linestyle() == "--"]
+        return path
+
+    monkeypatch.setattr(figures, "_finish", keep)
+    report._sessions_figure(tmp_path / "sessions.png", sessions["map_poses"], res, res.session_poses, "title")
+    assert "refused by the odometry gate (1)" in seen["labels"]
+    (line,) = seen["dashed"]
+    np.testing.assert_allclose(line.get_xdata(), [res.map_poses[12, 0, 3], res.session_poses[30, 0, 3]])

@@ -42,6 +42,7 @@ from placerec.io.atomic import atomic_write
 from placerec.io.mcap_export import LoopEdge, write_closures_mcap
 from placerec.maps.artifact import MapArtifact
 from placerec.preprocess import preprocess_scan
+from placerec.slam.multisession import MultiSessionResult
 from placerec.slam.result import ONLINE_STAGES, SlamResult
 from placerec.slam_app.config import SlamConfig
 from placerec.types import Candidate, Scan, Sequence, relative_pose, rigid_problem
@@ -348,21 +349,27 @@ def prior_map_metrics(cfg: SlamConfig, result: SlamResult, prior: MapArtifact) -
     return out
 
 
-def _sessions_figure(path: Path, prior: MapArtifact, result: SlamResult, title: str) -> None:
-    """The prior map's keyframes and the session (in the map's frame when joined) with its inter-session closures."""
-    ms = result.multisession
-    assert ms is not None
+def _sessions_figure(
+    path: Path, prior_poses: np.ndarray, ms: MultiSessionResult, session_poses: np.ndarray, title: str
+) -> None:
+    """The prior map's keyframes (``prior_poses``, as saved) and the session (``session_poses``: in the map's frame
+    when joined) with its inter-session closures and, dashed red, those the odometry gate refused after the join
+    (a refused closure joins a keyframe to a query far from it)."""
     fig, ax = figures._pyplot().subplots(figsize=(7, 7), dpi=100)
-    mp = (ms.map_poses if ms.joined else prior.poses)[:, :3, 3]
-    sp = result.optimized[:, :3, 3]
+    mp = (ms.map_poses if ms.joined else prior_poses)[:, :3, 3]
+    sp = session_poses[:, :3, 3]
     ax.plot(mp[:, 0], mp[:, 1], ".", ms=2, color="0.6", label=f"prior map ({len(mp)} keyframes)")
     frame = "map frame" if ms.joined else "own frame: not joined"
     ax.plot(sp[:, 0], sp[:, 1], "-", lw=1.2, color="tab:blue", label=f"session ({frame})")
     if ms.joined:
-        M = len(prior)
+        M = len(prior_poses)
         for lp in ms.inter_loops:
             a, b = mp[lp.match_id], sp[lp.query_id - M]
             ax.plot([a[0], b[0]], [a[1], b[1]], "-", lw=0.5, color="tab:green", alpha=0.6)
+        for n, lp in enumerate(ms.refused_by_gate):
+            a, b = mp[lp.match_id], sp[lp.query_id - M]
+            label = f"refused by the odometry gate ({len(ms.refused_by_gate)})" if n == 0 else None
+            ax.plot([a[0], b[0]], [a[1], b[1]], "--", lw=1.0, color="tab:red", label=label)
     ax.set(xlabel="x [m]", ylabel="y [m]")
     ax.set_title(title, fontsize=9)
     figures._frame(ax, mp, sp)
@@ -418,9 +425,11 @@ def report_slam(
         tables = [_rows(payload), _loop_rows(payload)] if e else [_loop_rows(payload)]
         first: tuple[str, ...] = ("trajectory.png",)
         if prior is not None:
+            assert result.multisession is not None  # a run with a prior map
             _sessions_figure(
-                run / "sessions.png", prior, result, f"{cfg.name}: {payload['prior_map']['summary']}"
-            )
+                run / "sessions.png", prior.poses, result.multisession, result.optimized,
+                f"{cfg.name}: {payload['prior_map']['summary']}",
+            )  # fmt: skip
             first = ("sessions.png", "trajectory.png")
         write_html_page(run, cfg.name, "mode: slam", tables, first=first, last=())
     if cfg.output.map_ply:
