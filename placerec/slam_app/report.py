@@ -369,7 +369,7 @@ def _sessions_figure(
         for n, lp in enumerate(ms.refused_by_gate):
             a, b = mp[lp.match_id], sp[lp.query_id - M]
             label = f"refused by the odometry gate ({len(ms.refused_by_gate)})" if n == 0 else None
-            ax.plot([a[0], b[0]], [a[1], b[1]], "--", lw=1.0, color="tab:red", label=label)
+            ax.plot([a[0], b[0]], [a[1], b[1]], "--", lw=1.5, color="tab:red", label=label)
     ax.set(xlabel="x [m]", ylabel="y [m]")
     ax.set_title(title, fontsize=9)
     figures._frame(ax, mp, sp)
