@@ -91,7 +91,8 @@ class MultiSessionResult:
     ``rejected_at_join``: closures that disagreed with the join's consensus; ``pending``: the inter-session
     closures of a session never joined (kept out of any graph); ``refused_by_gate``: inter-session closures after
     the join that the odometry gate refused against the joined estimate (kept out of the graph); ``joined_at``:
-    the session scan whose closure completed the join. ``batch``: `PoseGraph.optimize`'s info, its loop lists aligned with ``graph.loops``.
+    the session scan whose closure completed the join. ``batch``: `PoseGraph.optimize`'s info, its loop lists
+    aligned with ``graph.loops``.
     """
 
     joined: bool
