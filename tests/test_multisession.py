@@ -294,17 +294,23 @@ def test_add_graph_appends_a_graph_under_the_next_keys():
 
 
 def test_multi_session_in_real_time_joins_with_the_same_closures(sessions):
-    """MultiSessionSlam with the detector's real-time mode: the same closures, joined (maybe a few scans later),
-    poses close; no worker thread left."""
+    """MultiSessionSlam with the detector's real-time mode and the odometry gate: the same closures, joined (maybe a
+    few scans later), the same look-alike refused, poses close; no worker thread left."""
+    from placerec.odometry_gate import OdometryGateParams
+
     results = []
     for realtime in (None, RealtimeParams(max_backlog=3)):
         slam = MultiSessionSlam(
-            _recognizer(sessions), 0.25, sessions["map_poses"], exclusion_frames=30, realtime=realtime
-        )
-        for d, T in zip(sessions["b"], sessions["odo_b"], strict=True):
-            slam.process(None, T, description=d)
+            _recognizer(sessions), 0.25, sessions["map_poses"], exclusion_frames=30, realtime=realtime,
+            odometry_gate=OdometryGateParams(),
+        )  # fmt: skip
+        for s, (d, T) in enumerate(zip(sessions["b"], sessions["odo_b"], strict=True)):
+            # a look-alike injected after the join, routed with the late closures of the real-time mode
+            slam.process(None, T, description=d, extra_loops=[_false_closure(30, 12)] if s == 30 else None)
         results.append(slam.finish())
     seq, rt = results
+    assert [(lp.match_id, lp.query_id) for lp in rt.refused_by_gate] == [(12, N_MAP + 30)]
+    assert len(seq.refused_by_gate) == 1
     key = lambda lp: (lp.match_id, lp.query_id, lp.score)  # noqa: E731
     every = lambda r: sorted(map(key, r.intra_loops + r.inter_loops + r.rejected_at_join + r.pending))  # noqa: E731
     assert seq.joined and rt.joined and every(seq) == every(rt)
