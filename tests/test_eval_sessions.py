@@ -27,7 +27,9 @@ def test_a_revisit_cell_is_relocalised_and_joined_and_a_disjoint_one_is_not(tmp_
     assert m["join_error_m"]["median"] < 0.15 and cell["slam_session1"]["scans"] == 25
     truth = cell["multisession_truth_map"]  # the same session 2 against the true-pose map
     assert truth["joined"] and truth["false_inter_loops"] == 0 and truth["merged_ate_rmse"] < 0.15
-    assert "|" in tool.cell_line(cell)
+    assert "|" in tool.cell_line(cell) and "refused" not in tool.cell_line(cell)
+    gated = {**cell, "multisession": {**m, "refused_by_gate": 2, "false_refused_by_gate": 1}}
+    assert "(0 false, 2 refused by the gate (1 false))" in tool.cell_line(gated)
     (slam_info,) = tmp_path.glob("*-slam.json")
     made = slam_info.stat().st_mtime_ns
 

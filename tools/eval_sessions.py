@@ -471,13 +471,15 @@ def cell_line(c: dict[str, Any]) -> str:
 
     kid = "-" if not k["trials"] else f"{k['fixed_within_3']}/{k['trials']} ({k['false_first_fixes']} false)"
     join = "-" if m["join_error_m"] is None else num(m["join_error_m"]["median"])
+    refused = m.get("refused_by_gate", 0)  # cells run with --odometry-gate: the closures it kept out
+    gated = f", {refused} refused by the gate ({m['false_refused_by_gate']} false)" if refused else ""
     return (
         f"| {c['world']} | {c['seed']} | {c['kind']} | {r['overlap_scans']}/{r['scans']} | "
         f"{r['correct_in_overlap']} ({pct(r['success'])}) | {r['wrong']} | "
         f"{r['outside_accepted']} ({r['outside_wrong']} wrong) | "
         f"{num(r['tracking_ms']['median'], '.1f')} / {num(r['tracking_ms']['p95'], '.1f')} | "
         f"{num(r['global_ms']['median'], '.0f')} | {kid} | {'yes' if m['joined'] else 'no'} | "
-        f"{m['inter_loops']} ({m['false_inter_loops']} false) | {num(c['slam_session1']['ate_rmse'])} | "
+        f"{m['inter_loops']} ({m['false_inter_loops']} false{gated}) | {num(c['slam_session1']['ate_rmse'])} | "
         f"{num(m['merged_ate_rmse'])} | {join} | {num(t['merged_ate_rmse'])} ({t['false_inter_loops']} false) |"
     )
 
