@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
@@ -196,6 +196,11 @@ class LoopClosureDetector:
         """Places processed (or skipped): scans, or keyframes with ``keyframes`` (the stream's own; a prior map's
         entries are not counted)."""
         return len(self._path)
+
+    def path_at(self, own: Iterable[int]) -> np.ndarray:
+        """The odometry path (m) travelled up to each of the stream's own places ``own`` (0-based: place id minus
+        ``prior_entries``; 0 at the first place, and no step where a place came without a pose)."""
+        return np.array([self._path[i] for i in own], dtype=np.float64)
 
     @property
     def next_id(self) -> int:

@@ -211,8 +211,6 @@ class MultiSessionSlam:
         self.rejected_at_join: list[LoopFactor] = []
         self.odometry_gate = odometry_gate
         self.refused_by_gate: list[LoopFactor] = []
-        self._path: list[float] = []  # the session's odometry path (m) at each of its scans
-        self._last_position = np.zeros(3)
         self._tied: set[int] = set()  # session scans (detector ids) with an inter-session loop in the graph
         self.candidates: list[list[Candidate]] = []
         self.last_timing_ms: dict[str, float] = {}
@@ -264,7 +262,6 @@ class MultiSessionSlam:
         record_candidates(self.candidates, self.detector)
         t0 = time.perf_counter()
         self.graph.add_pose(odometry_pose)
-        self._record_path(odometry_pose)
         added += list(extra_loops or [])
         self._route(added, timing, t0)
         self.last_timing_ms = timing
@@ -297,27 +294,22 @@ class MultiSessionSlam:
             self._try_join(max(lp.query_id for lp in inter) - self.n_map)
             timing["join"] = (time.perf_counter() - t0) * 1e3
 
-    def _record_path(self, odometry_pose: np.ndarray) -> None:
-        """Extend the session's odometry path (m) with its newest scan's pose (already checked by the graph)."""
-        T = np.asarray(odometry_pose, dtype=np.float64)
-        step = 0.0 if not self._path else float(np.linalg.norm(T[:3, 3] - self._last_position))
-        self._path.append((self._path[-1] if self._path else 0.0) + step)
-        self._last_position = T[:3, 3].copy()
-
     def _refused(self, inter: list[LoopFactor]) -> set[int]:
         """The ``id``s of the inter-session closures (after the join) that the odometry gate refuses against the
         joined estimate (module docstring); empty without a gate."""
         if self.odometry_gate is None or not inter:
             return set()
         M = self.n_map
-        path = np.asarray(self._path)
-        tied = path[np.fromiter(self._tied, dtype=np.int64) - M]
+        tied = self.detector.path_at(
+            i - M for i in self._tied
+        )  # the detector's odometry path per session scan
         trans, rot = odometry_disagreement(
             np.stack([lp.T_match_query for lp in inter]),
             np.stack([self.graph.pose(lp.match_id) for lp in inter]),
             np.stack([self.graph.pose(lp.query_id) for lp in inter]),
         )
-        since = np.array([np.abs(tied - path[lp.query_id - M]).min() for lp in inter])
+        at = self.detector.path_at(lp.query_id - M for lp in inter)
+        since = np.abs(tied[None, :] - at[:, None]).min(axis=1)
         ok = self.odometry_gate.admits(trans, rot, since)
         return {id(lp) for lp, good in zip(inter, ok, strict=True) if not good}
 
