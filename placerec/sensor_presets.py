@@ -137,9 +137,7 @@ def _presets() -> dict[str, dict[str, SensorPreset]]:
             odometry = None
             if sensor in with_odometry:
                 own = _ODOMETRY_PARAMS.get(pipeline, {}).get(sensor, {})
-                odometry = SensorPreset(
-                    with_odometry[sensor], deep_merge(deep_merge(params, _ODOMETRY_FLOOR), own)
-                )
+                odometry = SensorPreset(with_odometry[sensor], deep_merge(params, _ODOMETRY_FLOOR, own))
             by_sensor[sensor] = SensorPreset(thresholds.get(sensor), params, odometry)
         out[pipeline] = by_sensor
     return out

@@ -137,6 +137,11 @@ def settings(
     return out
 
 
+def slam_suffix(slam_odometry: str, odometry_gate: bool) -> str:
+    """What names a cell's file and its SLAM map apart by how the SLAM sessions ran (the demo's drift, ungated: "")."""
+    return ("" if slam_odometry == "dataset" else f"-{slam_odometry}") + ("-gate" if odometry_gate else "")
+
+
 def odometry(pair: SessionPair) -> np.ndarray:
     """Session 2's drifting odometry (the simulator's default drift, seeded by the query's seed), re-based so that
     its first pose is the identity."""
@@ -444,7 +449,7 @@ def run_cell(
     out["kidnap"] = kidnap(pair, loc, kidnaps, seed)
     log(f"{tag} {kind}: SLAM session 1")
     joined_by = "".join(f"-{name}" for name in join_pipelines)  # a map holding those databases too
-    on = ("" if slam_odometry == "dataset" else f"-{slam_odometry}") + ("-gate" if odometry_gate else "")
+    on = slam_suffix(slam_odometry, odometry_gate)
     smap, out["slam_session1"] = slam_map(
         pair, work / f"{tag}-slam{joined_by}{on}", join_pipelines, slam_odometry, odometry_gate
     )
@@ -554,8 +559,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         for seed in args.seeds:
             for kind in args.kinds:
                 closed = "-closed" if args.map_closes_loop else ""
-                on = "" if args.slam_odometry == "dataset" else f"-{args.slam_odometry}"
-                on += "-gate" if args.odometry_gate else ""
+                on = slam_suffix(args.slam_odometry, args.odometry_gate)
                 name = f"{world}-{args.sensor}-s{seed}-{kind}-{pipeline_label(args.pipeline)}-n{args.scans or 'all'}{closed}{on}.json"
                 path = args.out / name
                 if path.is_file() and not args.fresh:
