@@ -295,8 +295,8 @@ def bench(
     one JSON object. Example: placerec bench configs/benchmark.yaml --workers 2
     """
     from placerec.errors import ConfigError
-    from placerec.experiment.benchmark import load_benchmark_config, run_benchmark
-    from placerec.experiment.benchmark_summary import bench_line, rows, suggest_by_sensor, suggest_thresholds
+    from placerec.experiment.benchmark import load_benchmark_config, run_benchmark, suggestions
+    from placerec.experiment.benchmark_summary import bench_line, rows
     from placerec.experiment.tables import print_rows
 
     overrides = (set_ or []) + ([] if workers is None else [f"execution.workers={workers}"])
@@ -313,9 +313,10 @@ def bench(
         import json
 
         cells = {c: json.loads((folder / "cells" / c / "cell.json").read_text()) for c in payload["cells"]}
-        typer.echo(f"operating thresholds the tuning rule picks: {suggest_thresholds(cfg, cells)}")
+        overall, per_sensor = suggestions(cfg, folder, cells)
+        typer.echo(f"operating thresholds the tuning rule picks: {overall}")
         if len({c.sensor for c in cfg.cells()}) > 1:
-            typer.echo(f"the same rule on each sensor's cells alone: {suggest_by_sensor(cfg, cells)}")
+            typer.echo(f"the same rule on each sensor's cells alone: {per_sensor}")
     typer.echo(f"benchmark: {folder}  (report: {folder / 'index.html'})")
     typer.echo(bench_line(payload))
 

@@ -61,7 +61,7 @@ from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES, ExclusionWindow, path_length
 from placerec.keyframes import Keyframe, KeyframeBuilder, KeyframeParams
 from placerec.loop_filter import LoopFilter, LoopFilterParams
-from placerec.odometry_gate import OdometryGateParams, odometry_disagreement
+from placerec.odometry_gate import LoopChain, OdometryGateParams, odometry_disagreement, pose_disagreement
 from placerec.realtime import LateScanError, RealtimeParams, RealtimeStats, SerialWorker
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, as_pose
 
@@ -96,7 +96,8 @@ class LoopClosureDetector:
     the real-time mode (module docstring; None: sequential). ``odometry_gate``: a closure is accepted only where
     it agrees with the odometry ``pose`` given to `process` (`placerec.odometry_gate`; each place then needs its
     pose; a prior map's places, in another frame, are not gated); a query whose candidates passed the threshold
-    but not the gate has ``last_status`` ``odometry_gate``. None: off.
+    but not the gate has ``last_status`` ``odometry_gate``; with its ``through_loops`` the motion is predicted through
+    the closures it accepted before (`placerec.odometry_gate.LoopChain`). None: off.
     """
 
     @classmethod
@@ -158,6 +159,8 @@ class LoopClosureDetector:
         self._times: list[float] = []
         self._path: list[float] = []
         self._poses: list[np.ndarray] = []  # with the odometry gate: each own place's pose
+        # with the gate through loops: the own places' closures accepted so far
+        self._chain = LoopChain() if odometry_gate is not None and odometry_gate.through_loops else None
         self._last_position: np.ndarray | None = None
         self._position_before: np.ndarray | None = None  # the position before the last recorded place
         self.last_max_id = -1
@@ -491,13 +494,23 @@ class LoopClosureDetector:
         if not checked:
             return accepted
         matches = [c.match_id - self.prior_entries for c in checked]
-        trans, rot = odometry_disagreement(
-            np.stack([np.asarray(c.relative_pose, dtype=np.float64) for c in checked]),
-            np.stack([self._poses[m] for m in matches]),
-            np.stack([self._poses[own]] * len(checked)),
-        )
-        path = self._path[own] - np.array([self._path[m] for m in matches])
+        closures = np.stack([np.asarray(c.relative_pose, dtype=np.float64) for c in checked])
+        if self._chain is None:
+            trans, rot = odometry_disagreement(
+                closures,
+                np.stack([self._poses[m] for m in matches]),
+                np.stack([self._poses[own]] * len(checked)),
+            )
+            path = self._path[own] - np.array([self._path[m] for m in matches])
+        else:
+            predicted = [self._chain.predict(m, own, self._poses, self._path) for m in matches]
+            trans, rot = pose_disagreement(closures, np.stack([T for T, _ in predicted]))
+            path = np.array([along for _, along in predicted])
         ok = self.odometry_gate.admits(trans, rot, path)
+        if self._chain is not None:
+            for m, T, good in zip(matches, closures, ok, strict=True):
+                if good:
+                    self._chain.add(m, own, T)
         refused = {id(c) for c, good in zip(checked, ok, strict=True) if not good}
         return [c for c in accepted if id(c) not in refused]
 

@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -460,10 +462,14 @@ class CellFiles:
     refused: list[np.ndarray]
 
 
-def read_cell(bench: BenchmarkConfig, cell: Cell, folder: Path) -> CellFiles:
+def read_cell(
+    bench: BenchmarkConfig, cell: Cell, folder: Path, thresholds: Mapping[str, float] | None = None
+) -> CellFiles:
     """A finished cell's files (poses, candidates, the scans' voxels in ``truth.npz``) with its pose truths made
-    from them, the run's overlap search not made again; `ArtifactError` naming the file when one is missing or
-    damaged."""
+    from them, the run's overlap search not made again, judged at the operating thresholds in force or at
+    ``thresholds`` (by pipeline label) where given (they decide which closures an odometry gate through loops
+    predicts through: `placerec.experiment.report.odometry_gated`); `ArtifactError` naming the file when one is
+    missing or damaged."""
     from placerec.experiment.candidates import read_candidates
     from placerec.experiment.report import odometry_gated, pose_truths
     from placerec.experiment.run_folder import slug
@@ -485,27 +491,115 @@ def read_cell(bench: BenchmarkConfig, cell: Cell, folder: Path) -> CellFiles:
     truth.voxels = [keys[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
     truth.overlap = overlap  # the overlap search of the run, not made again
     raw = [read_candidates(folder / f"candidates_{slug(p.display_name)}.csv") for p in cfg.pipelines]
-    tables, refused = odometry_gated(cfg, raw, poses)
+    tables, refused = odometry_gated(
+        cfg, raw, poses, [judged_at(cfg, spec, thresholds) for spec in cfg.pipelines]
+    )
     return CellFiles(
         cfg, poses, stamps, truth, tables, pose_truths(cfg, tables, poses, stamps, truth), refused
     )
 
 
-def cell_metrics(bench: BenchmarkConfig, cell: Cell, folder: Path, stored: dict[str, Any]) -> dict[str, Any]:
+def judged_at(
+    cfg: ExperimentConfig, spec: PipelineSpec, thresholds: Mapping[str, float] | None
+) -> float | None:
+    """The threshold a cell's pipeline is judged at: ``thresholds``' entry for its label, else its operating one."""
+    if thresholds is not None and spec.display_name in thresholds:
+        return thresholds[spec.display_name]
+    return cfg.operating_threshold(spec)
+
+
+def cell_metrics(
+    bench: BenchmarkConfig,
+    cell: Cell,
+    folder: Path,
+    stored: dict[str, Any],
+    thresholds: Mapping[str, float] | None = None,
+) -> dict[str, Any]:
     """A finished cell's metrics per pipeline label with the figures at the operating thresholds recomputed from
-    its files (`read_cell`) at the thresholds in force now; the stored entries give the rest (times)."""
+    its files (`read_cell`) at the thresholds in force now, or at ``thresholds`` (by label) where given; the
+    stored entries give the rest (times)."""
     from placerec.experiment.report import loop_summary
     from placerec.experiment.run_folder import finite_or_null
 
-    f = read_cell(bench, cell, folder)
+    f = read_cell(bench, cell, folder, thresholds)
     out = {}
     for spec, table, pose_gt, refused in zip(f.cfg.pipelines, f.tables, f.pose_gts, f.refused, strict=True):
         label = spec.display_name  # the cell's spec: with its sensor's thresholds
-        threshold = f.cfg.operating_threshold(spec)
+        threshold = judged_at(f.cfg, spec, thresholds)
         _, summary = loop_summary(f.cfg, table, f.poses, f.stamps, threshold, f.truth, pose_gt, refused)
         kept = stored.get(label, {})
         out[label] = {**kept, **finite_or_null(summary)}
     return out
+
+
+#: The most thresholds `suggestions` tries per pipeline with an odometry gate through loops.
+_MAX_TRIED = 40
+
+
+def suggestions(
+    bench: BenchmarkConfig, root: Path, cells: dict[str, dict[str, Any]], step: float = 0.05
+) -> tuple[dict[str, float | None], dict[str, dict[str, float | None]]]:
+    """The operating thresholds the tuning rule picks over the whole matrix and over each sensor's cells alone
+    (`suggest_thresholds`, `suggest_by_sensor`), from the finished cells under ``root`` (``cells``: their
+    ``cell.json``). With an odometry gate through loops (`placerec.odometry_gate.LoopChain`) the closures accepted
+    at a threshold change which candidates the gate refuses, so a threshold is judged with the closures accepted
+    at it: the rule's grid is walked up from the verification's floor, every cell judged again from its files at
+    each threshold tried, and a pipeline's pick is the first threshold at which no false closure scores as high."""
+    from placerec.experiment.benchmark_summary import suggest_by_sensor, suggest_thresholds
+
+    gate = bench.evaluation.odometry_gate
+    if gate is None or not gate.bounds.through_loops:
+        return suggest_thresholds(bench, cells, step), suggest_by_sensor(bench, cells, step)
+    by_name = {c.name: c for c in bench.cells()}
+    sensors = dict.fromkeys(by_name[name].sensor for name in cells)
+    overall = _walk_thresholds(bench, root, cells, step)
+    per_sensor = {
+        sensor: _walk_thresholds(
+            bench, root, {n: c for n, c in cells.items() if by_name[n].sensor == sensor}, step
+        )
+        for sensor in sensors
+    }
+    return overall, per_sensor
+
+
+def _walk_thresholds(
+    bench: BenchmarkConfig, root: Path, cells: dict[str, dict[str, Any]], step: float
+) -> dict[str, float | None]:
+    """`suggestions`' walk over ``cells``: per pipeline the first threshold of the grid the rule accepts when the
+    cells are judged at it."""
+    from placerec.experiment.benchmark_summary import rule_inputs, tuning_pick
+
+    by_name = {c.name: c for c in bench.cells()}
+    units: dict[str, float] = {}
+    trying: dict[str, float] = {}
+    picked: dict[str, float | None] = {}
+    for label, inputs in rule_inputs(bench, cells, step).items():
+        if inputs is None:
+            picked[label] = None
+            continue
+        _, floor, unit = inputs
+        units[label] = unit
+        trying[label] = tuning_pick(-math.inf, floor, unit) or unit  # a threshold of 0 accepts every answer
+    for _ in range(_MAX_TRIED):
+        if not trying:
+            break
+        judged = {
+            name: {
+                **c,
+                "metrics": cell_metrics(bench, by_name[name], root / "cells" / name, c["metrics"], trying),
+            }
+            for name, c in cells.items()
+        }
+        rule = rule_inputs(bench, judged, step)
+        for label in list(trying):
+            inputs = rule[label]
+            if inputs is None or tuning_pick(*inputs) <= trying[label] + 1e-9:
+                picked[label] = None if inputs is None else trying.pop(label)
+                trying.pop(label, None)
+            else:
+                trying[label] = round(trying[label] + units[label], 6)
+    picked.update(dict.fromkeys(trying))  # none within the tries: no pick
+    return {spec.display_name: picked.get(spec.display_name) for spec in bench.pipelines}
 
 
 def read_benchmark(path: str | Path) -> dict[str, Any]:

@@ -26,6 +26,7 @@ __all__ = [
     "bench_line",
     "rows",
     "suggest_thresholds",
+    "rule_inputs",
     "suggest_by_sensor",
     "summarise",
     "write_outputs",
@@ -124,7 +125,19 @@ def suggest_thresholds(
     """Per pipeline, the operating threshold the tuning rule picks (docs/protocol.md): above the best score of any
     false closure (pose ground truth) in any cell, rounded up to the next multiple of ``step`` (scores in [0, 1];
     1 for counts), and never below the verification's ``min_score`` (a rejected candidate is no answer)."""
-    out: dict[str, float | None] = {}
+    return {
+        label: None if inputs is None else tuning_pick(*inputs)
+        for label, inputs in rule_inputs(bench, cells, step).items()
+    }
+
+
+def rule_inputs(
+    bench: BenchmarkConfig, cells: dict[str, dict[str, Any]], step: float = 0.05
+) -> dict[str, tuple[float, float, float] | None]:
+    """Per pipeline, what the tuning rule reads from the cells' metrics: (the best false closure's score or -inf,
+    the verification's floor, the grid's unit: ``step`` for scores in [0, 1], 1 for counts); None when the
+    pipeline scored nothing."""
+    out: dict[str, tuple[float, float, float] | None] = {}
     for spec in bench.pipelines:
         label = spec.display_name
         false = [
@@ -139,7 +152,7 @@ def suggest_thresholds(
         worst = max((f for f in false if math.isfinite(f)), default=-math.inf)
         floors = [lookup(c["metrics"].get(label, {}), ("min_score",)) for c in cells.values()]
         floor = max((f for f in floors if isinstance(f, int | float)), default=0.0)
-        out[label] = tuning_pick(worst, floor, unit)
+        out[label] = (worst, floor, unit)
     return out
 
 

@@ -157,8 +157,7 @@ class CandidateTable:
         refused = np.asarray(refused, dtype=bool) & (self.match_ids >= 0)
         scores = np.where(refused, 0.0, self.scores)
         accepted = np.where(refused, np.int8(0), self.accepted).astype(np.int8)
-        primary = np.where(self.match_ids >= 0, -scores, np.inf)  # padding last
-        order = np.lexsort((accepted != 1, primary), axis=1)  # stable: equal keys keep their ranks
+        order = rank_order(self.match_ids, scores, accepted)
         take = lambda a: np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), 1)  # noqa: E731
         return CandidateTable(
             self.query_ids,
@@ -178,6 +177,13 @@ class CandidateTable:
         width = min(n, self.match_ids.shape[1])
         out[:, :width] = self.match_ids[:, :width]
         return out
+
+
+def rank_order(match_ids: np.ndarray, scores: np.ndarray, accepted: np.ndarray) -> np.ndarray:
+    """Per row (the last axis: one query's candidates), the ranks sorted by score, accepted ones first on equal
+    scores, padding (``match_ids`` -1) last, the order kept otherwise."""
+    primary = np.where(match_ids >= 0, -scores, np.inf)
+    return np.lexsort((accepted != 1, primary), axis=-1)  # stable: equal keys keep their ranks
 
 
 def _table(query_ids: Sequence[int], rows: Sequence[list[_Row]]) -> CandidateTable:

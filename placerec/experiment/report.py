@@ -65,7 +65,7 @@ from placerec.eval import (
 from placerec.eval.icp_truth import icp_ground_truth
 from placerec.eval.pose_truth import PoseGroundTruth, correct_candidates, overlap_truth, with_candidates
 from placerec.experiment import figures
-from placerec.experiment.candidates import CandidateTable, read_candidates, write_candidates
+from placerec.experiment.candidates import CandidateTable, rank_order, read_candidates, write_candidates
 from placerec.experiment.evidence import rejection_counts
 from placerec.experiment.run_folder import finite_or_null, json_default, point_latest, slug
 from placerec.experiment.runner import PER_SCAN_TIME, STAGES, PipelineRecord
@@ -74,6 +74,7 @@ from placerec.experiment.truth import TruthClouds
 from placerec.io import read_poses, write_kitti_poses
 from placerec.io.atomic import atomic_write
 from placerec.io.mcap_export import LoopEdge, write_closures_mcap
+from placerec.odometry_gate import LoopChain, OdometryGateParams, odometry_disagreement, pose_disagreement
 from placerec.types import PlaceRecognizer, Sequence
 
 __all__ = [
@@ -149,11 +150,11 @@ def recompute_loop_metrics(run_dir: str | Path, label: str) -> dict[str, Any]:
     poses = _read_or_empty(run_dir / "poses.txt", lambda p: read_poses(p)[0], (0, 4, 4))
     times = run_dir / "times.txt"
     stamps = _read_or_empty(times, lambda p: np.loadtxt(p, ndmin=1), (0,)) if times.is_file() else None
-    (table,), (refused,) = odometry_gated(
-        cfg, [read_candidates(run_dir / f"candidates_{slug(label)}.csv")], poses
-    )
     spec = next((p for p in cfg.pipelines if p.display_name == label), None)
     threshold = None if spec is None else cfg.operating_threshold(spec)
+    (table,), (refused,) = odometry_gated(
+        cfg, [read_candidates(run_dir / f"candidates_{slug(label)}.csv")], poses, [threshold]
+    )
     return loop_summary(cfg, table, poses, stamps, threshold, refused=refused)[1]
 
 
@@ -289,16 +290,23 @@ def loop_summary(
 
 
 def odometry_gated(
-    cfg: ExperimentConfig, tables: list[CandidateTable], poses: np.ndarray
+    cfg: ExperimentConfig,
+    tables: list[CandidateTable],
+    poses: np.ndarray,
+    thresholds: list[float | None] | None = None,
 ) -> tuple[list[CandidateTable], list[np.ndarray]]:
     """The tables as the evaluation judges them, and per table the (Q, N) candidates ``evaluation.odometry_gate``
     refused: each candidate's relative pose against the drifting odometry made from ``poses``
     (`OdometryGateConfig`) over the odometry's path between the two places (`placerec.odometry_gate`), a refused
-    one turned into a rejected one (`CandidateTable.refused`). Without the gate the tables as given, none refused."""
+    one turned into a rejected one (`CandidateTable.refused`). Without the gate the tables as given, none refused.
+
+    With the gate's ``through_loops`` the closures a table's pipeline accepted before count as well
+    (`placerec.odometry_gate.LoopChain`): the queries are judged in order, and a query's answer (its best candidate
+    the gate admits) enters the chain when it scores at least the table's operating threshold in ``thresholds``
+    (None, or no ``thresholds``: the odometry alone), as a detector at that threshold would have accepted it."""
     gate = cfg.evaluation.odometry_gate
     if gate is None:
         return tables, [np.zeros(t.match_ids.shape, bool) for t in tables]
-    from placerec.odometry_gate import odometry_disagreement
     from placerec.sim.odometry import drift_poses
     from placerec.types import path_length
 
@@ -307,16 +315,52 @@ def odometry_gated(
         seed = cfg.dataset.simulator.seed if cfg.dataset.source == "simulator" else 0
     odom = drift_poses(poses, gate.drift, seed)
     path = path_length(odom[:, :3, 3])
+    given = thresholds if thresholds is not None else [None] * len(tables)
     refusals = []
-    for t in tables:
-        refused = np.zeros(t.match_ids.shape, bool)
-        qi, rank = np.nonzero(t.match_ids >= 0)
-        if qi.size:
-            q, m = t.query_ids[qi], t.match_ids[qi, rank]
-            trans, rot = odometry_disagreement(t.relative_poses[qi, rank], odom[m], odom[q])
-            refused[qi, rank] = ~gate.bounds.admits(trans, rot, path[q] - path[m])
-        refusals.append(refused)
+    for t, threshold in zip(tables, given, strict=True):
+        if gate.bounds.through_loops and threshold is not None:
+            refusals.append(_refused_through_loops(t, odom, path, gate.bounds, threshold))
+        else:
+            refusals.append(_refused_by_odometry(t, odom, path, gate.bounds))
     return [t.refused(r) for t, r in zip(tables, refusals, strict=True)], refusals
+
+
+def _refused_by_odometry(
+    t: CandidateTable, odom: np.ndarray, path: np.ndarray, bounds: OdometryGateParams
+) -> np.ndarray:
+    """The (Q, N) candidates of ``t`` the gate refuses against the odometry alone."""
+    refused = np.zeros(t.match_ids.shape, bool)
+    qi, rank = np.nonzero(t.match_ids >= 0)
+    if qi.size:
+        q, m = t.query_ids[qi], t.match_ids[qi, rank]
+        trans, rot = odometry_disagreement(t.relative_poses[qi, rank], odom[m], odom[q])
+        refused[qi, rank] = ~bounds.admits(trans, rot, path[q] - path[m])
+    return refused
+
+
+def _refused_through_loops(
+    t: CandidateTable, odom: np.ndarray, path: np.ndarray, bounds: OdometryGateParams, threshold: float
+) -> np.ndarray:
+    """The (Q, N) candidates of ``t`` the gate refuses, predicting through the answers accepted at ``threshold``
+    by the queries before (`odometry_gated`)."""
+    chain = LoopChain()
+    refused = np.zeros(t.match_ids.shape, bool)
+    for i in np.argsort(t.query_ids, kind="stable"):
+        q = int(t.query_ids[i])
+        ranks = np.nonzero(t.match_ids[i] >= 0)[0]
+        for r in ranks:
+            m = int(t.match_ids[i, r])
+            predicted, along = chain.predict(m, q, odom, path)
+            trans, rot = pose_disagreement(t.relative_poses[i, r], predicted)
+            refused[i, r] = not bounds.admits(trans, rot, along)[0]
+        if ranks.size == 0:
+            continue
+        scores = np.where(refused[i], 0.0, t.scores[i])
+        accepted = np.where(refused[i], np.int8(0), t.accepted[i])
+        top = int(rank_order(t.match_ids[i], scores, accepted)[0])
+        if scores[top] >= threshold:
+            chain.add(int(t.match_ids[i, top]), q, t.relative_poses[i, top])
+    return refused
 
 
 def pose_truths(
@@ -376,7 +420,9 @@ def report_loop(
             np.savetxt(fh, seq.timestamps, fmt="%.6f")
     results: dict[str, Any] = {}
     curves: dict[str, dict[str, Any]] = {}
-    tables, refusals = odometry_gated(cfg, [record.table() for record in records], poses)
+    tables, refusals = odometry_gated(
+        cfg, [record.table() for record in records], poses, [record.threshold for record in records]
+    )
     pose_gts = pose_truths(cfg, tables, poses, seq.timestamps, truth)
     all_metrics = []
     for record, table, pose_gt, refused in zip(records, tables, pose_gts, refusals, strict=True):
