@@ -54,7 +54,8 @@ class OdometryGateParams(Params):
     through_loops: bool = Field(
         True,
         description="predict the motion along the shortest chain of odometry and closures already accepted, L its"
-        " odometry path (`LoopChain`); False: the odometry alone",
+        " odometry path (`LoopChain`); False: the odometry alone (the sensors' thresholds with the gate,"
+        " `placerec.sensor_presets`, were chosen through loops)",
     )
 
     def admits(self, translation_m: np.ndarray, rotation_deg: np.ndarray, path_m: np.ndarray) -> np.ndarray:

@@ -9,8 +9,21 @@ import yaml
 
 from placerec.errors import ConfigError
 from placerec.experiment import protocol
-from placerec.experiment.benchmark import BenchmarkConfig, CaptureParams, load_benchmark_config, run_benchmark
-from placerec.experiment.benchmark_summary import bench_line, suggest_by_sensor, suggest_thresholds
+from placerec.experiment.benchmark import (
+    BenchmarkConfig,
+    CaptureParams,
+    cell_metrics,
+    load_benchmark_config,
+    run_benchmark,
+    suggestions,
+)
+from placerec.experiment.benchmark_summary import (
+    bench_line,
+    rule_inputs,
+    suggest_by_sensor,
+    suggest_thresholds,
+    tuning_pick,
+)
 from placerec.params import resolve
 from placerec.recognizer import make_pipeline
 
@@ -259,6 +272,36 @@ def test_two_cells_end_to_end_at_fixed_thresholds_and_resumed(tmp_path):
     assert (
         max(refused["pipelines"]["orb-hbst"]["figures"]["recall"]["cells"].values()) == 0.0
     )  # no pose agrees
+
+    # the tuning rule with a gate through loops: the first threshold of the grid whose own judgement (the closures
+    # accepted at it in the chain) has no false closure scoring as high
+    data["evaluation"]["odometry_gate"] = {}
+    through = resolve(BenchmarkConfig, data)
+    walked, walked_by_sensor = suggestions(through, folder, cells)
+    assert set(walked) == set(picked) and set(walked_by_sensor) == {"vlp16", "os1-64"}
+
+    def rule_at(label, t):
+        judged = {
+            n: {
+                **c,
+                "metrics": cell_metrics(through, by_name[n], folder / "cells" / n, c["metrics"], {label: t}),
+            }
+            for n, c in cells.items()
+        }
+        return tuning_pick(*rule_inputs(through, judged)[label])
+
+    by_name = {c.name: c for c in through.cells()}
+    for label, t in walked.items():
+        assert t is not None and rule_at(label, t) <= t
+        floor = tuning_pick(-float("inf"), rule_inputs(through, cells)[label][1])
+        if t > max(floor, 0.05):
+            assert rule_at(label, round(t - 0.05, 6)) > t - 0.05
+    data["evaluation"]["odometry_gate"] = {"bounds": {"through_loops": False}}
+    alone = resolve(BenchmarkConfig, data)
+    assert suggestions(alone, folder, cells) == (
+        suggest_thresholds(alone, cells),
+        suggest_by_sensor(alone, cells),
+    )
 
     (folder / "cells" / "town_os1-64_0" / "cell.json").unlink()  # interrupted before this cell finished
     _, again = run_benchmark(cfg)

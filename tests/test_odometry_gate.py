@@ -15,7 +15,7 @@ from placerec.experiment.benchmark import _cell_key
 from placerec.experiment.candidates import CandidateTable
 from placerec.experiment.report import odometry_gated
 from placerec.loop_closure import LoopClosureDetector
-from placerec.odometry_gate import OdometryGateParams, odometry_disagreement
+from placerec.odometry_gate import LoopChain, OdometryGateParams, odometry_disagreement
 from placerec.safe_yaml import load_yaml_file
 from placerec.sim.odometry import OdometryDrift, drift_poses, slam_demo_drift
 from placerec.types import Candidate
@@ -197,3 +197,83 @@ def test_the_real_time_detector_gates_the_same_closures_as_the_sequential_one():
             out += det.flush()
         got[mode] = sorted((c.query_id, c.match_id) for c in out)
     assert got["sequential"] == got["real-time"] == [(150, 100), (158, 108)]
+
+
+def _route(n):
+    """Poses of a winding drive, one place a metre: heading turning by 1 deg a place, some height change."""
+    poses, T = [], np.eye(4)
+    for i in range(n):
+        poses.append(T.copy())
+        step = _pose(1.0, 0.0, 1.0)
+        step[2, 3] = 0.02 * np.sin(i / 7.0)
+        T = T @ step
+    return np.stack(poses)
+
+
+def test_the_chain_predicts_through_accepted_closures_in_either_direction_and_counts_only_odometry():
+    poses = _route(201)
+    path = np.arange(201, dtype=np.float64)
+    chain = LoopChain()
+    T, along = chain.predict(145, 200, poses, path)  # no closure: the odometry's motion and path
+    assert np.allclose(T, np.linalg.solve(poses[145], poses[200])) and along == 55.0
+    # two closures, each with a pose of its own (not the odometry's): 150 -> 50 and 40 -> 198
+    c1, c2 = _pose(3.0, 1.0, 10.0), _pose(-2.0, 4.0, -25.0)
+    chain.add(50, 150, c1)
+    chain.add(40, 198, c2)
+    chain.add(60, 61, np.full((4, 4), np.nan))  # no pose: nothing to predict through
+    assert len(chain) == 2
+    T, along = chain.predict(145, 200, poses, path)
+    # 145 -> 150 by odometry, the first closure backwards to 50, 50 -> 40 by odometry, the second to 198, 198 -> 200
+    odo = lambda a, b: np.linalg.solve(poses[a], poses[b])  # noqa: E731
+    expected = odo(145, 150) @ np.linalg.inv(c1) @ odo(50, 40) @ c2 @ odo(198, 200)
+    assert np.allclose(T, expected) and along == pytest.approx(5.0 + 10.0 + 2.0)
+    # a chain no shorter than the odometry's own is not taken
+    T, along = chain.predict(147, 152, poses, path)
+    assert np.allclose(T, odo(147, 152)) and along == 5.0
+
+
+def _far_lookalike(poses, match, query, off):
+    """A closure of ``query`` onto ``match`` ``off`` metres to the side of where the poses have it."""
+    return np.linalg.solve(poses[match], poses[query]) @ _pose(0.0, off, 0.0)
+
+
+def test_after_a_closure_the_detector_judges_a_lookalike_over_the_path_since_it():
+    # 1 m a place: query 150 closes onto place 20 where the odometry has it (130 m of path). Query 160's
+    # look-alike onto place 25 sits 4 m off: within 1 m + 0.04 x 135 m of odometry alone, but 15 m past a closure
+    # that tied place 20 to place 150 (1 m + 0.04 x 15 m) it is not where the chain puts it
+    odom = _route(170)
+    answers = {
+        150: [(20, np.linalg.solve(odom[20], odom[150]))],
+        160: [(25, _far_lookalike(odom, 25, 160, 4.0))],
+    }
+    got = {}
+    for through in (True, False):
+        det = LoopClosureDetector(
+            _Posed(answers),
+            threshold=0.5,
+            exclusion_frames=20,
+            odometry_gate=OdometryGateParams(through_loops=through),
+        )
+        out = [c for i in range(170) for c in det.process(None, pose=odom[i], description={"x": np.zeros(1)})]
+        got[through] = [(c.query_id, c.match_id) for c in out]
+    assert got[False] == [(150, 20), (160, 25)]
+    assert got[True] == [(150, 20)]
+
+
+def test_the_evaluation_predicts_through_the_answers_accepted_at_the_operating_threshold():
+    poses = _route(170)
+    still = {"drift": {"translation": 0, "rotation_deg": 0, "yaw_bias_deg_per_100m": 0, "scale_bias": 0}}
+    true = np.linalg.solve(poses[20], poses[150])
+    rows = [[(20, 0.5, 1, true)], [(25, 0.6, 1, _far_lookalike(poses, 25, 160, 4.0))]]
+    t = _table(rows)
+    t = CandidateTable(np.array([150, 160]), *(getattr(t, f) for f in list(t.__dataclass_fields__)[1:]))
+    cfg = _cfg(still)
+    assert odometry_gated(cfg, [t], poses)[1][0].tolist() == [
+        [False],
+        [False],
+    ]  # no threshold: odometry alone
+    assert odometry_gated(cfg, [t], poses, [0.4])[1][0].tolist() == [[False], [True]]
+    # the first closure scores under a threshold of 0.55: not accepted there, so nothing to predict through
+    assert odometry_gated(cfg, [t], poses, [0.55])[1][0].tolist() == [[False], [False]]
+    plain = _cfg(still | {"bounds": {"through_loops": False}})
+    assert odometry_gated(plain, [t], poses, [0.4])[1][0].tolist() == [[False], [False]]

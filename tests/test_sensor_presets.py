@@ -83,13 +83,13 @@ def test_with_the_odometry_gate_a_forward_looking_sensor_gets_the_settings_chose
 
     gate = OdometryGateParams()
     det = LoopClosureDetector.for_pipeline("orb-dbow", sensor="avia", odometry_gate=gate)
-    assert det.threshold == 0.2 and det.recognizer.params.verify.score.min_score == 0.05
+    assert det.threshold == 0.1 and det.recognizer.params.verify.score.min_score == 0.05
     assert det.odometry_gate == gate
     plain = LoopClosureDetector.for_pipeline("orb-dbow", sensor="avia")
     assert plain.threshold == 0.25 and plain.recognizer.params.verify.score.min_score == 0.25
     # the E1R's ORB-DBoW registers on a finer query grid with the gate (and only with it)
     e1r = LoopClosureDetector.for_pipeline("orb-dbow", sensor="e1r", odometry_gate=gate)
-    assert e1r.threshold == 0.15 and e1r.recognizer.params.verify.icp.source_voxel_size == 0.75
+    assert e1r.threshold == 0.1 and e1r.recognizer.params.verify.icp.source_voxel_size == 0.75
     assert e1r.recognizer.params.verify.score.min_score == 0.05
     e1r_plain = LoopClosureDetector.for_pipeline("orb-dbow", sensor="e1r")
     assert e1r_plain.threshold == 0.35 and e1r_plain.recognizer.params.verify.icp.source_voxel_size == 1.5
@@ -105,6 +105,6 @@ def test_with_the_odometry_gate_a_forward_looking_sensor_gets_the_settings_chose
         cfg, cfg0 = bench.cell_config(cell), alone.cell_config(cell)
         orb = next(p for p in cfg.pipelines if p.name == "orb-dbow")
         floor = (orb.params or {}).get("verify", {}).get("score", {}).get("min_score")
-        assert cfg.operating_threshold(orb) == {"avia": 0.2, "vlp16": 0.1}[cell.sensor]
+        assert cfg.operating_threshold(orb) == {"avia": 0.1, "vlp16": 0.1}[cell.sensor]
         assert floor == {"avia": 0.05, "vlp16": 0.1}[cell.sensor]
         assert (_cell_key(cfg) == _cell_key(cfg0)) == (cell.sensor == "vlp16")
