@@ -227,9 +227,16 @@ def test_the_chain_predicts_through_accepted_closures_in_either_direction_and_co
     odo = lambda a, b: np.linalg.solve(poses[a], poses[b])  # noqa: E731
     expected = odo(145, 150) @ np.linalg.inv(c1) @ odo(50, 40) @ c2 @ odo(198, 200)
     assert np.allclose(T, expected) and along == pytest.approx(5.0 + 10.0 + 2.0)
+    # a closure's own place as the query
+    T, along = chain.predict(145, 198, poses, path)
+    assert np.allclose(T, odo(145, 150) @ np.linalg.inv(c1) @ odo(50, 40) @ c2) and along == pytest.approx(15.0)
     # a chain no shorter than the odometry's own is not taken
     T, along = chain.predict(147, 152, poses, path)
     assert np.allclose(T, odo(147, 152)) and along == 5.0
+    # a closure between neighbouring places is taken over the odometry between them
+    chain.add(150, 151, _pose(0.5, 0.2, 3.0))
+    T, along = chain.predict(145, 151, poses, path)
+    assert np.allclose(T, odo(145, 150) @ _pose(0.5, 0.2, 3.0)) and along == pytest.approx(5.0)
 
 
 def _far_lookalike(poses, match, query, off):
