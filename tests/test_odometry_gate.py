@@ -229,7 +229,9 @@ def test_the_chain_predicts_through_accepted_closures_in_either_direction_and_co
     assert np.allclose(T, expected) and along == pytest.approx(5.0 + 10.0 + 2.0)
     # a closure's own place as the query
     T, along = chain.predict(145, 198, poses, path)
-    assert np.allclose(T, odo(145, 150) @ np.linalg.inv(c1) @ odo(50, 40) @ c2) and along == pytest.approx(15.0)
+    assert np.allclose(T, odo(145, 150) @ np.linalg.inv(c1) @ odo(50, 40) @ c2) and along == pytest.approx(
+        15.0
+    )
     # a chain no shorter than the odometry's own is not taken
     T, along = chain.predict(147, 152, poses, path)
     assert np.allclose(T, odo(147, 152)) and along == 5.0
@@ -284,3 +286,18 @@ def test_the_evaluation_predicts_through_the_answers_accepted_at_the_operating_t
     assert odometry_gated(cfg, [t], poses, [0.55])[1][0].tolist() == [[False], [False]]
     plain = _cfg(still | {"bounds": {"through_loops": False}})
     assert odometry_gated(plain, [t], poses, [0.4])[1][0].tolist() == [[False], [False]]
+
+
+def test_the_chains_benchmark_ends_with_one_json_line_of_its_figures():
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "tools" / "bench_loop_chain.py"), "--places", "3000", "--closures", "10", "50",
+         "--predictions", "5"],
+        capture_output=True, text=True, check=True, cwd=ROOT,
+    ).stdout.strip().splitlines()  # fmt: skip
+    line = json.loads(out[-1])
+    assert line["tool"] == "bench_loop_chain" and set(line["closures"]) == {"10", "50"}
+    assert all(f["predict_ms_median"] > 0 for f in line["closures"].values())
