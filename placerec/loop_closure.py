@@ -96,8 +96,9 @@ class LoopClosureDetector:
     the real-time mode (module docstring; None: sequential). ``odometry_gate``: a closure is accepted only where
     it agrees with the odometry ``pose`` given to `process` (`placerec.odometry_gate`; each place then needs its
     pose; a prior map's places, in another frame, are not gated); a query whose candidates passed the threshold
-    but not the gate has ``last_status`` ``odometry_gate``; with its ``through_loops`` the motion is predicted through
-    the closures it accepted before (`placerec.odometry_gate.LoopChain`). None: off.
+    but not the gate has ``last_status`` ``odometry_gate``, and ``refused_by_gate`` keeps every closure it refused;
+    with its ``through_loops`` the motion is predicted through the closures it accepted before
+    (`placerec.odometry_gate.LoopChain`). None: off.
     """
 
     @classmethod
@@ -161,6 +162,7 @@ class LoopClosureDetector:
         self._poses: list[np.ndarray] = []  # with the odometry gate: each own place's pose
         # with the gate through loops: the own places' closures accepted so far
         self._chain = LoopChain() if odometry_gate is not None and odometry_gate.through_loops else None
+        self.refused_by_gate: list[Candidate] = []  # closures over the threshold the odometry gate refused
         self._last_position: np.ndarray | None = None
         self._position_before: np.ndarray | None = None  # the position before the last recorded place
         self.last_max_id = -1
@@ -512,6 +514,7 @@ class LoopClosureDetector:
                 if good:
                     self._chain.add(m, own, T)
         refused = {id(c) for c, good in zip(checked, ok, strict=True) if not good}
+        self.refused_by_gate += [c for c in checked if id(c) in refused]
         return [c for c in accepted if id(c) not in refused]
 
     def skip(self, pose: np.ndarray | None = None, timestamp: float | None = None) -> int:

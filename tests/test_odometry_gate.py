@@ -265,8 +265,31 @@ def test_after_a_closure_the_detector_judges_a_lookalike_over_the_path_since_it(
         )
         out = [c for i in range(170) for c in det.process(None, pose=odom[i], description={"x": np.zeros(1)})]
         got[through] = [(c.query_id, c.match_id) for c in out]
-    assert got[False] == [(150, 20), (160, 25)]
-    assert got[True] == [(150, 20)]
+        got[through, "refused"] = [(c.query_id, c.match_id) for c in det.refused_by_gate]
+    assert got[False] == [(150, 20), (160, 25)] and got[False, "refused"] == []
+    assert got[True] == [(150, 20)] and got[True, "refused"] == [(160, 25)]
+
+
+def test_the_slam_report_counts_the_closures_the_gate_refused(capsys):
+    from placerec.eval.metrics import timing_summary
+    from placerec.slam_app.report import _loop_rows, print_slam_table
+
+    payload = {
+        "pipeline": "orb-hbst",
+        "odometry_source": "dataset",
+        "trajectory": {},
+        "loops": {"accepted": 80, "injected": 0, "refused_by_odometry_gate": 3},
+        "time_ms": {k: timing_summary([2.0, 4.0]) for k in
+                    ("online_without_odometry", "online_with_odometry", "isam2_update", "isam2_loop_update")},
+    }  # fmt: skip
+    header, (row,) = _loop_rows(payload)
+    assert dict(zip(header, row, strict=True))["refused by gate"] == "3"
+    print_slam_table(payload, "slam")
+    loops_table, times_table = capsys.readouterr().out.split("slam, odometry: dataset: time")
+    assert "refused" in loops_table and "iSAM2" in times_table and "per scan" in times_table
+    del payload["loops"]["refused_by_odometry_gate"]  # no gate
+    header, (row,) = _loop_rows(payload)
+    assert dict(zip(header, row, strict=True))["refused by gate"] == "-"
 
 
 def test_the_evaluation_predicts_through_the_answers_accepted_at_the_operating_threshold():

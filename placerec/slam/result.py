@@ -42,3 +42,5 @@ class SlamResult:
     graph_poses: np.ndarray | None = None
     #: the detector's real-time counters (`placerec.realtime.RealtimeStats.as_dict`); None: sequential mode
     realtime: dict[str, Any] | None = None
+    #: closures over the threshold the detector's odometry gate refused (``loops.odometry_gate``); None: no gate
+    refused_by_gate: int | None = None

@@ -165,6 +165,8 @@ def slam_metrics(cfg: SlamConfig, result: SlamResult, cols: dict[str, np.ndarray
         "accepted": int((~injected).sum()),
         "injected": int(injected.sum()),
     }
+    if result.refused_by_gate is not None:
+        loops["refused_by_odometry_gate"] = result.refused_by_gate
     if "weight" in cols:
         rejected = cols["weight"] < 0.5
         loops["rejected_by_back_end"] = int((rejected & ~injected).sum())
@@ -236,8 +238,9 @@ def _loop_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     """The loop closures and times (one row, the pipeline's): the HTML report's table; the console prints it as
     two (`print_slam_table`)."""
     lp, tm = payload["loops"], payload["time_ms"]
-    header = ["loops", "accepted", "false", "opposite dir.", "injected", "rejected by graph (real / injected)",
-              "median t err [m]", "per-scan ms (no odom) median", "with odom", "iSAM2 ms", "iSAM2 loop ms"]  # fmt: skip
+    header = ["loops", "accepted", "false", "opposite dir.", "injected", "refused by gate",
+              "rejected by graph (real / injected)", "median t err [m]", "per-scan ms (no odom) median", "with odom",
+              "iSAM2 ms", "iSAM2 loop ms"]  # fmt: skip
     rejected = (
         f"{lp['rejected_by_back_end']} / {lp['injected_rejected_by_back_end']}"
         if "rejected_by_back_end" in lp
@@ -249,6 +252,7 @@ def _loop_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
         _fmt(lp.get("false_accepted")),
         _fmt(lp.get("opposite_direction")),
         _fmt(lp["injected"]),
+        _fmt(lp.get("refused_by_odometry_gate")),
         rejected,
         _fmt(lp.get("median_translation_error")),
         _fmt(tm["online_without_odometry"]["median"]),
@@ -264,7 +268,7 @@ def _loop_rows(payload: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
 
 
 #: where `_loop_rows`' time columns start (the console prints them as a table of their own)
-_TIME_FROM = 7
+_TIME_FROM = 8
 
 
 def print_slam_table(payload: dict[str, Any], title: str) -> None:
@@ -275,7 +279,14 @@ def print_slam_table(payload: dict[str, Any], title: str) -> None:
         print_rows(*_rows(payload), title)
     header, rows = _loop_rows(payload)
     print_rows(header[:_TIME_FROM], [r[:_TIME_FROM] for r in rows], f"{title}: loop closures")
-    times = ["median ms", "per scan, no odom", "with odom", "iSAM2 update", "iSAM2 loop update", *header[11:]]
+    times = [
+        "median ms",
+        "per scan, no odom",
+        "with odom",
+        "iSAM2 update",
+        "iSAM2 loop update",
+        *header[_TIME_FROM + 4 :],
+    ]
     print_rows(times, [[r[0], *r[_TIME_FROM:]] for r in rows], f"{title}: time")
 
 

@@ -328,6 +328,8 @@ def slam_sequence(
     online = slam.poses()  # before the closures a real-time detector still owes (finish adds them)
     common: dict[str, Any] = dict(name=seq.name, odometry=odo, timing_ms=timing, ground_truth=seq.poses, timestamps=stamps,
                   candidates=slam.candidates, queried=queried)  # fmt: skip
+    if slam.detector.odometry_gate is not None:
+        common["refused_by_gate"] = len(slam.detector.refused_by_gate)
     if isinstance(slam, OnlineSlam):
         before = len(slam.loops)
         optimized = slam.finish()
