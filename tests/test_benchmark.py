@@ -218,6 +218,9 @@ def test_two_cells_end_to_end_at_fixed_thresholds_and_resumed(tmp_path):
     assert orb["threshold"] == 0.3
     recall = orb["figures"]["recall"]["cells"]
     assert all(0.5 < r <= 1.0 for r in recall.values()), recall  # the second lap closes on the first
+    # the second lap is driven the same way, and the same-direction revisits are the ones closed
+    same = orb["figures"]["pose_same_direction_recall"]["cells"]
+    assert all(recall[c] <= same[c] <= 1.0 for c in recall) and same != recall, (same, recall)
     assert orb["figures"]["precision"]["worst"] == 1.0
     assert orb["accepted_translation_m"]["n"] > 10 and orb["accepted_translation_m"]["p95"] < 0.5
     for name in ("benchmark.json", "cells.csv", "heatmap_recall.png", "heatmap_max_f1.png", "index.html"):

@@ -13,6 +13,7 @@ from placerec.eval.icp_truth import icp_ground_truth
 from placerec.eval.pose_truth import (
     PoseTruthSettings,
     correct_candidates,
+    overlap_directions,
     overlap_truth,
     relative_truth,
     scan_voxels,
@@ -121,3 +122,35 @@ def test_icp_truth_confirms_near_pairs_that_register_and_refuses_those_that_shar
     truth = icp_ground_truth(base, [c.astype(np.float32) for c in clouds], poses)
     assert truth.is_revisit.tolist() == [False, False, True, False]
     assert truth.is_true_match(np.array([2, 3]), np.array([0, 0])).tolist() == [True, False]
+
+
+def test_a_revisit_is_driven_the_same_way_when_a_scan_heading_that_way_overlaps_it():
+    # out along x (scans 0-29, heading 0), back (30-59, heading 180), out again (60-89): each scan sees the 20 m of
+    # road around it, so the way back overlaps the way out and the second way out overlaps both
+    xs = np.r_[np.arange(30.0), np.arange(29.0, -1.0, -1.0), np.arange(30.0)]
+    yaws = np.r_[np.zeros(30), np.full(30, 180.0), np.zeros(30)]
+    poses = np.stack([_pose(x, 0.0, y) for x, y in zip(xs, yaws, strict=True)])
+    vox = [np.arange(int(x) - 10, int(x) + 10, dtype=np.int64) for x in xs]
+    s = PoseTruthSettings()
+    base = overlap_truth(vox, poses, ExclusionWindow(frames=20), settings=s)
+    d = overlap_directions(vox, poses, base)
+    back, again = d[30:60][base.is_revisit[30:60]], d[60:][base.is_revisit[60:]]
+    assert back.size > 10 and (back == 2).all()  # only the way out, the other heading, overlaps them
+    assert again.size == 30 and (again == 1).all()  # the first way out heads the same way
+    assert (d[~base.is_revisit] == 0).all()
+    # a heading within 90 deg is the same way; past it the other
+    assert (
+        overlap_directions(vox, poses, base, reverse_yaw_deg=179.0)[30:60][base.is_revisit[30:60]] == 2
+    ).all()
+    assert (
+        overlap_directions(vox, poses, base, reverse_yaw_deg=180.0)[30:60][base.is_revisit[30:60]] == 1
+    ).all()
+    # a revisit only a correct closure made (no scan overlaps it enough) takes the heading of the closure's match
+    vox[40] = np.array([1000, 1001], dtype=np.int64)
+    lone = overlap_truth(vox, poses, ExclusionWindow(frames=20), settings=s)
+    assert not lone.is_revisit[40]
+    closed = with_candidates(lone, np.zeros(0, dtype=np.int64), np.isin(np.arange(90), [40]))
+    assert overlap_directions(vox, poses, closed, closed_by={40: 3})[40] == 2  # scan 3 heads the other way
+    closed_same = {40: 5}
+    poses[5] = _pose(5.0, 0.0, 170.0)
+    assert overlap_directions(vox, poses, closed, closed_by=closed_same)[40] == 1

@@ -30,6 +30,7 @@ from placerec.eval.pose_error import (
 from placerec.eval.retrieval import (
     RetrievalMetrics,
     direction_summary,
+    recall_by_direction,
     retrieval_metrics,
     revisit_directions,
 )
@@ -57,4 +58,5 @@ __all__ = [
     "retrieval_metrics",
     "revisit_directions",
     "direction_summary",
+    "recall_by_direction",
 ]

@@ -35,6 +35,7 @@ from placerec.eval.exclusion import ExclusionWindow
 from placerec.eval.pose_error import full_pose_mask, pose_errors
 
 __all__ = [
+    "overlap_directions",
     "PoseTruthSettings",
     "scan_voxels",
     "overlap_revisits",
@@ -122,6 +123,44 @@ def overlap_revisits(
     return revisit, best
 
 
+def overlap_directions(
+    voxels: Sequence[np.ndarray],
+    poses: np.ndarray,
+    truth: PoseGroundTruth,
+    reverse_yaw_deg: float = 90.0,
+    closed_by: dict[int, int] | None = None,
+) -> np.ndarray:
+    """(N,) per scan: 0 not a revisit of ``truth``, 1 driven the same way, 2 the other way. A revisit is driven the
+    same way when an eligible scan whose heading is within ``reverse_yaw_deg`` of the query's overlaps it by at
+    least ``min_overlap`` (searched as `overlap_revisits` does: within ``search_radius``, nearest first), the other
+    way when only scans heading further off do. A revisit that no scan overlaps enough (one a correct closure
+    made, `with_candidates`) takes the direction of that closure's match in ``closed_by`` (query -> match)."""
+    s = truth.settings
+    P = np.asarray(poses, dtype=np.float64)
+    n = P.shape[0]
+    out = np.zeros(n, dtype=np.int8)
+    if n == 0:
+        return out
+    pos = P[:, :3, 3]
+    yaw = np.arctan2(P[:, 1, 0], P[:, 0, 0])
+    tree = cKDTree(pos)
+    for q in np.flatnonzero(truth.is_revisit).tolist():
+        near = np.asarray(tree.query_ball_point(pos[q], s.search_radius), dtype=np.int64)
+        near = near[near <= truth.max_eligible[q]]
+        near = near[np.argsort(np.linalg.norm(pos[near] - pos[q], axis=1), kind="stable")]
+        turned = np.degrees(np.abs(np.angle(np.exp(1j * (yaw[near] - yaw[q])))))
+        if any(
+            _overlap(voxels[q], voxels[m]) >= s.min_overlap for m in near[turned <= reverse_yaw_deg].tolist()
+        ):
+            out[q] = 1
+        elif truth.best_overlap[q] >= s.min_overlap or not closed_by or q not in closed_by:
+            out[q] = 2
+        else:
+            m = closed_by[q]
+            out[q] = 1 if np.degrees(abs(np.angle(np.exp(1j * (yaw[m] - yaw[q]))))) <= reverse_yaw_deg else 2
+    return out
+
+
 def relative_truth(poses: np.ndarray, query: np.ndarray, match: np.ndarray) -> np.ndarray:
     """(K, 4, 4) true ``T_match_query`` = ``inv(T_world_match) @ T_world_query`` for index arrays of one length."""
     P = np.asarray(poses, dtype=np.float64)
@@ -147,6 +186,8 @@ class PoseGroundTruth:
     best_overlap: np.ndarray
     correct_keys: np.ndarray
     settings: PoseTruthSettings
+    #: (N,) per scan 0 not a revisit, 1 driven the same way, 2 the other way (`overlap_directions`); None: not made
+    direction: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.max_eligible.shape[0])

@@ -24,7 +24,13 @@ import numpy as np
 from placerec.eval.ground_truth import LoopGroundTruth
 from placerec.eval.metrics import LoopMetrics
 
-__all__ = ["RetrievalMetrics", "retrieval_metrics", "revisit_directions", "direction_summary"]
+__all__ = [
+    "RetrievalMetrics",
+    "retrieval_metrics",
+    "revisit_directions",
+    "direction_summary",
+    "recall_by_direction",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -110,7 +116,14 @@ def direction_summary(
     """``{"same": {...}, "reverse": {...}}``: revisits, recall@1 and recall at the max-F1 threshold per direction,
     and with ``threshold`` (a fixed operating threshold) the recall at it (``recall_at_threshold``): a sensor with
     a limited horizontal field of view is judged on the revisits it can see, those driven the same way."""
-    direction = revisit_directions(gt, reverse_yaw_deg)[metrics.query_ids]
+    return recall_by_direction(metrics, revisit_directions(gt, reverse_yaw_deg)[metrics.query_ids], threshold)
+
+
+def recall_by_direction(
+    metrics: LoopMetrics, direction: np.ndarray, threshold: float | None = None
+) -> dict[str, Any]:
+    """`direction_summary`'s figures for revisits whose ``direction`` (per query of ``metrics``: 1 same, 2
+    reverse, 0 not a revisit) is given, e.g. by the pose truth's overlap (`placerec.eval.pose_truth`)."""
     none = np.zeros(metrics.query_ids.size, bool)
     tp = metrics.outcomes_at(metrics.threshold_at_max_f1)["tp"] if metrics.n_candidates else none
     tp_fixed = (

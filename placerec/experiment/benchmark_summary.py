@@ -52,6 +52,8 @@ CELL_FIGURES: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ("distance_recall", ("operating", "recall"), "high"),
     ("same_direction_recall", ("directions", "same", "recall_at_threshold"), "high"),
     ("reverse_recall", ("directions", "reverse", "recall_at_threshold"), "high"),
+    ("pose_same_direction_recall", ("pose_truth", "directions", "same", "recall_at_threshold"), "high"),
+    ("pose_reverse_recall", ("pose_truth", "directions", "reverse", "recall_at_threshold"), "high"),
     ("recall_at_100_precision", ("recall_at_100_precision",), "high"),
     ("pose_recall_at_100_precision", ("pose_truth", "recall_at_100_precision"), "high"),
     ("describe_ms", ("time_ms", "stages", "describe", "mean"), "low"),

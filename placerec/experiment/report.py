@@ -40,6 +40,7 @@ import json
 import resource
 import sys
 from collections.abc import Iterable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -59,11 +60,18 @@ from placerec.eval import (
     localization_metrics,
     loop_ground_truth,
     loop_metrics,
+    recall_by_direction,
     retrieval_metrics,
     timing_summary,
 )
 from placerec.eval.icp_truth import icp_ground_truth
-from placerec.eval.pose_truth import PoseGroundTruth, correct_candidates, overlap_truth, with_candidates
+from placerec.eval.pose_truth import (
+    PoseGroundTruth,
+    correct_candidates,
+    overlap_directions,
+    overlap_truth,
+    with_candidates,
+)
 from placerec.experiment import figures
 from placerec.experiment.candidates import CandidateTable, rank_order, read_candidates, write_candidates
 from placerec.experiment.evidence import rejection_counts
@@ -269,9 +277,12 @@ def loop_summary(
     summary["max_false_score"] = max_false_score(metrics)
     summary["max_score"] = float(np.nanmax(s)) if np.isfinite(s).any() else float("nan")
     if pose_truth is not None:
-        summary["pose_truth"] = _other_truth_summary(
-            loop_metrics(q, m, s, pose_truth, topn), rel, poses, threshold, nearest
-        )
+        pose_metrics = loop_metrics(q, m, s, pose_truth, topn)
+        summary["pose_truth"] = _other_truth_summary(pose_metrics, rel, poses, threshold, nearest)
+        if pose_truth.direction is not None:  # the same / reverse split of the pose truth's revisits
+            summary["pose_truth"]["directions"] = recall_by_direction(
+                pose_metrics, pose_truth.direction[pose_metrics.query_ids], threshold
+            )
     if truth is not None and truth.icp_truth and len(truth.clouds) == poses.shape[0]:
         igt = icp_ground_truth(gt, truth.clouds, poses, truth.icp_settings)
         summary["icp_truth"] = _other_truth_summary(
@@ -386,10 +397,16 @@ def pose_truths(
                 base, poses, table.query_ids, table.match_ids[:, :width], table.relative_poses[:, :width]
             )
         )
+    n = max(len(base), 1)
     closed = np.zeros(len(base), dtype=bool)
+    closed_by: dict[int, int] = {}
     for k in keys:
-        closed[k // max(len(base), 1)] = True
-    return [with_candidates(base, k, closed) for k in keys]
+        closed[k // n] = True
+        for key in k[::-1].tolist():  # per query its lowest match id last, so it is the one kept
+            closed_by[key // n] = key % n
+    shared = with_candidates(base, np.zeros(0, dtype=np.int64), closed)
+    direction = overlap_directions(truth.voxels, poses, shared, cfg.evaluation.reverse_yaw_deg, closed_by)
+    return [replace(with_candidates(base, k, closed), direction=direction) for k in keys]
 
 
 def _read_or_empty(path: Path, read: Any, empty_shape: tuple[int, ...]) -> np.ndarray:
