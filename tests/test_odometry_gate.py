@@ -324,3 +324,21 @@ def test_the_chains_benchmark_ends_with_one_json_line_of_its_figures():
     line = json.loads(out[-1])
     assert line["tool"] == "bench_loop_chain" and set(line["closures"]) == {"10", "50"}
     assert all(f["predict_ms_median"] > 0 for f in line["closures"].values())
+
+
+def test_placerec_slam_reports_the_gates_refusals_only_with_a_gate(tmp_path):
+    pytest.importorskip("gtsam")
+    from placerec.slam_app.config import load_slam_config
+    from placerec.slam_app.run import run_slam
+
+    base = ["dataset.simulator.sensor=vlp16", "dataset.simulator.n_scans=12", "output.progress=false",
+            "output.figures=false", "loops.exclusion.frames=3"]  # fmt: skip
+    _, plain = run_slam(load_slam_config(ROOT / "configs" / "slam_demo.yaml", base), tmp_path / "plain")
+    assert "refused_by_odometry_gate" not in plain["loops"]
+    # bounds no closure can meet: every closure over the threshold is refused and counted
+    tight = "loops.odometry_gate={metres: 0.001, per_metre: 0, degrees: 0.001, degrees_per_metre: 0}"
+    _, gated = run_slam(
+        load_slam_config(ROOT / "configs" / "slam_demo.yaml", [*base, tight]), tmp_path / "gated"
+    )
+    assert plain["loops"]["accepted"] > 0 and gated["loops"]["accepted"] == 0
+    assert gated["loops"]["refused_by_odometry_gate"] >= plain["loops"]["accepted"]

@@ -593,9 +593,11 @@ def _walk_thresholds(
         rule = rule_inputs(bench, judged, step)
         for label in list(trying):
             inputs = rule[label]
-            if inputs is None or tuning_pick(*inputs) <= trying[label] + 1e-9:
-                picked[label] = None if inputs is None else trying.pop(label)
-                trying.pop(label, None)
+            if inputs is None:  # no score left to judge
+                picked[label] = None
+                del trying[label]
+            elif tuning_pick(*inputs) <= trying[label] + 1e-9:  # no false closure scores as high
+                picked[label] = trying.pop(label)
             else:
                 trying[label] = round(trying[label] + units[label], 6)
     picked.update(dict.fromkeys(trying))  # none within the tries: no pick

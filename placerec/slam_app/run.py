@@ -328,14 +328,13 @@ def slam_sequence(
     online = slam.poses()  # before the closures a real-time detector still owes (finish adds them)
     common: dict[str, Any] = dict(name=seq.name, odometry=odo, timing_ms=timing, ground_truth=seq.poses, timestamps=stamps,
                   candidates=slam.candidates, queried=queried)  # fmt: skip
-    if slam.detector.odometry_gate is not None:
-        common["refused_by_gate"] = len(slam.detector.refused_by_gate)
     if isinstance(slam, OnlineSlam):
         before = len(slam.loops)
         optimized = slam.finish()
         if viewer is not None:
             _log_slam_end(viewer, label, slam, optimized, slam.loops[before:])
         common["realtime"] = _realtime_stats(slam)
+        common["refused_by_gate"] = _gate_refusals(slam)
         if map_writer is not None:
             map_writer.finish(poses=optimized, graph=slam.graph)
         return SlamResult(
@@ -347,6 +346,7 @@ def slam_sequence(
     if viewer is not None:
         _log_slam_end(viewer, label, slam, ms.session_poses, [])
     common["realtime"] = _realtime_stats(slam)
+    common["refused_by_gate"] = _gate_refusals(slam)
     M = len(prior)
     graph_poses = np.concatenate([ms.map_poses, ms.session_poses]) if ms.joined else ms.session_poses
     if map_writer is not None:
@@ -447,6 +447,13 @@ def _realtime_stats(slam: OnlineSlam | MultiSessionSlam) -> dict[str, Any] | Non
     """The detector's real-time counters (`placerec.realtime.RealtimeStats.as_dict`); None when sequential."""
     stats = slam.detector.realtime_stats
     return None if stats is None else stats.as_dict()
+
+
+def _gate_refusals(slam: OnlineSlam | MultiSessionSlam) -> int | None:
+    """How many closures over the threshold the detector's odometry gate refused (after the stream's end, so a
+    real-time detector's late ones count); None without a gate."""
+    detector = slam.detector
+    return None if detector.odometry_gate is None else len(detector.refused_by_gate)
 
 
 def _merged_graph(prior_graph: MapGraph | None, joined: PoseGraph, M: int) -> MapGraph:
