@@ -363,7 +363,7 @@ def _refused_through_loops(
             m = int(t.match_ids[i, r])
             predicted, along = chain.predict(m, q, odom, path)
             trans, rot = pose_disagreement(t.relative_poses[i, r], predicted)
-            refused[i, r] = not bounds.admits(trans, rot, along)[0]
+            refused[i, r] = not bounds.admits(trans, rot, np.array([along]))[0]
         if ranks.size == 0:
             continue
         scores = np.where(refused[i], 0.0, t.scores[i])
