@@ -94,6 +94,10 @@ def test_with_the_odometry_gate_a_forward_looking_sensor_gets_the_settings_chose
     e1r_plain = LoopClosureDetector.for_pipeline("orb-dbow", sensor="e1r")
     assert e1r_plain.threshold == 0.35 and e1r_plain.recognizer.params.verify.icp.source_voxel_size == 1.5
     assert det.recognizer.params.verify.icp.source_voxel_size == 1.5  # not the Avia's
+    # the Avia's verifies more candidates with the gate (and only with it)
+    assert (det.recognizer.params.verify.top_k, det.recognizer.params.verify.icp_top_k) == (40, 4)
+    assert (plain.recognizer.params.verify.top_k, plain.recognizer.params.verify.icp_top_k) == (20, 2)
+    assert (e1r.recognizer.params.verify.top_k, e1r.recognizer.params.verify.icp_top_k) == (20, 2)
     # a sensor without settings of its own for the gate keeps its own with it
     vlp = LoopClosureDetector.for_pipeline("orb-dbow", sensor="vlp16", odometry_gate=gate)
     assert vlp.threshold == 0.1 and vlp.recognizer.params.verify.score.min_fitness_ratio == 0.75
