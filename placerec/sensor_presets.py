@@ -123,7 +123,7 @@ _ODOMETRY_THRESHOLDS: dict[str, dict[str, float]] = {
 #: runs' revisit sets do (Avia 0.347 -> 0.321, E1R 0.364 -> 0.379) and keeps its grid.
 #: With the gate through loops, the Avia's ORB-DBoW verifies 40 candidates by RANSAC and 4 by ICP (20 and 2 in the
 #: preset): on its six tuning cells the right closures at the rule's threshold (0.10 either way) rose from 189 to 201
-#: at ~1.4x the time a keyframe (`placerec bench configs/benchmark_sensors_tuning.yaml ... --set 'pipelines=[{name:
+#: at ~1.5x the time a keyframe (`placerec bench configs/benchmark_sensors_tuning.yaml ... --set 'pipelines=[{name:
 #: orb-dbow, label: orb-k40-icp4, params: {verify: {top_k: 40, icp_top_k: 4}}}, ...]' --suggest`, docs/sensors.md).
 #: Not the E1R's: 192 -> 170 (its rule picked 0.20), and ICP on 4 of 20 gave 195, within the runs' spread.
 _ODOMETRY_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
