@@ -89,7 +89,7 @@ def test_with_the_odometry_gate_a_forward_looking_sensor_gets_the_settings_chose
     assert plain.threshold == 0.25 and plain.recognizer.params.verify.score.min_score == 0.25
     # the E1R's ORB-DBoW registers on a finer query grid with the gate (and only with it)
     e1r = LoopClosureDetector.for_pipeline("orb-dbow", sensor="e1r", odometry_gate=gate)
-    assert e1r.threshold == 0.1 and e1r.recognizer.params.verify.icp.source_voxel_size == 0.75
+    assert e1r.threshold == 0.2 and e1r.recognizer.params.verify.icp.source_voxel_size == 0.75
     assert e1r.recognizer.params.verify.score.min_score == 0.05
     e1r_plain = LoopClosureDetector.for_pipeline("orb-dbow", sensor="e1r")
     assert e1r_plain.threshold == 0.35 and e1r_plain.recognizer.params.verify.icp.source_voxel_size == 1.5
