@@ -61,7 +61,7 @@ from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES, ExclusionWindow, path_length
 from placerec.keyframes import Keyframe, KeyframeBuilder, KeyframeParams
 from placerec.loop_filter import LoopFilter, LoopFilterParams
-from placerec.odometry_gate import LoopChain, OdometryGateParams, odometry_disagreement, pose_disagreement
+from placerec.odometry_gate import LoopChain, OdometryGateParams, pose_disagreement
 from placerec.realtime import LateScanError, RealtimeParams, RealtimeStats, SerialWorker
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, as_pose
 
@@ -160,8 +160,8 @@ class LoopClosureDetector:
         self._times: list[float] = []
         self._path: list[float] = []
         self._poses: list[np.ndarray] = []  # with the odometry gate: each own place's pose
-        # with the gate through loops: the own places' closures accepted so far
-        self._chain = LoopChain() if odometry_gate is not None and odometry_gate.through_loops else None
+        # with the gate: the own places' closures it predicts through (through_loops; else none: the odometry alone)
+        self._chain = LoopChain()
         self.refused_by_gate: list[Candidate] = []  # closures over the threshold the odometry gate refused
         self._last_position: np.ndarray | None = None
         self._position_before: np.ndarray | None = None  # the position before the last recorded place
@@ -497,19 +497,10 @@ class LoopClosureDetector:
             return accepted
         matches = [c.match_id - self.prior_entries for c in checked]
         closures = np.stack([np.asarray(c.relative_pose, dtype=np.float64) for c in checked])
-        if self._chain is None:
-            trans, rot = odometry_disagreement(
-                closures,
-                np.stack([self._poses[m] for m in matches]),
-                np.stack([self._poses[own]] * len(checked)),
-            )
-            path = self._path[own] - np.array([self._path[m] for m in matches])
-        else:
-            predicted = [self._chain.predict(m, own, self._poses, self._path) for m in matches]
-            trans, rot = pose_disagreement(closures, np.stack([T for T, _ in predicted]))
-            path = np.array([along for _, along in predicted])
-        ok = self.odometry_gate.admits(trans, rot, path)
-        if self._chain is not None:
+        predicted = [self._chain.predict(m, own, self._poses, self._path) for m in matches]
+        trans, rot = pose_disagreement(closures, np.stack([T for T, _ in predicted]))
+        ok = self.odometry_gate.admits(trans, rot, np.array([along for _, along in predicted]))
+        if self.odometry_gate.through_loops:
             for m, T, good in zip(matches, closures, ok, strict=True):
                 if good:
                     self._chain.add(m, own, T)

@@ -552,10 +552,10 @@ def suggestions(
         return suggest_thresholds(bench, cells, step), suggest_by_sensor(bench, cells, step)
     by_name = {c.name: c for c in bench.cells()}
     sensors = dict.fromkeys(by_name[name].sensor for name in cells)
-    overall = _walk_thresholds(bench, root, cells, step)
+    overall = _walk_thresholds(bench, root, by_name, cells, step)
     per_sensor = {
         sensor: _walk_thresholds(
-            bench, root, {n: c for n, c in cells.items() if by_name[n].sensor == sensor}, step
+            bench, root, by_name, {n: c for n, c in cells.items() if by_name[n].sensor == sensor}, step
         )
         for sensor in sensors
     }
@@ -563,13 +563,16 @@ def suggestions(
 
 
 def _walk_thresholds(
-    bench: BenchmarkConfig, root: Path, cells: dict[str, dict[str, Any]], step: float
+    bench: BenchmarkConfig,
+    root: Path,
+    by_name: dict[str, Cell],
+    cells: dict[str, dict[str, Any]],
+    step: float,
 ) -> dict[str, float | None]:
-    """`suggestions`' walk over ``cells``: per pipeline the first threshold of the grid the rule accepts when the
-    cells are judged at it."""
+    """`suggestions`' walk over ``cells`` (``by_name``: the matrix's cells by name): per pipeline the first
+    threshold of the grid the rule accepts when the cells are judged at it."""
     from placerec.experiment.benchmark_summary import rule_inputs, tuning_pick
 
-    by_name = {c.name: c for c in bench.cells()}
     units: dict[str, float] = {}
     trying: dict[str, float] = {}
     picked: dict[str, float | None] = {}

@@ -300,9 +300,8 @@ class MultiSessionSlam:
         if self.odometry_gate is None or not inter:
             return set()
         M = self.n_map
-        tied = self.detector.path_at(
-            i - M for i in self._tied
-        )  # the detector's odometry path per session scan
+        # the session's odometry path (the detector's) at its tied scans and at each closure's query
+        tied = self.detector.path_at(i - M for i in self._tied)
         trans, rot = odometry_disagreement(
             np.stack([lp.T_match_query for lp in inter]),
             np.stack([self.graph.pose(lp.match_id) for lp in inter]),
