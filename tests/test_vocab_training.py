@@ -1,5 +1,6 @@
 """Vocabulary training configs (`placerec.artifacts.vocabulary`): strict keys with clear errors."""
 
+import numpy as np
 import pytest
 
 from placerec.artifacts.vocabulary import VocabTrainingConfig, load_training_config
@@ -58,3 +59,36 @@ def test_training_configs_are_read_like_experiment_configs(tmp_path):
             load(tmp_path / "nope.yaml")
         with pytest.raises(ConfigError, match="bomb.yaml"):
             load(bomb)
+
+
+def test_keyframe_training_images_are_the_keyframes_an_experiment_describes():
+    """With ``keyframes`` set (and the simulator driven as the benchmark drives a sensor that does not spin), the
+    training images are the keyframes an experiment with the same settings describes: the same descriptors as the
+    ORB-DBoW pipeline's front end on those keyframes, and another descriptor cache key than single scans."""
+    from placerec.artifacts.vocabulary import collect_descriptors, descriptor_cache_key
+    from placerec.config import ExperimentConfig
+    from placerec.experiment.preprocessing import preprocessed_scan
+    from placerec.experiment.runner import loop_sequence
+    from placerec.keyframes import KeyframeSequence
+    from placerec.recognizer import make_pipeline
+
+    sim = {"worlds": ["town"], "sensors": ["avia"], "seeds": [101], "rate_hz": 10, "sweep_motion": True,
+           "odometry_drift": 0.01}  # fmt: skip
+    keyframes = {"seconds": 0.5, "every_metres": 1.8}
+    cfg = VocabTrainingConfig(features="orb", n_images=2, simulator=sim, keyframes=keyframes)
+    parts, labels = collect_descriptors(cfg)
+    assert labels == ["town/avia/seed101"] * 2
+
+    dataset = {"simulator": {"world": "town", "sensor": "avia", "seed": 101, "rate_hz": 10, "sweep_motion": True,
+                             "odometry_drift": 0.01}}  # fmt: skip
+    exp = ExperimentConfig.model_validate({"dataset": dataset, "keyframes": keyframes})
+    seq = loop_sequence(exp)
+    assert isinstance(seq, KeyframeSequence) and len(seq) < len(seq.base) / 2
+    pipeline = make_pipeline("orb-dbow", {"verify": {"enabled": False}})
+    for part, index in zip(parts, (0, len(seq) - 1), strict=True):
+        scan, _ = preprocessed_scan(seq, index, exp.preprocess)
+        assert scan.shape is None and scan.xyz.shape[0] > 0  # an unorganised keyframe cloud
+        np.testing.assert_array_equal(part, pipeline.describe(scan)["descriptors"])
+
+    single = cfg.model_copy(update={"keyframes": None})
+    assert descriptor_cache_key(single) != descriptor_cache_key(cfg)

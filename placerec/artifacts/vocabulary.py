@@ -37,6 +37,7 @@ from placerec.config import DatasetConfig, SimulatorConfig, experiment_preproces
 from placerec.errors import ArtifactError, ConfigError
 from placerec.hashing import stable_hash
 from placerec.io.npz import read_npz_arrays
+from placerec.keyframes import KeyframeParams
 from placerec.params import Params
 from placerec.pipelines.visual import VisualFrontendParams
 from placerec.preprocess import PreprocessParams
@@ -65,8 +66,19 @@ class TrainingSimulator(Params):
     sensors: list[str] = Field(default_factory=lambda: ["os1-64"])
     seeds: list[int] = Field(default_factory=lambda: list(range(100, 110)))
     route: str = "default"
-    spacing: float = Field(1.0, gt=0)
+    spacing: float = Field(1.0, gt=0, description="metres between scans (unless rate_hz is set)")
     clutter: bool = True
+    rate_hz: float | None = Field(
+        None, gt=0, le=1000, allow_inf_nan=False, description="scans per second instead of spacing"
+    )
+    sweep_motion: bool = Field(False, description="rays measured from the pose at their own time")
+    odometry_drift: float | None = Field(
+        None,
+        ge=0,
+        le=1,
+        allow_inf_nan=False,
+        description="the keyframes' odometry's relative translation error",
+    )
 
 
 class VocabTrainingConfig(VisualFrontendParams, VocabularyParams):
@@ -76,6 +88,10 @@ class VocabTrainingConfig(VisualFrontendParams, VocabularyParams):
     training images come from."""
 
     preprocess: PreprocessParams = Field(default_factory=experiment_preprocess)
+    keyframes: KeyframeParams | None = Field(
+        None,
+        description="train on keyframes of these windows, as an experiment with the same keyframes sees them",
+    )
     n_images: int = Field(3000, ge=1)
     simulator: TrainingSimulator | None = Field(default_factory=TrainingSimulator)
     datasets: list[DatasetConfig] = Field(default_factory=list, description="extra sequences (e.g. recorded)")
@@ -112,6 +128,9 @@ def _sequences(cfg: VocabTrainingConfig) -> list[tuple[str, dict[str, Any]]]:
                             route=sim.route,
                             spacing=sim.spacing,
                             clutter=sim.clutter,
+                            rate_hz=sim.rate_hz,
+                            sweep_motion=sim.sweep_motion,
+                            odometry_drift=sim.odometry_drift,
                         ),
                     )
                     out.append((f"{world}/{sensor}/seed{seed}", spec.model_dump(mode="json")))
@@ -123,21 +142,21 @@ def _sequences(cfg: VocabTrainingConfig) -> list[tuple[str, dict[str, Any]]]:
 
 
 def _extract(job: tuple[dict[str, Any], int, dict[str, Any]]) -> list[np.ndarray]:
-    """Descriptors of ``count`` evenly spaced scans of one sequence (runs in a worker process)."""
-    from placerec.experiment.datasets import open_dataset
+    """Descriptors of ``count`` evenly spaced scans (keyframes, with ``keyframes`` set) of one sequence (runs in a
+    worker process)."""
+    from placerec.experiment.datasets import keyframed, open_dataset
+    from placerec.experiment.preprocessing import preprocessed_scan
     from placerec.features import make_extractor
     from placerec.image import make_image
-    from placerec.preprocess import preprocess_scan
 
     spec, count, c = job
     cfg = VocabTrainingConfig.model_validate(c)
-    seq = open_dataset(DatasetConfig.model_validate(spec))
+    seq = keyframed(cfg.keyframes, cfg.preprocess, open_dataset(DatasetConfig.model_validate(spec)))
     extractor = make_extractor(cfg.features, cfg.feature_params)
-    preprocess = cfg.preprocess
     index = np.unique(np.linspace(0, len(seq) - 1, min(count, len(seq))).round().astype(int))
     out = []
     for i in index:
-        scan = preprocess_scan(seq[int(i)], preprocess, keep_organized=True)
+        scan, _ = preprocessed_scan(seq, int(i), cfg.preprocess)
         out.append(extractor.extract(make_image(scan, cfg.image).image).descriptors)
     return out
 
@@ -175,7 +194,16 @@ def descriptor_cache_key(cfg: VocabTrainingConfig) -> str:
     simulator's code, the dataset files, the calibration table)."""
     from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint
 
-    keys = ("features", "feature_params", "image", "preprocess", "n_images", "simulator", "datasets")
+    keys = (
+        "features",
+        "feature_params",
+        "image",
+        "preprocess",
+        "keyframes",
+        "n_images",
+        "simulator",
+        "datasets",
+    )
     sources = [DatasetConfig.model_validate(spec) for _, spec in _sequences(cfg)]
     data = (
         [dataset_fingerprint(ds) for ds in sources],
@@ -231,6 +259,7 @@ def build_vocabulary(
         "features": config.features,
         "feature_params": config.feature_params.model_dump(mode="json"),
         "image": config.image.model_dump(mode="json"),
+        "keyframes": None if config.keyframes is None else config.keyframes.model_dump(mode="json"),
         "sequences": labels,
         "simulator": None if config.simulator is None else config.simulator.model_dump(mode="json"),
         "placerec_version": __version__,

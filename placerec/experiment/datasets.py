@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from placerec.config import DatasetConfig, ExperimentConfig
+from placerec.config import DatasetConfig
 from placerec.errors import ConfigError
-from placerec.keyframes import KeyframeSequence
-from placerec.preprocess import preprocess_scan
+from placerec.keyframes import KeyframeParams, KeyframeSequence
+from placerec.preprocess import PreprocessParams, preprocess_scan
 from placerec.types import Scan, Sequence
 
 __all__ = [
@@ -132,14 +132,14 @@ def dataset_fingerprint(cfg: DatasetConfig) -> list:
     return files_fingerprint(cfg.path, cfg.poses)
 
 
-def keyframed(cfg: ExperimentConfig, seq: Sequence) -> Sequence:
-    """``seq`` as the pipelines of ``cfg`` see it: with ``cfg.keyframes`` set, a `KeyframeSequence` over it (left
-    as it is when it already is one), else ``seq``. The keyframes' odometry (``keyframes.odometry: poses``) is the
+def keyframed(params: KeyframeParams | None, preprocess: PreprocessParams, seq: Sequence) -> Sequence:
+    """``seq`` as pipelines with an experiment's (or a vocabulary's training config's) ``keyframes`` and
+    ``preprocess`` see it: with ``params`` set, a `KeyframeSequence` over it (left as it is when it already is one),
+    else ``seq``. The keyframes' odometry (``keyframes.odometry: poses``) is the
     sequence's drifting ``odometry_poses`` when it has them (the simulator with ``odometry_drift``), else its own
     (ground-truth) poses used as odometry; ``kiss-icp`` registers the scans instead. Every source scan is
-    preprocessed (``cfg.preprocess``) before it is accumulated, so `preprocessed_scan` does not preprocess the
+    preprocessed (``preprocess``) before it is accumulated, so `preprocessed_scan` does not preprocess the
     keyframe again. `ConfigError` when ``poses`` odometry has nothing to use."""
-    params = cfg.keyframes
     if params is None or isinstance(seq, KeyframeSequence):
         return seq
     odometry = getattr(seq, "odometry_poses", None)
@@ -149,7 +149,7 @@ def keyframed(cfg: ExperimentConfig, seq: Sequence) -> Sequence:
         raise ConfigError(
             f"keyframes.odometry 'poses': {seq.name} has neither odometry nor poses (use keyframes.odometry: kiss-icp)"
         )
-    return KeyframeSequence(seq, params, odometry, prepare=partial(preprocess_scan, params=cfg.preprocess))
+    return KeyframeSequence(seq, params, odometry, prepare=partial(preprocess_scan, params=preprocess))
 
 
 def open_dataset(cfg: DatasetConfig) -> Sequence:

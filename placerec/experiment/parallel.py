@@ -62,7 +62,9 @@ def _opened(cfg_json: dict[str, Any], dataset_json: dict[str, Any]) -> tuple[Seq
     key = stable_hash([cfg_json, dataset_json])
     if key not in _OPENED:
         cfg = parse_config(cfg_json)
-        seq = keyframed(cfg, open_dataset(DatasetConfig.model_validate(dataset_json)))
+        seq = keyframed(
+            cfg.keyframes, cfg.preprocess, open_dataset(DatasetConfig.model_validate(dataset_json))
+        )
         _OPENED[key] = (seq, _frontends(cfg))
     return _OPENED[key]
 

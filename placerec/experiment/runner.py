@@ -214,7 +214,7 @@ def loop_sequence(cfg: ExperimentConfig, seq: Sequence | None = None) -> Sequenc
     (`placerec.experiment.datasets.keyframed`: then every pipeline, the ground truth and the exclusion window work
     on keyframes, ``exclusion.frames`` counting keyframes), checked against the exclusion window: `ConfigError`
     when a limit in metres has no poses or one in seconds no timestamps to apply to."""
-    seq = keyframed(cfg, open_dataset(cfg.dataset) if seq is None else seq)
+    seq = keyframed(cfg.keyframes, cfg.preprocess, open_dataset(cfg.dataset) if seq is None else seq)
     ex = cfg.evaluation.exclusion
     if ex.metres is not None and seq.poses is None:
         raise ConfigError("evaluation.exclusion.metres needs a dataset with poses")
