@@ -114,7 +114,7 @@ _THRESHOLDS: dict[str, dict[str, float]] = {
 _ODOMETRY_FLOOR = {"verify": {"score": {"min_score": 0.05}}}
 _ODOMETRY_THRESHOLDS: dict[str, dict[str, float]] = {
     "scan-context": {"avia": 0.25, "e1r": 0.35},
-    "orb-dbow": {"avia": 0.1, "e1r": 0.2},
+    "orb-dbow": {"avia": 0.05, "e1r": 0.15},
     "superpoint-dbow": {"avia": 0.05, "e1r": 0.25},
 }
 #: With the gate, what was left setting the E1R's ORB-DBoW threshold (0.30) were right places registered 0.50-0.57
@@ -129,10 +129,16 @@ _ODOMETRY_THRESHOLDS: dict[str, dict[str, float]] = {
 #: at ~1.5x the time a keyframe (`placerec bench configs/benchmark_sensors_tuning.yaml ... --set 'pipelines=[{name:
 #: orb-dbow, label: orb-k40-icp4, params: {verify: {top_k: 40, icp_top_k: 4}}}, ...]' --suggest`, docs/sensors.md).
 #: Not the E1R's: 192 -> 170 (its rule picked 0.20), and ICP on 4 of 20 gave 195, within the runs' spread.
+#: Their keyframe images, on the twelve tuning cells of each sensor with the gate (right closures at the threshold
+#: the rule picks, the preset's 389 Avia / 332 E1R at 0.10 / 0.20): the Avia's ORB-DBoW keeps 1000 features an
+#: image (464 at 0.05; 600 features 431 at 0.10; 2 points a pixel 394), the E1R's sizes its pixels to 2 points
+#: (357 at 0.15; with 1000 features as well 366 at 0.05, within the runs' 3 % spread of one another and 1.25x the
+#: time, so the cheaper); a vocabulary trained on their keyframe images (configs/vocab_orb_solid_state.yaml) gave
+#: 391 / 332 and is not used (docs/sensors.md, "Features and a vocabulary for the keyframe images").
 _ODOMETRY_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "orb-dbow": {
-        "e1r": {"verify": {"icp": {"source_voxel_size": 0.75}}},
-        "avia": {"verify": {"top_k": 40, "icp_top_k": 4}},
+        "e1r": {"verify": {"icp": {"source_voxel_size": 0.75}}, "image": {"density_points_per_pixel": 2.0}},
+        "avia": {"verify": {"top_k": 40, "icp_top_k": 4}, "feature_params": {"nfeatures": 1000}},
     },
 }
 

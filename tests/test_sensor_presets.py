@@ -83,13 +83,13 @@ def test_with_the_odometry_gate_a_forward_looking_sensor_gets_the_settings_chose
 
     gate = OdometryGateParams()
     det = LoopClosureDetector.for_pipeline("orb-dbow", sensor="avia", odometry_gate=gate)
-    assert det.threshold == 0.1 and det.recognizer.params.verify.score.min_score == 0.05
+    assert det.threshold == 0.05 and det.recognizer.params.verify.score.min_score == 0.05
     assert det.odometry_gate == gate
     plain = LoopClosureDetector.for_pipeline("orb-dbow", sensor="avia")
     assert plain.threshold == 0.25 and plain.recognizer.params.verify.score.min_score == 0.25
     # the E1R's ORB-DBoW registers on a finer query grid with the gate (and only with it)
     e1r = LoopClosureDetector.for_pipeline("orb-dbow", sensor="e1r", odometry_gate=gate)
-    assert e1r.threshold == 0.2 and e1r.recognizer.params.verify.icp.source_voxel_size == 0.75
+    assert e1r.threshold == 0.15 and e1r.recognizer.params.verify.icp.source_voxel_size == 0.75
     assert e1r.recognizer.params.verify.score.min_score == 0.05
     e1r_plain = LoopClosureDetector.for_pipeline("orb-dbow", sensor="e1r")
     assert e1r_plain.threshold == 0.35 and e1r_plain.recognizer.params.verify.icp.source_voxel_size == 1.5
@@ -98,6 +98,18 @@ def test_with_the_odometry_gate_a_forward_looking_sensor_gets_the_settings_chose
     assert (det.recognizer.params.verify.top_k, det.recognizer.params.verify.icp_top_k) == (40, 4)
     assert (plain.recognizer.params.verify.top_k, plain.recognizer.params.verify.icp_top_k) == (20, 2)
     assert (e1r.recognizer.params.verify.top_k, e1r.recognizer.params.verify.icp_top_k) == (20, 2)
+    # their keyframe images with the gate: the Avia's keep 1000 features, the E1R's pixels hold 2 points
+    assert (
+        det.recognizer.params.feature_params.nfeatures,
+        plain.recognizer.params.feature_params.nfeatures,
+    ) == (
+        1000,
+        300,
+    )
+    assert e1r.recognizer.params.feature_params.nfeatures == 300
+    assert e1r.recognizer.params.image.density_points_per_pixel == 2.0
+    assert e1r_plain.recognizer.params.image.density_points_per_pixel == 1.0
+    assert det.recognizer.params.image.density_points_per_pixel == 1.0
     # a sensor without settings of its own for the gate keeps its own with it
     vlp = LoopClosureDetector.for_pipeline("orb-dbow", sensor="vlp16", odometry_gate=gate)
     assert vlp.threshold == 0.1 and vlp.recognizer.params.verify.score.min_fitness_ratio == 0.75
@@ -109,6 +121,6 @@ def test_with_the_odometry_gate_a_forward_looking_sensor_gets_the_settings_chose
         cfg, cfg0 = bench.cell_config(cell), alone.cell_config(cell)
         orb = next(p for p in cfg.pipelines if p.name == "orb-dbow")
         floor = (orb.params or {}).get("verify", {}).get("score", {}).get("min_score")
-        assert cfg.operating_threshold(orb) == {"avia": 0.1, "vlp16": 0.1}[cell.sensor]
+        assert cfg.operating_threshold(orb) == {"avia": 0.05, "vlp16": 0.1}[cell.sensor]
         assert floor == {"avia": 0.05, "vlp16": 0.1}[cell.sensor]
         assert (_cell_key(cfg) == _cell_key(cfg0)) == (cell.sensor == "vlp16")
