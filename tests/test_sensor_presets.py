@@ -108,6 +108,9 @@ def test_with_the_odometry_gate_a_forward_looking_sensor_gets_the_settings_chose
     )
     assert e1r.recognizer.params.feature_params.nfeatures == 300
     assert e1r.recognizer.params.image.density_points_per_pixel == 2.0
+    assert e1r.recognizer.params.verify.ransac.inlier_threshold == 1.0
+    assert det.recognizer.params.verify.ransac.inlier_threshold == 0.6
+    assert e1r_plain.recognizer.params.verify.ransac.inlier_threshold == 0.6
     assert e1r_plain.recognizer.params.image.density_points_per_pixel == 1.0
     assert det.recognizer.params.image.density_points_per_pixel == 1.0
     # a sensor without settings of its own for the gate keeps its own with it
