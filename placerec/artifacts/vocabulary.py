@@ -60,7 +60,8 @@ EVALUATION_SEEDS = tuple(range(10))
 
 
 class TrainingSimulator(Params):
-    """Simulated sequences to draw training images from: every (world, sensor, seed) combination."""
+    """Simulated sequences to draw training images from: every (world, sensor, seed) combination, each driven as
+    the other settings say (`placerec.config.SimulatorConfig`'s fields of the same names)."""
 
     worlds: list[str] = Field(default_factory=lambda: ["campus", "industrial", "town"])
     sensors: list[str] = Field(default_factory=lambda: ["os1-64"])
@@ -114,6 +115,8 @@ def _sequences(cfg: VocabTrainingConfig) -> list[tuple[str, dict[str, Any]]]:
     out = []
     sim = cfg.simulator
     if sim is not None:
+        # every setting but the lists is the simulator's own, the same for each sequence
+        drive = sim.model_dump(exclude={"worlds", "sensors", "seeds"})
         for world in sim.worlds:
             for sensor in sim.sensors:
                 for seed in sim.seeds:
@@ -121,17 +124,7 @@ def _sequences(cfg: VocabTrainingConfig) -> list[tuple[str, dict[str, Any]]]:
                         log.warning("training on town seed %d, which the evaluation configs use", seed)
                     spec = DatasetConfig(
                         source="simulator",
-                        simulator=SimulatorConfig(
-                            world=world,
-                            sensor=sensor,
-                            seed=seed,
-                            route=sim.route,
-                            spacing=sim.spacing,
-                            clutter=sim.clutter,
-                            rate_hz=sim.rate_hz,
-                            sweep_motion=sim.sweep_motion,
-                            odometry_drift=sim.odometry_drift,
-                        ),
+                        simulator=SimulatorConfig(world=world, sensor=sensor, seed=seed, **drive),
                     )
                     out.append((f"{world}/{sensor}/seed{seed}", spec.model_dump(mode="json")))
     for i, ds in enumerate(cfg.datasets):

@@ -135,9 +135,9 @@ def dataset_fingerprint(cfg: DatasetConfig) -> list:
 def keyframed(params: KeyframeParams | None, preprocess: PreprocessParams, seq: Sequence) -> Sequence:
     """``seq`` as pipelines with an experiment's (or a vocabulary's training config's) ``keyframes`` and
     ``preprocess`` see it: with ``params`` set, a `KeyframeSequence` over it (left as it is when it already is one),
-    else ``seq``. The keyframes' odometry (``keyframes.odometry: poses``) is the
-    sequence's drifting ``odometry_poses`` when it has them (the simulator with ``odometry_drift``), else its own
-    (ground-truth) poses used as odometry; ``kiss-icp`` registers the scans instead. Every source scan is
+    else ``seq``. The keyframes' odometry (``keyframes.odometry: poses``) is the sequence's drifting
+    ``odometry_poses`` when it has them (the simulator with ``odometry_drift``), else its own (ground-truth) poses
+    used as odometry; ``kiss-icp`` registers the scans instead. Every source scan is
     preprocessed (``preprocess``) before it is accumulated, so `preprocessed_scan` does not preprocess the
     keyframe again. `ConfigError` when ``poses`` odometry has nothing to use."""
     if params is None or isinstance(seq, KeyframeSequence):
