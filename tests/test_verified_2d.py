@@ -198,3 +198,24 @@ def test_saved_database_keeps_the_3d_points_and_clouds(sim, tmp_path):
     before, after = rec.query_description(q, k=2), fresh.query_description(q, k=2)
     assert [(c.match_id, c.score) for c in before] == [(c.match_id, c.score) for c in after]
     np.testing.assert_array_equal(before[0].relative_pose, after[0].relative_pose)
+
+
+@pytest.mark.parametrize("name", ["orb-dbow", "orb-hbst"])
+def test_candidates_matched_on_the_helper_thread_are_those_of_one_thread(sim, name, monkeypatch):
+    """Every other candidate's binary features are matched on the helper thread (`VisualFrontend._retrieved_all`):
+    the candidates, their matches, inliers, poses and scores are the same as with one thread (no helper)."""
+
+    def run(n_threads: str):
+        monkeypatch.setenv("OMP_NUM_THREADS", n_threads)
+        rec = make_pipeline(name)
+        for i in (0, 30):
+            rec.add(i, scans[i])
+        return rec.query(scans[2], k=2, query_id=2)
+
+    scans, _ = sim
+    one, two = run("1"), run("2")
+    assert len(one) == len(two) == 2
+    for a, b in zip(one, two, strict=True):
+        assert (a.match_id, a.score, a.inliers, a.accepted) == (b.match_id, b.score, b.inliers, b.accepted)
+        np.testing.assert_array_equal(a.matches, b.matches)
+        np.testing.assert_array_equal(a.relative_pose, b.relative_pose)
