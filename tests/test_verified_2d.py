@@ -219,3 +219,19 @@ def test_candidates_matched_on_the_helper_thread_are_those_of_one_thread(sim, na
         assert (a.match_id, a.score, a.inliers, a.accepted) == (b.match_id, b.score, b.inliers, b.accepted)
         np.testing.assert_array_equal(a.matches, b.matches)
         np.testing.assert_array_equal(a.relative_pose, b.relative_pose)
+
+
+def test_binary_matching_of_large_sets_with_ties_is_the_first_argmin_both_ways():
+    """500 x 450 ORB-sized descriptors with few bits set, so that equal distances abound: each side's nearest is
+    the first of its equal distances (``argmin``), as the pairwise loop gave."""
+    rng = np.random.default_rng(7)
+    a = np.packbits(rng.random((500, 256)) < 0.03, axis=1)
+    b = np.packbits(rng.random((450, 256)) < 0.03, axis=1)
+    D = np.unpackbits(a[:, None, :] ^ b[None, :, :], axis=2).sum(2)
+    nn, back = D.argmin(1), D.argmin(0)
+    assert (D == D.min(1, keepdims=True)).sum(1).max() > 1  # ties exist
+    ref_q = np.flatnonzero(back[nn] == np.arange(500))
+    qi, mi, dist = mutual_nearest(a, b)
+    np.testing.assert_array_equal(qi, ref_q)
+    np.testing.assert_array_equal(mi, nn[ref_q])
+    np.testing.assert_array_equal(dist, D[ref_q, nn[ref_q]])
