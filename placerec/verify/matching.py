@@ -1,8 +1,9 @@
 """Correspondences for verification: mutual nearest neighbours between two descriptor sets.
 
 Binary descriptors (packed ``uint8``, e.g. ORB, BRISK): a compiled single-threaded loop, Hamming distance over
-64-bit words (SWAR popcount), a query row against all of the other set's rows at once; sets are a few hundred descriptors per image, where a threaded library's start-up
-costs more than the work (docs/benchmarks.md, visual pipeline per scan). Float descriptors (SuperPoint, SURF) by
+64-bit words (SWAR popcount), a query row against all of the other set's rows at once; sets are a few hundred to a
+thousand descriptors per image, where a threaded library's start-up costs more than the work (docs/benchmarks.md,
+visual pipeline per scan). Float descriptors (SuperPoint, SURF) by
 Euclidean distance: float32 dot products give every squared distance approximately, which leaves a few
 candidates per row and per column (those within a tolerance far above the products' rounding of the smallest);
 their exact distances, by the all-pairs loop's own arithmetic (`_nearest_both_ways_l2`), decide. So the matches
