@@ -38,31 +38,36 @@ def _popcount(x: np.uint64) -> int:
 @njit(cache=True, nogil=True)
 def _nearest_both_ways(a: np.ndarray, bt: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For word arrays a (n, w) and bt (w, m), the second set's words transposed: each row of a's nearest row of
-    b and its distance, and each row of b's nearest row of a (the first of equal distances, as ``argmin``). A
-    row's m distances are summed word by word over contiguous columns first (a loop the compiler vectorises: 2x
-    the speed of one pair at a time for 1000 x 1000 ORB descriptors), then the nearest-so-far updates run in the
-    order the pairwise loop had, so ties go the same way."""
+    b and its distance, and each row of b's nearest row of a (the first of equal distances, as ``argmin``), as
+    int32. A row's m distances are summed word by word over contiguous columns, its minimum taken and the
+    other set's nearest-so-far updated without branches: loops the compiler vectorises (3x the speed of one pair
+    at a time with branches for 1000 x 1000 ORB descriptors). Each side's nearest is the first of its equal
+    distances, as the pairwise loop had it."""
     n, m = a.shape[0], bt.shape[1]
-    nn_ab = np.zeros(n, np.int64)
-    d_ab = np.full(n, 1 << 30, np.int64)
-    nn_ba = np.zeros(m, np.int64)
-    d_ba = np.full(m, 1 << 30, np.int64)
-    row = np.empty(m, np.int64)
+    nn_ab = np.zeros(n, np.int32)
+    d_ab = np.zeros(n, np.int32)
+    nn_ba = np.zeros(m, np.int32)
+    d_ba = np.full(m, 1 << 30, np.int32)
+    row = np.empty(m, np.int32)
     for i in range(n):
         row[:] = 0
         for w in range(a.shape[1]):
             aw = a[i, w]
             bw = bt[w]
             for j in range(m):
-                row[j] += _popcount(aw ^ bw[j])
-        for j in range(m):
-            d = row[j]
-            if d < d_ab[i]:
-                d_ab[i] = d
-                nn_ab[i] = j
-            if d < d_ba[j]:
-                d_ba[j] = d
-                nn_ba[j] = i
+                row[j] += np.int32(_popcount(aw ^ bw[j]))
+        best = row[0]
+        for j in range(1, m):
+            best = min(best, row[j])
+        for j in range(m):  # the first of the row's equal minima
+            if row[j] == best:
+                nn_ab[i] = np.int32(j)
+                break
+        d_ab[i] = best
+        for j in range(m):  # strictly nearer: an earlier row of a keeps a tie
+            closer = row[j] < d_ba[j]
+            d_ba[j] = row[j] if closer else d_ba[j]
+            nn_ba[j] = np.int32(i) if closer else nn_ba[j]
     return nn_ab, d_ab, nn_ba
 
 
@@ -94,8 +99,8 @@ def mutual_nearest(dq: np.ndarray, dm: np.ndarray) -> tuple[np.ndarray, np.ndarr
     if dq.shape[0] == 0 or dm.shape[0] == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     if dq.dtype == np.uint8:
-        nn, d, back = _nearest_both_ways(to_words(dq), np.ascontiguousarray(to_words(dm).T))
-        dist = d.astype(np.float64)
+        nn32, d, back = _nearest_both_ways(to_words(dq), np.ascontiguousarray(to_words(dm).T))
+        nn, dist = nn32.astype(np.int64), d.astype(np.float64)
     else:
         q, m = np.ascontiguousarray(dq, np.float32), np.ascontiguousarray(dm, np.float32)
         small = min(q.shape[0], m.shape[0]) < _SCREEN_MIN_ROWS or q.shape[1] == 0
