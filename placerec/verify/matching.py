@@ -3,13 +3,13 @@
 Binary descriptors (packed ``uint8``, e.g. ORB, BRISK): a compiled single-threaded loop, Hamming distance over
 64-bit words (SWAR popcount), a query row against all of the other set's rows at once; sets are a few hundred to a
 thousand descriptors per image, where a threaded library's start-up costs more than the work (docs/benchmarks.md,
-visual pipeline per scan). Float descriptors (SuperPoint, SURF) by
-Euclidean distance: float32 dot products give every squared distance approximately, which leaves a few
-candidates per row and per column (those within a tolerance far above the products' rounding of the smallest);
-their exact distances, by the all-pairs loop's own arithmetic (`_nearest_both_ways_l2`), decide. So the matches
-and distances are the all-pairs loop's, bit for bit, in a third of its time for 300 x 256 floats. (A BLAS product
-was faster still but left OpenBLAS's idle threads spinning on the other core after every candidate, which cost
-the concurrent describe more than it saved: docs/benchmarks.md.)
+visual pipeline per scan). Float descriptors (SuperPoint, SURF) by Euclidean distance: float32 dot products give
+every squared distance approximately, which leaves a few candidates per row and per column (those within a
+tolerance far above the products' rounding of the smallest); their exact distances, by the all-pairs loop's own
+arithmetic (`_nearest_both_ways_l2`), decide. So the matches and distances are the all-pairs loop's, bit for bit,
+in a third of its time for 300 x 256 floats. (A BLAS product was faster still but left OpenBLAS's idle threads
+spinning on the other core after every candidate, which cost the concurrent describe more than it saved:
+docs/benchmarks.md.)
 """
 
 from __future__ import annotations
@@ -39,10 +39,10 @@ def _popcount(x: np.uint64) -> int:
 def _nearest_both_ways(a: np.ndarray, bt: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For word arrays a (n, w) and bt (w, m), the second set's words transposed: each row of a's nearest row of
     b and its distance, and each row of b's nearest row of a (the first of equal distances, as ``argmin``), as
-    int32. A row's m distances are summed word by word over contiguous columns, its minimum taken and the
-    other set's nearest-so-far updated without branches: loops the compiler vectorises (3x the speed of one pair
-    at a time with branches for 1000 x 1000 ORB descriptors). Each side's nearest is the first of its equal
-    distances, as the pairwise loop had it."""
+    int32. A row's m distances are summed word by word over contiguous columns and the other set's
+    nearest-so-far updated without branches: loops the compiler vectorises (3x the speed of one pair at a time
+    with branches for 1000 x 1000 ORB descriptors). Each side's nearest is the first of its equal distances, as
+    the pairwise loop had it."""
     n, m = a.shape[0], bt.shape[1]
     nn_ab = np.zeros(n, np.int32)
     d_ab = np.zeros(n, np.int32)
@@ -56,14 +56,9 @@ def _nearest_both_ways(a: np.ndarray, bt: np.ndarray) -> tuple[np.ndarray, np.nd
             bw = bt[w]
             for j in range(m):
                 row[j] += np.int32(_popcount(aw ^ bw[j]))
-        best = row[0]
-        for j in range(1, m):
-            best = min(best, row[j])
-        for j in range(m):  # the first of the row's equal minima
-            if row[j] == best:
-                nn_ab[i] = np.int32(j)
-                break
-        d_ab[i] = best
+        nearest = np.argmin(row)  # the first of the row's equal minima
+        nn_ab[i] = nearest
+        d_ab[i] = row[nearest]
         for j in range(m):  # strictly nearer: an earlier row of a keeps a tie
             closer = row[j] < d_ba[j]
             d_ba[j] = row[j] if closer else d_ba[j]
