@@ -48,6 +48,7 @@ worker's while it runs: `flush` before reading or saving it.
 
 from __future__ import annotations
 
+import inspect
 import time
 from collections import deque
 from collections.abc import Iterable, Mapping
@@ -61,9 +62,9 @@ from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES, ExclusionWindow, path_length
 from placerec.keyframes import Keyframe, KeyframeBuilder, KeyframeParams
 from placerec.loop_filter import LoopFilter, LoopFilterParams
-from placerec.odometry_gate import LoopChain, OdometryGateParams, pose_disagreement
+from placerec.odometry_gate import ChainPrior, LoopChain, OdometryGateParams, pose_disagreement
 from placerec.realtime import LateScanError, RealtimeParams, RealtimeStats, SerialWorker
-from placerec.types import Candidate, Description, PlaceRecognizer, Scan, as_pose
+from placerec.types import Candidate, Description, MotionPrior, PlaceRecognizer, Scan, as_pose
 
 __all__ = ["LoopClosureDetector", "PlaceResult", "RealtimeParams", "RealtimeStats", "LateScanError"]
 
@@ -152,6 +153,8 @@ class LoopClosureDetector:
         if k < 1:
             raise ConfigError(f"k must be >= 1, got {k}")
         self.recognizer = recognizer
+        # a recognizer written before `query_description` took a motion prior is called without one
+        self._takes_prior = "prior" in inspect.signature(recognizer.query_description).parameters
         self.threshold = float(threshold)
         self.k = int(k)
         self.loop_filter = None if loop_filter is None else LoopFilter(loop_filter)
@@ -268,6 +271,7 @@ class LoopClosureDetector:
         pose: np.ndarray | None = None,
         timestamp: float | None = None,
         description: Description | None = None,
+        prior: MotionPrior | None = None,
     ) -> list[Candidate]:
         """Query with the next scan, add it, and return the accepted closures (``score >= threshold``).
 
@@ -278,15 +282,20 @@ class LoopClosureDetector:
         a scan the keyframe builder refuses leaves no trace; a keyframe the recognizer cannot describe takes its id
         as `skip` does, with the reason in ``last_status``). In real-time mode: the closures completed since the
         last call, ``last_candidates`` empty, ``last_timing_ms`` the caller's stages (``describe``, ``wait``).
+        ``prior``: what the caller's odometry predicts for this place (`placerec.types.MotionPrior`, over the
+        detector's ids; not with ``keyframes``), given to the recognizer's query; without it a detector with the
+        ``odometry_gate`` gives its own (`placerec.odometry_gate.ChainPrior`, through the closures it accepted).
         """
+        if prior is not None and self.keyframes is not None:
+            raise ConfigError("process(prior=...) predicts for a place: not with keyframes being built")
         if self._worker is None:
             self.last_completed = []
-            return self._process(scan, pose, timestamp, description)
+            return self._process(scan, pose, timestamp, description, prior)
         if self._worker.closed:
             raise ConfigError("this real-time detector is closed: it takes no more scans")
         t0 = time.perf_counter()
         self._start_call()
-        self._process(scan, pose, timestamp, description)
+        self._process(scan, pose, timestamp, description, prior)
         out = self._end_call()
         st = self.realtime_stats
         assert st is not None
@@ -303,9 +312,10 @@ class LoopClosureDetector:
         pose: np.ndarray | None,
         timestamp: float | None,
         description: Description | None,
+        prior: MotionPrior | None = None,
     ) -> list[Candidate]:
         if self.keyframes is None:
-            return self._process_place(scan, pose, timestamp, description)
+            return self._process_place(scan, pose, timestamp, description, prior)
         if description is not None or scan is None:
             raise ScanDataError(
                 "process() with keyframes needs the scan itself (a description cannot accumulate)"
@@ -406,6 +416,7 @@ class LoopClosureDetector:
         pose: np.ndarray | None,
         timestamp: float | None,
         description: Description | None,
+        prior: MotionPrior | None = None,
     ) -> list[Candidate]:
         """`process` of one place (a scan, or a keyframe)."""
         rec = self.recognizer
@@ -420,9 +431,9 @@ class LoopClosureDetector:
         self._record_motion(pose, timestamp)
         max_id = self.last_max_id = self._max_eligible_id(own)
         if self._worker is not None:
-            return self._submit(scan_id, description, pose, max_id, timing)
+            return self._submit(scan_id, description, pose, max_id, timing, prior)
         try:
-            result = self._query_and_add(scan_id, description, pose, max_id)
+            result = self._query_and_add(scan_id, description, pose, max_id, prior)
         except ScanDataError:
             self._forget_motion()  # a refused place leaves no trace: a `skip` of it records it once
             raise
@@ -441,11 +452,12 @@ class LoopClosureDetector:
         pose: np.ndarray | None,
         max_id: int,
         timing: dict[str, float],
+        prior: MotionPrior | None = None,
     ) -> list[Candidate]:
         """Real-time mode: queue the place's query and insertion; wait while the worker is too far behind."""
         assert self._worker is not None and self.realtime is not None and self.realtime_stats is not None
         self._submitted[scan_id] = self._calls
-        backlog = self._worker.submit(scan_id, (scan_id, description, pose, max_id))
+        backlog = self._worker.submit(scan_id, (scan_id, description, pose, max_id, prior))
         st = self.realtime_stats
         st.max_backlog = max(st.max_backlog, backlog)
         t0 = time.perf_counter()
@@ -457,11 +469,16 @@ class LoopClosureDetector:
         return []
 
     def _query_and_add(
-        self, scan_id: int, description: Description, pose: np.ndarray | None, max_id: int
+        self,
+        scan_id: int,
+        description: Description,
+        pose: np.ndarray | None,
+        max_id: int,
+        prior: MotionPrior | None = None,
     ) -> PlaceResult:
         """Query the database with ``description`` restricted to ids <= ``max_id`` (none when -1), filter,
         threshold, then add the place: the only steps that touch the recognizer's database (in real-time mode
-        they run in the worker thread, in place order)."""
+        they run in the worker thread, in place order). ``prior`` as in `process`."""
         rec = self.recognizer
         timing: dict[str, float] = {}
         t0 = time.perf_counter()
@@ -470,7 +487,13 @@ class LoopClosureDetector:
         lf = self.loop_filter
         if max_id >= 0:
             k = self.k if lf is None else max(self.k, lf.params.max_candidates)
-            answered = rec.query_description(description, k=k, max_id=max_id, query_id=scan_id)
+            if prior is None and self.odometry_gate is not None:
+                own = scan_id - self.prior_entries
+                prior = ChainPrior(
+                    self._chain, own, self._poses, self._path, self.odometry_gate, self.prior_entries
+                )
+            extra = {"prior": prior} if prior is not None and self._takes_prior else {}
+            answered = rec.query_description(description, k=k, max_id=max_id, query_id=scan_id, **extra)
         candidates = answered
         if lf is not None and max_id >= 0:
             candidates, status = lf.apply(scan_id, answered)

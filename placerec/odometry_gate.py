@@ -37,8 +37,15 @@ import numpy as np
 from pydantic import Field
 
 from placerec.params import Params
+from placerec.types import Prediction
 
-__all__ = ["LoopChain", "OdometryGateParams", "odometry_disagreement", "pose_disagreement"]
+__all__ = [
+    "ChainPrior",
+    "LoopChain",
+    "OdometryGateParams",
+    "odometry_disagreement",
+    "pose_disagreement",
+]
 
 
 class OdometryGateParams(Params):
@@ -65,8 +72,13 @@ class OdometryGateParams(Params):
         t = np.asarray(translation_m, dtype=np.float64)
         r = np.asarray(rotation_deg, dtype=np.float64)
         path = np.abs(np.asarray(path_m, dtype=np.float64))
-        ok = (t <= self.metres + self.per_metre * path) & (r <= self.degrees + self.degrees_per_metre * path)
+        metres, degrees = self.bounds_at(path)
+        ok = (t <= metres) & (r <= degrees)
         return ok | np.isnan(t) | np.isnan(r)
+
+    def bounds_at(self, path_m: Any) -> tuple[Any, Any]:
+        """(translation m, rotation deg) the gate admits over ``path_m`` metres of odometry path."""
+        return self.metres + self.per_metre * path_m, self.degrees + self.degrees_per_metre * path_m
 
 
 def pose_disagreement(T_a: np.ndarray, T_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -176,6 +188,36 @@ class LoopChain:
                 T = T @ (T_mq if a == m else np.linalg.inv(T_mq))
         T = T @ np.linalg.solve(poses[last], poses[query])
         return T, along + abs(float(path[query]) - float(path[last]))
+
+
+class ChainPrior:
+    """The gate's predictions for one query against the earlier places (`predict`; a `placerec.types.MotionPrior`),
+    through the closures of ``chain`` (`LoopChain`, the odometry alone when it holds none) over the odometry
+    ``poses`` / ``path`` indexed by place, with the gate's ``bounds`` over the path each rests on; a pipeline
+    matches features within them (`placerec.verify.guided`). Recognizer ids are places plus ``offset`` (a prior
+    map's entries come first and have no odometry: no prediction)."""
+
+    def __init__(
+        self,
+        chain: LoopChain,
+        query: int,
+        poses: Sequence[np.ndarray] | np.ndarray,
+        path: Sequence[float] | np.ndarray,
+        bounds: OdometryGateParams,
+        offset: int = 0,
+    ) -> None:
+        self.chain, self.query, self.poses, self.path = chain, int(query), poses, path
+        self.bounds, self.offset = bounds, int(offset)
+
+    def predict(self, match_id: int) -> Prediction | None:
+        """The prediction for recognizer id ``match_id``; None for a place without odometry or not before the
+        query."""
+        place = int(match_id) - self.offset
+        if place < 0 or place >= self.query:
+            return None
+        T, along = self.chain.predict(place, self.query, self.poses, self.path)
+        metres, degrees = self.bounds.bounds_at(along)
+        return Prediction(T, float(metres), float(np.radians(degrees)))
 
 
 #: The length of a closure's edge in the chain's search (a closure adds no odometry; a positive length keeps the

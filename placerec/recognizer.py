@@ -27,7 +27,15 @@ from placerec.errors import ArtifactError, ConfigError, ScanDataError, short_rep
 from placerec.hashing import stable_hash
 from placerec.params import Params, deep_merge, resolve
 from placerec.sensor_presets import SENSOR_PRESETS, SensorPreset
-from placerec.types import MAX_RANGE_M, Candidate, Description, PlaceRecognizer, Scan, valid_points
+from placerec.types import (
+    MAX_RANGE_M,
+    Candidate,
+    Description,
+    MotionPrior,
+    PlaceRecognizer,
+    Scan,
+    valid_points,
+)
 
 __all__ = [
     "Description",
@@ -147,7 +155,12 @@ class Recognizer(ABC, Generic[P]):
 
     @abstractmethod
     def query_description(
-        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
+        self,
+        description: Description,
+        k: int = 1,
+        max_id: int | None = None,
+        query_id: int = -1,
+        prior: MotionPrior | None = None,
     ) -> list[Candidate]: ...
 
     @abstractmethod

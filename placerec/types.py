@@ -37,6 +37,8 @@ __all__ = [
     "Verification",
     "REJECTIONS",
     "Description",
+    "Prediction",
+    "MotionPrior",
     "PlaceRecognizer",
     "as_pose",
     "relative_pose",
@@ -541,6 +543,7 @@ REJECTIONS: dict[str, str] = {
     "constraint": "the overlap leaves the translation free along a direction (constraint below min_constraint)",
     "score": "verified score below min_score",
     "residual": "ICP residual above eps_icp",
+    "guided_score": "posed from the matches a motion prior allows, its verified score below verify.guided.min_score",
 }
 
 
@@ -592,6 +595,24 @@ class Candidate:
 Description = dict[str, np.ndarray]
 
 
+@dataclass(frozen=True)
+class Prediction:
+    """Where a caller's odometry puts a query relative to one earlier place: the predicted ``T_match_query`` and how
+    far a closure may differ from it (``metres``, ``radians``) and still agree with the odometry."""
+
+    T_match_query: np.ndarray
+    metres: float
+    radians: float
+
+
+class MotionPrior(Protocol):
+    """What a caller with odometry knows about a query's motion (`placerec.odometry_gate.ChainPrior`): the
+    `Prediction` against database entry ``match_id``, or None where it has none. A recognizer may use it to choose
+    which features to compare (`placerec.verify.guided`); it never decides acceptance."""
+
+    def predict(self, match_id: int) -> Prediction | None: ...
+
+
 @runtime_checkable
 class PlaceRecognizer(Protocol):
     """The one interface every pipeline, baseline and peer adapter implements (`placerec.recognizer.Recognizer`
@@ -603,10 +624,12 @@ class PlaceRecognizer(Protocol):
     * ``frontend_key`` identifies the front end and its parameters: equal keys give identical descriptions.
     * ``describe(scan)`` is the front end; a scan it cannot describe (blank, a few points) is a `ScanDataError`.
     * ``add_description(scan_id, description, pose=None)`` inserts under ``scan_id`` (unique, caller-chosen).
-    * ``query_description(description, k=1, max_id=None, query_id=-1)`` returns up to ``k`` candidates, best
-      first, among database entries with ``id <= max_id`` (all entries when None). Loop-closure callers number
-      scans in acquisition order, so the exclusion window of recent frames becomes one bound. It never modifies
-      the database; ``query_id`` is only copied into the returned candidates.
+    * ``query_description(description, k=1, max_id=None, query_id=-1, prior=None)`` returns up to ``k``
+      candidates, best first, among database entries with ``id <= max_id`` (all entries when None). Loop-closure
+      callers number scans in acquisition order, so the exclusion window of recent frames becomes one bound. It
+      never modifies the database; ``query_id`` is only copied into the returned candidates. ``prior`` (a
+      `MotionPrior`) is what the caller's odometry predicts; a recognizer may ignore it (one without the
+      parameter is called without it).
     * ``add(scan_id, scan, pose=None)`` / ``query(scan, ...)``: the same on a scan (``describe`` first).
     * ``save(path)`` / ``load(path)`` persist the database (atomic, versioned; `ArtifactError` on a wrong file).
     """
@@ -624,7 +647,12 @@ class PlaceRecognizer(Protocol):
     ) -> None: ...
 
     def query_description(
-        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
+        self,
+        description: Description,
+        k: int = 1,
+        max_id: int | None = None,
+        query_id: int = -1,
+        prior: MotionPrior | None = None,
     ) -> list[Candidate]: ...
 
     def add(self, scan_id: int, scan: Scan, pose: np.ndarray | None = None) -> None: ...

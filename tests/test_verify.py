@@ -473,6 +473,7 @@ def test_rejection_names_the_rule_that_rejected():
         "constraint",
         "score",
         "residual",
+        "guided_score",  # candidates verified from guided matches (tests/test_guided_matching.py)
     } == set(REJECTIONS)
 
 

@@ -63,7 +63,7 @@ from placerec.io.artifact_schema import Member, check_counts, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
 from placerec.recognizer import Recognizer, check_saved_params, params_key, require_points
-from placerec.types import Candidate, Description, Scan
+from placerec.types import Candidate, Description, MotionPrior, Scan
 
 __all__ = ["MapClosuresPeer", "MapClosuresParams", "closure_to_scan"]
 
@@ -212,7 +212,12 @@ class MapClosuresPeer(Recognizer[MapClosuresParams]):
         self._points[sid] = pts
 
     def query_description(
-        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
+        self,
+        description: Description,
+        k: int = 1,
+        max_id: int | None = None,
+        query_id: int = -1,
+        prior: MotionPrior | None = None,
     ) -> list[Candidate]:
         pts = self._unwrap(description)
         if self.params.local_map:

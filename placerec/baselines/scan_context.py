@@ -54,7 +54,7 @@ from placerec.io.artifact_schema import Member, check_unique
 from placerec.io.atomic import load_artifact, save_artifact
 from placerec.params import Params
 from placerec.recognizer import Recognizer, params_key, require_points
-from placerec.types import Candidate, Scan
+from placerec.types import Candidate, MotionPrior, Scan
 from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
 from placerec.verify.params import IcpParams
 
@@ -369,6 +369,7 @@ class ScanContext(Recognizer[ScanContextParams]):
         k: int = 1,
         max_id: int | None = None,
         query_id: int = -1,
+        prior: MotionPrior | None = None,
     ) -> list[Candidate]:
         """Up to ``k`` candidates, best (highest score) first, among entries with ``id <= max_id``, for a
         description (``describe``'s dict or the bare (R, S) array): ``max(k, num_candidates)`` ring-key

@@ -311,13 +311,16 @@ def load_benchmark_config(path: str | Path, overrides: list[str] | None = None) 
 def _cell_key(cfg: ExperimentConfig) -> str:
     """The stamp of a cell's result: its config, each pipeline's resolved parameters (a registry preset changed
     since makes the cell run again) and the placerec version (not the thresholds: the figures at a threshold are
-    recomputed from the cell's files, `cell_metrics`, and so is the odometry gate; nor the localisation settings)."""
+    recomputed from the cell's files, `cell_metrics`, and so is the odometry gate; nor the localisation settings).
+    A pipeline that matches within the gate's motion prior (``verify.guided``) answers what it does because of the
+    gate and the closures accepted at its operating threshold while the cell ran: then both are in the stamp."""
     from placerec._version import __version__
     from placerec.recognizer import pipeline_params
 
     data = cfg.model_dump(mode="json")
     data["evaluation"].pop("localize", None)  # localisation settings: no part of a loop-mode cell
-    data["evaluation"].pop("odometry_gate", None)  # judged from the cell's files, as the thresholds
+    gate = data["evaluation"].pop("odometry_gate", None)  # judged from the cell's files, as the thresholds
+    guided = False
     for spec, given in zip(data["pipelines"], cfg.pipelines, strict=True):
         spec.pop("threshold", None)
         if _recognizer_class(given.name) is not None:
@@ -325,6 +328,11 @@ def _cell_key(cfg: ExperimentConfig) -> str:
                 given.name, given.params, sensor=cfg.sensor, odometry=cfg.with_odometry
             )
             spec["resolved"] = resolved.model_dump(mode="json")
+            if gate is not None and spec["resolved"].get("verify", {}).get("guided", {}).get("enabled"):
+                spec["guided_at"] = cfg.operating_threshold(given)
+                guided = True
+    if guided:
+        data["evaluation"]["odometry_gate"] = gate
     return stable_hash({"config": data, "placerec": __version__, "v": BENCH_VERSION})
 
 

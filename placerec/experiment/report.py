@@ -73,8 +73,9 @@ from placerec.eval.pose_truth import (
     with_candidates,
 )
 from placerec.experiment import figures
-from placerec.experiment.candidates import CandidateTable, rank_order, read_candidates, write_candidates
+from placerec.experiment.candidates import CandidateTable, read_candidates, write_candidates
 from placerec.experiment.evidence import rejection_counts
+from placerec.experiment.gate import gate_odometry, judge_through_loops
 from placerec.experiment.run_folder import finite_or_null, json_default, point_latest, slug
 from placerec.experiment.runner import PER_SCAN_TIME, STAGES, PipelineRecord
 from placerec.experiment.tables import lookup, write_index_html
@@ -82,7 +83,7 @@ from placerec.experiment.truth import TruthClouds
 from placerec.io import read_poses, write_kitti_poses
 from placerec.io.atomic import atomic_write
 from placerec.io.mcap_export import LoopEdge, write_closures_mcap
-from placerec.odometry_gate import LoopChain, OdometryGateParams, odometry_disagreement, pose_disagreement
+from placerec.odometry_gate import LoopChain, OdometryGateParams, odometry_disagreement
 from placerec.types import PlaceRecognizer, Sequence
 
 __all__ = [
@@ -318,14 +319,7 @@ def odometry_gated(
     gate = cfg.evaluation.odometry_gate
     if gate is None:
         return tables, [np.zeros(t.match_ids.shape, bool) for t in tables]
-    from placerec.sim.odometry import drift_poses
-    from placerec.types import path_length
-
-    seed = gate.seed
-    if seed is None:
-        seed = cfg.dataset.simulator.seed if cfg.dataset.source == "simulator" else 0
-    odom = drift_poses(poses, gate.drift, seed)
-    path = path_length(odom[:, :3, 3])
+    odom, path = gate_odometry(cfg, poses)
     given = thresholds if thresholds is not None else [None] * len(tables)
     refusals = []
     for t, threshold in zip(tables, given, strict=True):
@@ -357,20 +351,18 @@ def _refused_through_loops(
     chain = LoopChain()
     refused = np.zeros(t.match_ids.shape, bool)
     for i in np.argsort(t.query_ids, kind="stable"):
-        q = int(t.query_ids[i])
-        ranks = np.nonzero(t.match_ids[i] >= 0)[0]
-        for r in ranks:
-            m = int(t.match_ids[i, r])
-            predicted, along = chain.predict(m, q, odom, path)
-            trans, rot = pose_disagreement(t.relative_poses[i, r], predicted)
-            refused[i, r] = not bounds.admits(trans, rot, np.array([along]))[0]
-        if ranks.size == 0:
-            continue
-        scores = np.where(refused[i], 0.0, t.scores[i])
-        accepted = np.where(refused[i], np.int8(0), t.accepted[i])
-        top = int(rank_order(t.match_ids[i], scores, accepted)[0])
-        if scores[top] >= threshold:
-            chain.add(int(t.match_ids[i, top]), q, t.relative_poses[i, top])
+        refused[i] = judge_through_loops(
+            chain,
+            int(t.query_ids[i]),
+            t.match_ids[i],
+            t.relative_poses[i],
+            t.scores[i],
+            t.accepted[i],
+            odom,
+            path,
+            bounds,
+            threshold,
+        )
     return refused
 
 

@@ -24,9 +24,11 @@ from placerec.errors import ConfigError, ScanDataError
 from placerec.experiment.cache import DescriptionCache, config_hash
 from placerec.experiment.candidates import CandidateTable
 from placerec.experiment.datasets import dataset_fingerprint, files_fingerprint, keyframed, open_dataset
+from placerec.experiment.gate import gate_odometry, judge_through_loops
 from placerec.experiment.preprocessing import preprocessed_scan
 from placerec.loop_closure import LoopClosureDetector, split_verify_time
 from placerec.loop_filter import LoopFilterParams
+from placerec.odometry_gate import ChainPrior, LoopChain
 from placerec.params import Params
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, Sequence
 from placerec.viewer import active
@@ -256,6 +258,7 @@ def run_loop(
         for record, rec in pipelines
     ]
     poses, stamps = seq.poses, seq.timestamps
+    guides = _guides(cfg, pipelines, poses)
     viewer = active()
     with progress_bars(cfg.output.progress) as progress, ExitStack() as stack:
         if own_data and cfg.execution.parallel:
@@ -277,7 +280,7 @@ def run_loop(
             stamp = None if stamps is None else float(stamps[i])
             if viewer is not None:
                 viewer.scan(i, scan, pose, stamp)
-            for (record, rec), det, task in zip(pipelines, detectors, tasks, strict=True):
+            for (record, rec), det, task, guide in zip(pipelines, detectors, tasks, guides, strict=True):
                 timing = {"preprocess": pre_ms}
                 try:
                     desc, timing["describe"] = frontends.describe(rec, i, scan)
@@ -285,7 +288,10 @@ def run_loop(
                     log.warning("%s: scan %d gets no candidates: %s", record.label, i, exc)
                     det.skip(pose, stamp)  # keeps the detector's ids equal to scan indices
                 else:
-                    det.process(None, pose=pose, timestamp=stamp, description=desc)
+                    prior = None if guide is None else guide.prior(i)
+                    det.process(None, pose=pose, timestamp=stamp, description=desc, prior=prior)
+                    if guide is not None:
+                        guide.judge(i, det.last_candidates)
                     timing.update({k: v for k, v in det.last_timing_ms.items() if k != "describe"})
                     if viewer is not None:
                         viewer.description(record.label, rec, scan, desc)
@@ -297,6 +303,55 @@ def run_loop(
                     viewer.candidates(record.label, det.last_candidates, record.threshold)
                 progress.advance(task)
     return seq, [record for record, _ in pipelines]
+
+
+class _Guide:
+    """The motion prior a detector with the odometry gate gives a guided pipeline (``verify.guided``), made while
+    a loop-mode run goes: the evaluation's odometry (`placerec.experiment.gate.gate_odometry`) and the closures the
+    gate admits at the pipeline's operating threshold, each query's best one entering the chain as the evaluation
+    judges it afterwards (`placerec.experiment.gate.judge_through_loops`)."""
+
+    def __init__(self, cfg: ExperimentConfig, poses: np.ndarray, threshold: float) -> None:
+        gate = cfg.evaluation.odometry_gate
+        assert gate is not None
+        self.bounds, self.threshold = gate.bounds, threshold
+        self.odom, self.path = gate_odometry(cfg, poses)
+        self.chain = LoopChain()
+
+    def prior(self, query: int) -> ChainPrior:
+        chain = self.chain if self.bounds.through_loops else LoopChain()
+        return ChainPrior(chain, query, self.odom, self.path, self.bounds)
+
+    def judge(self, query: int, candidates: list[Candidate]) -> None:
+        if not self.bounds.through_loops or not candidates:
+            return
+        row = CandidateTable.from_candidates([query], [candidates])
+        judge_through_loops(
+            self.chain,
+            query,
+            row.match_ids[0],
+            row.relative_poses[0],
+            row.scores[0],
+            row.accepted[0],
+            self.odom,
+            self.path,
+            self.bounds,
+            self.threshold,
+        )
+
+
+def _guides(cfg: ExperimentConfig, pipelines: Pipelines, poses: np.ndarray | None) -> list[_Guide | None]:
+    """Per pipeline its `_Guide` where it matches within a motion prior (``verify.guided.enabled``) and the
+    evaluation has the odometry gate, with poses and an operating threshold to judge at; None elsewhere."""
+    if cfg.evaluation.odometry_gate is None or poses is None:
+        return [None] * len(pipelines)
+    out: list[_Guide | None] = []
+    for record, rec in pipelines:
+        verify = getattr(rec.params, "verify", None)
+        guided = getattr(verify, "guided", None)
+        on = guided is not None and guided.enabled and record.threshold is not None
+        out.append(_Guide(cfg, np.asarray(poses), float(record.threshold)) if on else None)
+    return out
 
 
 def localize_sequences(cfg: ExperimentConfig) -> tuple[Sequence, Sequence]:

@@ -53,7 +53,7 @@ from placerec.retrieval.bits import hamming, to_words
 from placerec.retrieval.dbow.database import BowDatabase, candidate_pairs
 from placerec.retrieval.dbow.loop_detector import LoopDetectorParams, normalised_results
 from placerec.retrieval.dbow.vocabulary import BowVector, Vocabulary, l1_score
-from placerec.types import Candidate, Description
+from placerec.types import Candidate, Description, MotionPrior
 
 log = logging.getLogger(__name__)
 
@@ -187,7 +187,12 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
         return len(self.db)
 
     def query_description(
-        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
+        self,
+        description: Description,
+        k: int = 1,
+        max_id: int | None = None,
+        query_id: int = -1,
+        prior: MotionPrior | None = None,
     ) -> list[Candidate]:
         p = self.params
         desc = np.ascontiguousarray(description["descriptors"])
@@ -206,7 +211,7 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
             ids, scores, status = lr.ids, lr.scores, lr.status
         if p.verify.enabled:
             top = [int(i) for i in ids[: p.verify.top_k]]
-            return self._verify_matches(description, top, scores, nodes, query_id, k)
+            return self._verify_matches(description, top, scores, nodes, query_id, k, prior)
         if p.check == "none":
             return [
                 Candidate(query_id, int(i), float(s), None, None, {"bow_score": float(s), "status": status})
@@ -233,9 +238,11 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
         nodes: np.ndarray,
         query_id: int,
         k: int,
+        prior: MotionPrior | None = None,
     ) -> list[Candidate]:
         """The best database results verified (`VisualFrontend._verified`) with their direct-index matches
-        (``verify_matches="retrieval"``) or mutual nearest features (`VisualFrontend._retrieved`)."""
+        (``verify_matches="retrieval"``) or mutual nearest features (`VisualFrontend._retrieved`); ``prior`` as in
+        `VisualFrontend._retrieved_all`."""
         t0 = time.perf_counter()
         empty = np.zeros(0, np.int64)
         by_index = self.params.verify_matches == "retrieval" and image_ids
@@ -253,7 +260,7 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
             )
             for c, (i, s) in enumerate(zip(image_ids, scores, strict=False))
         ]
-        return self._verified(description, self._retrieved_all(description, todo, share), query_id, k)
+        return self._verified(description, self._retrieved_all(description, todo, share, prior), query_id, k)
 
     def _check(
         self,

@@ -74,7 +74,7 @@ from placerec.three_d.descriptors import DESCRIPTOR_DIMS
 from placerec.three_d.entries import EntryTable, far_from_all
 from placerec.three_d.features import extract_features
 from placerec.three_d.places import PlacesDatabase
-from placerec.types import Candidate, Description, Scan, as_pose
+from placerec.types import Candidate, Description, MotionPrior, Scan, as_pose
 from placerec.verify.candidates import CloudStore, Retrieved, scan_cloud
 from placerec.verify.params import VerifyParams
 
@@ -318,7 +318,12 @@ class KeypointVoting(Recognizer[VotingParams]):
 
     # -- query ------------------------------------------------------------------------------------------------
     def query_description(
-        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
+        self,
+        description: Description,
+        k: int = 1,
+        max_id: int | None = None,
+        query_id: int = -1,
+        prior: MotionPrior | None = None,
     ) -> list[Candidate]:
         q = np.asarray(description["descriptors"], np.float32).reshape(-1, self._dim)
         qkp = np.asarray(description["keypoints"], np.float32).reshape(-1, 3)

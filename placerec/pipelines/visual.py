@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import Any, ClassVar, Generic, Literal, TypeVar
 
@@ -51,7 +53,7 @@ from placerec.recognizer import (
 )
 from placerec.retrieval.hbst import HBST, TREE_SCHEMA, HBSTParams, default_threshold
 from placerec.threads import side_by_side
-from placerec.types import Candidate, Description, Scan, take_rows
+from placerec.types import Candidate, Description, MotionPrior, Prediction, Scan, take_rows
 from placerec.verify import VerifyParams
 from placerec.verify.candidates import (
     CloudStore,
@@ -61,6 +63,7 @@ from placerec.verify.candidates import (
     scan_cloud,
     verify_candidates,
 )
+from placerec.verify.guided import guided_nearest
 from placerec.verify.matching import mutual_nearest
 
 __all__ = [
@@ -299,14 +302,19 @@ class VisualFrontend(Generic[VP]):
         return verify_candidates(cloud, retrieved, self._clouds, self.params.verify, query_id, k)
 
     def _retrieved_all(
-        self, description: Description, todo: list[_ToMatch], spent_ms: float = 0.0
+        self,
+        description: Description,
+        todo: list[_ToMatch],
+        spent_ms: float = 0.0,
+        prior: MotionPrior | None = None,
     ) -> list[Retrieved]:
         """`_retrieved` of each (match id, score, query feature ids, match feature ids, extra) in ``todo``, in its
         order. Every other candidate is matched on the helper thread (`placerec.threads.side_by_side`: the
         compiled matching runs without the GIL; each candidate's matches are what they are alone, and the hand-over
         is one for all of them): SuperPoint's 300 x 256 floats take ~4 ms a candidate, so a real HDL-64 query's 20
         go from 104 to 67 ms; 40 candidates of 1000 ORB features (the Avia's keyframes) 84 -> 42 ms, of 300 ORB
-        features 8.7 -> 4.6 ms, on 2 idle cores."""
+        features 8.7 -> 4.6 ms, on 2 idle cores. With a motion ``prior`` and ``verify.guided`` each also carries
+        its matching within the prior (`_guided`), made only if RANSAC finds no pose on these."""
 
         def each(part: list[_ToMatch]) -> list[Retrieved]:
             return [self._retrieved(description, *item, spent_ms) for item in part]
@@ -315,10 +323,40 @@ class VisualFrontend(Generic[VP]):
         matching = self.params.verify_matches == "brute-force"
         theirs = side_by_side(each, todo[1::2]) if len(todo) > 1 and matching else None
         if theirs is None:
-            return each(todo)
-        mine = each(todo[::2])
-        other = iter(theirs.result())
-        return [mine[j // 2] if j % 2 == 0 else next(other) for j in range(len(todo))]
+            out = each(todo)
+        else:
+            mine = each(todo[::2])
+            other = iter(theirs.result())
+            out = [mine[j // 2] if j % 2 == 0 else next(other) for j in range(len(todo))]
+        if prior is not None and self.params.verify.guided.enabled:
+            for r in out:
+                r.guided = partial(self._guided, description, r, prior)
+        return out
+
+    def _guided(self, description: Description, retrieved: Retrieved, prior: MotionPrior) -> Retrieved:
+        """``retrieved`` with the correspondences ``prior`` allows (`placerec.verify.guided.guided_nearest`; none
+        where it predicts nothing for the candidate), marked ``guided`` in its ``extra``."""
+        t0 = time.perf_counter()
+        match_id = retrieved.match_id
+        prediction: Prediction | None = prior.predict(match_id)
+        desc = np.asarray(description["descriptors"])
+        xq = _keypoint_xyz(self.name, description, desc.shape[0])
+        xm = self._kp_xyz[match_id]
+        if prediction is None:
+            qi, mi, dist = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        else:
+            qi, mi, dist = guided_nearest(desc, xq, self._descriptors[match_id], xm, prediction)
+        ms = retrieved.verify_ms + (time.perf_counter() - t0) * 1e3
+        return replace(
+            retrieved,
+            src_kp=xq[qi],
+            dst_kp=xm[mi],
+            quality=dist,
+            extra={**retrieved.extra, "matches": int(qi.size), "guided": 1},
+            verify_ms=ms,
+            pairs=np.stack([qi, mi], axis=1),
+            guided=None,
+        )
 
     def _retrieved(
         self,
@@ -403,7 +441,12 @@ class VisualHBST(VisualFrontend[VisualParams], Recognizer[VisualParams]):
         self._order.append(scan_id)
 
     def query_description(
-        self, description: Description, k: int = 1, max_id: int | None = None, query_id: int = -1
+        self,
+        description: Description,
+        k: int = 1,
+        max_id: int | None = None,
+        query_id: int = -1,
+        prior: MotionPrior | None = None,
     ) -> list[Candidate]:
         desc = description["descriptors"]
         n_q = int(desc.shape[0])
@@ -424,7 +467,9 @@ class VisualHBST(VisualFrontend[VisualParams], Recognizer[VisualParams]):
                 todo.append(
                     (int(image_id), float(ratio), result.query_idx[sel], result.keypoint_idx[sel], extra)
                 )
-            return self._verified(description, self._retrieved_all(description, todo), query_id, k)
+            return self._verified(
+                description, self._retrieved_all(description, todo, prior=prior), query_id, k
+            )
         if p.check == "none":
             return [
                 Candidate(query_id, int(i), float(r), None, int(n), {"votes": int(n)})

@@ -48,6 +48,7 @@ from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.quantise import FixedPointCloud, PackedCloud
 from placerec.threads import import_openmp
 from placerec.types import Candidate, take_rows
+from placerec.verify.guided import GuidedParams
 from placerec.verify.icp import IcpCloud, as_points
 from placerec.verify.params import VerifyParams
 from placerec.verify.spill import SpilledArrays, SpillFile, SpillRef, memory_mapped
@@ -84,6 +85,11 @@ class VerifiedParams(VerifyParams):
         description="of the candidates that pass RANSAC, ICP refines (and may accept) only this many, those with the"
         " most inliers; the rest are rejected at 'rank' (None: all)",
     )
+    guided: GuidedParams = Field(
+        default_factory=GuidedParams,
+        description="a second chance for candidates RANSAC finds no pose for: matching within the caller's motion "
+        "prior (placerec.verify.guided)",
+    )
     cloud_store: Literal["float32", "int16", "int16-zlib"] = Field(
         "int16-zlib",
         description="how the database keeps each added entry's ICP cloud in memory: int16-zlib, the int16 codes "
@@ -119,7 +125,9 @@ class Retrieved:
     returns the prepared `IcpCloud`) replaces the store's cloud of ``match_id`` as ICP target, e.g. a place merged
     with its neighbours. ``extra`` is copied into the candidate; ``verify_ms`` is the time the pipeline took to find
     the correspondences, counted in the candidate's ``verify_ms``. ``pairs`` (M, 2): the (query feature, match
-    feature) indices of the correspondences, row by row (the candidate's ``matches``; None: not known)."""
+    feature) indices of the correspondences, row by row (the candidate's ``matches``; None: not known).
+    ``guided`` (no arguments) gives this candidate again with the correspondences a motion prior allows
+    (`placerec.verify.guided`; None: no prior), tried when RANSAC finds no pose on these (``verify.guided``)."""
 
     match_id: int
     retrieval_score: float
@@ -131,6 +139,7 @@ class Retrieved:
     target: Callable[[], IcpCloud] | None = None
     verify_ms: float = 0.0
     pairs: np.ndarray | None = None
+    guided: Callable[[], Retrieved] | None = None
 
 
 def scan_cloud(scan: Any, params: VerifyParams | None = None) -> np.ndarray:
@@ -437,12 +446,19 @@ def verify_candidates(
     if not todo:
         return []
     vp = params
-    hyps, ms = [], []
-    for r in todo:
+    hyps, ms, guided = [], [], set()
+    for j, r in enumerate(todo):
         t0 = time.perf_counter()
-        hyps.append(hypothesise(r.src_kp, r.dst_kp, r.init, vp, r.quality))
-        ms.append((time.perf_counter() - t0) * 1e3 + r.verify_ms)
-    refined = _to_refine(hyps, params.icp_top_k)
+        h = hypothesise(r.src_kp, r.dst_kp, r.init, vp, r.quality)
+        if h.rejected_at in ("grouping", "ransac") and r.guided is not None and vp.guided.enabled:
+            again = r.guided()
+            second = hypothesise(again.src_kp, again.dst_kp, None, vp, again.quality)
+            if second.rejected_at is None:
+                todo[j], h = again, second
+                guided.add(j)
+        hyps.append(h)
+        ms.append((time.perf_counter() - t0) * 1e3 + todo[j].verify_ms)
+    refined = _to_refine(hyps, params.icp_top_k, guided)
     source: Any = query_cloud
     if refined:
         t0 = time.perf_counter()
@@ -453,6 +469,8 @@ def verify_candidates(
         t1 = time.perf_counter()
         if j in refined:  # the match is prepared (and cached) only here
             v = complete(source, r.target or partial(store.target, r.match_id), h, vp)
+            if j in guided and v.accepted and v.score < vp.guided.min_score:
+                v = replace(v, accepted=False, rejection="guided_score")
             ms[j] += (time.perf_counter() - t1) * 1e3 + shared
         else:
             v = h.rejected(None if h.rejected_at else "rank")
@@ -478,10 +496,12 @@ def verify_candidates(
     return [replace(c, verify_ms=c.verify_ms + dropped_ms / len(kept)) for c in kept]
 
 
-def _to_refine(hyps: Sequence[Hypothesis], icp_top_k: int | None) -> set[int]:
+def _to_refine(hyps: Sequence[Hypothesis], icp_top_k: int | None, guided: set[int] | None = None) -> set[int]:
     """Indices of the hypotheses ICP refines: those not rejected, at most ``icp_top_k`` of them with the most
-    RANSAC inliers (ties, and ICP-only hypotheses: retrieval order)."""
+    RANSAC inliers (ties, and ICP-only hypotheses: retrieval order), those posed from their own matches before the
+    ``guided`` ones (a prior's second chance takes only the ICP left over)."""
     alive = [j for j, h in enumerate(hyps) if h.rejected_at is None]
     if icp_top_k is not None:
-        alive = sorted(alive, key=lambda j: -(hyps[j].inliers or 0))[:icp_top_k]
+        second = guided or set()
+        alive = sorted(alive, key=lambda j: (j in second, -(hyps[j].inliers or 0)))[:icp_top_k]
     return set(alive)

@@ -1,0 +1,94 @@
+"""Feature matching guided by a motion prior: a second chance for a candidate RANSAC found no pose for.
+
+A candidate whose mutual nearest features leave RANSAC without ``min_inliers`` consistent pairs is usually either
+another place or the right place seen from 10-30 m away, where a look-alike feature elsewhere in the image is
+nearer in descriptor space than the true one. A detector with odometry knows roughly where the query is relative
+to the candidate (`placerec.types.Prediction`: the gate's predicted ``T_match_query`` and the bounds it
+admits). Only the pairs of keypoints that a pose within those bounds can bring together are then possible
+correspondences: query keypoint ``x`` (its 3D point) may pair with a candidate keypoint within
+
+    metres + radians * |x|
+
+of ``T_match_query @ x`` (a rotation error of ``radians`` moves a point at range ``|x|`` by at most that arc).
+Among those pairs the mutual nearest descriptors are the correspondences (each side's nearest the first of equal
+distances, as in `placerec.verify.matching.mutual_nearest`), and RANSAC runs on them as on any others. The gate
+still judges the verified pose, so nothing it would refuse is admitted; what the prior adds is which features
+are compared, so the pose RANSAC finds rests on the same geometric evidence as any other.
+
+``GuidedParams.min_score``: a candidate posed this way is accepted only from that verified score (it scores 0
+below it). Chosen on the tuning cells (docs/sensors.md): a prior over tens of metres of odometry also lets
+right places registered 0.5-1.2 m off through, at lower scores than the candidates posed from their own matches.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+from scipy.spatial import cKDTree
+
+from placerec.params import Params
+from placerec.types import Prediction
+
+__all__ = ["GuidedParams", "guided_nearest"]
+
+#: set bits of every byte value
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
+
+
+class GuidedParams(Params):
+    """Matching guided by the caller's motion prior (module docstring); used only where a prior is given."""
+
+    enabled: bool = Field(
+        False,
+        description="when RANSAC finds no pose on a candidate's mutual nearest features and the caller gives a "
+        "motion prior (a LoopClosureDetector with the odometry gate), match again among the keypoint pairs the "
+        "prior allows and run RANSAC on those",
+    )
+    min_score: float = Field(
+        0.3,
+        ge=0,
+        le=1,
+        allow_inf_nan=False,
+        description="a candidate posed from the guided matches is accepted only from this verified score (0 below)",
+    )
+
+
+def guided_nearest(
+    dq: np.ndarray, xq: np.ndarray, dm: np.ndarray, xm: np.ndarray, prediction: Prediction
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(query rows, match rows, descriptor distances) of the mutual nearest descriptors among the keypoint pairs
+    ``prediction`` allows (module docstring): ``dq`` / ``dm`` packed binary (uint8, Hamming) or float (Euclidean)
+    descriptors, ``xq`` / ``xm`` their keypoints' 3D points (NaN rows: no point, never paired)."""
+    empty = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    okq = np.flatnonzero(np.isfinite(xq).all(axis=1))
+    okm = np.flatnonzero(np.isfinite(xm).all(axis=1))
+    if okq.size == 0 or okm.size == 0:
+        return empty
+    T = np.asarray(prediction.T_match_query, np.float64)
+    src = np.asarray(xq, np.float64)[okq]
+    moved = src @ T[:3, :3].T + T[:3, 3]
+    reach = prediction.metres + prediction.radians * np.linalg.norm(src, axis=1)
+    near = cKDTree(np.asarray(xm, np.float64)[okm]).query_ball_point(moved, reach)
+    counts = np.fromiter((len(n) for n in near), np.int64, okq.size)
+    if counts.sum() == 0:
+        return empty
+    qi = np.repeat(np.arange(okq.size), counts)
+    mi = np.concatenate([np.asarray(n, np.int64) for n in near if n])
+    a, b = dq[okq[qi]], dm[okm[mi]]
+    if dq.dtype == np.uint8:
+        dist = _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1, dtype=np.int64).astype(np.float64)
+    else:
+        diff = a.astype(np.float64) - b.astype(np.float64)
+        dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+    row = _first_nearest(qi, dist, mi)
+    col = _first_nearest(mi, dist, qi)
+    mutual = np.intersect1d(row, col)
+    return okq[qi[mutual]], okm[mi[mutual]], dist[mutual]
+
+
+def _first_nearest(group: np.ndarray, dist: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """Per value of ``group``, the index of its pair with the smallest ``dist`` (ties: the smallest ``other``)."""
+    order = np.lexsort((other, dist, group))
+    first = np.ones(order.size, bool)
+    first[1:] = group[order][1:] != group[order][:-1]
+    return order[first]
