@@ -41,7 +41,9 @@ def _reference(dq, xq, dm, xm, p: Prediction):
 
 
 @pytest.mark.parametrize("binary", [True, False])
-def test_guided_matches_are_the_mutual_nearest_among_the_pairs_a_pose_within_the_bounds_can_bring_together(binary):
+def test_guided_matches_are_the_mutual_nearest_among_the_pairs_a_pose_within_the_bounds_can_bring_together(
+    binary,
+):
     rng = np.random.default_rng(4)
     xm = rng.uniform(-20, 20, (120, 3))
     T = _pose(3.0, -1.0, 20.0)
@@ -79,8 +81,12 @@ def test_the_chain_prior_is_the_gates_prediction_with_its_bounds_over_the_path_i
     p = prior.predict(105)  # place 100: 50 m of odometry back
     assert p is not None
     np.testing.assert_allclose(p.T_match_query, np.linalg.inv(odom[100]) @ odom[150])
-    assert p.metres == pytest.approx(1.0 + 0.04 * 50) and p.radians == pytest.approx(np.radians(4.0 + 0.05 * 50))
-    assert prior.predict(4) is None and prior.predict(155) is None  # a prior map's entry; not before the query
+    assert p.metres == pytest.approx(1.0 + 0.04 * 50) and p.radians == pytest.approx(
+        np.radians(4.0 + 0.05 * 50)
+    )
+    assert (
+        prior.predict(4) is None and prior.predict(155) is None
+    )  # a prior map's entry; not before the query
     chain = LoopChain()
     chain.add(100, 148, _pose(48.0))  # a closure 2 m of odometry before the query
     p = ChainPrior(chain, 150, odom, path, bounds).predict(100)
@@ -118,7 +124,9 @@ def test_a_gated_detector_gives_its_recognizer_the_chain_prior_and_an_explicit_p
         ungated.process(None, description={"x": np.zeros(1)})
     assert ungated.recognizer.seen[29] is None
     # a recognizer written without the prior parameter is called without it (test_loop_filter's _Echo)
-    old = LoopClosureDetector(_Echo({4: [0]}), threshold=0.5, exclusion_frames=2, odometry_gate=OdometryGateParams())
+    old = LoopClosureDetector(
+        _Echo({4: [0]}), threshold=0.5, exclusion_frames=2, odometry_gate=OdometryGateParams()
+    )
     got = [old.process(None, pose=odom[i], description={"x": np.zeros(1)}) for i in range(5)]
     assert [c.match_id for c in got[4]] == [0]
 
