@@ -15,7 +15,7 @@ from placerec.loop_closure import LoopClosureDetector
 from placerec.odometry_gate import ChainPrior, LoopChain, OdometryGateParams
 from placerec.types import Candidate, Prediction
 from placerec.verify.candidates import CloudStore, Retrieved, VerifiedParams, scan_cloud, verify_candidates
-from placerec.verify.guided import guided_nearest
+from placerec.verify.guided import GuidedParams, guided_nearest, usable
 
 
 def _reference(dq, xq, dm, xm, p: Prediction):
@@ -71,6 +71,13 @@ def test_the_reach_grows_with_the_keypoints_range_by_the_rotation_bound():
     # 1 m + 0.02 rad: 1.2 m of reach at 10 m, 1.8 m at 40 m; only the far keypoint can pair
     qi, mi, _ = guided_nearest(dq, xq, dm, xm, Prediction(np.eye(4), 1.0, 0.02))
     assert qi.tolist() == [1] and mi.tolist() == [1]
+
+
+def test_a_prediction_looser_than_max_metres_is_not_matched_within():
+    p = Prediction(np.eye(4), 3.5, 0.1)
+    assert usable(p, GuidedParams(max_metres=None)) is p and usable(None, GuidedParams()) is None
+    assert usable(p, GuidedParams()) is None  # the default reach: 2 m
+    assert usable(p, GuidedParams(max_metres=4.0)) is p and usable(p, GuidedParams(max_metres=3.0)) is None
 
 
 def test_the_chain_prior_is_the_gates_prediction_with_its_bounds_over_the_path_it_rests_on():

@@ -53,7 +53,7 @@ from placerec.recognizer import (
 )
 from placerec.retrieval.hbst import HBST, TREE_SCHEMA, HBSTParams, default_threshold
 from placerec.threads import side_by_side
-from placerec.types import Candidate, Description, MotionPrior, Prediction, Scan, take_rows
+from placerec.types import Candidate, Description, MotionPrior, Scan, take_rows
 from placerec.verify import VerifyParams
 from placerec.verify.candidates import (
     CloudStore,
@@ -63,7 +63,7 @@ from placerec.verify.candidates import (
     scan_cloud,
     verify_candidates,
 )
-from placerec.verify.guided import guided_nearest
+from placerec.verify.guided import guided_nearest, usable
 from placerec.verify.matching import mutual_nearest
 
 __all__ = [
@@ -335,10 +335,11 @@ class VisualFrontend(Generic[VP]):
 
     def _guided(self, description: Description, retrieved: Retrieved, prior: MotionPrior) -> Retrieved:
         """``retrieved`` with the correspondences ``prior`` allows (`placerec.verify.guided.guided_nearest`; none
-        where it predicts nothing for the candidate), marked ``guided`` in its ``extra``."""
+        where it predicts nothing for the candidate, or only more loosely than ``verify.guided.max_metres``),
+        marked ``guided`` in its ``extra``."""
         t0 = time.perf_counter()
         match_id = retrieved.match_id
-        prediction: Prediction | None = prior.predict(match_id)
+        prediction = usable(prior.predict(match_id), self.params.verify.guided)
         desc = np.asarray(description["descriptors"])
         xq = _keypoint_xyz(self.name, description, desc.shape[0])
         xm = self._kp_xyz[match_id]

@@ -15,10 +15,12 @@ distances, as in `placerec.verify.matching.mutual_nearest`), and RANSAC runs on 
 still judges the verified pose, so nothing it would refuse is admitted; what the prior adds is which features
 are compared, so the pose RANSAC finds rests on the same geometric evidence as any other.
 
-``GuidedParams.min_score``: a candidate posed this way is accepted only from that verified score (it scores 0
-below it). A prior over tens of metres of odometry also lets right places registered 0.5-1.2 m off through, at
-lower scores than the candidates posed from their own matches; 0.25 is the tuning rule's pick above the best such
-false closure (0.24) on the E1R-like sensor's tuning cells (docs/sensors.md).
+``GuidedParams.max_metres``: only predictions whose translation bound is at most this are matched within (with the
+gate's default bounds, 2 m is the first 25 m of odometry after a closure); ``min_score``: a candidate posed this
+way is accepted only from that verified score (it scores 0 below it). A prior over tens or hundreds of metres of
+odometry also lets right places registered 0.5-1.2 m off through (and, where the bound is metres wide, 2-8 m off
+ones), scoring up to 0.25; within 2 m of reach none scored 0.15 or more on the E1R-like sensor's tuning cells,
+where both defaults were chosen (docs/sensors.md, "Matching within the odometry's prediction").
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from scipy.spatial import cKDTree
 from placerec.params import Params
 from placerec.types import Prediction
 
-__all__ = ["GuidedParams", "guided_nearest"]
+__all__ = ["GuidedParams", "guided_nearest", "usable"]
 
 #: set bits of every byte value
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
@@ -46,12 +48,26 @@ class GuidedParams(Params):
         "prior allows and run RANSAC on those",
     )
     min_score: float = Field(
-        0.25,
+        0.15,
         ge=0,
         le=1,
         allow_inf_nan=False,
         description="a candidate posed from the guided matches is accepted only from this verified score (0 below)",
     )
+    max_metres: float | None = Field(
+        2.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="match within a prediction only where its translation bound is at most this (m): a prediction "
+        "through a closure a few metres back, not one over hundreds of metres of odometry (None: any)",
+    )
+
+
+def usable(prediction: Prediction | None, params: GuidedParams) -> Prediction | None:
+    """``prediction`` where ``params`` match within it: none without one, or one looser than ``max_metres``."""
+    if prediction is None or (params.max_metres is not None and prediction.metres > params.max_metres):
+        return None
+    return prediction
 
 
 def guided_nearest(
