@@ -31,6 +31,7 @@ from placerec.loop_filter import LoopFilterParams
 from placerec.odometry_gate import ChainPrior, LoopChain
 from placerec.params import Params
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, Sequence
+from placerec.verify.guided import GuidedParams
 from placerec.viewer import active
 
 log = logging.getLogger(__name__)
@@ -347,10 +348,13 @@ def _guides(cfg: ExperimentConfig, pipelines: Pipelines, poses: np.ndarray | Non
         return [None] * len(pipelines)
     out: list[_Guide | None] = []
     for record, rec in pipelines:
-        verify = getattr(rec.params, "verify", None)
+        verify = getattr(getattr(rec, "params", None), "verify", None)
         guided = getattr(verify, "guided", None)
-        on = guided is not None and guided.enabled and record.threshold is not None
-        out.append(_Guide(cfg, np.asarray(poses), float(record.threshold)) if on else None)
+        threshold = record.threshold
+        if isinstance(guided, GuidedParams) and guided.enabled and threshold is not None:
+            out.append(_Guide(cfg, np.asarray(poses), float(threshold)))
+        else:
+            out.append(None)
     return out
 
 

@@ -43,23 +43,21 @@ class GuidedParams(Params):
 
     enabled: bool = Field(
         False,
-        description="when RANSAC finds no pose on a candidate's mutual nearest features and the caller gives a "
-        "motion prior (a LoopClosureDetector with the odometry gate), match again among the keypoint pairs the "
-        "prior allows and run RANSAC on those",
+        description="match a candidate RANSAC finds no pose for again, within the caller's motion prior (a "
+        "detector with the odometry gate)",
     )
     min_score: float = Field(
         0.15,
         ge=0,
         le=1,
         allow_inf_nan=False,
-        description="a candidate posed from the guided matches is accepted only from this verified score (0 below)",
+        description="a guided candidate is accepted from this verified score only (0 below)",
     )
     max_metres: float | None = Field(
         2.0,
         gt=0,
         allow_inf_nan=False,
-        description="match within a prediction only where its translation bound is at most this (m): a prediction "
-        "through a closure a few metres back, not one over hundreds of metres of odometry (None: any)",
+        description="only predictions whose translation bound is at most this (m; None: any)",
     )
 
 
