@@ -9,8 +9,10 @@ from test_loop_filter import _Echo
 from test_pose_truth import _pose
 
 from placerec.config import parse_config
+from placerec.errors import ConfigError
 from placerec.experiment.benchmark import _cell_key
 from placerec.experiment.runner import _guides
+from placerec.keyframes import KeyframeParams
 from placerec.loop_closure import LoopClosureDetector
 from placerec.odometry_gate import ChainPrior, LoopChain, OdometryGateParams
 from placerec.types import Candidate, Prediction
@@ -130,6 +132,11 @@ def test_a_gated_detector_gives_its_recognizer_the_chain_prior_and_an_explicit_p
     for _ in range(30):
         ungated.process(None, description={"x": np.zeros(1)})
     assert ungated.recognizer.seen[29] is None
+    # a prior is over places: a detector still building keyframes refuses one, before taking the scan
+    building = LoopClosureDetector(_Priors(), threshold=0.5, keyframes=KeyframeParams(seconds=0.4))
+    with pytest.raises(ConfigError, match="keyframes"):
+        building.process(None, pose=odom[0], prior=mine)
+    assert building.n_processed == 0
     # a recognizer written without the prior parameter is called without it (test_loop_filter's _Echo)
     old = LoopClosureDetector(
         _Echo({4: [0]}), threshold=0.5, exclusion_frames=2, odometry_gate=OdometryGateParams()
