@@ -316,6 +316,7 @@ def _cell_key(cfg: ExperimentConfig) -> str:
     gate and the closures accepted at its operating threshold while the cell ran: then both are in the stamp."""
     from placerec._version import __version__
     from placerec.recognizer import pipeline_params
+    from placerec.verify.guided import guides
 
     data = cfg.model_dump(mode="json")
     data["evaluation"].pop("localize", None)  # localisation settings: no part of a loop-mode cell
@@ -328,7 +329,7 @@ def _cell_key(cfg: ExperimentConfig) -> str:
                 given.name, given.params, sensor=cfg.sensor, odometry=cfg.with_odometry
             )
             spec["resolved"] = resolved.model_dump(mode="json")
-            if gate is not None and spec["resolved"].get("verify", {}).get("guided", {}).get("enabled"):
+            if gate is not None and guides(resolved):
                 spec["guided_at"] = cfg.operating_threshold(given)
                 guided = True
     if guided:

@@ -31,7 +31,7 @@ from placerec.loop_filter import LoopFilterParams
 from placerec.odometry_gate import ChainPrior, LoopChain
 from placerec.params import Params
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, Sequence
-from placerec.verify.guided import GuidedParams
+from placerec.verify.guided import guides
 from placerec.viewer import active
 
 log = logging.getLogger(__name__)
@@ -320,10 +320,11 @@ class _Guide:
         self.chain = LoopChain()
 
     def prior(self, query: int) -> ChainPrior:
-        chain = self.chain if self.bounds.through_loops else LoopChain()
-        return ChainPrior(chain, query, self.odom, self.path, self.bounds)
+        """The prior for ``query``: through the chain (empty without ``through_loops``: the odometry alone)."""
+        return ChainPrior(self.chain, query, self.odom, self.path, self.bounds)
 
     def judge(self, query: int, candidates: list[Candidate]) -> None:
+        """Add ``query``'s answer to the chain as the evaluation judges it (`judge_through_loops`)."""
         if not self.bounds.through_loops or not candidates:
             return
         row = CandidateTable.from_candidates([query], [candidates])
@@ -348,10 +349,8 @@ def _guides(cfg: ExperimentConfig, pipelines: Pipelines, poses: np.ndarray | Non
         return [None] * len(pipelines)
     out: list[_Guide | None] = []
     for record, rec in pipelines:
-        verify = getattr(getattr(rec, "params", None), "verify", None)
-        guided = getattr(verify, "guided", None)
         threshold = record.threshold
-        if isinstance(guided, GuidedParams) and guided.enabled and threshold is not None:
+        if guides(getattr(rec, "params", None)) and threshold is not None:
             out.append(_Guide(cfg, np.asarray(poses), float(threshold)))
         else:
             out.append(None)

@@ -30,12 +30,10 @@ from pydantic import Field
 from scipy.spatial import cKDTree
 
 from placerec.params import Params
+from placerec.retrieval.bits import hamming, to_words
 from placerec.types import Prediction
 
-__all__ = ["GuidedParams", "guided_nearest", "usable"]
-
-#: set bits of every byte value
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
+__all__ = ["GuidedParams", "guided_nearest", "guides", "usable"]
 
 
 class GuidedParams(Params):
@@ -59,6 +57,13 @@ class GuidedParams(Params):
         allow_inf_nan=False,
         description="only predictions whose translation bound is at most this (m; None: any)",
     )
+
+
+def guides(params: object) -> bool:
+    """Whether a pipeline's parameters (any recognizer's) match within a motion prior: a ``verify`` section whose
+    ``guided`` matching is enabled."""
+    guided = getattr(getattr(params, "verify", None), "guided", None)
+    return isinstance(guided, GuidedParams) and guided.enabled
 
 
 def usable(prediction: Prediction | None, params: GuidedParams) -> Prediction | None:
@@ -89,11 +94,10 @@ def guided_nearest(
         return empty
     qi = np.repeat(np.arange(okq.size), counts)
     mi = np.concatenate([np.asarray(n, np.int64) for n in near if n])
-    a, b = dq[okq[qi]], dm[okm[mi]]
     if dq.dtype == np.uint8:
-        dist = _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1, dtype=np.int64).astype(np.float64)
+        dist = hamming(to_words(dq)[okq[qi]], to_words(dm)[okm[mi]]).astype(np.float64)
     else:
-        diff = a.astype(np.float64) - b.astype(np.float64)
+        diff = dq[okq[qi]].astype(np.float64) - dm[okm[mi]].astype(np.float64)
         dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
     row = _first_nearest(qi, dist, mi)
     col = _first_nearest(mi, dist, qi)
