@@ -22,6 +22,7 @@ from placerec.features.superpoint.extractor import SuperPointNet, SuperPointPara
 from placerec.features.superpoint.weights import (
     SHIPPED_WEIGHTS,
     file_sha256,
+    int8_path,
     load_weights,
     onnx_path,
     open_model,
@@ -107,6 +108,7 @@ def test_shipped_provenance_records_the_shipped_files_hashes() -> None:
     assert prov["sha256"] == {
         "weights": file_sha256(SHIPPED_WEIGHTS),
         "onnx": file_sha256(onnx_path(SHIPPED_WEIGHTS)),
+        "int8": file_sha256(int8_path(SHIPPED_WEIGHTS)),
     }
 
 

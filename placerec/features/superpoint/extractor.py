@@ -1,5 +1,6 @@
 """The ``superpoint`` feature extractor: our SuperPoint network on the intensity image, run by ``cv2.dnn`` from
-the ONNX model (default; no torch needed), by ONNX Runtime from the same model, or by torch.
+the ONNX model (default; no torch needed), by ONNX Runtime from the same model or from its int8 quantisation
+(`placerec.features.superpoint.quantise`), or by torch.
 
 Keypoints where the probability reaches ``min_probability`` (0.005 for our model; VPR paper Table I: 0.05 for
 Magic Leap's, see `SuperPointParams`), non-maximum suppression, at most ``nfeatures`` 300 (Table I). The image is padded around (azimuth wrap-around, as for every extractor:
@@ -7,7 +8,8 @@ Magic Leap's, see `SuperPointParams`), non-maximum suppression, at most ``nfeatu
 
 A model runs only once its files are vouched for (`placerec.features.superpoint.weights.open_model`: the hashes
 in its provenance, or ``trust_model``) and its outputs on a probe image are sane
-(`placerec.features.superpoint.probe`); docs/superpoint.md, "Provenance and trust".
+(`placerec.features.superpoint.probe`; an int8 model's also follow its float model's,
+`placerec.features.superpoint.quantise.check_agreement`); docs/superpoint.md, "Provenance and trust".
 """
 
 from __future__ import annotations
@@ -27,7 +29,14 @@ from placerec.features.base import ExtractorParams, FeatureExtractor, _Keypoints
 from placerec.features.superpoint.arch import CELL, SuperPointArch
 from placerec.features.superpoint.post import keypoint_probability, sample_descriptors, select_keypoints
 from placerec.features.superpoint.probe import check_outputs, probe_image
-from placerec.features.superpoint.weights import CheckedModel, onnx_path, open_model, resolve_weights
+from placerec.features.superpoint.quantise import check_agreement
+from placerec.features.superpoint.weights import (
+    CheckedModel,
+    int8_path,
+    onnx_path,
+    open_model,
+    resolve_weights,
+)
 from placerec.threads import available_threads
 
 log = logging.getLogger(__name__)
@@ -55,11 +64,12 @@ class SuperPointParams(ExtractorParams):
         4, ge=0, description="px; non-maximum suppression window (2r+1)^2 (SuperPoint's 4)"
     )
     weights: str | None = Field(None, description="weights .npz (None: the shipped placerec/vocab one)")
-    backend: Literal["cv2", "onnxruntime", "torch"] = Field(
+    backend: Literal["cv2", "onnxruntime", "onnxruntime-int8", "torch"] = Field(
         "cv2",
         description="cv2: the ONNX model through cv2.dnn (no torch); onnxruntime: the same ONNX model through ONNX "
         "Runtime, the network alone ~1.6x faster on two idle cores, outputs within 1e-5 of cv2's (needs "
-        "placerec[onnxruntime]); torch: needs placerec[superpoint]",
+        "placerec[onnxruntime]); onnxruntime-int8: its int8 quantisation (the .int8.onnx beside the weights, "
+        "docs/superpoint.md); torch: needs placerec[superpoint]",
     )
     trust_model: bool = Field(
         False,
@@ -82,7 +92,9 @@ class SuperPointNet:
     ) -> None:
         t0 = time.perf_counter()
         path = resolve_weights(None if weights is None else str(weights))
-        files = open_model(path, onnx=backend in ONNX_BACKENDS, trust_model=trust_model)
+        files = open_model(
+            path, onnx=backend in ONNX_BACKENDS, int8=backend == "onnxruntime-int8", trust_model=trust_model
+        )
         self.files: CheckedModel = files
         self.arch: SuperPointArch = files.arch
         self.weights = files.weights
@@ -92,6 +104,10 @@ class SuperPointNet:
         if backend == "onnxruntime":
             assert files.onnx is not None
             self._net = _onnxruntime_session(files.onnx, onnx_path(path), path.name)
+            self._input = self._net.get_inputs()[0].name
+        elif backend == "onnxruntime-int8":
+            assert files.int8 is not None
+            self._net = _onnxruntime_session(files.int8, int8_path(path), path.name)
             self._input = self._net.get_inputs()[0].name
         elif backend == "cv2":
             model = onnx_path(path)
@@ -122,26 +138,49 @@ class SuperPointNet:
 
     def _probe(self) -> None:
         """`check_outputs` on the probe image, unless this backend already passed it with these files."""
-        key = (self.backend, self.files.sha256["weights"], self.files.sha256.get("onnx", ""))
+        key = (
+            self.backend,
+            self.files.sha256["weights"],
+            self.files.sha256.get("onnx", ""),
+            self.files.sha256.get("int8", ""),
+        )
         if key in _PROBED:
             return
-        name = str(onnx_path(self.files.path) if self.backend in ONNX_BACKENDS else self.files.path)
+        path = self.files.path
+        name = str(
+            int8_path(path)
+            if self.backend == "onnxruntime-int8"
+            else onnx_path(path)
+            if self.backend in ONNX_BACKENDS
+            else path
+        )
         semi, desc = self.forward(probe_image())
         check_outputs(semi, desc, self.arch, name)
+        if self.backend == "onnxruntime-int8":  # and against its float network, whose bytes were checked too
+            assert self.files.onnx is not None
+            ref = _onnxruntime_session(self.files.onnx, onnx_path(path), path.name)
+            x = _network_input(probe_image())
+            semi_ref, desc_ref = ref.run(["semi", "desc"], {ref.get_inputs()[0].name: x})
+            check_agreement(semi, desc, semi_ref[0], desc_ref[0], name)
         _PROBED.add(key)
 
     def forward(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x = (np.asarray(image, np.float32) / 255.0)[None, None]
+        x = _network_input(image)
         if self.backend == "cv2":
             with self._lock:
                 self._net.setInput(x)
                 semi, desc = self._net.forward(["semi", "desc"])
-        elif self.backend == "onnxruntime":  # a session may run from several threads at once
+        elif self.backend in ("onnxruntime", "onnxruntime-int8"):  # a session may run from several threads
             semi, desc = self._net.run(["semi", "desc"], {self._input: x})
         else:
             with self._torch.inference_mode():
                 semi, desc = (t.numpy() for t in self._net(self._torch.from_numpy(x)))
         return semi[0], desc[0]
+
+
+def _network_input(image: np.ndarray) -> np.ndarray:
+    """The network's (1, 1, H, W) float input of a uint8 intensity image."""
+    return (np.asarray(image, np.float32) / 255.0)[None, None]
 
 
 def _onnxruntime_session(model: bytes, file: Path, weights_name: str) -> Any:
@@ -171,10 +210,10 @@ def _onnxruntime_session(model: bytes, file: Path, weights_name: str) -> Any:
         ) from None
 
 
-#: backends that run the ONNX model written beside the weights
-ONNX_BACKENDS = ("cv2", "onnxruntime")
-#: (backend, weights sha256, ONNX sha256) of the networks that passed the probe in this process
-_PROBED: set[tuple[str, str, str]] = set()
+#: backends that run the ONNX model written beside the weights (the int8 one checks its outputs against it)
+ONNX_BACKENDS = ("cv2", "onnxruntime", "onnxruntime-int8")
+#: (backend, weights sha256, ONNX sha256, int8 ONNX sha256) of the networks that passed the probe in this process
+_PROBED: set[tuple[str, str, str, str]] = set()
 _NETS: dict[tuple[Any, ...], SuperPointNet] = {}
 _NETS_LOCK = threading.Lock()
 
@@ -197,6 +236,7 @@ def _net(weights: str | None, backend: str, trust_model: bool = False) -> SuperP
         trust_model,
         _stamp(path),
         _stamp(onnx_path(path)),
+        _stamp(int8_path(path)),
         _stamp(path.with_suffix(".json")),
     )
     with _NETS_LOCK:

@@ -1,8 +1,9 @@
 """SuperPoint weights files: an uncompressed ``.npz`` artifact (no pickle) with a JSON header holding the format
 version and the architecture, float16 arrays ``<layer>.weight`` / ``<layer>.bias``; the ONNX model beside it
-(same stem, ``.onnx``) is written from the same arrays for the cv2 backend; the provenance ``.json`` beside both
-records the sha256 of each file's bytes (``"sha256": {"weights": ..., "onnx": ...}``), which ties the ONNX to the
-``.npz`` it was written from.
+(same stem, ``.onnx``) is written from the same arrays for the cv2 backend, and its int8 quantisation (``.int8.onnx``,
+`placerec.features.superpoint.quantise`) may lie beside it for the ``onnxruntime-int8`` backend; the provenance
+``.json`` records the sha256 of each file's bytes (``"sha256": {"weights": ..., "onnx": ..., "int8": ...}``), which
+ties the ONNX models to the ``.npz`` they were made from.
 
 The shipped weights are ``placerec/vocab/superpoint_lidar.npz`` (+ ``.onnx`` and the provenance ``.json``),
 trained by ``tools/train_superpoint.py --config configs/superpoint.yaml``.
@@ -38,6 +39,7 @@ __all__ = [
     "load_weights",
     "resolve_weights",
     "onnx_path",
+    "int8_path",
     "provenance_path",
     "file_sha256",
     "record_hashes",
@@ -63,6 +65,11 @@ def onnx_path(weights: str | Path) -> Path:
     return Path(weights).with_suffix(".onnx")
 
 
+def int8_path(weights: str | Path) -> Path:
+    """The int8 quantisation of the ONNX model that goes with a weights file."""
+    return Path(weights).with_suffix(".int8.onnx")
+
+
 def provenance_path(weights: str | Path) -> Path:
     """The provenance JSON that goes with a weights file."""
     return Path(weights).with_suffix(".json")
@@ -76,7 +83,8 @@ def file_sha256(path: str | Path) -> str:
 
 def record_hashes(path: str | Path, provenance: dict[str, Any] | None = None) -> dict[str, Any]:
     """Write the provenance JSON beside the weights ``path``: ``provenance`` (None: the JSON there now, if any)
-    with ``sha256`` set to the hashes of the ``.npz`` and of the ``.onnx`` (when there is one); returns it.
+    with ``sha256`` set to the hashes of the ``.npz`` and of the ``.onnx`` and ``.int8.onnx`` (those there are);
+    returns it.
 
     Only for files you made: the hashes say "these are the files this provenance describes"."""
     path = Path(path)
@@ -88,6 +96,8 @@ def record_hashes(path: str | Path, provenance: dict[str, Any] | None = None) ->
     hashes = {"weights": file_sha256(path)}
     if onnx_path(path).is_file():
         hashes["onnx"] = file_sha256(onnx_path(path))
+    if int8_path(path).is_file():
+        hashes["int8"] = file_sha256(int8_path(path))
     out = {**provenance, "sha256": hashes}
     with atomic_write(provenance_path(path), "w") as fh:
         json.dump(out, fh, indent=2)
@@ -163,8 +173,9 @@ class CheckedModel:
     arch: SuperPointArch
     weights: dict[str, np.ndarray]  #: float32
     onnx: bytes | None  #: the ONNX model's bytes, exactly those hashed (None when not asked for)
-    sha256: dict[str, str]  #: {"weights": ..., "onnx": ...} of the bytes read
+    sha256: dict[str, str]  #: {"weights": ..., "onnx": ..., "int8": ...} of the bytes read
     accepted: Literal["shipped", "provenance", "trusted"]  #: what vouches for the files
+    int8: bytes | None = None  #: the int8 ONNX model's bytes, exactly those hashed (None when not asked for)
 
 
 def _is_shipped(path: Path) -> bool:
@@ -229,9 +240,12 @@ def _read_bytes(file: Path, what: str) -> bytes:
         raise ArtifactError(f"{file}: cannot read the {what} ({exc.strerror or exc})") from None
 
 
-def open_model(path: str | Path, *, onnx: bool = True, trust_model: bool = False) -> CheckedModel:
+def open_model(
+    path: str | Path, *, onnx: bool = True, int8: bool = False, trust_model: bool = False
+) -> CheckedModel:
     """Read and check a SuperPoint model to run it: the weights ``path`` (`load_weights`) and, with ``onnx``, the
-    ONNX model beside it, whose bytes are returned so that the checked bytes are the ones run.
+    ONNX model beside it, with ``int8`` also its int8 quantisation (`int8_path`), whose bytes are returned so that
+    the checked bytes are the ones run.
 
     The sha256 of each file read must equal the one its provenance JSON records (`record_hashes`). The shipped
     files are always checked. A user's files whose provenance does not vouch for them (no JSON, no hashes, a
@@ -255,6 +269,17 @@ def open_model(path: str | Path, *, onnx: bool = True, trust_model: bool = False
         model = _read_bytes(file, "SuperPoint ONNX model")
         sha["onnx"] = hashlib.sha256(model).hexdigest()
         problems.append(_check_hash(file, sha["onnx"], "onnx", path, hashes, why, shipped))
+    quantised: bytes | None = None
+    if int8:
+        file = int8_path(path)
+        if not file.is_file():
+            raise ArtifactError(
+                f"{file}: no such file, the int8 ONNX model of {path.name} for the onnxruntime-int8 backend (make "
+                "it with python tools/quantise_superpoint.py, or use backend 'onnxruntime')"
+            )
+        quantised = _read_bytes(file, "SuperPoint int8 ONNX model")
+        sha["int8"] = hashlib.sha256(quantised).hexdigest()
+        problems.append(_check_hash(file, sha["int8"], "int8", path, hashes, why, shipped))
     found = [p for p in problems if p is not None]
     if found and (shipped or not trust_model):
         raise ArtifactError(found[0])
@@ -266,4 +291,4 @@ def open_model(path: str | Path, *, onnx: bool = True, trust_model: bool = False
     accepted: Literal["shipped", "provenance", "trusted"] = (
         "trusted" if found else "shipped" if shipped else "provenance"
     )
-    return CheckedModel(path, arch, weights, model, sha, accepted)
+    return CheckedModel(path, arch, weights, model, sha, accepted, quantised)
