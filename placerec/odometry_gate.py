@@ -139,6 +139,15 @@ class LoopChain:
         self._places.update((int(match), int(query)))
         self._graph = None
 
+    def graph(self, path: Sequence[float] | np.ndarray) -> _ChainGraph | None:
+        """The graph of the places with a closure over the odometry ``path`` (None without closures), built on
+        first use after a closure was added."""
+        if not self._closures:
+            return None
+        if self._graph is None:
+            self._graph = _ChainGraph.build(self._closures, sorted(self._places), path)
+        return self._graph
+
     def predict(
         self,
         match: int,
@@ -152,11 +161,9 @@ class LoopChain:
         match, query = int(match), int(query)
         direct = abs(float(path[query]) - float(path[match]))
         odometry = np.linalg.solve(poses[match], poses[query]), direct
-        if not self._closures:
+        g = self.graph(path)
+        if g is None:
             return odometry
-        if self._graph is None:
-            self._graph = _ChainGraph.build(self._closures, sorted(self._places), path)
-        g = self._graph
         sources, targets = g.attach(match, path), g.attach(query, path)
         dist, previous = dijkstra(
             g.matrix, directed=False, indices=[i for i, _ in sources], return_predecessors=True, limit=direct
@@ -190,6 +197,26 @@ class LoopChain:
         return T, along + abs(float(path[query]) - float(path[last]))
 
 
+def _within(chain: LoopChain, query: int, path: Sequence[float] | np.ndarray, limit: float) -> np.ndarray:
+    """The places before ``query`` whose `LoopChain.predict` may rest on at most ``limit`` metres of odometry path:
+    within ``limit`` along the odometry of the query itself, or of a place with a closure that the chain joins to
+    the query over less than ``limit`` (with the rest of it left for the odometry from there). A superset of the
+    places whose prediction rests on no more; ascending."""
+    from scipy.sparse.csgraph import dijkstra
+
+    along = np.asarray(path[: query + 1], dtype=np.float64)
+    before, at = along[:query], float(along[query])
+    near = np.abs(before - at) <= limit
+    g = chain.graph(path)
+    if g is not None and before.size:
+        targets = g.attach(query, path)
+        dist = dijkstra(g.matrix, directed=False, indices=[t for t, _ in targets], limit=limit)
+        reach = np.min(dist + np.array([d for _, d in targets])[:, None], axis=0)
+        for k in np.flatnonzero(reach <= limit):
+            near |= np.abs(before - float(path[int(g.places[k])])) <= limit - reach[k]
+    return np.flatnonzero(near)
+
+
 class ChainPrior:
     """The gate's predictions for one query against the earlier places (`predict`; a `placerec.types.MotionPrior`),
     through the closures of ``chain`` (`LoopChain`, the odometry alone when it holds none) over the odometry
@@ -218,6 +245,26 @@ class ChainPrior:
         T, along = self.chain.predict(place, self.query, self.poses, self.path)
         metres, degrees = self.bounds.bounds_at(along)
         return Prediction(T, float(metres), float(np.radians(degrees)))
+
+    def near(self, metres: float, reach: float) -> list[tuple[int, Prediction]]:
+        """(recognizer id, `predict`) of the earlier places predicted within ``metres`` of the query whose
+        prediction's translation bound is at most ``reach``, nearest first (ties: the earlier place first). Only
+        the places a chain short enough for that bound joins to the query are predicted (`LoopChain.predict`
+        for each), so the cost follows the places around the query's recent closures, not the map."""
+        b = self.bounds
+        if b.metres > reach:
+            return []
+        limit = (reach - b.metres) / b.per_metre if b.per_metre > 0 else float("inf")
+        found = []
+        for place in _within(self.chain, self.query, self.path, limit).tolist():
+            prediction = self.predict(place + self.offset)
+            if prediction is None or prediction.metres > reach:
+                continue
+            d = float(np.linalg.norm(prediction.T_match_query[:3, 3]))
+            if d <= metres:
+                found.append((d, place, prediction))
+        found.sort(key=lambda x: (x[0], x[1]))
+        return [(place + self.offset, prediction) for _, place, prediction in found]
 
 
 #: The length of a closure's edge in the chain's search (a closure adds no odometry; a positive length keeps the

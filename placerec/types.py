@@ -607,10 +607,14 @@ class Prediction:
 
 class MotionPrior(Protocol):
     """What a caller with odometry knows about a query's motion (`placerec.odometry_gate.ChainPrior`): the
-    `Prediction` against database entry ``match_id``, or None where it has none. A recognizer may use it to choose
-    which features to compare (`placerec.verify.guided`); it never decides acceptance."""
+    `Prediction` against database entry ``match_id``, or None where it has none; and the entries it predicts
+    within ``metres`` of the query with a translation bound of at most ``reach``, nearest first. A recognizer may
+    use it to choose which features to compare and which places to register (`placerec.verify.guided`); it never
+    decides acceptance."""
 
     def predict(self, match_id: int) -> Prediction | None: ...
+
+    def near(self, metres: float, reach: float) -> list[tuple[int, Prediction]]: ...
 
 
 @runtime_checkable

@@ -230,3 +230,92 @@ def test_a_guided_pipelines_cell_is_stamped_with_the_gate_and_its_threshold_and_
     assert len(guide.chain) == 1  # 0.2 is under the threshold
     p = guide.prior(27).predict(2)
     assert p is not None and p.metres == pytest.approx(1.0 + 0.04 * 2, abs=0.01)
+
+
+def _circuit(n=240, radius=30.0):
+    """Odometry round a circle twice (places 120 apart are the same spot), and its path."""
+    poses = []
+    for i in range(n):
+        a = 2 * np.pi * i / (n // 2)
+        T = _pose(radius * np.cos(a), radius * np.sin(a), np.degrees(a) + 90.0)
+        poses.append(T)
+    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff([p[:3, 3] for p in poses], axis=0), axis=1))])
+    return poses, path
+
+
+def test_the_places_predicted_near_are_those_a_brute_force_over_every_place_finds():
+    odom, path = _circuit()
+    bounds = OdometryGateParams()
+    chain = LoopChain()
+    for m, q in ((10, 131), (40, 160), (41, 161), (90, 205)):
+        chain.add(m, q, np.linalg.inv(odom[m]) @ odom[q])
+    for query in (135, 170, 209, 230):
+        prior = ChainPrior(chain, query, odom, path, bounds, offset=3)
+        for metres, reach in ((6.0, 2.0), (15.0, 1.5), (40.0, 3.0)):
+            expect = []
+            for place in range(query):
+                p = prior.predict(place + 3)
+                d = float(np.linalg.norm(p.T_match_query[:3, 3]))
+                if p.metres <= reach and d <= metres:
+                    expect.append((d, place + 3))
+            got = prior.near(metres, reach)
+            assert [i for i, _ in got] == [i for _, i in sorted(expect)]
+            for i, p in got:
+                np.testing.assert_array_equal(p.T_match_query, prior.predict(i).T_match_query)
+    # a reach below the gate's bound at L = 0 predicts nothing near; without closures only the query's own stretch
+    assert ChainPrior(chain, 209, odom, path, bounds).near(50.0, 0.5) == []
+    alone = ChainPrior(LoopChain(), 150, odom, path, bounds).near(10.0, 2.0)
+    assert [i for i, _ in alone] == [149, 148, 147, 146, 145, 144]
+
+
+class _Near:
+    """A motion prior that predicts the given places near the query, in the order given."""
+
+    def __init__(self, near):
+        self._near = near
+
+    def predict(self, match_id):
+        return dict(self._near).get(match_id)
+
+    def near(self, metres, reach):
+        return [(i, p) for i, p in self._near if np.linalg.norm(p.T_match_query[:3, 3]) <= metres]
+
+
+def test_a_query_without_an_answer_registers_the_places_its_prior_predicts_near_by_icp():
+    from placerec.verify.candidates import verify_near
+    from placerec.verify.guided import answers
+
+    rng = np.random.default_rng(1)
+    room = _room(rng)
+    T = _pose(4.0, 1.0, 12.0)  # T_match_query of place 7
+    query = (room - T[:3, 3]) @ T[:3, :3]
+    params = VerifiedParams.model_validate(
+        {"guided": {"enabled": True, "min_score": 0.1, "near_metres": 10.0, "near_candidates": 2}}
+    )
+    store = CloudStore.for_pipeline(params)
+    store.add(7, scan_cloud(room, params))
+    store.add(8, scan_cloud(room[: len(room) // 5] + [0.0, 0.0, 40.0], params))  # nothing of the room's walls
+    store.add(9, scan_cloud(room, params))
+    cloud = scan_cloud(query, params)
+    guess = _pose(4.8, 0.4, 9.0)  # the prediction: 0.9 m and 3 deg off
+    good = Prediction(guess, 1.5, np.radians(6.0))
+    prior = _Near([(8, Prediction(_pose(1.0), 1.5, np.radians(6.0))), (7, good)])
+    got = verify_near(cloud, prior, store, params, lambda i: True, query_id=3)
+    assert got is not None and got.match_id == 7 and got.extra["near"] == 1 and got.accepted
+    np.testing.assert_allclose(got.relative_pose[:3, 3], T[:3, 3], atol=0.15)
+    assert answers([got], prior, params.guided)
+    # entries the caller may not use are not tried; at most near_candidates are tried
+    assert verify_near(cloud, prior, store, params, lambda i: i != 7, query_id=3) is None
+    one = params.model_copy(update={"guided": params.guided.model_copy(update={"near_candidates": 1})})
+    assert verify_near(cloud, prior, store, one, lambda i: True, query_id=3) is None
+    # a registration outside the prediction's bounds is no answer, nor is one below min_score
+    tight = _Near([(7, Prediction(guess, 0.3, np.radians(6.0)))])
+    assert verify_near(cloud, tight, store, params, lambda i: True, query_id=3) is None
+    assert not answers([got], tight, params.guided)
+    strict = params.model_copy(update={"guided": params.guided.model_copy(update={"min_score": 0.99})})
+    assert verify_near(cloud, prior, store, strict, lambda i: True, query_id=3) is None
+    off = params.model_copy(update={"guided": params.guided.model_copy(update={"near_metres": None})})
+    assert verify_near(cloud, prior, store, off, lambda i: True, query_id=3) is None
+    # too far away: only places predicted within near_metres
+    far = _Near([(9, Prediction(_pose(4.8, 0.4, 9.0) @ _pose(12.0), 1.5, np.radians(6.0)))])
+    assert verify_near(cloud, far, store, params, lambda i: True, query_id=3) is None

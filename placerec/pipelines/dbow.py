@@ -211,7 +211,7 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
             ids, scores, status = lr.ids, lr.scores, lr.status
         if p.verify.enabled:
             top = [int(i) for i in ids[: p.verify.top_k]]
-            return self._verify_matches(description, top, scores, nodes, query_id, k, prior)
+            return self._verify_matches(description, top, scores, nodes, query_id, k, prior, max_id)
         if p.check == "none":
             return [
                 Candidate(query_id, int(i), float(s), None, None, {"bow_score": float(s), "status": status})
@@ -239,10 +239,12 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
         query_id: int,
         k: int,
         prior: MotionPrior | None = None,
+        max_id: int | None = None,
     ) -> list[Candidate]:
         """The best database results verified (`VisualFrontend._verified`) with their direct-index matches
         (``verify_matches="retrieval"``) or mutual nearest features (`VisualFrontend._retrieved`); ``prior`` as in
-        `VisualFrontend._retrieved_all`."""
+        `VisualFrontend._retrieved_all` and `VisualFrontend._verified`, which entries up to ``max_id`` it may
+        propose."""
         t0 = time.perf_counter()
         empty = np.zeros(0, np.int64)
         by_index = self.params.verify_matches == "retrieval" and image_ids
@@ -260,7 +262,8 @@ class VisualDBoW(VisualFrontend[DBoWParams], Recognizer[DBoWParams]):
             )
             for c, (i, s) in enumerate(zip(image_ids, scores, strict=False))
         ]
-        return self._verified(description, self._retrieved_all(description, todo, share, prior), query_id, k)
+        retrieved = self._retrieved_all(description, todo, share, prior)
+        return self._verified(description, retrieved, query_id, k, prior, max_id)
 
     def _check(
         self,

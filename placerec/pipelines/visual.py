@@ -62,8 +62,9 @@ from placerec.verify.candidates import (
     feature_arrays,
     scan_cloud,
     verify_candidates,
+    verify_near,
 )
-from placerec.verify.guided import guided_nearest, usable
+from placerec.verify.guided import answers, guided_nearest, usable
 from placerec.verify.matching import mutual_nearest
 
 __all__ = [
@@ -295,11 +296,29 @@ class VisualFrontend(Generic[VP]):
         self._width[scan_id] = int(description["width"])
 
     def _verified(
-        self, description: Description, retrieved: list[Retrieved], query_id: int, k: int
+        self,
+        description: Description,
+        retrieved: list[Retrieved],
+        query_id: int,
+        k: int,
+        prior: MotionPrior | None = None,
+        max_id: int | None = None,
     ) -> list[Candidate]:
-        """`placerec.verify.candidates.verify_candidates` on ``retrieved`` (best retrieval first)."""
+        """`placerec.verify.candidates.verify_candidates` on ``retrieved`` (best retrieval first); with a motion
+        ``prior`` and ``verify.guided.near_metres``, where none is an answer (`answers`), also the place
+        `verify_near` registers among the entries up to ``max_id``, first."""
+        vp = self.params.verify
         cloud = _cloud(self.name, description)
-        return verify_candidates(cloud, retrieved, self._clouds, self.params.verify, query_id, k)
+        out = verify_candidates(cloud, retrieved, self._clouds, vp, query_id, k)
+        g = vp.guided
+        if prior is None or not g.enabled or g.near_metres is None or answers(out, prior, g):
+            return out
+
+        def eligible(match_id: int) -> bool:
+            return match_id in self._width and (max_id is None or match_id <= max_id)
+
+        near = verify_near(cloud, prior, self._clouds, vp, eligible, query_id)
+        return out if near is None else [near, *out][:k]
 
     def _retrieved_all(
         self,
@@ -469,7 +488,7 @@ class VisualHBST(VisualFrontend[VisualParams], Recognizer[VisualParams]):
                     (int(image_id), float(ratio), result.query_idx[sel], result.keypoint_idx[sel], extra)
                 )
             return self._verified(
-                description, self._retrieved_all(description, todo, prior=prior), query_id, k
+                description, self._retrieved_all(description, todo, prior=prior), query_id, k, prior, max_id
             )
         if p.check == "none":
             return [

@@ -23,6 +23,10 @@
   of the time of the verified candidates beyond ``k``, so the returned ones add up to the whole stage: the runner's 'verify' stage,
   `placerec.loop_closure.split_verify_time`), sorted by verified score (ties: retrieval score), at most ``k``.
 
+`verify_near` is the second chance of a query with a motion prior whose candidates gave no answer
+(``verify.guided.near_metres``): the places the prior predicts near the query, registered by ICP alone from the
+prediction (`placerec.verify.guided`).
+
 Rejected candidates are **kept**, ranked below the accepted ones of equal score, so PR curves stay continuous:
 with ``acceptance = "score"`` a candidate rejected for its score keeps its verified score (below ``min_score`` by
 definition); one that the ``eps_icp`` rule (``"eps_icp"``, ``"both"``) or a gate (``min_fitness``,
@@ -47,8 +51,8 @@ from pydantic import Field
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.quantise import FixedPointCloud, PackedCloud
 from placerec.threads import import_openmp
-from placerec.types import Candidate, take_rows
-from placerec.verify.guided import GuidedParams
+from placerec.types import Candidate, MotionPrior, take_rows
+from placerec.verify.guided import GuidedParams, within
 from placerec.verify.icp import IcpCloud, as_points
 from placerec.verify.params import VerifyParams
 from placerec.verify.spill import SpilledArrays, SpillFile, SpillRef, memory_mapped
@@ -61,6 +65,7 @@ __all__ = [
     "scan_cloud",
     "voxel_points",
     "verify_candidates",
+    "verify_near",
     "feature_arrays",
 ]
 
@@ -494,6 +499,41 @@ def verify_candidates(
     # the candidates not returned were verified too: their time is shared by those returned
     dropped_ms = sum(c.verify_ms for c in out[len(kept) :])
     return [replace(c, verify_ms=c.verify_ms + dropped_ms / len(kept)) for c in kept]
+
+
+def verify_near(
+    query_cloud: np.ndarray | IcpCloud,
+    prior: MotionPrior,
+    store: CloudStore,
+    params: VerifiedParams,
+    eligible: Callable[[int], bool],
+    query_id: int = -1,
+) -> Candidate | None:
+    """The first place ``prior`` predicts within ``guided.near_metres`` of the query that ICP alone, started from
+    the prediction, registers with a score of at least ``guided.min_score`` and a pose within the prediction's
+    bounds, trying at most ``guided.near_candidates`` of the ``eligible`` entries, nearest first (module
+    docstring); None when none does or ``near_metres`` is unset. The time of the tries that failed is counted in
+    the one returned (marked ``near`` in its ``extra``)."""
+    g = params.guided
+    if g.near_metres is None:
+        return None
+    reach = g.max_metres if g.max_metres is not None else float("inf")
+    spent = 0.0
+    tried = 0
+    for match_id, prediction in prior.near(g.near_metres, reach):
+        if tried == g.near_candidates:
+            break
+        if not eligible(match_id):
+            continue
+        tried += 1
+        t0 = time.perf_counter()
+        r = Retrieved(match_id, 0.0, init=prediction.T_match_query, extra={"near": 1})
+        (c,) = verify_candidates(query_cloud, [r], store, params, query_id, 1)
+        spent += (time.perf_counter() - t0) * 1e3
+        if c.accepted and c.score >= g.min_score and c.relative_pose is not None:
+            if within(prediction, c.relative_pose):
+                return replace(c, verify_ms=spent)
+    return None
 
 
 def _to_refine(hyps: Sequence[Hypothesis], icp_top_k: int | None, guided: set[int] | None = None) -> set[int]:

@@ -25,15 +25,17 @@ where both defaults were chosen (docs/sensors.md, "Matching within the odometry'
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from pydantic import Field
 from scipy.spatial import cKDTree
 
 from placerec.params import Params
 from placerec.retrieval.bits import hamming, to_words
-from placerec.types import Prediction
+from placerec.types import Candidate, MotionPrior, Prediction
 
-__all__ = ["GuidedParams", "guided_nearest", "guides", "usable"]
+__all__ = ["GuidedParams", "answers", "guided_nearest", "guides", "usable", "within"]
 
 
 class GuidedParams(Params):
@@ -57,6 +59,33 @@ class GuidedParams(Params):
         allow_inf_nan=False,
         description="only predictions whose translation bound is at most this (m; None: any)",
     )
+    near_metres: float | None = Field(
+        None,
+        gt=0,
+        allow_inf_nan=False,
+        description="with no answer from min_score, ICP from the prediction onto places predicted this near (m)",
+    )
+    near_candidates: int = Field(2, ge=1, description="places predicted near, tried nearest first")
+
+
+def within(prediction: Prediction, T_match_query: np.ndarray) -> bool:
+    """Whether a relative pose lies within a prediction's bounds (the gate's test: translation apart, then the
+    angle between the rotations)."""
+    T = np.linalg.solve(prediction.T_match_query, np.asarray(T_match_query, np.float64))
+    angle = float(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    return float(np.linalg.norm(T[:3, 3])) <= prediction.metres and angle <= prediction.radians
+
+
+def answers(candidates: Sequence[Candidate], prior: MotionPrior, params: GuidedParams) -> bool:
+    """Whether one of ``candidates`` is an answer a gate with the ``prior`` would keep: accepted, scoring at least
+    ``min_score``, with a pose within its prediction (where the prior has one)."""
+    for c in candidates:
+        if not c.accepted or c.score < params.min_score or c.relative_pose is None:
+            continue
+        prediction = prior.predict(c.match_id)
+        if prediction is None or within(prediction, c.relative_pose):
+            return True
+    return False
 
 
 def guides(params: object) -> bool:
