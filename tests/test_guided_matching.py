@@ -239,7 +239,9 @@ def _circuit(n=240, radius=30.0):
         a = 2 * np.pi * i / (n // 2)
         T = _pose(radius * np.cos(a), radius * np.sin(a), np.degrees(a) + 90.0)
         poses.append(T)
-    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff([p[:3, 3] for p in poses], axis=0), axis=1))])
+    path = np.concatenate(
+        [[0.0], np.cumsum(np.linalg.norm(np.diff([p[:3, 3] for p in poses], axis=0), axis=1))]
+    )
     return poses, path
 
 
