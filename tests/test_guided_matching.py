@@ -321,3 +321,74 @@ def test_a_query_without_an_answer_registers_the_places_its_prior_predicts_near_
     # too far away: only places predicted within near_metres
     far = _Near([(9, Prediction(_pose(4.8, 0.4, 9.0) @ _pose(12.0), 1.5, np.radians(6.0)))])
     assert verify_near(cloud, far, store, params, lambda i: True, query_id=3) is None
+
+
+def _orb_description(rng, cloud, n=200):
+    xyz = cloud[rng.choice(len(cloud), n, replace=False)].astype(np.float32)
+    return {
+        "keypoints": rng.uniform(0, 500, (n, 2)).astype(np.float32),
+        "descriptors": rng.integers(0, 256, (n, 32), dtype=np.uint8),
+        "width": np.array(512, np.int64),
+        "keypoint_xyz": xyz,
+        "cloud": scan_cloud(cloud),
+    }
+
+
+def test_a_pipeline_with_a_prior_registers_a_place_predicted_near_when_its_candidates_give_no_answer():
+    from placerec.recognizer import make_pipeline
+
+    rng = np.random.default_rng(2)
+    room = _room(rng)
+    T = _pose(3.0, -1.0, 8.0)
+    query = (room - T[:3, 3]) @ T[:3, :3]
+    guided = {"enabled": True, "min_score": 0.1, "near_metres": 10.0}
+    pipe = make_pipeline("orb-dbow", {"verify": {"guided": guided, "score": {"min_score": 0.05}}})
+    plain = make_pipeline("orb-dbow", {"verify": {"guided": guided | {"near_metres": None}}})
+    for i in range(3):  # unrelated descriptors: retrieval proposes them, RANSAC finds nothing
+        d = _orb_description(rng, room if i == 1 else room + [0.0, 0.0, 30.0 * (i + 1)])
+        pipe.add_description(i, d)
+        plain.add_description(i, d)
+    q = _orb_description(rng, query)
+    prior = _Near([(1, Prediction(_pose(3.6, -0.5, 6.0), 1.5, np.radians(6.0)))])
+    got = pipe.query_description(q, k=3, max_id=2, query_id=9, prior=prior)
+    assert got[0].match_id == 1 and got[0].extra.get("near") == 1 and got[0].accepted
+    np.testing.assert_allclose(got[0].relative_pose[:3, 3], T[:3, 3], atol=0.15)
+    # without the prior, or with the place beyond max_id, or near_metres unset: the candidates alone, no answer
+    for cands in (
+        pipe.query_description(q, k=3, max_id=2, query_id=9),
+        pipe.query_description(q, k=3, max_id=0, query_id=9, prior=prior),
+    ):
+        assert not any(c.extra.get("near") for c in cands) and not any(
+            c.accepted and c.score >= 0.1 for c in cands
+        )
+    assert not any(c.extra.get("near") for c in plain.query_description(q, k=3, max_id=2, prior=prior))
+
+
+def test_a_place_predicted_near_comes_before_matching_within_the_prior_onto_a_candidate():
+    """ICP from a prediction onto a place predicted near registers it better than features matched within the
+    prior onto a candidate that may lie tens of metres away: that second chance is taken only if the first fails."""
+    from placerec.recognizer import make_pipeline
+
+    rng = np.random.default_rng(3)
+    room = _room(rng)
+    T = _pose(3.0, -1.0, 8.0)
+    query = (room - T[:3, 3]) @ T[:3, :3]
+    guided = {"enabled": True, "min_score": 0.1, "near_metres": 10.0}
+    pipe = make_pipeline("orb-dbow", {"verify": {"guided": guided, "score": {"min_score": 0.05}}})
+    for i in range(3):
+        pipe.add_description(i, _orb_description(rng, room))
+    q = _orb_description(rng, query)
+    idx = rng.choice(len(room), 40, replace=False)
+    src, dst = query[idx], room[idx]
+    calls = []
+
+    def again():
+        calls.append(2)
+        return Retrieved(2, 0.5, src, dst, extra={"guided": 1})
+
+    wrong = Retrieved(2, 0.5, src, dst[rng.permutation(40)], guided=again)
+    near = _Near([(1, Prediction(_pose(3.6, -0.5, 6.0), 1.5, np.radians(6.0)))])
+    got = pipe._verified(q, [wrong], 9, 2, near, 2)
+    assert got[0].match_id == 1 and got[0].extra["near"] == 1 and calls == []
+    got = pipe._verified(q, [wrong], 9, 2, _Near([]), 2)  # nothing predicted near: the guided matching
+    assert got[0].match_id == 2 and got[0].extra["guided"] == 1 and got[0].accepted and calls == [2]

@@ -304,21 +304,32 @@ class VisualFrontend(Generic[VP]):
         prior: MotionPrior | None = None,
         max_id: int | None = None,
     ) -> list[Candidate]:
-        """`placerec.verify.candidates.verify_candidates` on ``retrieved`` (best retrieval first); with a motion
-        ``prior`` and ``verify.guided.near_metres``, where none is an answer (`answers`), also the place
-        `verify_near` registers among the entries up to ``max_id``, first."""
+        """`placerec.verify.candidates.verify_candidates` on ``retrieved`` (best retrieval first). With a motion
+        ``prior`` and ``verify.guided.near_metres`` the second chances come in order of how well they register:
+        the candidates on their own matches first; where none is an answer (`answers`), the place `verify_near`
+        registers among the entries up to ``max_id`` (a place predicted near, by ICP from the prediction); only
+        where none is either, the candidates again with their matching within the prior (``retrieved``'s
+        ``guided``), which may pose a place tens of metres away."""
         vp = self.params.verify
         cloud = _cloud(self.name, description)
-        out = verify_candidates(cloud, retrieved, self._clouds, vp, query_id, k)
         g = vp.guided
-        if prior is None or not g.enabled or g.near_metres is None or answers(out, prior, g):
-            return out
+        if prior is None or not g.enabled or g.near_metres is None:
+            return verify_candidates(cloud, retrieved, self._clouds, vp, query_id, k)
+        own = verify_candidates(
+            cloud, [replace(r, guided=None) for r in retrieved], self._clouds, vp, query_id, k
+        )
+        if answers(own, prior, g):
+            return own
 
         def eligible(match_id: int) -> bool:
             return match_id in self._width and (max_id is None or match_id <= max_id)
 
         near = verify_near(cloud, prior, self._clouds, vp, eligible, query_id)
-        return out if near is None else [near, *out][:k]
+        if near is not None:
+            return [near, *own][:k]
+        if not any(r.guided is not None for r in retrieved[: vp.top_k]):
+            return own
+        return verify_candidates(cloud, retrieved, self._clouds, vp, query_id, k)
 
     def _retrieved_all(
         self,
