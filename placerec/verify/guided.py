@@ -21,6 +21,14 @@ way is accepted only from that verified score (it scores 0 below it). A prior ov
 odometry also lets right places registered 0.5-1.2 m off through (and, where the bound is metres wide, 2-8 m off
 ones), scoring up to 0.25; within 2 m of reach none scored 0.15 or more on the E1R-like sensor's tuning cells,
 where both defaults were chosen (docs/sensors.md, "Matching within the odometry's prediction").
+
+``near_metres``: a query whose candidates give no answer (`answers`: none accepted from ``min_score`` within its
+prediction) registers, by ICP alone from the prediction, the places the prior predicts within that distance with a
+bound of at most ``max_metres`` (`placerec.types.MotionPrior.near`; `placerec.verify.candidates.verify_near`),
+nearest first, at most ``near_candidates``; the first accepted from ``min_score`` within the prediction's bounds
+answers. A 2D pipeline tries this before matching within the prior, which may pose a retrieved place tens of metres
+away less precisely (`placerec.pipelines.visual.VisualFrontend._verified`). The defaults (30 m, 4) were chosen on
+the E1R-like sensor's tuning cells (docs/sensors.md, "Places predicted near"); None turns it off.
 """
 
 from __future__ import annotations
@@ -60,12 +68,12 @@ class GuidedParams(Params):
         description="only predictions whose translation bound is at most this (m; None: any)",
     )
     near_metres: float | None = Field(
-        None,
+        30.0,
         gt=0,
         allow_inf_nan=False,
         description="with no answer from min_score, ICP from the prediction onto places predicted this near (m)",
     )
-    near_candidates: int = Field(2, ge=1, description="places predicted near, tried nearest first")
+    near_candidates: int = Field(4, ge=1, description="places predicted near, tried nearest first")
 
 
 def within(prediction: Prediction, T_match_query: np.ndarray) -> bool:
