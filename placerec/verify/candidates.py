@@ -527,6 +527,7 @@ def verify_near(
             continue
         tried += 1
         t0 = time.perf_counter()
+        query_cloud = as_source(query_cloud, params)  # prepared once for every try
         r = Retrieved(match_id, 0.0, init=prediction.T_match_query, extra={"near": 1})
         (c,) = verify_candidates(query_cloud, [r], store, params, query_id, 1)
         spent += (time.perf_counter() - t0) * 1e3
