@@ -334,15 +334,27 @@ def _orb_description(rng, cloud, n=200):
     }
 
 
+#: the true T_match_query of the room's query in the pipeline tests, and the guided settings they use
+_ROOM_T = _pose(3.0, -1.0, 8.0)
+_NEAR_GUIDED = {"enabled": True, "min_score": 0.1, "near_metres": 10.0}
+
+
+def _room_pipeline(seed):
+    """(rng, the room, its query seen from `_ROOM_T`, an ORB-DBoW pipeline with `_NEAR_GUIDED`)."""
+    from placerec.recognizer import make_pipeline
+
+    rng = np.random.default_rng(seed)
+    room = _room(rng)
+    query = (room - _ROOM_T[:3, 3]) @ _ROOM_T[:3, :3]
+    pipe = make_pipeline("orb-dbow", {"verify": {"guided": _NEAR_GUIDED, "score": {"min_score": 0.05}}})
+    return rng, room, query, pipe
+
+
 def test_a_pipeline_with_a_prior_registers_a_place_predicted_near_when_its_candidates_give_no_answer():
     from placerec.recognizer import make_pipeline
 
-    rng = np.random.default_rng(2)
-    room = _room(rng)
-    T = _pose(3.0, -1.0, 8.0)
-    query = (room - T[:3, 3]) @ T[:3, :3]
-    guided = {"enabled": True, "min_score": 0.1, "near_metres": 10.0}
-    pipe = make_pipeline("orb-dbow", {"verify": {"guided": guided, "score": {"min_score": 0.05}}})
+    rng, room, query, pipe = _room_pipeline(2)
+    T, guided = _ROOM_T, _NEAR_GUIDED
     plain = make_pipeline("orb-dbow", {"verify": {"guided": guided | {"near_metres": None}}})
     for i in range(3):  # unrelated descriptors: retrieval proposes them, RANSAC finds nothing
         d = _orb_description(rng, room if i == 1 else room + [0.0, 0.0, 30.0 * (i + 1)])
@@ -367,14 +379,7 @@ def test_a_pipeline_with_a_prior_registers_a_place_predicted_near_when_its_candi
 def test_a_place_predicted_near_comes_before_matching_within_the_prior_onto_a_candidate():
     """ICP from a prediction onto a place predicted near registers it better than features matched within the
     prior onto a candidate that may lie tens of metres away: that second chance is taken only if the first fails."""
-    from placerec.recognizer import make_pipeline
-
-    rng = np.random.default_rng(3)
-    room = _room(rng)
-    T = _pose(3.0, -1.0, 8.0)
-    query = (room - T[:3, 3]) @ T[:3, :3]
-    guided = {"enabled": True, "min_score": 0.1, "near_metres": 10.0}
-    pipe = make_pipeline("orb-dbow", {"verify": {"guided": guided, "score": {"min_score": 0.05}}})
+    rng, room, query, pipe = _room_pipeline(3)
     for i in range(3):
         pipe.add_description(i, _orb_description(rng, room))
     q = _orb_description(rng, query)

@@ -258,28 +258,33 @@ def open_model(
     stamp = _stamp(path)
     sha = {"weights": hashlib.sha256(_read_bytes(path, "SuperPoint weights")).hexdigest()}
     problems = [_check_hash(path, sha["weights"], "weights", path, hashes, why, shipped)]
-    model: bytes | None = None
+
+    def checked(file: Path, role: str, what: str, missing: str) -> bytes:
+        """The bytes of the model file ``file``, its hash recorded under ``role`` and checked."""
+        if not file.is_file():
+            raise ArtifactError(f"{file}: no such file, {missing}")
+        data = _read_bytes(file, what)
+        sha[role] = hashlib.sha256(data).hexdigest()
+        problems.append(_check_hash(file, sha[role], role, path, hashes, why, shipped))
+        return data
+
+    model = quantised = None
     if onnx:
-        file = onnx_path(path)
-        if not file.is_file():
-            raise ArtifactError(
-                f"{file}: no such file, the ONNX model of {path.name} for the cv2 backend (write it with "
-                "placerec.features.superpoint.weights.save_weights, or use backend 'torch')"
-            )
-        model = _read_bytes(file, "SuperPoint ONNX model")
-        sha["onnx"] = hashlib.sha256(model).hexdigest()
-        problems.append(_check_hash(file, sha["onnx"], "onnx", path, hashes, why, shipped))
-    quantised: bytes | None = None
+        model = checked(
+            onnx_path(path),
+            "onnx",
+            "SuperPoint ONNX model",
+            f"the ONNX model of {path.name} for the cv2 backend (write it with "
+            "placerec.features.superpoint.weights.save_weights, or use backend 'torch')",
+        )
     if int8:
-        file = int8_path(path)
-        if not file.is_file():
-            raise ArtifactError(
-                f"{file}: no such file, the int8 ONNX model of {path.name} for the onnxruntime-int8 backend (make "
-                "it with python tools/quantise_superpoint.py, or use backend 'onnxruntime')"
-            )
-        quantised = _read_bytes(file, "SuperPoint int8 ONNX model")
-        sha["int8"] = hashlib.sha256(quantised).hexdigest()
-        problems.append(_check_hash(file, sha["int8"], "int8", path, hashes, why, shipped))
+        quantised = checked(
+            int8_path(path),
+            "int8",
+            "SuperPoint int8 ONNX model",
+            f"the int8 ONNX model of {path.name} for the onnxruntime-int8 backend (make it with python "
+            "tools/quantise_superpoint.py, or use backend 'onnxruntime')",
+        )
     found = [p for p in problems if p is not None]
     if found and (shipped or not trust_model):
         raise ArtifactError(found[0])
