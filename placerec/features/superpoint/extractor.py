@@ -101,13 +101,10 @@ class SuperPointNet:
         self.backend = backend
         self._lock = threading.Lock()  # a cv2.dnn.Net is not safe to share between threads
         self._net: Any  # a cv2.dnn.Net, an ONNX Runtime session or a torch module
-        if backend == "onnxruntime":
-            assert files.onnx is not None
-            self._net = _onnxruntime_session(files.onnx, onnx_path(path), path.name)
-            self._input = self._net.get_inputs()[0].name
-        elif backend == "onnxruntime-int8":
-            assert files.int8 is not None
-            self._net = _onnxruntime_session(files.int8, int8_path(path), path.name)
+        if backend in ("onnxruntime", "onnxruntime-int8"):
+            model_bytes = files.int8 if backend == "onnxruntime-int8" else files.onnx
+            assert model_bytes is not None
+            self._net = _onnxruntime_session(model_bytes, self._model_file(), path.name)
             self._input = self._net.get_inputs()[0].name
         elif backend == "cv2":
             model = onnx_path(path)
@@ -147,13 +144,7 @@ class SuperPointNet:
         if key in _PROBED:
             return
         path = self.files.path
-        name = str(
-            int8_path(path)
-            if self.backend == "onnxruntime-int8"
-            else onnx_path(path)
-            if self.backend in ONNX_BACKENDS
-            else path
-        )
+        name = str(self._model_file())
         semi, desc = self.forward(probe_image())
         check_outputs(semi, desc, self.arch, name)
         if self.backend == "onnxruntime-int8":  # and against its float network, whose bytes were checked too
@@ -163,6 +154,13 @@ class SuperPointNet:
             semi_ref, desc_ref = ref.run(["semi", "desc"], {ref.get_inputs()[0].name: x})
             check_agreement(semi, desc, semi_ref[0], desc_ref[0], name)
         _PROBED.add(key)
+
+    def _model_file(self) -> Path:
+        """The file whose network this backend runs: the int8 ONNX model, the ONNX model or the weights."""
+        path = self.files.path
+        if self.backend == "onnxruntime-int8":
+            return int8_path(path)
+        return onnx_path(path) if self.backend in ONNX_BACKENDS else path
 
     def forward(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x = _network_input(image)
