@@ -196,6 +196,68 @@ def test_a_candidate_ransac_rejects_is_verified_from_the_matches_its_prior_allow
     assert got[8].accepted and got[7].verification.rejection == "rank"
 
 
+def test_between_their_own_matches_and_second_chances_each_icp_is_made_once(monkeypatch):
+    """``between`` sees the candidates verified on their own matches; when it gives no answer the second chances
+    follow with those verifications reused: the same candidates as one call without it, one ICP a candidate."""
+    import placerec.verify.candidates as vc
+
+    rng = np.random.default_rng(0)
+    match_pts = _room(rng)
+    T = _pose(1.5, 0.5, 10.0)
+    query_pts = (match_pts - T[:3, 3]) @ T[:3, :3]
+    params = VerifiedParams.model_validate(
+        {
+            "top_k": 2,
+            "icp_top_k": 2,
+            "guided": {"enabled": True, "min_score": 0.1},
+            "score": {"min_score": 0.05},
+        }
+    )
+    store = CloudStore.for_pipeline(params)
+    store.add(7, scan_cloud(match_pts, params))
+    store.add(8, scan_cloud(match_pts, params))
+    idx = rng.choice(len(match_pts), 40, replace=False)
+    src, dst = query_pts[idx], match_pts[idx]
+    asked = []
+
+    def again():
+        asked.append(1)
+        return Retrieved(7, 0.5, src, dst, extra={"guided": 1})
+
+    def retrieved():
+        return [
+            Retrieved(7, 0.5, src, dst[rng.permutation(40)], guided=again),
+            Retrieved(8, 0.4, src[:12], dst[:12]),
+        ]
+
+    cloud = scan_cloud(query_pts, params)
+    icps = []
+    complete = vc.complete
+    monkeypatch.setattr(vc, "complete", lambda *a: icps.append(a[2]) or complete(*a))
+    alone = verify_candidates(cloud, retrieved(), store, params, query_id=9)
+    assert len(icps) == 2 and len(asked) == 1
+    seen = []
+    icps.clear()
+    got = verify_candidates(
+        cloud, retrieved(), store, params, query_id=9, between=lambda own, source: seen.append(own) or None
+    )
+    (own,) = seen
+    assert [c.match_id for c in own] == [8, 7] and own[1].verification.rejection == "ransac"
+    assert len(icps) == 2 and len(asked) == 2  # the one on its own matches was not refined again
+    assert [(c.match_id, c.score, c.accepted, c.inliers) for c in got] == [
+        (c.match_id, c.score, c.accepted, c.inliers) for c in alone
+    ]
+    for a, b in zip(got, alone, strict=True):
+        np.testing.assert_array_equal(a.relative_pose, b.relative_pose)
+    # an answer from ``between`` ends the verification: no second chance is matched
+    icps.clear()
+    (first,) = verify_candidates(
+        cloud, retrieved(), store, params, 9, between=lambda own, source: seen.append(own) or own[:1]
+    )
+    assert first is seen[-1][0]
+    assert len(icps) == 1 and len(asked) == 2
+
+
 def _loop_cfg(params, gate=True, threshold=None):
     spec = {"name": "orb-dbow", "params": params} | ({} if threshold is None else {"threshold": threshold})
     ev = {"mode": "loop"} | ({"odometry_gate": {}} if gate else {})

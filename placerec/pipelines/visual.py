@@ -65,6 +65,7 @@ from placerec.verify.candidates import (
     verify_near,
 )
 from placerec.verify.guided import answers, guided_nearest, usable
+from placerec.verify.icp import IcpCloud
 from placerec.verify.matching import mutual_nearest
 
 __all__ = [
@@ -308,28 +309,27 @@ class VisualFrontend(Generic[VP]):
         ``prior`` and ``verify.guided.near_metres`` the second chances come in order of how well they register:
         the candidates on their own matches first; where none is an answer (`answers`), the place `verify_near`
         registers among the entries up to ``max_id`` (a place predicted near, by ICP from the prediction); only
-        where none is either, the candidates again with their matching within the prior (``retrieved``'s
-        ``guided``), which may pose a place tens of metres away."""
+        where none is either, the second chances of the candidates RANSAC rejected: their matching within the
+        prior (``retrieved``'s ``guided``), which may pose a place tens of metres away (one `verify_candidates`
+        call, ``between`` its two steps: nothing is verified twice)."""
         vp = self.params.verify
         cloud = _cloud(self.name, description)
         g = vp.guided
         if prior is None or not g.enabled or g.near_metres is None:
             return verify_candidates(cloud, retrieved, self._clouds, vp, query_id, k)
-        own = verify_candidates(
-            cloud, [replace(r, guided=None) for r in retrieved], self._clouds, vp, query_id, k
-        )
-        if answers(own, prior, g):
-            return own
 
         def eligible(match_id: int) -> bool:
             return match_id in self._width and (max_id is None or match_id <= max_id)
 
-        near = verify_near(cloud, prior, self._clouds, vp, eligible, query_id)
-        if near is not None:
-            return [near, *own][:k]
-        if not any(r.guided is not None for r in retrieved[: vp.top_k]):
-            return own
-        return verify_candidates(cloud, retrieved, self._clouds, vp, query_id, k)
+        def near_first(own: list[Candidate], source: np.ndarray | IcpCloud) -> list[Candidate] | None:
+            if answers(own, prior, g):
+                return own
+            near = verify_near(source, prior, self._clouds, vp, eligible, query_id)
+            if near is not None:
+                return [near, *own][:k]
+            return None if any(r.guided is not None for r in retrieved[: vp.top_k]) else own
+
+        return verify_candidates(cloud, retrieved, self._clouds, vp, query_id, k, between=near_first)
 
     def _retrieved_all(
         self,

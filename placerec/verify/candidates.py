@@ -23,9 +23,11 @@
   of the time of the verified candidates beyond ``k``, so the returned ones add up to the whole stage: the runner's 'verify' stage,
   `placerec.loop_closure.split_verify_time`), sorted by verified score (ties: retrieval score), at most ``k``.
 
-`verify_near` is the second chance of a query with a motion prior whose candidates gave no answer
-(``verify.guided.near_metres``): the places the prior predicts near the query, registered by ICP alone from the
-prediction (`placerec.verify.guided`).
+With ``between`` (a callable), `verify_candidates` verifies the candidates on their own matches first and asks it
+for the answer before any second chance (`Retrieved.guided`) is tried, reusing those verifications after it: a
+pipeline puts `verify_near` there, the second chance of a query with a motion prior whose candidates gave no
+answer (``verify.guided.near_metres``): the places the prior predicts near the query, registered by ICP alone
+from the prediction (`placerec.verify.guided`).
 
 Rejected candidates are **kept**, ranked below the accepted ones of equal score, so PR curves stay continuous:
 with ``acceptance = "score"`` a candidate rejected for its score keeps its verified score (below ``min_score`` by
@@ -437,6 +439,12 @@ def _score(v: Verification, params: VerifyParams) -> float:
     return 0.0
 
 
+#: what `verify_candidates` asks between the candidates' own matches and their second chances: given those
+#: candidates (verified, best first, at most ``k``) and the query's cloud as prepared so far, the answer to return
+#: instead, or None to go on to the second chances
+Between = Callable[[list[Candidate], np.ndarray | IcpCloud], list[Candidate] | None]
+
+
 def verify_candidates(
     query_cloud: np.ndarray | IcpCloud,
     retrieved: Sequence[Retrieved],
@@ -444,55 +452,98 @@ def verify_candidates(
     params: VerifiedParams,
     query_id: int = -1,
     k: int | None = None,
+    between: Between | None = None,
 ) -> list[Candidate]:
     """Verify the first ``params.top_k`` of ``retrieved`` against ``store``'s clouds (see the module docstring);
-    returns at most ``k`` (None: all verified) candidates, best verified first."""
+    returns at most ``k`` (None: all verified) candidates, best verified first.
+
+    A candidate that grouping or RANSAC rejects on its own matches gets its second chance (``Retrieved.guided``,
+    with ``verify.guided.enabled``) after every candidate was hypothesised on its own. With ``between``, the
+    candidates on their own matches are verified first and handed to it; what it returns is the answer, and only
+    when it returns None do the second chances follow, reusing the verifications already made (the time
+    ``between`` took is shared by the candidates)."""
     todo = list(retrieved)[: params.top_k]
     if not todo:
         return []
     vp = params
-    hyps, ms, guided = [], [], set()
-    for j, r in enumerate(todo):
+    hyps, ms = [], []
+    for r in todo:
         t0 = time.perf_counter()
-        h = hypothesise(r.src_kp, r.dst_kp, r.init, vp, r.quality)
-        if h.rejected_at in ("grouping", "ransac") and r.guided is not None and vp.guided.enabled:
-            again = r.guided()
-            second = hypothesise(again.src_kp, again.dst_kp, None, vp, again.quality)
-            if second.rejected_at is None:
-                todo[j], h = again, second
-                guided.add(j)
-        hyps.append(h)
-        ms.append((time.perf_counter() - t0) * 1e3 + todo[j].verify_ms)
-    refined = _to_refine(hyps, params.icp_top_k, guided)
+        hyps.append(hypothesise(r.src_kp, r.dst_kp, r.init, vp, r.quality))
+        ms.append((time.perf_counter() - t0) * 1e3 + r.verify_ms)
+    done: dict[int, Verification] = {}
+    guided: set[int] = set()
     source: Any = query_cloud
-    if refined:
-        t0 = time.perf_counter()
-        source = as_source(query_cloud, vp)
-        shared = (time.perf_counter() - t0) * 1e3 / len(refined)
-    out: list[Candidate] = []
-    for j, (r, h) in enumerate(zip(todo, hyps, strict=True)):
-        t1 = time.perf_counter()
-        if j in refined:  # the match is prepared (and cached) only here
-            v = complete(source, r.target or partial(store.target, r.match_id), h, vp)
+
+    def answer() -> list[Candidate]:
+        nonlocal source
+        refined = _to_refine(hyps, params.icp_top_k, guided)
+        new = sorted(j for j in refined if j not in done)
+        if new:
+            t0 = time.perf_counter()
+            source = as_source(source, vp)
+            shared = (time.perf_counter() - t0) * 1e3 / len(new)
+        for j in new:  # the match is prepared (and cached) only here
+            t1 = time.perf_counter()
+            v = complete(source, todo[j].target or partial(store.target, todo[j].match_id), hyps[j], vp)
             if j in guided and v.accepted and v.score < vp.guided.min_score:
                 v = replace(v, accepted=False, rejection="guided_score")
+            done[j] = v
             ms[j] += (time.perf_counter() - t1) * 1e3 + shared
-        else:
-            v = h.rejected(None if h.rejected_at else "rank")
-        cand = Candidate(
-            query_id,
-            int(r.match_id),
-            _score(v, vp),
-            v.T_match_query,
-            v.inliers,
-            dict(r.extra),
-            accepted=bool(v.accepted),
-            verification=v,
-            retrieval_score=float(r.retrieval_score),
-            verify_ms=ms[j],
-            matches=None if r.pairs is None else np.asarray(r.pairs, np.int32).reshape(-1, 2),
+        return _ranked(todo, hyps, done, refined, ms, vp, query_id, k)
+
+    if between is not None:
+        first = answer()
+        t0 = time.perf_counter()
+        instead = between(first, source)
+        if instead is not None:
+            return instead
+        spent = (time.perf_counter() - t0) * 1e3 / len(todo)
+        ms = [m + spent for m in ms]
+    if vp.guided.enabled:
+        for j, (r, h) in enumerate(zip(todo, hyps, strict=True)):
+            if h.rejected_at in ("grouping", "ransac") and r.guided is not None:
+                t0 = time.perf_counter()
+                again = r.guided()
+                second = hypothesise(again.src_kp, again.dst_kp, None, vp, again.quality)
+                ms[j] += (time.perf_counter() - t0) * 1e3
+                if second.rejected_at is None:
+                    todo[j], hyps[j] = again, second
+                    guided.add(j)
+                    ms[j] += again.verify_ms - r.verify_ms
+    return answer()
+
+
+def _ranked(
+    todo: Sequence[Retrieved],
+    hyps: Sequence[Hypothesis],
+    done: Mapping[int, Verification],
+    refined: set[int],
+    ms: Sequence[float],
+    vp: VerifiedParams,
+    query_id: int,
+    k: int | None,
+) -> list[Candidate]:
+    """`verify_candidates`' answer: each candidate's verification (``done`` for the ``refined``, its rejection
+    before ICP else), sorted by verified score, at most ``k``."""
+    out: list[Candidate] = []
+    for j, (r, h) in enumerate(zip(todo, hyps, strict=True)):
+        v = done[j] if j in refined else h.rejected(None if h.rejected_at else "rank")
+        out.append(
+            Candidate(
+                query_id,
+                int(r.match_id),
+                _score(v, vp),
+                v.T_match_query,
+                v.inliers,
+                dict(r.extra),
+                accepted=bool(v.accepted),
+                verification=v,
+                retrieval_score=float(r.retrieval_score),
+                verify_ms=ms[j],
+                matches=None if r.pairs is None else np.asarray(r.pairs, np.int32).reshape(-1, 2),
+            )
         )
-        out.append(cand)
     # retrieval_score is set on every candidate above (`or 0.0` only narrows its Optional type)
     out.sort(key=lambda c: (-c.score, not c.accepted, -(c.retrieval_score or 0.0)))
     kept = out[: k if k is not None else len(out)]
