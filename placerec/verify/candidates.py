@@ -560,15 +560,15 @@ def verify_near(
     eligible: Callable[[int], bool],
     query_id: int = -1,
 ) -> Candidate | None:
-    """The first place ``prior`` predicts within ``guided.near_metres`` of the query, with a bound of at most
-    ``guided.near_max_metres`` (None: ``max_metres``), that ICP alone, started from the prediction, registers with a score of at least ``guided.min_score`` and a pose within the prediction's
+    """The first place ``prior`` predicts within ``guided.near_metres`` of the query that ICP alone, started from
+    the prediction, registers with a score of at least ``guided.min_score`` and a pose within the prediction's
     bounds, trying at most ``guided.near_candidates`` of the ``eligible`` entries, nearest first (module
     docstring); None when none does or ``near_metres`` is unset. The time of the tries that failed is counted in
     the one returned (marked ``near`` in its ``extra``)."""
     g = params.guided
     if g.near_metres is None:
         return None
-    reach = next((m for m in (g.near_max_metres, g.max_metres) if m is not None), float("inf"))
+    reach = g.max_metres if g.max_metres is not None else float("inf")
     spent = 0.0
     tried = 0
     for match_id, prediction in prior.near(g.near_metres, reach):

@@ -74,12 +74,6 @@ class GuidedParams(Params):
         description="with no answer from min_score, ICP from the prediction onto places predicted this near (m)",
     )
     near_candidates: int = Field(4, ge=1, description="places predicted near, tried nearest first")
-    near_max_metres: float | None = Field(
-        None,
-        gt=0,
-        allow_inf_nan=False,
-        description="max_metres for the places predicted near (None: max_metres)",
-    )
 
 
 def within(prediction: Prediction, T_match_query: np.ndarray) -> bool:
