@@ -538,6 +538,7 @@ REJECTIONS: dict[str, str] = {
     "grouping": "too few consistent correspondences",
     "ransac": "too few RANSAC inliers",
     "rank": "not refined: ICP was spent on better candidates",
+    "coarse_fitness": "ICP from a rough guess: the coarse stages' overlap below verify.icp_only_min_coarse_fitness",
     "fitness": "ICP overlap (fitness) below min_fitness",
     "fitness_ratio": "ICP overlap below min_fitness_ratio of what a right alignment overlaps at that displacement",
     "constraint": "the overlap leaves the translation free along a direction (constraint below min_constraint)",

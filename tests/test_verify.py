@@ -405,6 +405,45 @@ def test_the_coarse_stages_run_on_the_coarser_query_grid_made_once(sim_scans, mo
         VerifyParams(icp_only_coarse_voxel_size=0.0)
 
 
+def test_a_coarse_stage_that_overlaps_too_little_ends_the_icp_from_a_rough_guess(sim_scans, monkeypatch):
+    import importlib
+
+    from placerec.verify import as_source, as_target
+
+    verify_module = importlib.import_module("placerec.verify.verify")
+    seq, scans = sim_scans
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    near = _pose([0.5, -0.5, 3.0], [0.4, -0.3, 0.1]) @ T_gt  # a guess the coarse gate brings home
+    far = _pose([0.0, 0.0, 180.0], [60.0, 40.0, 0.0]) @ T_gt  # turned round, 70 m away: nothing overlaps
+    plain = VerifyParams(icp_only_coarse_voxel_size=3.0)
+    floored = VerifyParams(icp_only_coarse_voxel_size=3.0, icp_only_min_coarse_fitness=0.05)
+    src, tgt = as_source(scans[13], plain), as_target(scans[10], plain)
+    gates: list[float] = []
+    real_refine = verify_module.refine
+
+    def refine(source, target, init, icp, *args, **kwargs):
+        gates.append(icp.max_correspondence_distance)
+        return real_refine(source, target, init, icp, *args, **kwargs)
+
+    monkeypatch.setattr(verify_module, "refine", refine)
+    # overlapping from the coarse stage on: the floor changes nothing
+    a, b = verify_icp(src, tgt, init=near, params=plain), verify_icp(src, tgt, init=near, params=floored)
+    assert b.accepted and b.score == a.score and np.array_equal(b.T_match_query, a.T_match_query)
+    # nothing within score.fitness_distance after the coarse stage: rejected there, the fine stage never runs
+    gates.clear()
+    v = verify_icp(src, tgt, init=far, params=floored)
+    assert gates == [4.0] and not v.accepted and v.score == 0.0 and v.rejection == "coarse_fitness"
+    assert v.fitness < 0.05 and v.icp_iterations >= 0 and "icp" in v.timings_ms
+    gates.clear()
+    assert verify_icp(src, tgt, init=far, params=plain).rejection != "coarse_fitness" and gates == [4.0, 1.0]
+    # matches posing the candidate: no coarse stage, no floor
+    rng = np.random.default_rng(8)
+    q = scans[13][rng.choice(len(scans[13]), 200, replace=False)].astype(np.float64)
+    assert verify(src, tgt, q, _apply(T_gt, q), params=floored).accepted
+    with pytest.raises(ConfigError, match="icp_only_min_coarse_fitness"):
+        VerifyParams(icp_only_min_coarse_fitness=1.5)
+
+
 def test_eps_icp_acceptance_rule(sim_scans):
     seq, scans = sim_scans
     T_gt = relative_pose(seq.poses[10], seq.poses[13])

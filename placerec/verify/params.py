@@ -192,6 +192,14 @@ class VerifyParams(Params):
         " judged",
     )
 
+    icp_only_min_coarse_fitness: float | None = Field(
+        None,
+        ge=0,
+        le=1,
+        description="ICP from a rough guess: rejected without the fine stage when the coarse stages end with less"
+        " overlap (score.fitness_distance) than this (None: always refined)",
+    )
+
     @model_validator(mode="after")
     def _check(self) -> VerifyParams:
         if self.icp.method == "gicp" and self.icp.backend != "small_gicp":

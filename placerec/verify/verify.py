@@ -14,7 +14,7 @@ Without correspondences (`verify_icp`), ICP starts from the given initial guess 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -171,6 +171,18 @@ def complete(
             coarse = params.icp.model_copy(update={"max_correspondence_distance": gate})
             step = refine(coarse_source, target, T0, coarse, sp.fitness_distance, sp.eps_icp_max_range)
             T0, coarse_ms = step.T, coarse_ms + step.ms
+            floor = params.icp_only_min_coarse_fitness
+            if floor is not None and gate == params.icp_only_coarse_distances[-1] and step.fitness < floor:
+                timings["icp"] = coarse_ms
+                timings["total"] = sum(v for k, v in timings.items() if k != "total")
+                return replace(
+                    hypothesis.rejected("coarse_fitness"),
+                    T_match_query=step.T,
+                    fitness=step.fitness,
+                    rmse=step.rmse,
+                    icp_iterations=step.iterations,
+                    timings_ms=timings,
+                )
     measure_constraint = sp.min_constraint is not None
     icp = refine(
         source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range, measure_constraint
