@@ -149,10 +149,10 @@ _ODOMETRY_THRESHOLDS: dict[str, dict[str, float]] = {
 #: Avia's 531 -> 537 at 0.05, none false, the rule's thresholds unchanged (docs/sensors.md, "Places predicted
 #: near"). Their ICP from a prediction (the only ICP-only verification these pipelines run) starts on a 3 m query
 #: grid (`icp_only_coarse_voxel_size`): the same right closures on both sensors' tuning cells (484, and the Avia's
-#: recall 0.719), about half the time of that verification. The Avia's also ends there when the coarse stages leave
-#: less than 0.10 of the query's grid overlapping (`icp_only_min_coarse_fitness`): its twelve tuning cells' candidates
-#: files the same bytes, 14 % less time a keyframe; not the E1R's, whose right places seen through its 120° cone from
-#: a prediction up to 2 m off start as low as 0.03 (docs/sensors.md).
+#: recall 0.719), about half the time of that verification. That verification also ends after the coarse stages when
+#: they leave less than 0.10 (Avia) / 0.02 (E1R) of the query's grid overlapping (`icp_only_min_coarse_fitness`;
+#: the E1R's right places, seen through its 120° cone from a prediction up to 2 m off, start as low as 0.03): each
+#: sensor's twelve tuning cells' candidates files the same bytes, 14 % / ~10 % less time a keyframe (docs/sensors.md).
 _ODOMETRY_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "orb-dbow": {
         "e1r": {
@@ -161,6 +161,7 @@ _ODOMETRY_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
                 "ransac": {"inlier_threshold": 1.0},
                 "guided": {"enabled": True},
                 "icp_only_coarse_voxel_size": 3.0,
+                "icp_only_min_coarse_fitness": 0.02,
             },
             "image": {"density_points_per_pixel": 2.0},
         },
