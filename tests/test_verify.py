@@ -507,6 +507,7 @@ def test_rejection_names_the_rule_that_rejected():
         "grouping",
         "ransac",
         "rank",
+        "coarse_fitness",
         "fitness",
         "fitness_ratio",
         "constraint",

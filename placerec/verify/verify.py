@@ -6,7 +6,9 @@ correspondences (query keypoints <-> match keypoints)
   -> ICP between the voxelised scans (small_gicp point-to-plane by default)
   -> verified score in [0, 1] and acceptance (`placerec.verify.score`).
 
-Without correspondences (`verify_icp`), ICP starts from the given initial guess (e.g. Scan Context's yaw).
+Without correspondences (`verify_icp`), ICP starts from the given initial guess (e.g. Scan Context's yaw): coarse
+stages first (``icp_only_coarse_distances``, on ``icp_only_coarse_voxel_size``'s grid), which end it, rejected as
+``coarse_fitness``, when they leave less overlap than ``icp_only_min_coarse_fitness``.
 ``T_match_query`` maps query points into the match scan's frame (`placerec.types` conventions), so that
 ``T_world_query ~= T_world_match @ T_match_query``.
 """
@@ -167,22 +169,23 @@ def complete(
     T0, coarse_ms = hypothesis.T_match_query, 0.0
     if hypothesis.inliers is None:  # a rough initial guess: coarse gates first, on a coarser query grid
         coarse_source = coarser_source(source, params.icp_only_coarse_voxel_size, params.icp)
+        step = None
         for gate in params.icp_only_coarse_distances:
             coarse = params.icp.model_copy(update={"max_correspondence_distance": gate})
             step = refine(coarse_source, target, T0, coarse, sp.fitness_distance, sp.eps_icp_max_range)
             T0, coarse_ms = step.T, coarse_ms + step.ms
-            floor = params.icp_only_min_coarse_fitness
-            if floor is not None and gate == params.icp_only_coarse_distances[-1] and step.fitness < floor:
-                timings["icp"] = coarse_ms
-                timings["total"] = sum(v for k, v in timings.items() if k != "total")
-                return replace(
-                    hypothesis.rejected("coarse_fitness"),
-                    T_match_query=step.T,
-                    fitness=step.fitness,
-                    rmse=step.rmse,
-                    icp_iterations=step.iterations,
-                    timings_ms=timings,
-                )
+        floor = params.icp_only_min_coarse_fitness
+        if step is not None and floor is not None and not step.fitness >= floor:  # NaN: nothing overlapped
+            timings["icp"] = coarse_ms
+            timings["total"] = sum(v for k, v in timings.items() if k != "total")
+            return replace(
+                hypothesis.rejected("coarse_fitness"),
+                T_match_query=step.T,
+                fitness=step.fitness,
+                rmse=step.rmse,
+                icp_iterations=step.iterations,
+                timings_ms=timings,
+            )
     measure_constraint = sp.min_constraint is not None
     icp = refine(
         source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range, measure_constraint
