@@ -34,7 +34,6 @@ from placerec.features.superpoint.quantise import agreement, quantise_int8  # no
 from placerec.features.superpoint.weights import (  # noqa: E402
     SHIPPED_WEIGHTS,
     int8_path,
-    provenance_path,
     record_hashes,
 )
 
@@ -132,9 +131,11 @@ def main(argv: list[str] | None = None) -> int:
         "validation_images": len(held),
     }
     timing = {b: round(float(np.median(v)), 2) for b, v in ms.items()}
-    prov = json.loads(provenance_path(args.weights).read_text())
-    prov["int8"] = {**prov["int8"], "agreement_on_validation": figures, "ms_per_image_median": timing}
-    record_hashes(args.weights, prov)
+    section = {**made, "calibration_images": len(calib)}  # what quantise_int8 recorded, and the figures
+    record_hashes(
+        args.weights,
+        update={"int8": {**section, "agreement_on_validation": figures, "ms_per_image_median": timing}},
+    )
     print(f"int8 model: {out} ({out.stat().st_size / 1e6:.1f} MB), from {len(calib)} calibration images")
     print(f"against the float network on {len(held)} validation images: {figures}")
     print(f"network ms per image (median, interleaved; load {os.getloadavg()[0]:.2f}): {timing}")

@@ -54,7 +54,7 @@ from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.quantise import FixedPointCloud, PackedCloud
 from placerec.threads import import_openmp
 from placerec.types import Candidate, MotionPrior, take_rows
-from placerec.verify.guided import GuidedParams, within
+from placerec.verify.guided import GuidedParams, answer_pose, within
 from placerec.verify.icp import IcpCloud, as_points
 from placerec.verify.params import VerifyParams
 from placerec.verify.spill import SpilledArrays, SpillFile, SpillRef, memory_mapped
@@ -499,7 +499,8 @@ def verify_candidates(
         if instead is not None:
             return instead
         spent = (time.perf_counter() - t0) * 1e3 / len(todo)
-        ms = [m + spent for m in ms]
+        for j in range(len(ms)):
+            ms[j] += spent
     if vp.guided.enabled:
         for j, (r, h) in enumerate(zip(todo, hyps, strict=True)):
             if h.rejected_at in ("grouping", "ransac") and r.guided is not None:
@@ -582,9 +583,9 @@ def verify_near(
         r = Retrieved(match_id, 0.0, init=prediction.T_match_query, extra={"near": 1})
         (c,) = verify_candidates(query_cloud, [r], store, params, query_id, 1)
         spent += (time.perf_counter() - t0) * 1e3
-        if c.accepted and c.score >= g.min_score and c.relative_pose is not None:
-            if within(prediction, c.relative_pose):
-                return replace(c, verify_ms=spent)
+        pose = answer_pose(c, g)
+        if pose is not None and within(prediction, pose):
+            return replace(c, verify_ms=spent)
     return None
 
 

@@ -85,15 +85,23 @@ def within(prediction: Prediction, T_match_query: np.ndarray) -> bool:
 
 
 def answers(candidates: Sequence[Candidate], prior: MotionPrior, params: GuidedParams) -> bool:
-    """Whether one of ``candidates`` is an answer a gate with the ``prior`` would keep: accepted, scoring at least
-    ``min_score``, with a pose within its prediction (where the prior has one)."""
+    """Whether one of ``candidates`` is an answer a gate with the ``prior`` would keep: one with an `answer_pose`
+    within its prediction (where the prior has one)."""
     for c in candidates:
-        if not c.accepted or c.score < params.min_score or c.relative_pose is None:
-            continue
-        prediction = prior.predict(c.match_id)
-        if prediction is None or within(prediction, c.relative_pose):
-            return True
+        pose = answer_pose(c, params)
+        if pose is not None:
+            prediction = prior.predict(c.match_id)
+            if prediction is None or within(prediction, pose):
+                return True
     return False
+
+
+def answer_pose(candidate: Candidate, params: GuidedParams) -> np.ndarray | None:
+    """The pose of a candidate that may answer a query with a prior (accepted, scoring at least ``min_score``),
+    else None."""
+    if candidate.accepted and candidate.score >= params.min_score:
+        return candidate.relative_pose
+    return None
 
 
 def guides(params: object) -> bool:

@@ -19,11 +19,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 from pydantic import Field
 
 from placerec.params import Params
 
-__all__ = ["SuperPointArch", "Conv", "conv_layers", "CELL", "DETECTOR_CHANNELS"]
+__all__ = ["SuperPointArch", "Conv", "conv_layers", "network_input", "CELL", "DETECTOR_CHANNELS"]
 
 #: pixels per cell side (three 2x2 poolings)
 CELL = 8
@@ -73,3 +74,9 @@ def conv_layers(arch: SuperPointArch) -> tuple[list[Conv], list[Conv], list[Conv
         Conv("convDb", arch.head, arch.descriptor_dim, 1, relu=False),
     ]
     return encoder, detector, descriptor
+
+
+def network_input(image: np.ndarray) -> np.ndarray:
+    """The network's (1, 1, H, W) float input of a uint8 intensity image (what every backend and the int8
+    calibration feed it)."""
+    return (np.asarray(image, np.float32) / 255.0)[None, None]

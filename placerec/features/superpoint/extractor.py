@@ -26,7 +26,7 @@ from pydantic import Field
 
 from placerec.errors import ArtifactError, DependencyError
 from placerec.features.base import ExtractorParams, FeatureExtractor, _Keypoints
-from placerec.features.superpoint.arch import CELL, SuperPointArch
+from placerec.features.superpoint.arch import CELL, SuperPointArch, network_input
 from placerec.features.superpoint.post import keypoint_probability, sample_descriptors, select_keypoints
 from placerec.features.superpoint.probe import check_outputs, probe_image
 from placerec.features.superpoint.quantise import check_agreement
@@ -101,7 +101,7 @@ class SuperPointNet:
         self.backend = backend
         self._lock = threading.Lock()  # a cv2.dnn.Net is not safe to share between threads
         self._net: Any  # a cv2.dnn.Net, an ONNX Runtime session or a torch module
-        if backend in ("onnxruntime", "onnxruntime-int8"):
+        if backend in ORT_BACKENDS:
             model_bytes = files.int8 if backend == "onnxruntime-int8" else files.onnx
             assert model_bytes is not None
             self._net = _onnxruntime_session(model_bytes, self._model_file(), path.name)
@@ -150,7 +150,7 @@ class SuperPointNet:
         if self.backend == "onnxruntime-int8":  # and against its float network, whose bytes were checked too
             assert self.files.onnx is not None
             ref = _onnxruntime_session(self.files.onnx, onnx_path(path), path.name)
-            x = _network_input(probe_image())
+            x = network_input(probe_image())
             semi_ref, desc_ref = ref.run(["semi", "desc"], {ref.get_inputs()[0].name: x})
             check_agreement(semi, desc, semi_ref[0], desc_ref[0], name)
         _PROBED.add(key)
@@ -163,22 +163,17 @@ class SuperPointNet:
         return onnx_path(path) if self.backend in ONNX_BACKENDS else path
 
     def forward(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x = _network_input(image)
+        x = network_input(image)
         if self.backend == "cv2":
             with self._lock:
                 self._net.setInput(x)
                 semi, desc = self._net.forward(["semi", "desc"])
-        elif self.backend in ("onnxruntime", "onnxruntime-int8"):  # a session may run from several threads
+        elif self.backend in ORT_BACKENDS:  # a session may run from several threads at once
             semi, desc = self._net.run(["semi", "desc"], {self._input: x})
         else:
             with self._torch.inference_mode():
                 semi, desc = (t.numpy() for t in self._net(self._torch.from_numpy(x)))
         return semi[0], desc[0]
-
-
-def _network_input(image: np.ndarray) -> np.ndarray:
-    """The network's (1, 1, H, W) float input of a uint8 intensity image."""
-    return (np.asarray(image, np.float32) / 255.0)[None, None]
 
 
 def _onnxruntime_session(model: bytes, file: Path, weights_name: str) -> Any:
@@ -210,6 +205,8 @@ def _onnxruntime_session(model: bytes, file: Path, weights_name: str) -> Any:
 
 #: backends that run the ONNX model written beside the weights (the int8 one checks its outputs against it)
 ONNX_BACKENDS = ("cv2", "onnxruntime", "onnxruntime-int8")
+#: backends that run an ONNX model through an ONNX Runtime session
+ORT_BACKENDS = ("onnxruntime", "onnxruntime-int8")
 #: (backend, weights sha256, ONNX sha256, int8 ONNX sha256) of the networks that passed the probe in this process
 _PROBED: set[tuple[str, str, str, str]] = set()
 _NETS: dict[tuple[Any, ...], SuperPointNet] = {}

@@ -14,7 +14,6 @@ quantised network would silently compute something else.
 
 from __future__ import annotations
 
-import json
 import tempfile
 from collections.abc import Iterable
 from pathlib import Path
@@ -23,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from placerec.errors import ArtifactError, DependencyError
-from placerec.features.superpoint.weights import int8_path, open_model, provenance_path, record_hashes
+from placerec.features.superpoint.arch import network_input
+from placerec.features.superpoint.weights import int8_path, open_model, record_hashes
 from placerec.io.atomic import atomic_write
 
 __all__ = ["MIN_COSINE", "MIN_CORRELATION", "agreement", "check_agreement", "quantise_int8"]
@@ -97,7 +97,7 @@ def quantise_int8(weights: str | Path, images: Iterable[np.ndarray], provenance:
 
         def get_next(self) -> dict[str, np.ndarray] | None:
             im = next(self.left, None)
-            return None if im is None else {self.name: (im.astype(np.float32) / 255.0)[None, None]}
+            return None if im is None else {self.name: network_input(im)}
 
     import onnx
 
@@ -124,9 +124,5 @@ def quantise_int8(weights: str | Path, images: Iterable[np.ndarray], provenance:
         )
         with atomic_write(int8_path(weights)) as f:
             f.write(out.read_bytes())
-    file = provenance_path(weights)
-    found = json.loads(file.read_text()) if file.is_file() else {"format_version": 1}
-    if not isinstance(found, dict):
-        raise ArtifactError(f"{file}: the provenance is not a JSON object")
-    record_hashes(weights, {**found, "int8": {**provenance, "calibration_images": len(ims)}})
+    record_hashes(weights, update={"int8": {**provenance, "calibration_images": len(ims)}})
     return int8_path(weights)

@@ -81,10 +81,12 @@ def file_sha256(path: str | Path) -> str:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
-def record_hashes(path: str | Path, provenance: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Write the provenance JSON beside the weights ``path``: ``provenance`` (None: the JSON there now, if any)
-    with ``sha256`` set to the hashes of the ``.npz`` and of the ``.onnx`` and ``.int8.onnx`` (those there are);
-    returns it.
+def record_hashes(
+    path: str | Path, provenance: dict[str, Any] | None = None, update: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Write the provenance JSON beside the weights ``path``: ``provenance`` (None: the JSON there now, if any),
+    the keys of ``update`` set on it, with ``sha256`` set to the hashes of the ``.npz`` and of the ``.onnx`` and
+    ``.int8.onnx`` (those there are); returns it.
 
     Only for files you made: the hashes say "these are the files this provenance describes"."""
     path = Path(path)
@@ -98,7 +100,7 @@ def record_hashes(path: str | Path, provenance: dict[str, Any] | None = None) ->
         hashes["onnx"] = file_sha256(onnx_path(path))
     if int8_path(path).is_file():
         hashes["int8"] = file_sha256(int8_path(path))
-    out = {**provenance, "sha256": hashes}
+    out = {**provenance, **(update or {}), "sha256": hashes}
     with atomic_write(provenance_path(path), "w") as fh:
         json.dump(out, fh, indent=2)
         fh.write("\n")
