@@ -196,6 +196,17 @@ def test_a_candidate_ransac_rejects_is_verified_from_the_matches_its_prior_allow
     assert got[8].accepted and got[7].verification.rejection == "rank"
 
 
+def _look_alike(match_id, src, dst, rng, asked):
+    """A candidate whose own matches are shuffled (no consistent pose) and whose second chance, the matching
+    within the prior, gives the right ones; each such matching is logged in ``asked`` (its match id)."""
+
+    def again():
+        asked.append(match_id)
+        return Retrieved(match_id, 0.5, src, dst, extra={"guided": 1})
+
+    return Retrieved(match_id, 0.5, src, dst[rng.permutation(len(dst))], guided=again)
+
+
 def test_between_their_own_matches_and_second_chances_each_icp_is_made_once(monkeypatch):
     """``between`` sees the candidates verified on their own matches; when it gives no answer the second chances
     follow with those verifications reused: the same candidates as one call without it, one ICP a candidate."""
@@ -220,15 +231,8 @@ def test_between_their_own_matches_and_second_chances_each_icp_is_made_once(monk
     src, dst = query_pts[idx], match_pts[idx]
     asked = []
 
-    def again():
-        asked.append(1)
-        return Retrieved(7, 0.5, src, dst, extra={"guided": 1})
-
     def retrieved():
-        return [
-            Retrieved(7, 0.5, src, dst[rng.permutation(40)], guided=again),
-            Retrieved(8, 0.4, src[:12], dst[:12]),
-        ]
+        return [_look_alike(7, src, dst, rng, asked), Retrieved(8, 0.4, src[:12], dst[:12])]
 
     cloud = scan_cloud(query_pts, params)
     icps = []
@@ -448,12 +452,7 @@ def test_a_place_predicted_near_comes_before_matching_within_the_prior_onto_a_ca
     idx = rng.choice(len(room), 40, replace=False)
     src, dst = query[idx], room[idx]
     calls = []
-
-    def again():
-        calls.append(2)
-        return Retrieved(2, 0.5, src, dst, extra={"guided": 1})
-
-    wrong = Retrieved(2, 0.5, src, dst[rng.permutation(40)], guided=again)
+    wrong = _look_alike(2, src, dst, rng, calls)
     near = _Near([(1, Prediction(_pose(3.6, -0.5, 6.0), 1.5, np.radians(6.0)))])
     got = pipe._verified(q, [wrong], 9, 2, near, 2)
     assert got[0].match_id == 1 and got[0].extra["near"] == 1 and calls == []
