@@ -47,7 +47,7 @@ def test_success_counts_accepted_answers_only() -> None:
     assert tool.localize_figures(rec, map_poses, query_poses)["r_at_p1"] == pytest.approx(1 / 3)
 
 
-def test_world_splits_drive_the_test_seeds_in_each_world_and_tuning_in_town_only() -> None:
+def test_world_splits_drive_each_splits_seeds_in_each_world() -> None:
     tool = _tool()
     runs = tool.world_splits(["test"], ["town", "campus"])
     assert set(runs) == {"test", "test-campus"}
@@ -55,8 +55,9 @@ def test_world_splits_drive_the_test_seeds_in_each_world_and_tuning_in_town_only
     assert {k: v for k, v in runs["test-campus"].items() if k != "world"} == {
         k: v for k, v in tool.SPLITS["test"].items() if k != "world"
     }
-    with pytest.raises(SystemExit, match="no campus"):
-        tool.world_splits(["tuning"], ["campus"])
+    tuning = tool.world_splits(["tuning"], ["campus"])["tuning-campus"]
+    assert tuning == {**tool.SPLITS["tuning"], "world": "campus"}
+    assert not any(tool.protocol.is_test_seed(tuning[k]) for k in ("world_seed", "map_seed", "query_seed"))
 
 
 def test_concat_sequence_and_monotone_fit() -> None:

@@ -10,8 +10,9 @@ response curves; the map role's unit is 700, the query role's 701, for every sen
   (TEST_SEEDS); nothing is chosen on it.
 * ``tuning``: town, world seed 0, map drive seed 0 (the tuning cell), query drive seed 1.
 
-``--worlds`` runs the test split in more of the benchmark's test worlds (town, campus, industrial; the same seeds);
-the tuning split has town only.
+``--worlds`` runs the splits in more of the benchmark's worlds (town, campus, industrial; the same seeds): the
+tuning split's campus and industrial drives (world seed 0, drive seeds 0 / 1) are the sensor benchmark's tuning
+worlds (`configs/benchmark_sensors_tuning.yaml`), never a test seed.
 
 Every fitted quantity comes from the tuning world only: each unit's per-beam Levinson table
 (`placerec.calibration.calibrate_sequence`) is fitted on its own drive through the tuning world (world seed 0, drive
@@ -130,13 +131,11 @@ SPLITS: dict[str, dict[str, Any]] = {
 
 
 def world_splits(splits: list[str], worlds: list[str]) -> dict[str, dict[str, Any]]:
-    """The runs of ``splits`` in each of ``worlds`` (the test split's seeds in any test world; the tuning split
-    has town only): key ``split`` for town, ``split-world`` for the others."""
+    """The runs of ``splits`` in each of ``worlds`` (each split's seeds in any of the benchmark's worlds): key
+    ``split`` for town, ``split-world`` for the others."""
     out = {}
     for split in splits:
         for world in worlds:
-            if split == "tuning" and world != "town":
-                raise SystemExit(f"the tuning split has no {world} drive (protocol.TUNING_WORLDS: town)")
             out[split if world == "town" else f"{split}-{world}"] = {**SPLITS[split], "world": world}
     return out
 
@@ -716,7 +715,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         nargs="+",
         choices=protocol.TEST_WORLDS,
         default=["town"],
-        help="worlds the test split drives (default town; the tuning split has town only)",
+        help="worlds each split drives (default town)",
     )
     ap.add_argument("--pairs", nargs="+", default=None, help="MAP:QUERY pairs (default: the issue's four)")
     ap.add_argument("--pipelines", nargs="+", default=None, choices=sorted(PIPELINES))
@@ -843,7 +842,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "tool": "eval_cross_sensor",
         "quick": q,
         "splits": {
-            s: {**d, "label": "tuning" if s == "tuning" else "test"} for s, d in args.split_defs.items()
+            s: {**d, "label": s.split("-")[0]} for s, d in args.split_defs.items()
         },
         "units": UNITS,
         "calibration_drives": {
