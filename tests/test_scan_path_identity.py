@@ -26,12 +26,15 @@ def ref_as_points(points):
 
 
 def ref_scan_cloud(scan, params):
-    from placerec.verify.candidates import voxel_points
+    import small_gicp
 
     p = ref_as_points(scan)
     if params.icp.max_range is not None:
         p = p[np.einsum("ni,ni->n", p, p) <= params.icp.max_range**2]
-    return voxel_points(p, params.icp.voxel_size)
+    if p.shape[0] == 0:
+        return np.zeros((0, 3), np.float32)
+    vox = small_gicp.voxelgrid_sampling(p, params.icp.voxel_size)
+    return np.asarray(vox.points(), dtype=np.float32)[:, :3]
 
 
 def ref_keep(scan, keep, keep_organized):

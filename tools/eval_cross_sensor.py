@@ -841,9 +841,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     out = {
         "tool": "eval_cross_sensor",
         "quick": q,
-        "splits": {
-            s: {**d, "label": s.split("-")[0]} for s, d in args.split_defs.items()
-        },
+        "splits": {s: {**d, "label": s.split("-")[0]} for s, d in args.split_defs.items()},
         "units": UNITS,
         "calibration_drives": {
             "world": "town",

@@ -23,7 +23,7 @@ from placerec.params import Params
 from placerec.preprocess import PreprocessParams, preprocess_scan
 from placerec.recognizer import make_pipeline
 from placerec.types import PlaceRecognizer, Sequence, valid_points
-from placerec.verify.candidates import voxel_points
+from placerec.verify.voxel_grid import voxel_points
 
 log = logging.getLogger(__name__)
 

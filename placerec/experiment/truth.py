@@ -51,7 +51,7 @@ class TruthClouds:
             scan_voxels(xyz, self.poses[index], self.settings) if self.pose_truth else np.zeros(0, np.int64)
         )
         if self.icp_truth:
-            from placerec.verify.candidates import voxel_points
+            from placerec.verify.voxel_grid import voxel_points
 
             finite = xyz[np.isfinite(xyz).all(axis=1) & (np.abs(xyz).sum(axis=1) > 0)]
             self.clouds.append(voxel_points(finite, self.icp_settings.voxel / 2))

@@ -691,7 +691,7 @@ class MapWriter:
     ) -> int:
         """Add the next keyframe: its pose ``T_world_keyframe`` and its points in its own frame (voxelised here
         to ``cloud_voxel_m``); returns its id."""
-        from placerec.verify.candidates import voxel_points
+        from placerec.verify.voxel_grid import voxel_points
 
         T = as_pose(pose, f"map keyframe {len(self)}")
         if not self._session_names:

@@ -18,10 +18,11 @@ import numpy as np
 from placerec.retrieval.descriptor_store import knn2
 from placerec.retrieval.nearest import nn_ratio
 from placerec.three_d.entries import EntryTable
-from placerec.verify.candidates import CloudStore, Retrieved, voxel_points
+from placerec.verify.candidates import CloudStore, Retrieved
 from placerec.verify.icp import IcpCloud
 from placerec.verify.params import VerifyParams
 from placerec.verify.verify import as_target
+from placerec.verify.voxel_grid import voxel_points
 
 __all__ = ["LocalMaps"]
 

@@ -52,20 +52,19 @@ from pydantic import Field
 
 from placerec.errors import ArtifactError, ConfigError, ScanDataError
 from placerec.quantise import FixedPointCloud, PackedCloud
-from placerec.threads import import_openmp
 from placerec.types import Candidate, MotionPrior, take_rows
 from placerec.verify.guided import GuidedParams, answer_pose, within
 from placerec.verify.icp import IcpCloud, as_points
 from placerec.verify.params import VerifyParams
 from placerec.verify.spill import SpilledArrays, SpillFile, SpillRef, memory_mapped
 from placerec.verify.verify import Hypothesis, Verification, as_source, as_target, complete, hypothesise
+from placerec.verify.voxel_grid import voxel_points
 
 __all__ = [
     "VerifiedParams",
     "Retrieved",
     "CloudStore",
     "scan_cloud",
-    "voxel_points",
     "verify_candidates",
     "verify_near",
     "feature_arrays",
@@ -157,15 +156,6 @@ def scan_cloud(scan: Any, params: VerifyParams | None = None) -> np.ndarray:
     if icp.max_range is not None:
         p = take_rows(p, np.einsum("ni,ni->n", p, p) <= icp.max_range**2)
     return voxel_points(p, icp.voxel_size)
-
-
-def voxel_points(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """(N, 3) points voxelised (small_gicp's voxel grid: one point per occupied voxel), (M, 3) float32."""
-    small_gicp = import_openmp("small_gicp")
-    if points.shape[0] == 0:
-        return np.zeros((0, 3), np.float32)
-    vox = small_gicp.voxelgrid_sampling(np.ascontiguousarray(points, dtype=np.float64), voxel_size)
-    return np.asarray(vox.points(), dtype=np.float32)[:, :3].copy()
 
 
 class CloudStore:
