@@ -91,6 +91,19 @@ def _mirrored(q: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate([near, mirror]), np.float32)
 
 
+def test_the_approximate_distances_are_every_pairs_squared_distance():
+    from placerec.verify.matching import _approx_distances
+
+    rng = np.random.default_rng(5)
+    for n, m, d in ((300, 300, 256), (299, 253, 256), (3, 17, 64), (18, 5, 64)):
+        a, b = rng.normal(size=(n, d)).astype(np.float32), rng.normal(size=(m, d)).astype(np.float32)
+        a_sq, b_sq = np.einsum("ij,ij->i", a, a), np.einsum("ij,ij->i", b, b)
+        exact = ((a[:, None, :].astype(np.float64) - b[None, :, :]) ** 2).sum(2)
+        np.testing.assert_allclose(
+            _approx_distances(a, b, a_sq, b_sq), exact, atol=1e-5 * (a_sq.max() + b_sq.max())
+        )
+
+
 def test_screened_float_matching_is_the_all_pairs_loop_bit_for_bit():
     from placerec.verify.matching import _nearest_both_ways_l2, _nearest_both_ways_screened
 
@@ -108,6 +121,8 @@ def test_screened_float_matching_is_the_all_pairs_loop_bit_for_bit():
         "SURF-sized": (_unit(rng.normal(size=(200, 64))), _unit(rng.normal(size=(180, 64)))),
         # a NaN row matches nothing and hides nothing (the loop's own answer)
         "NaN": (np.where(np.arange(300)[:, None] == 7, np.nan, a).astype(np.float32), a[::-1].copy()),
+        # sizes that leave rows and columns beyond the last whole 4 x 4 block of the approximate distances
+        "ragged": (a[:299], _unit(rng.normal(size=(253, 256)))),
     }
     for name, (q, m) in cases.items():
         loop, screened = _nearest_both_ways_l2(q, m), _nearest_both_ways_screened(q, m)
