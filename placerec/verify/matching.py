@@ -4,12 +4,12 @@ Binary descriptors (packed ``uint8``, e.g. ORB, BRISK): a compiled single-thread
 64-bit words (SWAR popcount), a query row against all of the other set's rows at once; sets are a few hundred to a
 thousand descriptors per image, where a threaded library's start-up costs more than the work (docs/benchmarks.md,
 visual pipeline per scan). Float descriptors (SuperPoint, SURF) by Euclidean distance: float32 dot products give
-every squared distance approximately (summed 4 x 4 pairs at a time), which leaves a few candidates per row and per column (those within a
-tolerance far above the products' rounding of the smallest); their exact distances, by the all-pairs loop's own
-arithmetic (`_nearest_both_ways_l2`), decide. So the matches and distances are the all-pairs loop's, bit for bit,
-in two fifths of its time for 300 x 256 floats (1.0 against 2.5 ms). (A BLAS product was faster still but left OpenBLAS's idle threads
-spinning on the other core after every candidate, which cost the concurrent describe more than it saved:
-docs/benchmarks.md.)
+every squared distance approximately (summed 4 x 4 pairs at a time), which leaves a few candidates per row and per
+column (those within a tolerance far above the products' rounding of the smallest); their exact distances, by the
+all-pairs loop's own arithmetic (`_nearest_both_ways_l2`), decide. So the matches and distances are the all-pairs
+loop's, bit for bit, in two fifths of its time for 300 x 256 floats (1.0 against 2.5 ms). (A BLAS product was
+faster still but left OpenBLAS's idle threads spinning on the other core after every candidate, which cost the
+concurrent describe more than it saved: docs/benchmarks.md.)
 """
 
 from __future__ import annotations
