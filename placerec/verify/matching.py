@@ -7,7 +7,7 @@ visual pipeline per scan). Float descriptors (SuperPoint, SURF) by Euclidean dis
 every squared distance approximately (summed 4 x 4 pairs at a time), which leaves a few candidates per row and per
 column (those within a tolerance far above the products' rounding of the smallest); their exact distances, by the
 all-pairs loop's own arithmetic (`_nearest_both_ways_l2`), decide. So the matches and distances are the all-pairs
-loop's, bit for bit, in two fifths of its time for 300 x 256 floats (1.0 against 2.5 ms). (A BLAS product was
+loop's, bit for bit, in two fifths of its time for 300 x 256 floats. (A BLAS product was
 faster still but left OpenBLAS's idle threads spinning on the other core after every candidate, which cost the
 concurrent describe more than it saved: docs/benchmarks.md.)
 """
