@@ -6,9 +6,9 @@ the voxels come out in the order of their keys, each the double-precision mean o
 points whose voxel coordinates fall outside the 21-bit range (and non-finite ones) are left out.
 `tests/test_voxel_grid.py` compares the two on clouds of every scale.
 
-It is compiled without the GIL: small_gicp's call holds the GIL for its whole run (~6 ms for a 120k-point KITTI
-scan), so the visual front end's image thread, which needs the GIL between its compiled steps, waited for it
-(the projection took twice its time beside it: docs/benchmarks.md, "Real-time profile").
+It is compiled without the GIL: small_gicp's call holds the GIL for its whole run, and the visual front end's image
+thread, which needs the GIL between its compiled steps, runs beside the voxel grid (docs/benchmarks.md, "The ICP
+cloud's voxel grid without the GIL").
 """
 
 from __future__ import annotations
