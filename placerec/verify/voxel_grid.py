@@ -3,8 +3,10 @@
 `voxel_points` gives what small_gicp's ``voxelgrid_sampling`` (single-threaded) gives, bit for bit: a point's voxel
 is ``floor(p / voxel_size)`` per axis, the three coordinates offset by 2^20 and packed 21 bits each into one key;
 the voxels come out in the order of their keys, each the double-precision mean of its points, then float32;
-points whose voxel coordinates fall outside the 21-bit range (and non-finite ones) are left out.
-`tests/test_voxel_grid.py` compares the two on clouds of every scale.
+points whose voxel coordinates fall outside the 21-bit range (and non-finite ones) are left out. Neither sort fixes
+the order in which a voxel's points are summed; sums in another order differ at most in the last bits of a double,
+which the float32 result rounds away (it did on every cloud compared: `tests/test_voxel_grid.py` compares the two
+on clouds of every scale).
 
 It is compiled without the GIL: small_gicp's call holds the GIL for its whole run, and the visual front end's image
 thread, which needs the GIL between its compiled steps, runs beside the voxel grid (docs/benchmarks.md, "The ICP
