@@ -176,8 +176,7 @@ def complete(
             T0, coarse_ms = step.T, coarse_ms + step.ms
         floor = params.icp_only_min_coarse_fitness
         if step is not None and floor is not None and not step.fitness >= floor:  # NaN: nothing overlapped
-            timings["icp"] = coarse_ms
-            timings["total"] = sum(v for k, v in timings.items() if k != "total")
+            _icp_time(timings, coarse_ms)
             return replace(
                 hypothesis.rejected("coarse_fitness"),
                 T_match_query=step.T,
@@ -190,8 +189,7 @@ def complete(
     icp = refine(
         source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range, measure_constraint
     )
-    timings["icp"] = icp.ms + coarse_ms
-    timings["total"] = sum(v for k, v in timings.items() if k != "total")
+    _icp_time(timings, icp.ms + coarse_ms)
     score = verified_score(hypothesis.inliers, icp.fitness, icp.rmse, sp)
     why = rejection(score, icp.residual, sp, icp.fitness, icp.constraint, float(np.linalg.norm(icp.T[:3, 3])))
     return Verification(
@@ -210,6 +208,12 @@ def complete(
         rejection=why,
         constraint=icp.constraint,
     )
+
+
+def _icp_time(timings: dict[str, float], icp_ms: float) -> None:
+    """Record the ICP's milliseconds in ``timings`` and their new total (every stage but the total itself)."""
+    timings["icp"] = icp_ms
+    timings["total"] = sum(v for k, v in timings.items() if k != "total")
 
 
 def verify(
