@@ -444,6 +444,54 @@ def test_a_coarse_stage_that_overlaps_too_little_ends_the_icp_from_a_rough_guess
         VerifyParams(icp_only_min_coarse_fitness=1.5)
 
 
+def test_the_fine_stages_follow_the_icp_from_a_rough_guess(sim_scans, monkeypatch):
+    import importlib
+
+    from placerec.verify import as_source, as_target
+
+    verify_module = importlib.import_module("placerec.verify.verify")
+    seq, scans = sim_scans
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    init = _pose([0.5, -0.5, 3.0], [0.4, -0.3, 0.1]) @ T_gt
+    plain = VerifyParams(icp_only_coarse_voxel_size=3.0, icp={"max_iterations": 3})
+    fine = plain.model_copy(update={"icp_only_fine_distances": [0.5, 0.3]})
+    src, tgt = as_source(scans[13], plain), as_target(scans[10], plain)
+    runs: list[tuple[float, np.ndarray, np.ndarray]] = []  # (gate, start, result) of every ICP run
+    real_refine = verify_module.refine
+
+    def refine(source, target, init, icp, *args, **kwargs):
+        out = real_refine(source, target, init, icp, *args, **kwargs)
+        runs.append((icp.max_correspondence_distance, init, out.T))
+        return out
+
+    monkeypatch.setattr(verify_module, "refine", refine)
+    a = verify_icp(src, tgt, init=init, params=plain)
+    assert [g for g, _, _ in runs] == [4.0, 1.0]
+    runs.clear()
+    b = verify_icp(src, tgt, init=init, params=fine)
+    # the same stages, then the tighter gates, each from the last pose; the last one's pose is judged
+    assert [g for g, _, _ in runs] == [4.0, 1.0, 0.5, 0.3]
+    assert np.array_equal(runs[1][2], a.T_match_query)
+    assert np.array_equal(runs[2][1], runs[1][2]) and np.array_equal(runs[3][1], runs[2][2])
+    assert np.array_equal(b.T_match_query, runs[3][2])
+
+    def error(T: np.ndarray) -> float:
+        return float(np.linalg.norm((np.linalg.inv(T_gt) @ T)[:3, 3]))
+
+    # three iterations a stage leave the pose short of home; the stages after it bring it closer
+    assert error(b.T_match_query) < error(a.T_match_query)
+    assert b.timings_ms["icp"] > 0 and b.timings_ms["total"] >= b.timings_ms["icp"]
+    # a pose from matches has no fine stages
+    runs.clear()
+    rng = np.random.default_rng(8)
+    q = scans[13][rng.choice(len(scans[13]), 200, replace=False)].astype(np.float64)
+    verify(src, tgt, q, _apply(T_gt, q), params=fine)
+    assert [g for g, _, _ in runs] == [1.0]
+    for bad in ([0.0], [0.5, -1.0], [float("nan")]):
+        with pytest.raises(ConfigError, match="icp_only_fine_distances"):
+            VerifyParams(icp_only_fine_distances=bad)
+
+
 def test_eps_icp_acceptance_rule(sim_scans):
     seq, scans = sim_scans
     T_gt = relative_pose(seq.poses[10], seq.poses[13])

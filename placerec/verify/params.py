@@ -192,6 +192,11 @@ class VerifyParams(Params):
         " judged",
     )
 
+    icp_only_fine_distances: list[float] = Field(
+        default_factory=list,
+        description="m; ICP from a rough guess: after the stage at icp.max_correspondence_distance, stages with"
+        " these gates, each from the last one's pose; the last sets the pose judged (none: that stage does)",
+    )
     icp_only_min_coarse_fitness: float | None = Field(
         None,
         ge=0,
@@ -204,6 +209,7 @@ class VerifyParams(Params):
     def _check(self) -> VerifyParams:
         if self.icp.method == "gicp" and self.icp.backend != "small_gicp":
             raise ValueError("icp.method 'gicp' needs icp.backend 'small_gicp'")
-        if any(d <= 0 for d in self.icp_only_coarse_distances):
-            raise ValueError("icp_only_coarse_distances must be positive distances")
+        for name in ("icp_only_coarse_distances", "icp_only_fine_distances"):
+            if any(not d > 0 for d in getattr(self, name)):
+                raise ValueError(f"{name} must be positive distances")
         return self

@@ -189,7 +189,15 @@ def complete(
     icp = refine(
         source, target, T0, params.icp, sp.fitness_distance, sp.eps_icp_max_range, measure_constraint
     )
-    _icp_time(timings, icp.ms + coarse_ms)
+    icp_ms = icp.ms + coarse_ms
+    if hypothesis.inliers is None:  # from a rough guess: the tighter gates, each from the last pose
+        for gate in params.icp_only_fine_distances:
+            fine = params.icp.model_copy(update={"max_correspondence_distance": gate})
+            icp = refine(
+                source, target, icp.T, fine, sp.fitness_distance, sp.eps_icp_max_range, measure_constraint
+            )
+            icp_ms += icp.ms
+    _icp_time(timings, icp_ms)
     score = verified_score(hypothesis.inliers, icp.fitness, icp.rmse, sp)
     why = rejection(score, icp.residual, sp, icp.fitness, icp.constraint, float(np.linalg.norm(icp.T[:3, 3])))
     return Verification(
