@@ -153,6 +153,10 @@ _ODOMETRY_THRESHOLDS: dict[str, dict[str, float]] = {
 #: they leave less than 0.10 (Avia) / 0.02 (E1R) of the query's grid overlapping (`icp_only_min_coarse_fitness`;
 #: the E1R's right places, seen through its 120° cone from a prediction up to 2 m off, start as low as 0.03): each
 #: sensor's twelve tuning cells' candidates files the same bytes, 14 % / ~10 % less time a keyframe (docs/sensors.md).
+#: After its stage at the ICP's 1 m gate, one more at 0.5 m (`icp_only_fine_distances`): on the same tuning cells the
+#: near places' registration error (pose truth) falls from 0.080 to 0.040 m at the median (p99 0.29 -> 0.23 m,
+#: rotation p99 0.81 -> 0.43 deg) on the E1R, 0.060 -> 0.030 m (p99 0.23 -> 0.18 m, 0.57 -> 0.21 deg) on the Avia,
+#: as precise as the poses matches give; the same right closures (484 / 537), none false (docs/sensors.md).
 _ODOMETRY_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
     "orb-dbow": {
         "e1r": {
@@ -162,6 +166,7 @@ _ODOMETRY_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
                 "guided": {"enabled": True},
                 "icp_only_coarse_voxel_size": 3.0,
                 "icp_only_min_coarse_fitness": 0.02,
+                "icp_only_fine_distances": [0.5],
             },
             "image": {"density_points_per_pixel": 2.0},
         },
@@ -172,6 +177,7 @@ _ODOMETRY_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
                 "guided": {"enabled": True},
                 "icp_only_coarse_voxel_size": 3.0,
                 "icp_only_min_coarse_fitness": 0.1,
+                "icp_only_fine_distances": [0.5],
             },
             "feature_params": {"nfeatures": 1000},
         },
