@@ -108,17 +108,27 @@ def test_with_the_odometry_gate_a_forward_looking_sensor_gets_the_settings_chose
     assert e1r_plain.recognizer.params.verify.ransac.inlier_threshold == 0.6
     assert e1r_plain.recognizer.params.image.density_points_per_pixel == 1.0
     assert det.recognizer.params.image.density_points_per_pixel == 1.0
+    # the sparse spinning and the 360 deg rosette sensors' ORB-DBoW too: the places predicted near, on their own
+    # features and overlap gate
+    for sensor, ratio in (("vlp16", 0.75), ("hdl32", 0.75), ("mid360", 0.65)):
+        own = LoopClosureDetector.for_pipeline("orb-dbow", sensor=sensor, odometry_gate=gate)
+        v = own.recognizer.params.verify
+        assert own.threshold == 0.05 and v.score.min_score == 0.05 and v.score.min_fitness_ratio == ratio
+        assert v.guided.enabled and v.icp_only_coarse_voxel_size == 3.0 and v.icp_only_fine_distances == [0.5]
+        alone = LoopClosureDetector.for_pipeline("orb-dbow", sensor=sensor)
+        assert alone.threshold == 0.1 and not alone.recognizer.params.verify.guided.enabled
+        assert alone.recognizer.params.verify.icp_only_fine_distances == []
     # a sensor without settings of its own for the gate keeps its own with it
-    vlp = LoopClosureDetector.for_pipeline("orb-dbow", sensor="vlp16", odometry_gate=gate)
+    vlp = LoopClosureDetector.for_pipeline("scan-context", sensor="vlp16", odometry_gate=gate)
     assert vlp.threshold == 0.1 and vlp.recognizer.params.verify.score.min_fitness_ratio == 0.75
     # a benchmark judged with the gate runs its cells with them, so their stamps differ from the ungated ones
-    with_gate = ["sensors=[avia, vlp16]", "seeds=[0]", "worlds=[town]", "evaluation.odometry_gate={}"]
+    with_gate = ["sensors=[avia, vlp16, os1-64]", "seeds=[0]", "worlds=[town]", "evaluation.odometry_gate={}"]
     bench = load_benchmark_config(ROOT / "configs" / "benchmark_sensors_tuning.yaml", with_gate)
     alone = load_benchmark_config(ROOT / "configs" / "benchmark_sensors_tuning.yaml", with_gate[:-1])
     for cell in bench.cells():
         cfg, cfg0 = bench.cell_config(cell), alone.cell_config(cell)
         orb = next(p for p in cfg.pipelines if p.name == "orb-dbow")
         floor = (orb.params or {}).get("verify", {}).get("score", {}).get("min_score")
-        assert cfg.operating_threshold(orb) == {"avia": 0.05, "vlp16": 0.1}[cell.sensor]
-        assert floor == {"avia": 0.05, "vlp16": 0.1}[cell.sensor]
-        assert (_cell_key(cfg) == _cell_key(cfg0)) == (cell.sensor == "vlp16")
+        assert cfg.operating_threshold(orb) == {"avia": 0.05, "vlp16": 0.05, "os1-64": 0.25}[cell.sensor]
+        assert floor == {"avia": 0.05, "vlp16": 0.05, "os1-64": None}[cell.sensor]
+        assert (_cell_key(cfg) == _cell_key(cfg0)) == (cell.sensor == "os1-64")
