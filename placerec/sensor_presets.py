@@ -160,13 +160,13 @@ _ODOMETRY_THRESHOLDS: dict[str, dict[str, float]] = {
 #: The MID-360-like scanner's ORB-DBoW with the gate takes the same verification (matching within the prediction,
 #: the places predicted near by ICP from a 3 m query grid, the 0.5 m stage; the floor at 0.05): on its twelve tuning
 #: cells with the gate the right closures rise from 583 (its preset, at 0.10) to 759 at the 0.05 the rule picks
-#: (recall at precision 1.00 0.681 -> 0.886, worst cell 0.49 -> 0.79), none false; the near places register 0.03
+#: (758 at 0.10; recall at 0.10, precision 1.00, 0.681 -> 0.885, worst cell 0.49 -> 0.79), none false; near places 0.03
 #: m off at the median (max 0.09 m) (`... --set 'sensors=[mid360]' ... --set "pipelines=[{name: orb-dbow, label:
 #: preset}, {name: orb-dbow, label: near05, params: {verify: {score: {min_score: 0.05}, guided: {enabled: true},
 #: icp_only_coarse_voxel_size: 3.0, icp_only_fine_distances: [0.5]}}}]" --suggest`, docs/sensors.md). So do the
 #: VLP-16's and HDL-32E's (the same command with 'sensors=[vlp16, hdl32]', 595 s): right closures 1102 -> 1538 and
-#: 1046 -> 1617 at the 0.05 the rule picks (0.10 before), none false; recall at precision 1.00 0.624 -> 0.847 and
-#: 0.562 -> 0.853 (worst cells 0.22 -> 0.65, 0.13 -> 0.76).
+#: 1046 -> 1617 at the 0.05 the rule picks (0.10 before; 1508 / 1599 at 0.10), none false; recall at 0.10 (precision
+#: 1.00) 0.624 -> 0.847 and 0.562 -> 0.853 (worst cells 0.22 -> 0.65, 0.13 -> 0.76).
 _NEAR_PLACES: dict[str, Any] = {
     "verify": {
         "guided": {"enabled": True},
