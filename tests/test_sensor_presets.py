@@ -118,6 +118,9 @@ def test_with_the_odometry_gate_a_forward_looking_sensor_gets_the_settings_chose
         alone = LoopClosureDetector.for_pipeline("orb-dbow", sensor=sensor)
         assert alone.threshold == 0.1 and not alone.recognizer.params.verify.guided.enabled
         assert alone.recognizer.params.verify.icp_only_fine_distances == []
+    sp = LoopClosureDetector.for_pipeline("superpoint-dbow", sensor="vlp16", odometry_gate=gate)
+    assert sp.threshold == 0.15 and sp.recognizer.params.verify.icp_only_fine_distances == [0.5]
+    assert sp.recognizer.params.feature_params.nfeatures == 1000
     # a sensor without settings of its own for the gate keeps its own with it
     vlp = LoopClosureDetector.for_pipeline("scan-context", sensor="vlp16", odometry_gate=gate)
     assert vlp.threshold == 0.1 and vlp.recognizer.params.verify.score.min_fitness_ratio == 0.75
