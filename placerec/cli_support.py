@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import functools
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -206,6 +206,20 @@ def print_pipelines() -> None:
     )
 
 
+def _changed(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """The entries of ``over`` (nested mappings compared key by key) that ``base`` lacks or holds otherwise."""
+    out: dict[str, Any] = {}
+    for key, value in over.items():
+        old = base.get(key)
+        if isinstance(value, Mapping) and isinstance(old, Mapping):
+            inner = _changed(old, value)
+            if inner:
+                out[key] = inner
+        elif key not in base or old != value:
+            out[key] = value
+    return out
+
+
 def _thresholds_text(entry: PipelineEntry, sep: str) -> str:
     """A registry entry's operating threshold, then each sensor's own ('vlp16: 0.25'), joined by ``sep``."""
     if entry.threshold is None:
@@ -241,9 +255,11 @@ def print_pipeline_params(name: str) -> None:
             lines += textwrap.wrap(text, width, subsequent_indent="    ")
         if preset.odometry is not None:
             o = preset.odometry
+            # what the gate's settings change, on top of the sensor's own where it has them
+            added = json.dumps(_changed(preset.params, o.params))
             text = (
                 f"on {sensor} scans with the odometry gate (odometry_gate=...): threshold {o.threshold:g}, "
-                f"{json.dumps(o.params)} (placerec.sensor_presets)"
+                f"{'those and ' if preset.params else ''}{added} (placerec.sensor_presets)"
             )
             lines += textwrap.wrap(text, width, subsequent_indent="    ")
     typer.echo("\n".join(lines))
