@@ -24,7 +24,7 @@ import numpy as np
 from placerec.errors import ScanDataError
 from placerec.types import Verification
 from placerec.verify.consistency import group_correspondences
-from placerec.verify.icp import IcpCloud, coarser_source, prepare_source, prepare_target, refine
+from placerec.verify.icp import IcpCloud, IcpResult, coarser_source, prepare_source, prepare_target, refine
 from placerec.verify.kabsch import check_pairs
 from placerec.verify.params import VerifyParams
 from placerec.verify.ransac import RansacResult, ransac_pose, refit
@@ -169,11 +169,8 @@ def complete(
     T0, coarse_ms = hypothesis.T_match_query, 0.0
     if hypothesis.inliers is None:  # a rough initial guess: coarse gates first, on a coarser query grid
         coarse_source = coarser_source(source, params.icp_only_coarse_voxel_size, params.icp)
-        step = None
-        for gate in params.icp_only_coarse_distances:
-            coarse = params.icp.model_copy(update={"max_correspondence_distance": gate})
-            step = refine(coarse_source, target, T0, coarse, sp.fitness_distance, sp.eps_icp_max_range)
-            T0, coarse_ms = step.T, coarse_ms + step.ms
+        step, coarse_ms = _gated(coarse_source, target, T0, params.icp_only_coarse_distances, params)
+        T0 = T0 if step is None else step.T
         floor = params.icp_only_min_coarse_fitness
         if step is not None and floor is not None and not step.fitness >= floor:  # NaN: nothing overlapped
             _icp_time(timings, coarse_ms)
@@ -191,12 +188,10 @@ def complete(
     )
     icp_ms = icp.ms + coarse_ms
     if hypothesis.inliers is None:  # from a rough guess: the tighter gates, each from the last pose
-        for gate in params.icp_only_fine_distances:
-            fine = params.icp.model_copy(update={"max_correspondence_distance": gate})
-            icp = refine(
-                source, target, icp.T, fine, sp.fitness_distance, sp.eps_icp_max_range, measure_constraint
-            )
-            icp_ms += icp.ms
+        fine, fine_ms = _gated(
+            source, target, icp.T, params.icp_only_fine_distances, params, measure_constraint
+        )
+        icp, icp_ms = icp if fine is None else fine, icp_ms + fine_ms
     _icp_time(timings, icp_ms)
     score = verified_score(hypothesis.inliers, icp.fitness, icp.rmse, sp)
     why = rejection(score, icp.residual, sp, icp.fitness, icp.constraint, float(np.linalg.norm(icp.T[:3, 3])))
@@ -216,6 +211,25 @@ def complete(
         rejection=why,
         constraint=icp.constraint,
     )
+
+
+def _gated(
+    source: IcpCloud,
+    target: IcpCloud,
+    T: np.ndarray,
+    gates: list[float],
+    params: VerifyParams,
+    constraint: bool = False,
+) -> tuple[IcpResult | None, float]:
+    """ICP with each correspondence gate of ``gates`` in turn, the first from ``T``, each next from the last one's
+    pose: the last stage's result (None without gates) and the stages' milliseconds."""
+    sp, step, ms = params.score, None, 0.0
+    for gate in gates:
+        icp = params.icp.model_copy(update={"max_correspondence_distance": gate})
+        start = T if step is None else step.T
+        step = refine(source, target, start, icp, sp.fitness_distance, sp.eps_icp_max_range, constraint)
+        ms += step.ms
+    return step, ms
 
 
 def _icp_time(timings: dict[str, float], icp_ms: float) -> None:
