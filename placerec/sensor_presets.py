@@ -169,6 +169,7 @@ _ODOMETRY_THRESHOLDS: dict[str, dict[str, float]] = {
 #: 1.00) 0.624 -> 0.847 and 0.562 -> 0.853 (worst cells 0.22 -> 0.65, 0.13 -> 0.76). And the VLP-16's SuperPoint-DBoW
 #: (its best pipeline at precision 1.00 on the test cells): 1286 -> 1497 right closures at the 0.15 the rule picks
 #: either way, none false, recall 0.725 -> 0.841 (worst cell 0.52 -> 0.54) (913 s).
+#: What every entry of `_ODOMETRY_PARAMS` verifies with (merged under the entry's own settings).
 _NEAR_PLACES: dict[str, Any] = {
     "verify": {
         "guided": {"enabled": True},
@@ -182,29 +183,19 @@ _ODOMETRY_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
             "verify": {
                 "icp": {"source_voxel_size": 0.75},
                 "ransac": {"inlier_threshold": 1.0},
-                "guided": {"enabled": True},
-                "icp_only_coarse_voxel_size": 3.0,
                 "icp_only_min_coarse_fitness": 0.02,
-                "icp_only_fine_distances": [0.5],
             },
             "image": {"density_points_per_pixel": 2.0},
         },
         "avia": {
-            "verify": {
-                "top_k": 40,
-                "icp_top_k": 4,
-                "guided": {"enabled": True},
-                "icp_only_coarse_voxel_size": 3.0,
-                "icp_only_min_coarse_fitness": 0.1,
-                "icp_only_fine_distances": [0.5],
-            },
+            "verify": {"top_k": 40, "icp_top_k": 4, "icp_only_min_coarse_fitness": 0.1},
             "feature_params": {"nfeatures": 1000},
         },
-        "mid360": _NEAR_PLACES,
-        "vlp16": _NEAR_PLACES,
-        "hdl32": _NEAR_PLACES,
+        "mid360": {},
+        "vlp16": {},
+        "hdl32": {},
     },
-    "superpoint-dbow": {"vlp16": _NEAR_PLACES},
+    "superpoint-dbow": {"vlp16": {}},
 }
 
 
@@ -222,8 +213,9 @@ def _presets() -> dict[str, dict[str, SensorPreset]]:
                 params = {"feature_params": _FEATURES[sensor], **params}
             odometry = None
             if sensor in with_odometry:
-                own = _ODOMETRY_PARAMS.get(pipeline, {}).get(sensor, {})
-                odometry = SensorPreset(with_odometry[sensor], deep_merge(params, _ODOMETRY_FLOOR, own))
+                own = _ODOMETRY_PARAMS.get(pipeline, {}).get(sensor)
+                extra = () if own is None else (_NEAR_PLACES, own)
+                odometry = SensorPreset(with_odometry[sensor], deep_merge(params, _ODOMETRY_FLOOR, *extra))
             by_sensor[sensor] = SensorPreset(thresholds.get(sensor), params, odometry)
         out[pipeline] = by_sensor
     return out
