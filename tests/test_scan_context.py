@@ -116,6 +116,37 @@ def test_distance_definition_on_hand_case():
     assert scan_context_distance(q, np.zeros((1, 2, 4)), None)[0][0] == 1.0  # nothing in common
 
 
+def _reference_distance(q: np.ndarray, c: np.ndarray) -> tuple[float, int]:
+    """Scan Context's distance over every shift, column by column as the paper writes it."""
+    S = q.shape[1]
+    best = (np.inf, 0)
+    for s in range(S):
+        r = np.roll(c, s, axis=1)
+        sims = [
+            q[:, j] @ r[:, j] / (np.linalg.norm(q[:, j]) * np.linalg.norm(r[:, j]))
+            for j in range(S)
+            if np.linalg.norm(q[:, j]) > 0 and np.linalg.norm(r[:, j]) > 0
+        ]
+        d = 1.0 - np.mean(sims) if sims else 1.0
+        if d < best[0] - 1e-12:
+            best = (d, s)
+    return best
+
+
+def test_a_limited_view_is_compared_on_its_own_columns():
+    """A query that fills only some sectors (a 70 deg cone: 12 of 60) against full candidates: the distance over
+    every shift is the paper's, computed on the query's columns with points only."""
+    rng = np.random.default_rng(7)
+    full = rng.random((5, 20, 60)) * (rng.random((5, 1, 60)) > 0.1)
+    q = np.zeros((20, 60))
+    q[:, 20:32] = np.roll(full[3], 9, axis=1)[:, 20:32]  # candidate 3 seen through a cone, turned 9 sectors
+    dist, shift = scan_context_distance(q, full, None)
+    for m in range(5):
+        ref_d, ref_s = _reference_distance(q, full[m])
+        assert dist[m] == pytest.approx(ref_d, abs=1e-12) and shift[m] == ref_s
+    assert np.argmin(dist) == 3 and shift[3] == 9 and dist[3] == pytest.approx(0.0, abs=1e-12)
+
+
 def test_rotation_by_whole_sectors():
     rng = np.random.default_rng(2)
     pts = make_place(rng)

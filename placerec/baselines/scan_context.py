@@ -198,16 +198,20 @@ def scan_context_distance(
         diff = sector_key(Q)[None, None, :] - sector_key(C)[:, roll_idx]  # (M, shift, S)
         coarse = np.argmin(np.einsum("msj,msj->ms", diff, diff), axis=1)
         shifts = (coarse[:, None] + np.arange(-search_radius, search_radius + 1)[None, :]) % S
-    src = (
-        cols[None, None, :] - shifts[:, :, None]
-    ) % S  # (M, K, S): candidate column landing on query column j
-    pair = np.matmul(Q.T[None], C)  # (M, S, S): dot of query column j with candidate column c
-    m_idx = np.arange(M)[:, None, None]
-    dots = pair[m_idx, cols[None, None, :], src]
+    # Only the query's columns holding points count (an empty column's pairs are not valid), so the products are
+    # formed for those alone: a limited field of view's query (a fifth of the columns) costs a fifth.
     qn = np.linalg.norm(Q, axis=0)
+    occupied = np.flatnonzero(qn > 0)
+    Qo = Q if occupied.size == S else Q[:, occupied]
+    src = (
+        occupied[None, None, :] - shifts[:, :, None]
+    ) % S  # (M, shifts, occupied): candidate column landing on query column occupied[j]
+    pair = np.matmul(Qo.T[None], C)  # (M, occupied, S): query column occupied[j] . candidate column c
+    m_idx = np.arange(M)[:, None, None]
+    dots = pair[m_idx, np.arange(occupied.size)[None, None, :], src]
     cn = np.linalg.norm(C, axis=1)[m_idx, src]
-    valid = (qn[None, None, :] > 0) & (cn > 0)
-    sim = np.divide(dots, qn[None, None, :] * cn, out=np.zeros_like(dots), where=valid)
+    valid = cn > 0
+    sim = np.divide(dots, qn[occupied][None, None, :] * cn, out=np.zeros_like(dots), where=valid)
     n_eff = valid.sum(axis=2)
     dist = np.where(n_eff > 0, 1.0 - sim.sum(axis=2) / np.maximum(n_eff, 1), 1.0)
     best = np.argmin(dist, axis=1)
