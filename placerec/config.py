@@ -26,6 +26,7 @@ from placerec.preprocess import PreprocessParams
 from placerec.safe_yaml import load_yaml, load_yaml_file
 from placerec.sim.odometry import OdometryDrift, slam_demo_drift
 from placerec.types import PlaceRecognizer
+from placerec.verify.ambiguity import AmbiguityParams
 
 P = TypeVar("P", bound=Params)
 
@@ -172,6 +173,10 @@ class LocalizeConfig(Params):
     map: DatasetConfig | None = None
     queries: DatasetConfig | None = None
     success_distance: float = Field(3.0, gt=0)
+    ambiguity: AmbiguityParams = Field(
+        default_factory=AmbiguityParams,
+        description="refuse an accepted answer another place nearly matches (placerec.verify.ambiguity; off)",
+    )
 
 
 class PoseTruthConfig(Params):

@@ -233,3 +233,26 @@ def test_cli_localize(map_dir: Path, tmp_path: Path) -> None:
     )
     res = CliRunner().invoke(app, ["localize", str(map_dir), str(folder), "--mode", "sideways"])
     assert res.exit_code == 2 and "mode" in _cli_error(res)[0]
+
+
+def test_global_search_refuses_an_ambiguous_fix(map_dir: Path, day2: SimulatedSequence) -> None:
+    """`LocalizerParams.ambiguity` reaches global search: with every other accepted keyframe counted as another
+    place (a 1 mm separation) and any share of the score enough, a fix with more than one accepted keyframe is
+    refused with its reason; the rule itself is tested in tests/test_ambiguity.py."""
+    one = {"pipeline": "orb-hbst"}
+    strict = Localizer(
+        map_dir,
+        LocalizerParams.model_validate({**one, "ambiguity": {"max_ratio": 0.01, "separation_m": 0.001}}),
+    )
+    plain = Localizer(map_dir, LocalizerParams.model_validate(one))
+    refused = 0
+    for i in (3, 17, 31, 44):
+        f, g = strict.localize(day2[i]), plain.localize(day2[i])
+        if f.reason.startswith("ambiguous"):
+            refused += 1
+            assert (
+                g.accepted and not f.accepted and f.T_world_query is None and f.keyframe_id == g.keyframe_id
+            )
+        else:
+            assert (f.accepted, f.keyframe_id) == (g.accepted, g.keyframe_id)
+    assert refused >= 1

@@ -85,6 +85,7 @@ from placerec.io.atomic import atomic_write
 from placerec.io.mcap_export import LoopEdge, write_closures_mcap
 from placerec.odometry_gate import LoopChain, OdometryGateParams, odometry_disagreement
 from placerec.types import PlaceRecognizer, Sequence
+from placerec.verify.ambiguity import AmbiguityParams, runner_up_ratio
 
 __all__ = [
     "NONDETERMINISTIC",
@@ -562,7 +563,9 @@ def report_localize(
     all_metrics = []
     for record in records:
         write_candidates(run / f"candidates_{slug(record.label)}.csv", record.query_ids, record.candidates)
-        estimates, basis, rule = localize_estimates(record.table(), map_poses)
+        estimates, basis, rule = localize_estimates(
+            record.table(), map_poses, cfg.evaluation.localize.ambiguity
+        )
         metrics = localization_metrics(
             estimates,
             query_poses[np.asarray(record.query_ids, dtype=np.int64)],
@@ -616,7 +619,9 @@ def report_localize(
     return payload
 
 
-def localize_estimates(table: CandidateTable, map_poses: np.ndarray) -> tuple[np.ndarray, str, str]:
+def localize_estimates(
+    table: CandidateTable, map_poses: np.ndarray, ambiguity: AmbiguityParams | None = None
+) -> tuple[np.ndarray, str, str]:
     """(Q, 4, 4) estimated query poses from the top candidates (NaN: no answer), their basis and the answer rule.
 
     Basis: ``"pose"`` (``T_world_match @ T_match_query``) when any top candidate carries a 6-DoF relative pose, a
@@ -625,19 +630,43 @@ def localize_estimates(table: CandidateTable, map_poses: np.ndarray) -> tuple[np
     Answer rule: ``"accepted"`` when the pipeline verifies (any of its candidates carries ``accepted``): only a top
     candidate its verification accepted is an answer, a rejected one is no answer, never a hit (verification ranks
     the accepted candidates first, so a rejected top candidate means none was accepted). ``"top"`` for a pipeline
-    that does not verify (no candidate carries ``accepted``): its top candidate is its answer."""
+    that does not verify (no candidate carries ``accepted``): its top candidate is its answer. With
+    ``ambiguity.max_ratio`` (`placerec.verify.ambiguity`) an accepted answer that another accepted candidate,
+    placing the query more than ``ambiguity.separation_m`` away, nearly matches is no answer either, as a
+    rejected one is."""
     top, rel = table.match_ids[:, 0], table.relative_poses[:, 0]
     verifies = bool((table.accepted >= 0).any())
     answered = (top >= 0) & (table.accepted[:, 0] == 1) if verifies else top >= 0
     posed = full_pose_mask(rel)
     estimates = np.full((top.size, 4, 4), np.nan)
     rule = "accepted" if verifies else "top"
-    if (posed & (top >= 0)).any():
-        ok = posed & answered
-        estimates[ok] = map_poses[top[ok]] @ rel[ok]
-        return estimates, "pose", rule
+    basis = "pose" if (posed & (top >= 0)).any() else "retrieval"
+    if basis == "pose":
+        answered = answered & posed
+    if verifies and ambiguity is not None and ambiguity.max_ratio is not None:
+        answered = answered & ~_ambiguous(table, map_poses, answered, basis, ambiguity)
     estimates[answered] = map_poses[top[answered]]
-    return estimates, "retrieval", rule
+    if basis == "pose":
+        estimates[answered] = estimates[answered] @ rel[answered]
+    return estimates, basis, rule
+
+
+def _ambiguous(
+    table: CandidateTable, map_poses: np.ndarray, answered: np.ndarray, basis: str, params: AmbiguityParams
+) -> np.ndarray:
+    """(Q,) True where an answered query's accepted candidates make its answer ambiguous (`localize_estimates`)."""
+    out = np.zeros(answered.shape, bool)
+    for q in np.flatnonzero(answered):
+        ok = (table.match_ids[q] >= 0) & (table.accepted[q] == 1)
+        if basis == "pose":
+            ok &= full_pose_mask(table.relative_poses[q])
+        ranks = np.flatnonzero(ok)  # the top candidate first: it is answered, so accepted (and posed)
+        where = map_poses[table.match_ids[q, ranks]][:, :3, 3]
+        if basis == "pose":
+            where = (map_poses[table.match_ids[q, ranks]] @ table.relative_poses[q, ranks])[:, :3, 3]
+        ratio = runner_up_ratio(table.scores[q, ranks], where, params.separation_m)
+        out[q] = params.refuses(ratio)
+    return out
 
 
 def require_poses(seq: Sequence) -> np.ndarray:

@@ -14,7 +14,9 @@ Two ways to find a fix, tried in this order:
   ``max_correction_deg`` (reason ``jump``): a prior is trusted only to that much. Milliseconds.
 * **global search**: the map pipeline's ``query_description`` over every keyframe (``k`` candidates, verified by
   the pipeline itself); the best *accepted* candidate scoring at least the threshold gives
-  ``T_world_query = T_world_keyframe @ T_keyframe_query``. A rejected candidate is no answer, never a fix.
+  ``T_world_query = T_world_keyframe @ T_keyframe_query``. A rejected candidate is no answer, never a fix; with
+  ``ambiguity.max_ratio`` neither is a fix that another accepted candidate, placing the scan elsewhere in the map,
+  nearly matches (`placerec.verify.ambiguity`; reason ``ambiguous``).
 
 `Localizer.localize` is stateless (a prior in, a fix out); `Localizer.track` keeps the last fix and predicts the
 next prior from the caller's odometry (or a constant velocity), falling back to global search after
@@ -38,8 +40,17 @@ from placerec.eval.pose_error import pose_errors
 from placerec.maps.artifact import MapArtifact, MapPipeline
 from placerec.params import Params
 from placerec.preprocess import preprocess_scan
-from placerec.types import PlaceRecognizer, Scan, Verification, as_pose, interpolate_trajectory, valid_points
+from placerec.types import (
+    Candidate,
+    PlaceRecognizer,
+    Scan,
+    Verification,
+    as_pose,
+    interpolate_trajectory,
+    valid_points,
+)
 from placerec.verify import IcpCloud, as_source, as_target, verify_icp
+from placerec.verify.ambiguity import AmbiguityParams, runner_up_ratio
 from placerec.verify.params import IcpParams, ScoreParams, VerifyParams
 
 __all__ = ["TrackingParams", "LocalizerParams", "Fix", "Localizer", "correction", "search_pipelines"]
@@ -93,6 +104,10 @@ class LocalizerParams(Params):
         None, description="global fixes score at least this (None: each map pipeline's operating threshold)"
     )
     tracking: TrackingParams = Field(default_factory=TrackingParams)
+    ambiguity: AmbiguityParams = Field(
+        default_factory=AmbiguityParams,
+        description="global search refuses a fix another place nearly matches (placerec.verify.ambiguity; off)",
+    )
     allow_other_sensor: bool = Field(
         False, description="localise scans of another sensor than the map's (refused by default)"
     )
@@ -327,10 +342,30 @@ class Localizer:
                 first_rejection = first_rejection or (c, f"below threshold ({c.score:.3f} < {threshold:g})")
                 continue
             T = self.map.poses[c.match_id] @ np.asarray(c.relative_pose, np.float64)
+            why = self._ambiguity(candidates, c)
+            if why:
+                return Fix(
+                    None, False, "global", why, int(c.match_id), float(c.score), fitness, len(candidates)
+                )
             return Fix(T, True, "global", "ok", int(c.match_id), float(c.score), fitness, len(candidates))
         c, why = first_rejection if first_rejection else (candidates[0], "no accepted candidate")
         fitness = float("nan") if c.verification is None else c.verification.fitness
         return Fix(None, False, "global", why, int(c.match_id), float(c.score), fitness, len(candidates))
+
+    def _ambiguity(self, candidates: list[Candidate], best: Candidate) -> str:
+        """Why ``best`` (the fix global search would give) is refused as ambiguous, or "" when it is not."""
+        params = self.params.ambiguity
+        if params.max_ratio is None:
+            return ""
+        rest = [c for c in candidates if c is not best and c.accepted and c.relative_pose is not None]
+        answers = [best, *rest]
+        poses = np.stack(
+            [self.map.poses[c.match_id] @ np.asarray(c.relative_pose, np.float64) for c in answers]
+        )
+        ratio = runner_up_ratio(np.array([c.score for c in answers]), poses[:, :3, 3], params.separation_m)
+        if not params.refuses(ratio):
+            return ""
+        return f"ambiguous: a place elsewhere in the map scores {ratio:.2f} of the best"
 
 
 def _rejection(v: Verification) -> str:
