@@ -12,6 +12,7 @@ from tool_modules import load_tool
 
 from placerec.experiment.runner import PipelineRecord
 from placerec.types import Candidate
+from placerec.verify.ambiguity import AmbiguityParams
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,6 +46,12 @@ def test_success_counts_accepted_answers_only() -> None:
     assert f["r_at_p1"] == 0.0  # a wrong accepted answer: precision below 1.00
     rec.candidates[2] = []
     assert tool.localize_figures(rec, map_poses, query_poses)["r_at_p1"] == pytest.approx(1 / 3)
+    # --ambiguity: a right answer that another accepted place, 10 m away, nearly matches (0.85 / 0.9 = 0.94)
+    rec.candidates[0].append(Candidate(0, 1, 0.85, relative_pose=rel, accepted=True))
+    f = tool.localize_figures(rec, map_poses, query_poses, AmbiguityParams(max_ratio=0.9))
+    assert (f["n_success"], f["n_no_answer"], f["n_wrong"]) == (0, 3, 0)  # refused: no answer
+    f = tool.localize_figures(rec, map_poses, query_poses, AmbiguityParams(max_ratio=0.95))
+    assert (f["n_success"], f["n_no_answer"], f["n_wrong"]) == (1, 2, 0)
 
 
 def test_world_splits_drive_each_splits_seeds_in_each_world() -> None:
@@ -91,11 +98,15 @@ def test_quick_path_tiny(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
         "--quick", "--pairs", "vlp16:avia", "--pipelines", "scan-context", "ishot-prob", "--intensity", "raw",
         "calibrated",
         "--map-spacing", "40", "--query-spacing", "80", "--cal-scans", "6", "--cache-dir", str(tmp_path),
+        "--ambiguity", "0.85", "--set", "scan-context.full_shift_search=true",
     ])  # fmt: skip
     line = capsys.readouterr().out.strip().splitlines()[-1]
     assert json.loads(line)["tool"] == "eval_cross_sensor"
     assert set(out["splits"]) == {"test"} and out["splits"]["test"]["label"] == "test"
     assert out["calibration_drives"]["label"] == "tuning"
+    assert out["ambiguity"] == 0.85 and out["pipeline_params"]["scan-context"] == {"full_shift_search": True}
+    with pytest.raises(SystemExit, match="orb-dbow.top_k"):
+        tool.main(["--quick", "--pipelines", "scan-context", "--set", "orb-dbow.top_k=5"])
     res = out["results"]["test"]
     assert set(res) == {"raw", "calibrated"}
     assert set(res["raw"]) == {"vlp16>avia", "avia>avia", "vlp16>vlp16"}

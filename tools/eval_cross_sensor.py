@@ -97,7 +97,7 @@ import numpy as np
 
 from placerec.calibration import CalibrationParams, CalibrationTable, calibrate_points, gather_points
 from placerec.calibration.table import load_calibration
-from placerec.config import ExperimentConfig, parse_config
+from placerec.config import ExperimentConfig, apply_overrides, parse_config
 from placerec.eval import localization_metrics
 from placerec.experiment import protocol
 from placerec.experiment.datasets import SlicedSequence
@@ -113,6 +113,7 @@ from placerec.recognizer import PIPELINES, make_pipeline
 from placerec.sim import SimulatedSequence
 from placerec.sim.sensors import get_sensor, sensor_names
 from placerec.types import Scan
+from placerec.verify.ambiguity import AmbiguityParams
 
 log = logging.getLogger("eval_cross_sensor")
 
@@ -449,12 +450,13 @@ def make_config(
     out_dir: str,
     params: dict[str, dict] | None = None,
     elevation: list[float] | None = None,
+    ambiguity: float | None = None,
 ) -> ExperimentConfig:
     evaluation: dict[str, Any] = {"mode": mode, "gt_distance": 5.0, "top_n": 5}
     if mode == "loop":
         evaluation["exclusion"] = {"frames": None, "seconds": GAP_S / 2, "metres": None}
     else:
-        evaluation["localize"] = {"success_distance": SUCCESS_M}
+        evaluation["localize"] = {"success_distance": SUCCESS_M, "ambiguity": {"max_ratio": ambiguity}}
     return parse_config({
         "name": f"cross-sensor-{mode}",
         # a placeholder dataset (the pairs' sequences are given): a sensor without settings of its own
@@ -523,11 +525,15 @@ def memo_pipelines(cfg: ExperimentConfig, store: dict) -> list[tuple[PipelineRec
 
 
 def localize_figures(
-    record: PipelineRecord, map_poses: np.ndarray, query_poses: np.ndarray
+    record: PipelineRecord,
+    map_poses: np.ndarray,
+    query_poses: np.ndarray,
+    ambiguity: AmbiguityParams | None = None,
 ) -> dict[str, Any]:
-    """Success as `placerec.experiment.report` counts it (only an accepted answer of a verifying pipeline; the
-    top one of a pipeline that does not verify), within `SUCCESS_M`."""
-    estimates, basis, rule = localize_estimates(record.table(), map_poses)
+    """Success as `placerec.experiment.report` counts it (only an accepted answer of a verifying pipeline, not
+    refused as ambiguous with ``--ambiguity``; the top one of a pipeline that does not verify), within
+    `SUCCESS_M`."""
+    estimates, basis, rule = localize_estimates(record.table(), map_poses, ambiguity)
     m = localization_metrics(estimates, query_poses[np.asarray(record.query_ids, dtype=np.int64)], SUCCESS_M,
                              basis=basis, answer_rule=rule)  # fmt: skip
     return {
@@ -586,7 +592,9 @@ def run_pair(
 ) -> dict[str, Any]:
     """Localise and loop figures of one pair under one intensity mode."""
     w, ws = split["world"], split["world_seed"]
-    cfg = make_config("localize", args.pipelines, str(tmp / "runs"), args.pipeline_params, args.elevation)
+    cfg = make_config(
+        "localize", args.pipelines, str(tmp / "runs"), args.pipeline_params, args.elevation, args.ambiguity
+    )
     seqs = []
     for sensor, role, seed, spacing in (
         (map_sensor, "map", split["map_seed"], args.map_spacing),
@@ -604,7 +612,8 @@ def run_pair(
     t0 = time.perf_counter()
     _, _, records = run_localize(cfg, (map_seq, query_seq), memo_pipelines(cfg, memo))
     mp, qp = np.asarray(map_seq.poses), np.asarray(query_seq.poses)
-    out["localise"] = {r.pipeline: localize_figures(r, mp, qp) for r in records}
+    ambiguity = cfg.evaluation.localize.ambiguity
+    out["localise"] = {r.pipeline: localize_figures(r, mp, qp, ambiguity) for r in records}
     looping = loop_pipelines(args.pipelines)
     out["loop"] = {}
     if looping:
@@ -747,6 +756,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "translation down; None: the presets', not tested)",
     )
     ap.add_argument(
+        "--ambiguity",
+        type=float,
+        default=None,
+        metavar="RATIO",
+        help="localisation refuses an answer another place (more than 5 m away) scores RATIO of "
+        "(evaluation.localize.ambiguity.max_ratio; default: off)",
+    )
+    ap.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="PIPELINE.KEY=VALUE",
+        help="a pipeline parameter for every pair, e.g. scan-context.full_shift_search=true (repeatable)",
+    )
+    ap.add_argument(
         "--crop",
         choices=("none", "common"),
         default="common",
@@ -793,6 +818,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             for name in args.pipelines
             if verifies(name)
         }
+    for item in args.overrides:
+        if item.split(".", 1)[0] not in args.pipelines:
+            raise SystemExit(
+                f"--set {item}: the key starts with a pipeline of --pipelines {list(args.pipelines)}"
+            )
+    args.pipeline_params = apply_overrides(
+        {name: dict(args.pipeline_params.get(name, {})) for name in args.pipelines}, args.overrides
+    )
     args.elevation = common_elevation(baselines) if args.crop == "common" else None
     t_start = time.perf_counter()
 
@@ -856,6 +889,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "elevation_deg": args.elevation,
         "pipeline_params": args.pipeline_params,
         "min_constraint": args.min_constraint,
+        "ambiguity": args.ambiguity,
         "intensity": list(args.intensity),
         "skipped": skipped,
         "seconds": round(time.perf_counter() - t_start),
