@@ -128,4 +128,10 @@ def test_quick_path_tiny(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
         "same",
         "ratio",
     }
+    loc = out["summary"]["test"]["ratios"]["vlp16>avia"]["calibrated"]["localise"]
+    best = loc["pipelines"][loc["best"]]["cross"]
+    same = res["calibrated"]["avia>avia"]["localise"]
+    s1, s = max(v["r_at_p1"] for v in same.values()), max(v["success"] for v in same.values())
+    assert loc["best_over_best_same"] == (best / s1 if s1 > 0 else None)
+    assert loc["best_over_best_same_success"] == (best / s if s > 0 else None)
     assert {"avia map", "avia query", "vlp16 map", "vlp16 query"} <= set(out["calibration_check"])

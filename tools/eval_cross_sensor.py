@@ -649,6 +649,15 @@ def summarise(
                         per[p] = {"cross": c, "same": s, "ratio": (c / s) if s > 0 else None}
                     best = max(per, key=lambda p, per=per: per[p]["cross"]) if per else None
                     entry[kind] = {"pipelines": per, "best": best}
+                    if kind == "localise" and per:
+                        # the best pipeline across sensors against the best one on the query sensor's own map,
+                        # which need not be the same pipeline: at precision 1.00, and against its success rate
+                        # whatever its precision (a same-sensor baseline with a wrong answer has R@P1 0)
+                        c = per[best]["cross"]
+                        s1 = max(v["same"] for v in per.values())
+                        s = max(same[kind][p]["success"] for p in per)
+                        entry[kind]["best_over_best_same"] = (c / s1) if s1 > 0 else None
+                        entry[kind]["best_over_best_same_success"] = (c / s) if s > 0 else None
                 ratios.setdefault(f"{m}>{q}", {})[mode] = entry
         targets = {}
         for pair, per_mode_r in ratios.items():
@@ -667,6 +676,8 @@ def summarise(
                 t["best_localise_pipeline_calibrated"] = b
                 t["localise_ratio_calibrated"] = ratio
                 t["localise_ratio_ge_0.8"] = ratio is not None and ratio >= 0.8
+                t["localise_best_over_best_same"] = cal["localise"].get("best_over_best_same")
+                t["localise_best_over_best_same_success"] = cal["localise"].get("best_over_best_same_success")
             if cal is not None and raw is not None:
                 if cal["loop"]["pipelines"]:
                     bc = max(v["cross"] for v in cal["loop"]["pipelines"].values())
