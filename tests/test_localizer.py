@@ -259,17 +259,23 @@ def test_global_search_refuses_an_ambiguous_fix(map_dir: Path, day2: SimulatedSe
     assert refused >= 1
 
 
-def test_the_cross_sensor_map_config_localises_another_sensors_scans(tmp_path: Path) -> None:
-    """configs/map_cross_sensor.yaml (docs/sensors.md): an HDL-64 map with Scan Context over the whole map and the
-    band both sensors see; VLP-16 scans of another drive, localised with the settings the docs give
-    (another sensor allowed, threshold 0.05, the ambiguity rule), are placed within 1 m / 5 deg."""
+@pytest.mark.parametrize(("map_sensor", "query_sensor"), [("hdl64", "vlp16"), ("vlp16", "os1-64")])
+def test_the_cross_sensor_map_config_localises_another_sensors_scans(
+    tmp_path: Path, map_sensor: str, query_sensor: str
+) -> None:
+    """configs/map_cross_sensor.yaml (docs/sensors.md): a map with Scan Context over the whole map and the band
+    both sensors see; scans of another sensor and drive, localised with the settings the docs give (another sensor
+    allowed, threshold 0.05, the ambiguity rule), are placed within 1 m / 5 deg: sparser queries of a dense map, and
+    dense ones of a VLP-16 map (whose own overlap gate the config turns off)."""
     from placerec.config import read_config_file
 
     cfg = read_config_file(ROOT / "configs" / "map_cross_sensor.yaml")
-    out = build("map", {**cfg, "source": {"sim": {"world": "town", "sensor": "hdl64", "scans": 20, "seed": 0}},
-                        "out": str(tmp_path / "map")})  # fmt: skip
+    sim = {"world": "town", "sensor": map_sensor, "scans": 20, "seed": 0}
+    out = build("map", {**cfg, "source": {"sim": sim}, "out": str(tmp_path / "map")})
     assert [p.name for p in MapArtifact.open(out).manifest.pipelines] == ["scan-context"]
-    queries = SimulatedSequence(world="town", sensor="vlp16", n_scans=20, seed=11, world_seed=0, unit_seed=0)
+    queries = SimulatedSequence(
+        world="town", sensor=query_sensor, n_scans=20, seed=11, world_seed=0, unit_seed=0
+    )
     params = {"allow_other_sensor": True, "threshold": 0.05, "ambiguity": {"max_ratio": 0.85}}
     loc = Localizer(out, LocalizerParams.model_validate(params))
     fixes = {i: loc.localize(queries[i]) for i in (4, 10, 15)}
