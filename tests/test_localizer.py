@@ -282,3 +282,15 @@ def test_the_cross_sensor_map_config_localises_another_sensors_scans(
     assert all(_correct(f, queries.poses[i]) for i, f in fixes.items()), {
         i: f.reason for i, f in fixes.items()
     }
+    if map_sensor != "vlp16":
+        return
+    # tracking from the true pose: a dense OS1-64 scan's voxels overlap a VLP-16 keyframe's cloud less than the
+    # keyframe's voxels overlap the scan; registering the keyframe onto the scan judges the latter
+    by_keyframe = {**params, "tracking": {"icp_moves": "keyframe"}}
+    fits = {}
+    for moved, p in (("scan", params), ("keyframe", by_keyframe)):
+        loc = Localizer(out, LocalizerParams.model_validate(p))
+        fits[moved] = [loc._localize(queries[i], queries.poses[i], allow_global=False) for i in (4, 10, 15)]
+    for by_scan, by_kf, i in zip(fits["scan"], fits["keyframe"], (4, 10, 15), strict=True):
+        assert by_scan.mode == by_kf.mode == "tracking"
+        assert _correct(by_kf, queries.poses[i]) and by_kf.fitness > by_scan.fitness + 0.1, (by_scan, by_kf)

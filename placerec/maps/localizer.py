@@ -11,7 +11,10 @@ Two ways to find a fix, tried in this order:
   keyframes nearest to the prior (within ``radius_m``), each started from the prior
   (``T_keyframe_query = inv(T_world_keyframe) @ prior``), accepted by the tracking verification's rule
   (`placerec.verify.score`) and refused when it moves the prior by more than ``max_correction_m`` /
-  ``max_correction_deg`` (reason ``jump``): a prior is trusted only to that much. Milliseconds.
+  ``max_correction_deg`` (reason ``jump``): a prior is trusted only to that much. Milliseconds. With
+  ``icp_moves: keyframe`` the keyframe's cloud is registered onto the scan instead, so the overlap is judged over
+  the keyframe's voxels: for scans denser than the map's clouds (another sensor's), whose own voxels overlap a
+  sparse keyframe little even at the right pose.
 * **global search**: the map pipeline's ``query_description`` over every keyframe (``k`` candidates, verified by
   the pipeline itself); the best *accepted* candidate scoring at least the threshold gives
   ``T_world_query = T_world_keyframe @ T_keyframe_query``. A rejected candidate is no answer, never a fix; with
@@ -82,6 +85,12 @@ class TrackingParams(Params):
     )
     max_correction_deg: float = Field(
         10.0, gt=0, le=180, description="deg; a fix turning the prior more than this is refused ('jump')"
+    )
+    icp_moves: Literal["scan", "keyframe"] = Field(
+        "scan",
+        description="which cloud ICP moves: the scan onto the keyframe's cloud (the overlap judged over the "
+        "scan's voxels), or the keyframe's cloud onto the scan (over the keyframe's): for scans denser than "
+        "the map's clouds, e.g. another sensor's (docs/maps.md)",
     )
     fail_after: int = Field(
         1, ge=1, le=1000, description="tracking failures in a row before track() falls back to global search"
@@ -166,7 +175,7 @@ class Localizer:
         #: are loaded now, so a damaged one fails here, before any scan
         self.searches = [(p, self.map.recognizer(p.name), t if t is not None else p.threshold) for p in pipes]
         self.preprocess = self.map.preprocess()
-        self._targets: OrderedDict[int, IcpCloud | None] = OrderedDict()
+        self._clouds: OrderedDict[tuple[int, str], IcpCloud | None] = OrderedDict()
         self._sensors_checked: set[str] = set()
         self.reset()
 
@@ -247,9 +256,11 @@ class Localizer:
         ids, _ = self.map.nearest(prior[:3, 3], k=tp.max_keyframes, radius=tp.radius_m)
         if not len(ids):
             return Fix(None, False, "tracking", f"no keyframe within {tp.radius_m:g} m")
+        moving_scan = tp.icp_moves == "scan"
         t = time.perf_counter()
         try:
-            source = as_source(scan.xyz[valid_points(scan)], tp.verify)
+            points = scan.xyz[valid_points(scan)]
+            own = as_source(points, tp.verify) if moving_scan else as_target(points, tp.verify)
         except ScanDataError as exc:
             timing["prepare"] = (time.perf_counter() - t) * 1e3
             return Fix(None, False, "tracking", f"scan cannot be verified: {exc}")
@@ -258,13 +269,19 @@ class Localizer:
         reason, tried, best = "no keyframe cloud", 0, None
         for kf in (int(i) for i in ids):
             t = time.perf_counter()
-            target = self._target(kf)
+            cloud = self._keyframe_cloud(kf, "target" if moving_scan else "source")
             t_icp = time.perf_counter()
             timing["prepare"] += (t_icp - t) * 1e3
-            if target is None:
+            if cloud is None:
                 continue
             T_kf = self.map.poses[kf]
-            v = verify_icp(source, target, np.linalg.inv(T_kf) @ prior, tp.verify)
+            guess = np.linalg.inv(T_kf) @ prior  # T_keyframe_scan
+            if moving_scan:
+                v = verify_icp(own, cloud, guess, tp.verify)
+                T_kf_scan = v.T_match_query
+            else:  # the keyframe's cloud registered onto the scan: T_scan_keyframe, inverted
+                v = verify_icp(cloud, own, np.linalg.inv(guess), tp.verify)
+                T_kf_scan = np.linalg.inv(v.T_match_query)
             icp_ms += (time.perf_counter() - t_icp) * 1e3
             tried += 1
             if best is None or v.score > best[1].score:
@@ -272,7 +289,7 @@ class Localizer:
             if not v.accepted:
                 reason = _rejection(v)
                 continue
-            T = T_kf @ v.T_match_query
+            T = T_kf @ T_kf_scan
             metres, degrees = correction(prior, T)
             if metres > tp.max_correction_m or degrees > tp.max_correction_deg:
                 reason = f"jump {metres:.1f} m" if metres > tp.max_correction_m else f"jump {degrees:.1f} deg"
@@ -285,19 +302,22 @@ class Localizer:
         kf, v = best
         return Fix(None, False, "tracking", reason, kf, v.score, v.fitness, tried)
 
-    def _target(self, kf: int) -> IcpCloud | None:
-        """Keyframe ``kf``'s cloud prepared for ICP (None: too few points), from the LRU when it is there."""
-        if kf in self._targets:
-            self._targets.move_to_end(kf)
-            return self._targets[kf]
+    def _keyframe_cloud(self, kf: int, role: Literal["source", "target"]) -> IcpCloud | None:
+        """Keyframe ``kf``'s cloud prepared for ICP as ``role`` (None: too few points), from the LRU when it is
+        there."""
+        key = (kf, role)
+        if key in self._clouds:
+            self._clouds.move_to_end(key)
+            return self._clouds[key]
+        prepare = as_target if role == "target" else as_source
         try:
-            target: IcpCloud | None = as_target(self.map.cloud(kf), self.params.tracking.verify)
+            cloud: IcpCloud | None = prepare(self.map.cloud(kf), self.params.tracking.verify)
         except ScanDataError:
-            target = None
-        self._targets[kf] = target
-        while len(self._targets) > self.params.tracking.cached_keyframes:
-            self._targets.popitem(last=False)
-        return target
+            cloud = None
+        self._clouds[key] = cloud
+        while len(self._clouds) > self.params.tracking.cached_keyframes:
+            self._clouds.popitem(last=False)
+        return cloud
 
     # -- global search ----------------------------------------------------------------------------------------
     def _global(self, scan: Scan, timing: dict[str, float]) -> Fix:
