@@ -86,3 +86,35 @@ def test_the_odometry_gate_reaches_both_sessions_configs_and_the_cache_key() -> 
     assert gate["odometry_gate"] is True and "odometry_gate" not in plain
     summary = tool._summary([])
     assert summary["refused_by_gate"] == 0 and summary["false_refused_by_gate"] == 0
+
+
+def test_a_map_config_and_localizer_settings_reach_the_map_the_localizer_and_the_key(tmp_path: Path) -> None:
+    """``--map-config``: the true-pose map built with that MapBuild YAML's pipelines and preprocessing (its own
+    folder, its own cell key); ``--localize-set``: LocalizerParams for relocalisation and kidnaps."""
+    from placerec.maps import MapArtifact
+
+    tool = _tool()
+    config = Path(__file__).resolve().parents[1] / "configs" / "map_cross_sensor.yaml"
+    build = tool.map_build(tmp_path / "m", None, config)
+    assert [p.name for p in build.pipelines] == ["scan-context"] and build.preprocess.elevation_deg == [
+        -15.0,
+        2.0,
+    ]
+    assert tool.pipeline_label(None, config) == "scan-context-map_cross_sensor"
+    plain, cross = tool.settings("vlp16", None, 5, 0), tool.settings("vlp16", None, 5, 0, map_config=config)
+    assert plain["params"] != cross["params"] and cross["map_config"]["path"] == str(config)
+    assert "map_config" not in plain  # cached cells of before still match
+    params = tool.localizer_params(None, "sensor", ["threshold=0.05", "tracking.icp_moves=keyframe"])
+    assert params.allow_other_sensor and params.threshold == 0.05 and params.tracking.icp_moves == "keyframe"
+    with pytest.raises(Exception, match="tracking.icp_move"):
+        tool.localizer_params(None, "sensor", ["tracking.icp_move=keyframe"])
+    from placerec.sim.sessions import make_session_pair
+
+    pair = make_session_pair("town", "vlp16", 0, "sensor", n_scans=6)
+    folder = tool.true_map(pair, None, tmp_path / "truth", config)
+    m = MapArtifact.open(folder)
+    assert [p.name for p in m.manifest.pipelines] == ["scan-context"]
+    assert m.preprocess().elevation_deg == [-15.0, 2.0]
+    made = (folder / "manifest.json").stat().st_mtime_ns
+    assert tool.true_map(pair, None, tmp_path / "truth", config) == folder
+    assert (folder / "manifest.json").stat().st_mtime_ns == made  # reused, not built again

@@ -57,8 +57,7 @@ from typing import Any
 import numpy as np
 
 from placerec.artifacts.map import MapBuild, write_map
-from placerec.artifacts.sources import SequenceSource
-from placerec.config import PipelineSpec
+from placerec.config import PipelineSpec, apply_overrides, read_config_file
 from placerec.errors import ConfigError
 from placerec.eval.metrics import timing_summary
 from placerec.eval.pose_error import pose_errors
@@ -66,6 +65,7 @@ from placerec.eval.trajectory import trajectory_errors
 from placerec.experiment.protocol import TEST_SEEDS, TEST_WORLDS
 from placerec.hashing import stable_hash
 from placerec.maps import Fix, Localizer, LocalizerParams, MapArtifact
+from placerec.params import resolve
 from placerec.recognizer import pipeline_params
 from placerec.sim.odometry import OdometryDrift, drift_poses
 from placerec.sim.sessions import SessionPair, kidnap_trials, make_session_pair
@@ -85,31 +85,42 @@ def log(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
-def map_pipelines(pipeline: str | None) -> list[PipelineSpec]:
-    """The true-pose map's pipelines: ``pipeline`` alone, or (None) the map default's (`MapBuild.pipelines`)."""
-    if pipeline is not None:
-        return [PipelineSpec(name=pipeline)]
-    return list(MapBuild(source=SequenceSource(), out=Path(".")).pipelines)
+def map_build(folder: Path, pipeline: str | None, map_config: Path | None = None) -> MapBuild:
+    """How the true-pose map at ``folder`` is built: the pipelines and preprocessing of the MapBuild YAML
+    ``map_config`` (e.g. configs/map_cross_sensor.yaml), else ``pipeline`` alone, or (None) the map default's."""
+    base: dict[str, Any] = {} if map_config is None else read_config_file(map_config)
+    if map_config is None and pipeline is not None:
+        base["pipelines"] = [{"name": pipeline}]
+    return resolve(MapBuild, {**base, "source": {}, "out": str(folder), "overwrite": True}, where="map build")
 
 
-def map_thresholds(pipeline: str | None, sensor: str) -> dict[str, float | None]:
+def map_pipelines(pipeline: str | None, map_config: Path | None = None) -> list[PipelineSpec]:
+    """The true-pose map's pipelines (`map_build`)."""
+    return list(map_build(Path("."), pipeline, map_config).pipelines)
+
+
+def map_thresholds(
+    pipeline: str | None, sensor: str, map_config: Path | None = None
+) -> dict[str, float | None]:
     """The operating thresholds the true-pose map records for its pipelines on ``sensor`` (global search's)."""
-    return {p.name: p.threshold_for(sensor) for p in map_pipelines(pipeline)}
+    return {p.name: p.threshold_for(sensor) for p in map_pipelines(pipeline, map_config)}
 
 
-def map_params(pipeline: str | None, sensor: str) -> str:
+def map_params(pipeline: str | None, sensor: str, map_config: Path | None = None) -> str:
     """A key of the parameters the true-pose map's pipelines run with on ``sensor`` (`placerec.sensor_presets`):
-    a map or cell made with other parameters (the same thresholds) is not reused."""
+    a map or cell made with other parameters (the same thresholds) is not reused. (A map config's preprocessing is
+    in the map folder's name and the cells' settings.)"""
     return stable_hash(
         {
             p.name: pipeline_params(p.name, p.params, sensor=sensor).saved_dump()
-            for p in map_pipelines(pipeline)
+            for p in map_pipelines(pipeline, map_config)
         }
     )
 
 
-def pipeline_label(pipeline: str | None) -> str:
-    return "+".join(p.name for p in map_pipelines(pipeline))
+def pipeline_label(pipeline: str | None, map_config: Path | None = None) -> str:
+    label = "+".join(p.name for p in map_pipelines(pipeline, map_config))
+    return label if map_config is None else f"{label}-{Path(map_config).stem}"
 
 
 def settings(
@@ -121,11 +132,18 @@ def settings(
     join_pipelines: tuple[str, ...] = (),
     slam_odometry: str = "dataset",
     odometry_gate: bool = False,
+    map_config: Path | None = None,
+    localize_sets: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """What a cell depends on besides its world, seed and kind (stored with it; a mismatch recomputes it)."""
-    out = {"version": VERSION, "sensor": sensor, "pipeline": pipeline_label(pipeline), "scans": scans, "kidnaps": kidnaps,
-           "slam_config": SLAM_CONFIG, "correct_within": [CORRECT_M, CORRECT_DEG],
-           "thresholds": map_thresholds(pipeline, sensor), "params": map_params(pipeline, sensor)}  # fmt: skip
+    out = {"version": VERSION, "sensor": sensor, "pipeline": pipeline_label(pipeline, map_config), "scans": scans,
+           "kidnaps": kidnaps, "slam_config": SLAM_CONFIG, "correct_within": [CORRECT_M, CORRECT_DEG],
+           "thresholds": map_thresholds(pipeline, sensor, map_config),
+           "params": map_params(pipeline, sensor, map_config)}  # fmt: skip
+    if map_config is not None:
+        out["map_config"] = {"path": str(map_config), "content": read_config_file(map_config)}
+    if localize_sets:
+        out["localize_sets"] = list(localize_sets)
     if map_closes_loop:
         out["map_closes_loop"] = True
     if join_pipelines:
@@ -150,18 +168,17 @@ def odometry(pair: SessionPair) -> np.ndarray:
 
 
 # -- the two maps of a world and seed -------------------------------------------------------------------------
-def true_map(pair: SessionPair, pipeline: str | None, folder: Path) -> Path:
-    """Session 1's map at its true poses (built once; reused when ``folder`` holds one with the same thresholds and
-    parameters)."""
+def true_map(pair: SessionPair, pipeline: str | None, folder: Path, map_config: Path | None = None) -> Path:
+    """Session 1's map at its true poses (built once; reused when ``folder`` holds one with the same thresholds,
+    parameters and preprocessing)."""
     if (folder / "manifest.json").is_file():
         held = MapArtifact.open(folder).manifest.pipelines
         sensor = pair.map.sensor.name
-        if {p.name: p.threshold for p in held} == map_thresholds(pipeline, sensor) and stable_hash(
-            {p.name: p.params for p in held}
-        ) == map_params(pipeline, sensor):
+        if {p.name: p.threshold for p in held} == map_thresholds(
+            pipeline, sensor, map_config
+        ) and stable_hash({p.name: p.params for p in held}) == map_params(pipeline, sensor, map_config):
             return folder
-    build = MapBuild(source=SequenceSource(), out=folder, pipelines=map_pipelines(pipeline), overwrite=True)
-    return write_map(pair.map, build)
+    return write_map(pair.map, map_build(folder, pipeline, map_config))
 
 
 def slam_overrides(pair: SessionPair, role: str, odometry: str = "dataset", gate: bool = False) -> list[str]:
@@ -412,6 +429,15 @@ def _false(loops: list, gt1: np.ndarray, gt2: np.ndarray, M: int) -> int:
     return bad
 
 
+def localizer_params(
+    pipeline: str | None, kind: str, sets: list[str] | tuple[str, ...] = ()
+) -> LocalizerParams:
+    """Relocalisation's and the kidnaps' settings: global search on ``pipeline`` (None: each of the map's), another
+    sensor allowed for the ``sensor`` kind, then ``sets`` (``key=value``, `placerec.config.apply_overrides`)."""
+    base: dict[str, Any] = {"pipeline": pipeline, "allow_other_sensor": kind == "sensor"}
+    return resolve(LocalizerParams, apply_overrides(base, list(sets)), where="--localize-set")
+
+
 # -- a cell -----------------------------------------------------------------------------------------------------
 def run_cell(
     world: str,
@@ -427,9 +453,11 @@ def run_cell(
     join_pipelines: tuple[str, ...] = (),
     slam_odometry: str = "dataset",
     odometry_gate: bool = False,
+    map_config: Path | None = None,
 ) -> dict[str, Any]:
     """One world x seed x kind: relocalisation, kidnap and multi-session (module docstring). The maps of session 1
-    are built under ``work`` once per world, seed, sensor, pipeline, cut, SLAM odometry and odometry gate."""
+    are built under ``work`` once per world, seed, sensor, pipeline (or ``map_config``), cut, SLAM odometry and
+    odometry gate."""
     pair = make_session_pair(world, sensor, seed, kind, n_scans=scans, map_closes_loop=map_closes_loop)
     tag = f"{world}-{sensor}-s{seed}-n{scans or 'all'}{'-closed' if map_closes_loop else ''}"
     params = params or LocalizerParams(pipeline=pipeline, allow_other_sensor=kind == "sensor")
@@ -442,7 +470,7 @@ def run_cell(
         "query_seed": pair.query.seed,
     }
     log(f"{tag} {kind}: true-pose map ({len(pair.map)} scans)")
-    tmap = true_map(pair, pipeline, work / f"{tag}-{pipeline_label(pipeline)}-truth")
+    tmap = true_map(pair, pipeline, work / f"{tag}-{pipeline_label(pipeline, map_config)}-truth", map_config)
     log(f"{tag} {kind}: relocalisation ({len(pair.query)} scans, {pair.overlap.sum()} in the overlap)")
     out["relocalisation"], loc = relocalise(pair, tmap, params)
     log(f"{tag} {kind}: kidnap")
@@ -538,7 +566,23 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="both SLAM sessions with loops.odometry_gate at its defaults: intra-session closures checked against"
         " the odometry, inter-session ones after the join against the joined estimate",
     )
+    ap.add_argument(
+        "--map-config",
+        type=Path,
+        default=None,
+        help="the true-pose map's pipelines and preprocessing from this MapBuild YAML (e.g."
+        " configs/map_cross_sensor.yaml) instead of --pipeline; relocalisation and kidnaps search it",
+    )
+    ap.add_argument(
+        "--localize-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a LocalizerParams field for relocalisation and kidnaps, e.g. threshold=0.05 (repeatable)",
+    )
     args = ap.parse_args(argv)
+    if args.map_config is not None and args.pipeline is not None:
+        raise SystemExit("--map-config names the map's pipelines: not with --pipeline")
     work = args.work or args.out / "maps"
     work.mkdir(parents=True, exist_ok=True)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -552,6 +596,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         join,
         args.slam_odometry,
         args.odometry_gate,
+        args.map_config,
+        tuple(args.localize_set),
     )
     cells = []
     t0 = time.perf_counter()
@@ -560,7 +606,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             for kind in args.kinds:
                 closed = "-closed" if args.map_closes_loop else ""
                 on = slam_suffix(args.slam_odometry, args.odometry_gate)
-                name = f"{world}-{args.sensor}-s{seed}-{kind}-{pipeline_label(args.pipeline)}-n{args.scans or 'all'}{closed}{on}.json"
+                label = pipeline_label(args.pipeline, args.map_config)
+                name = f"{world}-{args.sensor}-s{seed}-{kind}-{label}-n{args.scans or 'all'}{closed}{on}.json"
                 path = args.out / name
                 if path.is_file() and not args.fresh:
                     cached = json.loads(path.read_text())
@@ -568,9 +615,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         log(f"{name}: cached")
                         cells.append(cached)
                         continue
+                params = localizer_params(args.pipeline, kind, args.localize_set)
                 cell = run_cell(world, seed, kind, args.sensor, args.pipeline, args.scans, args.kidnaps, work,
-                                map_closes_loop=args.map_closes_loop, join_pipelines=join,
-                                slam_odometry=args.slam_odometry, odometry_gate=args.odometry_gate)  # fmt: skip
+                                params, map_closes_loop=args.map_closes_loop, join_pipelines=join,
+                                slam_odometry=args.slam_odometry, odometry_gate=args.odometry_gate,
+                                map_config=args.map_config)  # fmt: skip
                 cell["settings"] = want
                 tmp = path.with_suffix(".tmp")
                 tmp.write_text(json.dumps(cell, indent=1))
