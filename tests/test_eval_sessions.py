@@ -118,3 +118,11 @@ def test_a_map_config_and_localizer_settings_reach_the_map_the_localizer_and_the
     made = (folder / "manifest.json").stat().st_mtime_ns
     assert tool.true_map(pair, None, tmp_path / "truth", config) == folder
     assert (folder / "manifest.json").stat().st_mtime_ns == made  # reused, not built again
+    # a cell on that map: relocalised with the given settings; the join diagnostic needs the SLAM's own pipelines
+    params = tool.localizer_params(None, "sensor", ["threshold=0.05", "tracking.icp_moves=keyframe"])
+    cell = tool.run_cell(
+        "town", 0, "sensor", scans=8, kidnaps=0, work=tmp_path / "cells", params=params, map_config=config
+    )
+    assert cell["relocalisation"]["wrong"] == 0 and cell["relocalisation"]["success"] >= 0.75
+    assert cell["multisession_truth_map"] is None and tool.cell_line(cell).endswith("| - |")
+    assert tool._summary([cell])["max_merged_ate_truth_map"] is None
