@@ -169,8 +169,8 @@ def odometry(pair: SessionPair) -> np.ndarray:
 
 # -- the two maps of a world and seed -------------------------------------------------------------------------
 def true_map(pair: SessionPair, pipeline: str | None, folder: Path, map_config: Path | None = None) -> Path:
-    """Session 1's map at its true poses (built once; reused when ``folder`` holds one with the same thresholds,
-    parameters and preprocessing)."""
+    """Session 1's map at its true poses (built once; reused when ``folder`` holds one with the same thresholds and
+    parameters; a map config's maps have folders of their own, `pipeline_label`)."""
     if (folder / "manifest.json").is_file():
         held = MapArtifact.open(folder).manifest.pipelines
         sensor = pair.map.sensor.name
