@@ -294,3 +294,31 @@ def test_the_cross_sensor_map_config_localises_another_sensors_scans(
     for by_scan, by_kf, i in zip(fits["scan"], fits["keyframe"], (4, 10, 15), strict=True):
         assert by_scan.mode == by_kf.mode == "tracking"
         assert _correct(by_kf, queries.poses[i]) and by_kf.fitness > by_scan.fitness + 0.1, (by_scan, by_kf)
+
+
+def test_cli_localizes_another_sensors_scans_with_the_documented_settings(tmp_path: Path) -> None:
+    """The commands configs/map_cross_sensor.yaml's header gives: a VLP-16 map built with it, then an OS1-64
+    drive localised with `placerec localize --allow-other-sensor --set ...` (nested keys included)."""
+    built = CliRunner().invoke(app, ["map", "build", "--sim-world", "town", "--sim-sensor", "vlp16", "--sim-scans", "20",
+                                     "--config", str(ROOT / "configs" / "map_cross_sensor.yaml"),
+                                     "--out", str(tmp_path / "map")])  # fmt: skip
+    assert built.exit_code == 0, built.output
+    seq = SimulatedSequence(world="town", sensor="os1-64", n_scans=6, seed=11, world_seed=0, unit_seed=0)
+    folder = write_kitti_sequence(seq, tmp_path / "os1", progress=False)
+    sets = ["threshold=0.05", "ambiguity.max_ratio=0.85", "tracking.icp_moves=keyframe",
+            "tracking.verify.score.min_constraint=0.05"]  # fmt: skip
+    args = [
+        "localize",
+        str(tmp_path / "map"),
+        str(folder),
+        "--allow-other-sensor",
+        "--out",
+        str(tmp_path / "out"),
+    ]
+    res = CliRunner().invoke(app, [*args, *(x for s in sets for x in ("--set", s))])
+    assert res.exit_code == 0, res.output
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    params = metrics["params"]
+    assert params["tracking"]["icp_moves"] == "keyframe" and params["ambiguity"]["max_ratio"] == 0.85
+    assert params["tracking"]["verify"]["score"]["min_constraint"] == 0.05 and params["threshold"] == 0.05
+    assert metrics["scans"] == 6 and metrics["false_fixes"] == 0 and metrics["correct"] == 6, metrics
