@@ -529,3 +529,29 @@ def test_slam_saves_more_pipelines_and_the_merged_map_extends_them(tmp_path: Pat
     with pytest.raises(ConfigError, match="loops.pipeline already"):
         _slam_cfg(tmp_path, "dataset.simulator.n_scans=5", f"output.save_map={tmp_path / 'm3'}",
                   "output.map_pipelines=[orb-hbst]")  # fmt: skip
+
+
+def test_slam_saves_map_pipelines_with_their_parameters_and_joins_with_its_settings(tmp_path: Path) -> None:
+    """``output.map_pipeline_params`` reaches the saved map's database (merged over the sensor's settings);
+    ``prior_map.join_threshold`` / ``join_ambiguity`` reach the join's global searches; a parameter for a pipeline
+    the map does not hold is refused."""
+    pytest.importorskip("gtsam")
+    from placerec.slam_app.run import _map_searches, run_slam
+
+    sc = "{scan-context: {num_candidates: 1000, verify: {score: {min_fitness_ratio: null}}}}"
+    first = _slam_cfg(tmp_path, "dataset.simulator.n_scans=12", f"output.save_map={tmp_path / 'm1'}",
+                      "output.map_pipelines=[scan-context]", f"output.map_pipeline_params={sc}")  # fmt: skip
+    run_slam(first, tmp_path / "res")
+    held = MapArtifact.open(tmp_path / "m1").pipeline("scan-context")
+    assert (
+        held.params["num_candidates"] == 1000 and held.params["verify"]["score"]["min_fitness_ratio"] is None
+    )
+    assert held.params["verify"]["score"]["min_score"] == 0.1  # the VLP-16's own setting kept under them
+    second = _slam_cfg(tmp_path, "dataset.simulator.n_scans=5", f"prior_map.path={tmp_path / 'm1'}",
+                       "prior_map.join_pipelines=[scan-context]", "prior_map.join_threshold=0.05",
+                       "prior_map.join_ambiguity.max_ratio=0.85")  # fmt: skip
+    (search,) = _map_searches(second, MapArtifact.open(tmp_path / "m1"))
+    assert search.params.threshold == 0.05 and search.params.ambiguity.max_ratio == 0.85
+    assert search.searches[0][2] == 0.05
+    with pytest.raises(ConfigError, match="not in output.map_pipelines"):
+        _slam_cfg(tmp_path, "dataset.simulator.n_scans=5", f"output.map_pipeline_params={sc}")

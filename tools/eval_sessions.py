@@ -134,6 +134,8 @@ def settings(
     odometry_gate: bool = False,
     map_config: Path | None = None,
     localize_sets: tuple[str, ...] = (),
+    slam_map_sets: tuple[str, ...] = (),
+    slam_join_sets: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """What a cell depends on besides its world, seed and kind (stored with it; a mismatch recomputes it)."""
     out = {"version": VERSION, "sensor": sensor, "pipeline": pipeline_label(pipeline, map_config), "scans": scans,
@@ -144,6 +146,10 @@ def settings(
         out["map_config"] = {"path": str(map_config), "content": read_config_file(map_config)}
     if localize_sets:
         out["localize_sets"] = list(localize_sets)
+    if slam_map_sets:
+        out["slam_map_sets"] = list(slam_map_sets)
+    if slam_join_sets:
+        out["slam_join_sets"] = list(slam_join_sets)
     if map_closes_loop:
         out["map_closes_loop"] = True
     if join_pipelines:
@@ -200,9 +206,10 @@ def slam_map(
     map_pipelines: tuple[str, ...] = (),
     odometry: str = "dataset",
     gate: bool = False,
+    slam_sets: tuple[str, ...] = (),
 ) -> tuple[Path, dict[str, Any]]:
     """Session 1 through `slam_sequence` with its map saved (run once; its ATE kept beside it), holding the
-    ``map_pipelines`` databases as well (``output.map_pipelines``)."""
+    ``map_pipelines`` databases as well (``output.map_pipelines``), its SLAM config overridden by ``slam_sets``."""
     from placerec.slam_app.config import load_slam_config
     from placerec.slam_app.run import loop_pipeline, map_writer_for, slam_sequence
 
@@ -211,6 +218,7 @@ def slam_map(
         *slam_overrides(pair, "map", odometry, gate),
         f"output.save_map={folder}",
         "output.overwrite_map=true",
+        *slam_sets,
     ]
     if map_pipelines:
         sets.append(f"output.map_pipelines={list(map_pipelines)}")
@@ -348,10 +356,11 @@ def multisession(
     join_pipelines: tuple[str, ...] = (),
     odometry: str = "dataset",
     gate: bool = False,
+    slam_sets: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """Session 2 through `slam_sequence` against the map at ``map_folder`` (module docstring), with the map's
     ``join_pipelines`` searching it too (``prior_map.join_pipelines``), on ``odometry`` with or without the
-    odometry ``gate`` (`slam_overrides`)."""
+    odometry ``gate`` (`slam_overrides`), then ``slam_sets`` (its SLAM config's ``key=value`` overrides)."""
     from placerec.slam_app.config import load_slam_config
     from placerec.slam_app.run import open_prior_map, slam_sequence
 
@@ -360,7 +369,7 @@ def multisession(
         sets.append(f"prior_map.join_pipelines={list(join_pipelines)}")
     if pair.kind == "sensor":
         sets.append("prior_map.allow_other_sensor=true")
-    cfg = load_slam_config(SLAM_CONFIG, sets)
+    cfg = load_slam_config(SLAM_CONFIG, [*sets, *slam_sets])
     t0 = time.perf_counter()
     prior, rec = open_prior_map(cfg, pair.query)
     result = slam_sequence(cfg, pair.query, rec, None, None, prior)
@@ -454,6 +463,8 @@ def run_cell(
     slam_odometry: str = "dataset",
     odometry_gate: bool = False,
     map_config: Path | None = None,
+    slam_map_sets: tuple[str, ...] = (),
+    slam_join_sets: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """One world x seed x kind: relocalisation, kidnap and multi-session (module docstring). The maps of session 1
     are built under ``work`` once per world, seed, sensor, pipeline (or ``map_config``), cut, SLAM odometry and
@@ -479,15 +490,19 @@ def run_cell(
     joined_by = "".join(f"-{name}" for name in join_pipelines)  # a map holding those databases too
     on = slam_suffix(slam_odometry, odometry_gate)
     smap, out["slam_session1"] = slam_map(
-        pair, work / f"{tag}-slam{joined_by}{on}", join_pipelines, slam_odometry, odometry_gate
+        pair, work / f"{tag}-slam{joined_by}{on}", join_pipelines, slam_odometry, odometry_gate, slam_map_sets
     )
     log(f"{tag} {kind}: SLAM session 2 against it")
-    out["multisession"] = multisession(pair, smap, join_pipelines, slam_odometry, odometry_gate)
+    out["multisession"] = multisession(
+        pair, smap, join_pipelines, slam_odometry, odometry_gate, slam_join_sets
+    )
     if map_config is None:
         log(
             f"{tag} {kind}: SLAM session 2 against the true-pose map (diagnostic: the join without the map's drift)"
         )
-        out["multisession_truth_map"] = multisession(pair, tmap, join_pipelines, slam_odometry, odometry_gate)
+        out["multisession_truth_map"] = multisession(
+            pair, tmap, join_pipelines, slam_odometry, odometry_gate, slam_join_sets
+        )
     else:  # that map holds the config's pipelines, not the SLAM loop pipeline a join searches
         out["multisession_truth_map"] = None
     out["seconds"] = round(time.perf_counter() - t0, 1)
@@ -584,6 +599,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         metavar="KEY=VALUE",
         help="a LocalizerParams field for relocalisation and kidnaps, e.g. threshold=0.05 (repeatable)",
     )
+    ap.add_argument(
+        "--slam-map-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an override of session 1's SLAM config (the map session), e.g."
+        " output.map_pipeline_params={scan-context: {...}} (repeatable)",
+    )
+    ap.add_argument(
+        "--slam-join-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an override of session 2's SLAM config (the session joined to the map), e.g."
+        " prior_map.join_threshold=0.05 (repeatable)",
+    )
     args = ap.parse_args(argv)
     if args.map_config is not None and args.pipeline is not None:
         raise SystemExit("--map-config names the map's pipelines: not with --pipeline")
@@ -602,6 +633,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         args.odometry_gate,
         args.map_config,
         tuple(args.localize_set),
+        tuple(args.slam_map_set),
+        tuple(args.slam_join_set),
     )
     cells = []
     t0 = time.perf_counter()
@@ -623,7 +656,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 cell = run_cell(world, seed, kind, args.sensor, args.pipeline, args.scans, args.kidnaps, work,
                                 params, map_closes_loop=args.map_closes_loop, join_pipelines=join,
                                 slam_odometry=args.slam_odometry, odometry_gate=args.odometry_gate,
-                                map_config=args.map_config)  # fmt: skip
+                                map_config=args.map_config, slam_map_sets=tuple(args.slam_map_set),
+                                slam_join_sets=tuple(args.slam_join_set))  # fmt: skip
                 cell["settings"] = want
                 tmp = path.with_suffix(".tmp")
                 tmp.write_text(json.dumps(cell, indent=1))

@@ -8,7 +8,7 @@ is a `placerec.config.PipelineSpec` and ``loops.exclusion`` an `placerec.config.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
@@ -28,6 +28,7 @@ from placerec.realtime import RealtimeParams
 from placerec.sim.odometry import OdometryDrift
 from placerec.slam.graph import GraphParams
 from placerec.slam.odometry import KissIcpParams
+from placerec.verify.ambiguity import AmbiguityParams
 
 __all__ = [
     "DriftConfig",
@@ -140,6 +141,11 @@ class SlamOutputConfig(Params):
         " described and added to each, at its preset's threshold for the sensor), e.g. scan-context for a later"
         " session's prior_map.join_pipelines; with --prior-map the prior map's own database of each is extended",
     )
+    map_pipeline_params: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="parameters of map_pipelines by name (merged over the preset and the sensor's settings), e.g."
+        " configs/map_cross_sensor.yaml's Scan Context for a later session with another sensor",
+    )
 
 
 class PriorMapConfig(Params):
@@ -160,8 +166,17 @@ class PriorMapConfig(Params):
         default_factory=list,
         max_length=8,
         description="more of the map's pipelines whose global search (placerec.maps.Localizer, query only, at the"
-        " map's threshold for each) adds inter-session closures for every scan, e.g. scan-context for a session"
-        " driven the other way than the map",
+        " map's threshold for each unless join_threshold) adds inter-session closures for every scan, e.g."
+        " scan-context for a session driven the other way than the map",
+    )
+    join_threshold: float | None = Field(
+        None,
+        description="join_pipelines' global fixes score at least this (None: the map's threshold for each)",
+    )
+    join_ambiguity: AmbiguityParams = Field(
+        default_factory=AmbiguityParams,
+        description="join_pipelines' global search refuses a fix another place nearly matches"
+        " (placerec.verify.ambiguity; off)",
     )
 
 
@@ -189,6 +204,9 @@ class SlamConfig(Params):
         ):
             if loop in names:
                 raise ValueError(f"{key}: {loop!r} is loops.pipeline already; name other pipelines")
+        unknown = sorted(set(self.output.map_pipeline_params) - set(self.output.map_pipelines))
+        if unknown:
+            raise ValueError(f"output.map_pipeline_params: {unknown} not in output.map_pipelines")
         return self
 
 

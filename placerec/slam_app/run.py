@@ -217,13 +217,22 @@ def open_prior_map(cfg: SlamConfig, seq: Sequence) -> tuple[MapArtifact, PlaceRe
 
 
 def _map_searches(cfg: SlamConfig, prior: MapArtifact | None) -> list[Localizer]:
-    """Global search of the map with each of ``prior_map.join_pipelines`` (its databases loaded now)."""
+    """Global search of the map with each of ``prior_map.join_pipelines`` (its databases loaded now), at
+    ``prior_map.join_threshold`` and with ``prior_map.join_ambiguity``."""
     if prior is None:
         return []
-    allow = cfg.prior_map.allow_other_sensor
+    pm = cfg.prior_map
     return [
-        Localizer(prior, LocalizerParams(pipeline=n, allow_other_sensor=allow))
-        for n in cfg.prior_map.join_pipelines
+        Localizer(
+            prior,
+            LocalizerParams(
+                pipeline=n,
+                allow_other_sensor=pm.allow_other_sensor,
+                threshold=pm.join_threshold,
+                ambiguity=pm.join_ambiguity,
+            ),
+        )
+        for n in pm.join_pipelines
     ]
 
 
@@ -487,7 +496,8 @@ def map_writer_for(
         else:
             extra = PipelineSpec(name=name)
             model = None if sensor is None else sensor.name
-            built = make_pipeline(name, path="output.map_pipelines", sensor=model)
+            params = cfg.output.map_pipeline_params.get(name)
+            built = make_pipeline(name, params, path=f"output.map_pipeline_params.{name}", sensor=model)
             pipelines[name] = (built, extra.threshold_for(model))
     writer = MapWriter(
         cfg.output.save_map,
