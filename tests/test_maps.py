@@ -555,3 +555,6 @@ def test_slam_saves_map_pipelines_with_their_parameters_and_joins_with_its_setti
     assert search.searches[0][2] == 0.05
     with pytest.raises(ConfigError, match="not in output.map_pipelines"):
         _slam_cfg(tmp_path, "dataset.simulator.n_scans=5", f"output.map_pipeline_params={sc}")
+    with pytest.raises(ConfigError, match="prior map's own"):
+        _slam_cfg(tmp_path, "dataset.simulator.n_scans=5", f"prior_map.path={tmp_path / 'm1'}",
+                  "output.map_pipelines=[scan-context]", f"output.map_pipeline_params={sc}")  # fmt: skip

@@ -207,6 +207,11 @@ class SlamConfig(Params):
         unknown = sorted(set(self.output.map_pipeline_params) - set(self.output.map_pipelines))
         if unknown:
             raise ValueError(f"output.map_pipeline_params: {unknown} not in output.map_pipelines")
+        if self.output.map_pipeline_params and self.prior_map.path is not None:
+            raise ValueError(
+                "output.map_pipeline_params: with prior_map.path the merged map extends the prior map's own "
+                "databases, with their parameters"
+            )
         return self
 
 
