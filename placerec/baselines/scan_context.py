@@ -202,7 +202,7 @@ def scan_context_distance(
     # formed for those alone: a limited field of view's query (a fifth of the columns) costs a fifth.
     qn = np.linalg.norm(Q, axis=0)
     occupied = np.flatnonzero(qn > 0)
-    Qo = Q if occupied.size == S else Q[:, occupied]
+    Qo = Q if occupied.size == S else Q[:, occupied]  # a full query's products as before, bit for bit
     src = (
         occupied[None, None, :] - shifts[:, :, None]
     ) % S  # (M, shifts, occupied): candidate column landing on query column occupied[j]

@@ -645,10 +645,17 @@ def localize_estimates(
         answered = answered & posed
     if verifies and ambiguity is not None and ambiguity.max_ratio is not None:
         answered = answered & ~_ambiguous(table, map_poses, answered, basis, ambiguity)
-    estimates[answered] = map_poses[top[answered]]
-    if basis == "pose":
-        estimates[answered] = estimates[answered] @ rel[answered]
+    estimates[answered] = _placed(map_poses, top[answered], rel[answered], basis)
     return estimates, basis, rule
+
+
+def _placed(
+    map_poses: np.ndarray, match_ids: np.ndarray, relative_poses: np.ndarray, basis: str
+) -> np.ndarray:
+    """(K, 4, 4) where candidates place their queries: the matched map scans' poses, composed with the candidates'
+    relative poses on the ``"pose"`` basis (`localize_estimates`)."""
+    T = map_poses[match_ids]
+    return T @ relative_poses if basis == "pose" else T
 
 
 def _ambiguous(
@@ -661,11 +668,8 @@ def _ambiguous(
         if basis == "pose":
             ok &= full_pose_mask(table.relative_poses[q])
         ranks = np.flatnonzero(ok)  # the top candidate first: it is answered, so accepted (and posed)
-        where = map_poses[table.match_ids[q, ranks]][:, :3, 3]
-        if basis == "pose":
-            where = (map_poses[table.match_ids[q, ranks]] @ table.relative_poses[q, ranks])[:, :3, 3]
-        ratio = runner_up_ratio(table.scores[q, ranks], where, params.separation_m)
-        out[q] = params.refuses(ratio)
+        where = _placed(map_poses, table.match_ids[q, ranks], table.relative_poses[q, ranks], basis)[:, :3, 3]
+        out[q] = params.refuses(runner_up_ratio(table.scores[q, ranks], where, params.separation_m))
     return out
 
 
