@@ -10,7 +10,7 @@ import pytest
 from placerec.errors import ConfigError, ScanDataError
 from placerec.eval import localization_metrics
 from placerec.experiment.candidates import CandidateTable
-from placerec.experiment.report import localize_estimates
+from placerec.experiment.report import ambiguous_answers, localize_estimates
 from placerec.types import Candidate
 from placerec.verify.ambiguity import AmbiguityParams, runner_up_ratio
 
@@ -90,6 +90,22 @@ def test_localize_mode_refuses_an_ambiguous_answer_only():
     # the runner-up placed within separation_m agrees
     est, _, _ = localize_estimates(table, map_poses, AmbiguityParams(max_ratio=0.85, separation_m=60.0))
     assert np.isfinite(est).all()
+
+
+def test_loop_mode_refuses_every_candidate_of_an_ambiguous_query():
+    """Loop mode across two drives (tools/eval_cross_sensor.py): the queries `ambiguous_answers` names lose every
+    candidate, so their top score is 0 and no threshold closes them; the others keep their answer."""
+    table, map_poses, _ = _table()
+    assert not ambiguous_answers(table, map_poses, AmbiguityParams()).any()  # off
+    refused = ambiguous_answers(table, map_poses, AmbiguityParams(max_ratio=0.85))
+    assert refused.tolist() == [True, False, False]
+    judged = table.refused(np.repeat(refused[:, None], table.match_ids.shape[1], 1))
+    _, match, scores = judged.top1()
+    assert scores.tolist() == [0.0, 0.20, 0.20] and judged.accepted[0].tolist() == [0, 0]
+    assert match[1:].tolist() == [0, 0]
+    # a pipeline that does not verify has no accepted answers for the rule to judge
+    plain = CandidateTable.from_candidates([0], [[Candidate(0, 0, 0.2), Candidate(0, 2, 0.19)]])
+    assert not ambiguous_answers(plain, map_poses, AmbiguityParams(max_ratio=0.5)).any()
 
 
 def test_the_experiment_config_takes_the_rule():

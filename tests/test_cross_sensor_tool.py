@@ -98,13 +98,18 @@ def test_quick_path_tiny(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
         "--quick", "--pairs", "vlp16:avia", "--pipelines", "scan-context", "ishot-prob", "--intensity", "raw",
         "calibrated",
         "--map-spacing", "40", "--query-spacing", "80", "--cal-scans", "6", "--cache-dir", str(tmp_path),
-        "--ambiguity", "0.85", "--set", "scan-context.full_shift_search=true",
+        "--ambiguity", "0.85", "--set", "scan-context.full_shift_search=true", "--loop-ambiguity", "0.85",
+        "--loop-threshold", "scan-context=0.05",
     ])  # fmt: skip
     line = capsys.readouterr().out.strip().splitlines()[-1]
     assert json.loads(line)["tool"] == "eval_cross_sensor"
     assert set(out["splits"]) == {"test"} and out["splits"]["test"]["label"] == "test"
     assert out["calibration_drives"]["label"] == "tuning"
     assert out["ambiguity"] == 0.85 and out["pipeline_params"]["scan-context"] == {"full_shift_search": True}
+    assert out["loop_ambiguity"] == 0.85 and out["pipelines"]["scan-context"] == 0.05
+    for bad in ("ishot-prob=0.1", "scan-context=x", "scan-context=nan"):
+        with pytest.raises(SystemExit, match="--loop-threshold"):
+            tool.main(["--quick", "--pipelines", "scan-context", "ishot-prob", "--loop-threshold", bad])
     with pytest.raises(SystemExit, match="orb-dbow.top_k"):
         tool.main(["--quick", "--pipelines", "scan-context", "--set", "orb-dbow.top_k=5"])
     res = out["results"]["test"]
@@ -122,6 +127,7 @@ def test_quick_path_tiny(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
             )
             assert 0.0 <= loop["r_at_p1"] <= loop["recall"] <= 1.0
             assert loop["threshold"] == out["pipelines"]["scan-context"]
+            assert 0 <= loop["refused_ambiguous"] <= r["n_queries"] and "max_false_score" in loop
     ratio = out["summary"]["test"]["ratios"]["vlp16>avia"]["calibrated"]["loop"]
     assert ratio["best"] == "scan-context" and set(ratio["pipelines"]["scan-context"]) == {
         "cross",

@@ -51,8 +51,12 @@ Modes, per pipeline (ishot-prob, scan-context, orb-dbow, superpoint-dbow; preset
 * ``loop``: the map sequence followed by the query sequence as one sequence (`ConcatSequence`; the queries' clock
   starts 1e6 s after the map's and the exclusion window is 5e5 s, so a query can close a loop onto the map part
   only), run in loop mode (`run_loop`), judged with the benchmark's pose ground truth (`loop_summary`,
-  `pose_truths`) at the preset's fixed threshold: recall and precision there, and ``R@P1`` = that recall when
-  the precision is 1.00, else 0.
+  `pose_truths`) at a fixed threshold (the preset's; ``--loop-threshold PIPELINE=VALUE`` another): recall and
+  precision there, and ``R@P1`` = that recall when the precision is 1.00, else 0. ``--loop-ambiguity RATIO``
+  applies localisation's ambiguity rule to the loop answers, the map drive's poses placing the candidates: the
+  first drive plays a map with known poses, as a second session joining a prior map does
+  (``prior_map.join_ambiguity``; the odometry of a single drive is not such a map). An ambiguous query has no
+  answer (`placerec.experiment.report.ambiguous_answers`).
 
 Ratios: cross / same R@P1, where "same" is the query sensor's same-sensor baseline (its own map unit and query
 unit).
@@ -101,7 +105,7 @@ from placerec.config import ExperimentConfig, apply_overrides, parse_config
 from placerec.eval import localization_metrics
 from placerec.experiment import protocol
 from placerec.experiment.datasets import SlicedSequence
-from placerec.experiment.report import localize_estimates, loop_summary, pose_truths
+from placerec.experiment.report import ambiguous_answers, localize_estimates, loop_summary, pose_truths
 from placerec.experiment.runner import PipelineRecord, build_pipelines, run_localize, run_loop
 from placerec.experiment.truth import TruthClouds
 from placerec.hashing import stable_hash
@@ -451,7 +455,9 @@ def make_config(
     params: dict[str, dict] | None = None,
     elevation: list[float] | None = None,
     ambiguity: float | None = None,
+    thresholds: dict[str, float] | None = None,
 ) -> ExperimentConfig:
+    """The run's experiment config in ``mode``; ``thresholds`` replace the presets' loop-closure thresholds."""
     evaluation: dict[str, Any] = {"mode": mode, "gt_distance": 5.0, "top_n": 5}
     if mode == "loop":
         evaluation["exclusion"] = {"frames": None, "seconds": GAP_S / 2, "metres": None}
@@ -465,8 +471,8 @@ def make_config(
         "preprocess": {"min_range": 0.5, "intensity": {"mode": "raw"},
                        **({} if elevation is None else {"elevation_deg": elevation})},
         # the presets' thresholds: the placeholder dataset's sensor is none of a pair's (each pair mixes two)
-        "pipelines": [{"name": n, "params": (params or {}).get(n, {}), "threshold": PIPELINES[n].threshold}
-                      for n in pipelines],
+        "pipelines": [{"name": n, "params": (params or {}).get(n, {}),
+                       "threshold": (thresholds or {}).get(n, PIPELINES[n].threshold)} for n in pipelines],
         "evaluation": evaluation,
         "output": {"dir": out_dir, "cache_dir": None, "figures": False, "progress": False},
     })  # fmt: skip
@@ -520,6 +526,24 @@ def loop_pipelines(names: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(n for n in names if PIPELINES[n].threshold is not None)
 
 
+def loop_thresholds(items: list[str], pipelines: tuple[str, ...]) -> dict[str, float]:
+    """``--loop-threshold PIPELINE=VALUE`` items as {pipeline: threshold}; SystemExit naming a bad item."""
+    out = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        if name not in loop_pipelines(pipelines):
+            raise SystemExit(
+                f"--loop-threshold {item}: not a loop pipeline of this run {list(loop_pipelines(pipelines))}"
+            )
+        try:
+            out[name] = float(value)
+        except ValueError:
+            raise SystemExit(f"--loop-threshold {item}: {value!r} is not a number") from None
+        if not np.isfinite(out[name]) or out[name] < 0:
+            raise SystemExit(f"--loop-threshold {item}: a threshold is a finite number >= 0")
+    return out
+
+
 def memo_pipelines(cfg: ExperimentConfig, store: dict) -> list[tuple[PipelineRecord, Any]]:
     return [(record, MemoRecognizer(rec, store)) for record, rec in build_pipelines(cfg)]
 
@@ -554,15 +578,28 @@ def localise_r_at_p1(success: float, n_wrong: int) -> float:
 
 
 def loop_figures(
-    cfg: ExperimentConfig, seq: ConcatSequence, records: list[PipelineRecord], truth: TruthClouds
+    cfg: ExperimentConfig,
+    seq: ConcatSequence,
+    records: list[PipelineRecord],
+    truth: TruthClouds,
+    ambiguity: AmbiguityParams | None = None,
 ):
-    """Per pipeline: the pose-truth figures at the preset's fixed threshold (queries of the second part only can
-    close: the exclusion window keeps the first part from closing)."""
+    """Per pipeline: the pose-truth figures at its fixed threshold (queries of the second part only can close: the
+    exclusion window keeps the first part from closing). With ``ambiguity`` (``--loop-ambiguity``) a query whose
+    accepted answer the ambiguity rule refuses has no answer (every candidate refused), the first drive's poses
+    placing the candidates as a map's poses do in localise mode (`ambiguous_answers`)."""
     poses, stamps = seq.poses, seq.timestamps
     tables = [r.table() for r in records]
     gts = pose_truths(cfg, tables, poses, stamps, truth)
+    refused = [np.zeros(t.query_ids.shape, bool) for t in tables]
+    if ambiguity is not None:
+        refused = [ambiguous_answers(t, poses, ambiguity) for t in tables]
+        tables = [
+            t.refused(np.repeat(r[:, None], t.match_ids.shape[1], 1))
+            for t, r in zip(tables, refused, strict=True)
+        ]
     out = {}
-    for record, table, gt in zip(records, tables, gts, strict=True):
+    for record, table, gt, ambiguous in zip(records, tables, gts, refused, strict=True):
         _, summary = loop_summary(cfg, table, poses, stamps, record.threshold, truth, gt)
         op = summary["pose_truth"]["operating"]
         p, r = float(op["precision"]), float(op["recall"])
@@ -575,6 +612,8 @@ def loop_figures(
             "fp": op["fp"],
             "n_revisits": op["n_revisits"],
             "recall_at_100_precision": summary["pose_truth"]["recall_at_100_precision"],
+            "max_false_score": summary["pose_truth"]["max_false_score"],
+            "refused_ambiguous": int(ambiguous.sum()),
         }
     return out
 
@@ -617,11 +656,13 @@ def run_pair(
     looping = loop_pipelines(args.pipelines)
     out["loop"] = {}
     if looping:
-        cfg = make_config("loop", looping, str(tmp / "runs"), args.pipeline_params, args.elevation)
+        cfg = make_config("loop", looping, str(tmp / "runs"), args.pipeline_params, args.elevation,
+                          thresholds=args.loop_thresholds)  # fmt: skip
         both = ConcatSequence(map_seq, query_seq)
         truth = TruthClouds(cfg.evaluation, both.poses)
         _, records = run_loop(cfg, both, memo_pipelines(cfg, memo), on_scan=truth)
-        out["loop"] = loop_figures(cfg, both, records, truth)
+        rule = None if args.loop_ambiguity is None else AmbiguityParams(max_ratio=args.loop_ambiguity)
+        out["loop"] = loop_figures(cfg, both, records, truth, rule)
     out["seconds"] = round(time.perf_counter() - t0, 1)
     return out
 
@@ -698,7 +739,7 @@ def _pct(x: Any) -> str:
 def print_tables(results: dict[str, Any], summary: dict[str, Any], args: argparse.Namespace) -> None:
     for split, per_mode in results.items():
         print(f"\n{split.upper()} split ({'tuning figures' if split == 'tuning' else 'figures to report'}): "
-              f"{args.split_defs[split]}; loop: recall / precision % at the preset's threshold (pose truth), R@P1 = recall "
+              f"{args.split_defs[split]}; loop: recall / precision % at the fixed threshold (pose truth), R@P1 = recall "
               "if precision is 100 else 0; localise: success % (accepted answers within 3 m), R@P1 = success if no accepted answer was wrong "
               "else 0; ratio = cross / the query sensor's same-sensor R@P1")  # fmt: skip
         print(f"{'pair':18} {'intensity':11} {'pipeline':16} {'maps':>4} {'qs':>3} {'loop R':>6} {'P':>4} "
@@ -775,6 +816,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "(evaluation.localize.ambiguity.max_ratio; default: off)",
     )
     ap.add_argument(
+        "--loop-ambiguity",
+        type=float,
+        default=None,
+        metavar="RATIO",
+        help="loop mode: the same rule, the map drive's poses placing the candidates (as a session joining a "
+        "prior map does: prior_map.join_ambiguity; default: off)",
+    )
+    ap.add_argument(
+        "--loop-threshold",
+        dest="loop_threshold_items",
+        action="append",
+        default=[],
+        metavar="PIPELINE=VALUE",
+        help="loop mode's fixed threshold of a pipeline (default: its preset's; repeatable)",
+    )
+    ap.add_argument(
         "--set",
         dest="overrides",
         action="append",
@@ -838,6 +895,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         {name: dict(args.pipeline_params.get(name, {})) for name in args.pipelines}, args.overrides
     )
     args.elevation = common_elevation(baselines) if args.crop == "common" else None
+    args.loop_thresholds = loop_thresholds(args.loop_threshold_items, args.pipelines)
     t_start = time.perf_counter()
 
     def say(s: str) -> None:
@@ -895,12 +953,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "scans": args.cal_scans,
             "label": "tuning",
         },  # fmt: skip
-        "pipelines": {p: PIPELINES[p].threshold for p in args.pipelines},
+        "pipelines": {p: args.loop_thresholds.get(p, PIPELINES[p].threshold) for p in args.pipelines},
         "image": args.image,
         "elevation_deg": args.elevation,
         "pipeline_params": args.pipeline_params,
         "min_constraint": args.min_constraint,
         "ambiguity": args.ambiguity,
+        "loop_ambiguity": args.loop_ambiguity,
         "intensity": list(args.intensity),
         "skipped": skipped,
         "seconds": round(time.perf_counter() - t_start),

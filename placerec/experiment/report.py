@@ -98,6 +98,7 @@ __all__ = [
     "report_localize",
     "recompute_loop_metrics",
     "localize_estimates",
+    "ambiguous_answers",
 ]
 
 
@@ -635,18 +636,36 @@ def localize_estimates(
     placing the query more than ``ambiguity.separation_m`` away, nearly matches is no answer either, as a
     rejected one is."""
     top, rel = table.match_ids[:, 0], table.relative_poses[:, 0]
+    answered, basis, rule = _answers(table)
+    if rule == "accepted" and ambiguity is not None and ambiguity.max_ratio is not None:
+        answered = answered & ~_ambiguous(table, map_poses, answered, basis, ambiguity)
+    estimates = np.full((top.size, 4, 4), np.nan)
+    estimates[answered] = _placed(map_poses, top[answered], rel[answered], basis)
+    return estimates, basis, rule
+
+
+def _answers(table: CandidateTable) -> tuple[np.ndarray, str, str]:
+    """(Q,) which queries have an answer, the basis and the answer rule (`localize_estimates`)."""
+    top, rel = table.match_ids[:, 0], table.relative_poses[:, 0]
     verifies = bool((table.accepted >= 0).any())
     answered = (top >= 0) & (table.accepted[:, 0] == 1) if verifies else top >= 0
     posed = full_pose_mask(rel)
-    estimates = np.full((top.size, 4, 4), np.nan)
-    rule = "accepted" if verifies else "top"
     basis = "pose" if (posed & (top >= 0)).any() else "retrieval"
     if basis == "pose":
         answered = answered & posed
-    if verifies and ambiguity is not None and ambiguity.max_ratio is not None:
-        answered = answered & ~_ambiguous(table, map_poses, answered, basis, ambiguity)
-    estimates[answered] = _placed(map_poses, top[answered], rel[answered], basis)
-    return estimates, basis, rule
+    return answered, basis, "accepted" if verifies else "top"
+
+
+def ambiguous_answers(table: CandidateTable, map_poses: np.ndarray, ambiguity: AmbiguityParams) -> np.ndarray:
+    """(Q,) the queries whose accepted answer the ambiguity rule refuses (`localize_estimates`'s rule), the
+    candidates placed with ``map_poses`` (the poses of the scans the match ids index: a map's). None refused when
+    the pipeline does not verify or ``ambiguity.max_ratio`` is None. Loop mode across two drives applies it with
+    the first drive as the map (tools/eval_cross_sensor.py), as a session joining a prior map does
+    (``prior_map.join_ambiguity``)."""
+    answered, basis, rule = _answers(table)
+    if rule != "accepted" or ambiguity.max_ratio is None:
+        return np.zeros(answered.shape, bool)
+    return answered & _ambiguous(table, map_poses, answered, basis, ambiguity)
 
 
 def _placed(
