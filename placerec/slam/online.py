@@ -18,12 +18,19 @@ verification run in a worker thread while the next scans come in, and a closure 
 completes, a few scans after its query scan (a loop factor between two poses already in the graph, which iSAM2
 takes as any other). `finish` first waits for the worker and adds the closures still due. The closures are the
 sequential mode's; the iSAM2 estimates along the way differ (the loops come later).
+
+With ``keyframes`` (`placerec.keyframes.KeyframeParams`: a Livox-style or solid-state scanner's frames, each too
+small a part of a place) the detector accumulates the scans into keyframes (`LoopClosureDetector`'s keyframe mode)
+while the graph keeps a pose per scan: a keyframe is in the frame of its window's last scan, so a closure between
+two keyframes is a loop factor between those two scans' poses. The loop factors and ``candidates`` are in scan
+ids (a keyframe's candidates at its last scan); the exclusion limits count keyframes.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -31,6 +38,7 @@ import numpy as np
 from placerec.errors import ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES
 from placerec.eval.pose_error import full_pose_mask
+from placerec.keyframes import KeyframeParams
 from placerec.loop_closure import LoopClosureDetector
 from placerec.odometry_gate import OdometryGateParams
 from placerec.realtime import LateScanError, RealtimeParams
@@ -112,8 +120,9 @@ class OnlineSlam:
     pipeline's verification rejected, never enter the graph); ``k``: closures accepted per scan at most;
     the exclusion limits are those of `LoopClosureDetector`; ``graph``: `GraphParams`; ``realtime``: the
     detector's real-time mode (module docstring; None: sequential); ``odometry_gate``: the detector's check of
-    each closure against the odometry poses given to `process` (`placerec.odometry_gate`; None: off). ``candidates[i]``: scan i's candidates
-    (in real-time mode filled in when its query completes).
+    each closure against the odometry poses given to `process` (`placerec.odometry_gate`; None: off); ``keyframes``:
+    places accumulated from several scans (module docstring; None: each scan a place). ``candidates[i]``: scan i's
+    candidates (in real-time mode filled in when its query completes).
     """
 
     def __init__(
@@ -127,6 +136,7 @@ class OnlineSlam:
         k: int = 1,
         realtime: RealtimeParams | None = None,
         odometry_gate: OdometryGateParams | None = None,
+        keyframes: KeyframeParams | None = None,
     ) -> None:
         self.detector = LoopClosureDetector(
             recognizer,
@@ -137,6 +147,7 @@ class OnlineSlam:
             k=k,
             realtime=realtime,
             odometry_gate=odometry_gate,
+            keyframes=keyframes,
         )
         self.graph = PoseGraph(graph or GraphParams())
         self.loops: list[LoopFactor] = []
@@ -156,9 +167,9 @@ class OnlineSlam:
 
         A scan the recognizer cannot describe (`ScanDataError`) still gets its pose and odometry factor, but is
         never queried or matched."""
-        added = detect_closures(self.detector, scan, odometry_pose, timestamp, description)
+        added = self._in_scans(detect_closures(self.detector, scan, odometry_pose, timestamp, description))
         timing = dict(self.detector.last_timing_ms)  # empty for a skipped scan
-        record_candidates(self.candidates, self.detector)
+        self._record_candidates(self.graph.n_poses + 1)  # this scan's pose is added next
         t0 = time.perf_counter()
         self.graph.add_pose(odometry_pose)
         added += list(extra_loops or [])
@@ -174,6 +185,42 @@ class OnlineSlam:
     def n_scans(self) -> int:
         return self.graph.n_poses
 
+    def _scan_of(self, place_id: int) -> int:
+        """The graph's pose (scan id) of the detector's place ``place_id``: with keyframes its window's last scan,
+        whose frame the keyframe is in; else the place is the scan."""
+        if self.detector.keyframes is None:
+            return place_id
+        return self.detector.keyframe_scans(place_id)[-1]
+
+    def _in_scans(self, loops: list[LoopFactor]) -> list[LoopFactor]:
+        """The detector's loop factors between the graph's poses (`_scan_of`)."""
+        if self.detector.keyframes is None:
+            return loops
+        return [
+            replace(lp, match_id=self._scan_of(lp.match_id), query_id=self._scan_of(lp.query_id))
+            for lp in loops
+        ]
+
+    def _record_candidates(self, n_scans: int) -> None:
+        """``candidates`` one list per scan of the ``n_scans``; with keyframes a keyframe's candidates (in scan ids)
+        at its last scan, the other scans' lists empty."""
+        if self.detector.keyframes is None:
+            record_candidates(self.candidates, self.detector)
+            return
+        self.candidates += [[] for _ in range(n_scans - len(self.candidates))]
+        for cands in self.completed():
+            if cands:
+                self.candidates[cands[0].query_id] = cands
+
+    def completed(self) -> list[list[Candidate]]:
+        """The candidates of the queries the last call completed (`LoopClosureDetector.last_completed`), one list
+        a query, in scan ids (`_scan_of`)."""
+        out = []
+        for done in self.detector.last_completed:
+            at = self._scan_of(done.place_id)
+            out.append([replace(c, query_id=at, match_id=self._scan_of(c.match_id)) for c in done.candidates])
+        return out
+
     def poses(self) -> np.ndarray:
         """The current (iSAM2) estimate of every pose so far, (N, 4, 4)."""
         return self.graph.poses()
@@ -181,8 +228,8 @@ class OnlineSlam:
     def finish(self) -> np.ndarray:
         """The final batch optimisation (`GraphParams.batch`); details in ``batch_info``. A real-time detector's
         closures still due are added first (one more iSAM2 update), and its worker ended."""
-        late = finish_closures(self.detector)
-        record_candidates(self.candidates, self.detector)
+        late = self._in_scans(finish_closures(self.detector))
+        self._record_candidates(self.graph.n_poses)
         if late:
             for loop in late:
                 self.graph.add_loop(loop)

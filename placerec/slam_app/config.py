@@ -21,6 +21,7 @@ from placerec.config import (
     experiment_preprocess,
     read_config_file,
 )
+from placerec.keyframes import KeyframeParams
 from placerec.odometry_gate import OdometryGateParams
 from placerec.params import Params, resolve
 from placerec.preprocess import PreprocessParams
@@ -94,6 +95,12 @@ class LoopsConfig(Params):
         None,
         description="accept a closure only where it agrees with the odometry (placerec.odometry_gate: {} for the"
         " bounds chosen for the demo's drift); None: off, the robust back end alone judges",
+    )
+    keyframes: KeyframeParams | None = Field(
+        None,
+        description="places accumulated from consecutive scans (placerec.keyframes, docs/keyframes.md), e.g."
+        " {seconds: 0.5, every_metres: 1.8} for a Livox-style or solid-state scanner; the graph keeps a pose a"
+        " scan; exclusion.frames then counts keyframes. None: each scan a place",
     )
 
 
@@ -193,6 +200,20 @@ class SlamConfig(Params):
     robustness: RobustnessConfig = Field(default_factory=RobustnessConfig)
     output: SlamOutputConfig = Field(default_factory=SlamOutputConfig)
     prior_map: PriorMapConfig = Field(default_factory=PriorMapConfig)
+
+    @model_validator(mode="after")
+    def _keyframes_in_one_session(self) -> SlamConfig:
+        """``loops.keyframes`` in a single-session run: a saved map (and so a prior one) holds a keyframe a scan,
+        its places single scans, which a keyframe detector's places are not."""
+        if self.loops.keyframes is None:
+            return self
+        for key, value in (
+            ("output.save_map", self.output.save_map),
+            ("prior_map.path", self.prior_map.path),
+        ):
+            if value is not None:
+                raise ValueError(f"{key}: not with loops.keyframes (maps hold single scans as places)")
+        return self
 
     @model_validator(mode="after")
     def _other_pipelines(self) -> SlamConfig:

@@ -38,7 +38,15 @@ from placerec.slam.online import OnlineSlam
 from placerec.slam.result import ONLINE_STAGES, SlamResult
 from placerec.slam_app.config import SlamConfig
 from placerec.slam_app.report import report_slam
-from placerec.types import MAX_TRANSLATION_M, Description, PlaceRecognizer, Scan, Sequence, valid_points
+from placerec.types import (
+    MAX_TRANSLATION_M,
+    Candidate,
+    Description,
+    PlaceRecognizer,
+    Scan,
+    Sequence,
+    valid_points,
+)
 from placerec.viewer import active
 
 if TYPE_CHECKING:
@@ -172,7 +180,7 @@ def _backend(
     if prior is None:
         return OnlineSlam(
             rec, cfg.loops.threshold, cfg.graph, ex.frames, ex.seconds, ex.metres, k=cfg.loops.k,
-            realtime=cfg.loops.realtime, odometry_gate=cfg.loops.odometry_gate,
+            realtime=cfg.loops.realtime, odometry_gate=cfg.loops.odometry_gate, keyframes=cfg.loops.keyframes,
         )  # fmt: skip
     pm = cfg.prior_map
     return MultiSessionSlam(
@@ -182,6 +190,19 @@ def _backend(
         anchor=pm.anchor, min_join_loops=pm.min_join_loops, join_translation_m=pm.join_translation_m,
         join_rotation_deg=pm.join_rotation_deg, realtime=cfg.loops.realtime, odometry_gate=cfg.loops.odometry_gate,
     )  # fmt: skip
+
+
+def _warn_single_frames(cfg: SlamConfig, seq: Sequence) -> None:
+    """A warning when the scans are not 360 deg spinning sweeps and each is its own place: one frame of a
+    Livox-style or solid-state scanner holds too little of a place (docs/sensors.md, "Keyframes")."""
+    sensor = seq[0].sensor if len(seq) else None
+    if cfg.loops.keyframes is None and sensor is not None and not sensor.is_spinning:
+        log.warning(
+            "%s: %s scans are not 360 deg spinning sweeps and each is a place; set loops.keyframes (e.g. "
+            "{seconds: 1.0, every_metres: 1.8}, docs/slam.md) so that places hold more than one frame",
+            seq.name,
+            sensor.name,
+        )
 
 
 def loop_pipeline(cfg: SlamConfig, seq: Sequence) -> PlaceRecognizer:
@@ -276,6 +297,7 @@ def slam_sequence(
     odometry starts at the identity, its closures against the map join it to the map when enough agree, and
     ``map_writer`` (holding the map's keyframes) writes the merged map only if they were joined."""
     rec = recognizer if recognizer is not None else loop_pipeline(cfg, seq)
+    _warn_single_frames(cfg, seq)
     odometry = odometry or odometry_source(cfg, seq)
     prior_graph = None
     if prior is not None:
@@ -313,7 +335,9 @@ def slam_sequence(
             stamp = None if stamps is None else float(stamps[i])
             desc: Description | None = None
             describe_ms: dict[str, float] = {}
-            if viewer is not None:
+            if (
+                viewer is not None and cfg.loops.keyframes is None
+            ):  # a keyframe is described when it completes
                 desc, describe_ms = _described(rec, scan)
             extra = injected.get(i)
             t3 = time.perf_counter()
@@ -414,10 +438,10 @@ def _log_slam_step(
     estimate so far (each is logged whole: at every scan the file would grow with the square of the scans)."""
     if desc is not None:
         viewer.description(label, rec, scan, desc)
-    for done in slam.detector.last_completed:
-        viewer.candidates(label, done.candidates, slam.detector.threshold, edges=False)
-        if done.candidates and done.candidates[0].accepted is False:
-            viewer.edge(label, "rejected", done.candidates[0].match_id, done.candidates[0].query_id)
+    for cands in _completed(slam):
+        viewer.candidates(label, cands, slam.detector.threshold, edges=False)
+        if cands and cands[0].accepted is False:
+            viewer.edge(label, "rejected", cands[0].match_id, cands[0].query_id)
     for loop in added:
         viewer.edge(label, "injected" if loop.injected else "accepted", loop.match_id, loop.query_id)
     if i % max(1, n // 50) == 0 or i == n - 1:
@@ -434,12 +458,20 @@ def _log_slam_end(
 ) -> None:
     """The end of the run in the recording: the queries a real-time detector completed last and their loops
     (``late``), the final optimised trajectory, and every loop edge moved onto it."""
-    for done in slam.detector.last_completed:
-        viewer.candidates(label, done.candidates, slam.detector.threshold, edges=False)
+    for cands in _completed(slam):
+        viewer.candidates(label, cands, slam.detector.threshold, edges=False)
     for loop in late:
         viewer.edge(label, "accepted", loop.match_id, loop.query_id)
     viewer.trajectory("optimized", optimized)
     viewer.replace_positions(optimized)
+
+
+def _completed(slam: OnlineSlam | MultiSessionSlam) -> list[list[Candidate]]:
+    """The candidates of the queries the detector completed last, one list a query, with the graph's ids (a
+    keyframe's at its last scan: `OnlineSlam.completed`)."""
+    if isinstance(slam, OnlineSlam):
+        return slam.completed()
+    return [done.candidates for done in slam.detector.last_completed]
 
 
 @contextlib.contextmanager

@@ -1,0 +1,93 @@
+"""`placerec slam` and `OnlineSlam` with keyframes (``loops.keyframes``): the graph keeps a pose a scan, closures
+between keyframes enter as loop factors between their windows' last scans, candidates are recorded in scan ids;
+a saved or prior map with keyframes is refused; a non-spinning sensor without keyframes is warned about."""
+
+from __future__ import annotations
+
+import csv
+import logging
+
+import numpy as np
+import pytest
+
+from placerec.errors import ConfigError
+from placerec.keyframes import KeyframeParams
+from placerec.realtime import RealtimeParams
+from placerec.recognizer import make_pipeline
+from placerec.sim import SimulatedSequence
+from placerec.slam import OnlineSlam
+from placerec.slam_app.config import load_slam_config
+from placerec.slam_app.run import run_slam
+
+RATE_HZ = 10.0
+
+
+@pytest.fixture(scope="module")
+def stretch():
+    return SimulatedSequence(world="town", sensor="vlp16", n_scans=8, rate_hz=RATE_HZ, clutter=False, seed=3)
+
+
+@pytest.mark.parametrize(
+    "realtime", [None, RealtimeParams(budget_ms=100.0, max_backlog=3)], ids=["seq", "rt"]
+)
+def test_keyframe_closures_join_the_last_scans_of_their_windows(stretch, realtime):
+    slam = OnlineSlam(
+        make_pipeline("scan-context"),
+        threshold=0.0,
+        exclusion_frames=2,
+        keyframes=KeyframeParams(seconds=0.4),
+        realtime=realtime,
+    )
+    for lap in range(2):  # the same stretch twice, 10 s apart: keyframes of scans 0-3, 4-7, 8-11, 12-15
+        for i in range(len(stretch)):
+            slam.process(stretch[i], stretch.poses[i], timestamp=10.0 * lap + i / RATE_HZ)
+    poses = slam.finish()
+    assert poses.shape == (16, 4, 4) and slam.n_scans == 16  # a pose a scan
+    assert [slam.detector.keyframe_scans(k) for k in range(4)] == [
+        (0, 1, 2, 3),
+        (4, 5, 6, 7),
+        (8, 9, 10, 11),
+        (12, 13, 14, 15),
+    ]
+    loops = {(lp.query_id, lp.match_id): lp for lp in slam.loops}
+    assert {(11, 3), (15, 7)} <= set(loops)  # keyframes 2 -> 0 and 3 -> 1, in the graph's scan ids
+    # the second lap's scans are the first lap's: each keyframe pair coincides, T_match_query ~ identity
+    np.testing.assert_allclose(loops[(11, 3)].T_match_query, np.eye(4), atol=0.05)
+    assert len(slam.candidates) == 16
+    queried = [i for i, c in enumerate(slam.candidates) if c]
+    assert set(queried) <= {11, 15} and 11 in queried  # keyframes 0 and 1 have nothing eligible
+    for i in queried:
+        assert all(c.query_id == i and c.match_id in (3, 7) for c in slam.candidates[i])
+
+
+def test_keyframes_with_a_saved_or_prior_map_are_refused(tmp_path):
+    for key in (f"output.save_map={tmp_path / 'map'}", f"prior_map.path={tmp_path / 'map'}"):
+        with pytest.raises(ConfigError, match=key.split("=")[0] + ": not with loops.keyframes"):
+            load_slam_config(None, ["loops.keyframes={seconds: 0.5}", key])
+    with pytest.raises(ConfigError, match="loops.keyframes"):
+        load_slam_config(None, ["loops.keyframes={secs: 0.5}"])
+
+
+def test_slam_with_keyframes_on_a_livox_style_scanner(tmp_path, caplog):
+    """A MID-360-like scanner's 10 Hz frames, taken while moving: warned about without keyframes. With 0.5 s
+    keyframes (5 scans) and no threshold, the keyframes 1 s apart along the road close onto each other: loops
+    between the last scans of their windows (4, 9, 14, ...), right against those scans' true poses, which they would
+    not be if keyframe ids were taken for scan ids."""
+    sets = ["dataset.simulator.sensor=mid360", "dataset.simulator.rate_hz=10", "dataset.simulator.sweep_motion=true",
+            "dataset.simulator.n_scans=40", "output.progress=false", "output.figures=false",
+            "loops.pipeline.name=scan-context", "loops.exclusion={frames: 2}", "loops.threshold=0.0"]  # fmt: skip
+    with caplog.at_level(logging.WARNING, logger="placerec.slam_app.run"):
+        run_slam(load_slam_config(None, sets), tmp_path / "single")
+    assert "set loops.keyframes" in caplog.text
+    caplog.clear()
+    cfg = load_slam_config(None, [*sets, "loops.keyframes={seconds: 0.5}"])
+    with caplog.at_level(logging.WARNING, logger="placerec.slam_app.run"):
+        run, payload = run_slam(cfg, tmp_path / "kf")
+    assert "set loops.keyframes" not in caplog.text
+    loops = payload["loops"]
+    assert payload["n_scans"] == 40 and loops["accepted"] >= 3
+    assert loops["false_accepted"] == 0 and loops["max_translation_error"] < 0.2
+    rows = list(csv.DictReader((run / "loops.csv").open()))
+    assert len(rows) == loops["accepted"]
+    assert all(int(r["query_id"]) % 5 == 4 and int(r["match_id"]) % 5 == 4 for r in rows)
+    assert all(float(r["true_distance"]) > 5.0 for r in rows)  # keyframes two or more windows apart
