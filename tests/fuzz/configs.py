@@ -177,6 +177,7 @@ def _hostile_values(leaf: Leaf) -> Iterator[tuple[str, Any, str]]:
 #: them, the leaves that complete them on their own); a leaf of such a section is set on top of the completion
 _COMPLETIONS: dict[tuple[str, ...], tuple[str, frozenset[str]]] = {
     ("keyframes",): ("keyframes.seconds=0.5", frozenset({"seconds", "metres"})),
+    ("loops", "keyframes"): ("loops.keyframes.seconds=0.5", frozenset({"seconds", "metres"})),
 }
 
 
