@@ -192,16 +192,16 @@ def _backend(
     )  # fmt: skip
 
 
-def _warn_single_frames(cfg: SlamConfig, seq: Sequence) -> None:
-    """A warning when the scans are not 360 deg spinning sweeps and each is its own place: one frame of a
-    Livox-style or solid-state scanner holds too little of a place (docs/sensors.md, "Keyframes")."""
-    sensor = seq[0].sensor if len(seq) else None
-    if cfg.loops.keyframes is None and sensor is not None and not sensor.is_spinning:
+def _warn_single_frames(cfg: SlamConfig, name: str, first: Scan) -> None:
+    """A warning when the scans (``first`` of sequence ``name``) are not 360 deg spinning sweeps and each is its
+    own place: one frame of a Livox-style or solid-state scanner holds too little of a place (docs/sensors.md,
+    "Keyframes")."""
+    if cfg.loops.keyframes is None and not first.sensor.is_spinning:
         log.warning(
             "%s: %s scans are not 360 deg spinning sweeps and each is a place; set loops.keyframes (e.g. "
             "{seconds: 1.0, every_metres: 1.8}, docs/slam.md) so that places hold more than one frame",
-            seq.name,
-            sensor.name,
+            name,
+            first.sensor.name,
         )
 
 
@@ -297,7 +297,6 @@ def slam_sequence(
     odometry starts at the identity, its closures against the map join it to the map when enough agree, and
     ``map_writer`` (holding the map's keyframes) writes the merged map only if they were joined."""
     rec = recognizer if recognizer is not None else loop_pipeline(cfg, seq)
-    _warn_single_frames(cfg, seq)
     odometry = odometry or odometry_source(cfg, seq)
     prior_graph = None
     if prior is not None:
@@ -327,6 +326,8 @@ def slam_sequence(
                 viewer.trajectory("gt", seq.poses, static=True)
         for i in range(n):
             raw = seq[i]
+            if i == 0:
+                _warn_single_frames(cfg, seq.name, raw)
             t0 = time.perf_counter()
             odo[i] = odometry(i, raw)
             t1, c1 = time.perf_counter(), time.process_time()
