@@ -5,6 +5,7 @@ a saved or prior map with keyframes is refused; a non-spinning sensor without ke
 from __future__ import annotations
 
 import csv
+import json
 import logging
 
 import numpy as np
@@ -58,6 +59,8 @@ def test_keyframe_closures_join_the_last_scans_of_their_windows(stretch, realtim
     assert set(queried) <= {11, 15} and 11 in queried  # keyframes 0 and 1 have nothing eligible
     for i in queried:
         assert all(c.query_id == i and c.match_id in (3, 7) for c in slam.candidates[i])
+    with pytest.raises(ConfigError, match="descriptions do not accumulate"):
+        slam.process(None, stretch.poses[0], description=object())  # type: ignore[arg-type]
 
 
 def test_keyframes_with_a_saved_or_prior_map_are_refused(tmp_path):
@@ -91,3 +94,7 @@ def test_slam_with_keyframes_on_a_livox_style_scanner(tmp_path, caplog):
     assert len(rows) == loops["accepted"]
     assert all(int(r["query_id"]) % 5 == 4 and int(r["match_id"]) % 5 == 4 for r in rows)
     assert all(float(r["true_distance"]) > 5.0 for r in rows)  # keyframes two or more windows apart
+    stages = json.loads((run / "metrics.json").read_text())["time_ms"]["stages"]
+    assert (
+        stages["keyframe"]["n"] == 40 and stages["keyframe"]["mean"] > 0
+    )  # the build counts in the scan's time

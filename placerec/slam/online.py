@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from placerec.errors import ScanDataError
+from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES
 from placerec.eval.pose_error import full_pose_mask
 from placerec.keyframes import KeyframeParams
@@ -166,7 +166,12 @@ class OnlineSlam:
         (real-time mode: those completed since the last call, of this scan or earlier ones).
 
         A scan the recognizer cannot describe (`ScanDataError`) still gets its pose and odometry factor, but is
-        never queried or matched."""
+        never queried or matched. With keyframes the scan itself is needed (`ConfigError` for a ``description``:
+        a description does not accumulate)."""
+        if description is not None and self.detector.keyframes is not None:
+            raise ConfigError(
+                "OnlineSlam.process(description=...): with keyframes give the scan (descriptions do not accumulate)"
+            )
         added = self._in_scans(detect_closures(self.detector, scan, odometry_pose, timestamp, description))
         timing = dict(self.detector.last_timing_ms)  # empty for a skipped scan
         self._record_candidates(self.graph.n_poses + 1)  # this scan's pose is added next

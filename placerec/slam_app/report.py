@@ -179,8 +179,8 @@ def slam_metrics(cfg: SlamConfig, result: SlamResult, cols: dict[str, np.ndarray
         loops["max_translation_error"] = float(te.max()) if te.size else None
         loops["median_translation_error"] = float(np.median(te)) if te.size else None
     t = result.timing_ms
-    # wait: a real-time detector's; map_search: the prior map's join pipelines
-    stages = (*ONLINE_STAGES, *(x for x in ("wait", "map_search") if x in t))
+    # wait: a real-time detector's; map_search: the prior map's join pipelines; keyframe: loops.keyframes' building
+    stages = (*ONLINE_STAGES, *(x for x in ("wait", "map_search", "keyframe") if x in t))
     per_scan = np.sum([t[s] for s in stages], axis=0) if n else np.zeros(0)
     queried = np.asarray(result.queried, dtype=bool) if len(result.queried) == n else np.ones(n, bool)
     timing = {

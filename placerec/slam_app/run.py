@@ -310,8 +310,9 @@ def slam_sequence(
     realtime = ("wait",) if cfg.loops.realtime is not None else ()  # the detector's wait for its worker
     searches = _map_searches(cfg, prior)
     searched = ("map_search",) if searches else ()  # the join pipelines' global search of the map
+    built = ("keyframe",) if cfg.loops.keyframes is not None else ()  # accumulating the scan into a keyframe
     timing: dict[str, list[float]] = {
-        s: [] for s in (*ONLINE_STAGES, *realtime, *searched, "odometry", "cpu")
+        s: [] for s in (*ONLINE_STAGES, *realtime, *searched, *built, "odometry", "cpu")
     }
     odo = np.empty((n, 4, 4))
     queried = []
@@ -336,9 +337,8 @@ def slam_sequence(
             stamp = None if stamps is None else float(stamps[i])
             desc: Description | None = None
             describe_ms: dict[str, float] = {}
-            if (
-                viewer is not None and cfg.loops.keyframes is None
-            ):  # a keyframe is described when it completes
+            # a keyframe is described when it completes, inside the detector
+            if viewer is not None and cfg.loops.keyframes is None:
                 desc, describe_ms = _described(rec, scan)
             extra = injected.get(i)
             t3 = time.perf_counter()
