@@ -758,7 +758,11 @@ def localize(
         typer.Option(help="tracking: from the last fix, global search on failure; global: each scan alone."),
     ] = "tracking",
     odometry: Annotated[
-        str, typer.Option(help="Tracking's motion between scans: none (constant velocity) or kiss-icp.")
+        str,
+        typer.Option(
+            help="Tracking's motion between scans: none (constant velocity) or kiss-icp (with keyframes also what"
+            " they are accumulated along)."
+        ),
     ] = "none",
     pipeline: Annotated[
         str | None, typer.Option(help="The map pipeline for global search (default: the map's first).")
@@ -774,6 +778,18 @@ def localize(
         list[str] | None,
         typer.Option("--set", "-s", help="A LocalizerParams field: key=value, e.g. tracking.radius_m=20."),
     ] = None,
+    keyframes_seconds: Annotated[
+        float | None,
+        typer.Option(
+            help="Localise keyframes of the scans of each S seconds (a Livox-style scanner; docs/keyframes.md)."
+        ),
+    ] = None,
+    keyframes_metres: Annotated[
+        float | None, typer.Option(help="Localise keyframes of the scans of each M metres travelled.")
+    ] = None,
+    keyframes_every_metres: Annotated[
+        float | None, typer.Option(help="With keyframes: one ending every E metres (overlapping windows).")
+    ] = None,
     viewer: Viewer = False,
     rrd: Rrd = None,
 ) -> None:
@@ -786,8 +802,11 @@ def localize(
       placerec localize maps/town drive.mcap --mode global --pipeline scan-context
 
       placerec localize maps/town sim/town_vlp16_day2 --viewer
+
+      placerec localize maps/hdl64 avia_drive.mcap --allow-other-sensor --keyframes-seconds 0.5 --odometry kiss-icp
     """
     from placerec.artifacts.sources import open_path
+    from placerec.keyframes import KeyframeParams
     from placerec.maps import MapArtifact
     from placerec.maps.localizer import LocalizerParams
     from placerec.slam_app.localize import default_out, localize_sequence, report_localize
@@ -798,8 +817,16 @@ def localize(
     seq = open_path(sequence, format, poses)
     values = {"pipeline": pipeline, "allow_other_sensor": allow_other_sensor}
     params = support.with_overrides(LocalizerParams, values, set_, "localizer parameters")
+    keyframes = None
+    if (keyframes_seconds, keyframes_metres, keyframes_every_metres) != (None, None, None):
+        window = {
+            "seconds": keyframes_seconds,
+            "metres": keyframes_metres,
+            "every_metres": keyframes_every_metres,
+        }
+        keyframes = support.with_overrides(KeyframeParams, window, None, "--keyframes-*")
     with recording(target, f"localize {seq.name}"), support.progress_bar(f"localizing ({mode})") as progress:
-        run = localize_sequence(the_map, seq, params, mode, odometry, progress)  # type: ignore[arg-type]
+        run = localize_sequence(the_map, seq, params, mode, odometry, progress, keyframes)  # type: ignore[arg-type]
     folder = out or default_out(seq.name)
     m = report_localize(run, folder)
     line = f"{m['sequence']}: {m['accepted']} of {m['scans']} scans fixed"

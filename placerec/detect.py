@@ -31,7 +31,7 @@ from pydantic import Field
 
 from placerec.errors import ConfigError, PlacerecError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES
-from placerec.keyframes import KeyframeParams, KeyframeSequence
+from placerec.keyframes import KeyframeParams, KeyframeSequence, keyframes_along
 from placerec.params import Params
 
 log = logging.getLogger(__name__)
@@ -140,26 +140,15 @@ def _open(cfg: DetectConfig) -> Any:
 
 
 def _keyframes(cfg: DetectConfig, params: KeyframeParams, seq: Any) -> KeyframeSequence:
-    """The keyframes of SOURCE (docs/keyframes.md): accumulated along its poses, or KISS-ICP's with --odometry
-    kiss-icp; de-skewed when its scans have per-point times (else not, with a warning); each scan preprocessed as
-    a single scan is before it is accumulated. `ConfigError` when there are no poses to accumulate along."""
+    """The keyframes of SOURCE (docs/keyframes.md, `placerec.keyframes.keyframes_along`), each scan preprocessed
+    as a single scan is before it is accumulated."""
     from functools import partial
 
     from placerec.config import experiment_preprocess
     from placerec.preprocess import preprocess_scan
 
-    if cfg.odometry == "kiss-icp":
-        params = params.model_copy(update={"odometry": "kiss-icp"})
-    elif seq.poses is None:
-        raise ConfigError(
-            f"--keyframes-seconds/--keyframes-metres: {seq.name} has no poses to accumulate scans along;"
-            " give --poses FILE or --odometry kiss-icp"
-        )
-    if params.deskew and seq[0].time is None:
-        log.warning("%s: scans without per-point times: keyframes accumulated without de-skew", seq.name)
-        params = params.model_copy(update={"deskew": False})
     prepare = partial(preprocess_scan, params=experiment_preprocess())
-    return KeyframeSequence(seq, params, seq.poses, prepare=prepare)
+    return keyframes_along(seq, params, cfg.odometry == "kiss-icp", prepare)
 
 
 def _file_name(source: str | None) -> str | None:

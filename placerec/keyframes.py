@@ -54,6 +54,7 @@ centroid of its points with their mean intensity (`placerec.preprocess.voxel_dow
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
@@ -61,7 +62,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from pydantic import Field, SerializerFunctionWrapHandler, model_serializer, model_validator
 
-from placerec.errors import ScanDataError
+from placerec.errors import ConfigError, ScanDataError
 from placerec.params import Params
 from placerec.preprocess import voxel_downsample
 from placerec.types import (
@@ -82,6 +83,7 @@ __all__ = [
     "Keyframe",
     "KeyframeBuilder",
     "KeyframeSequence",
+    "keyframes_along",
     "DESKEW_BIN_S",
     "MAX_POINT_TIME_S",
     "deskewed_points",
@@ -602,3 +604,26 @@ class KeyframeSequence:
     @property
     def name(self) -> str:
         return f"{self.base.name}-keyframes"
+
+
+def keyframes_along(
+    seq: Sequence, params: KeyframeParams, kiss_icp: bool, prepare: Callable[[Scan], Scan] | None = None
+) -> KeyframeSequence:
+    """The keyframes of a command's SOURCE (``--keyframes-seconds`` / ``--keyframes-metres``: `placerec detect`,
+    `placerec localize`): accumulated along its poses (a poses file, or the dataset's own), or along KISS-ICP's
+    (``kiss_icp``, the commands' ``--odometry kiss-icp``); de-skewed when its scans have per-point times (else not,
+    with a warning); ``prepare`` applied to each scan first. `ConfigError` when there are no poses to accumulate
+    along."""
+    if kiss_icp:
+        params = params.model_copy(update={"odometry": "kiss-icp"})
+    elif seq.poses is None:
+        raise ConfigError(
+            f"--keyframes-seconds/--keyframes-metres: {seq.name} has no poses to accumulate scans along;"
+            " give --poses FILE or --odometry kiss-icp"
+        )
+    if params.deskew and len(seq) and seq[0].time is None:
+        logging.getLogger(__name__).warning(
+            "%s: scans without per-point times: keyframes accumulated without de-skew", seq.name
+        )
+        params = params.model_copy(update={"deskew": False})
+    return KeyframeSequence(seq, params, seq.poses, prepare=prepare)

@@ -322,3 +322,64 @@ def test_cli_localizes_another_sensors_scans_with_the_documented_settings(tmp_pa
     assert params["tracking"]["icp_moves"] == "keyframe" and params["ambiguity"]["max_ratio"] == 0.85
     assert params["tracking"]["verify"]["score"]["min_constraint"] == 0.05 and params["threshold"] == 0.05
     assert metrics["scans"] == 6 and metrics["false_fixes"] == 0 and metrics["correct"] == 6, metrics
+
+
+@pytest.fixture(scope="module")
+def hdl64_map_for_avia(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An HDL-64 map built with configs/map_cross_sensor.yaml and the band an Avia sees of it (the header's)."""
+    from placerec.config import read_config_file
+
+    cfg = read_config_file(ROOT / "configs" / "map_cross_sensor.yaml")
+    cfg["preprocess"]["elevation_deg"] = [-24.9, 2.0]
+    sim = {"world": "town", "sensor": "hdl64", "scans": 30, "seed": 0}
+    return build("map", {**cfg, "source": {"sim": sim}, "out": str(tmp_path_factory.mktemp("hdl64") / "map")})
+
+
+AVIA_SETTINGS = {"allow_other_sensor": True, "threshold": 0.05, "ambiguity": {"max_ratio": 0.85}}
+
+
+def test_keyframes_of_a_livox_style_drive_are_localised(hdl64_map_for_avia: Path, tmp_path: Path) -> None:
+    """A forward-looking Avia's 10 Hz frames, taken while moving, against an HDL-64 map: localised as 0.5 s
+    keyframes (each fixed at its window's last scan, scored against that scan's true pose), in both modes."""
+    from placerec.keyframes import KeyframeParams
+
+    drive = SimulatedSequence(world="town", sensor="avia", n_scans=25, rate_hz=10, sweep_motion=True, seed=11,
+                              world_seed=0, unit_seed=0)  # fmt: skip
+    params = LocalizerParams.model_validate(AVIA_SETTINGS)
+    for mode in ("tracking", "global"):
+        run = localize_sequence(
+            hdl64_map_for_avia, drive, params, mode, "none", None, KeyframeParams(seconds=0.5)
+        )
+        assert len(run.fixes) == 5 and run.keyframes == KeyframeParams(seconds=0.5)
+        np.testing.assert_array_equal(run.ground_truth, drive.poses[[4, 9, 14, 19, 24]])
+        correct = run.correct()
+        assert correct is not None and correct.all(), [f.reason for f in run.fixes]
+    metrics = report_localize(run, tmp_path / "out")
+    assert metrics["scans"] == 5 and metrics["correct"] == 5 and metrics["keyframes"]["seconds"] == 0.5
+
+
+def test_cli_localizes_keyframes(hdl64_map_for_avia: Path, tmp_path: Path) -> None:
+    """`placerec localize --keyframes-seconds`: keyframes accumulated along the sequence's poses; a sequence
+    without poses needs --poses or --odometry kiss-icp; a window needs its length."""
+    drive = SimulatedSequence(
+        world="town", sensor="avia", n_scans=20, rate_hz=10, seed=11, world_seed=0, unit_seed=0
+    )
+    folder = write_kitti_sequence(drive, tmp_path / "avia", progress=False)
+    args = [
+        "localize",
+        str(hdl64_map_for_avia),
+        str(folder),
+        "--allow-other-sensor",
+        "--set",
+        "threshold=0.05",
+    ]
+    res = CliRunner().invoke(app, [*args, "--keyframes-seconds", "0.5", "--out", str(tmp_path / "out")])
+    assert res.exit_code == 0, res.output
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["scans"] == 4 and metrics["keyframes"]["seconds"] == 0.5 and metrics["false_fixes"] == 0
+    assert metrics["correct"] >= 3, metrics
+    (folder / "poses.txt").unlink()
+    res = CliRunner().invoke(app, [*args, "--keyframes-seconds", "0.5", "--out", str(tmp_path / "o2")])
+    assert res.exit_code == 2 and "--poses FILE or --odometry kiss-icp" in res.output
+    res = CliRunner().invoke(app, [*args, "--keyframes-every-metres", "2", "--out", str(tmp_path / "o3")])
+    assert res.exit_code == 2 and "seconds" in res.output and not (tmp_path / "o3").exists()

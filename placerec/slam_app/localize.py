@@ -3,7 +3,11 @@
 `localize_sequence` runs a `placerec.maps.localizer.Localizer` over a sequence, in order: ``mode="tracking"``
 (`Localizer.track`: tracking from the last fix moved by the odometry, ``odometry="kiss-icp"``, or by a constant
 velocity, ``"none"``; global search when tracking fails) or ``mode="global"`` (`Localizer.localize` on each scan
-alone, no prior). `report_localize` writes what it found into a folder:
+alone, no prior). With ``keyframes`` (`placerec.keyframes.KeyframeParams`: a Livox-style or solid-state scanner's
+frames, each too little of a place) the queries are keyframes of the sequence (`placerec.keyframes.keyframes_along`:
+accumulated along its poses, or KISS-ICP's with ``odometry="kiss-icp"``, whose keyframe poses are then tracking's
+motion), each fixed at its window's last scan; the outputs' rows are keyframes. `report_localize` writes what it
+found into a folder:
 
 * ``poses_tum.txt`` — the accepted fixes with their scans' times (the scan index when the sequence has none);
 * ``poses_kitti.txt`` — the accepted fixes only (KITTI has no time column and no "missing" row), and
@@ -40,6 +44,7 @@ from placerec.experiment.run_folder import finite_or_null, json_default, slug
 from placerec.io import write_kitti_poses, write_tum_poses
 from placerec.io.atomic import atomic_write
 from placerec.io.mcap_export import LoopEdge, write_closures_mcap
+from placerec.keyframes import KeyframeParams, KeyframeSequence, keyframes_along
 from placerec.maps.artifact import MapArtifact
 from placerec.maps.localizer import Fix, Localizer, LocalizerParams, search_pipelines
 from placerec.types import Sequence, relative_pose
@@ -75,6 +80,7 @@ class LocalizeRun:
     mode: str
     odometry: str
     params: LocalizerParams
+    keyframes: KeyframeParams | None = None
 
     def errors(self) -> tuple[np.ndarray, np.ndarray]:
         """(translation m, rotation deg) of every scan's accepted fix against the ground truth (NaN: no fix or no
@@ -104,20 +110,26 @@ def localize_sequence(
     mode: Literal["tracking", "global"] = "tracking",
     odometry: Literal["none", "kiss-icp"] = "none",
     progress: Callable[[int, int], None] | None = None,
+    keyframes: KeyframeParams | None = None,
 ) -> LocalizeRun:
-    """Localise every scan of ``seq`` in ``map`` (module docstring). The `Localizer` checks the first scan's
-    sensor against the map's (`MapArtifact.check_query`, unless ``params.allow_other_sensor``) before localising it."""
+    """Localise every scan of ``seq`` in ``map`` (module docstring), or with ``keyframes`` every keyframe of it.
+    The `Localizer` checks the first scan's sensor against the map's (`MapArtifact.check_query`, unless
+    ``params.allow_other_sensor``) before localising it."""
     if mode not in ("tracking", "global"):
         raise ConfigError(f"mode must be 'tracking' or 'global', got {mode!r}")
     if odometry not in ("none", "kiss-icp"):
         raise ConfigError(f"odometry must be 'none' or 'kiss-icp', got {odometry!r}")
-    if odometry != "none" and mode == "global":
+    if odometry != "none" and mode == "global" and keyframes is None:
         raise ConfigError("odometry is for mode 'tracking' (global search uses no prior)")
     params = params or LocalizerParams()
     loc = Localizer(map, params)
-    n = len(seq)
-    if n == 0:
+    if len(seq) == 0:
         raise ConfigError(f"{seq.name}: the sequence has no scans")
+    source = odometry
+    if keyframes is not None:
+        seq = keyframes_along(seq, keyframes, kiss_icp=odometry == "kiss-icp")
+        odometry = "none"  # the keyframes' own KISS-ICP poses are tracking's motion (below)
+    n = len(seq)
     odo = None
     if odometry == "kiss-icp":
         from placerec.slam.odometry import KissIcpOdometry
@@ -131,9 +143,13 @@ def localize_sequence(
         viewer.points("world/map/keyframes", loc.map.positions(), (150, 150, 150), static=True)
         if truth is not None:
             viewer.trajectory("gt", truth, static=True)
+    moved = isinstance(seq, KeyframeSequence) and source == "kiss-icp"
     for i in range(n):
         scan = seq[i]
-        if odo is None:
+        if moved:
+            assert isinstance(seq, KeyframeSequence)
+            fix = loc.track(scan, seq.keyframe_poses[i]) if mode == "tracking" else loc.localize(scan)
+        elif odo is None:
             fix = loc.track(scan) if mode == "tracking" else loc.localize(scan)
         else:
             t0 = time.perf_counter()
@@ -148,7 +164,7 @@ def localize_sequence(
             viewer.fix("localizer", fix.T_world_query, _fix_text(fix), fix.accepted)
         if progress is not None:
             progress(i + 1, n)
-    return LocalizeRun(seq.name, loc.map, fixes, stamps, truth, mode, odometry, params)
+    return LocalizeRun(seq.name, loc.map, fixes, stamps, truth, mode, source, params, keyframes)
 
 
 def _fix_text(fix: Fix) -> str:
@@ -184,6 +200,7 @@ def localize_metrics(run: LocalizeRun) -> dict[str, Any]:
         "pipelines": [p.name for p in search_pipelines(run.map, run.params)],
         "localize_mode": run.mode,
         "odometry": run.odometry,
+        "keyframes": None if run.keyframes is None else run.keyframes.model_dump(mode="json"),
         "scans": n,
         "accepted": int(accepted.sum()),
         "accepted_by_mode": {m: int((accepted & (modes == m)).sum()) for m in ("tracking", "global")},
