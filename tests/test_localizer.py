@@ -383,3 +383,22 @@ def test_cli_localizes_keyframes(hdl64_map_for_avia: Path, tmp_path: Path) -> No
     assert res.exit_code == 2 and "--poses FILE or --odometry kiss-icp" in res.output
     res = CliRunner().invoke(app, [*args, "--keyframes-every-metres", "2", "--out", str(tmp_path / "o3")])
     assert res.exit_code == 2 and "seconds" in res.output and not (tmp_path / "o3").exists()
+
+
+def test_a_map_of_keyframes_localises_keyframes(tmp_path: Path) -> None:
+    """`MapBuild.keyframes`: a map of a Livox-style drive's 0.5 s keyframes (each at its window's last scan, built
+    along the poses), then another drive of the same world localised as keyframes in it, every fix right."""
+    from placerec.keyframes import KeyframeParams
+
+    sim = {"world": "town", "sensor": "avia", "scans": 40, "seed": 0, "rate_hz": 10, "sweep_motion": True}
+    out = build("map", {"source": {"sim": sim}, "out": str(tmp_path / "map"), "keyframes": {"seconds": 0.5},
+                        "keyframe_metres": 0, "pipelines": [{"name": "scan-context"}]})  # fmt: skip
+    the_map = MapArtifact.open(out)
+    assert len(the_map) == 8 and the_map.manifest.config["keyframes"]["seconds"] == 0.5
+    route = SimulatedSequence(world="town", sensor="avia", n_scans=40, rate_hz=10, sweep_motion=True, seed=0)
+    np.testing.assert_allclose(the_map.poses, route.poses[4::5])  # the windows' last scans
+    drive = SimulatedSequence(world="town", sensor="avia", n_scans=30, rate_hz=10, sweep_motion=True, seed=11,
+                              world_seed=0, unit_seed=0)  # fmt: skip
+    run = localize_sequence(out, drive, None, "global", "none", None, KeyframeParams(seconds=0.5))
+    correct = run.correct()
+    assert len(run.fixes) == 6 and correct is not None and correct.all(), [f.reason for f in run.fixes]

@@ -1,6 +1,9 @@
 """The map artifact (``placerec map build``): a sequence with poses turned into a map folder
 (`placerec.maps.artifact`): keyframes every ``keyframe_metres`` along the poses, each preprocessed, described
 and added to every chosen pipeline's database under its keyframe id, its voxelised cloud stored for tracking.
+With ``keyframes`` (a Livox-style or solid-state scanner's frames) the map's places are accumulated keyframes of
+the sequence (`placerec.keyframes.KeyframeSequence`, along the map's poses), each at its window's last scan; such
+a map is queried with keyframes too (``placerec localize --keyframes-seconds``).
 
 `build_map` reads the source and writes the map; `write_map` does the same for a sequence already open (the
 Python API and the session evaluation use it).
@@ -18,6 +21,7 @@ from pydantic import Field
 from placerec.artifacts.sources import FilePath, SequenceSource
 from placerec.config import PipelineSpec
 from placerec.errors import ConfigError, ScanDataError
+from placerec.keyframes import KeyframeParams, KeyframeSequence
 from placerec.maps.artifact import MapWriter, check_pose_fit, pose_fit, pose_fit_probes
 from placerec.params import Params
 from placerec.preprocess import PreprocessParams, preprocess_scan
@@ -46,6 +50,11 @@ class MapBuild(Params):
         0.5, ge=0, description="m travelled between keyframes (0: every scan is a keyframe)"
     )
     cloud_voxel_m: float = Field(0.4, gt=0, description="m; voxel grid of the stored clouds (ICP target's)")
+    keyframes: KeyframeParams | None = Field(
+        None,
+        description="places accumulated from consecutive scans along the map's poses (placerec.keyframes,"
+        " docs/keyframes.md), e.g. {seconds: 0.5} for a Livox-style scanner; None: single scans",
+    )
     overwrite: bool = Field(False, description="replace an existing map at out")
 
 
@@ -97,6 +106,12 @@ def write_map(
         source = "slam"
     if len(poses) != len(seq):
         raise ConfigError(f"{seq.name}: {len(poses)} poses for {len(seq)} scans")
+    scan_of = np.arange(len(seq))  # the source scan of each place
+    if (
+        config.keyframes is not None
+    ):  # places: keyframes accumulated along the map's poses, at their last scans
+        seq = KeyframeSequence(seq, config.keyframes.model_copy(update={"odometry": "poses"}), poses)
+        poses, scan_of = seq.keyframe_poses, seq.reference_indices
     chosen = select_keyframes(poses, config.keyframe_metres)
     first = seq[int(chosen[0])] if len(chosen) else None  # its sensor is the map's; read once
     sensor = None if first is None else first.sensor
@@ -137,7 +152,7 @@ def write_map(
             try:
                 descriptions = [(rec, rec.describe(scan)) for rec, _ in recs.values()]
             except ScanDataError as exc:
-                log.warning("%s: scan %d is no keyframe: %s", seq.name, i, exc)
+                log.warning("%s: scan %d is no keyframe: %s", seq.name, int(scan_of[i]), exc)
                 skipped += 1
                 continue
             kf = len(writer)
@@ -145,7 +160,7 @@ def write_map(
                 rec.add_description(kf, desc, poses[i])
             stamp = None if seq.timestamps is None else float(seq.timestamps[i])
             xyz = scan.xyz[valid_points(scan)]
-            writer.add_keyframe(poses[i], xyz, stamp, scan_index=i)
+            writer.add_keyframe(poses[i], xyz, stamp, scan_index=int(scan_of[i]))
             if done - 1 in probes or done - 2 in probes:
                 probed[done - 1] = (poses[i], voxel_points(xyz, config.cloud_voxel_m))
             if progress is not None:

@@ -32,12 +32,17 @@ class SimWorld(Params):
     sensor: str = Field("vlp16", description="simulated sensor")
     scans: int | None = Field(None, description="scans of the route or of the map (None: the whole route)")
     seed: int = Field(0, description="world and noise seed")
+    rate_hz: float | None = Field(
+        None, gt=0, le=1000, description="frames a second along the route (None: one scan a metre)"
+    )
+    sweep_motion: bool = Field(False, description="each ray measured from the pose at its own time (moving)")
 
     def route(self) -> Sequence:
         """The scans along the world's default route."""
         from placerec.sim import SimulatedSequence
 
-        return SimulatedSequence(world=self.world, sensor=self.sensor, n_scans=self.scans, seed=self.seed)
+        return SimulatedSequence(world=self.world, sensor=self.sensor, n_scans=self.scans, seed=self.seed,
+                                 rate_hz=self.rate_hz, sweep_motion=self.sweep_motion)  # fmt: skip
 
     def localization_split(
         self, n_queries: int, draw: int = 0, conditions: tuple[str, ...] | None = None
