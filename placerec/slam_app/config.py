@@ -212,7 +212,11 @@ class SlamConfig(Params):
             ("prior_map.path", self.prior_map.path),
         ):
             if value is not None:
-                raise ValueError(f"{key}: not with loops.keyframes (maps hold single scans as places)")
+                raise ValueError(
+                    f"{key}: not with loops.keyframes (a SLAM run's map holds its scans as places); build a map of"
+                    " keyframes from the run's poses_kitti.txt with placerec map build --poses FILE --set"
+                    " keyframes.seconds=S"
+                )
         return self
 
     @model_validator(mode="after")
