@@ -149,6 +149,7 @@ class LoopClosureDetector:
         self.exclusion = ExclusionWindow(exclusion_frames, exclusion_seconds, exclusion_metres)
         self.keyframes = None if keyframes is None else KeyframeBuilder(keyframes, label="stream")
         self._keyframe_scans: list[tuple[int, ...]] = []
+        self.last_keyframe: Keyframe | None = None  # with keyframes: the one the last call completed
         self._scans_fed = 0
         if k < 1:
             raise ConfigError(f"k must be >= 1, got {k}")
@@ -396,6 +397,7 @@ class LoopClosureDetector:
 
     def _process_keyframe(self, keyframe: Keyframe | None, build_ms: float) -> list[Candidate]:
         """Query with and add a completed keyframe (None: no keyframe completed, no closures)."""
+        self.last_keyframe = keyframe
         if keyframe is None:
             self.last_max_id, self.last_candidates, self.last_status = -1, [], "ok"
             self.last_timing_ms = {"keyframe": build_ms}
@@ -538,6 +540,7 @@ class LoopClosureDetector:
         scan_id = self._skip_place(pose, timestamp)
         if self.keyframes is not None:
             self._keyframe_scans.append(())
+            self.last_keyframe = None
         return scan_id
 
     def _skip_place(self, pose: np.ndarray | None, timestamp: float | None) -> int:

@@ -63,10 +63,9 @@ def test_keyframe_closures_join_the_last_scans_of_their_windows(stretch, realtim
         slam.process(None, stretch.poses[0], description=object())  # type: ignore[arg-type]
 
 
-def test_keyframes_with_a_saved_or_prior_map_are_refused(tmp_path):
-    for key in (f"output.save_map={tmp_path / 'map'}", f"prior_map.path={tmp_path / 'map'}"):
-        with pytest.raises(ConfigError, match=key.split("=")[0] + ": not with loops.keyframes"):
-            load_slam_config(None, ["loops.keyframes={seconds: 0.5}", key])
+def test_keyframes_with_a_prior_map_are_refused(tmp_path):
+    with pytest.raises(ConfigError, match="prior_map.path: not with loops.keyframes"):
+        load_slam_config(None, ["loops.keyframes={seconds: 0.5}", f"prior_map.path={tmp_path / 'map'}"])
     with pytest.raises(ConfigError, match="loops.keyframes"):
         load_slam_config(None, ["loops.keyframes={secs: 0.5}"])
 
@@ -98,3 +97,43 @@ def test_slam_with_keyframes_on_a_livox_style_scanner(tmp_path, caplog):
     assert (
         stages["keyframe"]["n"] == 40 and stages["keyframe"]["mean"] > 0
     )  # the build counts in the scan's time
+
+
+def test_a_slam_run_with_keyframes_saves_a_map_of_keyframes(tmp_path):
+    """``output.save_map`` with ``loops.keyframes``: the map's places are the run's keyframes (its database the
+    detector's), each at its window's last scan's optimised pose; the graph's odometry factors compose the scans'
+    between those scans, its loops join keyframe ids; another drive's keyframes are localised right in it."""
+    from placerec.io import read_poses
+    from placerec.maps import MapArtifact
+    from placerec.slam_app.localize import localize_sequence
+
+    sets = ["dataset.simulator.sensor=mid360", "dataset.simulator.rate_hz=10", "dataset.simulator.sweep_motion=true",
+            "dataset.simulator.n_scans=40", "output.progress=false", "output.figures=false",
+            "loops.pipeline.name=scan-context", "loops.exclusion={frames: 2}", "loops.threshold=0.0",
+            "loops.keyframes={seconds: 0.5}", f"output.save_map={tmp_path / 'map'}"]  # fmt: skip
+    run, payload = run_slam(load_slam_config(None, sets), tmp_path / "run")
+    the_map = MapArtifact.open(tmp_path / "map")
+    ends = np.arange(4, 40, 5)  # keyframes of 5 scans each
+    assert len(the_map) == 8 and the_map.scan_index.tolist() == ends.tolist()
+    optimized, _ = read_poses(run / "poses_kitti.txt")
+    np.testing.assert_allclose(the_map.poses, optimized[ends], atol=1e-9)
+    graph = the_map.graph()
+    assert graph is not None and [(i, j) for i, j, _, _ in graph.odometry] == [(k, k + 1) for k in range(7)]
+    odometry, _ = read_poses(run / "odometry_kitti.txt")
+    for (
+        i,
+        j,
+        T,
+        sigmas,
+    ) in graph.odometry:  # the scans' steps composed: the odometry between the two keyframes
+        np.testing.assert_allclose(T, np.linalg.inv(odometry[ends[i]]) @ odometry[ends[j]], atol=1e-6)
+        assert (sigmas > 0).all()
+    rows = list(csv.DictReader((run / "loops.csv").open()))
+    assert {(lp.match_id, lp.query_id) for lp in graph.loops} == {
+        (int(r["match_id"]) // 5, int(r["query_id"]) // 5) for r in rows
+    } and len(rows) == payload["loops"]["accepted"] >= 3
+    drive = SimulatedSequence(world="town", sensor="mid360", n_scans=30, rate_hz=RATE_HZ, sweep_motion=True,
+                              seed=11, world_seed=0, unit_seed=0)  # fmt: skip
+    found = localize_sequence(the_map, drive, None, "global", "none", None, KeyframeParams(seconds=0.5))
+    correct = found.correct()
+    assert correct is not None and correct.sum() >= 5, [f.reason for f in found.fixes]

@@ -203,20 +203,13 @@ class SlamConfig(Params):
 
     @model_validator(mode="after")
     def _keyframes_in_one_session(self) -> SlamConfig:
-        """``loops.keyframes`` in a single-session run: a saved map (and so a prior one) holds a keyframe a scan,
-        its places single scans, which a keyframe detector's places are not."""
-        if self.loops.keyframes is None:
-            return self
-        for key, value in (
-            ("output.save_map", self.output.save_map),
-            ("prior_map.path", self.prior_map.path),
-        ):
-            if value is not None:
-                raise ValueError(
-                    f"{key}: not with loops.keyframes (a SLAM run's map holds its scans as places); build a map of"
-                    " keyframes from the run's poses_kitti.txt with placerec map build --poses FILE --set"
-                    " keyframes.seconds=S"
-                )
+        """``loops.keyframes`` in a single-session run: a second session against a prior map joins the map's
+        places to its own scans (`placerec.slam.multisession`), which a keyframe detector's places are not."""
+        if self.loops.keyframes is not None and self.prior_map.path is not None:
+            raise ValueError(
+                "prior_map.path: not with loops.keyframes (a second session's closures join the map to its scans,"
+                " one place a scan); localise a keyframe drive in the map with placerec localize --keyframes-seconds"
+            )
         return self
 
     @model_validator(mode="after")

@@ -50,6 +50,7 @@ from placerec.types import (
 from placerec.viewer import active
 
 if TYPE_CHECKING:
+    from placerec.loop_closure import LoopClosureDetector
     from placerec.viewer.recorder import Recorder
 
 __all__ = ["slam_sequence", "run_slam", "odometry_source", "false_loops", "map_writer_for", "open_prior_map"]
@@ -316,6 +317,7 @@ def slam_sequence(
     }
     odo = np.empty((n, 4, 4))
     queried = []
+    map_at: list[int] = []  # with keyframes: the scan each saved map keyframe stands at
     viewer = active()
     label = cfg.loops.pipeline.display_name
     with progress_bars(cfg.output.progress) as progress, _closing(slam), contextlib.ExitStack() as stack:
@@ -350,9 +352,11 @@ def slam_sequence(
             if viewer is not None:  # after the times: they are the run's, not the recording's
                 viewer.scan(i, scan, odo[i], stamp)
                 _log_slam_step(viewer, label, slam, rec, scan, desc, added, odo[: i + 1], i, n)
-            if map_writer is not None:
+            if map_writer is not None and cfg.loops.keyframes is None:
                 kf = map_writer.add_keyframe(odo[i], scan.xyz[valid_points(scan)], stamp, scan_index=i)
                 _add_to_map_pipelines(cfg, map_writer, kf, scan, odo[i])
+            elif map_writer is not None:
+                map_at += _add_keyframes_to_map(cfg, map_writer, slam.detector, odo, i)
             queried.append(slam.detector.last_max_id >= 0)
             stages = dict(slam.last_timing_ms, **describe_ms, odometry=(t1 - t0) * 1e3, preprocess=(t2 - t1) * 1e3,
                           cpu=cpu, map_search=search_ms)  # fmt: skip
@@ -369,8 +373,11 @@ def slam_sequence(
             _log_slam_end(viewer, label, slam, optimized, slam.loops[before:])
         common["realtime"] = _realtime_stats(slam)
         common["refused_by_gate"] = _gate_refusals(slam)
-        if map_writer is not None:
+        if map_writer is not None and cfg.loops.keyframes is None:
             map_writer.finish(poses=optimized, graph=slam.graph)
+        elif map_writer is not None:  # the last, partial keyframe came with finish
+            map_at += _add_keyframes_to_map(cfg, map_writer, slam.detector, odo, n - 1)
+            finish_keyframe_map(map_writer, slam, optimized, map_at)
         return SlamResult(
             online=online, optimized=optimized, loops=slam.loops, batch=slam.batch_info, graph=slam.graph,
             isam2_ms=list(slam.graph.update_ms), isam2_loop_ms=list(slam.graph.loop_update_ms), **common,
@@ -395,6 +402,48 @@ def slam_sequence(
         isam2_ms=list(ms.graph.update_ms), isam2_loop_ms=list(ms.graph.loop_update_ms), multisession=ms,
         graph_poses=graph_poses, **common,
     )  # fmt: skip
+
+
+def _add_keyframes_to_map(
+    cfg: SlamConfig, writer: MapWriter, detector: LoopClosureDetector, odometry: np.ndarray, i: int
+) -> list[int]:
+    """With ``loops.keyframes``: the places the detector added up to scan ``i``, added to the saved map under the
+    same ids (its database is the detector's recognizer): a completed keyframe at its last scan's odometry pose
+    with its cloud, a place of no scans (a scan the keyframe builder refused) at scan ``i`` with none. Returns the
+    scan each added map keyframe stands at."""
+    added = []
+    while len(writer) < detector.n_processed:
+        kf = detector.last_keyframe if len(writer) == detector.n_processed - 1 else None
+        if kf is None:
+            writer.add_keyframe(odometry[i], np.zeros((0, 3)), None, scan_index=i)
+            added.append(i)
+            continue
+        last = int(kf.scan_indices[-1])
+        k = writer.add_keyframe(
+            odometry[last], kf.scan.xyz[valid_points(kf.scan)], kf.timestamp, scan_index=last
+        )
+        _add_to_map_pipelines(cfg, writer, k, kf.scan, odometry[last])
+        added.append(last)
+    return added
+
+
+def finish_keyframe_map(writer: MapWriter, slam: OnlineSlam, optimized: np.ndarray, at: list[int]) -> None:
+    """Write a saved map of keyframes (``loops.keyframes``; ``at``: the scan each map keyframe stands at): each at
+    that scan's optimised pose, and the graph between keyframes: the scans' odometry factors composed from one
+    keyframe's scan to the next (their sigmas summed: an upper bound of the composition's), and the loops between
+    keyframes (an injected edge between other scans is left out)."""
+    steps = {i: (T, sig) for i, _, T, sig in slam.graph.odometry}  # scan i -> scan i + 1
+    odometry = []
+    for k in range(len(at) - 1):
+        T, sig = np.eye(4), np.zeros(6)
+        for s in range(at[k], at[k + 1]):
+            T, sig = T @ steps[s][0], sig + steps[s][1]
+        odometry.append((k, k + 1, T, sig))
+    ids = {s: k for k, s in enumerate(at)}
+    loops = [replace(lp, match_id=ids[lp.match_id], query_id=ids[lp.query_id]) for lp in slam.loops
+             if lp.match_id in ids and lp.query_id in ids]  # fmt: skip
+    graph = MapGraph(odometry, loops, MapGraph.from_pose_graph(slam.graph).loop_sigmas)
+    writer.finish(poses=optimized[np.asarray(at, np.int64)], graph=graph)
 
 
 def _add_to_map_pipelines(
