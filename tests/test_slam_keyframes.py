@@ -63,9 +63,16 @@ def test_keyframe_closures_join_the_last_scans_of_their_windows(stretch, realtim
         slam.process(None, stretch.poses[0], description=object())  # type: ignore[arg-type]
 
 
-def test_keyframes_with_a_prior_map_are_refused(tmp_path):
-    with pytest.raises(ConfigError, match="prior_map.path: not with loops.keyframes"):
-        load_slam_config(None, ["loops.keyframes={seconds: 0.5}", f"prior_map.path={tmp_path / 'map'}"])
+def test_keyframes_with_join_pipelines_are_refused(tmp_path):
+    with pytest.raises(ConfigError, match="prior_map.join_pipelines: not with loops.keyframes"):
+        load_slam_config(
+            None,
+            [
+                "loops.keyframes={seconds: 0.5}",
+                f"prior_map.path={tmp_path / 'map'}",
+                "prior_map.join_pipelines=[scan-context]",
+            ],
+        )
     with pytest.raises(ConfigError, match="loops.keyframes"):
         load_slam_config(None, ["loops.keyframes={secs: 0.5}"])
 
@@ -137,3 +144,38 @@ def test_a_slam_run_with_keyframes_saves_a_map_of_keyframes(tmp_path):
     found = localize_sequence(the_map, drive, None, "global", "none", None, KeyframeParams(seconds=0.5))
     correct = found.correct()
     assert correct is not None and correct.sum() >= 5, [f.reason for f in found.fixes]
+
+
+def test_a_second_keyframe_session_joins_a_map_of_keyframes(tmp_path, caplog):
+    """Multi-session with ``loops.keyframes``: a second MID-360 drive of the same world (other clutter and noise)
+    against the first one's map of keyframes: joined where it truly is, its inter-session closures right (keyframe
+    scans onto map places), and the merged map holds both sessions' keyframes with the inter-session edges."""
+    from placerec.maps import MapArtifact
+
+    common = ["dataset.simulator.sensor=mid360", "dataset.simulator.rate_hz=10", "dataset.simulator.sweep_motion=true",
+              "output.progress=false", "output.figures=false", "loops.pipeline.name=scan-context",
+              "loops.exclusion={frames: 2}", "loops.threshold=0.2", "loops.keyframes={seconds: 0.5}"]  # fmt: skip
+    run_slam(load_slam_config(None, [*common, "dataset.simulator.n_scans=40", f"output.save_map={tmp_path / 'm1'}"]),
+             tmp_path / "r1")  # fmt: skip
+    second = [*common, "dataset.simulator.n_scans=30", "dataset.simulator.seed=11", "dataset.simulator.world_seed=0",
+              "dataset.simulator.unit_seed=0", f"prior_map.path={tmp_path / 'm1'}", f"output.save_map={tmp_path / 'm2'}"]  # fmt: skip
+    with caplog.at_level(logging.WARNING, logger="placerec.slam_app.run"):
+        run, payload = run_slam(load_slam_config(None, second), tmp_path / "r2")
+    assert "unlike places" not in caplog.text
+    pm = payload["prior_map"]
+    assert pm["joined"] and pm["inter_session_closures"] >= 2 and pm["rejected_by_graph"] == 0, pm
+    truth = SimulatedSequence(
+        world="town", sensor="mid360", n_scans=1, rate_hz=RATE_HZ, seed=11, world_seed=0
+    )
+    assert np.linalg.norm(np.array(pm["T_map_session"])[:3, 3] - truth.poses[0][:3, 3]) < 0.3
+    merged = MapArtifact.open(tmp_path / "m2", check_hashes=True)
+    assert [s.count for s in merged.manifest.sessions] == [8, 6] and len(merged) == 14
+    graph = merged.graph()
+    assert graph is not None and len(graph.odometry) == 7 + 5
+    assert any(lp.match_id < 8 <= lp.query_id for lp in graph.loops)  # inter-session edges, in keyframe ids
+    assert max(max(lp.match_id, lp.query_id) for lp in graph.loops) < 14
+    # a session of single frames against that map of keyframes is told it compares unlike places
+    single = [x for x in second if not x.startswith(("loops.keyframes", "output.save_map"))]
+    with caplog.at_level(logging.WARNING, logger="placerec.slam_app.run"):
+        run_slam(load_slam_config(None, [*single, "dataset.simulator.n_scans=5"]), tmp_path / "r3")
+    assert "the map's places are keyframes" in caplog.text

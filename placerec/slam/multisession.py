@@ -44,6 +44,10 @@ session's odometry path from the nearest session scan already tied to the map by
 graph (the query's estimate can have drifted from the map only since then). A refused closure never enters the
 graph (``refused_by_gate``). Before the join there is no common frame: the join's consensus test stands in.
 
+With ``keyframes`` (`placerec.keyframes.KeyframeParams`, as in `placerec.slam.online`) the session's places are
+keyframes of its scans while the graph keeps a pose a scan: a closure's ids are turned into the graph's keys
+(`placerec.slam.online.PlaceIds`: a session keyframe at its window's last scan, a map place as it is).
+
 The session's places enter the recognizer with their odometry poses, in the session's frame: pipelines that use
 entry poses (local-map verification of the 3D pipelines) would mix the two frames; ORB-HBST and Scan Context do
 not use them.
@@ -61,11 +65,12 @@ import numpy as np
 from placerec.errors import ConfigError, ScanDataError
 from placerec.eval.exclusion import DEFAULT_EXCLUSION_FRAMES
 from placerec.eval.pose_error import pose_errors
+from placerec.keyframes import KeyframeParams
 from placerec.loop_closure import LoopClosureDetector
 from placerec.odometry_gate import OdometryGateParams, odometry_disagreement
 from placerec.realtime import RealtimeParams
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
-from placerec.slam.online import detect_closures, finish_closures, record_candidates
+from placerec.slam.online import PlaceIds, detect_closures, finish_closures
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan, rigid_problem
 
 __all__ = ["MultiSessionSlam", "MultiSessionResult", "Anchor", "OdometryFactor"]
@@ -175,6 +180,7 @@ class MultiSessionSlam:
         join_rotation_deg: float = 5.0,
         realtime: RealtimeParams | None = None,
         odometry_gate: OdometryGateParams | None = None,
+        keyframes: KeyframeParams | None = None,
     ) -> None:
         if anchor not in ("fixed", "anchored"):
             raise ConfigError(f"anchor must be 'fixed' or 'anchored', got {anchor!r}")
@@ -197,8 +203,10 @@ class MultiSessionSlam:
         self.params = graph or GraphParams()
         self.detector = LoopClosureDetector(
             recognizer, threshold, exclusion_frames, exclusion_seconds, exclusion_metres, k=k, prior_entries=M,
-            realtime=realtime, odometry_gate=odometry_gate,
+            realtime=realtime, odometry_gate=odometry_gate, keyframes=keyframes,
         )  # fmt: skip
+        self.ids = PlaceIds(self.detector)  # graph ids: map places 0..M-1, then M + the session's scan
+        self._scans = 0
         self._map = self._map_graph(prior_odometry or [], prior_loops or [])
         self.session = PoseGraph(self.params)  # the session in its own frame, keys 0..N-1 (detector ids - M)
         self.graph = self.session  # the graph new scans go into: the joined one after the join
@@ -242,7 +250,7 @@ class MultiSessionSlam:
     @property
     def n_scans(self) -> int:
         """The session's scans so far."""
-        return self.detector.n_processed
+        return self._scans
 
     def process(
         self,
@@ -257,9 +265,11 @@ class MultiSessionSlam:
         inter-session ones pending. ``extra_loops`` (e.g. injected false loops) are routed the same way. A scan the
         recognizer cannot describe still gets its pose. Stage times (ms) in ``last_timing_ms`` (``join``: the
         consistency test and, when it succeeds, building the joined graph)."""
-        added = detect_closures(self.detector, scan, odometry_pose, timestamp, description)
+        self.ids.check_description(description)
+        added = self.ids.loops(detect_closures(self.detector, scan, odometry_pose, timestamp, description))
         timing = dict(self.detector.last_timing_ms)
-        record_candidates(self.candidates, self.detector)
+        self._scans += 1
+        self.ids.record(self.candidates, self._scans)
         t0 = time.perf_counter()
         self.graph.add_pose(odometry_pose)
         added += list(extra_loops or [])
@@ -301,13 +311,13 @@ class MultiSessionSlam:
             return set()
         M = self.n_map
         # the session's odometry path (the detector's) at its tied scans and at each closure's query
-        tied = self.detector.path_at(i - M for i in self._tied)
+        tied = self.detector.path_at(self.ids.place_id(i) - M for i in self._tied)
         trans, rot = odometry_disagreement(
             np.stack([lp.T_match_query for lp in inter]),
             np.stack([self.graph.pose(lp.match_id) for lp in inter]),
             np.stack([self.graph.pose(lp.query_id) for lp in inter]),
         )
-        at = self.detector.path_at(lp.query_id - M for lp in inter)
+        at = self.detector.path_at(self.ids.place_id(lp.query_id) - M for lp in inter)
         since = np.abs(tied[None, :] - at[:, None]).min(axis=1)
         ok = self.odometry_gate.admits(trans, rot, since)
         return {id(lp) for lp, good in zip(inter, ok, strict=True) if not good}
@@ -387,8 +397,8 @@ class MultiSessionSlam:
     def finish(self) -> MultiSessionResult:
         """The final batch optimisation (`GraphParams.batch`) of the joined graph, or of the session alone when it
         was never joined; see `MultiSessionResult`. A real-time detector's closures still due are routed first."""
-        late = finish_closures(self.detector)
-        record_candidates(self.candidates, self.detector)
+        late = self.ids.loops(finish_closures(self.detector))
+        self.ids.record(self.candidates, self._scans)
         if late:
             self._route(late, {}, time.perf_counter())
         poses, info = self.graph.optimize()

@@ -45,7 +45,7 @@ from placerec.realtime import LateScanError, RealtimeParams
 from placerec.slam.graph import GraphParams, LoopFactor, PoseGraph
 from placerec.types import Candidate, Description, PlaceRecognizer, Scan
 
-__all__ = ["OnlineSlam", "detect_closures", "finish_closures", "record_candidates"]
+__all__ = ["OnlineSlam", "PlaceIds", "detect_closures", "finish_closures", "record_candidates"]
 
 log = logging.getLogger(__name__)
 
@@ -113,6 +113,66 @@ def _loop_factors(accepted: list[Candidate]) -> list[LoopFactor]:
     ]
 
 
+class PlaceIds:
+    """The graph's ids of a `LoopClosureDetector`'s places (module docstring): a prior map's entries (ids below
+    ``detector.prior_entries``, P) keep theirs; the stream's own place ``P + k`` is the graph's pose ``P + s`` of the
+    scan ``s`` it stands at: itself without keyframes, its window's last scan with them (the keyframe's frame)."""
+
+    def __init__(self, detector: LoopClosureDetector) -> None:
+        self.detector = detector
+        self._place: dict[int, int] = {}  # graph id -> place id (with keyframes)
+
+    def graph_id(self, place_id: int) -> int:
+        """The graph's pose of the detector's place ``place_id``."""
+        P = self.detector.prior_entries
+        if self.detector.keyframes is None or place_id < P:
+            return place_id
+        gid = P + self.detector.keyframe_scans(place_id)[-1]
+        self._place[gid] = place_id
+        return gid
+
+    def place_id(self, graph_id: int) -> int:
+        """The detector's place a graph id stands for (one `graph_id` gave)."""
+        return graph_id if self.detector.keyframes is None else self._place.get(graph_id, graph_id)
+
+    def loops(self, loops: list[LoopFactor]) -> list[LoopFactor]:
+        """The detector's loop factors between the graph's poses."""
+        if self.detector.keyframes is None:
+            return loops
+        return [
+            replace(lp, match_id=self.graph_id(lp.match_id), query_id=self.graph_id(lp.query_id))
+            for lp in loops
+        ]
+
+    def completed(self) -> list[list[Candidate]]:
+        """The candidates of the queries the detector's last call completed (``last_completed``), one list a query,
+        in the graph's ids."""
+        out = []
+        for done in self.detector.last_completed:
+            at = self.graph_id(done.place_id)
+            out.append([replace(c, query_id=at, match_id=self.graph_id(c.match_id)) for c in done.candidates])
+        return out
+
+    def record(self, candidates: list[list[Any]], n_scans: int) -> None:
+        """``candidates`` one list per scan of the stream's ``n_scans``; with keyframes a keyframe's candidates (in
+        the graph's ids) at its scan, the other scans' lists empty."""
+        if self.detector.keyframes is None:
+            record_candidates(candidates, self.detector)
+            return
+        P = self.detector.prior_entries
+        candidates += [[] for _ in range(n_scans - len(candidates))]
+        for cands in self.completed():
+            if cands:
+                candidates[cands[0].query_id - P] = cands
+
+    def check_description(self, description: Description | None) -> None:
+        """`ConfigError` for a ``description`` given with keyframes (they are built from scans)."""
+        if description is not None and self.detector.keyframes is not None:
+            raise ConfigError(
+                "process(description=...): with keyframes give the scan (descriptions do not accumulate)"
+            )
+
+
 class OnlineSlam:
     """Loop closure + pose graph for a stream of scans with odometry (see the module docstring).
 
@@ -149,6 +209,7 @@ class OnlineSlam:
             odometry_gate=odometry_gate,
             keyframes=keyframes,
         )
+        self.ids = PlaceIds(self.detector)
         self.graph = PoseGraph(graph or GraphParams())
         self.loops: list[LoopFactor] = []
         self.last_timing_ms: dict[str, float] = {}
@@ -168,13 +229,10 @@ class OnlineSlam:
         A scan the recognizer cannot describe (`ScanDataError`) still gets its pose and odometry factor, but is
         never queried or matched. With keyframes the scan itself is needed (`ConfigError` for a ``description``:
         a description does not accumulate)."""
-        if description is not None and self.detector.keyframes is not None:
-            raise ConfigError(
-                "OnlineSlam.process(description=...): with keyframes give the scan (descriptions do not accumulate)"
-            )
-        added = self._in_scans(detect_closures(self.detector, scan, odometry_pose, timestamp, description))
+        self.ids.check_description(description)
+        added = self.ids.loops(detect_closures(self.detector, scan, odometry_pose, timestamp, description))
         timing = dict(self.detector.last_timing_ms)  # empty for a skipped scan
-        self._record_candidates(self.graph.n_poses + 1)  # this scan's pose is added next
+        self.ids.record(self.candidates, self.graph.n_poses + 1)  # this scan's pose is added next
         t0 = time.perf_counter()
         self.graph.add_pose(odometry_pose)
         added += list(extra_loops or [])
@@ -190,41 +248,10 @@ class OnlineSlam:
     def n_scans(self) -> int:
         return self.graph.n_poses
 
-    def _scan_of(self, place_id: int) -> int:
-        """The graph's pose (scan id) of the detector's place ``place_id``: with keyframes its window's last scan,
-        whose frame the keyframe is in; else the place is the scan."""
-        if self.detector.keyframes is None:
-            return place_id
-        return self.detector.keyframe_scans(place_id)[-1]
-
-    def _in_scans(self, loops: list[LoopFactor]) -> list[LoopFactor]:
-        """The detector's loop factors between the graph's poses (`_scan_of`)."""
-        if self.detector.keyframes is None:
-            return loops
-        return [
-            replace(lp, match_id=self._scan_of(lp.match_id), query_id=self._scan_of(lp.query_id))
-            for lp in loops
-        ]
-
-    def _record_candidates(self, n_scans: int) -> None:
-        """``candidates`` one list per scan of the ``n_scans``; with keyframes a keyframe's candidates (in scan ids)
-        at its last scan, the other scans' lists empty."""
-        if self.detector.keyframes is None:
-            record_candidates(self.candidates, self.detector)
-            return
-        self.candidates += [[] for _ in range(n_scans - len(self.candidates))]
-        for cands in self.completed():
-            if cands:
-                self.candidates[cands[0].query_id] = cands
-
     def completed(self) -> list[list[Candidate]]:
-        """The candidates of the queries the last call completed (`LoopClosureDetector.last_completed`), one list
-        a query, in scan ids (`_scan_of`)."""
-        out = []
-        for done in self.detector.last_completed:
-            at = self._scan_of(done.place_id)
-            out.append([replace(c, query_id=at, match_id=self._scan_of(c.match_id)) for c in done.candidates])
-        return out
+        """The candidates of the queries the last call completed, one list a query, in the graph's ids
+        (`PlaceIds.completed`)."""
+        return self.ids.completed()
 
     def poses(self) -> np.ndarray:
         """The current (iSAM2) estimate of every pose so far, (N, 4, 4)."""
@@ -233,8 +260,8 @@ class OnlineSlam:
     def finish(self) -> np.ndarray:
         """The final batch optimisation (`GraphParams.batch`); details in ``batch_info``. A real-time detector's
         closures still due are added first (one more iSAM2 update), and its worker ended."""
-        late = self._in_scans(finish_closures(self.detector))
-        self._record_candidates(self.graph.n_poses)
+        late = self.ids.loops(finish_closures(self.detector))
+        self.ids.record(self.candidates, self.graph.n_poses)
         if late:
             for loop in late:
                 self.graph.add_loop(loop)

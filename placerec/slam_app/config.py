@@ -202,13 +202,13 @@ class SlamConfig(Params):
     prior_map: PriorMapConfig = Field(default_factory=PriorMapConfig)
 
     @model_validator(mode="after")
-    def _keyframes_in_one_session(self) -> SlamConfig:
-        """``loops.keyframes`` in a single-session run: a second session against a prior map joins the map's
-        places to its own scans (`placerec.slam.multisession`), which a keyframe detector's places are not."""
-        if self.loops.keyframes is not None and self.prior_map.path is not None:
+    def _keyframes_join_with_the_loop_pipeline(self) -> SlamConfig:
+        """``loops.keyframes``: the join pipelines' global search localises single scans, which hold too little of
+        a place where keyframes are needed; the loop pipeline's keyframes join the session."""
+        if self.loops.keyframes is not None and self.prior_map.join_pipelines:
             raise ValueError(
-                "prior_map.path: not with loops.keyframes (a second session's closures join the map to its scans,"
-                " one place a scan); localise a keyframe drive in the map with placerec localize --keyframes-seconds"
+                "prior_map.join_pipelines: not with loops.keyframes (they localise single scans); the loop"
+                " pipeline's keyframes join the session to the map"
             )
         return self
 

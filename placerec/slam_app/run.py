@@ -190,6 +190,7 @@ def _backend(
         prior_loops=None if graph is None else graph.loops,
         anchor=pm.anchor, min_join_loops=pm.min_join_loops, join_translation_m=pm.join_translation_m,
         join_rotation_deg=pm.join_rotation_deg, realtime=cfg.loops.realtime, odometry_gate=cfg.loops.odometry_gate,
+        keyframes=cfg.loops.keyframes,
     )  # fmt: skip
 
 
@@ -235,7 +236,25 @@ def open_prior_map(cfg: SlamConfig, seq: Sequence) -> tuple[MapArtifact, PlaceRe
         )
     for name in cfg.prior_map.join_pipelines:
         prior.pipeline(name)  # MapMismatchError naming the map's pipelines
+    places = _map_keyframes(prior)
+    if (places is None) != (cfg.loops.keyframes is None):
+        log.warning(
+            "%s: the map's places are %s and this run's %s: closures between them compare unlike places",
+            prior.path,
+            "single scans" if places is None else f"keyframes {places}",
+            "single scans" if cfg.loops.keyframes is None else "keyframes (loops.keyframes)",
+        )
     return prior, prior.recognizer(spec.name)
+
+
+def _map_keyframes(prior: MapArtifact) -> Any:
+    """The keyframe settings a map's places were made with (`placerec map build`'s ``keyframes``, a SLAM run's
+    ``loops.keyframes``), as its manifest records them; None: single scans."""
+    config = prior.manifest.config
+    if "keyframes" in config:
+        return config["keyframes"]
+    loops = config.get("loops")
+    return loops.get("keyframes") if isinstance(loops, dict) else None
 
 
 def _map_searches(cfg: SlamConfig, prior: MapArtifact | None) -> list[Localizer]:
@@ -377,7 +396,8 @@ def slam_sequence(
             map_writer.finish(poses=optimized, graph=slam.graph)
         elif map_writer is not None:  # the last, partial keyframe came with finish
             map_at += _add_keyframes_to_map(cfg, map_writer, slam.detector, odo, n - 1)
-            finish_keyframe_map(map_writer, slam, optimized, map_at)
+            graph = _keyframe_factors(MapGraph.from_pose_graph(slam.graph), map_at)
+            map_writer.finish(poses=optimized[np.asarray(map_at, np.int64)], graph=graph)
         return SlamResult(
             online=online, optimized=optimized, loops=slam.loops, batch=slam.batch_info, graph=slam.graph,
             isam2_ms=list(slam.graph.update_ms), isam2_loop_ms=list(slam.graph.loop_update_ms), **common,
@@ -391,7 +411,18 @@ def slam_sequence(
     M = len(prior)
     graph_poses = np.concatenate([ms.map_poses, ms.session_poses]) if ms.joined else ms.session_poses
     if map_writer is not None:
-        if ms.joined:
+        if ms.joined and cfg.loops.keyframes is not None:  # the last, partial keyframe came with finish
+            map_at += _add_keyframes_to_map(cfg, map_writer, slam.detector, odo, n - 1)
+            prior_factors = prior_graph or MapGraph()
+            session = _keyframe_factors(MapGraph.from_pose_graph(ms.graph), map_at, M)
+            merged = MapGraph(
+                prior_factors.odometry + session.odometry,
+                prior_factors.loops + session.loops,
+                session.loop_sigmas,
+            )
+            poses = np.concatenate([ms.map_poses, ms.session_poses[np.asarray(map_at, np.int64)]])
+            map_writer.finish(poses=poses, graph=merged)
+        elif ms.joined:
             map_writer.finish(poses=graph_poses, graph=_merged_graph(prior_graph, ms.graph, M))
         else:
             map_writer.abort()
@@ -412,8 +443,9 @@ def _add_keyframes_to_map(
     with its cloud, a place of no scans (a scan the keyframe builder refused) at scan ``i`` with none. Returns the
     scan each added map keyframe stands at."""
     added = []
-    while len(writer) < detector.n_processed:
-        kf = detector.last_keyframe if len(writer) == detector.n_processed - 1 else None
+    P = detector.prior_entries  # a prior map's places, already in the writer
+    while len(writer) - P < detector.n_processed:
+        kf = detector.last_keyframe if len(writer) - P == detector.n_processed - 1 else None
         if kf is None:
             writer.add_keyframe(odometry[i], np.zeros((0, 3)), None, scan_index=i)
             added.append(i)
@@ -427,23 +459,31 @@ def _add_keyframes_to_map(
     return added
 
 
-def finish_keyframe_map(writer: MapWriter, slam: OnlineSlam, optimized: np.ndarray, at: list[int]) -> None:
-    """Write a saved map of keyframes (``loops.keyframes``; ``at``: the scan each map keyframe stands at): each at
-    that scan's optimised pose, and the graph between keyframes: the scans' odometry factors composed from one
-    keyframe's scan to the next (their sigmas summed: an upper bound of the composition's), and the loops between
-    keyframes (an injected edge between other scans is left out)."""
-    steps = {i: (T, sig) for i, _, T, sig in slam.graph.odometry}  # scan i -> scan i + 1
+def _keyframe_factors(graph: MapGraph, at: list[int], offset: int = 0) -> MapGraph:
+    """The factors of a map of keyframes from those of a graph with a pose a scan (``loops.keyframes``): ``at``,
+    the scan each keyframe stands at (keys ``offset + s`` in ``graph``, ``offset + k`` in the map; keys below
+    ``offset``, a prior map's places, stay). The scans' odometry factors composed from one keyframe's scan to the
+    next (their sigmas summed: an upper bound of the composition's), the loops between keyframes or from one to a
+    prior map's place (an injected edge between other scans is left out). A prior map's own factors are not
+    repeated."""
+    steps = {i: (T, sig) for i, _, T, sig in graph.odometry if i >= offset}  # scan key i -> i + 1
     odometry = []
     for k in range(len(at) - 1):
         T, sig = np.eye(4), np.zeros(6)
-        for s in range(at[k], at[k + 1]):
-            T, sig = T @ steps[s][0], sig + steps[s][1]
-        odometry.append((k, k + 1, T, sig))
-    ids = {s: k for k, s in enumerate(at)}
-    loops = [replace(lp, match_id=ids[lp.match_id], query_id=ids[lp.query_id]) for lp in slam.loops
-             if lp.match_id in ids and lp.query_id in ids]  # fmt: skip
-    graph = MapGraph(odometry, loops, MapGraph.from_pose_graph(slam.graph).loop_sigmas)
-    writer.finish(poses=optimized[np.asarray(at, np.int64)], graph=graph)
+        for step in range(offset + at[k], offset + at[k + 1]):
+            T, sig = T @ steps[step][0], sig + steps[step][1]
+        odometry.append((offset + k, offset + k + 1, T, sig))
+    ids = {offset + s: offset + k for k, s in enumerate(at)}
+
+    def key(i: int) -> int | None:
+        return i if i < offset else ids.get(i)
+
+    loops = []
+    for lp in graph.loops:
+        m, q = key(lp.match_id), key(lp.query_id)
+        if max(lp.match_id, lp.query_id) >= offset and m is not None and q is not None:
+            loops.append(replace(lp, match_id=m, query_id=q))
+    return MapGraph(odometry, loops, graph.loop_sigmas)
 
 
 def _add_to_map_pipelines(
