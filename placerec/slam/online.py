@@ -248,11 +248,6 @@ class OnlineSlam:
     def n_scans(self) -> int:
         return self.graph.n_poses
 
-    def completed(self) -> list[list[Candidate]]:
-        """The candidates of the queries the last call completed, one list a query, in the graph's ids
-        (`PlaceIds.completed`)."""
-        return self.ids.completed()
-
     def poses(self) -> np.ndarray:
         """The current (iSAM2) estimate of every pose so far, (N, 4, 4)."""
         return self.graph.poses()

@@ -40,7 +40,6 @@ from placerec.slam_app.config import SlamConfig
 from placerec.slam_app.report import report_slam
 from placerec.types import (
     MAX_TRANSLATION_M,
-    Candidate,
     Description,
     PlaceRecognizer,
     Scan,
@@ -528,7 +527,7 @@ def _log_slam_step(
     estimate so far (each is logged whole: at every scan the file would grow with the square of the scans)."""
     if desc is not None:
         viewer.description(label, rec, scan, desc)
-    for cands in _completed(slam):
+    for cands in slam.ids.completed():
         viewer.candidates(label, cands, slam.detector.threshold, edges=False)
         if cands and cands[0].accepted is False:
             viewer.edge(label, "rejected", cands[0].match_id, cands[0].query_id)
@@ -548,20 +547,12 @@ def _log_slam_end(
 ) -> None:
     """The end of the run in the recording: the queries a real-time detector completed last and their loops
     (``late``), the final optimised trajectory, and every loop edge moved onto it."""
-    for cands in _completed(slam):
+    for cands in slam.ids.completed():
         viewer.candidates(label, cands, slam.detector.threshold, edges=False)
     for loop in late:
         viewer.edge(label, "accepted", loop.match_id, loop.query_id)
     viewer.trajectory("optimized", optimized)
     viewer.replace_positions(optimized)
-
-
-def _completed(slam: OnlineSlam | MultiSessionSlam) -> list[list[Candidate]]:
-    """The candidates of the queries the detector completed last, one list a query, with the graph's ids (a
-    keyframe's at its last scan: `OnlineSlam.completed`)."""
-    if isinstance(slam, OnlineSlam):
-        return slam.completed()
-    return [done.candidates for done in slam.detector.last_completed]
 
 
 @contextlib.contextmanager
