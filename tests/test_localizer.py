@@ -6,6 +6,7 @@ command writes its outputs or ends with one error line."""
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -385,7 +386,7 @@ def test_cli_localizes_keyframes(hdl64_map_for_avia: Path, tmp_path: Path) -> No
     assert res.exit_code == 2 and "seconds" in res.output and not (tmp_path / "o3").exists()
 
 
-def test_a_map_of_keyframes_localises_keyframes(tmp_path: Path) -> None:
+def test_a_map_of_keyframes_localises_keyframes(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """`MapBuild.keyframes`: a map of a Livox-style drive's 0.5 s keyframes (each at its window's last scan, built
     along the poses), then another drive of the same world localised as keyframes in it, every fix right."""
     from placerec.keyframes import KeyframeParams
@@ -394,11 +395,18 @@ def test_a_map_of_keyframes_localises_keyframes(tmp_path: Path) -> None:
     out = build("map", {"source": {"sim": sim}, "out": str(tmp_path / "map"), "keyframes": {"seconds": 0.5},
                         "keyframe_metres": 0, "pipelines": [{"name": "scan-context"}]})  # fmt: skip
     the_map = MapArtifact.open(out)
-    assert len(the_map) == 8 and the_map.manifest.config["keyframes"]["seconds"] == 0.5
+    assert len(the_map) == 8 and the_map.places is not None and the_map.places["seconds"] == 0.5
+    assert the_map.summary()["places"].startswith("keyframes")
     route = SimulatedSequence(world="town", sensor="avia", n_scans=40, rate_hz=10, sweep_motion=True, seed=0)
     np.testing.assert_allclose(the_map.poses, route.poses[4::5])  # the windows' last scans
     drive = SimulatedSequence(world="town", sensor="avia", n_scans=30, rate_hz=10, sweep_motion=True, seed=11,
                               world_seed=0, unit_seed=0)  # fmt: skip
-    run = localize_sequence(out, drive, None, "global", "none", None, KeyframeParams(seconds=0.5))
+    with caplog.at_level(logging.WARNING, logger="placerec.slam_app.localize"):
+        run = localize_sequence(out, drive, None, "global", "none", None, KeyframeParams(seconds=0.5))
     correct = run.correct()
     assert len(run.fixes) == 6 and correct is not None and correct.all(), [f.reason for f in run.fixes]
+    assert "places are" not in caplog.text
+    # single frames against a map of keyframes: told so
+    with caplog.at_level(logging.WARNING, logger="placerec.slam_app.localize"):
+        localize_sequence(out, ListSequence([drive[0]], name="one-frame"), None, "global")
+    assert "the map's places are keyframes" in caplog.text

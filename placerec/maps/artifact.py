@@ -467,6 +467,16 @@ class MapArtifact:
         return MapGraph.from_arrays(arrays, len(self), gp)
 
     # -- summary ---------------------------------------------------------------------------------------------
+    @property
+    def places(self) -> dict[str, Any] | None:
+        """The keyframe settings its places were accumulated with (`placerec map build`'s ``keyframes``, a SLAM
+        run's ``loops.keyframes``, as the manifest's config records them); None: single scans."""
+        config = self.manifest.config
+        if "keyframes" in config:
+            return config["keyframes"]
+        loops = config.get("loops")
+        return loops.get("keyframes") if isinstance(loops, dict) else None
+
     def summary(self) -> dict[str, Any]:
         """What ``placerec info MAP`` prints."""
         m = self.manifest
@@ -482,6 +492,7 @@ class MapArtifact:
             "created": m.created,
             "placerec_version": m.placerec_version,
             "keyframes": m.n_keyframes,
+            "places": "single scans" if self.places is None else f"keyframes {self.places}",
             "sessions": {s.name: f"keyframes {s.first}..{s.first + s.count - 1}" for s in m.sessions},
             "poses_source": m.poses_source,
             "path_length_m": round(length, 1),

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -59,6 +60,8 @@ __all__ = [
     "default_out",
     "FIX_COLUMNS",
 ]
+
+log = logging.getLogger(__name__)
 
 #: an accepted fix is correct within this distance and angle of the ground truth (issue #29's targets)
 CORRECT_M, CORRECT_DEG = 1.0, 5.0
@@ -126,6 +129,14 @@ def localize_sequence(
     if len(seq) == 0:
         raise ConfigError(f"{seq.name}: the sequence has no scans")
     source = odometry
+    if (loc.map.places is None) != (keyframes is None):
+        log.warning(
+            "%s: the map's places are %s and the queries %s: set the queries' keyframes as the map's (%s)",
+            loc.map.path,
+            "single scans" if loc.map.places is None else f"keyframes {loc.map.places}",
+            "single scans" if keyframes is None else "keyframes",
+            "--keyframes-seconds / --keyframes-metres" if keyframes is None else "none",
+        )
     if keyframes is not None:
         seq = keyframes_along(seq, keyframes, kiss_icp=odometry == "kiss-icp")
         odometry = "none"  # the keyframes' own KISS-ICP poses are tracking's motion (below)

@@ -235,7 +235,7 @@ def open_prior_map(cfg: SlamConfig, seq: Sequence) -> tuple[MapArtifact, PlaceRe
         )
     for name in cfg.prior_map.join_pipelines:
         prior.pipeline(name)  # MapMismatchError naming the map's pipelines
-    places = _map_keyframes(prior)
+    places = prior.places
     if (places is None) != (cfg.loops.keyframes is None):
         log.warning(
             "%s: the map's places are %s and this run's %s: closures between them compare unlike places",
@@ -244,16 +244,6 @@ def open_prior_map(cfg: SlamConfig, seq: Sequence) -> tuple[MapArtifact, PlaceRe
             "single scans" if cfg.loops.keyframes is None else "keyframes (loops.keyframes)",
         )
     return prior, prior.recognizer(spec.name)
-
-
-def _map_keyframes(prior: MapArtifact) -> Any:
-    """The keyframe settings a map's places were made with (`placerec map build`'s ``keyframes``, a SLAM run's
-    ``loops.keyframes``), as its manifest records them; None: single scans."""
-    config = prior.manifest.config
-    if "keyframes" in config:
-        return config["keyframes"]
-    loops = config.get("loops")
-    return loops.get("keyframes") if isinstance(loops, dict) else None
 
 
 def _map_searches(cfg: SlamConfig, prior: MapArtifact | None) -> list[Localizer]:
