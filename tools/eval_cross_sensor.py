@@ -53,8 +53,8 @@ Modes, per pipeline (ishot-prob, scan-context, orb-dbow, superpoint-dbow; preset
   only), run in loop mode (`run_loop`), judged with the benchmark's pose ground truth (`loop_summary`,
   `pose_truths`) at a fixed threshold (the preset's; ``--loop-threshold PIPELINE=VALUE`` another): recall and
   precision there, and ``R@P1`` = that recall when the precision is 1.00, else 0. ``--loop-ambiguity RATIO``
-  applies localisation's ambiguity rule to the loop answers, the map drive's poses placing the candidates: the
-  first drive plays a map with known poses, as a second session joining a prior map does
+  applies localisation's ambiguity rule to the loop answers, the map drive's true poses placing the candidates:
+  the first drive plays a map with known poses (as in localise mode), as a second session joining a prior map does
   (``prior_map.join_ambiguity``; the odometry of a single drive is not such a map). An ambiguous query has no
   answer (`placerec.experiment.report.ambiguous_answers`).
 
