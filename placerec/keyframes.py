@@ -89,6 +89,8 @@ __all__ = [
     "deskewed_points",
 ]
 
+log = logging.getLogger(__name__)
+
 #: width (s) of the time bins of the de-skew: points of one bin take the pose at the bin's centre
 DESKEW_BIN_S = 2.5e-4
 #: largest |per-point time| (s) taken as seconds since the scan's timestamp; beyond it the times are taken to be
@@ -622,8 +624,6 @@ def keyframes_along(
             " give --poses FILE or --odometry kiss-icp"
         )
     if params.deskew and len(seq) and seq[0].time is None:
-        logging.getLogger(__name__).warning(
-            "%s: scans without per-point times: keyframes accumulated without de-skew", seq.name
-        )
+        log.warning("%s: scans without per-point times: keyframes accumulated without de-skew", seq.name)
         params = params.model_copy(update={"deskew": False})
     return KeyframeSequence(seq, params, seq.poses, prepare=prepare)

@@ -107,9 +107,8 @@ def write_map(
     if len(poses) != len(seq):
         raise ConfigError(f"{seq.name}: {len(poses)} poses for {len(seq)} scans")
     scan_of = np.arange(len(seq))  # the source scan of each place
-    if (
-        config.keyframes is not None
-    ):  # places: keyframes accumulated along the map's poses, at their last scans
+    # places: keyframes accumulated along the map's poses, each at its last scan
+    if config.keyframes is not None:
         seq = KeyframeSequence(seq, config.keyframes.model_copy(update={"odometry": "poses"}), poses)
         poses, scan_of = seq.keyframe_poses, seq.reference_indices
     chosen = select_keyframes(poses, config.keyframe_metres)

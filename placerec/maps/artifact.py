@@ -477,6 +477,14 @@ class MapArtifact:
         loops = config.get("loops")
         return loops.get("keyframes") if isinstance(loops, dict) else None
 
+    def places_mismatch(self, keyframes: bool) -> str | None:
+        """Why places of the kind ``keyframes`` says (keyframes, or single scans) are not the map's (`places`),
+        or None when they are: closures and fixes between the two compare unlike places."""
+        if (self.places is None) == (not keyframes):
+            return None
+        mine = "single scans" if self.places is None else f"keyframes {self.places}"
+        return f"{self.path}: the map's places are {mine}, these are {'keyframes' if keyframes else 'single scans'}"
+
     def summary(self) -> dict[str, Any]:
         """What ``placerec info MAP`` prints."""
         m = self.manifest

@@ -45,7 +45,7 @@ from placerec.experiment.run_folder import finite_or_null, json_default, slug
 from placerec.io import write_kitti_poses, write_tum_poses
 from placerec.io.atomic import atomic_write
 from placerec.io.mcap_export import LoopEdge, write_closures_mcap
-from placerec.keyframes import KeyframeParams, KeyframeSequence, keyframes_along
+from placerec.keyframes import KeyframeParams, keyframes_along
 from placerec.maps.artifact import MapArtifact
 from placerec.maps.localizer import Fix, Localizer, LocalizerParams, search_pipelines
 from placerec.types import Sequence, relative_pose
@@ -128,21 +128,17 @@ def localize_sequence(
     loc = Localizer(map, params)
     if len(seq) == 0:
         raise ConfigError(f"{seq.name}: the sequence has no scans")
-    source = odometry
-    if (loc.map.places is None) != (keyframes is None):
-        log.warning(
-            "%s: the map's places are %s and the queries %s: set the queries' keyframes as the map's (%s)",
-            loc.map.path,
-            "single scans" if loc.map.places is None else f"keyframes {loc.map.places}",
-            "single scans" if keyframes is None else "keyframes",
-            "--keyframes-seconds / --keyframes-metres" if keyframes is None else "none",
-        )
+    mismatch = loc.map.places_mismatch(keyframes is not None)
+    if mismatch:
+        log.warning("%s: give the queries the map's kind of places (--keyframes-seconds / -metres)", mismatch)
+    moves = None  # with keyframes and KISS-ICP: the keyframes' own odometry poses move tracking
     if keyframes is not None:
-        seq = keyframes_along(seq, keyframes, kiss_icp=odometry == "kiss-icp")
-        odometry = "none"  # the keyframes' own KISS-ICP poses are tracking's motion (below)
+        kseq = keyframes_along(seq, keyframes, kiss_icp=odometry == "kiss-icp")
+        moves = kseq.keyframe_poses if odometry == "kiss-icp" else None
+        seq = kseq
     n = len(seq)
     odo = None
-    if odometry == "kiss-icp":
+    if odometry == "kiss-icp" and keyframes is None:
         from placerec.slam.odometry import KissIcpOdometry
 
         odo = KissIcpOdometry()
@@ -154,12 +150,10 @@ def localize_sequence(
         viewer.points("world/map/keyframes", loc.map.positions(), (150, 150, 150), static=True)
         if truth is not None:
             viewer.trajectory("gt", truth, static=True)
-    moved = isinstance(seq, KeyframeSequence) and source == "kiss-icp"
     for i in range(n):
         scan = seq[i]
-        if moved:
-            assert isinstance(seq, KeyframeSequence)
-            fix = loc.track(scan, seq.keyframe_poses[i]) if mode == "tracking" else loc.localize(scan)
+        if moves is not None:
+            fix = loc.track(scan, moves[i]) if mode == "tracking" else loc.localize(scan)
         elif odo is None:
             fix = loc.track(scan) if mode == "tracking" else loc.localize(scan)
         else:
@@ -175,7 +169,7 @@ def localize_sequence(
             viewer.fix("localizer", fix.T_world_query, _fix_text(fix), fix.accepted)
         if progress is not None:
             progress(i + 1, n)
-    return LocalizeRun(seq.name, loc.map, fixes, stamps, truth, mode, source, params, keyframes)
+    return LocalizeRun(seq.name, loc.map, fixes, stamps, truth, mode, odometry, params, keyframes)
 
 
 def _fix_text(fix: Fix) -> str:

@@ -235,14 +235,9 @@ def open_prior_map(cfg: SlamConfig, seq: Sequence) -> tuple[MapArtifact, PlaceRe
         )
     for name in cfg.prior_map.join_pipelines:
         prior.pipeline(name)  # MapMismatchError naming the map's pipelines
-    places = prior.places
-    if (places is None) != (cfg.loops.keyframes is None):
-        log.warning(
-            "%s: the map's places are %s and this run's %s: closures between them compare unlike places",
-            prior.path,
-            "single scans" if places is None else f"keyframes {places}",
-            "single scans" if cfg.loops.keyframes is None else "keyframes (loops.keyframes)",
-        )
+    mismatch = prior.places_mismatch(cfg.loops.keyframes is not None)
+    if mismatch:
+        log.warning("%s (loops.keyframes): closures between them compare unlike places", mismatch)
     return prior, prior.recognizer(spec.name)
 
 
