@@ -236,6 +236,48 @@ def test_candidates_matched_on_the_helper_thread_are_those_of_one_thread(sim, na
         np.testing.assert_array_equal(a.relative_pose, b.relative_pose)
 
 
+def test_candidates_reach_verification_hypothesised_on_the_thread_that_matched_them(sim, monkeypatch):
+    """`VisualFrontend._retrieved_all` makes each candidate's RANSAC hypothesis where it matched it; those are the
+    hypotheses `verify_candidates` would make, and it takes them as they are (it makes none itself)."""
+    import placerec.pipelines.visual as visual
+    import placerec.verify.candidates as candidates
+    from placerec.verify.verify import hypothesise
+
+    scans, _ = sim
+    seen = []
+    real = visual.verify_candidates
+
+    def spy(cloud, retrieved, *args, **kwargs):
+        seen.append((cloud, list(retrieved), args, kwargs))
+        return real(cloud, retrieved, *args, **kwargs)
+
+    monkeypatch.setattr(visual, "verify_candidates", spy)
+    rec = make_pipeline("orb-dbow")
+    for i in (0, 30):
+        rec.add(i, scans[i])
+    answer = rec.query(scans[2], k=2, query_id=2)
+    ((cloud, retrieved, args, kwargs),) = seen
+    assert len(retrieved) == 2 and all(r.hypothesis is not None for r in retrieved)
+    vp = rec.params.verify
+    for r in retrieved:
+        h = hypothesise(r.src_kp, r.dst_kp, r.init, vp, r.quality)
+        assert (h.inliers, h.correspondences, h.rejected_at) == (
+            r.hypothesis.inliers,
+            r.hypothesis.correspondences,
+            r.hypothesis.rejected_at,
+        )
+        np.testing.assert_array_equal(h.T_match_query, r.hypothesis.T_match_query)
+
+    def refused(*args, **kwargs):
+        raise AssertionError("verify_candidates hypothesised a candidate that came with its hypothesis")
+
+    monkeypatch.setattr(candidates, "hypothesise", refused)
+    again = candidates.verify_candidates(cloud, retrieved, *args, **kwargs)
+    assert [(c.match_id, c.score, c.inliers) for c in again] == [
+        (c.match_id, c.score, c.inliers) for c in answer
+    ]
+
+
 def test_binary_matching_of_large_sets_with_ties_is_the_first_argmin_both_ways():
     """500 x 450 ORB-sized descriptors with few bits set, so that equal distances abound: each side's nearest is
     the first of its equal distances (``argmin``), as the pairwise loop gave."""

@@ -67,6 +67,7 @@ from placerec.verify.candidates import (
 from placerec.verify.guided import answers, guided_nearest, usable
 from placerec.verify.icp import IcpCloud
 from placerec.verify.matching import mutual_nearest
+from placerec.verify.verify import hypothesise
 
 __all__ = [
     "HBSTParams",
@@ -339,15 +340,24 @@ class VisualFrontend(Generic[VP]):
         prior: MotionPrior | None = None,
     ) -> list[Retrieved]:
         """`_retrieved` of each (match id, score, query feature ids, match feature ids, extra) in ``todo``, in its
-        order. Every other candidate is matched on the helper thread (`placerec.threads.side_by_side`: the
-        compiled matching runs without the GIL; each candidate's matches are what they are alone, and the hand-over
-        is one for all of them): SuperPoint's 300 x 256 floats take ~4 ms a candidate, so a real HDL-64 query's 20
-        go from 104 to 67 ms; 40 candidates of 1000 ORB features (the Avia's keyframes) 84 -> 42 ms, of 300 ORB
-        features 8.7 -> 4.6 ms, on 2 idle cores. With a motion ``prior`` and ``verify.guided`` each also carries
-        its matching within the prior (`_guided`), made only if RANSAC finds no pose on these."""
+        order, each with its RANSAC hypothesis (`Retrieved.hypothesis`). Every other candidate is matched and
+        hypothesised on the helper thread (`placerec.threads.side_by_side`: the compiled matching and RANSAC search
+        run without the GIL, so one thread's RANSAC overlaps the other's matching; each candidate's matches and
+        hypothesis are what they are alone, RANSAC seeded per call, and the hand-over is one for all of them):
+        SuperPoint's 300 x 256 floats take ~4 ms a candidate, so a real HDL-64 query's 20 go from 104 to 67 ms;
+        40 candidates of 1000 ORB features (the Avia's keyframes) 84 -> 42 ms, of 300 ORB features 8.7 -> 4.6 ms,
+        on 2 idle cores. With a motion ``prior`` and ``verify.guided`` each also carries its matching within the
+        prior (`_guided`), made only if RANSAC finds no pose on these."""
+        vp = self.params.verify
+
+        def hypothesised(r: Retrieved) -> Retrieved:
+            t0 = time.perf_counter()
+            r.hypothesis = hypothesise(r.src_kp, r.dst_kp, r.init, vp, r.quality)
+            r.verify_ms += (time.perf_counter() - t0) * 1e3
+            return r
 
         def each(part: list[_ToMatch]) -> list[Retrieved]:
-            return [self._retrieved(description, *item, spent_ms) for item in part]
+            return [hypothesised(self._retrieved(description, *item, spent_ms)) for item in part]
 
         # with the retrieval's own matches (verify_matches="retrieval") there is no matching to share
         matching = self.params.verify_matches == "brute-force"
@@ -387,6 +397,7 @@ class VisualFrontend(Generic[VP]):
             verify_ms=ms,
             pairs=np.stack([qi, mi], axis=1),
             guided=None,
+            hypothesis=None,
         )
 
     def _retrieved(

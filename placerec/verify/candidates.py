@@ -133,7 +133,10 @@ class Retrieved:
     the correspondences, counted in the candidate's ``verify_ms``. ``pairs`` (M, 2): the (query feature, match
     feature) indices of the correspondences, row by row (the candidate's ``matches``; None: not known).
     ``guided`` (no arguments) gives this candidate again with the correspondences a motion prior allows
-    (`placerec.verify.guided`; None: no prior), tried when RANSAC finds no pose on these (``verify.guided``)."""
+    (`placerec.verify.guided`; None: no prior), tried when RANSAC finds no pose on these (``verify.guided``).
+    ``hypothesis``: its `hypothesise` with the parameters `verify_candidates` is given, when the pipeline made it
+    already (on the thread that matched it: `placerec.pipelines.visual.VisualFrontend._retrieved_all`), its time
+    then in ``verify_ms``; None: `verify_candidates` makes it."""
 
     match_id: int
     retrieval_score: float
@@ -146,6 +149,7 @@ class Retrieved:
     verify_ms: float = 0.0
     pairs: np.ndarray | None = None
     guided: Callable[[], Retrieved] | None = None
+    hypothesis: Hypothesis | None = None
 
 
 def scan_cloud(scan: Any, params: VerifyParams | None = None) -> np.ndarray:
@@ -459,7 +463,8 @@ def verify_candidates(
     hyps, ms = [], []
     for r in todo:
         t0 = time.perf_counter()
-        hyps.append(hypothesise(r.src_kp, r.dst_kp, r.init, vp, r.quality))
+        h = r.hypothesis
+        hyps.append(h if h is not None else hypothesise(r.src_kp, r.dst_kp, r.init, vp, r.quality))
         ms.append((time.perf_counter() - t0) * 1e3 + r.verify_ms)
     done: dict[int, Verification] = {}
     guided: set[int] = set()
