@@ -126,3 +126,42 @@ def test_a_map_config_and_localizer_settings_reach_the_map_the_localizer_and_the
     assert cell["relocalisation"]["wrong"] == 0 and cell["relocalisation"]["success"] >= 0.75
     assert cell["multisession_truth_map"] is None and tool.cell_line(cell).endswith("| - |")
     assert tool._summary([cell])["max_merged_ate_truth_map"] is None
+
+
+def test_a_keyframe_cell_localises_keyframes_and_joins_keyframe_sessions(tmp_path: Path) -> None:
+    """``--keyframes``: a MID-360's sessions driven as the sensor benchmark captures it; the true-pose map's places,
+    relocalisation and kidnaps are keyframes (at their last frames), both SLAM sessions run the keyframe config."""
+    from placerec.errors import ConfigError
+    from placerec.maps import MapArtifact
+    from placerec.sim.sessions import make_session_pair
+    from placerec.slam_app.config import load_slam_config
+
+    tool = _tool()
+    kf = tool.capture("mid360")
+    assert (kf.seconds, kf.every_metres) == (1.0, 1.8)
+    with pytest.raises(ConfigError, match="vlp16"):
+        tool.capture("vlp16")
+    pair = make_session_pair("town", "mid360", 0, "revisit", n_scans=80, rate_hz=10, sweep_motion=True)
+    q = tool.queries(pair, kf)
+    assert len(q.seq) < 80 and q.places[-1] == 79 and len(q.odometry) == len(q.seq)
+    cfg = load_slam_config(tool.SLAM_CONFIG_KEYFRAMES, tool.slam_overrides(pair, "map", keyframes=kf))
+    assert cfg.loops.keyframes is not None and cfg.loops.keyframes.every_metres == 1.8
+    assert cfg.loops.threshold == 0.1  # ORB-DBoW's operating threshold on the MID-360
+    keyed = tool.settings("mid360", "scan-context", 80, 2, keyframes=kf)
+    assert keyed["slam_config"] == tool.SLAM_CONFIG_KEYFRAMES and keyed["keyframes"]["every_metres"] == 1.8
+    assert "keyframes" not in tool.settings(
+        "mid360", "scan-context", 80, 2
+    )  # cached cells of before still match
+
+    cell = tool.run_cell("town", 0, "revisit", "mid360", "scan-context", scans=80, kidnaps=2, work=tmp_path,
+                         keyframes=kf)  # fmt: skip
+    r = cell["relocalisation"]
+    assert r["scans"] == len(q.seq) and r["overlap_scans"] == len(q.seq)
+    assert r["success"] >= 0.9 and r["wrong"] == 0
+    k = cell["kidnap"]
+    assert k["trials"] == 2 and k["false_first_fixes"] == 0
+    m = cell["multisession"]
+    assert m["joined"] and m["false_inter_loops"] == 0 and m["merged_ate_rmse"] < 0.15
+    (truth,) = tmp_path.glob("*-kf-scan-context-truth")
+    assert MapArtifact.open(truth).places == kf.model_dump(mode="json")  # a map of keyframes
+    assert cell["multisession_truth_map"] is None  # that map has no ORB-DBoW database for the join

@@ -123,6 +123,15 @@ def test_kidnap_trials_teleport_inside_the_overlap() -> None:
         kidnap_trials(make_session_pair("town", "vlp16", seed=0, kind="disjoint"), 3)
     with pytest.raises(ConfigError, match="after"):
         kidnap_trials(pair, 3, after=0)
+    # over places (every third scan, as keyframes' last scans): indices into the places, their poses and overlap
+    places = np.arange(0, len(pair.query), 3)
+    for t in kidnap_trials(pair, 10, seed=1, places=places):
+        scans = places[t.indices]
+        assert pair.overlap[scans].all() and np.all(np.diff(t.after) == 1)
+        gap = np.linalg.norm(xy[scans[t.teleport]] - xy[scans[: t.teleport]], axis=1)
+        assert gap.min() >= 50.0 and t.jump_m == pytest.approx(gap[-1])
+    with pytest.raises(ConfigError, match="places"):
+        kidnap_trials(pair, 3, places=places[::-1])
 
 
 def test_plan_routes_sample_like_make_route() -> None:

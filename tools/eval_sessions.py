@@ -33,6 +33,13 @@ kind of a world and seed, so its two maps are built once and kept under ``--work
    inter-session closures are checked against the joined estimate; those refused are counted, and how many of
    them were false).
 
+**Keyframes** (``--keyframes``, a Livox-style or solid-state sensor): both sessions are driven as the sensor
+benchmark captures the sensor (`placerec.experiment.protocol.CAPTURE`: frames at 10 Hz taken while moving), the
+true-pose map's places are keyframes (`placerec.artifacts.map.MapBuild.keyframes`), relocalisation and the kidnaps
+localise session 2's keyframes (accumulated along its drifting odometry; each stands at its last frame: its truth,
+overlap and odometry), and both SLAM sessions run `SLAM_CONFIG_KEYFRAMES` with the sensor's keyframes and its
+loop pipeline's operating threshold on the sensor (`placerec.sensor_presets`). Kidnap trials count keyframes.
+
 Map load time and size by keyframe count are ``tools/bench_map_scale.py``'s, not redone here.
 
 **The default seeds are the TEST seeds** (`placerec.experiment.protocol.TEST_SEEDS`): this tool only reports;
@@ -51,6 +58,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -62,17 +70,21 @@ from placerec.errors import ConfigError
 from placerec.eval.metrics import timing_summary
 from placerec.eval.pose_error import pose_errors
 from placerec.eval.trajectory import trajectory_errors
-from placerec.experiment.protocol import TEST_SEEDS, TEST_WORLDS
+from placerec.experiment.protocol import CAPTURE, TEST_SEEDS, TEST_WORLDS
 from placerec.hashing import stable_hash
+from placerec.keyframes import KeyframeParams, KeyframeSequence
 from placerec.maps import Fix, Localizer, LocalizerParams, MapArtifact
 from placerec.params import resolve
-from placerec.recognizer import pipeline_params
+from placerec.recognizer import PIPELINES, pipeline_params
 from placerec.sim.odometry import OdometryDrift, drift_poses
 from placerec.sim.sessions import SessionPair, kidnap_trials, make_session_pair
 from placerec.slam_app.localize import CORRECT_DEG, CORRECT_M, LocalizeRun
+from placerec.types import Sequence
 
 KINDS = ("revisit", "partial", "opposite", "disjoint")
 SLAM_CONFIG = "configs/slam_demo.yaml"
+#: both SLAM sessions' config in keyframe cells (``--keyframes``)
+SLAM_CONFIG_KEYFRAMES = "configs/slam_livox.yaml"
 VERSION = 2  # of a cell's JSON: bump when what a cell measures changes
 
 
@@ -85,12 +97,20 @@ def log(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
-def map_build(folder: Path, pipeline: str | None, map_config: Path | None = None) -> MapBuild:
+def map_build(
+    folder: Path,
+    pipeline: str | None,
+    map_config: Path | None = None,
+    keyframes: KeyframeParams | None = None,
+) -> MapBuild:
     """How the true-pose map at ``folder`` is built: the pipelines and preprocessing of the MapBuild YAML
-    ``map_config`` (e.g. configs/map_cross_sensor.yaml), else ``pipeline`` alone, or (None) the map default's."""
+    ``map_config`` (e.g. configs/map_cross_sensor.yaml), else ``pipeline`` alone, or (None) the map default's;
+    its places ``keyframes`` when given."""
     base: dict[str, Any] = {} if map_config is None else read_config_file(map_config)
     if map_config is None and pipeline is not None:
         base["pipelines"] = [{"name": pipeline}]
+    if keyframes is not None:
+        base["keyframes"] = keyframes.model_dump(mode="json")
     return resolve(MapBuild, {**base, "source": {}, "out": str(folder), "overwrite": True}, where="map build")
 
 
@@ -136,10 +156,11 @@ def settings(
     localize_sets: tuple[str, ...] = (),
     slam_map_sets: tuple[str, ...] = (),
     slam_join_sets: tuple[str, ...] = (),
+    keyframes: KeyframeParams | None = None,
 ) -> dict[str, Any]:
     """What a cell depends on besides its world, seed and kind (stored with it; a mismatch recomputes it)."""
     out = {"version": VERSION, "sensor": sensor, "pipeline": pipeline_label(pipeline, map_config), "scans": scans,
-           "kidnaps": kidnaps, "slam_config": SLAM_CONFIG, "correct_within": [CORRECT_M, CORRECT_DEG],
+           "kidnaps": kidnaps, "slam_config": slam_config(keyframes), "correct_within": [CORRECT_M, CORRECT_DEG],
            "thresholds": map_thresholds(pipeline, sensor, map_config),
            "params": map_params(pipeline, sensor, map_config)}  # fmt: skip
     if map_config is not None:
@@ -158,7 +179,29 @@ def settings(
         out["slam_odometry"] = slam_odometry
     if odometry_gate:
         out["odometry_gate"] = True
+    if keyframes is not None:
+        out["keyframes"] = keyframes.model_dump(mode="json")
     return out
+
+
+def slam_config(keyframes: KeyframeParams | None) -> str:
+    """Both SLAM sessions' config: `SLAM_CONFIG`, or with keyframes `SLAM_CONFIG_KEYFRAMES`."""
+    return SLAM_CONFIG if keyframes is None else SLAM_CONFIG_KEYFRAMES
+
+
+def slam_loop_pipeline(keyframes: KeyframeParams | None) -> str:
+    """The loop pipeline of both SLAM sessions (`slam_config`), which a join searches the map with."""
+    from placerec.slam_app.config import load_slam_config
+
+    return load_slam_config(slam_config(keyframes), []).loops.pipeline.name
+
+
+def capture(sensor: str) -> KeyframeParams:
+    """The keyframes the sensor benchmark accumulates ``sensor``'s frames into (`CAPTURE`); `ConfigError` for a
+    sensor it drives one scan a metre."""
+    if sensor not in CAPTURE:
+        raise ConfigError(f"--keyframes: {sensor!r} is not captured in keyframes; one of {sorted(CAPTURE)}")
+    return KeyframeParams(**CAPTURE[sensor]["keyframes"])
 
 
 def slam_suffix(slam_odometry: str, odometry_gate: bool) -> str:
@@ -173,10 +216,36 @@ def odometry(pair: SessionPair) -> np.ndarray:
     return np.linalg.inv(odo[0]) @ odo
 
 
+@dataclass(frozen=True)
+class Queries:
+    """What relocalisation and the kidnaps localise in session 2: ``seq``, its scans or its keyframes, each
+    standing at the scan ``places[i]`` of ``pair.query`` (its truth, overlap and nearest map scan; a keyframe's
+    last scan), with the session's drifting ``odometry`` there."""
+
+    seq: Sequence
+    places: np.ndarray
+    odometry: np.ndarray
+
+
+def queries(pair: SessionPair, keyframes: KeyframeParams | None = None) -> Queries:
+    """Session 2's scans, or its ``keyframes`` accumulated along its drifting odometry (`odometry`)."""
+    odo = odometry(pair)
+    if keyframes is None:
+        return Queries(pair.query, np.arange(len(pair.query)), odo)
+    kseq = KeyframeSequence(pair.query, keyframes, odo)
+    return Queries(kseq, kseq.reference_indices, kseq.keyframe_poses)
+
+
 # -- the two maps of a world and seed -------------------------------------------------------------------------
-def true_map(pair: SessionPair, pipeline: str | None, folder: Path, map_config: Path | None = None) -> Path:
-    """Session 1's map at its true poses (built once; reused when ``folder`` holds one with the same thresholds and
-    parameters; a map config's maps have folders of their own, `pipeline_label`)."""
+def true_map(
+    pair: SessionPair,
+    pipeline: str | None,
+    folder: Path,
+    map_config: Path | None = None,
+    keyframes: KeyframeParams | None = None,
+) -> Path:
+    """Session 1's map at its true poses, of ``keyframes`` when given (built once; reused when ``folder`` holds one
+    with the same thresholds and parameters; a map config's and keyframe maps have folders of their own)."""
     if (folder / "manifest.json").is_file():
         held = MapArtifact.open(folder).manifest.pipelines
         sensor = pair.map.sensor.name
@@ -184,20 +253,40 @@ def true_map(pair: SessionPair, pipeline: str | None, folder: Path, map_config: 
             pipeline, sensor, map_config
         ) and stable_hash({p.name: p.params for p in held}) == map_params(pipeline, sensor, map_config):
             return folder
-    return write_map(pair.map, map_build(folder, pipeline, map_config))
+    return write_map(pair.map, map_build(folder, pipeline, map_config, keyframes))
 
 
-def slam_overrides(pair: SessionPair, role: str, odometry: str = "dataset", gate: bool = False) -> list[str]:
+def slam_overrides(
+    pair: SessionPair,
+    role: str,
+    odometry: str = "dataset",
+    gate: bool = False,
+    keyframes: KeyframeParams | None = None,
+) -> list[str]:
     """The SLAM config's overrides for session ``role`` (``map`` or ``query``) of ``pair``; ``odometry``: the
     config's ``odometry.source`` (``dataset``: the demo's drift on the true poses; ``kiss-icp``: on the scans);
-    ``gate``: ``loops.odometry_gate`` at its defaults (`placerec.odometry_gate`)."""
+    ``gate``: ``loops.odometry_gate`` at its defaults (`placerec.odometry_gate`); ``keyframes``: the loops'
+    places (`SLAM_CONFIG_KEYFRAMES`'s pipeline at its operating threshold on the sensor)."""
     seq = pair.map if role == "map" else pair.query
     world = pair.map.world
-    return [f"dataset.simulator.world={world.preset}", f"dataset.simulator.sensor={seq.sensor.name}",
+    sets = [f"dataset.simulator.world={world.preset}", f"dataset.simulator.sensor={seq.sensor.name}",
             f"dataset.simulator.seed={seq.seed}", f"dataset.simulator.world_seed={world.seed}",
             f"dataset.simulator.unit_seed={pair.map.seed}", f"odometry.drift.seed={seq.seed}",
             f"odometry.source={odometry}", "output.progress=false", "output.figures=false",
             *(["loops.odometry_gate={}"] if gate else [])]  # fmt: skip
+    if keyframes is not None:
+        from placerec.slam_app.config import load_slam_config
+
+        loop = load_slam_config(SLAM_CONFIG_KEYFRAMES, sets).loops.pipeline.name
+        threshold = PIPELINES[loop].threshold_for(seq.sensor.name)
+        every = "" if keyframes.every_metres is None else f", every_metres: {keyframes.every_metres}"
+        window = (
+            f"seconds: {keyframes.seconds}"
+            if keyframes.seconds is not None
+            else f"metres: {keyframes.metres}"
+        )
+        sets += [f"loops.keyframes={{{window}{every}}}", f"loops.threshold={threshold}"]
+    return sets
 
 
 def slam_map(
@@ -207,22 +296,24 @@ def slam_map(
     odometry: str = "dataset",
     gate: bool = False,
     slam_sets: tuple[str, ...] = (),
+    keyframes: KeyframeParams | None = None,
 ) -> tuple[Path, dict[str, Any]]:
     """Session 1 through `slam_sequence` with its map saved (run once; its ATE kept beside it), holding the
-    ``map_pipelines`` databases as well (``output.map_pipelines``), its SLAM config overridden by ``slam_sets``."""
+    ``map_pipelines`` databases as well (``output.map_pipelines``), its SLAM config overridden by ``slam_sets``
+    (`slam_overrides` for ``keyframes``)."""
     from placerec.slam_app.config import load_slam_config
     from placerec.slam_app.run import loop_pipeline, map_writer_for, slam_sequence
 
     info_path = folder.parent / f"{folder.name}.json"
     sets = [
-        *slam_overrides(pair, "map", odometry, gate),
+        *slam_overrides(pair, "map", odometry, gate, keyframes),
         f"output.save_map={folder}",
         "output.overwrite_map=true",
         *slam_sets,
     ]
     if map_pipelines:
         sets.append(f"output.map_pipelines={list(map_pipelines)}")
-    cfg = load_slam_config(SLAM_CONFIG, sets)
+    cfg = load_slam_config(slam_config(keyframes), sets)
     sensor = pair.map.sensor.name
     specs = [cfg.loops.pipeline, *(PipelineSpec(name=n) for n in map_pipelines)]
     params = [pipeline_params(p.name, p.params, sensor=sensor).saved_dump() for p in specs]
@@ -244,27 +335,28 @@ def slam_map(
 
 # -- 1. relocalisation ------------------------------------------------------------------------------------------
 def relocalise(
-    pair: SessionPair, map_folder: Path, params: LocalizerParams
+    pair: SessionPair, map_folder: Path, params: LocalizerParams, q: Queries | None = None
 ) -> tuple[dict[str, Any], Localizer]:
-    """Session 2 tracked in order against the true-pose map with its drifting odometry (module docstring)."""
+    """Session 2 (``q``: its scans or keyframes, default its scans) tracked in order against the true-pose map
+    with its drifting odometry (module docstring)."""
     loc = Localizer(map_folder, params)
-    odo = odometry(pair)
-    q = pair.query
-    fixes = [loc.track(q[i], odo[i]) for i in range(len(q))]
-    run = LocalizeRun(q.name, loc.map, fixes, np.asarray(q.timestamps), np.asarray(q.poses), "tracking",
+    q = q or queries(pair)
+    fixes = [loc.track(q.seq[i], q.odometry[i]) for i in range(len(q.seq))]
+    truth = np.asarray(pair.query.poses)[q.places]
+    run = LocalizeRun(q.seq.name, loc.map, fixes, np.asarray(pair.query.timestamps)[q.places], truth, "tracking",
                       "simulated drift", params)  # fmt: skip
     correct = run.correct()
     assert correct is not None
     te, re = run.errors()
     accepted = np.array([f.accepted for f in fixes], bool)
     wrong = accepted & ~correct
-    inside = np.asarray(pair.overlap, bool)
+    inside = np.asarray(pair.overlap, bool)[q.places]
     modes = np.array([f.mode for f in fixes])
     times = np.array([f.time_ms for f in fixes])
     n_in = int(inside.sum())
     kf = np.asarray(loc.map.poses)
     out = {
-        "scans": len(q),
+        "scans": len(q.seq),
         "map_keyframes": len(loc.map),
         "overlap_scans": n_in,
         "correct_in_overlap": int((correct & inside).sum()),
@@ -281,49 +373,63 @@ def relocalise(
         else None,
         # the failures, for the report: every overlapping scan without a correct fix, and every wrong fix
         "missed": [
-            _row(i, f, te[i], re[i], pair, kf) for i, f in enumerate(fixes) if inside[i] and not correct[i]
+            _row(i, f, te[i], re[i], pair, kf, int(q.places[i]))
+            for i, f in enumerate(fixes)
+            if inside[i] and not correct[i]
         ],
-        "wrong_fixes": [_row(i, f, te[i], re[i], pair, kf) for i, f in enumerate(fixes) if wrong[i]],
+        "wrong_fixes": [
+            _row(i, f, te[i], re[i], pair, kf, int(q.places[i])) for i, f in enumerate(fixes) if wrong[i]
+        ],
     }
     return out, loc
 
 
-def _row(i: int, f: Fix, te: float, re: float, pair: SessionPair, keyframes: np.ndarray) -> dict[str, Any]:
-    """A scan's fix for the report; ``keyframe_m``: how far (horizontally) the keyframe its answer was verified
-    against lies from the scan's true position (the retrieval was right when it is small)."""
+def _row(
+    i: int, f: Fix, te: float, re: float, pair: SessionPair, keyframes: np.ndarray, scan: int
+) -> dict[str, Any]:
+    """Query ``i``'s fix for the report (``scan``: the scan of ``pair.query`` it stands at); ``keyframe_m``: how
+    far (horizontally) the keyframe its answer was verified against lies from its true position (the retrieval
+    was right when it is small)."""
     idx, dist = pair.nearest_map
     kf_m = None
     if f.keyframe_id >= 0:
-        kf_m = round(float(np.linalg.norm(keyframes[f.keyframe_id, :2, 3] - pair.query.poses[i][:2, 3])), 2)
+        kf_m = round(
+            float(np.linalg.norm(keyframes[f.keyframe_id, :2, 3] - pair.query.poses[scan][:2, 3])), 2
+        )
     return {"scan": i, "accepted": f.accepted, "mode": f.mode, "reason": f.reason,
             "error": None if np.isnan(te) else [round(float(te), 3), round(float(re), 2)],
             "score": None if np.isnan(f.score) else round(f.score, 3),
             "fitness": None if np.isnan(f.fitness) else round(f.fitness, 3), "keyframe_m": kf_m,
-            "map_dist": round(float(dist[i]), 2), "heading_diff": round(float(pair.heading_diff[i]), 1)}  # fmt: skip
+            "map_dist": round(float(dist[scan]), 2), "heading_diff": round(float(pair.heading_diff[scan]), 1)}  # fmt: skip
 
 
 # -- 2. kidnap --------------------------------------------------------------------------------------------------
-def kidnap(pair: SessionPair, loc: Localizer, n_trials: int, seed: int) -> dict[str, Any]:
-    """`kidnap_trials` against ``loc`` (module docstring); ``skipped`` says why there are none."""
+def kidnap(
+    pair: SessionPair, loc: Localizer, n_trials: int, seed: int, q: Queries | None = None
+) -> dict[str, Any]:
+    """`kidnap_trials` against ``loc`` over ``q`` (default: session 2's scans; keyframes: over their places,
+    module docstring); ``skipped`` says why there are none."""
+    q = q or queries(pair)
+    framewise = q.seq is pair.query
     try:
-        trials = kidnap_trials(pair, n_trials, seed)
+        trials = kidnap_trials(pair, n_trials, seed, places=None if framewise else q.places)
     except ConfigError as exc:
         return {"trials": 0, "skipped": str(exc)}
-    odo = odometry(pair)
-    truth = np.asarray(pair.query.poses)
+    odo = q.odometry
+    truth = np.asarray(pair.query.poses)[q.places]
     found, false_first, first = 0, 0, []
     failures: list[dict[str, Any]] = []
     for t in trials:
         loc.reset()
         seen = [odo[i] for i in t.tracking]
         for i, T in zip(t.tracking, seen, strict=True):
-            loc.track(pair.query[int(i)], T)
+            loc.track(q.seq[int(i)], T)
         # the odometry does not see the teleport: one ordinary step on, then the new place's relative motion
         step = np.linalg.inv(odo[t.tracking[-2]]) @ odo[t.tracking[-1]] if t.teleport > 1 else np.eye(4)
         start = seen[-1] @ step
         hit, why = None, []
         for n, i in enumerate(t.after):
-            f = loc.track(pair.query[int(i)], start @ np.linalg.inv(odo[t.after[0]]) @ odo[i])
+            f = loc.track(q.seq[int(i)], start @ np.linalg.inv(odo[t.after[0]]) @ odo[i])
             if f.accepted:
                 hit = (n, int(i), f)
                 break
@@ -343,7 +449,9 @@ def kidnap(pair: SessionPair, loc: Localizer, n_trials: int, seed: int) -> dict[
             found += 1
             first.append(n + 1)
         else:
-            failures.append({"scan": i, "reason": f"first fix at scan {n + 1} after the teleport"})
+            failures.append(
+                {"scan": i, "reason": f"first fix at scan {n + 1} after the teleport", "reasons": why}
+            )
     return {"trials": len(trials), "fixed_within_3": found, "success": found / len(trials),
             "false_first_fixes": false_first, "median_scans_to_fix": float(np.median(first)) if first else None,
             "failures": failures}  # fmt: skip
@@ -357,6 +465,7 @@ def multisession(
     odometry: str = "dataset",
     gate: bool = False,
     slam_sets: tuple[str, ...] = (),
+    keyframes: KeyframeParams | None = None,
 ) -> dict[str, Any]:
     """Session 2 through `slam_sequence` against the map at ``map_folder`` (module docstring), with the map's
     ``join_pipelines`` searching it too (``prior_map.join_pipelines``), on ``odometry`` with or without the
@@ -364,12 +473,12 @@ def multisession(
     from placerec.slam_app.config import load_slam_config
     from placerec.slam_app.run import open_prior_map, slam_sequence
 
-    sets = [*slam_overrides(pair, "query", odometry, gate), f"prior_map.path={map_folder}"]
+    sets = [*slam_overrides(pair, "query", odometry, gate, keyframes), f"prior_map.path={map_folder}"]
     if join_pipelines:
         sets.append(f"prior_map.join_pipelines={list(join_pipelines)}")
     if pair.kind == "sensor":
         sets.append("prior_map.allow_other_sensor=true")
-    cfg = load_slam_config(SLAM_CONFIG, [*sets, *slam_sets])
+    cfg = load_slam_config(slam_config(keyframes), [*sets, *slam_sets])
     t0 = time.perf_counter()
     prior, rec = open_prior_map(cfg, pair.query)
     result = slam_sequence(cfg, pair.query, rec, None, None, prior)
@@ -465,12 +574,17 @@ def run_cell(
     map_config: Path | None = None,
     slam_map_sets: tuple[str, ...] = (),
     slam_join_sets: tuple[str, ...] = (),
+    keyframes: KeyframeParams | None = None,
 ) -> dict[str, Any]:
-    """One world x seed x kind: relocalisation, kidnap and multi-session (module docstring). The maps of session 1
-    are built under ``work`` once per world, seed, sensor, pipeline (or ``map_config``), cut, SLAM odometry and
-    odometry gate."""
-    pair = make_session_pair(world, sensor, seed, kind, n_scans=scans, map_closes_loop=map_closes_loop)
+    """One world x seed x kind: relocalisation, kidnap and multi-session (module docstring), of ``keyframes``
+    when given (`capture`). The maps of session 1 are built under ``work`` once per world, seed, sensor, pipeline
+    (or ``map_config``), cut, keyframes, SLAM odometry and odometry gate."""
+    frames = {} if keyframes is None else {k: CAPTURE[sensor][k] for k in ("rate_hz", "sweep_motion")}
+    pair = make_session_pair(
+        world, sensor, seed, kind, n_scans=scans, map_closes_loop=map_closes_loop, **frames
+    )
     tag = f"{world}-{sensor}-s{seed}-n{scans or 'all'}{'-closed' if map_closes_loop else ''}"
+    tag += "" if keyframes is None else "-kf"
     params = params or LocalizerParams(pipeline=pipeline, allow_other_sensor=kind == "sensor")
     t0 = time.perf_counter()
     out: dict[str, Any] = {
@@ -481,29 +595,41 @@ def run_cell(
         "query_seed": pair.query.seed,
     }
     log(f"{tag} {kind}: true-pose map ({len(pair.map)} scans)")
-    tmap = true_map(pair, pipeline, work / f"{tag}-{pipeline_label(pipeline, map_config)}-truth", map_config)
-    log(f"{tag} {kind}: relocalisation ({len(pair.query)} scans, {pair.overlap.sum()} in the overlap)")
-    out["relocalisation"], loc = relocalise(pair, tmap, params)
+    label = pipeline_label(pipeline, map_config)
+    tmap = true_map(pair, pipeline, work / f"{tag}-{label}-truth", map_config, keyframes)
+    q = queries(pair, keyframes)
+    inside = int(pair.overlap[q.places].sum())
+    log(
+        f"{tag} {kind}: relocalisation ({len(q.seq)} {'scans' if keyframes is None else 'keyframes'}, {inside} in the overlap)"
+    )
+    out["relocalisation"], loc = relocalise(pair, tmap, params, q)
     log(f"{tag} {kind}: kidnap")
-    out["kidnap"] = kidnap(pair, loc, kidnaps, seed)
+    out["kidnap"] = kidnap(pair, loc, kidnaps, seed, q)
     log(f"{tag} {kind}: SLAM session 1")
     joined_by = "".join(f"-{name}" for name in join_pipelines)  # a map holding those databases too
     on = slam_suffix(slam_odometry, odometry_gate)
     smap, out["slam_session1"] = slam_map(
-        pair, work / f"{tag}-slam{joined_by}{on}", join_pipelines, slam_odometry, odometry_gate, slam_map_sets
+        pair,
+        work / f"{tag}-slam{joined_by}{on}",
+        join_pipelines,
+        slam_odometry,
+        odometry_gate,
+        slam_map_sets,
+        keyframes,
     )
     log(f"{tag} {kind}: SLAM session 2 against it")
     out["multisession"] = multisession(
-        pair, smap, join_pipelines, slam_odometry, odometry_gate, slam_join_sets
+        pair, smap, join_pipelines, slam_odometry, odometry_gate, slam_join_sets, keyframes
     )
-    if map_config is None:
+    held = {p.name for p in MapArtifact.open(tmap).manifest.pipelines}
+    if slam_loop_pipeline(keyframes) in held:
         log(
             f"{tag} {kind}: SLAM session 2 against the true-pose map (diagnostic: the join without the map's drift)"
         )
         out["multisession_truth_map"] = multisession(
-            pair, tmap, join_pipelines, slam_odometry, odometry_gate, slam_join_sets
+            pair, tmap, join_pipelines, slam_odometry, odometry_gate, slam_join_sets, keyframes
         )
-    else:  # that map holds the config's pipelines, not the SLAM loop pipeline a join searches
+    else:  # that map holds other pipelines than the SLAM loop pipeline a join searches (a map config's, ...)
         out["multisession_truth_map"] = None
     out["seconds"] = round(time.perf_counter() - t0, 1)
     out["load"] = load()
@@ -615,7 +741,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="an override of session 2's SLAM config (the session joined to the map), e.g."
         " prior_map.join_threshold=0.05 (repeatable)",
     )
+    ap.add_argument(
+        "--keyframes",
+        action="store_true",
+        help="a Livox-style or solid-state sensor's sessions in keyframes, as the sensor benchmark captures it"
+        " (module docstring)",
+    )
     args = ap.parse_args(argv)
+    keyframes = capture(args.sensor) if args.keyframes else None
     if args.map_config is not None and args.pipeline is not None:
         raise SystemExit("--map-config names the map's pipelines: not with --pipeline")
     work = args.work or args.out / "maps"
@@ -635,6 +768,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         tuple(args.localize_set),
         tuple(args.slam_map_set),
         tuple(args.slam_join_set),
+        keyframes,
     )
     cells = []
     t0 = time.perf_counter()
@@ -644,7 +778,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 closed = "-closed" if args.map_closes_loop else ""
                 on = slam_suffix(args.slam_odometry, args.odometry_gate)
                 label = pipeline_label(args.pipeline, args.map_config)
-                name = f"{world}-{args.sensor}-s{seed}-{kind}-{label}-n{args.scans or 'all'}{closed}{on}.json"
+                kf = "" if keyframes is None else "-kf"
+                name = f"{world}-{args.sensor}-s{seed}-{kind}-{label}-n{args.scans or 'all'}{closed}{on}{kf}.json"
                 path = args.out / name
                 if path.is_file() and not args.fresh:
                     cached = json.loads(path.read_text())
@@ -657,7 +792,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                                 params, map_closes_loop=args.map_closes_loop, join_pipelines=join,
                                 slam_odometry=args.slam_odometry, odometry_gate=args.odometry_gate,
                                 map_config=args.map_config, slam_map_sets=tuple(args.slam_map_set),
-                                slam_join_sets=tuple(args.slam_join_set))  # fmt: skip
+                                slam_join_sets=tuple(args.slam_join_set), keyframes=keyframes)  # fmt: skip
                 cell["settings"] = want
                 tmp = path.with_suffix(".tmp")
                 tmp.write_text(json.dumps(cell, indent=1))

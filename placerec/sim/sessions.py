@@ -310,21 +310,31 @@ def kidnap_trials(
     before: int = 3,
     after: int = 5,
     min_jump: float = 50.0,
+    places: np.ndarray | None = None,
 ) -> list[KidnapTrial]:
     """``n_trials`` kidnapped-robot trials in ``pair.query`` (see `KidnapTrial`): ``before`` consecutive scans of
     tracking at a random place of the overlap, then a teleport to a random place of the overlap at least
-    ``min_jump`` metres (horizontally) from every tracked scan, and ``after`` consecutive scans there."""
+    ``min_jump`` metres (horizontally) from every tracked scan, and ``after`` consecutive scans there.
+
+    ``places`` (increasing indices into ``pair.query``, e.g. the last scan of each of its keyframes): the trials
+    run over those instead of every scan, each at the pose and overlap of its scan; the trials' ``indices`` are
+    then indices into ``places``."""
     for name, v in (("n_trials", n_trials), ("before", before), ("after", after)):
         if int(v) < 1:
             raise ConfigError(f"sim.sessions.kidnap_trials.{name} must be >= 1, got {v}")
-    ok = np.asarray(pair.overlap, dtype=np.int64)
+    at = np.arange(len(pair.overlap)) if places is None else np.asarray(places, dtype=np.int64)
+    if at.ndim != 1 or (at.size and (at.min() < 0 or at.max() >= len(pair.overlap) or (np.diff(at) <= 0).any())):
+        raise ConfigError(
+            f"sim.sessions.kidnap_trials.places must be increasing indices of the {len(pair.overlap)} query scans"
+        )
+    ok = np.asarray(pair.overlap, dtype=np.int64)[at]
     run = np.concatenate([[0], np.cumsum(ok)])
 
     def starts(k: int) -> np.ndarray:
         return np.flatnonzero(run[k:] - run[:-k] == k) if len(ok) >= k else np.zeros(0, np.int64)
 
     s_before, s_after = starts(before), starts(after)
-    xy = pair.query.poses[:, :2, 3]
+    xy = pair.query.poses[at, :2, 3]
     rng = np.random.default_rng([int(seed), 0x1D4A])
     trials: list[KidnapTrial] = []
     for _ in range(100 * n_trials):
