@@ -158,8 +158,12 @@ def test_a_keyframe_cell_localises_keyframes_and_joins_keyframe_sessions(tmp_pat
     r = cell["relocalisation"]
     assert r["scans"] == len(q.seq) and r["overlap_scans"] == len(q.seq)
     assert r["success"] >= 0.9 and r["wrong"] == 0
+    # every accepted global fix's score, for choosing a threshold on tuning cells: the first fix at least
+    assert r["global_scores"]["right"] and not r["global_scores"]["wrong"]
+    assert r["by_mode"]["global"] == len(r["global_scores"]["right"])
     k = cell["kidnap"]
     assert k["trials"] == 2 and k["false_first_fixes"] == 0
+    assert len(k["global_scores"]["right"]) + len(k["global_scores"]["wrong"]) <= 2
     m = cell["multisession"]
     assert m["joined"] and m["false_inter_loops"] == 0 and m["merged_ate_rmse"] < 0.15
     (truth,) = tmp_path.glob("*-kf-scan-context-truth")

@@ -368,6 +368,8 @@ def relocalise(
         "tracking_ms": timing_summary(times[modes == "tracking"]),
         "global_ms": timing_summary(times[modes == "global"]),
         "by_mode": {m: int((accepted & (modes == m)).sum()) for m in ("tracking", "global")},
+        # the scores of the accepted global fixes, right and wrong: what a global threshold is chosen on (tuning)
+        "global_scores": _global_scores(fixes, correct),
         "max_error_accepted": [float(np.nanmax(te[accepted])), float(np.nanmax(re[accepted]))]
         if accepted.any()
         else None,
@@ -382,6 +384,15 @@ def relocalise(
         ],
     }
     return out, loc
+
+
+def _global_scores(fixes: list[Fix], correct: np.ndarray) -> dict[str, list[float]]:
+    """The verified scores of the accepted global fixes among ``fixes``: ``right`` (``correct``) and ``wrong``."""
+    out: dict[str, list[float]] = {"right": [], "wrong": []}
+    for f, ok in zip(fixes, correct, strict=True):
+        if f.accepted and f.mode == "global":
+            out["right" if ok else "wrong"].append(round(float(f.score), 4))
+    return out
 
 
 def _row(
@@ -419,6 +430,7 @@ def kidnap(
     truth = np.asarray(pair.query.poses)[q.places]
     found, false_first, first = 0, 0, []
     failures: list[dict[str, Any]] = []
+    scores: dict[str, list[float]] = {"right": [], "wrong": []}  # of the first fixes by global search
     for t in trials:
         loc.reset()
         seen = [odo[i] for i in t.tracking]
@@ -440,7 +452,10 @@ def kidnap(
         n, i, f = hit
         assert f.T_world_query is not None
         te, re = pose_errors(f.T_world_query, truth[i])
-        if not (te[0] <= CORRECT_M and re[0] <= CORRECT_DEG):
+        right = bool(te[0] <= CORRECT_M and re[0] <= CORRECT_DEG)
+        if f.mode == "global":
+            scores["right" if right else "wrong"].append(round(float(f.score), 4))
+        if not right:
             false_first += 1
             failures.append(
                 {"scan": i, "reason": f"wrong first fix {te[0]:.2f} m {re[0]:.1f} deg ({f.mode})"}
@@ -454,7 +469,7 @@ def kidnap(
             )
     return {"trials": len(trials), "fixed_within_3": found, "success": found / len(trials),
             "false_first_fixes": false_first, "median_scans_to_fix": float(np.median(first)) if first else None,
-            "failures": failures}  # fmt: skip
+            "global_scores": scores, "failures": failures}  # fmt: skip
 
 
 # -- 3. multi-session -------------------------------------------------------------------------------------------
