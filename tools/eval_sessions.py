@@ -246,7 +246,8 @@ def true_map(
 ) -> Path:
     """Session 1's map at its true poses, of ``keyframes`` when given (built once; reused when ``folder`` holds one
     with the same thresholds and parameters; a map config's and keyframe maps have folders of their own)."""
-    if (folder / "manifest.json").is_file():
+    places = None if keyframes is None else keyframes.model_dump(mode="json")
+    if (folder / "manifest.json").is_file() and MapArtifact.open(folder).places == places:
         held = MapArtifact.open(folder).manifest.pipelines
         sensor = pair.map.sensor.name
         if {p.name: p.threshold for p in held} == map_thresholds(
@@ -279,13 +280,10 @@ def slam_overrides(
 
         loop = load_slam_config(SLAM_CONFIG_KEYFRAMES, sets).loops.pipeline.name
         threshold = PIPELINES[loop].threshold_for(seq.sensor.name)
-        every = "" if keyframes.every_metres is None else f", every_metres: {keyframes.every_metres}"
-        window = (
-            f"seconds: {keyframes.seconds}"
-            if keyframes.seconds is not None
-            else f"metres: {keyframes.metres}"
-        )
-        sets += [f"loops.keyframes={{{window}{every}}}", f"loops.threshold={threshold}"]
+        sets += [
+            f"loops.keyframes={json.dumps(keyframes.model_dump(mode='json'))}",
+            f"loops.threshold={threshold}",
+        ]
     return sets
 
 
