@@ -86,6 +86,7 @@ def test_the_odometry_gate_reaches_both_sessions_configs_and_the_cache_key() -> 
     assert gate["odometry_gate"] is True and "odometry_gate" not in plain
     summary = tool._summary([])
     assert summary["refused_by_gate"] == 0 and summary["false_refused_by_gate"] == 0
+    assert summary["success_by_world"] == {}
 
 
 def test_a_map_config_and_localizer_settings_reach_the_map_the_localizer_and_the_key(tmp_path: Path) -> None:
@@ -126,6 +127,13 @@ def test_a_map_config_and_localizer_settings_reach_the_map_the_localizer_and_the
     assert cell["relocalisation"]["wrong"] == 0 and cell["relocalisation"]["success"] >= 0.75
     assert cell["multisession_truth_map"] is None and tool.cell_line(cell).endswith("| - |")
     assert tool._summary([cell])["max_merged_ate_truth_map"] is None
+    # per world: the overlap of all its cells together (two halves of one world: 3 of 4 and 4 of 4 -> 7 / 8)
+    half = {"world": "w", "seed": 0, "kind": "revisit", "multisession": cell["multisession"], "multisession_truth_map": None,
+            "kidnap": {"trials": 0}}  # fmt: skip
+    cells = [{**half, "relocalisation": {**cell["relocalisation"], "correct_in_overlap": n, "overlap_scans": 4,
+                                         "success": n / 4}} for n in (3, 4)]  # fmt: skip
+    got = tool._summary(cells)
+    assert got["success_by_world"] == {"w": 7 / 8} and got["min_success"] == 0.75
 
 
 def test_a_keyframe_cell_localises_keyframes_and_joins_keyframe_sessions(tmp_path: Path) -> None:

@@ -833,8 +833,14 @@ def _summary(cells: list[dict[str, Any]]) -> dict[str, Any]:
         if c["multisession"]["merged_ate_rmse"] is not None
     ]
     disjoint = [c for c in cells if c["kind"] == "disjoint"]
+    by_world: dict[str, list[int]] = {}
+    for c in over:  # #29's relocalisation target is per world: the overlap of all its cells together
+        got = by_world.setdefault(c["world"], [0, 0])
+        got[0] += c["relocalisation"]["correct_in_overlap"]
+        got[1] += c["relocalisation"]["overlap_scans"]
     return {
         "min_success": min((c["relocalisation"]["success"] for c in over), default=None),
+        "success_by_world": {w: n / total for w, (n, total) in by_world.items()},
         "wrong_fixes": sum(c["relocalisation"]["wrong"] for c in cells),
         "kidnap_success": sum(k["fixed_within_3"] for k in kid) / max(sum(k["trials"] for k in kid), 1),
         "kidnap_false": sum(k["false_first_fixes"] for k in kid),
