@@ -322,10 +322,12 @@ def kidnap_trials(
     for name, v in (("n_trials", n_trials), ("before", before), ("after", after)):
         if int(v) < 1:
             raise ConfigError(f"sim.sessions.kidnap_trials.{name} must be >= 1, got {v}")
-    at = np.arange(len(pair.overlap)) if places is None else np.asarray(places, dtype=np.int64)
-    if at.ndim != 1 or (at.size and (at.min() < 0 or at.max() >= len(pair.overlap) or (np.diff(at) <= 0).any())):
+    n = len(pair.overlap)
+    at = np.arange(n) if places is None else np.asarray(places, dtype=np.int64)
+    inside = at.ndim == 1 and (at.size == 0 or (at[0] >= 0 and at[-1] < n and bool((np.diff(at) > 0).all())))
+    if not inside:
         raise ConfigError(
-            f"sim.sessions.kidnap_trials.places must be increasing indices of the {len(pair.overlap)} query scans"
+            f"sim.sessions.kidnap_trials.places must be increasing indices of the {n} query scans"
         )
     ok = np.asarray(pair.overlap, dtype=np.int64)[at]
     run = np.concatenate([[0], np.cumsum(ok)])
