@@ -247,8 +247,9 @@ def true_map(
     """Session 1's map at its true poses, of ``keyframes`` when given (built once; reused when ``folder`` holds one
     with the same thresholds and parameters; a map config's and keyframe maps have folders of their own)."""
     places = None if keyframes is None else keyframes.model_dump(mode="json")
-    if (folder / "manifest.json").is_file() and MapArtifact.open(folder).places == places:
-        held = MapArtifact.open(folder).manifest.pipelines
+    made = MapArtifact.open(folder) if (folder / "manifest.json").is_file() else None
+    if made is not None and made.places == places:
+        held = made.manifest.pipelines
         sensor = pair.map.sensor.name
         if {p.name: p.threshold for p in held} == map_thresholds(
             pipeline, sensor, map_config
@@ -276,10 +277,7 @@ def slam_overrides(
             f"odometry.source={odometry}", "output.progress=false", "output.figures=false",
             *(["loops.odometry_gate={}"] if gate else [])]  # fmt: skip
     if keyframes is not None:
-        from placerec.slam_app.config import load_slam_config
-
-        loop = load_slam_config(SLAM_CONFIG_KEYFRAMES, sets).loops.pipeline.name
-        threshold = PIPELINES[loop].threshold_for(seq.sensor.name)
+        threshold = PIPELINES[slam_loop_pipeline(keyframes)].threshold_for(seq.sensor.name)
         sets += [
             f"loops.keyframes={json.dumps(keyframes.model_dump(mode='json'))}",
             f"loops.threshold={threshold}",
@@ -634,8 +632,7 @@ def run_cell(
     out["multisession"] = multisession(
         pair, smap, join_pipelines, slam_odometry, odometry_gate, slam_join_sets, keyframes
     )
-    held = {p.name for p in MapArtifact.open(tmap).manifest.pipelines}
-    if slam_loop_pipeline(keyframes) in held:
+    if slam_loop_pipeline(keyframes) in {p.name for p in map_pipelines(pipeline, map_config)}:
         log(
             f"{tag} {kind}: SLAM session 2 against the true-pose map (diagnostic: the join without the map's drift)"
         )
