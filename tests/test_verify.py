@@ -845,3 +845,68 @@ def test_a_candidate_a_gate_rejects_scores_zero_and_ranks_below_an_accepted_one(
     strict = VerifiedParams(top_k=2, score={"min_score": (a.score + b.score) / 2})
     low = {c.match_id: c for c in verify_candidates(scans[13], retrieved, store, strict, query_id=13)}
     assert low[10].accepted and not low[12].accepted and low[12].score == pytest.approx(b.score)
+
+
+def test_an_accepted_pose_is_refined_on_the_match_grid_and_nothing_else_changes(sim_scans, monkeypatch):
+    import importlib
+
+    from placerec.verify import as_source, as_target
+    from placerec.verify.icp import finer_source
+
+    verify_module = importlib.import_module("placerec.verify.verify")
+    seq, scans = sim_scans
+    T_gt = relative_pose(seq.poses[10], seq.poses[13])
+    init = _pose([0.5, -0.5, 2.0], [0.3, -0.2, 0.1]) @ T_gt
+
+    def error_cm(T: np.ndarray) -> float:
+        return float(np.linalg.norm((np.linalg.inv(T_gt) @ T)[:3, 3]) * 100)
+
+    judged = verify_icp(scans[13], scans[10], init=init)
+    params = VerifyParams(refine={"enabled": True})
+    src, tgt = as_source(scans[13], params), as_target(scans[10], params)
+    seen: list[tuple[float, str, float]] = []  # (source voxel, method, gate) of every ICP run
+    real_refine = verify_module.refine
+
+    def refine(source, target, init, icp, *args, **kwargs):
+        seen.append((source.voxel_size, icp.method, icp.max_correspondence_distance))
+        return real_refine(source, target, init, icp, *args, **kwargs)
+
+    monkeypatch.setattr(verify_module, "refine", refine)
+    refined = verify_icp(src, tgt, init=init, params=params)
+    # the judged ICP on the query's 1.5 m grid, then GICP with the query on its 1.0 m grid
+    assert seen[-2:] == [(1.5, "plane", 1.0), (1.0, "gicp", 0.5)]
+    assert judged.accepted and refined.accepted
+    assert error_cm(refined.T_match_query) < 0.5 * error_cm(judged.T_match_query)
+    assert error_cm(refined.T_match_query) < 1.0
+    assert (
+        error_cm(
+            verify_icp(
+                src, tgt, init=init, params=VerifyParams(refine={"enabled": True, "voxel_size": 0.4})
+            ).T_match_query
+        )
+        < 1.0
+    )
+    # the decision and its statistics are the judged ICP's
+    assert (refined.score, refined.fitness, refined.rmse) == (judged.score, judged.fitness, judged.rmse)
+    assert refined.timings_ms["refine"] > 0 and "refine" not in judged.timings_ms
+    fine = src.derived[1.0]
+    assert fine.role == "source" and len(fine) > 1.5 * len(src)
+    verify_icp(src, tgt, init=init, params=params)  # another candidate of the same query
+    assert src.derived[1.0] is fine and finer_source(src, 1.0, params.icp) is fine  # made once
+    assert finer_source(src, 2.0, params.icp) is src  # not finer
+    # never finer than the match's grid
+    seen.clear()
+    verify_icp(src, tgt, init=init, params=VerifyParams(refine={"enabled": True, "voxel_size": 0.1}))
+    assert seen[-1][0] == 0.4
+    with pytest.raises(ScanDataError, match="source"):
+        finer_source(tgt, 0.4, params.icp)
+    # a refinement that moves the pose farther than max_shift is not used
+    capped = verify_icp(src, tgt, init=init, params=VerifyParams(refine={"enabled": True, "max_shift": 1e-9}))
+    np.testing.assert_array_equal(capped.T_match_query, judged.T_match_query)
+    # a rejected candidate is not refined
+    seen.clear()
+    strict = VerifyParams(refine={"enabled": True}, score={"min_score": 1.0})
+    rejected = verify_icp(src, tgt, init=init, params=strict)
+    assert not rejected.accepted and "refine" not in rejected.timings_ms and seen[-1][1] == "plane"
+    with pytest.raises(ConfigError, match="refine.method"):
+        VerifyParams(icp={"backend": "open3d"}, refine={"enabled": True})

@@ -71,7 +71,7 @@ KISS_SLAM_INSTALL = ("kiss-slam==0.0.2", "pillow", "matplotlib")
 #: ``--noise-grid``: (odometry sigma per metre, deg per metre) x (loop sigma m, deg), the GraphParams fields.
 NOISE_GRID = {
     "odometry": [(t, r) for t in (0.02, 0.005, 0.002) for r in (0.1, 0.02)],
-    "loop": [(t, r) for t in (0.1, 0.05) for r in (1.0, 0.3)],
+    "loop": [(t, r) for t in (0.1, 0.05, 0.02) for r in (1.0, 0.3, 0.1)],
 }
 
 

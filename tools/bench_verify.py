@@ -9,7 +9,9 @@ against a fine reference ICP). Needs ``../shared/data/real`` for the KITTI part 
    legacy and tensor point-to-plane: ms per ICP and translation / rotation error.
 2. The whole stage (`verify`, default parameters) with 300 keypoint correspondences, 70 % of them wrong: true
    keypoints are query voxels paired with their ground-truth nearest match voxel (within 0.5 m), wrong ones with a
-   random match voxel (all random for wrong pairs): ms per stage, error, verified score, acceptance.
+   random match voxel (all random for wrong pairs): ms per stage, error, verified score, acceptance; and the
+   accepted pose refined (``refine.enabled``, each setting of `REFINE`, the query made from its 0.4 m voxels as
+   a description keeps it): the refinement's ms and error.
 3. The same with real descriptor matches: Open3D FPFH on 1500 random 0.4 m voxels per scan, mutual nearest
    neighbours, ordered by feature distance; without and with the ISHOT paper's consistency grouping.
 4. ICP alone (`verify_icp`, the Scan Context path) from the true yaw with no translation (wrong pairs: from the
@@ -54,6 +56,13 @@ BACKENDS = {
     "small_gicp gicp 1.5": dict(backend="small_gicp", method="gicp", source_voxel_size=1.5),
     "open3d plane 1.5": dict(backend="open3d", source_voxel_size=1.5),
     "open3d_t plane 1.5": dict(backend="open3d_t", source_voxel_size=1.5),
+}
+
+#: settings of `placerec.verify.params.RefineParams` measured on the accepted poses (method, query voxel m)
+REFINE = {
+    "gicp_0.4": {"method": "gicp", "voxel_size": 0.4},
+    "gicp_1.0": {"method": "gicp", "voxel_size": 1.0},
+    "plane_0.4": {"method": "plane", "voxel_size": 0.4},
 }
 
 
@@ -179,6 +188,20 @@ def run_pairs(name, pairs, rng, reps, mc=True):
             "rmse": v.rmse,
             "residual": v.residual,
         }
+        for (
+            key,
+            setting,
+        ) in REFINE.items():  # the accepted pose refined (the query made from its 0.4 m voxels,
+            # as a description keeps it, so the refinement's ms include making its finer grid the first time)
+            p = VerifyParams(refine={"enabled": True, **setting})
+            v = verify(as_source(q_vox, p), tgt, q_kp, m_kp, params=p)
+            t_err, r_err = pose_error(v.T_match_query, ref)
+            row[f"refined_{key}"] = {
+                "ms": v.timings_ms.get("refine"),
+                "t_err": t_err if v.accepted else None,
+                "r_err": r_err if v.accepted else None,
+                "accepted": v.accepted,
+            }
         yaw_only = np.eye(4)  # Scan Context's guess: the yaw, no translation (wrong pairs: the identity)
         if is_true:
             yaw = np.arctan2(ref[1, 0], ref[0, 0])
@@ -222,6 +245,16 @@ def run_pairs(name, pairs, rng, reps, mc=True):
             )
             + (f" | mapclosures {row['map_closures']['ms']:.1f} ms" if mc else "")
         )
+        if is_true:
+            print(
+                "      refined: "
+                + ", ".join(
+                    f"{m} {row[f'refined_{m}']['ms']:.1f} ms err {row[f'refined_{m}']['t_err']:.4f} m"
+                    f" {row[f'refined_{m}']['r_err']:.3f} deg"
+                    for m in REFINE
+                    if row[f"refined_{m}"]["accepted"]
+                )
+            )
         io = row["icp_only"]
         print(
             f"      icp_only from {'yaw' if is_true else 'identity'}: {io['ms']:.1f} ms, score {io['score']:.2f},"
@@ -343,6 +376,10 @@ def main() -> None:
             k = b.replace(" ", "_").replace(".", "")
             head[f"{name}_{k}_icp_ms"] = summary(gt, b, "icp_ms")
             head[f"{name}_{k}_t_err"] = summary(gt, b, "t_err")
+        for m in REFINE:
+            head[f"{name}_refined_{m}_t_err_median"] = summary(gt, f"refined_{m}", "t_err")
+            head[f"{name}_refined_{m}_r_err_median"] = summary(gt, f"refined_{m}", "r_err")
+            head[f"{name}_refined_{m}_ms_median"] = summary(gt, f"refined_{m}", "ms")
         head[f"{name}_icp_only_yaw_ms_median"] = float(np.median([r["icp_only"]["ms"] for r in gt]))
         head[f"{name}_icp_only_wrong_ms_median"] = (
             float(np.median([r["icp_only"]["ms"] for r in wrong])) if wrong else None

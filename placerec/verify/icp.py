@@ -30,6 +30,7 @@ __all__ = [
     "IcpCloud",
     "IcpResult",
     "coarser_source",
+    "finer_source",
     "prepare_source",
     "prepare_target",
     "prepare_threads",
@@ -53,9 +54,11 @@ class IcpCloud:
     native_tree: Any = None
     tree: Any = None
     prepare_ms: float = 0.0
-    #: clouds made from this one, by voxel size (`coarser_source`): a query's coarse grid is made once however
-    #: many candidates it is verified against
+    #: clouds made from this one, by voxel size (`coarser_source`, `finer_source`): a query's other grids are made
+    #: once however many candidates it is verified against
     derived: dict[float, IcpCloud] = field(default_factory=dict, compare=False, repr=False)
+    #: a source's points before its voxel grid (`finer_source` voxelises them again); None for a target
+    origin: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -141,7 +144,8 @@ def _prepare(points: Any, params: IcpParams, voxel: float, role: str) -> IcpClou
     if role == "target":
         tree = native_tree if native_tree is not None else _small_gicp().KdTree(vox)
     ms = (time.perf_counter() - t0) * 1e3
-    return IcpCloud(vox, role, params.backend, voxel, native, native_tree, tree, ms)
+    origin = p if role == "source" else None
+    return IcpCloud(vox, role, params.backend, voxel, native, native_tree, tree, ms, origin=origin)
 
 
 def prepare_threads(params: IcpParams) -> int:
@@ -171,6 +175,18 @@ def coarser_source(source: IcpCloud, voxel: float | None, params: IcpParams) -> 
     if voxel not in source.derived:
         coarse = _prepare(source.points, params, voxel, "source")
         source.derived[voxel] = coarse if len(coarse) >= params.normal_neighbors else source
+    return source.derived[voxel]
+
+
+def finer_source(source: IcpCloud, voxel: float, params: IcpParams) -> IcpCloud:
+    """``source`` (a prepared query) made again at the finer ``voxel`` from the points it was prepared from, made
+    once and kept on it; ``source`` itself when ``voxel`` is not finer (or it keeps no points of its own)."""
+    if source.role != "source":
+        raise ScanDataError(f"finer_source needs a source cloud, got a {source.role} cloud")
+    if voxel >= source.voxel_size or source.origin is None:
+        return source
+    if voxel not in source.derived:
+        source.derived[voxel] = _prepare(source.origin, params, voxel, "source")
     return source.derived[voxel]
 
 

@@ -12,7 +12,7 @@ from pydantic import Field, model_validator
 
 from placerec.params import Params
 
-__all__ = ["RansacParams", "ConsistencyParams", "IcpParams", "ScoreParams", "VerifyParams"]
+__all__ = ["RansacParams", "ConsistencyParams", "IcpParams", "ScoreParams", "RefineParams", "VerifyParams"]
 
 
 class RansacParams(Params):
@@ -166,6 +166,37 @@ class ScoreParams(Params):
     )
 
 
+class RefineParams(Params):
+    """The pose of an accepted candidate refined for the pose graph or the fix that uses it (``docs/verification.md``,
+    'The accepted pose refined'): one more ICP from the judged pose, the query on the match's grid
+    (``voxel_size``, finer than its ``icp.source_voxel_size``). It runs only after acceptance and changes the pose
+    alone: which candidates are accepted, their scores and statistics are the judged ICP's."""
+
+    enabled: bool = Field(False, description="refine the pose of every accepted candidate")
+    voxel_size: float = Field(
+        1.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="m; the query's voxel grid in the refinement, made once per query from the points its ICP "
+        "grid was made from (not finer than icp.voxel_size: the match's; at least icp.source_voxel_size: the "
+        "query's own grid)",
+    )
+    method: Literal["plane", "gicp"] = Field(
+        "gicp", description="gicp: small_gicp's generalised ICP; plane: point-to-plane, as the judged ICP"
+    )
+    max_correspondence_distance: float = Field(
+        0.5, gt=0, allow_inf_nan=False, description="m; correspondence gate of the refinement"
+    )
+    max_iterations: int = Field(30, ge=1, le=10_000, description="ICP iterations at most")
+    max_shift: float = Field(
+        0.5,
+        gt=0,
+        allow_inf_nan=False,
+        description="m; a refined pose whose translation moved farther than this from the judged one is not "
+        "used (the judged pose is kept)",
+    )
+
+
 class VerifyParams(Params):
     """All parameters of `placerec.verify.verify`."""
 
@@ -175,6 +206,9 @@ class VerifyParams(Params):
     )
     icp: IcpParams = Field(default_factory=IcpParams, description="refinement")
     score: ScoreParams = Field(default_factory=ScoreParams, description="acceptance")
+    refine: RefineParams = Field(
+        default_factory=RefineParams, description="the accepted pose refined on the match's grid"
+    )
     min_correspondences: int = Field(
         3, ge=2, description="fewer correspondences (after grouping) than this: rejected without ICP"
     )
@@ -209,6 +243,8 @@ class VerifyParams(Params):
     def _check(self) -> VerifyParams:
         if self.icp.method == "gicp" and self.icp.backend != "small_gicp":
             raise ValueError("icp.method 'gicp' needs icp.backend 'small_gicp'")
+        if self.refine.enabled and self.refine.method == "gicp" and self.icp.backend != "small_gicp":
+            raise ValueError("refine.method 'gicp' needs icp.backend 'small_gicp'")
         for name in ("icp_only_coarse_distances", "icp_only_fine_distances"):
             if any(not d > 0 for d in getattr(self, name)):
                 raise ValueError(f"{name} must be positive distances")
