@@ -82,3 +82,12 @@ def test_slam_sequence_keeps_an_empty_recognizer():
     assert not rec  # empty
     slam_sequence(cfg, SimulatedSequence("town", "os1-64", n_scans=3, seed=0), rec)
     assert len(rec) == 3
+
+
+def test_the_accepted_closures_pose_errors_are_reported(report):
+    _, rep = report
+    slam = rep["sequences"]["sim-hdl64"]["pipelines"]["orb-hbst"]["slam"]
+    assert slam["loops"] > 0  # scans 2 frames apart close (exclusion 2)
+    med, mx = slam["loop_error_cm"]
+    assert 0 <= med <= mx < 5.0  # refined poses of true closures (configs/slam_kitti.yaml)
+    assert 0 <= slam["loop_error_deg"][0] <= slam["loop_error_deg"][1] < 0.5

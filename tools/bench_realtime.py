@@ -19,7 +19,9 @@ Sequences (``--sequences``):
 For every sequence and pipeline of ``--pipelines`` (orb-hbst, orb-dbow, scan-context) two runs in this process:
 
 * **slam**: `placerec.slam_app.run.slam_sequence` with configs/slam_kitti.yaml (KISS-ICP odometry, the pipeline
-  at ``loops.threshold`` 0.25, Cauchy loop factors, GNC batch; exclusion 100 frames on the simulated sequences);
+  at ``loops.threshold`` 0.25 with its accepted poses refined, Cauchy loop factors, GNC batch; exclusion 100 frames
+  on the simulated sequences); with ground truth also the ATE and each accepted closure's pose error against the
+  true relative pose of its two scans (median / max);
 * **detector**: `placerec.loop_closure.LoopClosureDetector` alone (same pipeline, threshold, exclusion and k) over
   the same scans read and preprocessed beforehand: describe + query + verify + insert.
 
@@ -77,11 +79,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_slam_matrix import KISS_SLAM_VENV, export_sequence, kiss_slam_version, run_kiss_slam  # noqa: E402
 
+from placerec.eval.pose_error import pose_errors  # noqa: E402
 from placerec.eval.trajectory import trajectory_errors  # noqa: E402
 from placerec.experiment.tables import print_rows  # noqa: E402
 from placerec.io import open_sequence  # noqa: E402
 from placerec.io.kitti import write_kitti_bin  # noqa: E402
 from placerec.slam_app.config import SlamConfig, load_slam_config  # noqa: E402
+from placerec.types import relative_pose  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "real"
@@ -348,7 +352,14 @@ def run_slam(src: Source, pipeline: str) -> dict[str, Any]:
     }
     out["loops"] = len(result.loops)
     if src.ground_truth and result.ground_truth is not None:
-        out["ate_m"] = trajectory_errors(result.optimized, result.ground_truth).ate_rmse
+        gt = result.ground_truth
+        out["ate_m"] = trajectory_errors(result.optimized, gt).ate_rmse
+        if result.loops:  # each accepted closure's pose against the true relative pose of its two scans
+            est = np.stack([lp.T_match_query for lp in result.loops])
+            true = np.stack([relative_pose(gt[lp.match_id], gt[lp.query_id]) for lp in result.loops])
+            te, re_deg = pose_errors(est, true)
+            out["loop_error_cm"] = [round(float(np.median(te)) * 100, 2), round(float(te.max()) * 100, 2)]
+            out["loop_error_deg"] = [round(float(np.median(re_deg)), 3), round(float(re_deg.max()), 3)]
     out["poses"] = result.optimized
     return out
 
@@ -679,11 +690,12 @@ def print_report(report: dict[str, Any]) -> None:
                 "-" if "ate_m" not in v["slam"] else f"{v['slam']['ate_m']:.3f}",
                 "-" if kiss is None or kiss["ate_m"] is None else f"{kiss['ate_m']:.3f}",
                 "-" if ater is None else f"{ater:.2f}x",
+                "/".join(f"{x:.2f}" for x in v["slam"].get("loop_error_cm", [])) or "-",
             ])  # fmt: skip
     header = [
         "sequence pipeline", "slam wall ms/scan (mean)", "slam CPU ms/scan (mean)", "detector alone: LC wall ms",
         "LC CPU ms med/p95/max", "LC CPU / odometry CPU", "loops", "KISS-SLAM ms/scan (process wall)",
-        "time placerec / KISS-SLAM", "ATE [m]", "KISS-SLAM ATE [m]", "ATE ratio",
+        "time placerec / KISS-SLAM", "ATE [m]", "KISS-SLAM ATE [m]", "ATE ratio", "loop pose error cm med/max",
     ]  # fmt: skip
     print_rows(header, rows, "summary (LC = describe + query + insert)", show_legend=False)
 
@@ -706,6 +718,7 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
                 },
                 "ate_m": v["slam"].get("ate_m"),
                 "loops": v["slam"]["loops"],
+                **{k: v["slam"][k] for k in ("loop_error_cm", "loop_error_deg") if k in v["slam"]},
             }
         out["sequences"][name] = s
     return out
