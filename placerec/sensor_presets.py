@@ -169,12 +169,19 @@ _ODOMETRY_THRESHOLDS: dict[str, dict[str, float]] = {
 #: 1.00) 0.624 -> 0.847 and 0.562 -> 0.853 (worst cells 0.22 -> 0.65, 0.13 -> 0.76). And the VLP-16's SuperPoint-DBoW
 #: (its best pipeline at precision 1.00 on the test cells): 1286 -> 1497 right closures at the 0.15 the rule picks
 #: either way, none false, recall 0.725 -> 0.841 (worst cell 0.52 -> 0.54) (913 s).
+#: Every accepted closure's pose refined (`verify.refine`, docs/verification.md): on the five sensors' tuning cells
+#: with the gate (`placerec bench configs/benchmark_sensors_tuning.yaml --set 'sensors=[vlp16, hdl32, avia, mid360,
+#: e1r]' --set "pipelines=[{name: orb-dbow, params: {verify: {refine: {enabled: true}}}}, {name: superpoint-dbow,
+#: params: ...}]" --set 'evaluation.odometry_gate={}'`, town seed 0) the same closures, none false, their pose error
+#: (pose truth) 2.3-4.0 -> 0.5-2.6 cm at the median and 5.8-20.6 -> 2.1-5.7 cm / 0.18-1.25 -> 0.10-0.30 deg at the
+#: most, ~10 ms more a keyframe (docs/sensors.md).
 #: What every entry of `_ODOMETRY_PARAMS` verifies with (merged under the entry's own settings).
 _NEAR_PLACES: dict[str, Any] = {
     "verify": {
         "guided": {"enabled": True},
         "icp_only_coarse_voxel_size": 3.0,
         "icp_only_fine_distances": [0.5],
+        "refine": {"enabled": True},
     },
 }
 _ODOMETRY_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
