@@ -62,6 +62,7 @@ BACKENDS = {
 REFINE = {
     "gicp_0.4": {"method": "gicp", "voxel_size": 0.4},
     "gicp_1.0": {"method": "gicp", "voxel_size": 1.0},
+    "gicp_1.5": {"method": "gicp", "voxel_size": 1.5},
     "plane_0.4": {"method": "plane", "voxel_size": 0.4},
 }
 
