@@ -491,8 +491,8 @@ class Verification:
     ``inliers``: RANSAC inliers among all given pairs (with grouping: of the best cluster's pose, refit on them;
     None for ICP-only), ``correspondences``: pairs given. ``fitness``, ``rmse`` (m), ``residual`` (m^2, the eps_ICP
     quantity): ICP statistics (NaN when ICP did not run). ``rejected_at``: the stage that ended it early (``grouping``, ``ransac``) or None.
-    ``timings_ms``: per stage (``prepare``, ``grouping``, ``ransac``, ``icp``, ``total``). ``inlier_mask``: over
-    the given correspondences, those RANSAC kept (None for ICP-only). ``rejection``: why it was rejected, one of
+    ``timings_ms``: per stage (``prepare``, ``grouping``, ``ransac``, ``icp``, ``refine`` when the accepted pose
+    was refined, ``total``). ``inlier_mask``: over the given correspondences, those RANSAC kept (None for ICP-only). ``rejection``: why it was rejected, one of
     `REJECTIONS`' keys (None when accepted). ``constraint``: how well the overlap pins the translation down
     (`placerec.verify.icp.alignment_stats`; NaN unless ``score.min_constraint`` asked for it).
     """

@@ -847,7 +847,7 @@ def test_a_candidate_a_gate_rejects_scores_zero_and_ranks_below_an_accepted_one(
     assert low[10].accepted and not low[12].accepted and low[12].score == pytest.approx(b.score)
 
 
-def test_an_accepted_pose_is_refined_on_the_match_grid_and_nothing_else_changes(sim_scans, monkeypatch):
+def test_an_accepted_pose_is_refined_on_a_finer_query_grid_and_nothing_else_changes(sim_scans, monkeypatch):
     import importlib
 
     from placerec.verify import as_source, as_target

@@ -168,9 +168,9 @@ class ScoreParams(Params):
 
 class RefineParams(Params):
     """The pose of an accepted candidate refined for the pose graph or the fix that uses it (``docs/verification.md``,
-    'The accepted pose refined'): one more ICP from the judged pose, the query on the match's grid
-    (``voxel_size``, finer than its ``icp.source_voxel_size``). It runs only after acceptance and changes the pose
-    alone: which candidates are accepted, their scores and statistics are the judged ICP's."""
+    'The accepted pose refined'): one more ICP from the judged pose, the query on a grid finer than its
+    ``icp.source_voxel_size`` (``voxel_size``). It runs only after acceptance and changes the pose alone: which
+    candidates are accepted, their scores and statistics are the judged ICP's."""
 
     enabled: bool = Field(False, description="refine the pose of every accepted candidate")
     voxel_size: float = Field(
@@ -178,8 +178,8 @@ class RefineParams(Params):
         gt=0,
         allow_inf_nan=False,
         description="m; the query's voxel grid in the refinement, made once per query from the points its ICP "
-        "grid was made from (not finer than icp.voxel_size: the match's; at least icp.source_voxel_size: the "
-        "query's own grid)",
+        "grid was made from; never finer than icp.voxel_size (the match's); from icp.source_voxel_size up, the "
+        "query's own grid is used",
     )
     method: Literal["plane", "gicp"] = Field(
         "gicp", description="gicp: small_gicp's generalised ICP; plane: point-to-plane, as the judged ICP"
@@ -213,7 +213,7 @@ class VerifyParams(Params):
     icp: IcpParams = Field(default_factory=IcpParams, description="refinement")
     score: ScoreParams = Field(default_factory=ScoreParams, description="acceptance")
     refine: RefineParams = Field(
-        default_factory=RefineParams, description="the accepted pose refined on the match's grid"
+        default_factory=RefineParams, description="the accepted pose refined on a finer query grid"
     )
     min_correspondences: int = Field(
         3, ge=2, description="fewer correspondences (after grouping) than this: rejected without ICP"
