@@ -181,7 +181,7 @@ def complete(
         T0 = T0 if step is None else step.T
         floor = params.icp_only_min_coarse_fitness
         if step is not None and floor is not None and not step.fitness >= floor:  # NaN: nothing overlapped
-            _icp_time(timings, coarse_ms)
+            _stage_time(timings, "icp", coarse_ms)
             return replace(
                 hypothesis.rejected("coarse_fitness"),
                 T_match_query=step.T,
@@ -200,7 +200,7 @@ def complete(
             source, target, icp.T, params.icp_only_fine_distances, params, measure_constraint
         )
         icp, icp_ms = icp if fine is None else fine, icp_ms + fine_ms
-    _icp_time(timings, icp_ms)
+    _stage_time(timings, "icp", icp_ms)
     score = verified_score(hypothesis.inliers, icp.fitness, icp.rmse, sp)
     why = rejection(score, icp.residual, sp, icp.fitness, icp.constraint, float(np.linalg.norm(icp.T[:3, 3])))
     T = icp.T
@@ -241,8 +241,7 @@ def _refined(
         }
     )
     out = refine(fine, target, T, icp, params.score.fitness_distance).T
-    timings["refine"] = (time.perf_counter() - t0) * 1e3
-    timings["total"] = sum(v for k, v in timings.items() if k != "total")
+    _stage_time(timings, "refine", (time.perf_counter() - t0) * 1e3)
     moved = float(np.linalg.norm(out[:3, 3] - T[:3, 3]))
     return out if np.isfinite(out).all() and moved <= rp.max_shift else T
 
@@ -266,9 +265,9 @@ def _gated(
     return step, ms
 
 
-def _icp_time(timings: dict[str, float], icp_ms: float) -> None:
-    """Record the ICP's milliseconds in ``timings`` and their new total (every stage but the total itself)."""
-    timings["icp"] = icp_ms
+def _stage_time(timings: dict[str, float], stage: str, ms: float) -> None:
+    """Record ``stage``'s milliseconds in ``timings`` and their new total (every stage but the total itself)."""
+    timings[stage] = ms
     timings["total"] = sum(v for k, v in timings.items() if k != "total")
 
 
