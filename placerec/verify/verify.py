@@ -227,8 +227,17 @@ def complete(
 def _refined(
     source: IcpCloud, target: IcpCloud, T: np.ndarray, params: VerifyParams, timings: dict[str, float]
 ) -> np.ndarray:
-    """The accepted pose ``T`` refined (`RefineParams`): ICP of the query on its finer grid from ``T``; ``T``
-    itself when the refinement's translation moved farther than ``refine.max_shift`` or is not finite. Its
+    """The accepted pose ``T`` refined (`RefineParams`): `_refinement`'s pose; ``T`` itself when that moved
+    farther than ``refine.max_shift`` or is not finite."""
+    out = _refinement(source, target, T, params, timings)
+    moved = float(np.linalg.norm(out[:3, 3] - T[:3, 3]))
+    return out if np.isfinite(out).all() and moved <= params.refine.max_shift else T
+
+
+def _refinement(
+    source: IcpCloud, target: IcpCloud, T: np.ndarray, params: VerifyParams, timings: dict[str, float]
+) -> np.ndarray:
+    """ICP of the query on its finer grid (``refine.voxel_size``) from ``T``: the pose it ends at. Its
     milliseconds (the query's finer grid made the first time included) go to ``timings["refine"]``."""
     rp = params.refine
     t0 = time.perf_counter()
@@ -242,8 +251,7 @@ def _refined(
     )
     out = refine(fine, target, T, icp, params.score.fitness_distance).T
     _stage_time(timings, "refine", (time.perf_counter() - t0) * 1e3)
-    moved = float(np.linalg.norm(out[:3, 3] - T[:3, 3]))
-    return out if np.isfinite(out).all() and moved <= rp.max_shift else T
+    return out
 
 
 def _gated(
