@@ -55,7 +55,7 @@ def test_every_refinement_is_seen_with_its_judged_refined_and_used_pose(monkeypa
     assert len(log) == 2
 
 
-def test_right_places_are_judged_by_the_judged_pose_and_kept_out_refinements_counted():
+def test_right_places_are_judged_by_the_judged_pose_and_kept_out_refinements_counted(tmp_path):
     tool = _tool()
     true = np.eye(4)
     rows = [
@@ -68,12 +68,20 @@ def test_right_places_are_judged_by_the_judged_pose_and_kept_out_refinements_cou
         # not a right place: judged 10 m off
         tool.Watched("c", _moved([10, 0, 0]), _moved([10.3, 0, 0]), _moved([10.3, 0, 0])),
     ]
-    out = tool.summary([{"sensor": "avia", "watched": w, "true": true} for w in rows], 0.5, 2.0)
+    rows = [
+        {"cell": "c", "sensor": "avia", "query": 20 + i, "match": i, "watched": w, "true": true}
+        for i, w in enumerate(rows)
+    ]
+    out = tool.summary(rows, 0.5, 2.0)
     s = out["avia"]
     assert s["right"] == 3 and s["other"] == 1 and s["kept_out"] == 1 and s["worse_by_5cm"] == 1
     assert s["shift_max"] == pytest.approx(0.6) and s["judged_t_max"] == pytest.approx(0.2)
     assert s["used_t_max"] == pytest.approx(0.2) and s["other_shift_median"] == pytest.approx(0.3)
     assert out["all"] == s
+    tool.write_closures(tmp_path / "closures.csv", rows)
+    lines = (tmp_path / "closures.csv").read_text().splitlines()
+    assert len(lines) == 5 and lines[0].startswith("cell,query,match,judged_m")
+    assert lines[2] == "c,21,1,0.2000,0.000,0.8000,0.000,0.2000,0.000,0.6000"
 
 
 def test_test_data_is_refused():

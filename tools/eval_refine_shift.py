@@ -94,7 +94,9 @@ def matched(root: Path, bench: Any, log: list[Watched]) -> list[dict[str, Any]]:
                 w = mine[int(d.argmin())]
                 q, m = int(table.query_ids[qi]), int(table.match_ids[qi, ri])
                 true = np.linalg.inv(poses[m]) @ poses[q]
-                rows.append({"cell": c.name, "sensor": c.sensor, "watched": w, "true": true})
+                rows.append(
+                    {"cell": c.name, "sensor": c.sensor, "query": q, "match": m, "watched": w, "true": true}
+                )
     return rows
 
 
@@ -131,11 +133,27 @@ def summary(rows: list[dict[str, Any]], max_t: float, max_r: float) -> dict[str,
     return out
 
 
+def write_closures(path: Path, rows: list[dict[str, Any]]) -> None:
+    """One line a matched closure: its cell, query and match, the judged / refined / used pose's errors (m, deg)
+    against the truth and the refinement's shift (m)."""
+    lines = ["cell,query,match,judged_m,judged_deg,refined_m,refined_deg,used_m,used_deg,shift_m"]
+    for r in rows:
+        w = r["watched"]
+        errs = [pose_errors(T, r["true"]) for T in (w.judged, w.refined, w.used)]
+        shift = np.linalg.norm(w.refined[:3, 3] - w.judged[:3, 3])
+        values = [f"{float(e[0][0]):.4f},{float(e[1][0]):.3f}" for e in errs]
+        lines.append(f"{r['cell']},{r['query']},{r['match']},{','.join(values)},{shift:.4f}")
+    path.write_text("\n".join(lines) + "\n")
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("config", help="a placerec bench config of the tuning split")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override")
     ap.add_argument("--out", default="runs/refine_shift", help="the benchmark folder (run afresh)")
+    ap.add_argument(
+        "--closures", metavar="CSV", help="also write each matched closure's errors and shift here"
+    )
     a = ap.parse_args(argv)
     bench = load_benchmark_config(a.config, a.set)
     if bench.split != "tuning":  # a tuning config refuses test seeds itself
@@ -147,7 +165,10 @@ def main(argv: list[str] | None = None) -> dict:
     watch(log)
     root, _ = run_benchmark(bench, a.out, fresh=True)
     pt = bench.evaluation.pose_truth
-    result = summary(matched(Path(root), bench, log), pt.max_translation, pt.max_rotation_deg)
+    rows = matched(Path(root), bench, log)
+    result = summary(rows, pt.max_translation, pt.max_rotation_deg)
+    if a.closures:
+        write_closures(Path(a.closures), rows)
     print(
         f"{'sensor':8} {'right':>5} {'judged m med/max':>17} {'used m med/max':>15} {'worse>5cm':>9} "
         f"{'shift m med/p99/max':>20} {'kept out':>8} {'other':>5} {'other shift':>11}"
