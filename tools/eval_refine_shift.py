@@ -7,9 +7,11 @@ refinement and judged against the true relative pose: a *right place* is one who
 truth's bounds (``evaluation.pose_truth``: 0.5 m / 2 deg). Per sensor it prints, for the right places, the judged
 and the used pose's error and how far the refinement moved (the shift ``max_shift`` caps), and the refinements
 ``max_shift`` kept out; the same shift for the accepted candidates that are not right places. That distribution
-is what ``max_shift`` is chosen on (docs/verification.md, 'The accepted pose refined').
+is what ``max_shift`` is chosen on (docs/verification.md, 'How far a refinement may move the pose'); ``--closures``
+lists each closure.
 
-Refuses a test-split config (a tuning config refuses test seeds itself): a default is never chosen on test data (docs/protocol.md).
+Refuses a test-split config (a tuning config refuses test seeds itself): a default is never chosen on test data
+(docs/protocol.md).
 
     .venv/bin/python tools/eval_refine_shift.py configs/benchmark_sensors_tuning.yaml \\
         --set 'sensors=[vlp16, hdl32, avia, mid360, e1r]' --set 'pipelines=[{name: orb-dbow}]' \\
@@ -164,6 +166,10 @@ def main(argv: list[str] | None = None) -> dict:
     log: list[Watched] = []
     watch(log)
     root, _ = run_benchmark(bench, a.out, fresh=True)
+    if not log:
+        raise ConfigError(
+            f"{a.config}: no accepted closure was refined; the pipelines need verify.refine.enabled"
+        )
     pt = bench.evaluation.pose_truth
     rows = matched(Path(root), bench, log)
     result = summary(rows, pt.max_translation, pt.max_rotation_deg)
