@@ -90,3 +90,19 @@ def test_test_data_is_refused():
         tool.main(["configs/benchmark_sensors.yaml"])
     with pytest.raises(ConfigError, match="test-split seed"):
         tool.main(["configs/benchmark_sensors_tuning.yaml", "--set", "seeds=[4601]"])
+
+
+def test_a_run_that_refined_nothing_is_an_error(monkeypatch, tmp_path):
+    tool = _tool()
+    verify_module = importlib.import_module("placerec.verify.verify")
+    for module, name in (
+        (verify_module, "_refinement"),
+        (verify_module, "_refined"),
+        (benchmark, "run_cell"),
+    ):
+        monkeypatch.setattr(module, name, getattr(module, name))  # put back after the test
+    monkeypatch.setattr(
+        tool, "run_benchmark", lambda *args, **kwargs: (tmp_path, {})
+    )  # a run with no refinement
+    with pytest.raises(ConfigError, match="no accepted closure was refined"):
+        tool.main(["configs/benchmark_sensors_tuning.yaml", "--out", str(tmp_path)])
