@@ -19,22 +19,27 @@ def _tool():
     return load_tool("eval_refine_shift")
 
 
-def _moved(t) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, 3] = t
-    return T
-
-
-def test_every_refinement_is_seen_with_its_judged_refined_and_used_pose(monkeypatch):
-    from placerec.sim import SimulatedSequence
-
+@pytest.fixture
+def restored(monkeypatch):
+    """The functions `watch` replaces, put back after the test."""
     verify_module = importlib.import_module("placerec.verify.verify")
     for module, name in (
         (verify_module, "_refinement"),
         (verify_module, "_refined"),
         (benchmark, "run_cell"),
     ):
-        monkeypatch.setattr(module, name, getattr(module, name))  # put back after the test
+        monkeypatch.setattr(module, name, getattr(module, name))
+
+
+def _moved(t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = t
+    return T
+
+
+def test_every_refinement_is_seen_with_its_judged_refined_and_used_pose(restored):
+    from placerec.sim import SimulatedSequence
+
     seq = SimulatedSequence("town", "os1-64", seed=0, n_scans=14)
     T_gt = relative_pose(seq.poses[10], seq.poses[13])
     init = _moved([0.3, -0.2, 0.1]) @ T_gt
@@ -92,15 +97,8 @@ def test_test_data_is_refused():
         tool.main(["configs/benchmark_sensors_tuning.yaml", "--set", "seeds=[4601]"])
 
 
-def test_a_run_that_refined_nothing_is_an_error(monkeypatch, tmp_path):
+def test_a_run_that_refined_nothing_is_an_error(restored, monkeypatch, tmp_path):
     tool = _tool()
-    verify_module = importlib.import_module("placerec.verify.verify")
-    for module, name in (
-        (verify_module, "_refinement"),
-        (verify_module, "_refined"),
-        (benchmark, "run_cell"),
-    ):
-        monkeypatch.setattr(module, name, getattr(module, name))  # put back after the test
     monkeypatch.setattr(
         tool, "run_benchmark", lambda *args, **kwargs: (tmp_path, {})
     )  # a run with no refinement
