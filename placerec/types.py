@@ -486,13 +486,15 @@ def relative_pose(T_world_match: np.ndarray, T_world_query: np.ndarray) -> np.nd
 class Verification:
     """The outcome of verifying one candidate.
 
-    ``T_match_query``: 4x4 (the ICP result; the RANSAC pose, or the initial guess, when rejected before ICP).
+    ``T_match_query``: 4x4 (the ICP result, refined when accepted with ``refine.enabled``; the RANSAC pose, or the
+    initial guess, when rejected before ICP).
     ``score`` in [0, 1] (0 when rejected before ICP), ``accepted`` by ``params.score.acceptance``.
     ``inliers``: RANSAC inliers among all given pairs (with grouping: of the best cluster's pose, refit on them;
     None for ICP-only), ``correspondences``: pairs given. ``fitness``, ``rmse`` (m), ``residual`` (m^2, the eps_ICP
-    quantity): ICP statistics (NaN when ICP did not run). ``rejected_at``: the stage that ended it early (``grouping``, ``ransac``) or None.
-    ``timings_ms``: per stage (``prepare``, ``grouping``, ``ransac``, ``icp``, ``refine`` when the accepted pose
-    was refined, ``total``). ``inlier_mask``: over the given correspondences, those RANSAC kept (None for ICP-only). ``rejection``: why it was rejected, one of
+    quantity): ICP statistics of the judged pose (NaN when ICP did not run). ``rejected_at``: the stage that ended
+    it early (``grouping``, ``ransac``) or None. ``timings_ms``: per stage (``prepare``, ``grouping``, ``ransac``,
+    ``icp``, ``refine`` when the accepted pose was refined, ``total``). ``inlier_mask``: over the given
+    correspondences, those RANSAC kept (None for ICP-only). ``rejection``: why it was rejected, one of
     `REJECTIONS`' keys (None when accepted). ``constraint``: how well the overlap pins the translation down
     (`placerec.verify.icp.alignment_stats`; NaN unless ``score.min_constraint`` asked for it).
     """
